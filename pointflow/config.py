@@ -1,0 +1,409 @@
+"""Pipeline configuration: YAML → typed, validated dataclasses.
+
+Every error names the key path (``render.size[0]``) and what was expected, and is
+raised at load time, before any process starts. Transport options are validated by
+the transport's own ``options_schema`` (see :mod:`pointflow.ingest.transports`).
+"""
+from __future__ import annotations
+
+import dataclasses
+import os
+import secrets
+import tempfile
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal, Optional, Union
+
+import yaml
+
+
+class ConfigError(ValueError):
+    """A configuration value is wrong; ``path`` is the dotted key path."""
+
+    def __init__(self, path: str, message: str):
+        super().__init__(f"{path or '<root>'}: {message}" if path else message)
+        self.path = path
+
+
+def _positive(v, path):
+    if v <= 0:
+        raise ConfigError(path, f"must be > 0, got {v!r}")
+
+
+def _non_negative(v, path):
+    if v < 0:
+        raise ConfigError(path, f"must be >= 0, got {v!r}")
+
+
+def _at_least_one(v, path):
+    if v < 1:
+        raise ConfigError(path, f"must be >= 1, got {v!r}")
+
+
+def _endpoint(v, path):
+    if v is None:
+        return
+    if not any(v.startswith(p) for p in ("ipc://", "tcp://", "inproc://")):
+        raise ConfigError(path, f"must be a ZeroMQ endpoint (ipc://, tcp://), got {v!r}")
+
+
+def check(fn):
+    """Field metadata: a validator called with (value, path)."""
+    return {"check": fn}
+
+
+# --------------------------------------------------------------------------- sections
+@dataclass
+class SourceConfig:
+    """One source process. ``transport`` is a built-in name, an entry-point name from the
+    ``pointflow.transports`` group, or ``package.module:Class``."""
+
+    transport: str
+    name: str = ""
+    options: dict[str, Any] = field(default_factory=dict)
+    #: True when the source runs elsewhere (``pointflow source``) and only connects in.
+    external: bool = False
+
+
+@dataclass
+class RingConfig:
+    max_points: int = field(default=1_000_000, metadata=check(_at_least_one))
+    eviction: Literal["drop_oldest", "drop_newest", "importance"] = "drop_oldest"
+    #: A channel name, ``auto`` (intensity if present, else the first channel), or none.
+    importance_field: Optional[str] = None
+    max_staleness_ms: float = field(default=0.0, metadata=check(_non_negative))
+    classification_weights: Optional[dict[int, float]] = None
+    #: Extra channels to keep beyond those the render config uses.
+    extra_channels: list[str] = field(default_factory=list)
+
+
+@dataclass
+class IngestConfig:
+    max_chunk_points: int = field(default=5_000_000, metadata=check(_at_least_one))
+    coalesce_points: int = field(default=20_000, metadata=check(_at_least_one))
+    queue_max_batches: int = field(default=64, metadata=check(_at_least_one))
+    receive_hwm: int = field(default=256, metadata=check(_at_least_one))
+    adaptive_thinning: bool = False
+
+
+@dataclass
+class PolicyConfig:
+    tier: Literal["auto", "L", "M", "H"] = "auto"
+    mode: Literal["eco", "balanced", "max_throughput", "custom"] = "balanced"
+    point_budget_cap: Optional[int] = field(default=None, metadata=check(lambda v, p: v is None or _at_least_one(v, p)))
+    update_cadence_min_ms: Optional[float] = field(default=None, metadata=check(lambda v, p: v is None or _non_negative(v, p)))
+    legacy: bool = False
+    #: The view cap: budget <= this multiple of the viewport's pixel count.
+    points_per_pixel: float = field(default=4.0, metadata=check(_positive))
+
+
+@dataclass
+class CadenceConfig:
+    target_hz: float = field(default=60.0, metadata=check(_positive))
+    adaptive: bool = False
+
+
+@dataclass
+class CameraConfig:
+    """``position``/``target`` in world coordinates; ``auto`` frames the ring's contents."""
+
+    mode: Literal["auto", "fixed", "orbit"] = "auto"
+    position: Optional[list[float]] = None
+    target: Optional[list[float]] = None
+    up: list[float] = field(default_factory=lambda: [0.0, 0.0, 1.0])
+    fov_deg: float = field(default=60.0, metadata=check(lambda v, p: (0 < v < 180) or (_ for _ in ()).throw(ConfigError(p, f"must be in (0, 180), got {v!r}"))))
+    near: float = field(default=0.1, metadata=check(_positive))
+    far: float = field(default=10_000.0, metadata=check(_positive))
+    #: Degrees per second the auto/orbit camera turns around the scene (0 = still).
+    orbit_deg_per_s: float = 0.0
+    #: Elevation of the auto camera above the horizontal, degrees.
+    elevation_deg: float = 35.0
+
+
+@dataclass
+class OutputConfig:
+    dir: Optional[str] = "out"
+    every_n_frames: int = field(default=30, metadata=check(_at_least_one))
+    #: Keep at most this many PNG files (oldest removed); 0 = all.
+    keep_last: int = field(default=0, metadata=check(_non_negative))
+
+
+@dataclass
+class RenderConfig:
+    backend: Literal["auto", "wgpu", "gl", "cpu"] = "auto"
+    size: list[int] = field(default_factory=lambda: [1280, 720])
+    color_by: Optional[str] = "intensity"
+    colormap: Literal["turbo", "viridis", "grayscale"] = "turbo"
+    #: ``auto`` or ``[lo, hi]``.
+    color_range: Union[Literal["auto"], list[float]] = "auto"
+    color: list[float] = field(default_factory=lambda: [1.0, 1.0, 1.0])
+    background: list[float] = field(default_factory=lambda: [0.02, 0.02, 0.05])
+    point_size: float = field(default=2.0, metadata=check(_positive))
+    point_size_space: Literal["screen", "world"] = "screen"
+    point_shape: Literal["square", "round"] = "square"
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    time_window_ms: float = field(default=0.0, metadata=check(_non_negative))
+    lod_stride: int = field(default=1, metadata=check(_at_least_one))
+    importance_sampling: bool = False
+    power_preference: Literal["high-performance", "low-power"] = "high-performance"
+    output: OutputConfig = field(default_factory=OutputConfig)
+    window: bool = False
+    pick_radius: int = field(default=8, metadata=check(_non_negative))
+    pick_strategy: Literal["nearest", "highest_importance", "recent_first"] = "nearest"
+    #: Below this many points ``auto`` uses the cpu tier; ``auto`` reads the measured value.
+    cpu_crossover_points: Union[Literal["auto"], int] = "auto"
+    gpu_timestamps: bool = True
+
+
+@dataclass
+class EndpointsConfig:
+    """ZeroMQ endpoints of the links between stages; ``None`` = ``ipc://`` in the run dir."""
+
+    ingest: Optional[str] = field(default=None, metadata=check(_endpoint))
+    frames: Optional[str] = field(default=None, metadata=check(_endpoint))
+    release: Optional[str] = field(default=None, metadata=check(_endpoint))
+    control: Optional[str] = field(default=None, metadata=check(_endpoint))
+    trace: Optional[str] = field(default=None, metadata=check(_endpoint))
+
+
+@dataclass
+class TracingConfig:
+    enabled: bool = True
+    #: Spans are sent in batches of this many (or every flush interval).
+    batch: int = field(default=256, metadata=check(_at_least_one))
+    flush_ms: float = field(default=100.0, metadata=check(_positive))
+
+
+@dataclass
+class SupervisorConfig:
+    heartbeat_ms: float = field(default=200.0, metadata=check(_positive))
+    #: A stage silent for this long is considered hung.
+    hung_after_ms: float = field(default=1000.0, metadata=check(_positive))
+    max_restarts: int = field(default=3, metadata=check(_non_negative))
+    restart_backoff_ms: float = field(default=200.0, metadata=check(_non_negative))
+
+
+@dataclass
+class PipelineConfig:
+    sources: list[SourceConfig]
+    name: str = "pointflow"
+    ring: RingConfig = field(default_factory=RingConfig)
+    ingest: IngestConfig = field(default_factory=IngestConfig)
+    cadence: CadenceConfig = field(default_factory=CadenceConfig)
+    policy: PolicyConfig = field(default_factory=PolicyConfig)
+    render: RenderConfig = field(default_factory=RenderConfig)
+    endpoints: EndpointsConfig = field(default_factory=EndpointsConfig)
+    tracing: TracingConfig = field(default_factory=TracingConfig)
+    supervisor: SupervisorConfig = field(default_factory=SupervisorConfig)
+    #: Where the YAML came from (for relative paths in options); not a YAML key.
+    base_dir: str = field(default=".", metadata={"internal": True})
+
+    # ------------------------------------------------------------------ derived
+    def ring_channels(self) -> list[str]:
+        """Only the channels this pipeline uses (render colour, importance, extras)."""
+        names: list[str] = []
+        cb = self.render.color_by
+        if cb and cb not in ("z", "height", "none", "ingest_time"):
+            names.append(cb)
+        imp = self.ring.importance_field
+        if imp and imp != "auto" and imp not in names:
+            names.append(imp)
+        if self.ring.classification_weights and "classification" not in names:
+            names.append("classification")
+        for c in self.ring.extra_channels:
+            if c not in names:
+                names.append(c)
+        return names
+
+    def resolved_endpoints(self, run_dir: str) -> EndpointsConfig:
+        e = self.endpoints
+        d = lambda n: f"ipc://{os.path.join(run_dir, n)}.sock"
+        return EndpointsConfig(
+            ingest=e.ingest or d("ingest"), frames=e.frames or d("frames"),
+            release=e.release or d("release"), control=e.control or d("control"),
+            trace=e.trace or d("trace"),
+        )
+
+    def to_dict(self) -> dict:
+        d = dataclasses.asdict(self)
+        d.pop("base_dir", None)
+        return d
+
+
+# --------------------------------------------------------------------------- loader
+def _type_name(tp) -> str:
+    origin = typing.get_origin(tp)
+    if origin is Literal:
+        return " | ".join(repr(a) for a in typing.get_args(tp))
+    if origin in (Union, types.UnionType):
+        return " or ".join(_type_name(a) for a in typing.get_args(tp))
+    if origin is list:
+        return f"list of {_type_name(typing.get_args(tp)[0])}"
+    if origin is dict:
+        k, v = typing.get_args(tp)
+        return f"mapping of {_type_name(k)} to {_type_name(v)}"
+    if tp is type(None):
+        return "null"
+    return getattr(tp, "__name__", str(tp))
+
+
+def _convert(value: Any, tp: Any, path: str) -> Any:
+    origin = typing.get_origin(tp)
+    if tp is Any:
+        return value
+    if origin in (Union, types.UnionType):
+        errors = []
+        for alt in typing.get_args(tp):
+            try:
+                return _convert(value, alt, path)
+            except ConfigError as exc:
+                errors.append(exc)
+        raise ConfigError(path, f"expected {_type_name(tp)}, got {value!r}")
+    if origin is Literal:
+        choices = typing.get_args(tp)
+        if value not in choices:
+            raise ConfigError(path, f"must be one of {', '.join(map(str, choices))}; got {value!r}")
+        return value
+    if tp is type(None):
+        if value is not None:
+            raise ConfigError(path, f"expected null, got {value!r}")
+        return None
+    if dataclasses.is_dataclass(tp):
+        return _load_dataclass(tp, value, path)
+    if origin is list:
+        if not isinstance(value, list):
+            raise ConfigError(path, f"expected a list, got {type(value).__name__} {value!r}")
+        (item,) = typing.get_args(tp)
+        return [_convert(v, item, f"{path}[{i}]") for i, v in enumerate(value)]
+    if origin is dict:
+        if not isinstance(value, dict):
+            raise ConfigError(path, f"expected a mapping, got {type(value).__name__} {value!r}")
+        kt, vt = typing.get_args(tp)
+        return {_convert(k, kt, f"{path}.{k}"): _convert(v, vt, f"{path}.{k}") for k, v in value.items()}
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(path, f"expected true or false, got {value!r}")
+        return value
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(path, f"expected an integer, got {type(value).__name__} {value!r}")
+        return value
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(path, f"expected a number, got {type(value).__name__} {value!r}")
+        if value != value or value in (float("inf"), float("-inf")):
+            raise ConfigError(path, f"must be finite, got {value!r}")
+        return float(value)
+    if tp is str:
+        if not isinstance(value, str):
+            raise ConfigError(path, f"expected a string, got {type(value).__name__} {value!r}")
+        return value
+    raise ConfigError(path, f"unsupported type {tp!r}")  # pragma: no cover
+
+
+def _load_dataclass(cls, data: Any, path: str):
+    if not isinstance(data, dict):
+        raise ConfigError(path, f"expected a mapping, got {type(data).__name__} {data!r}")
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls) if not f.metadata.get("internal")}
+    unknown = [k for k in data if k not in fields]
+    if unknown:
+        key = unknown[0]
+        raise ConfigError(_join(path, str(key)), f"unknown key; expected one of {', '.join(fields)}")
+    kwargs = {}
+    for name, f in fields.items():
+        p = _join(path, name)
+        if name in data:
+            kwargs[name] = _convert(data[name], hints[name], p)
+            fn = f.metadata.get("check")
+            if fn is not None and kwargs[name] is not None:
+                fn(kwargs[name], p)
+        elif f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
+            raise ConfigError(p, "required key is missing")
+    return cls(**kwargs)
+
+
+def _join(path: str, key: str) -> str:
+    return f"{path}.{key}" if path else key
+
+
+def _check_semantics(cfg: PipelineConfig) -> None:
+    r = cfg.render
+    if len(r.size) != 2 or any(v < 1 or v > 16384 for v in r.size):
+        raise ConfigError("render.size", f"must be [width, height] with each in 1..16384, got {r.size!r}")
+    for key in ("color", "background"):
+        v = getattr(r, key)
+        if len(v) not in (3, 4) or any(not 0.0 <= c <= 1.0 for c in v):
+            raise ConfigError(f"render.{key}", f"must be 3 or 4 numbers in [0, 1], got {v!r}")
+    if isinstance(r.color_range, list) and (len(r.color_range) != 2 or not r.color_range[0] < r.color_range[1]):
+        raise ConfigError("render.color_range", f"must be 'auto' or [lo, hi] with lo < hi, got {r.color_range!r}")
+    if isinstance(r.cpu_crossover_points, int) and r.cpu_crossover_points < 0:
+        raise ConfigError("render.cpu_crossover_points", "must be >= 0 or 'auto'")
+    c = r.camera
+    if c.near >= c.far:
+        raise ConfigError("render.camera.near", f"must be less than camera.far ({c.far}), got {c.near}")
+    for key in ("position", "target", "up"):
+        v = getattr(c, key)
+        if v is not None and len(v) != 3:
+            raise ConfigError(f"render.camera.{key}", f"must be [x, y, z], got {v!r}")
+    if c.mode == "fixed" and (c.position is None or c.target is None):
+        raise ConfigError("render.camera.position", "camera.mode fixed needs position and target")
+    if not cfg.sources:
+        raise ConfigError("sources", "at least one source is required")
+    if cfg.ring.eviction == "importance" and not cfg.ring.importance_field and not cfg.ring.classification_weights:
+        cfg.ring.importance_field = "auto"
+    from .ingest.transports import resolve_transport  # late: transports import config
+
+    seen = set()
+    for i, s in enumerate(cfg.sources):
+        p = f"sources[{i}]"
+        if not s.name:
+            s.name = f"source{i}" if len(cfg.sources) > 1 else "source"
+        if s.name in seen:
+            raise ConfigError(f"{p}.name", f"duplicate source name {s.name!r}")
+        seen.add(s.name)
+        try:
+            tcls = resolve_transport(s.transport)
+        except ConfigError as exc:
+            raise ConfigError(f"{p}.transport", str(exc)) from None
+        s.options = tcls.validate_options(s.options, f"{p}.options", base_dir=cfg.base_dir)
+
+
+def load_config(data: dict | str | os.PathLike, *, base_dir: str | None = None) -> PipelineConfig:
+    """Load from a dict, a YAML file path. ``source:`` (one) and ``sources:`` (list) both work."""
+    if isinstance(data, (str, os.PathLike)):
+        path = Path(data)
+        try:
+            text = path.read_text()
+        except OSError as exc:
+            raise ConfigError("", f"cannot read config file {path}: {exc.strerror}") from None
+        try:
+            data = yaml.safe_load(text)
+        except yaml.YAMLError as exc:
+            raise ConfigError("", f"{path}: invalid YAML: {exc}") from None
+        base_dir = base_dir or str(path.resolve().parent)
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise ConfigError("", f"top level must be a mapping, got {type(data).__name__}")
+    data = dict(data)
+    if "source" in data:
+        if "sources" in data:
+            raise ConfigError("source", "give either 'source' or 'sources', not both")
+        data["sources"] = [data.pop("source")]
+    if "sources" not in data:
+        raise ConfigError("sources", "required key is missing (a 'source:' mapping or a 'sources:' list)")
+    cfg = _load_dataclass(PipelineConfig, data, "")
+    cfg.base_dir = base_dir or os.getcwd()
+    _check_semantics(cfg)
+    return cfg
+
+
+def new_run_dir() -> str:
+    """A private directory for ipc:// sockets (owner-only)."""
+    root = os.environ.get("XDG_RUNTIME_DIR") or tempfile.gettempdir()
+    d = os.path.join(root, f"pointflow-{os.getpid()}-{secrets.token_hex(4)}")
+    os.makedirs(d, mode=0o700)
+    return d

@@ -1,0 +1,65 @@
+"""Transport adapters: built-ins, the ``pointflow.transports`` entry-point group and
+``package.module:Class`` plugins, resolved by :func:`resolve_transport`."""
+from __future__ import annotations
+
+import importlib
+from importlib import metadata
+
+from ...config import ConfigError
+from .base import NoOptions, Transport
+
+#: Built-in transports: name -> "module:Class" (imported lazily).
+BUILTINS: dict[str, str] = {
+    "synthetic": "pointflow.ingest.transports.synthetic:SyntheticTransport",
+    "zmq": "pointflow.ingest.transports.zmq_transport:ZmqTransport",
+    "websocket": "pointflow.ingest.transports.websocket:WebSocketTransport",
+    "sse": "pointflow.ingest.transports.sse:SseTransport",
+    "file": "pointflow.ingest.transports.file:FileTransport",
+}
+
+ENTRY_POINT_GROUP = "pointflow.transports"
+
+
+def _load_target(target: str, what: str) -> type[Transport]:
+    mod_name, _, attr = target.partition(":")
+    try:
+        mod = importlib.import_module(mod_name)
+    except Exception as exc:  # noqa: BLE001 - a plugin can fail in any way
+        raise ConfigError("", f"transport plugin {what} failed to import module {mod_name!r}: {type(exc).__name__}: {exc}") from None
+    try:
+        cls = getattr(mod, attr) if attr else None
+    except AttributeError:
+        cls = None
+    if cls is None:
+        raise ConfigError("", f"transport plugin {what}: module {mod_name!r} has no attribute {attr!r}")
+    if not (isinstance(cls, type) and issubclass(cls, Transport)):
+        raise ConfigError("", f"transport plugin {what}: {target} is not a pointflow Transport subclass")
+    return cls
+
+
+def entry_point_transports() -> dict[str, metadata.EntryPoint]:
+    return {ep.name: ep for ep in metadata.entry_points(group=ENTRY_POINT_GROUP)}
+
+
+def resolve_transport(spec: str) -> type[Transport]:
+    """A built-in name, an entry-point name, or ``package.module:Class``."""
+    if spec in BUILTINS:
+        return _load_target(BUILTINS[spec], repr(spec))
+    if ":" in spec:
+        return _load_target(spec, repr(spec))
+    eps = entry_point_transports()
+    if spec in eps:
+        return _load_target(eps[spec].value, f"{spec!r} (entry point {eps[spec].value})")
+    known = sorted(set(BUILTINS) | set(eps))
+    raise ConfigError("", f"unknown transport {spec!r}; expected one of {', '.join(known)} or 'package.module:Class'")
+
+
+def available_transports() -> dict[str, str]:
+    """name -> where it comes from, for ``pointflow info``."""
+    out = {n: "built-in" for n in BUILTINS}
+    for n, ep in entry_point_transports().items():
+        out[n] = f"plugin ({ep.value})"
+    return out
+
+
+__all__ = ["Transport", "NoOptions", "resolve_transport", "available_transports", "BUILTINS", "ENTRY_POINT_GROUP"]

@@ -1,0 +1,64 @@
+"""The transport adapter API: what a plugin implements.
+
+A transport runs inside its own source process. The source loop calls ``open()``,
+then iterates ``chunks()`` and pushes every :class:`PointChunk` to ingest over ZeroMQ,
+then calls ``close()``. ``chunks()`` may yield ``None`` when nothing is ready, so the
+loop can send heartbeats and notice a stop request; it must not block for longer than
+about 100 ms at a time.
+"""
+from __future__ import annotations
+
+import dataclasses
+from abc import ABC, abstractmethod
+from typing import Any, ClassVar, Iterator, Optional
+
+from ...chunk import PointChunk
+
+
+@dataclasses.dataclass
+class NoOptions:
+    """For transports that take no options."""
+
+
+class Transport(ABC):
+    #: Name used in YAML (``transport: NAME``) and in logs.
+    name: ClassVar[str] = ""
+    #: A dataclass whose fields are the accepted options (validated at config load).
+    options_schema: ClassVar[type] = NoOptions
+
+    def __init__(self, options: dict[str, Any], source_id: str):
+        self.options = options
+        self.source_id = source_id
+        #: Counters shown in stats (for example ``reconnects``); numbers only.
+        self.counters: dict[str, float] = {}
+
+    @classmethod
+    def validate_options(cls, options: Any, path: str, base_dir: str = ".") -> dict[str, Any]:
+        """Check ``options`` against :attr:`options_schema`; errors name ``path.key``.
+
+        Returns a plain dict (picklable) with defaults filled in. Override
+        :meth:`check_options` for checks beyond types."""
+        from ...config import _load_dataclass
+
+        obj = _load_dataclass(cls.options_schema, options if options is not None else {}, path)
+        cls.check_options(obj, path, base_dir)
+        return dataclasses.asdict(obj)
+
+    @classmethod
+    def check_options(cls, opts: Any, path: str, base_dir: str) -> None:
+        """Semantic checks; raise ``ConfigError(f"{path}.key", ...)``."""
+
+    @property
+    def opts(self):
+        """Options as the schema dataclass (attribute access)."""
+        return self.options_schema(**self.options)
+
+    def open(self) -> None:
+        """Connect, open files; raise an exception with a clear message on failure."""
+
+    @abstractmethod
+    def chunks(self) -> Iterator[Optional[PointChunk]]:
+        """Yield chunks as they arrive (``None`` when idle). Return when the stream ends."""
+
+    def close(self) -> None:
+        """Release sockets and files. Called on every exit path."""

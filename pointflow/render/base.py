@@ -1,0 +1,81 @@
+"""What a render tier receives and must provide.
+
+A tier draws the ring's occupied slots (slot s is occupied iff ``(s - head) % capacity
+< size``) from a :class:`FrameInput` — views on a shared-memory slab in slot order — with
+a :class:`~pointflow.render.camera.Camera`. Rasterisation rules shared by all tiers:
+a square point of size s px centred at (px, py) covers the pixels whose centres lie in
+[px - s/2, px + s/2) x [py - s/2, py + s/2); a round point covers those whose centre is
+within s/2 of (px, py) (``<=``); nearer depth wins, ties go to the lower logical index.
+"""
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+from typing import Any, ClassVar, Optional
+
+import numpy as np
+
+from ..config import RenderConfig
+from .camera import Camera
+
+
+@dataclass
+class FrameInput:
+    positions: np.ndarray           # (capacity, 3) float32 offsets from ``origin``, slot order
+    importance: np.ndarray          # (capacity,) float32
+    t_ingest_ms: np.ndarray         # (capacity,) ingest time, ms since the ring epoch
+    channels: dict[str, np.ndarray]  # (capacity,) float32 scalars; ``rgb`` (capacity, 3) uint8
+    head: int
+    size: int
+    capacity: int
+    origin: np.ndarray              # (3,) float64
+    now_ms: float                   # ms since the ring epoch, for the time window
+    channel_ranges: dict[str, tuple[float, float]] = field(default_factory=dict)
+    dirty: Optional[list[tuple[int, int]]] = None  # None = everything changed
+    budget: Optional[int] = None    # point budget from the policy engine
+    seq: int = 0
+    frame_seed: int = 0
+
+    def occupied_slots(self) -> np.ndarray:
+        """Slot indices in logical order (oldest first)."""
+        return (self.head + np.arange(self.size, dtype=np.int64)) % max(self.capacity, 1)
+
+
+@dataclass
+class FrameStats:
+    drawn: Optional[int] = None     # points drawn (None when not known without a readback)
+    timings_ms: dict[str, float] = field(default_factory=dict)
+    uploaded_bytes: int = 0
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+class RenderError(RuntimeError):
+    """A tier could not start or lost its device; the selector falls back."""
+
+
+class Renderer(ABC):
+    tier: ClassVar[str] = ""
+
+    def __init__(self, cfg: RenderConfig, capacity: int, channels: list[str]):
+        self.cfg = cfg
+        self.capacity = capacity
+        self.channels = channels
+        self.width, self.height = cfg.size
+
+    @abstractmethod
+    def render(self, frame: FrameInput, camera: Camera) -> FrameStats:
+        """Draw one frame into the tier's target."""
+
+    @abstractmethod
+    def read_image(self) -> np.ndarray:
+        """(height, width, 4) uint8 RGBA of the last frame."""
+
+    def pick(self, x: float, y: float, pixel_ratio: float = 1.0) -> Optional[int]:
+        """Ring slot of the point under window pixel (x, y), or None."""
+        raise NotImplementedError(f"{self.tier} tier does not support picking")
+
+    def info(self) -> dict[str, Any]:
+        return {"tier": self.tier}
+
+    def close(self) -> None:
+        pass

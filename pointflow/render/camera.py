@@ -1,0 +1,113 @@
+"""Camera and matrices, built in float64 relative to the ring's origin.
+
+Positions on the GPU are float32 offsets from a float64 origin; the view-projection
+matrix is computed here in float64 for offsets from that same origin, so a scene at
+x = 6.4e5 renders exactly like the same scene at x = 0 (the large numbers cancel on the
+CPU in float64 before anything is rounded to float32).
+
+Conventions (all tiers): right-handed world, column vectors (``clip = M @ [p, 1]``),
+clip depth in [0, 1] (WebGPU), pixel (0, 0) is the top-left corner and the centre of
+pixel (i, j) is (i + 0.5, j + 0.5). Frustum planes are (a, b, c, d) with
+``a*x + b*y + c*z + d >= 0`` inside; a point exactly on a plane is inside.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+
+def _normalize(v: np.ndarray) -> np.ndarray:
+    n = np.linalg.norm(v)
+    return v / n if n > 0 else v
+
+
+def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
+    f = _normalize(target - eye)
+    if abs(np.dot(f, _normalize(up))) > 0.999:  # looking along up: pick another up
+        up = np.array([0.0, 1.0, 0.0]) if abs(f[1]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    s = _normalize(np.cross(f, up))
+    u = np.cross(s, f)
+    m = np.eye(4)
+    m[0, :3], m[1, :3], m[2, :3] = s, u, -f
+    m[:3, 3] = -m[:3, :3] @ eye
+    return m
+
+
+def perspective(fov_y_deg: float, aspect: float, near: float, far: float) -> np.ndarray:
+    """Depth in [0, 1] (WebGPU/D3D convention)."""
+    f = 1.0 / np.tan(np.radians(fov_y_deg) / 2.0)
+    m = np.zeros((4, 4))
+    m[0, 0] = f / aspect
+    m[1, 1] = f
+    m[2, 2] = far / (near - far)
+    m[2, 3] = near * far / (near - far)
+    m[3, 2] = -1.0
+    return m
+
+
+@dataclass
+class Camera:
+    eye: np.ndarray
+    target: np.ndarray
+    up: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 1.0]))
+    fov_deg: float = 60.0
+    near: float = 0.1
+    far: float = 10_000.0
+
+    def __post_init__(self) -> None:
+        self.eye = np.asarray(self.eye, np.float64)
+        self.target = np.asarray(self.target, np.float64)
+        self.up = np.asarray(self.up, np.float64)
+
+    def view(self, origin=None) -> np.ndarray:
+        """View matrix for coordinates relative to ``origin`` (float64)."""
+        o = np.zeros(3) if origin is None else np.asarray(origin, np.float64)
+        return look_at(self.eye - o, self.target - o, self.up)
+
+    def proj(self, width: int, height: int) -> np.ndarray:
+        return perspective(self.fov_deg, width / max(height, 1), self.near, self.far)
+
+    def view_proj(self, width: int, height: int, origin=None) -> np.ndarray:
+        """float64 4x4: origin-relative position -> clip space."""
+        return self.proj(width, height) @ self.view(origin)
+
+    def frustum_planes(self, width: int, height: int, origin=None) -> np.ndarray:
+        """(6, 4) float64 planes (left, right, bottom, top, near, far), normalised, in
+        origin-relative coordinates; derived from the matrix (Gribb-Hartmann, z in [0, 1])."""
+        m = self.view_proj(width, height, origin)
+        r0, r1, r2, r3 = m
+        planes = np.array([r3 + r0, r3 - r0, r3 + r1, r3 - r1, r2, r3 - r2])
+        planes /= np.linalg.norm(planes[:, :3], axis=1, keepdims=True)
+        return planes
+
+    def translated(self, offset) -> "Camera":
+        o = np.asarray(offset, np.float64)
+        return replace(self, eye=self.eye + o, target=self.target + o)
+
+    @classmethod
+    def fit(cls, lo, hi, *, fov_deg: float = 60.0, azimuth_deg: float = -60.0,
+            elevation_deg: float = 35.0, up=(0.0, 0.0, 1.0), aspect: float = 16 / 9) -> "Camera":
+        """Frame the box [lo, hi] (world coordinates, float64) from the given direction."""
+        lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+        centre = (lo + hi) / 2.0
+        radius = max(float(np.linalg.norm(hi - lo)) / 2.0, 1e-3)
+        half = np.radians(fov_deg) / 2.0
+        half = min(half, np.arctan(np.tan(half) * aspect))
+        dist = radius / np.sin(half) * 0.85
+        az, el = np.radians(azimuth_deg), np.radians(elevation_deg)
+        d = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+        return cls(eye=centre + d * dist, target=centre, up=np.asarray(up, np.float64),
+                   fov_deg=fov_deg, near=max(dist - radius * 1.5, dist * 1e-3), far=dist + radius * 1.5)
+
+
+def project_to_pixels(points_rel: np.ndarray, view_proj: np.ndarray, width: int, height: int):
+    """Reference projection (float64): returns (px, py, depth, w) with the tier conventions."""
+    p = np.asarray(points_rel, np.float64)
+    clip = p @ view_proj[:3, :3].T + view_proj[:3, 3]
+    w = p @ view_proj[3, :3] + view_proj[3, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ndc = clip / w[:, None]
+    px = (ndc[:, 0] * 0.5 + 0.5) * width
+    py = (0.5 - ndc[:, 1] * 0.5) * height
+    return px, py, ndc[:, 2], w

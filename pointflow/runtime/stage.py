@@ -1,0 +1,198 @@
+"""What every stage process shares: start-up, stop signals, heartbeats, stats, spans.
+
+The supervisor starts each stage with :func:`stage_main` in a fresh (spawned) process.
+The stage's own loop lives in a ``main(ctx: StageContext)`` function (see
+:data:`STAGE_MAINS`) and must call ``ctx.beat()`` at least every ~100 ms and return
+when ``ctx.running`` turns false.
+
+Control messages (stage PUSH → supervisor PULL on ``endpoints.control``), JSON, one frame:
+``{"type": "heartbeat", "stage", "pid", "t_ns", "stats": {...}}``,
+``{"type": "error", "stage", "pid", "message"}`` and ``{"type": "done", "stage", "pid"}``
+(the stage ended on its own, e.g. a file source reached its end).
+"""
+from __future__ import annotations
+
+import collections
+import ctypes
+import importlib
+import json
+import logging
+import os
+import signal
+import sys
+import time
+import traceback
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import zmq
+
+from ..config import EndpointsConfig, PipelineConfig, load_config
+from ..profiling.spans import SpanEmitter
+
+#: kind -> "module:function" of the stage loop.
+STAGE_MAINS: dict[str, str] = {
+    "source": "pointflow.ingest.source:main",
+    "ingest": "pointflow.ingest.process:main",
+    "cadence": "pointflow.cadence.process:main",
+    "render": "pointflow.render.process:main",
+}
+
+
+@dataclass
+class RunInfo:
+    """What the supervisor hands a stage (picklable)."""
+
+    run_dir: str
+    endpoints: EndpointsConfig
+    ring_name: str
+    slab_names: tuple[str, str]
+    out_dir: str | None
+    supervisor_pid: int
+    source_index: int = -1
+    restart_count: int = 0
+    log_level: int = logging.INFO
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+class StageCounters:
+    """Per-stage counts reported in heartbeats and in ``stats.json``."""
+
+    def __init__(self) -> None:
+        self.points_in = 0
+        self.points_out = 0
+        self.drops: collections.Counter[str] = collections.Counter()
+        #: Free-form numbers (gauges, histograms summaries) the stage wants shown.
+        self.extra: dict[str, Any] = {}
+
+    def drop(self, reason: str, n: int = 1) -> None:
+        if n:
+            self.drops[reason] += int(n)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"points_in": self.points_in, "points_out": self.points_out,
+                "drops": dict(self.drops), **self.extra}
+
+
+class StageContext:
+    def __init__(self, name: str, kind: str, cfg: PipelineConfig, info: RunInfo):
+        self.name = name
+        self.kind = kind
+        self.cfg = cfg
+        self.info = info
+        self.endpoints = info.endpoints
+        self.log = logging.getLogger(f"pointflow.{name}")
+        self.counters = StageCounters()
+        self.zmq = zmq.Context()
+        self._running = True
+        self._hb_interval_ns = int(cfg.supervisor.heartbeat_ms * 1e6 / 2)
+        self._last_hb = 0
+        self._control = self.zmq.socket(zmq.PUSH)
+        self._control.setsockopt(zmq.LINGER, 500)
+        self._control.setsockopt(zmq.SNDHWM, 100)
+        self._control.connect(info.endpoints.control)
+        self.spans = SpanEmitter(self.zmq, info.endpoints.trace, name, cfg.tracing.batch,
+                                 cfg.tracing.flush_ms, cfg.tracing.enabled)
+        #: Called with no arguments on each heartbeat; may add to ``counters.extra``.
+        self.on_beat: list[Callable[[], None]] = []
+
+    @property
+    def running(self) -> bool:
+        if self._running and os.getppid() != self.info.supervisor_pid:
+            self.log.error("supervisor (pid %d) is gone; stopping", self.info.supervisor_pid)
+            self._running = False
+        return self._running
+
+    def stop(self) -> None:
+        self._running = False
+
+    def beat(self, force: bool = False) -> None:
+        now = time.monotonic_ns()
+        if not force and now - self._last_hb < self._hb_interval_ns:
+            return
+        self._last_hb = now
+        for fn in self.on_beat:
+            try:
+                fn()
+            except Exception:  # noqa: BLE001 - stats must not kill a stage
+                self.log.exception("stats callback failed")
+        self._send({"type": "heartbeat", "t_ns": now, "stats": self.counters.to_dict()})
+        self.spans.maybe_flush()
+
+    def report_error(self, message: str) -> None:
+        self._send({"type": "error", "message": message[-4000:]})
+
+    def _send(self, msg: dict) -> None:
+        msg.setdefault("stage", self.name)
+        msg.setdefault("pid", os.getpid())
+        try:
+            self._control.send_string(json.dumps(msg, default=_json_default), zmq.NOBLOCK)
+        except zmq.Again:
+            pass
+
+    def close(self) -> None:
+        try:
+            self.beat(force=True)
+            self.spans.close()
+            self._control.close()
+        finally:
+            self.zmq.term()
+
+    def sleep(self, seconds: float) -> None:
+        """Sleep in small steps, beating, until ``seconds`` pass or a stop arrives."""
+        end = time.monotonic() + seconds
+        while self.running:
+            left = end - time.monotonic()
+            if left <= 0:
+                return
+            time.sleep(min(left, 0.05))
+            self.beat()
+
+
+def _json_default(o):
+    try:
+        import numpy as np
+
+        if isinstance(o, np.generic):
+            return o.item()
+        if isinstance(o, np.ndarray):
+            return o.tolist()
+    except ImportError:  # pragma: no cover
+        pass
+    return str(o)
+
+
+def _die_with_parent() -> None:
+    """Linux: get SIGTERM if the supervisor dies, so no stage outlives it."""
+    try:
+        libc = ctypes.CDLL("libc.so.6", use_errno=True)
+        libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except OSError:
+        pass
+
+
+def stage_main(name: str, kind: str, cfg_dict: dict, base_dir: str, info: RunInfo) -> None:
+    """Process entry point (target of the supervisor's ``Process``)."""
+    _die_with_parent()
+    logging.basicConfig(level=info.log_level, stream=sys.stderr,
+                        format=f"%(asctime)s {name}[%(process)d] %(levelname)s %(message)s")
+    # Ctrl-C reaches the whole process group; only the supervisor reacts to it and then
+    # stops the stages in order.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    cfg = load_config(cfg_dict, base_dir=base_dir)
+    ctx = StageContext(name, kind, cfg, info)
+    signal.signal(signal.SIGTERM, lambda *_: ctx.stop())
+    mod_name, _, fn_name = STAGE_MAINS[kind].partition(":")
+    code = 0
+    try:
+        fn = getattr(importlib.import_module(mod_name), fn_name)
+        fn(ctx)
+        if ctx.running:  # returned on its own
+            ctx._send({"type": "done"})
+    except Exception as exc:  # noqa: BLE001 - report, then exit non-zero
+        ctx.log.error("stage failed: %s", exc)
+        ctx.report_error("".join(traceback.format_exception(exc)))
+        code = 1
+    finally:
+        ctx.close()
+    sys.exit(code)

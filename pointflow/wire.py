@@ -1,0 +1,144 @@
+"""The ZeroMQ wire format for point chunks (documented in docs/wire-format.md).
+
+A chunk is one multipart message::
+
+    frame 0   header: UTF-8 JSON object (schema, counts, dtypes, shapes, sequence, times)
+    frame 1   positions: N*3 values, row-major, dtype from the header
+    frame 2+  one raw frame per channel, in the order the header lists them
+
+Raw frames are sent with ``copy=False`` above :data:`ZERO_COPY_MIN_BYTES`, so large
+arrays are not copied by the sender. Any language that can write JSON and bytes can send.
+"""
+from __future__ import annotations
+
+import json
+import time
+from typing import Any, Sequence
+
+import numpy as np
+
+from .chunk import SUPPORTED_DTYPES, ChunkError, PointChunk
+
+SCHEMA = "pointflow.chunk/1"
+#: pyzmq's zero-copy send pays off above roughly this size.
+ZERO_COPY_MIN_BYTES = 64 * 1024
+#: A header larger than this is rejected before JSON parsing.
+MAX_HEADER_BYTES = 64 * 1024
+
+_DTYPE_BY_NAME = {name: np.dtype(name).newbyteorder("<") for name in SUPPORTED_DTYPES}
+
+
+def _dtype_str(dt: np.dtype) -> str:
+    return dt.name
+
+
+def encode(chunk: PointChunk) -> list[Any]:
+    """Frames for ``socket.send_multipart(frames, copy=False)``; arrays are not copied
+    unless they are not C-contiguous little-endian."""
+    pos = np.ascontiguousarray(chunk.positions)
+    if pos.dtype.byteorder == ">":
+        pos = pos.astype(pos.dtype.newbyteorder("<"))
+    n = int(pos.shape[0])
+    chans = []
+    frames: list[Any] = [b"", pos]
+    for name, arr in chunk.channels.items():
+        a = np.ascontiguousarray(arr)
+        if a.dtype.byteorder == ">":
+            a = a.astype(a.dtype.newbyteorder("<"))
+        chans.append({"name": name, "dtype": _dtype_str(a.dtype), "shape": list(a.shape)})
+        frames.append(a)
+    header = {
+        "schema": SCHEMA,
+        "source": chunk.source_id,
+        "seq": int(chunk.seq),
+        "trace": int(chunk.trace_id),
+        "t_sent_ns": int(chunk.t_sent_ns or time.monotonic_ns()),
+        "n": n,
+        "positions": {"dtype": _dtype_str(pos.dtype), "shape": [n, 3]},
+        "channels": chans,
+    }
+    frames[0] = json.dumps(header, separators=(",", ":")).encode()
+    return [f if isinstance(f, bytes) else (memoryview(f).cast("B") if f.nbytes >= ZERO_COPY_MIN_BYTES else f.tobytes()) for f in frames]
+
+
+def send(sock, chunk: PointChunk, flags: int = 0) -> None:
+    """Send one chunk; large frames go without a copy."""
+    sock.send_multipart(encode(chunk), flags=flags, copy=False)
+
+
+def _buf(frame) -> memoryview:
+    if isinstance(frame, (bytes, bytearray, memoryview)):
+        return memoryview(frame)
+    return frame.buffer  # zmq.Frame
+
+
+def _array(frame, dtype_name: Any, shape: Sequence[int], what: str) -> np.ndarray:
+    if not isinstance(dtype_name, str) or dtype_name not in _DTYPE_BY_NAME:
+        raise ChunkError("bad_dtype", f"{what}: unsupported dtype {dtype_name!r}")
+    if (not isinstance(shape, (list, tuple)) or not 1 <= len(shape) <= 2
+            or not all(isinstance(s, int) and not isinstance(s, bool) and 0 <= s < 2**40 for s in shape)):
+        raise ChunkError("bad_header", f"{what}: bad shape {shape!r}")
+    dt = _DTYPE_BY_NAME[dtype_name]
+    buf = _buf(frame)
+    expected = int(np.prod(shape, dtype=np.int64)) * dt.itemsize
+    if buf.nbytes != expected:
+        raise ChunkError(
+            "truncated" if buf.nbytes < expected else "size_mismatch",
+            f"{what}: header promises {expected} bytes ({shape} x {dtype_name}), frame has {buf.nbytes}",
+        )
+    return np.frombuffer(buf, dtype=dt).reshape(shape)
+
+
+def decode(frames: Sequence[Any], max_points: int | None = None) -> PointChunk:
+    """Parse a multipart message; raises :class:`ChunkError` with a reason on any defect.
+
+    The arrays returned are read-only views on the received frames (no copy)."""
+    if len(frames) < 2:
+        raise ChunkError("bad_frame_count", f"expected a header and a positions frame, got {len(frames)} frame(s)")
+    hbuf = _buf(frames[0])
+    if hbuf.nbytes > MAX_HEADER_BYTES:
+        raise ChunkError("bad_header", f"header of {hbuf.nbytes} bytes exceeds {MAX_HEADER_BYTES}")
+    try:
+        header = json.loads(bytes(hbuf))
+    except (UnicodeDecodeError, ValueError) as exc:
+        raise ChunkError("bad_header", f"header is not JSON: {exc}") from None
+    if not isinstance(header, dict) or header.get("schema") != SCHEMA:
+        raise ChunkError("bad_schema", f"header schema must be {SCHEMA!r}")
+    n = header.get("n")
+    if not isinstance(n, int) or isinstance(n, bool) or n < 0:
+        raise ChunkError("bad_count", f"point count must be a non-negative integer, got {n!r}")
+    if max_points is not None and n > max_points:
+        raise ChunkError("too_large", f"chunk has {n} points, more than the configured maximum {max_points}")
+    chans = header.get("channels", [])
+    pos_meta = header.get("positions")
+    if not isinstance(chans, list) or not isinstance(pos_meta, dict):
+        raise ChunkError("bad_header", "header needs a 'positions' object and a 'channels' list")
+    if len(frames) != 2 + len(chans):
+        raise ChunkError("bad_frame_count", f"header lists {len(chans)} channel(s) but message has {len(frames) - 2} data frame(s)")
+    if pos_meta.get("shape") != [n, 3]:
+        raise ChunkError("bad_header", f"positions shape must be [{n}, 3], got {pos_meta.get('shape')!r}")
+    if pos_meta.get("dtype") not in ("float32", "float64"):
+        raise ChunkError("bad_dtype", f"positions must be float32 or float64, got {pos_meta.get('dtype')!r}")
+    positions = _array(frames[1], pos_meta["dtype"], [n, 3], "positions")
+    channels: dict[str, np.ndarray] = {}
+    for i, meta in enumerate(chans):
+        if not isinstance(meta, dict) or not isinstance(meta.get("name"), str):
+            raise ChunkError("bad_header", f"channel {i} needs a name")
+        name = meta["name"]
+        shape = meta.get("shape")
+        if not isinstance(shape, list) or not shape or shape[0] != n:
+            raise ChunkError("length_mismatch", f"channel {name!r} has shape {shape!r}, expected first dimension {n}")
+        channels[name] = _array(frames[2 + i], meta.get("dtype"), shape, f"channel {name!r}")
+    def _int(key: str) -> int:
+        v = header.get(key, 0)
+        return v if isinstance(v, int) and not isinstance(v, bool) else 0
+    src = header.get("source", "")
+    return PointChunk(
+        positions=positions,
+        channels=channels,
+        source_id=src if isinstance(src, str) else "",
+        seq=_int("seq"),
+        trace_id=_int("trace"),
+        t_sent_ns=_int("t_sent_ns"),
+        t_recv_ns=time.monotonic_ns(),
+    )
