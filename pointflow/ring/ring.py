@@ -1,0 +1,653 @@
+"""PointRing: the bounded Structure-of-Arrays point store in shared memory.
+
+See docs/ring.md for the layout and the exact eviction semantics.
+"""
+from __future__ import annotations
+
+import fcntl
+import json
+import os
+import threading
+import time
+import weakref
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass, field
+from typing import Iterator, Sequence
+
+import numpy as np
+
+from .layout import (
+    ChannelSpec,
+    RingAttachError,
+    RingConfigError,
+    RingLayout,
+    Segment,
+    _finalize_segment,
+    as_channel_specs,
+    data_size,
+    dumps_json,
+    map_arrays,
+    new_name,
+)
+
+MAGIC = b"PFRING\x00\x01"
+VERSION = 1
+K_CANDIDATES = 16  # importance eviction looks at the K oldest points
+
+# ---- header layout (bytes) -------------------------------------------------------------
+# 0:8 magic | 8:12 version u32 | 12:16 header size u32 | 16:20 config json length u32
+# 24:32 data size u64 | 64:576 int64 state[64] | 576:640 float64 fstate[8]
+# 1024:3072 dirty ranges int64[128,2] | 4096:8192 config json | 8192:24576 commit log int64[1024,2]
+HEADER_SIZE = 32768
+STATE_OFF, N_STATE = 64, 64
+FSTATE_OFF, N_FSTATE = 576, 8
+DIRTY_OFF, DIRTY_MAX = 1024, 128
+CONFIG_OFF, CONFIG_MAX = 4096, 4096
+COMMIT_OFF, COMMIT_N = 8192, 1024
+
+(I_CAP, I_HEAD, I_SIZE, I_DROPPED, I_WRITES, I_GEN, I_EPOCH, I_ORIGIN_SET, I_DIRTY_N, I_DIRTY_FULL,
+ I_COMMIT_COUNT, I_COMMIT_TAKEN, I_TOTAL_WRITTEN, I_RESETS, I_FINGERPRINT, I_OWNER_PID, I_LAST_PUSH_NS) = range(17)
+
+EVICTIONS = ("drop_oldest", "drop_newest", "importance")
+_EVICTION_ALIASES = {"fifo": "drop_oldest", "drop_oldest": "drop_oldest", "drop_newest": "drop_newest",
+                     "importance": "importance"}
+
+
+@dataclass
+class PushResult:
+    written: int  # incoming points stored
+    dropped: int  # points lost by this push (overwritten old ones + discarded incoming ones)
+
+
+@dataclass
+class RingStats:
+    total_points: int
+    dropped_points: int
+    under_pressure: bool
+    capacity: int
+    head: int
+    origin: tuple[float, float, float] | None
+    epoch_ns: int
+    write_count: int
+    eviction: str = "drop_oldest"
+    total_written: int = 0
+    resets: int = 0
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["origin"] = list(self.origin) if self.origin is not None else None
+        return d
+
+
+@dataclass
+class Snapshot:
+    """Ring content in logical order (oldest first); world positions in float64."""
+
+    positions: np.ndarray  # (N, 3) float64 world coordinates
+    channels: dict[str, np.ndarray]  # values; float channels hold NaN where missing
+    present: dict[str, np.ndarray]  # per channel bool (N,): value written for this occupant
+    t_ingest_ms: np.ndarray  # (N,) float64 ms since epoch
+    importance: np.ndarray  # (N,) float32
+    slots: np.ndarray  # (N,) int64 ring slot of each point
+    generation: np.ndarray  # (N,) uint64
+    origin: tuple[float, float, float] | None
+    epoch_ns: int
+
+    def __len__(self) -> int:
+        return int(self.positions.shape[0])
+
+
+@dataclass
+class PointRecord:
+    slot: int
+    position: np.ndarray  # (3,) float64 world
+    channels: dict[str, object]  # missing channels absent
+    t_ingest_ms: float
+    generation: int
+    importance: float = 1.0
+
+
+@dataclass
+class TemporalStats:
+    oldest_age_ms: float | None  # None when empty
+    newest_age_ms: float | None
+    count_in_window: int
+
+
+@dataclass
+class Changes:
+    """What :meth:`PointRing.take_changes` hands the cadence (consumed once)."""
+
+    dirty: list[tuple[int, int]] | None  # None = full
+    commits: list[tuple[int, int]]  # (trace_id, t_commit_ns)
+    commits_lost: bool = False
+
+
+def _merge_ranges(ranges: list[tuple[int, int]]) -> list[tuple[int, int]]:
+    if not ranges:
+        return []
+    rs = sorted(ranges)
+    out = [list(rs[0])]
+    for a, b in rs[1:]:
+        if a <= out[-1][1]:
+            if b > out[-1][1]:
+                out[-1][1] = b
+        else:
+            out.append([a, b])
+    return [(int(a), int(b)) for a, b in out]
+
+
+class PointRing:
+    """Bounded shared-memory point store. See module docs and docs/ring.md."""
+
+    def __init__(self, max_points: int, channels: Sequence[ChannelSpec | str] = (), eviction: str = "drop_oldest",
+                 importance_field: str | None = None, max_staleness_ms: float = 0.0,
+                 classification_weights: dict[int, float] | None = None, name: str | None = None,
+                 *, _attach_segment: Segment | None = None, _config: dict | None = None):
+        self._tlock = threading.RLock()
+        self._depth = 0
+        self._closed = False
+        if _attach_segment is not None:
+            self._seg = _attach_segment
+            cfg = _config
+            self.layout = RingLayout.from_dict(cfg["layout"])
+            self.eviction = cfg["eviction"]
+            self.importance_field = cfg["importance_field"]
+            self.max_staleness_ms = float(cfg["max_staleness_ms"])
+            self.classification_weights = {int(k): float(v) for k, v in (cfg["classification_weights"] or {}).items()} or None
+            self._map()
+            self._finalizer = weakref.finalize(self, _finalize_segment, self._seg, False)
+            return
+        if isinstance(eviction, str) and eviction.lower() in _EVICTION_ALIASES:
+            eviction = _EVICTION_ALIASES[eviction.lower()]
+        else:
+            raise RingConfigError(f"eviction must be one of {EVICTIONS} (or 'fifo'), got {eviction!r}")
+        try:
+            max_staleness_ms = float(max_staleness_ms or 0.0)
+        except (TypeError, ValueError):
+            raise RingConfigError(f"max_staleness_ms must be a number, got {max_staleness_ms!r}") from None
+        if not np.isfinite(max_staleness_ms) or max_staleness_ms < 0:
+            raise RingConfigError(f"max_staleness_ms must be >= 0, got {max_staleness_ms!r}")
+        layout = RingLayout(max_points, as_channel_specs(channels))  # validates max_points
+        self.layout = layout
+        self.eviction = eviction
+        self.importance_field = importance_field
+        self.max_staleness_ms = max_staleness_ms
+        self.classification_weights = ({int(k): float(v) for k, v in classification_weights.items()}
+                                       if classification_weights else None)
+        cfg = {"layout": layout.to_dict(), "eviction": eviction, "importance_field": importance_field,
+               "max_staleness_ms": max_staleness_ms,
+               "classification_weights": {str(k): v for k, v in (self.classification_weights or {}).items()}}
+        blob = dumps_json(cfg)
+        if len(blob) > CONFIG_MAX:
+            raise RingConfigError("ring configuration too large for the header")
+        self._seg = Segment(name or new_name("pfring"), HEADER_SIZE + data_size(layout), create=True)
+        self._finalizer = weakref.finalize(self, _finalize_segment, self._seg, True)
+        mm = self._seg.mm
+        mm[16:20] = len(blob).to_bytes(4, "little")
+        mm[24:32] = data_size(layout).to_bytes(8, "little")
+        mm[CONFIG_OFF:CONFIG_OFF + len(blob)] = blob
+        self._map()
+        st = self._st
+        st[I_CAP] = layout.capacity
+        st[I_EPOCH] = time.monotonic_ns()
+        st[I_FINGERPRINT] = layout.fingerprint()
+        st[I_OWNER_PID] = os.getpid()
+        mm[8:12] = VERSION.to_bytes(4, "little")
+        mm[12:16] = HEADER_SIZE.to_bytes(4, "little")
+        mm[0:8] = MAGIC  # written last: a half-initialised segment never matches
+
+    # ------------------------------------------------------------------ attach / lifecycle
+    @classmethod
+    def attach(cls, name: str, layout: RingLayout | None = None) -> "PointRing":
+        """Attach to an existing ring by name (does not own it; ``close()`` only detaches)."""
+        seg = Segment(name, create=False)
+        try:
+            mm = seg.mm
+            if seg.size < HEADER_SIZE or bytes(mm[0:8]) != MAGIC:
+                raise RingAttachError(f"segment {name!r} is not a pointflow ring (bad magic)")
+            ver = int.from_bytes(mm[8:12], "little")
+            if ver != VERSION:
+                raise RingAttachError(f"ring {name!r} has version {ver}, this code reads version {VERSION}")
+            if int.from_bytes(mm[12:16], "little") != HEADER_SIZE:
+                raise RingAttachError(f"ring {name!r} has an unexpected header size")
+            n = int.from_bytes(mm[16:20], "little")
+            try:
+                cfg = json.loads(bytes(mm[CONFIG_OFF:CONFIG_OFF + n]))
+                lay = RingLayout.from_dict(cfg["layout"])
+            except Exception as e:  # noqa: BLE001
+                raise RingAttachError(f"ring {name!r} has an unreadable layout: {e}") from None
+            st = np.ndarray((N_STATE,), np.int64, buffer=mm, offset=STATE_OFF)
+            if int(st[I_FINGERPRINT]) != lay.fingerprint() or int(st[I_CAP]) != lay.capacity:
+                raise RingAttachError(f"ring {name!r}: header does not match its layout")
+            if seg.size != HEADER_SIZE + data_size(lay) or int.from_bytes(mm[24:32], "little") != data_size(lay):
+                raise RingAttachError(f"ring {name!r}: segment size does not match its layout")
+            if layout is not None and layout.fingerprint() != lay.fingerprint():
+                raise RingAttachError(f"ring {name!r} has layout {lay.to_dict()}, expected {layout.to_dict()}")
+            del st
+        except BaseException:
+            seg.close()
+            raise
+        return cls(lay.capacity, _attach_segment=seg, _config=cfg)
+
+    def _map(self) -> None:
+        mm = self._seg.mm
+        self._st = np.ndarray((N_STATE,), np.int64, buffer=mm, offset=STATE_OFF)
+        self._fst = np.ndarray((N_FSTATE,), np.float64, buffer=mm, offset=FSTATE_OFF)
+        self._dirty = np.ndarray((DIRTY_MAX, 2), np.int64, buffer=mm, offset=DIRTY_OFF)
+        self._commits = np.ndarray((COMMIT_N, 2), np.int64, buffer=mm, offset=COMMIT_OFF)
+        self.arrays = map_arrays(mm, HEADER_SIZE, self.layout)
+        self._pos = self.arrays["positions"]
+        self._t = self.arrays["t_ingest_ms"]
+        self._imp = self.arrays["importance"]
+        self._gen = self.arrays["generation"]
+        self._chans = {c.name: (c, self.arrays["ch:" + c.name], self.arrays["gen:" + c.name]) for c in self.layout.channels}
+        self._all = list(self.arrays.values())
+        self.capacity = self.layout.capacity
+
+    @property
+    def name(self) -> str:
+        return self._seg.name
+
+    @property
+    def owner(self) -> bool:
+        return self._seg.owner
+
+    @property
+    def channels(self) -> tuple[ChannelSpec, ...]:
+        return self.layout.channels
+
+    def close(self) -> None:
+        """Detach; the owner also unlinks the segment (idempotent)."""
+        if self._closed:
+            return
+        self._closed = True
+        for a in ("arrays", "_pos", "_t", "_imp", "_gen", "_chans", "_all", "_st", "_fst", "_dirty", "_commits"):
+            self.__dict__.pop(a, None)
+        self._finalizer()
+
+    def unlink(self) -> None:
+        """Remove the segment name now (owner only); attached processes keep their mapping."""
+        self._seg.unlink()
+
+    def __enter__(self) -> "PointRing":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        return f"PointRing(name={self.name!r}, capacity={self.capacity}, eviction={self.eviction!r}, owner={self.owner})"
+
+    # ------------------------------------------------------------------ locking
+    @contextmanager
+    def lock(self) -> Iterator[None]:
+        """Exclusive cross-process lock (flock on the segment's fd; freed if the holder dies). Reentrant."""
+        with self._tlock:
+            if self._depth == 0:
+                if self._closed:
+                    raise RuntimeError("ring is closed")
+                fcntl.flock(self._seg.fd, fcntl.LOCK_EX)
+            self._depth += 1
+            try:
+                yield
+            finally:
+                self._depth -= 1
+                if self._depth == 0:
+                    fcntl.flock(self._seg.fd, fcntl.LOCK_UN)
+
+    # ------------------------------------------------------------------ helpers
+    def _now_ms(self) -> float:
+        return (time.monotonic_ns() - int(self._st[I_EPOCH])) / 1e6
+
+    def _origin(self) -> np.ndarray:
+        return self._fst[0:3]
+
+    def _mark(self, start: int, count: int) -> None:
+        """Record slots [start, start+count) (mod capacity) as dirty."""
+        st = self._st
+        if st[I_DIRTY_FULL]:
+            return
+        cap = self.capacity
+        if count >= cap:
+            st[I_DIRTY_FULL] = 1
+            return
+        end = start + count
+        if end <= cap:
+            self._add_range(start, end)
+        else:
+            self._add_range(start, cap)
+            self._add_range(0, end - cap)
+
+    def _add_range(self, a: int, b: int) -> None:
+        st = self._st
+        n = int(st[I_DIRTY_N])
+        d = self._dirty
+        if n:
+            la, lb = int(d[n - 1, 0]), int(d[n - 1, 1])
+            if a <= lb and b >= la:
+                d[n - 1, 0] = min(a, la)
+                d[n - 1, 1] = max(b, lb)
+                return
+        if n >= DIRTY_MAX:
+            st[I_DIRTY_FULL] = 1
+            return
+        d[n, 0] = a
+        d[n, 1] = b
+        st[I_DIRTY_N] = n + 1
+
+    def _prepare(self, n: int, channels: dict) -> tuple[list, np.ndarray | None]:
+        """Convert incoming channels (outside the lock). Returns [(spec, values, genarr, valarr)], importance."""
+        prepared = []
+        for name, (spec, vals, gens) in self._chans.items():
+            arr = channels.get(name)
+            if arr is None:
+                continue
+            arr = np.asarray(arr)
+            if arr.shape[0] != n:
+                raise ValueError(f"channel {name!r} has {arr.shape[0]} values for {n} points")
+            if spec.width == 1:
+                if arr.ndim == 2 and arr.shape[1] == 1:
+                    arr = arr[:, 0]
+                if arr.ndim != 1:
+                    raise ValueError(f"channel {name!r} must have shape ({n},), got {arr.shape}")
+            else:
+                if arr.ndim != 2 or arr.shape[1] != spec.width:
+                    raise ValueError(f"channel {name!r} must have shape ({n}, {spec.width}), got {arr.shape}")
+            tdt = vals.dtype
+            if tdt == np.uint8 and arr.dtype != np.uint8:
+                if arr.dtype == np.uint16:
+                    arr = (arr >> 8).astype(np.uint8)
+                elif arr.dtype.kind == "f":
+                    a = np.nan_to_num(arr, nan=0.0)
+                    if a.size and float(np.max(a)) <= 1.0:
+                        a = a * 255.0
+                    arr = np.clip(np.rint(a), 0, 255).astype(np.uint8)
+                else:
+                    arr = np.clip(arr, 0, 255).astype(np.uint8)
+            prepared.append((vals, gens, arr))
+        imp = None
+        if self.importance_field is not None and self.importance_field in channels:
+            imp = np.asarray(channels[self.importance_field], dtype=np.float32).reshape(n)
+        if self.classification_weights and "classification" in channels:
+            cls = np.asarray(channels["classification"]).reshape(n)
+            imp = np.ones(n, np.float32) if imp is None else imp.copy()
+            for k, w in self.classification_weights.items():
+                imp[cls == k] = w
+        if imp is not None and not np.isfinite(imp).all():
+            imp = np.where(np.isfinite(imp), imp, 0.0).astype(np.float32)
+        return prepared, imp
+
+    def _write(self, slot: int, pos: np.ndarray, a: int, b: int, t_ms: float, g: int, prepared, imp) -> None:
+        """Write incoming points [a, b) to slots slot.. (mod capacity); b - a <= capacity."""
+        cap = self.capacity
+        origin = self._fst[0:3]
+        n = b - a
+        segs = [(slot, slot + n, a, b)] if slot + n <= cap else [(slot, cap, a, a + cap - slot), (0, slot + n - cap, a + cap - slot, b)]
+        for s0, s1, c0, c1 in segs:
+            np.subtract(pos[c0:c1], origin, out=self._pos[s0:s1], casting="unsafe")
+            self._t[s0:s1] = t_ms
+            self._gen[s0:s1] = g
+            if imp is None:
+                self._imp[s0:s1] = 1.0
+            else:
+                self._imp[s0:s1] = imp[c0:c1]
+            for vals, gens, arr in prepared:
+                vals[s0:s1] = arr[c0:c1]
+                gens[s0:s1] = g
+
+    def _scores(self, slots: np.ndarray, now_ms: float) -> np.ndarray:
+        imp = self._imp[slots]
+        h = self.max_staleness_ms
+        if h > 0:
+            age = now_ms - self._t[slots]
+            return imp * np.exp2(-age / h)
+        return imp.astype(np.float64)
+
+    # ------------------------------------------------------------------ push
+    def push(self, positions, *, trace_id: int = 0, **channels) -> PushResult:
+        """Store points (world coordinates, (N,3) float64/float32) with optional channels."""
+        pos = np.asarray(positions)
+        if pos.dtype != np.float64 and pos.dtype != np.float32:
+            pos = pos.astype(np.float64)
+        if pos.ndim == 1 and pos.shape[0] == 3:
+            pos = pos.reshape(1, 3)
+        if pos.ndim != 2 or pos.shape[1] != 3:
+            raise ValueError(f"positions must have shape (N, 3), got {pos.shape}")
+        n = pos.shape[0]
+        if n == 0:
+            return PushResult(0, 0)
+        prepared, imp = self._prepare(n, channels)
+        cap = self.capacity
+        with self.lock():
+            st = self._st
+            if not st[I_ORIGIN_SET]:
+                fin = np.isfinite(pos).all(axis=1)
+                i0 = int(np.argmax(fin)) if fin.any() else -1
+                self._fst[0:3] = np.round(pos[i0].astype(np.float64)) if i0 >= 0 else 0.0
+                st[I_ORIGIN_SET] = 1
+            g = int(st[I_GEN]) + 1
+            st[I_GEN] = g
+            now_ns = time.monotonic_ns()
+            t_ms = (now_ns - int(st[I_EPOCH])) / 1e6
+            head, size = int(st[I_HEAD]), int(st[I_SIZE])
+            free = cap - size
+            tail = (head + size) % cap
+            ev = self.eviction
+            if ev == "drop_newest":
+                acc = min(n, free)
+                if acc:
+                    self._write(tail, pos, 0, acc, t_ms, g, prepared, imp)
+                    self._mark(tail, acc)
+                    st[I_SIZE] = size + acc
+                written, dropped = acc, n - acc
+            elif ev == "drop_oldest" or n <= free:
+                if n >= cap:
+                    a = n - cap
+                    self._write(tail, pos, a, n, t_ms, g, prepared, imp)
+                    st[I_HEAD] = tail
+                    st[I_SIZE] = cap
+                    st[I_DIRTY_FULL] = 1
+                    written, dropped = cap, size + a
+                else:
+                    self._write(tail, pos, 0, n, t_ms, g, prepared, imp)
+                    self._mark(tail, n)
+                    over = n - free if n > free else 0
+                    st[I_HEAD] = (head + over) % cap
+                    st[I_SIZE] = size + n - over
+                    written, dropped = n, over
+            else:
+                written, dropped = self._push_importance(pos, n, t_ms, g, prepared, imp)
+            st[I_DROPPED] += dropped
+            st[I_WRITES] += 1
+            st[I_TOTAL_WRITTEN] += written
+            st[I_LAST_PUSH_NS] = now_ns
+            if trace_id:
+                c = int(st[I_COMMIT_COUNT])
+                self._commits[c % COMMIT_N, 0] = np.int64(np.uint64(trace_id & 0xFFFFFFFFFFFFFFFF).view(np.int64))
+                self._commits[c % COMMIT_N, 1] = time.monotonic_ns()
+                st[I_COMMIT_COUNT] = c + 1
+        return PushResult(int(written), int(dropped))
+
+    def _push_importance(self, pos, n, t_ms, g, prepared, imp) -> tuple[int, int]:
+        st = self._st
+        cap = self.capacity
+        K = K_CANDIDATES
+        head, size = int(st[I_HEAD]), int(st[I_SIZE])
+        a = 0
+        free = cap - size
+        if free:  # fill the free slots first (no eviction)
+            tail = (head + size) % cap
+            self._write(tail, pos, 0, free, t_ms, g, prepared, imp)
+            self._mark(tail, free)
+            size = cap
+            st[I_SIZE] = cap
+            a = free
+        pmax = max(1, cap - K + 1, (cap + 1) // 2)
+        dropped = 0
+        while a < n:
+            p = min(n - a, pmax)
+            W = min(cap, p + K - 1)
+            slots = np.arange(head, head + W)
+            if head + W > cap:
+                slots %= cap
+            score = self._scores(slots, t_ms)
+            if p == 1:
+                # exact sequential rule: first strict minimum among the K oldest, swap with head
+                m = int(np.argmin(score))
+                if m:
+                    s = int(slots[m])
+                    idx = [head, s]
+                    rev = [s, head]
+                    for arr in self._all:
+                        arr[idx] = arr[rev]
+            elif p < W:
+                # batched rule: evict the p lowest scores among the oldest W (oldest first on ties),
+                # survivors keep their relative order and move to logical positions p..W-1
+                v = np.partition(score, p - 1)[p - 1]
+                keep = score >= v
+                eq = np.flatnonzero(score == v)
+                need = p - (W - int(np.count_nonzero(keep)))
+                keep[eq[:need]] = False
+                surv = np.flatnonzero(keep)
+                tgt = np.arange(p, W)
+                mv = surv != tgt
+                if mv.any():
+                    src = slots[surv[mv]]
+                    dst = slots[tgt[mv]]
+                    for arr in self._all:
+                        arr[dst] = arr[src]
+            self._write(head, pos, a, a + p, t_ms, g, prepared, imp)
+            self._mark(head, W)
+            head = (head + p) % cap
+            dropped += p
+            a += p
+        st[I_HEAD] = head
+        return n, dropped
+
+    def push_chunk(self, chunk) -> PushResult:
+        """Push a :class:`pointflow.chunk.PointChunk`."""
+        return self.push(chunk.positions, trace_id=int(getattr(chunk, "trace_id", 0) or 0), **chunk.channels)
+
+    # ------------------------------------------------------------------ reading
+    def stats(self) -> RingStats:
+        with self.lock():
+            st = self._st
+            size = int(st[I_SIZE])
+            origin = tuple(float(x) for x in self._fst[0:3]) if st[I_ORIGIN_SET] else None
+            return RingStats(total_points=size, dropped_points=int(st[I_DROPPED]), under_pressure=size >= self.capacity,
+                             capacity=self.capacity, head=int(st[I_HEAD]), origin=origin, epoch_ns=int(st[I_EPOCH]),
+                             write_count=int(st[I_WRITES]), eviction=self.eviction,
+                             total_written=int(st[I_TOTAL_WRITTEN]), resets=int(st[I_RESETS]))
+
+    def _logical_slots(self) -> np.ndarray:
+        head, size = int(self._st[I_HEAD]), int(self._st[I_SIZE])
+        s = np.arange(head, head + size)
+        if head + size > self.capacity:
+            s %= self.capacity
+        return s
+
+    def snapshot(self) -> Snapshot:
+        """A consistent copy of the ring in logical order (oldest first)."""
+        with self.lock():
+            slots = self._logical_slots()
+            off = self._pos[slots]
+            t = self._t[slots]
+            imp = self._imp[slots]
+            gen = self._gen[slots]
+            raw = {name: (vals[slots], gens[slots]) for name, (_, vals, gens) in self._chans.items()}
+            origin = self._fst[0:3].copy() if self._st[I_ORIGIN_SET] else None
+            epoch = int(self._st[I_EPOCH])
+        pos = off.astype(np.float64)
+        if origin is not None:
+            pos += origin
+        chans, present = {}, {}
+        for name, (v, gg) in raw.items():
+            ok = gg == gen
+            if v.dtype.kind == "f":
+                v = np.where(ok.reshape((-1,) + (1,) * (v.ndim - 1)), v, np.nan).astype(v.dtype)
+            chans[name] = v
+            present[name] = ok
+        return Snapshot(pos, chans, present, t, imp, slots.astype(np.int64), gen,
+                        tuple(float(x) for x in origin) if origin is not None else None, epoch)
+
+    def get_point(self, slot: int) -> PointRecord | None:
+        """The current occupant of ``slot`` (world position, present channels, ingest time) or None."""
+        slot = int(slot)
+        if not 0 <= slot < self.capacity:
+            return None
+        with self.lock():
+            head, size = int(self._st[I_HEAD]), int(self._st[I_SIZE])
+            if (slot - head) % self.capacity >= size:
+                return None
+            g = int(self._gen[slot])
+            pos = self._pos[slot].astype(np.float64) + self._fst[0:3]
+            ch = {}
+            for name, (spec, vals, gens) in self._chans.items():
+                if int(gens[slot]) == g:
+                    v = vals[slot]
+                    ch[name] = v.copy() if spec.width > 1 else v.item()
+            return PointRecord(slot, pos, ch, float(self._t[slot]), g, float(self._imp[slot]))
+
+    def temporal_stats(self, window_ms: float) -> TemporalStats:
+        """Oldest/newest point age and the number of points with age <= window_ms (inclusive)."""
+        with self.lock():
+            head, size = int(self._st[I_HEAD]), int(self._st[I_SIZE])
+            now = self._now_ms()
+            if size == 0:
+                return TemporalStats(None, None, 0)
+            if size == self.capacity:
+                t = self._t
+            elif head + size <= self.capacity:
+                t = self._t[head:head + size]
+            else:
+                t = self._t[self._logical_slots()]
+            tmin, tmax = float(t.min()), float(t.max())
+            cnt = int(np.count_nonzero(t >= now - float(window_ms)))
+        return TemporalStats(max(0.0, now - tmin), max(0.0, now - tmax), cnt)
+
+    def reset(self) -> None:
+        """Clear points and counters (the generation counter and epoch continue); next handoff is full."""
+        with self.lock():
+            st = self._st
+            st[I_HEAD] = 0
+            st[I_SIZE] = 0
+            st[I_DROPPED] = 0
+            st[I_WRITES] = 0
+            st[I_TOTAL_WRITTEN] = 0
+            st[I_ORIGIN_SET] = 0
+            st[I_DIRTY_N] = 0
+            st[I_DIRTY_FULL] = 1
+            st[I_RESETS] += 1
+            self._fst[0:3] = 0.0
+
+    # ------------------------------------------------------------------ cadence side
+    def take_changes(self) -> Changes:
+        """Dirty ranges and commits since the previous call (single consumer: the cadence). Caller should hold lock()."""
+        with self.lock():
+            st = self._st
+            if st[I_DIRTY_FULL]:
+                dirty = None
+            else:
+                n = int(st[I_DIRTY_N])
+                dirty = _merge_ranges([(int(a), int(b)) for a, b in self._dirty[:n]])
+                if dirty and dirty[0] == (0, self.capacity):
+                    dirty = None
+            st[I_DIRTY_N] = 0
+            st[I_DIRTY_FULL] = 0
+            c, taken = int(st[I_COMMIT_COUNT]), int(st[I_COMMIT_TAKEN])
+            lost = c - taken > COMMIT_N
+            taken = max(taken, c - COMMIT_N)
+            commits = []
+            if c > taken:
+                idx = np.arange(taken, c) % COMMIT_N
+                rows = self._commits[idx]
+                commits = [(int(np.int64(r[0]).view(np.uint64)), int(r[1])) for r in rows]
+            st[I_COMMIT_TAKEN] = c
+            return Changes(dirty, commits, lost)
+
+    def header_state(self) -> dict:
+        """head, size, origin (float64 array copy), epoch_ns, write_count. Caller should hold lock()."""
+        st = self._st
+        return {"head": int(st[I_HEAD]), "size": int(st[I_SIZE]), "origin": self._fst[0:3].copy(),
+                "origin_set": bool(st[I_ORIGIN_SET]), "epoch_ns": int(st[I_EPOCH]), "write_count": int(st[I_WRITES])}
