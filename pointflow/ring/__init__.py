@@ -1,4 +1,8 @@
-"""The shared-memory point ring: bounded store, eviction, staleness, double-buffered slabs."""
+"""The shared-memory point ring: bounded store, eviction, staleness, double-buffered slabs.
+
+See docs/ring.md.
+"""
+from .handoff import Handoff, SlabReader, SlabWriter
 from .layout import ChannelSpec, RingAttachError, RingConfigError, RingError, RingLayout
 from .ring import (
     K_CANDIDATES,
@@ -10,8 +14,10 @@ from .ring import (
     Snapshot,
     TemporalStats,
 )
+from .slabs import SlabPair, SlabView
 
 __all__ = [
     "ChannelSpec", "RingLayout", "RingError", "RingAttachError", "RingConfigError", "PointRing", "PushResult",
     "RingStats", "Snapshot", "PointRecord", "TemporalStats", "Changes", "K_CANDIDATES",
+    "SlabPair", "SlabView", "Handoff", "SlabWriter", "SlabReader",
 ]
