@@ -1,0 +1,172 @@
+"""``pointflow`` command line: run, validate, info, profile, source."""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import signal
+import sys
+import time
+from typing import Optional
+
+from .config import ConfigError, load_config
+
+log = logging.getLogger("pointflow")
+
+
+def _fmt_n(n: float) -> str:
+    for unit, div in (("G", 1e9), ("M", 1e6), ("k", 1e3)):
+        if abs(n) >= div:
+            return f"{n / div:.1f}{unit}"
+    return f"{n:.0f}"
+
+
+def summary_line(stats: dict) -> str:
+    """One line: points in, in ring, frames, drops (the live view of ``pointflow run``)."""
+    try:
+        from .profiling.report import live_summary
+
+        return live_summary(stats)
+    except (ImportError, AttributeError):
+        pass
+    st = stats.get("stages", {})
+    src_out = sum(s.get("points_out", 0) for s in st.values() if s.get("kind") == "source")
+    drops = sum(sum(s.get("drops", {}).values()) for s in st.values())
+    ring = stats.get("ring") or {}
+    r = st.get("render", {})
+    return (f"t={stats.get('elapsed_s', 0):6.1f}s  in={_fmt_n(src_out)}  ring={_fmt_n(ring.get('total_points', 0))}"
+            f"  frames={stats.get('frames', 0)}  frame={r.get('frame_ms_ema', 0):.1f}ms  drops={_fmt_n(drops)}")
+
+
+class _Stop:
+    def __init__(self) -> None:
+        self.flag = False
+        self.signal: Optional[int] = None
+
+    def __call__(self, signum, _frame) -> None:
+        self.flag = True
+        self.signal = signum
+
+
+def _run(args, profile: bool = False) -> int:
+    from .runtime.pipeline import Pipeline
+    from .runtime.supervisor import PipelineFailed
+
+    cfg = load_config(args.file)
+    out_dir = args.out or cfg.render.output.dir or "out"
+    if args.backend:
+        os.environ["POINTFLOW_BACKEND"] = args.backend
+    pipe = Pipeline(cfg, out_dir=out_dir)
+    stop = _Stop()
+    old = {s: signal.signal(s, stop) for s in (signal.SIGINT, signal.SIGTERM)}
+    tty = sys.stderr.isatty() and not args.quiet
+    code = 0
+    pipe.start()
+    t_end = None if args.duration is None else time.monotonic() + args.duration
+    last_print = 0.0
+    try:
+        while not stop.flag and (t_end is None or time.monotonic() < t_end):
+            pipe.poll(0.05)
+            now = time.monotonic()
+            if not args.quiet and now - last_print >= (0.5 if tty else 5.0):
+                last_print = now
+                line = summary_line(pipe.stats())
+                sys.stderr.write(("\r\033[K" + line) if tty else line + "\n")
+                sys.stderr.flush()
+    except PipelineFailed as exc:
+        log.error("%s", exc)
+        code = 2
+    finally:
+        if tty:
+            sys.stderr.write("\n")
+        for s, h in old.items():
+            signal.signal(s, h)
+        stats = pipe.stop()
+    if stop.signal is not None:
+        log.info("stopped by %s", signal.Signals(stop.signal).name)
+    print(summary_line(stats))
+    print(f"frames and stats.json in {os.path.abspath(out_dir)}")
+    if profile:
+        from .profiling.report import format_table, write_profile
+
+        prof = write_profile(out_dir, pipe.collector, stats)
+        print(format_table(prof))
+        print(f"profile.json, trace.json and latency.png in {os.path.abspath(out_dir)}")
+    return code
+
+
+def _validate(args) -> int:
+    cfg = load_config(args.file)
+    print(f"{args.file}: OK ({len(cfg.sources)} source(s), ring {cfg.ring.max_points} points, "
+          f"render {cfg.render.backend} {cfg.render.size[0]}x{cfg.render.size[1]})")
+    if args.verbose:
+        print(json.dumps(cfg.to_dict(), indent=2))
+    return 0
+
+
+def _info(args) -> int:
+    from .ingest.transports import available_transports
+
+    print("transports:")
+    for name, where in sorted(available_transports().items()):
+        print(f"  {name:12s} {where}")
+    print("render backends:")
+    try:
+        from .render.select import probe_backends
+
+        for name, status in probe_backends().items():
+            print(f"  {name:12s} {status}")
+    except ImportError as exc:
+        print(f"  (tier probe unavailable: {exc})")
+    try:
+        import wgpu
+
+        print("wgpu adapters:")
+        for a in wgpu.gpu.enumerate_adapters_sync():
+            print(f"  {a.summary}")
+    except Exception as exc:  # noqa: BLE001
+        print(f"wgpu adapters: none ({type(exc).__name__}: {exc})")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="pointflow", description="Stream live point clouds to the GPU.")
+    p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = p.add_subparsers(dest="cmd", required=True)
+    for name, help_ in (("run", "run a pipeline"), ("profile", "run a pipeline and write profile.json, trace.json, latency.png")):
+        r = sub.add_parser(name, help=help_)
+        r.add_argument("file", help="pipeline YAML")
+        r.add_argument("--duration", type=float, default=None if name == "run" else 10.0,
+                       help="seconds to run (default: until Ctrl-C)" if name == "run" else "seconds to run (default 10)")
+        r.add_argument("--out", default=None, help="output directory (default: render.output.dir)")
+        r.add_argument("--backend", choices=["auto", "wgpu", "gl", "cpu"], default=None, help="override render.backend")
+        r.add_argument("-q", "--quiet", action="store_true", help="no live progress line")
+    v = sub.add_parser("validate", help="check a pipeline YAML without running it")
+    v.add_argument("file")
+    v.add_argument("--verbose", action="store_true", help="print the resolved config")
+    sub.add_parser("info", help="list render backends, adapters and transports")
+    return p
+
+
+def main(argv: Optional[list[str]] = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose and args.cmd != "validate" else logging.INFO,
+                        format="%(asctime)s %(name)s %(levelname)s %(message)s", stream=sys.stderr)
+    try:
+        if args.cmd == "run":
+            return _run(args)
+        if args.cmd == "profile":
+            return _run(args, profile=True)
+        if args.cmd == "validate":
+            return _validate(args)
+        if args.cmd == "info":
+            return _info(args)
+    except ConfigError as exc:
+        print(f"config error: {exc}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,199 @@
+"""The render stage: receive slab handoffs, draw them with the chosen tier, write PNGs.
+
+Per handoff: build a :class:`FrameInput` over the slab (no copy), update the camera,
+``renderer.render()``, give the slab back at once (tiers copy what they keep), record
+spans, and every ``output.every_n_frames`` frames read the image back and save a PNG.
+"""
+from __future__ import annotations
+
+import glob
+import os
+import time
+from typing import Optional
+
+import numpy as np
+import zmq
+
+from ..ring import PointRing
+from ..ring.handoff import SlabReader
+from ..ring.slabs import SlabPair
+from ..runtime.stage import StageContext
+from .base import FrameInput, RenderError, Renderer
+from .camera import Camera
+
+
+class CameraController:
+    """Frames the scene automatically (``camera.mode: auto``/``orbit``) or uses the fixed
+    camera from the config. Bounds come from a strided sample of the occupied slots, taken
+    on the first frame and again when the ring has grown a lot (not every frame)."""
+
+    def __init__(self, ctx_cfg, width: int, height: int):
+        self.cfg = ctx_cfg.render.camera
+        self.aspect = width / max(height, 1)
+        self.camera: Optional[Camera] = None
+        self._fit_size = 0
+        self._last_fit = 0.0
+        self._box = None
+        self._t0 = time.monotonic()
+        if self.cfg.mode == "fixed":
+            self.camera = Camera(eye=self.cfg.position, target=self.cfg.target, up=self.cfg.up,
+                                 fov_deg=self.cfg.fov_deg, near=self.cfg.near, far=self.cfg.far)
+
+    def update(self, frame: FrameInput) -> Optional[Camera]:
+        c = self.cfg
+        if c.mode == "fixed":
+            return self.camera
+        now = time.monotonic()
+        if frame.size and (self._box is None or (frame.size > 1.5 * self._fit_size and now - self._last_fit > 1.0)):
+            slots = frame.occupied_slots()
+            step = max(1, slots.size // 200_000)
+            p = frame.positions[slots[::step]].astype(np.float64)
+            p = p[np.isfinite(p).all(axis=1)]
+            if p.size:
+                lo, hi = np.percentile(p, 1, axis=0), np.percentile(p, 99, axis=0)
+                self._box = (lo + frame.origin, hi + frame.origin)
+                self._fit_size, self._last_fit = frame.size, now
+        if self._box is None:
+            return None
+        az = -60.0 + (c.orbit_deg_per_s * (now - self._t0) if c.orbit_deg_per_s else 0.0)
+        cam = Camera.fit(self._box[0], self._box[1], fov_deg=c.fov_deg, azimuth_deg=az,
+                         elevation_deg=c.elevation_deg, up=c.up, aspect=self.aspect)
+        if c.position is not None:
+            cam.eye = np.asarray(c.position, np.float64)
+        if c.target is not None:
+            cam.target = np.asarray(c.target, np.float64)
+        self.camera = cam
+        return cam
+
+
+def frame_from_slab(h, view, now_ns: int, capacity: int) -> FrameInput:
+    return FrameInput(
+        positions=view.positions, importance=view.importance, t_ingest_ms=view.t_ingest_ms,
+        channels=view.channels, head=h.head, size=h.count, capacity=capacity,
+        origin=np.asarray(h.origin, np.float64), now_ms=(now_ns - h.epoch_ns) / 1e6,
+        channel_ranges=dict(h.channel_ranges), dirty=h.dirty, budget=h.extra.get("budget"),
+        seq=h.seq, frame_seed=h.seq,
+    )
+
+
+def write_png(path: str, rgba: np.ndarray) -> None:
+    from PIL import Image
+
+    tmp = path + ".tmp"
+    Image.fromarray(np.ascontiguousarray(rgba), "RGBA").save(tmp, format="PNG", compress_level=1)
+    os.replace(tmp, path)  # readers never see a half-written frame
+
+
+def _select(cfg, capacity: int, channels: list[str], log) -> Renderer:
+    from .select import select_renderer
+
+    renderer, reasons = select_renderer(cfg.render, capacity, channels, expected_points=cfg.ring.max_points)
+    for line in reasons:
+        log.info("tier selection: %s", line)
+    return renderer
+
+
+def main(ctx: StageContext) -> None:
+    cfg = ctx.cfg
+    ring = PointRing.attach(ctx.info.ring_name)
+    slabs = SlabPair.attach(ctx.info.slab_names)
+    capacity = ring.layout.capacity
+    channels = [c.name for c in ring.layout.channels]
+    ready = ctx.zmq.socket(zmq.PULL)
+    ready.setsockopt(zmq.LINGER, 0)
+    ready.bind(ctx.endpoints.frames)
+    release = ctx.zmq.socket(zmq.PUSH)
+    release.setsockopt(zmq.LINGER, 200)
+    release.connect(ctx.endpoints.release)
+    _announce(release, ctx)
+    reader = SlabReader(slabs, ready, release)
+    renderer = _select(cfg, capacity, channels, ctx.log)
+    ctx.log.info("render tier: %s", renderer.info())
+    cam = CameraController(cfg, *cfg.render.size)
+    out = cfg.render.output
+    out_dir = ctx.info.out_dir if ctx.info.out_dir else None
+    if out_dir:
+        os.makedirs(out_dir, exist_ok=True)
+    frames = 0
+    ema = None
+    c = ctx.counters
+    c.extra.update(frames=0, tier=renderer.tier, pngs=0, frame_ms_ema=0.0)
+    try:
+        while ctx.running:
+            ctx.beat()
+            got = reader.recv(timeout_ms=50)
+            if got is None:
+                continue
+            h, view = got
+            t0 = time.monotonic_ns()
+            frame = frame_from_slab(h, view, t0, capacity)
+            camera = cam.update(frame)
+            if camera is None:  # nothing to frame yet
+                reader.release(h.slab)
+                continue
+            try:
+                fs = renderer.render(frame, camera)
+            except RenderError as exc:
+                reader.release(h.slab)
+                from .select import fallback_after
+
+                ctx.log.error("%s tier failed (%s); falling back", renderer.tier, exc)
+                renderer = fallback_after(renderer, exc, cfg.render, capacity, channels)
+                c.extra["tier"] = renderer.tier
+                c.drop("render_error", 1)
+                continue
+            t_up = time.monotonic_ns()
+            reader.release(h.slab)
+            frames += 1
+            png = out_dir is not None and frames % out.every_n_frames == 0
+            if png:
+                img = renderer.read_image()
+                write_png(os.path.join(out_dir, f"frame_{frames:06d}.png"), img)
+                c.extra["pngs"] += 1
+                if out.keep_last:
+                    old = sorted(glob.glob(os.path.join(out_dir, "frame_*.png")))[:-out.keep_last]
+                    for f in old:
+                        os.unlink(f)
+            t1 = time.monotonic_ns()
+            ms = (t1 - t0) / 1e6
+            ema = ms if ema is None else 0.85 * ema + 0.15 * ms
+            c.points_in += h.count
+            if fs.drawn is not None:
+                c.points_out += fs.drawn
+            c.extra.update(frames=frames, frame_ms_ema=round(ema, 3), last_frame_ms=round(ms, 3),
+                           uploaded_bytes=c.extra.get("uploaded_bytes", 0) + fs.uploaded_bytes,
+                           **{f"gpu_{k}_ms": round(v, 3) for k, v in fs.timings_ms.items()})
+            _feedback(release, ema)
+            for tid in h.trace_ids:
+                ctx.spans.record(tid, "render_upload", t0, t_up, 0)
+                ctx.spans.record(tid, "frame_done", t0, t1, 0)
+    finally:
+        if frames and out_dir:
+            try:  # the last frame, so a short run always leaves a picture
+                write_png(os.path.join(out_dir, "last.png"), renderer.read_image())
+            except Exception:  # noqa: BLE001
+                ctx.log.exception("writing the last frame")
+        renderer.close()
+        reader.release()
+        slabs.close()
+        ring.close()
+
+
+def _announce(sock, ctx) -> None:
+    """Tell the cadence a (new) renderer holds no slab."""
+    try:
+        from ..cadence.messages import encode_hello
+
+        sock.send_multipart(encode_hello(restart_count=ctx.info.restart_count), zmq.NOBLOCK)
+    except (ImportError, zmq.Again):
+        pass
+
+
+def _feedback(sock, frame_ms: float) -> None:
+    """Frame time for the cadence's adaptive interval."""
+    try:
+        from ..cadence.messages import encode_frame_time
+
+        sock.send_multipart(encode_frame_time(frame_ms), zmq.NOBLOCK)
+    except (ImportError, zmq.Again):
+        pass

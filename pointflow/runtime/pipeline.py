@@ -1,0 +1,132 @@
+"""The Python API: build a pipeline from YAML or a dict, run it, read its numbers."""
+from __future__ import annotations
+
+import atexit
+import json
+import logging
+import os
+import time
+from pathlib import Path
+from typing import Any, Optional, Union
+
+from ..config import PipelineConfig, load_config
+from .supervisor import PipelineFailed, Supervisor
+
+log = logging.getLogger("pointflow")
+
+
+class Pipeline:
+    """A running (or runnable) pointflow pipeline.
+
+    >>> with Pipeline.from_yaml("configs/demo.yaml", out_dir="out") as p:
+    ...     p.wait(5)
+    ...     print(p.stats()["frames"])
+    """
+
+    def __init__(self, cfg: PipelineConfig, out_dir: Optional[str] = None):
+        self.cfg = cfg
+        self.out_dir = out_dir if out_dir is not None else cfg.render.output.dir
+        if self.out_dir:
+            self.out_dir = str(Path(self.out_dir).resolve())
+        self._sup: Optional[Supervisor] = None
+        self._final: Optional[dict] = None
+
+    @classmethod
+    def from_yaml(cls, path: Union[str, os.PathLike], out_dir: Optional[str] = None) -> "Pipeline":
+        return cls(load_config(path), out_dir=out_dir)
+
+    @classmethod
+    def from_dict(cls, data: dict, out_dir: Optional[str] = None, base_dir: Optional[str] = None) -> "Pipeline":
+        return cls(load_config(data, base_dir=base_dir), out_dir=out_dir)
+
+    # ------------------------------------------------------------------ lifecycle
+    def start(self) -> "Pipeline":
+        if self._sup is not None and self._sup.started:
+            raise RuntimeError("pipeline already running")
+        self._final = None
+        self._sup = Supervisor(self.cfg, out_dir=self.out_dir)
+        atexit.register(self.stop)
+        try:
+            self._sup.start()
+        except BaseException:
+            self._sup.stop()
+            self._sup._release()
+            raise
+        return self
+
+    @property
+    def running(self) -> bool:
+        return self._sup is not None and self._sup.alive()
+
+    def poll(self, timeout_s: float = 0.05) -> None:
+        """Service the supervisor (heartbeats, restarts); :meth:`wait` calls it for you.
+
+        Raises :class:`PipelineFailed` when a stage failed past its restart limit."""
+        if self._sup is None:
+            return
+        self._sup.poll(timeout_s)
+        if self._sup.failure:
+            raise PipelineFailed(self._sup.failure)
+
+    def wait(self, duration_s: Optional[float] = None, until=None) -> None:
+        """Run the supervisor loop for ``duration_s`` seconds (None = until ``until()`` is
+        true, or forever)."""
+        end = None if duration_s is None else time.monotonic() + duration_s
+        while end is None or time.monotonic() < end:
+            self.poll(0.05 if end is None else max(0.0, min(0.05, end - time.monotonic())))
+            if until is not None and until():
+                return
+
+    def stop(self) -> dict:
+        """Stop every stage, unlink shared memory, write ``stats.json``; idempotent."""
+        if self._sup is None:
+            return self._final or {}
+        sup, self._sup = self._sup, None
+        try:
+            atexit.unregister(self.stop)
+        except Exception:  # noqa: BLE001
+            pass
+        sup.stop()
+        self._final = sup.stats()
+        self._final["config"] = self.cfg.to_dict()
+        self._collector = sup.collector
+        if self.out_dir:
+            os.makedirs(self.out_dir, exist_ok=True)
+            with open(os.path.join(self.out_dir, "stats.json"), "w") as f:
+                json.dump(self._final, f, indent=2, default=str)
+        return self._final
+
+    def run(self, duration_s: Optional[float] = None) -> dict:
+        """Start, run for ``duration_s`` (None = until interrupted), stop; returns stats."""
+        self.start()
+        try:
+            self.wait(duration_s)
+        finally:
+            stats = self.stop()
+        return stats
+
+    def stats(self) -> dict[str, Any]:
+        """Live numbers while running, the final ones after :meth:`stop`."""
+        if self._sup is not None:
+            return self._sup.stats()
+        return self._final or {}
+
+    @property
+    def supervisor(self) -> Optional[Supervisor]:
+        return self._sup
+
+    @property
+    def collector(self):
+        """The span collector (profiling), also after stop."""
+        if self._sup is not None:
+            return self._sup.collector
+        return getattr(self, "_collector", None)
+
+    def __enter__(self) -> "Pipeline":
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+
+__all__ = ["Pipeline", "PipelineFailed"]

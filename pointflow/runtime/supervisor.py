@@ -1,0 +1,382 @@
+"""The supervisor: owns the shared memory, starts and watches the stage processes.
+
+Start order is downstream first (render, cadence, ingest, then sources) so every
+socket a stage connects to is already bound. Stop order is upstream first. Every stage
+is a ``spawn``-ed OS process; the supervisor learns about them from heartbeats on the
+control endpoint and from their exit codes, restarts a dead or hung stage with backoff
+(up to ``supervisor.max_restarts``), and past that limit stops the whole pipeline.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import multiprocessing as mp
+import os
+import shutil
+import signal
+import time
+from dataclasses import dataclass, field
+from typing import Any, Optional
+
+import psutil
+import zmq
+
+from ..config import PipelineConfig, new_run_dir
+from .stage import RunInfo, stage_main
+
+log = logging.getLogger("pointflow.supervisor")
+
+
+class PipelineFailed(RuntimeError):
+    """A stage kept failing past its restart limit; the pipeline was stopped."""
+
+
+@dataclass
+class StageProc:
+    name: str
+    kind: str
+    source_index: int = -1
+    process: Optional[mp.process.BaseProcess] = None
+    pid: int = 0
+    started_ns: int = 0
+    last_seen_ns: int = 0
+    restarts: int = 0
+    stats: dict[str, Any] = field(default_factory=dict)
+    last_error: Optional[str] = None
+    finished: bool = False     # ended on its own (a source whose data ran out)
+    failed: bool = False
+    restart_at_ns: int = 0     # pending restart time (backoff), 0 = none
+    psproc: Optional[psutil.Process] = None
+    cpu_percent: float = 0.0
+    rss_bytes: int = 0
+    #: Counters of earlier incarnations, so totals survive a restart.
+    carried: dict[str, Any] = field(default_factory=dict)
+
+
+def _describe_exit(code: Optional[int]) -> str:
+    if code is None:
+        return "still running"
+    if code < 0:
+        try:
+            return f"killed by signal {signal.Signals(-code).name}"
+        except ValueError:
+            return f"killed by signal {-code}"
+    return f"exited with code {code}"
+
+
+def _merge_counts(a: dict, b: dict) -> dict:
+    """Add numeric counters of two stats dicts (drops merged per reason)."""
+    out = dict(b)
+    for k in ("points_in", "points_out"):
+        out[k] = int(a.get(k, 0)) + int(b.get(k, 0))
+    drops = dict(a.get("drops", {}))
+    for r, n in b.get("drops", {}).items():
+        drops[r] = drops.get(r, 0) + n
+    out["drops"] = drops
+    return out
+
+
+class Supervisor:
+    def __init__(self, cfg: PipelineConfig, out_dir: Optional[str] = None):
+        self.cfg = cfg
+        self.out_dir = out_dir
+        self.stages: dict[str, StageProc] = {}
+        self.ring = None
+        self.slabs = None
+        self.run_dir: Optional[str] = None
+        self.collector = None
+        self.started = False
+        self.failure: Optional[str] = None
+        self.events: list[dict] = []   # restarts, failures, for stats
+        self._zctx: Optional[zmq.Context] = None
+        self._control: Optional[zmq.Socket] = None
+        self._mp = mp.get_context("spawn")
+        self._t_start = 0.0
+        self._last_ps = 0.0
+
+    # ------------------------------------------------------------------ start
+    def start(self) -> None:
+        from ..ring import PointRing, SlabPair
+
+        cfg = self.cfg
+        self.run_dir = new_run_dir()
+        self.endpoints = cfg.resolved_endpoints(self.run_dir)
+        if self.out_dir:
+            os.makedirs(self.out_dir, exist_ok=True)
+        self._zctx = zmq.Context()
+        self._control = self._zctx.socket(zmq.PULL)
+        self._control.setsockopt(zmq.LINGER, 0)
+        self._control.bind(self.endpoints.control)
+        try:
+            from ..profiling.collector import SpanCollector
+
+            if cfg.tracing.enabled:
+                self.collector = SpanCollector(self._zctx, self.endpoints.trace)
+        except ImportError:
+            self.collector = None
+        if self.collector is None:  # keep the endpoint bound so stages never block on it
+            self._trace_sink = self._zctx.socket(zmq.PULL)
+            self._trace_sink.setsockopt(zmq.LINGER, 0)
+            self._trace_sink.bind(self.endpoints.trace)
+        imp = "importance" if (cfg.ring.importance_field or cfg.ring.eviction == "importance") else None
+        self.ring = PointRing(
+            cfg.ring.max_points,
+            channels=cfg.ring_channels(),
+            eviction=cfg.ring.eviction,
+            importance_field=imp,
+            max_staleness_ms=cfg.ring.max_staleness_ms,
+            classification_weights=cfg.ring.classification_weights,
+        )
+        self.slabs = SlabPair.create(self.ring.layout)
+        log.info("ring %s: %d points, channels %s, eviction %s", self.ring.name, cfg.ring.max_points,
+                 cfg.ring_channels() or "[]", cfg.ring.eviction)
+        order = [("render", "render", -1), ("cadence", "cadence", -1), ("ingest", "ingest", -1)]
+        order += [(s.name, "source", i) for i, s in enumerate(cfg.sources) if not s.external]
+        for name, kind, idx in order:
+            self.stages[name] = StageProc(name=name, kind=kind, source_index=idx)
+        self._t_start = time.monotonic()
+        self.started = True
+        for st in self.stages.values():
+            self._spawn(st)
+
+    def _spawn(self, st: StageProc) -> None:
+        info = RunInfo(
+            run_dir=self.run_dir, endpoints=self.endpoints, ring_name=self.ring.name,
+            slab_names=tuple(self.slabs.names), out_dir=self.out_dir, supervisor_pid=os.getpid(),
+            source_index=st.source_index, restart_count=st.restarts,
+            log_level=logging.getLogger("pointflow").getEffectiveLevel() or logging.INFO,
+        )
+        p = self._mp.Process(target=stage_main, name=f"pointflow-{st.name}",
+                             args=(st.name, st.kind, self.cfg.to_dict(), self.cfg.base_dir, info), daemon=True)
+        p.start()
+        st.process, st.pid = p, p.pid
+        st.started_ns = st.last_seen_ns = time.monotonic_ns()
+        st.restart_at_ns = 0
+        try:
+            st.psproc = psutil.Process(p.pid)
+            st.psproc.cpu_percent(None)
+        except psutil.Error:
+            st.psproc = None
+        log.debug("started %s (pid %d)", st.name, p.pid)
+
+    # ------------------------------------------------------------------ watch
+    def poll(self, timeout_s: float = 0.05) -> None:
+        """Handle control messages and stage exits; call in a loop."""
+        if not self.started:
+            return
+        deadline = time.monotonic() + timeout_s
+        while True:
+            left = max(0.0, deadline - time.monotonic())
+            if self._control.poll(int(left * 1000)):
+                while True:
+                    try:
+                        raw = self._control.recv(zmq.NOBLOCK)
+                    except zmq.Again:
+                        break
+                    self._on_message(raw)
+            if self.collector is not None:
+                self.collector.poll(0)
+            else:
+                try:
+                    while True:
+                        self._trace_sink.recv(zmq.NOBLOCK)
+                except zmq.Again:
+                    pass
+            if time.monotonic() >= deadline:
+                break
+        self._check_stages()
+        now = time.monotonic()
+        if now - self._last_ps >= 1.0:
+            self._last_ps = now
+            for st in self.stages.values():
+                if st.psproc is not None:
+                    try:
+                        st.cpu_percent = st.psproc.cpu_percent(None)
+                        st.rss_bytes = st.psproc.memory_info().rss
+                    except psutil.Error:
+                        pass
+
+    def _on_message(self, raw: bytes) -> None:
+        try:
+            msg = json.loads(raw)
+            st = self.stages.get(msg.get("stage"))
+        except (ValueError, AttributeError):
+            log.warning("ignoring malformed control message")
+            return
+        if st is None or msg.get("pid") != st.pid:
+            return  # from an earlier incarnation
+        st.last_seen_ns = time.monotonic_ns()
+        kind = msg.get("type")
+        if kind == "heartbeat":
+            st.stats = msg.get("stats", {})
+        elif kind == "error":
+            st.last_error = msg.get("message", "")
+            log.error("%s reported: %s", st.name, st.last_error.strip().splitlines()[-1] if st.last_error.strip() else "")
+        elif kind == "done":
+            st.finished = True
+            log.info("%s finished (its input ended)", st.name)
+
+    def _check_stages(self) -> None:
+        now = time.monotonic_ns()
+        sup = self.cfg.supervisor
+        for st in self.stages.values():
+            if st.failed or st.process is None:
+                continue
+            if st.restart_at_ns:
+                if now >= st.restart_at_ns:
+                    log.warning("restarting %s (restart %d of %d)", st.name, st.restarts, sup.max_restarts)
+                    self._spawn(st)
+                    self._notify_restart(st)
+                continue
+            code = st.process.exitcode
+            hung = code is None and (now - st.last_seen_ns) > sup.hung_after_ms * 1e6
+            if code is None and not hung:
+                continue
+            if code == 0 and st.finished and st.kind == "source":
+                st.process.join(0)
+                st.process = None  # its input ended: nothing to restart
+                continue
+            if hung:
+                reason = f"hung: no heartbeat for {(now - st.last_seen_ns) / 1e6:.0f} ms"
+                st.process.kill()
+                st.process.join(2)
+            else:
+                reason = _describe_exit(code)
+            self._stage_died(st, reason)
+
+    def _stage_died(self, st: StageProc, reason: str) -> None:
+        sup = self.cfg.supervisor
+        last = (st.last_error or "").strip().splitlines()
+        detail = f"; last error: {last[-1]}" if last else ""
+        st.carried = _merge_counts(st.carried, st.stats)
+        st.stats = {}
+        ev = {"stage": st.name, "pid": st.pid, "reason": reason, "last_error": st.last_error,
+              "t": round(time.monotonic() - self._t_start, 3)}
+        if st.restarts >= sup.max_restarts:
+            msg = f"stage {st.name} (pid {st.pid}) {reason}{detail}; restart limit {sup.max_restarts} reached, stopping the pipeline"
+            log.error(msg)
+            st.failed = True
+            self.failure = msg
+            ev["action"] = "stop"
+            self.events.append(ev)
+            return
+        st.restarts += 1
+        backoff = sup.restart_backoff_ms * (2 ** (st.restarts - 1))
+        log.error("stage %s (pid %d) %s%s; restarting in %.0f ms", st.name, st.pid, reason, detail, backoff)
+        st.restart_at_ns = time.monotonic_ns() + int(backoff * 1e6)
+        st.last_error = None
+        ev["action"] = "restart"
+        self.events.append(ev)
+
+    def _notify_restart(self, st: StageProc) -> None:
+        """A new renderer holds no slab: the cadence must consider both free."""
+        # The render stage announces itself to the cadence on the release socket when
+        # it starts; nothing else to do here. Kept as a hook for stages that need it.
+
+    # ------------------------------------------------------------------ stop
+    def stop(self, timeout_s: float = 5.0) -> None:
+        if not self.started:
+            return
+        self.started = False
+        order = [st for st in self.stages.values() if st.kind == "source"]
+        order += [self.stages[n] for n in ("ingest", "cadence", "render") if n in self.stages]
+        for st in order:
+            p = st.process
+            if p is not None and p.exitcode is None:
+                try:
+                    p.terminate()
+                except OSError:
+                    pass
+        # Drain final heartbeats while they exit, so the last counts are recorded.
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline and any(st.process is not None and st.process.exitcode is None for st in order):
+            self._drain_control(0.05)
+        self._drain_control(0.1)
+        for st in order:
+            p = st.process
+            if p is not None and p.exitcode is None:
+                log.warning("%s did not stop within %.1f s; killing it", st.name, timeout_s)
+                p.kill()
+                p.join(2)
+        self.final_stats = self.stats()
+        self._release()
+
+    def _drain_control(self, timeout_s: float) -> None:
+        if self._control is None:
+            return
+        if self._control.poll(int(timeout_s * 1000)):
+            while True:
+                try:
+                    self._on_message(self._control.recv(zmq.NOBLOCK))
+                except zmq.Again:
+                    break
+        if self.collector is not None:
+            self.collector.poll(0)
+
+    def _release(self) -> None:
+        """Unlink shared memory and sockets; safe to call twice."""
+        for obj in (self.slabs, self.ring):
+            if obj is None:
+                continue
+            try:
+                obj.close()
+            except Exception:  # noqa: BLE001
+                log.exception("closing shared memory")
+            try:
+                obj.unlink()
+            except FileNotFoundError:
+                pass
+            except Exception:  # noqa: BLE001
+                log.exception("unlinking shared memory")
+        self.slabs = None
+        if self.ring is not None:
+            self._ring_stats = None
+        self.ring = None
+        if self.collector is not None:
+            self.collector.close()
+        elif getattr(self, "_trace_sink", None) is not None:
+            self._trace_sink.close()
+        if self._control is not None:
+            self._control.close()
+            self._control = None
+        if self._zctx is not None:
+            self._zctx.term()
+            self._zctx = None
+        if self.run_dir:
+            shutil.rmtree(self.run_dir, ignore_errors=True)
+
+    # ------------------------------------------------------------------ stats
+    def alive(self) -> bool:
+        return self.started and self.failure is None
+
+    def stats(self) -> dict[str, Any]:
+        if not self.started and getattr(self, "final_stats", None):
+            return self.final_stats
+        stages = {}
+        for st in self.stages.values():
+            d = _merge_counts(st.carried, st.stats) if st.carried else dict(st.stats)
+            d.setdefault("points_in", 0)
+            d.setdefault("points_out", 0)
+            d.setdefault("drops", {})
+            d.update(pid=st.pid, kind=st.kind, cpu_percent=round(st.cpu_percent, 1), rss_bytes=st.rss_bytes,
+                     restarts=st.restarts, alive=bool(st.process is not None and st.process.exitcode is None),
+                     finished=st.finished)
+            if st.last_error:
+                d["last_error"] = st.last_error[-2000:]
+            stages[st.name] = d
+        out: dict[str, Any] = {
+            "stages": stages,
+            "frames": int(stages.get("render", {}).get("frames", 0)),
+            "elapsed_s": round(time.monotonic() - self._t_start, 3) if self._t_start else 0.0,
+            "events": list(self.events),
+        }
+        if self.ring is not None:
+            try:
+                out["ring"] = self.ring.stats().to_dict()
+            except Exception:  # noqa: BLE001
+                pass
+        elif getattr(self, "final_stats", None):
+            out["ring"] = self.final_stats.get("ring")
+        if self.failure:
+            out["failure"] = self.failure
+        return out
