@@ -484,6 +484,7 @@ class PointRing:
             st[I_SIZE] = cap
             a = free
         pmax = max(1, cap - K + 1, (cap + 1) // 2)
+        pieces = 0
         dropped = 0
         while a < n:
             p = min(n - a, pmax)
@@ -522,8 +523,12 @@ class PointRing:
             head = (head + p) % cap
             dropped += p
             a += p
+            pieces += 1
         st[I_HEAD] = head
-        return n, dropped
+        written = n
+        if pieces > 1:  # later pieces may have evicted points of earlier pieces of this chunk
+            written = min(n, int(np.count_nonzero(self._gen == g)))
+        return written, dropped
 
     def push_chunk(self, chunk) -> PushResult:
         """Push a :class:`pointflow.chunk.PointChunk`."""
