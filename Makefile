@@ -1,0 +1,34 @@
+# The two commands of the README: `make run` (the demo) and `make test` (the tests).
+# Each creates .venv and installs what it needs; system packages via scripts/install-system-deps.sh.
+PYTHON ?= python3
+VENV   ?= .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.installed
+DURATION ?= 10
+export XDG_RUNTIME_DIR ?= /tmp/pointflow-xdg-$(shell id -u)
+
+.PHONY: run test bench system-deps clean
+
+$(STAMP): pyproject.toml
+	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -m pip install -q -e '.[test]'
+	@touch $@
+
+system-deps:
+	@bash scripts/install-system-deps.sh
+
+$(XDG_RUNTIME_DIR):
+	@mkdir -p -m 700 $@
+
+run: $(STAMP) system-deps | $(XDG_RUNTIME_DIR)
+	$(BIN)/pointflow run configs/demo.yaml --duration $(DURATION) --out out
+
+test: $(STAMP) system-deps | $(XDG_RUNTIME_DIR)
+	$(BIN)/python -m pytest -q
+
+bench: $(STAMP) system-deps | $(XDG_RUNTIME_DIR)
+	for b in bench/bench_*.py; do $(BIN)/python $$b || exit 1; done
+
+clean:
+	rm -rf $(VENV) out .pytest_cache

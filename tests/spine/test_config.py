@@ -1,0 +1,121 @@
+"""Config errors name the key path and what was expected, before anything starts."""
+import textwrap
+
+import pytest
+
+from pointflow.config import ConfigError, load_config
+
+BASE = {"source": {"transport": "synthetic"}}
+
+
+def _err(data) -> ConfigError:
+    with pytest.raises(ConfigError) as ei:
+        load_config(data)
+    return ei.value
+
+
+def with_(path: str, value):
+    d = {"source": {"transport": "synthetic"}}
+    keys = path.split(".")
+    cur = d
+    for k in keys[:-1]:
+        cur = cur.setdefault(k, {})
+    cur[keys[-1]] = value
+    return d
+
+
+def test_demo_config_loads():
+    cfg = load_config("configs/demo.yaml")
+    assert cfg.sources[0].transport == "synthetic"
+    assert cfg.ring.max_points == 1_000_000
+    assert cfg.render.color_by == "intensity"
+    assert cfg.ring_channels() == ["intensity"]
+
+
+@pytest.mark.parametrize("path,value,fragment", [
+    ("ring.max_points", 0, "must be >= 1"),
+    ("ring.max_points", -5, "must be >= 1"),
+    ("ring.max_points", "lots", "expected an integer"),
+    ("ring.max_points", 1.5, "expected an integer"),
+    ("ring.eviction", "random", "must be one of drop_oldest, drop_newest, importance"),
+    ("cadence.target_hz", -60, "must be > 0"),
+    ("cadence.target_hz", 0, "must be > 0"),
+    ("cadence.target_hz", float("nan"), "must be finite"),
+    ("render.backend", "vulkan", "must be one of auto, wgpu, gl, cpu"),
+    ("render.size", [0, 720], "render.size"),
+    ("render.size", [1280], "render.size"),
+    ("render.size", "big", "expected a list"),
+    ("render.point_size", 0, "must be > 0"),
+    ("render.output.every_n_frames", 0, "must be >= 1"),
+    ("render.camera.near", 20000.0, "less than camera.far"),
+    ("render.adaptive", True, "unknown key"),
+    ("ingest.coalesce_points", True, "expected an integer"),
+    ("endpoints.ingest", "http://x", "ZeroMQ endpoint"),
+    ("supervisor.max_restarts", -1, "must be >= 0"),
+])
+def test_bad_values_name_the_key(path, value, fragment):
+    e = _err(with_(path, value))
+    expected_path = path if fragment != "unknown key" else path
+    assert e.path.startswith(expected_path.split(".")[0])
+    assert expected_path in str(e) or e.path == expected_path
+    assert fragment in str(e)
+
+
+def test_unknown_top_level_key():
+    e = _err({**BASE, "rnder": {}})
+    assert e.path == "rnder" and "unknown key" in str(e) and "render" in str(e)
+
+
+def test_unknown_transport_is_named():
+    e = _err({"source": {"transport": "carrier-pigeon"}})
+    assert e.path == "sources[0].transport"
+    assert "carrier-pigeon" in str(e) and "synthetic" in str(e)
+
+
+def test_missing_source():
+    e = _err({"ring": {"max_points": 10}})
+    assert e.path == "sources"
+
+
+def test_duplicate_source_names():
+    e = _err({"sources": [{"transport": "synthetic", "name": "a"}, {"transport": "synthetic", "name": "a"}]})
+    assert e.path == "sources[1].name"
+
+
+def test_transport_options_validated_at_load():
+    e = _err({"source": {"transport": "synthetic", "options": {"no_such_option": 1}}})
+    assert e.path == "sources[0].options.no_such_option"
+
+
+def test_yaml_file_errors(tmp_path):
+    p = tmp_path / "bad.yaml"
+    p.write_text("source: [unclosed\n")
+    e = _err(str(p))
+    assert "invalid YAML" in str(e)
+    e = _err(str(tmp_path / "missing.yaml"))
+    assert "cannot read" in str(e)
+
+
+def test_yaml_roundtrip(tmp_path):
+    p = tmp_path / "ok.yaml"
+    p.write_text(textwrap.dedent("""
+        sources:
+          - {transport: synthetic, name: lidar}
+        ring: {max_points: 5000, eviction: importance}
+        render: {size: [320, 240], color_range: [0, 1]}
+    """))
+    cfg = load_config(str(p))
+    assert cfg.sources[0].name == "lidar"
+    assert cfg.ring.importance_field == "auto"  # importance eviction needs a field
+    assert cfg.render.color_range == [0.0, 1.0]
+    assert cfg.base_dir == str(tmp_path)
+
+
+def test_cli_validate_reports_key(tmp_path, capsys):
+    from pointflow.cli import main
+
+    p = tmp_path / "c.yaml"
+    p.write_text("source: {transport: synthetic}\nring: {max_points: 0}\n")
+    assert main(["validate", str(p)]) == 1
+    err = capsys.readouterr().err
+    assert "ring.max_points" in err and "must be >= 1" in err

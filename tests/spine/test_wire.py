@@ -1,0 +1,99 @@
+"""Wire format round trips through real ZeroMQ sockets, and its error reasons."""
+import json
+
+import numpy as np
+import pytest
+import zmq
+
+from pointflow import wire
+from pointflow.chunk import SUPPORTED_DTYPES, ChunkError, PointChunk
+
+
+@pytest.fixture(scope="module")
+def pair():
+    ctx = zmq.Context()
+    a, b = ctx.socket(zmq.PAIR), ctx.socket(zmq.PAIR)
+    a.bind("inproc://wire-test")
+    b.connect("inproc://wire-test")
+    yield a, b
+    a.close(); b.close(); ctx.term()
+
+
+def _roundtrip(pair, chunk):
+    a, b = pair
+    wire.send(a, chunk)
+    return wire.decode(b.recv_multipart(copy=False))
+
+
+@pytest.mark.parametrize("pos_dtype", ["float32", "float64"])
+@pytest.mark.parametrize("n", [0, 1, 1000, 70_000])  # 70k crosses the zero-copy threshold
+def test_roundtrip_every_dtype(pair, pos_dtype, n):
+    rng = np.random.default_rng(n)
+    pos = (rng.normal(size=(n, 3)) * 1e3 + [6.4e5, 4.9e6, 100]).astype(pos_dtype)
+    chans = {}
+    for dt in SUPPORTED_DTYPES:
+        info = np.iinfo(dt) if np.dtype(dt).kind in "iu" else None
+        if info is not None:
+            chans[dt] = rng.integers(info.min, info.max, size=n, dtype=dt, endpoint=True)
+        else:
+            chans[dt] = rng.normal(size=n).astype(dt)
+    chans["rgb"] = rng.integers(0, 255, size=(n, 3), dtype=np.uint8)
+    c = PointChunk(positions=pos, channels=chans, source_id="lidar0", seq=42, trace_id=7, t_sent_ns=123)
+    d = _roundtrip(pair, c)
+    assert d.n == n and d.source_id == "lidar0" and d.seq == 42 and d.trace_id == 7 and d.t_sent_ns == 123
+    assert d.positions.dtype == np.dtype(pos_dtype)
+    np.testing.assert_array_equal(d.positions, pos)
+    assert list(d.channels) == list(chans)
+    for k, v in chans.items():
+        assert d.channels[k].dtype == v.dtype and d.channels[k].shape == v.shape
+        np.testing.assert_array_equal(d.channels[k], v)
+
+
+def test_noncontiguous_and_bigendian_inputs(pair):
+    base = np.arange(30, dtype=">f8").reshape(10, 3)
+    c = PointChunk(positions=base, channels={"i": np.arange(20, dtype=">i4")[::2]})
+    d = _roundtrip(pair, c)
+    np.testing.assert_array_equal(d.positions, base.astype("<f8"))
+    np.testing.assert_array_equal(d.channels["i"], np.arange(0, 20, 2))
+
+
+def _frames(n=4):
+    c = PointChunk(positions=np.zeros((n, 3), np.float32), channels={"intensity": np.ones(n, np.float32)})
+    return [bytes(memoryview(f)) if not isinstance(f, bytes) else f for f in wire.encode(c)]
+
+
+def _hdr(frames):
+    return json.loads(frames[0])
+
+
+@pytest.mark.parametrize("mutate,reason", [
+    (lambda f: [b"{not json"] + f[1:], "bad_header"),
+    (lambda f: [json.dumps({**_hdr(f), "schema": "x"}).encode()] + f[1:], "bad_schema"),
+    (lambda f: [json.dumps({**_hdr(f), "n": -1}).encode()] + f[1:], "bad_count"),
+    (lambda f: [json.dumps({**_hdr(f), "n": 5, "positions": {"dtype": "float32", "shape": [5, 3]}}).encode()] + f[1:], "truncated"),
+    (lambda f: f[:1] + [f[1][:-4]] + f[2:], "truncated"),
+    (lambda f: f[:1] + [f[1] + b"0000"] + f[2:], "size_mismatch"),
+    (lambda f: f[:2], "bad_frame_count"),
+    (lambda f: [json.dumps({**_hdr(f), "channels": [{"name": "intensity", "dtype": "complex64", "shape": [4]}]}).encode()] + f[1:], "bad_dtype"),
+    (lambda f: [json.dumps({**_hdr(f), "channels": [{"name": "intensity", "dtype": "float32", "shape": [3]}]}).encode()] + f[1:], "length_mismatch"),
+    (lambda f: [json.dumps({**_hdr(f), "positions": {"dtype": "int32", "shape": [4, 3]}}).encode()] + f[1:], "bad_dtype"),
+    (lambda f: [b"\xff\xfe garbage"], "bad_frame_count"),
+])
+def test_malformed_messages_have_reasons(mutate, reason):
+    with pytest.raises(ChunkError) as ei:
+        wire.decode(mutate(_frames()))
+    assert ei.value.reason == reason
+    assert str(ei.value).startswith(reason)
+
+
+def test_max_points_rejects_before_reading_frames():
+    with pytest.raises(ChunkError) as ei:
+        wire.decode(_frames(10), max_points=5)
+    assert ei.value.reason == "too_large"
+
+
+def test_chunk_validate_names_the_channel():
+    c = PointChunk(positions=np.zeros((3, 3)), channels={"intensity": np.zeros(2)})
+    with pytest.raises(ChunkError, match="intensity") as ei:
+        c.validate()
+    assert ei.value.reason == "length_mismatch"
