@@ -1,0 +1,84 @@
+"""Render → cadence control messages, sent on the *release* socket (render PUSH → cadence PULL).
+
+They share the socket with the ring's slab releases (``pf.ring.release/1``) so they stay
+ordered with them. Format: two frames ``[CONTROL_TAG, json]`` where json is one of
+
+* ``{"type": "hello", "pid": int, "restart_count": int}`` — the render stage (re)started and
+  holds no slab; the cadence calls ``SlabWriter.reset_reader()`` and sends a full handoff next.
+* ``{"type": "frame", "frame_ms": float, "seq": int}`` — the renderer finished the frame for
+  handoff ``seq`` in ``frame_ms`` (wall time of the frame, GPU work included); feeds the
+  adaptive cadence's frame-time EMA.
+
+The render side calls ``sock.send_multipart(encode_hello(...), zmq.NOBLOCK)`` etc.
+"""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from typing import Literal, Optional, Sequence, Union
+
+CONTROL_TAG = b"pf.cadence.ctl/1"
+
+
+@dataclass(frozen=True)
+class Hello:
+    pid: int
+    restart_count: int = 0
+    type: Literal["hello"] = "hello"
+
+
+@dataclass(frozen=True)
+class FrameTime:
+    frame_ms: float
+    seq: int = 0
+    type: Literal["frame"] = "frame"
+
+
+ControlMessage = Union[Hello, FrameTime]
+
+
+class ControlMessageError(ValueError):
+    """A frame on the release socket carried the control tag but a bad body."""
+
+
+def encode_hello(pid: int, restart_count: int = 0) -> list[bytes]:
+    return [CONTROL_TAG, json.dumps({"type": "hello", "pid": int(pid), "restart_count": int(restart_count)}).encode()]
+
+
+def encode_frame_time(frame_ms: float, seq: int = 0) -> list[bytes]:
+    return [CONTROL_TAG, json.dumps({"type": "frame", "frame_ms": float(frame_ms), "seq": int(seq)}).encode()]
+
+
+def is_control(frames: Sequence[bytes]) -> bool:
+    return len(frames) >= 1 and bytes(frames[0]) == CONTROL_TAG
+
+
+def decode_control(frames: Sequence[bytes]) -> Optional[ControlMessage]:
+    """The message, or ``None`` when ``frames`` is not a control message (e.g. a release).
+
+    Raises :class:`ControlMessageError` (naming what is wrong) for a malformed one."""
+    if not is_control(frames):
+        return None
+    if len(frames) != 2:
+        raise ControlMessageError(f"cadence control message: expected 2 frames, got {len(frames)}")
+    try:
+        d = json.loads(bytes(frames[1]))
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise ControlMessageError(f"cadence control message: body is not JSON ({exc})") from None
+    if not isinstance(d, dict):
+        raise ControlMessageError("cadence control message: body must be a JSON object")
+    kind = d.get("type")
+    try:
+        if kind == "hello":
+            return Hello(pid=int(d["pid"]), restart_count=int(d.get("restart_count", 0)))
+        if kind == "frame":
+            ms = float(d["frame_ms"])
+            if not math.isfinite(ms) or ms < 0:
+                raise ControlMessageError(f"cadence control message: frame_ms must be finite and >= 0, got {ms!r}")
+            return FrameTime(frame_ms=ms, seq=int(d.get("seq", 0)))
+    except (KeyError, TypeError, ValueError) as exc:
+        if isinstance(exc, ControlMessageError):
+            raise
+        raise ControlMessageError(f"cadence control message {kind!r}: missing or bad field ({exc})") from None
+    raise ControlMessageError(f"cadence control message: unknown type {kind!r}")

@@ -1,0 +1,246 @@
+"""The cadence stage: snapshot the ring at a steady rate and hand slabs to the renderer.
+
+Each tick (absolute deadlines, see :class:`~pointflow.cadence.ticker.Ticker`) copies what
+changed in the ring into the slab the renderer does not hold and sends the handoff. A tick
+is skipped (and counted) when it could not be served in time (``late``), when the renderer
+holds both slabs (``renderer_busy``) or when no renderer is connected (``no_reader``), so a
+slow renderer never builds a backlog.
+
+The release socket also carries the render stage's control messages
+(:mod:`pointflow.cadence.messages`): ``hello`` (renderer (re)started → ``reset_reader``) and
+``frame`` (frame time → adaptive interval). The cadence reads that socket itself and
+forwards slab releases to the :class:`~pointflow.ring.handoff.SlabWriter` over an inproc pair.
+"""
+from __future__ import annotations
+
+import collections
+import logging
+import time
+from typing import Any, Callable, Optional
+
+import numpy as np
+import zmq
+
+from ..config import PipelineConfig
+from .messages import ControlMessageError, FrameTime, Hello, decode_control
+from .policy import PolicyDecision, resolve_policy, tick_interval_ms
+from .ticker import Clock, Sleep, Tick, Ticker
+
+#: Smoothing factor of the renderer frame-time EMA (adaptive mode).
+FRAME_EMA_ALPHA = 0.15
+_WINDOW = 1024  # ticks kept for the jitter / rate statistics
+
+
+class Cadence:
+    """The tick loop, independent of the stage plumbing (tests drive it directly).
+
+    ``release_sock`` is the bound PULL the renderer's releases and control messages arrive on;
+    ``ready_sock`` the PUSH to the renderer. ``spans`` needs ``record(trace_id, event, t0, t1, n)``.
+    """
+
+    def __init__(self, ring, slabs, ready_sock: zmq.Socket, release_sock: zmq.Socket, zctx: zmq.Context,
+                 cfg: PipelineConfig, decision: PolicyDecision, *, spans: Any = None,
+                 clock: Clock = time.monotonic, sleep: Sleep = time.sleep,
+                 log: Optional[logging.Logger] = None):
+        from ..ring.handoff import SlabWriter  # noqa: PLC0415 - keep module import light
+
+        self.cfg = cfg
+        self.decision = decision
+        self.spans = spans
+        self.clock = clock
+        self.log = log or logging.getLogger("pointflow.cadence")
+        self.release_in = release_sock
+        # Releases are forwarded to the writer over inproc, so control messages never reach it.
+        addr = f"inproc://pf-cadence-release-{id(self)}"
+        self._fwd_pull = zctx.socket(zmq.PULL)
+        self._fwd_pull.setsockopt(zmq.LINGER, 0)
+        self._fwd_pull.bind(addr)
+        self._fwd_push = zctx.socket(zmq.PUSH)
+        self._fwd_push.setsockopt(zmq.LINGER, 0)
+        self._fwd_push.connect(addr)
+        self.writer = SlabWriter(ring, slabs, ready_sock, self._fwd_pull)
+        self.frame_ema_ms: Optional[float] = None
+        self.interval_ms = tick_interval_ms(cfg, decision, None)
+        self.ticker = Ticker(self.interval_ms / 1000.0, clock=clock, sleep=sleep)
+        self.t_start = clock()
+        self.ticks = 0
+        self.published = 0
+        self.points_out = 0
+        self.skipped: collections.Counter[str] = collections.Counter()
+        self.hellos = 0
+        self.frames_reported = 0
+        self.bad_messages = 0
+        self._late = collections.deque(maxlen=_WINDOW)
+        self._tick_times = collections.deque(maxlen=_WINDOW)
+        self._pub_times = collections.deque(maxlen=_WINDOW)
+
+    # -------------------------------------------------------------- messages
+    def drain(self, timeout_s: float = 0.0) -> int:
+        """Wait up to ``timeout_s`` for messages on the release socket and handle all pending."""
+        n = 0
+        if timeout_s > 0 and not self.release_in.poll(max(1, int(timeout_s * 1000)), zmq.POLLIN):
+            return 0
+        while True:
+            try:
+                frames = self.release_in.recv_multipart(zmq.NOBLOCK)
+            except zmq.Again:
+                return n
+            n += 1
+            self.handle(frames)
+
+    def handle(self, frames: list[bytes]) -> None:
+        try:
+            msg = decode_control(frames)
+        except ControlMessageError as exc:
+            self.bad_messages += 1
+            if self.bad_messages <= 10:
+                self.log.warning("release socket: %s (message dropped, %d so far)", exc, self.bad_messages)
+            return
+        if msg is None:  # a slab release (or junk the writer ignores)
+            self._fwd_push.send_multipart(frames)
+        elif isinstance(msg, Hello):
+            self.hellos += 1
+            self.log.info("renderer pid %d started (restart %d): both slabs free, next handoff full",
+                          msg.pid, msg.restart_count)
+            self._fwd_pull_drain()
+            self.writer.reset_reader()
+            self.frame_ema_ms = None
+        elif isinstance(msg, FrameTime):
+            self.frames_reported += 1
+            self.on_frame_time(msg.frame_ms)
+
+    def _fwd_pull_drain(self) -> None:
+        """Releases of the previous renderer still queued are stale after a hello."""
+        while True:
+            try:
+                self._fwd_pull.recv_multipart(zmq.NOBLOCK)
+            except zmq.Again:
+                return
+
+    def on_frame_time(self, frame_ms: float) -> None:
+        """Update the frame-time EMA (alpha 0.15) and, in adaptive mode, the tick interval."""
+        ema = self.frame_ema_ms
+        self.frame_ema_ms = frame_ms if ema is None else ema + FRAME_EMA_ALPHA * (frame_ms - ema)
+        if self.cfg.cadence.adaptive:
+            ms = tick_interval_ms(self.cfg, self.decision, self.frame_ema_ms)
+            if abs(ms - self.interval_ms) > 1e-6:
+                self.interval_ms = ms
+                self.ticker.set_interval(ms / 1000.0)
+
+    # -------------------------------------------------------------- ticks
+    def step(self, max_wait_s: float = 0.05):
+        """Wait for the next tick (handling messages meanwhile) and serve it.
+
+        Returns the :class:`Handoff` published, ``False`` for a skipped tick, ``None`` when
+        ``max_wait_s`` ran out before the deadline."""
+        tick = self.ticker.wait(idle=self.drain, max_wait_s=max_wait_s)
+        if tick is None:
+            return None
+        return self.serve(tick)
+
+    def serve(self, tick: Tick):
+        self.ticks += 1
+        self._late.append(tick.late_s)
+        self._tick_times.append(tick.now)
+        if tick.missed:
+            self.skipped["late"] += tick.missed
+        self.drain(0)
+        t0 = time.monotonic_ns()
+        stats = self.writer.stats
+        busy0, again0 = stats["skipped_busy"], stats["send_again"]
+        h = self.writer.publish(extra={"budget": self.decision.point_budget, "interval_ms": self.interval_ms,
+                                       "tick": tick.index})
+        if h is None:
+            if stats["send_again"] > again0:
+                self.skipped["no_reader"] += 1
+            elif stats["skipped_busy"] > busy0:
+                self.skipped["renderer_busy"] += 1
+            else:  # pragma: no cover - publish has no other None path today
+                self.skipped["other"] += 1
+            return False
+        self.published += 1
+        self._pub_times.append(tick.now)
+        if h.dirty is None:
+            self.points_out += h.count
+        else:
+            self.points_out += sum(b - a for a, b in h.dirty)
+        if self.spans is not None and h.trace_ids:
+            t1 = h.t_snapshot_ns or time.monotonic_ns()
+            for tid in h.trace_ids:
+                self.spans.record(tid, "cadence_snapshot", t0, t1, 0)
+        return h
+
+    # -------------------------------------------------------------- stats
+    def stats(self) -> dict[str, Any]:
+        """Counters for ``ctx.counters.extra`` (rates over the last ~1000 ticks)."""
+        late = np.asarray(self._late, dtype=np.float64) * 1000.0
+
+        def rate(ts) -> float:
+            return (len(ts) - 1) / (ts[-1] - ts[0]) if len(ts) > 1 and ts[-1] > ts[0] else 0.0
+
+        w = self.writer.stats
+        return {
+            "target_hz": self.cfg.cadence.target_hz,
+            "adaptive": self.cfg.cadence.adaptive,
+            "interval_ms": round(self.interval_ms, 3),
+            "ticks": self.ticks,
+            "published": self.published,
+            "skipped": dict(self.skipped),
+            "achieved_hz": round(rate(self._tick_times), 3),
+            "publish_hz": round(rate(self._pub_times), 3),
+            "jitter_ms": {
+                "p50": round(float(np.percentile(late, 50)), 4) if late.size else None,
+                "p99": round(float(np.percentile(late, 99)), 4) if late.size else None,
+                "max": round(float(late.max()), 4) if late.size else None,
+            },
+            "frame_ema_ms": None if self.frame_ema_ms is None else round(self.frame_ema_ms, 3),
+            "budget": self.decision.point_budget,
+            "full_copies": w["full_copies"],
+            "copied_slots": w["copied_slots"],
+            "renderer_hellos": self.hellos,
+            "bad_messages": self.bad_messages,
+        }
+
+    def close(self) -> None:
+        for s in (self._fwd_push, self._fwd_pull):
+            s.close(0)
+
+
+def main(ctx) -> None:
+    """Stage entry point (``pointflow.cadence.process:main``)."""
+    from ..ring import PointRing, SlabPair  # noqa: PLC0415
+
+    cfg: PipelineConfig = ctx.cfg
+    ring = PointRing.attach(ctx.info.ring_name)
+    slabs = SlabPair.attach(ctx.info.slab_names)
+    release = ctx.zmq.socket(zmq.PULL)
+    release.setsockopt(zmq.LINGER, 0)
+    release.bind(ctx.endpoints.release)
+    ready = ctx.zmq.socket(zmq.PUSH)
+    ready.setsockopt(zmq.LINGER, 0)
+    ready.setsockopt(zmq.SNDHWM, 4)
+    ready.setsockopt(zmq.IMMEDIATE, 1)  # never queue handoffs for a renderer that is not there
+    ready.connect(ctx.endpoints.frames)
+    decision = resolve_policy(cfg)
+    ctx.log.info("%s", decision.summary())
+    cad = Cadence(ring, slabs, ready, release, ctx.zmq, cfg, decision, spans=ctx.spans, log=ctx.log)
+    if ctx.info.restart_count:
+        ctx.log.info("cadence restarted (%d): resuming from the slab headers", ctx.info.restart_count)
+
+    def on_beat() -> None:
+        ctx.counters.points_out = cad.points_out
+        ctx.counters.extra.update(cad.stats())
+        ctx.counters.extra["policy"] = decision.to_dict()
+
+    ctx.on_beat.append(on_beat)
+    try:
+        while ctx.running:
+            cad.step(max_wait_s=0.05)
+            ctx.beat()
+    finally:
+        on_beat()
+        cad.close()
+        release.close(0)
+        ready.close(0)
+        slabs.close()
+        ring.close()
