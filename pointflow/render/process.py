@@ -163,7 +163,7 @@ def main(ctx: StageContext) -> None:
             c.extra.update(frames=frames, frame_ms_ema=round(ema, 3), last_frame_ms=round(ms, 3),
                            uploaded_bytes=c.extra.get("uploaded_bytes", 0) + fs.uploaded_bytes,
                            **{f"gpu_{k}_ms": round(v, 3) for k, v in fs.timings_ms.items()})
-            _feedback(release, ema)
+            _feedback(release, ms, h.seq)
             for tid in h.trace_ids:
                 ctx.spans.record(tid, "render_upload", t0, t_up, 0)
                 ctx.spans.record(tid, "frame_done", t0, t1, 0)
@@ -184,16 +184,16 @@ def _announce(sock, ctx) -> None:
     try:
         from ..cadence.messages import encode_hello
 
-        sock.send_multipart(encode_hello(restart_count=ctx.info.restart_count), zmq.NOBLOCK)
+        sock.send_multipart(encode_hello(os.getpid(), ctx.info.restart_count), zmq.NOBLOCK)
     except (ImportError, zmq.Again):
         pass
 
 
-def _feedback(sock, frame_ms: float) -> None:
+def _feedback(sock, frame_ms: float, seq: int) -> None:
     """Frame time for the cadence's adaptive interval."""
     try:
         from ..cadence.messages import encode_frame_time
 
-        sock.send_multipart(encode_frame_time(frame_ms), zmq.NOBLOCK)
+        sock.send_multipart(encode_frame_time(frame_ms, seq), zmq.NOBLOCK)
     except (ImportError, zmq.Again):
         pass

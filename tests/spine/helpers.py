@@ -1,0 +1,69 @@
+"""Helpers for tests that run whole pipelines: leak checks and small configs."""
+from __future__ import annotations
+
+import os
+import socket
+import time
+
+import psutil
+
+SHM = "/dev/shm"
+
+
+def shm_names() -> set[str]:
+    try:
+        return set(os.listdir(SHM))
+    except FileNotFoundError:
+        return set()
+
+
+def free_tcp_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def small_config(**over) -> dict:
+    """A fast pipeline: small synthetic scans, small ring, small frames, cpu tier."""
+    cfg = {
+        "source": {"transport": "synthetic", "options": {"scan_hz": 10, "points_per_scan": 20000}},
+        "ring": {"max_points": 100_000},
+        "cadence": {"target_hz": 30},
+        "render": {"backend": "cpu", "size": [160, 120], "output": {"every_n_frames": 5}},
+        "supervisor": {"max_restarts": 0},
+    }
+    for key, value in over.items():
+        section, _, leaf = key.partition("__")
+        if leaf:
+            cfg.setdefault(section, {})[leaf] = value
+        else:
+            cfg[section] = value
+    return cfg
+
+
+def assert_gone(pids, timeout=10.0) -> None:
+    """Every pid has exited (or is a zombie about to be reaped by nobody we know)."""
+    end = time.monotonic() + timeout
+    alive = list(pids)
+    while alive and time.monotonic() < end:
+        alive = [p for p in alive if _alive(p)]
+        if alive:
+            time.sleep(0.1)
+    assert not alive, f"stage processes still running: {alive}"
+
+
+def _alive(pid: int) -> bool:
+    try:
+        return psutil.Process(pid).status() != psutil.STATUS_ZOMBIE
+    except psutil.NoSuchProcess:
+        return False
+
+
+def wait_for(pred, timeout=30.0, interval=0.1):
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        v = pred()
+        if v:
+            return v
+        time.sleep(interval)
+    return pred()
