@@ -150,23 +150,11 @@ class SlabWriter:
         # the slab written most recently lacks the least
         x = self._last_written if self._last_written in free else free[0]
         ring, slabs = self.ring, self.slabs
-        dst = slabs.arrays(x)
-        src = ring.arrays
         with ring.lock():
             ch = ring.take_changes()
             for i in (0, 1):
                 self._pending[i] = _union(self._pending[i], ch.dirty)
-            todo = self._pending[x]
-            if todo is None:
-                for k, arr in src.items():
-                    np.copyto(dst[k], arr)
-                self.stats["full_copies"] += 1
-                self.stats["copied_slots"] += ring.capacity
-            else:
-                for a, b in todo:
-                    for k, arr in src.items():
-                        dst[k][a:b] = arr[a:b]
-                    self.stats["copied_slots"] += b - a
+            self.copy_to_slab(x, self._pending[x])
             hs = ring.header_state()
             t_snap = time.monotonic_ns()
         self._pending[x] = []
@@ -205,6 +193,21 @@ class SlabWriter:
         self._force_full = False
         self.stats["published"] += 1
         return h
+
+    def copy_to_slab(self, x: int, ranges: list[tuple[int, int]] | None) -> None:
+        """Copy ring slots (all when ``ranges`` is None) into slab ``x``. Caller holds the ring lock."""
+        dst = self.slabs.arrays(x)
+        src = self.ring.arrays
+        if ranges is None:
+            for k, arr in src.items():
+                np.copyto(dst[k], arr)
+            self.stats["full_copies"] += 1
+            self.stats["copied_slots"] += self.ring.capacity
+        else:
+            for a, b in ranges:
+                for k, arr in src.items():
+                    dst[k][a:b] = arr[a:b]
+                self.stats["copied_slots"] += b - a
 
     def _update_ranges(self, x: int, dirty, head: int, size: int) -> dict[str, tuple[float, float]]:
         """Exact min/max over occupied slots with the value present, maintained per block of

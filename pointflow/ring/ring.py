@@ -396,13 +396,44 @@ class PointRing:
                 vals[s0:s1] = arr[c0:c1]
                 gens[s0:s1] = g
 
-    def _scores(self, slots: np.ndarray, now_ms: float) -> np.ndarray:
-        imp = self._imp[slots]
+    def _scores(self, head: int, W: int, now_ms: float) -> tuple[np.ndarray, np.ndarray]:
+        """(slots, scores) of the W oldest points; score = importance x 0.5^(age / max_staleness_ms)."""
+        cap = self.capacity
+        if head + W <= cap:
+            slots = np.arange(head, head + W)
+            imp = self._imp[head:head + W]
+            t = self._t[head:head + W]
+        else:
+            slots = np.arange(head, head + W)
+            slots %= cap
+            imp = self._imp[slots]
+            t = self._t[slots]
         h = self.max_staleness_ms
         if h > 0:
-            age = now_ms - self._t[slots]
-            return imp * np.exp2(-age / h)
-        return imp.astype(np.float64)
+            x = t - now_ms
+            x *= 1.0 / h
+            return slots, imp * np.exp2(x.astype(np.float32))
+        return slots, imp.copy()
+
+    @staticmethod
+    def _evict_mask(score: np.ndarray, p: int) -> np.ndarray:
+        """Keep-mask over the window: evicts the p lowest scores, the oldest first among equal scores."""
+        W = score.shape[0]
+        S = W - p  # survivors
+        if S + 1 <= W // 8:
+            # lower bound for the (S+1)-th largest: the minimum of S+1 block maxima
+            starts = (np.arange(S + 1) * W) // (S + 1)
+            lb = np.maximum.reduceat(score, starts).min()
+            cand = score[score >= lb]
+            v = np.partition(cand, cand.shape[0] - S - 1)[cand.shape[0] - S - 1]
+        else:
+            v = np.partition(score, p - 1)[p - 1]  # the p-th smallest = largest evicted score
+        keep = score > v
+        need_keep = S - int(np.count_nonzero(keep))
+        if need_keep:
+            eq = np.flatnonzero(score == v)
+            keep[eq[eq.shape[0] - need_keep:]] = True  # the newest among ties survive
+        return keep
 
     # ------------------------------------------------------------------ push
     def push(self, positions, *, trace_id: int = 0, **channels) -> PushResult:
@@ -489,10 +520,7 @@ class PointRing:
         while a < n:
             p = min(n - a, pmax)
             W = min(cap, p + K - 1)
-            slots = np.arange(head, head + W)
-            if head + W > cap:
-                slots %= cap
-            score = self._scores(slots, t_ms)
+            slots, score = self._scores(head, W, t_ms)
             if p == 1:
                 # exact sequential rule: first strict minimum among the K oldest, swap with head
                 m = int(np.argmin(score))
@@ -505,15 +533,11 @@ class PointRing:
             elif p < W:
                 # batched rule: evict the p lowest scores among the oldest W (oldest first on ties),
                 # survivors keep their relative order and move to logical positions p..W-1
-                v = np.partition(score, p - 1)[p - 1]
-                keep = score >= v
-                eq = np.flatnonzero(score == v)
-                need = p - (W - int(np.count_nonzero(keep)))
-                keep[eq[:need]] = False
-                surv = np.flatnonzero(keep)
-                tgt = np.arange(p, W)
-                mv = surv != tgt
-                if mv.any():
+                keep = self._evict_mask(score, p)
+                if keep[:p].any():
+                    surv = np.flatnonzero(keep)
+                    tgt = np.arange(p, W)
+                    mv = surv != tgt
                     src = slots[surv[mv]]
                     dst = slots[tgt[mv]]
                     for arr in self._all:

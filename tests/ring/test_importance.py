@@ -147,3 +147,15 @@ def test_chunk_larger_than_ring_and_free_space():
         # high-importance points survive even a chunk twice the ring's size (as with single pushes)
         assert res.dropped == 100 and res.written == 50 - np.count_nonzero(r.snapshot().importance > 0.5)
         assert np.count_nonzero(r.snapshot().importance > 0.5) >= 1
+
+
+@pytest.mark.parametrize("W,p", [(30, 15), (1015, 1000), (200, 3), (16, 2), (5000, 4990)])
+def test_evict_mask_matches_stable_sort(W, p):
+    rng = np.random.default_rng(W + p)
+    for levels in (3, 50, 0):
+        score = (rng.integers(0, levels, W) / 7.0 if levels else rng.random(W)).astype(np.float32)
+        keep = PointRing._evict_mask(score, p)
+        evicted = np.argsort(score, kind="stable")[:p]
+        want = np.ones(W, bool)
+        want[evicted] = False
+        assert np.array_equal(keep, want)
