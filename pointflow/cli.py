@@ -112,13 +112,8 @@ def _info(args) -> int:
     for name, where in sorted(available_transports().items()):
         print(f"  {name:12s} {where}")
     print("render backends:")
-    try:
-        from .render.select import probe_backends
-
-        for name, status in probe_backends().items():
-            print(f"  {name:12s} {status}")
-    except ImportError as exc:
-        print(f"  (tier probe unavailable: {exc})")
+    for name, status in probe_backends().items():
+        print(f"  {name:12s} {status}")
     try:
         import wgpu
 
@@ -128,6 +123,35 @@ def _info(args) -> int:
     except Exception as exc:  # noqa: BLE001
         print(f"wgpu adapters: none ({type(exc).__name__}: {exc})")
     return 0
+
+
+def probe_backends() -> dict[str, str]:
+    """What each render tier would find here (without opening a window)."""
+    out: dict[str, str] = {}
+    try:
+        import wgpu
+
+        adapters = wgpu.gpu.enumerate_adapters_sync()
+        out["wgpu"] = "available: " + "; ".join(a.summary for a in adapters) if adapters else "no adapter"
+    except Exception as exc:  # noqa: BLE001 - report whatever broke
+        out["wgpu"] = f"unavailable ({type(exc).__name__}: {exc})"
+    try:
+        import moderngl
+
+        ctx = moderngl.create_standalone_context(backend="egl")
+        out["gl"] = f"available: {ctx.info['GL_RENDERER']} (EGL)"
+        ctx.release()
+    except Exception as exc:  # noqa: BLE001
+        out["gl"] = f"unavailable ({type(exc).__name__}: {exc})"
+    out["cpu"] = "available (numpy)"
+    try:
+        from .render.select import crossover_points
+
+        n, where = crossover_points()
+        out["auto"] = f"wgpu > gl > cpu; cpu below {n} points ({where})"
+    except Exception:  # noqa: BLE001
+        pass
+    return out
 
 
 def build_parser() -> argparse.ArgumentParser:
