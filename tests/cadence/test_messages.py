@@ -1,0 +1,38 @@
+"""Render -> cadence control messages: round trip, and clear errors for malformed ones."""
+import json
+
+import pytest
+
+from pointflow.cadence.messages import (
+    CONTROL_TAG,
+    ControlMessageError,
+    FrameTime,
+    Hello,
+    decode_control,
+    encode_frame_time,
+    encode_hello,
+)
+
+
+def test_round_trip():
+    assert decode_control(encode_hello(1234, 2)) == Hello(pid=1234, restart_count=2)
+    assert decode_control(encode_frame_time(16.5, seq=9)) == FrameTime(frame_ms=16.5, seq=9)
+
+
+def test_release_messages_are_not_control():
+    assert decode_control([b"pf.ring.release/1", b"\0" * 16]) is None
+    assert decode_control([]) is None
+
+
+@pytest.mark.parametrize("frames,match", [
+    ([CONTROL_TAG], "2 frames"),
+    ([CONTROL_TAG, b"{not json"], "not JSON"),
+    ([CONTROL_TAG, b"[1]"], "JSON object"),
+    ([CONTROL_TAG, json.dumps({"type": "nope"}).encode()], "unknown type 'nope'"),
+    ([CONTROL_TAG, json.dumps({"type": "hello"}).encode()], "'hello': missing or bad field"),
+    ([CONTROL_TAG, json.dumps({"type": "frame", "frame_ms": "x"}).encode()], "'frame': missing or bad"),
+    ([CONTROL_TAG, json.dumps({"type": "frame", "frame_ms": -1}).encode()], "frame_ms must be finite"),
+])
+def test_malformed(frames, match):
+    with pytest.raises(ControlMessageError, match=match):
+        decode_control(frames)
