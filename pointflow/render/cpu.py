@@ -33,6 +33,7 @@ __all__ = ["CpuRenderer", "Selection", "pcg_hash", "select_points", "point_color
 MAX_POINT_PX = 4096.0
 _FRAGMENT_BATCH = 1 << 22  # fragments per splat batch (bounds memory: ~6 arrays of 8 B each)
 _U32 = np.uint32
+_OFFSET_LOOP_MAX = 1024  # constant sizes up to ~30 px splat one footprint offset at a time
 
 
 # --------------------------------------------------------------------------- hashing
@@ -229,6 +230,42 @@ def point_sizes_px(cfg: RenderConfig, camera: Camera, width: int, height: int, w
     return np.clip(s, 1.0, MAX_POINT_PX)
 
 
+# --------------------------------------------------------------------------- picking
+def pick_window(width: int, height: int, x: float, y: float, pixel_ratio: float, radius: int):
+    """(X, Y, xa, xb, ya, yb): the framebuffer pixel under window (x, y) × pixel_ratio and
+    the block within ``radius`` around it clipped to the viewport; None when empty."""
+    X, Y = int(np.floor(x * pixel_ratio)), int(np.floor(y * pixel_ratio))
+    r = int(radius)
+    xa, xb, ya, yb = max(X - r, 0), min(X + r + 1, width), max(Y - r, 0), min(Y + r + 1, height)
+    if xa >= xb or ya >= yb:
+        return None
+    return X, Y, xa, xb, ya, yb
+
+
+def drawn_attributes(frame: FrameInput, slots: np.ndarray) -> dict[str, np.ndarray]:
+    """Sorted drawn slots with their importance and ingest time (the slab is released after
+    the frame, so pick strategies keep their own copy)."""
+    s = np.sort(slots)
+    return {"slots": s, "importance": np.asarray(frame.importance[s], np.float64),
+            "t": np.asarray(frame.t_ingest_ms[s], np.float64)}
+
+
+def resolve_pick(block: np.ndarray, cx: int, cy: int, strategy: str, last: dict[str, np.ndarray]) -> Optional[int]:
+    """Choose among the slots in ``block`` ((h, w) int, -1 = empty) around block pixel
+    (cx, cy): ``nearest`` pixel centre; ``highest_importance`` / ``recent_first`` among all
+    in reach. Ties: smaller screen distance, then the lower slot."""
+    jj, ii = np.nonzero(block >= 0)
+    if jj.size == 0:
+        return None
+    slots = block[jj, ii].astype(np.int64)
+    d2 = (ii - cx) ** 2 + (jj - cy) ** 2
+    keys: list[np.ndarray] = [slots, d2]
+    if strategy != "nearest" and last.get("slots") is not None and last["slots"].size:
+        at = np.clip(np.searchsorted(last["slots"], slots), 0, last["slots"].size - 1)
+        keys.append(-(last["importance"] if strategy == "highest_importance" else last["t"])[at])
+    return int(slots[np.lexsort(keys)[0]])
+
+
 # --------------------------------------------------------------------------- the tier
 class CpuRenderer(Renderer):
     """numpy tier: the float64 reference (deterministic, no device needed)."""
@@ -242,7 +279,7 @@ class CpuRenderer(Renderer):
         self._image = np.empty((h, w, 4), np.uint8)
         self._image[:] = self._bg
         self._slot_at = np.full(h * w, -1, np.int64)      # ring slot drawn at each pixel
-        self._last: dict[str, np.ndarray] = {"slots": np.zeros(0, np.int64)}  # drawn points, for picking
+        self._last: dict[str, np.ndarray] = {}  # drawn points' attributes, for pick strategies
         self.nonfinite_total = 0
         self.frames = 0
 
@@ -271,10 +308,7 @@ class CpuRenderer(Renderer):
         img[hit] = colors[order][winner[hit]]
         self._slot_at[:] = -1
         self._slot_at[hit] = sel.slots[order][winner[hit]]
-        srt = np.argsort(sel.slots, kind="stable")  # for pick strategies (the slab is released)
-        self._last = {"slots": sel.slots[srt],
-                      "importance": np.asarray(frame.importance[sel.slots[srt]], np.float64),
-                      "t": np.asarray(frame.t_ingest_ms[sel.slots[srt]], np.float64)}
+        self._last = drawn_attributes(frame, sel.slots) if self.cfg.pick_strategy != "nearest" else {}
         t4 = time.perf_counter()
         self.nonfinite_total += sel.counts["nonfinite"]
         self.frames += 1
@@ -310,6 +344,10 @@ class CpuRenderer(Renderer):
             y1 = np.clip(y1, 0, H).astype(np.int64)
             bw = np.maximum(x1 - x0, 0)
             bh = np.maximum(y1 - y0, 0)
+            if half.ndim == 0 and (2 * int(np.ceil(float(half))) + 2) ** 2 <= _OFFSET_LOOP_MAX:
+                self._splat_offsets(best, px, py, float(half), x0, x1, y0, y1, round_)
+                best[best == np.iinfo(np.int64).max] = -1
+                return best
             cnt = bw * bh
             ends = np.cumsum(cnt)
             start = 0
@@ -338,33 +376,39 @@ class CpuRenderer(Renderer):
         best[best == np.iinfo(np.int64).max] = -1
         return best
 
+    def _splat_offsets(self, best, px, py, half: float, x0, x1, y0, y1, round_: bool) -> None:
+        """Constant point size: one vectorised pass over all points per footprint offset
+        (a loop over at most _OFFSET_LOOP_MAX offsets, never over points)."""
+        W = self.width
+        rank = np.arange(px.size, dtype=np.int64)
+        k = int(np.ceil(half)) + 1  # the clipped box spans at most 2k pixels per axis
+        for dy in range(2 * k):
+            Y = y0 + dy
+            my = Y < y1
+            if not my.any():
+                break
+            for dx in range(2 * k):
+                X = x0 + dx
+                m = my & (X < x1)
+                if not m.any():
+                    break
+                if round_:
+                    ex = X + 0.5 - px
+                    ey = Y + 0.5 - py
+                    m &= ex * ex + ey * ey <= half * half
+                np.minimum.at(best, (Y * W + X)[m], rank[m])
+
     # ---------------------------------------------------------------- outputs
     def read_image(self) -> np.ndarray:
         return self._image.copy()
 
     def pick(self, x: float, y: float, pixel_ratio: float = 1.0) -> Optional[int]:
-        """Slot under window pixel (x, y) × pixel_ratio within ``pick_radius``: nearest pixel
-        centre first (``nearest``), or highest importance / most recent among those in reach;
-        ties go to the smaller screen distance, then the lower slot."""
-        W, H = self.width, self.height
-        X, Y = int(np.floor(x * pixel_ratio)), int(np.floor(y * pixel_ratio))
-        r = int(self.cfg.pick_radius)
-        xa, xb, ya, yb = max(X - r, 0), min(X + r + 1, W), max(Y - r, 0), min(Y + r + 1, H)
-        if xa >= xb or ya >= yb:
+        win = pick_window(self.width, self.height, x, y, pixel_ratio, self.cfg.pick_radius)
+        if win is None:
             return None
-        block = self._slot_at.reshape(H, W)[ya:yb, xa:xb]
-        jj, ii = np.nonzero(block >= 0)
-        if jj.size == 0:
-            return None
-        slots = block[jj, ii]
-        d2 = (ii + xa - X) ** 2 + (jj + ya - Y) ** 2
-        keys: list[np.ndarray] = [slots, d2]
-        strat = self.cfg.pick_strategy
-        if strat != "nearest":
-            last = self._last
-            at = np.searchsorted(last["slots"], slots)
-            keys.append(-(last["importance"] if strat == "highest_importance" else last["t"])[at])
-        return int(slots[np.lexsort(keys)[0]])
+        X, Y, xa, xb, ya, yb = win
+        block = self._slot_at.reshape(self.height, self.width)[ya:yb, xa:xb]
+        return resolve_pick(block, X - xa, Y - ya, self.cfg.pick_strategy, self._last)
 
     def info(self) -> dict[str, Any]:
         return {"tier": self.tier, "size": [self.width, self.height], "numpy": np.__version__,

@@ -1,0 +1,238 @@
+"""The OpenGL render tier (moderngl, EGL headless): for machines without a WebGPU adapter.
+
+Culling, time window, LOD, importance sampling and budget run on the CPU with the same
+vectorised code as the cpu tier (:func:`pointflow.render.cpu.select_points`), colours are
+looked up there too (so they match bit for bit); then one instanced draw of the
+survivors: 6 vertices per point expanded from ``gl_VertexID`` (no 64 px point-sprite cap),
+projected on the GPU with the float32 cast of the float64 origin-relative matrix.
+
+Rasterisation follows the shared rules exactly: the quad is drawn one pixel larger than the
+point and the fragment shader keeps a pixel only when its centre passes the square
+(``[p - s/2, p + s/2)``) or round (``<= s/2``) test, so GL's own edge rules never decide.
+Nearer depth wins (``depth_func '<'``); survivors are drawn in logical order, so equal
+depths keep the lower logical index, as in the cpu tier.
+
+Depth: camera.py produces clip z in [0, w] (WebGPU). GL clips z to [-w, w], so the
+matrix is premultiplied by ``GL_DEPTH_FIX`` (``z' = 2z - w``); window depth then equals
+the WebGPU NDC depth again (glDepthRange 0..1).
+
+Picking draws ``slot + 1`` into a second RGBA8 attachment (4 bytes) in the same pass.
+"""
+from __future__ import annotations
+
+import time
+from typing import Any, Optional
+
+import numpy as np
+
+from ..config import RenderConfig
+from .base import FrameInput, FrameStats, Renderer, RenderError
+from .camera import Camera
+from .cpu import (MAX_POINT_PX, drawn_attributes, pick_window, point_colors, resolve_pick, rgba_u8,
+                  select_points)
+
+__all__ = ["GlRenderer", "GL_DEPTH_FIX"]
+
+#: Maps WebGPU clip depth (0..w) to GL clip depth (-w..w): z' = 2 z - w.
+GL_DEPTH_FIX = np.array([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 2, -1], [0, 0, 0, 1]], np.float64)
+
+_VERT = """
+#version 330
+uniform mat4 u_vp;          // GL_DEPTH_FIX @ view_proj (origin-relative), float32
+uniform vec2 u_view;        // viewport (w, h) in pixels
+uniform float u_size;       // screen: pixels; world: world units
+uniform float u_world_k;    // world: P[1,1] * h / 2 (pixels per world unit at w = 1); 0 = screen
+in vec3 in_pos;
+in vec4 in_color;
+in uint in_slot;
+flat out vec4 v_color;
+flat out vec3 v_centre;     // (px, py) top-left origin, half size
+flat out uint v_id;
+const vec2 CORNERS[6] = vec2[](vec2(-1, -1), vec2(1, -1), vec2(1, 1), vec2(-1, -1), vec2(1, 1), vec2(-1, 1));
+void main() {
+    vec4 clip = u_vp * vec4(in_pos, 1.0);
+    float s = u_world_k > 0.0 ? clamp(u_size * u_world_k / clip.w, 1.0, MAX_PX) : u_size;
+    float h = 0.5 * s;
+    vec2 ndc = clip.xy / clip.w;
+    v_centre = vec3((ndc.x * 0.5 + 0.5) * u_view.x, (0.5 - ndc.y * 0.5) * u_view.y, h);
+    vec2 off = CORNERS[gl_VertexID] * (h + 1.0) * 2.0 / u_view;  // one pixel of slack
+    gl_Position = vec4((ndc + off) * clip.w, clip.z, clip.w);
+    v_color = in_color;
+    v_id = in_slot + 1u;
+}
+"""
+
+_FRAG = """
+#version 330
+uniform float u_height;
+uniform int u_round;
+flat in vec4 v_color;
+flat in vec3 v_centre;
+flat in uint v_id;
+layout(location = 0) out vec4 f_color;
+layout(location = 1) out vec4 f_id;  // slot + 1, little-endian bytes (exact in RGBA8)
+void main() {
+    vec2 c = vec2(gl_FragCoord.x, u_height - gl_FragCoord.y);  // pixel centre, top-left origin
+    vec2 d = c - v_centre.xy;
+    float h = v_centre.z;
+    if (u_round == 1) {
+        if (dot(d, d) > h * h) discard;
+    } else if (d.x < -h || d.x >= h || d.y < -h || d.y >= h) {
+        discard;
+    }
+    f_color = v_color;
+    f_id = vec4(uvec4(v_id, v_id >> 8u, v_id >> 16u, v_id >> 24u) & 255u) / 255.0;
+}
+"""
+
+_INSTANCE = np.dtype([("pos", "<f4", 3), ("color", "u1", 4), ("slot", "<u4")])
+
+
+class GlRenderer(Renderer):
+    """moderngl tier on a standalone EGL context (no display needed)."""
+
+    tier = "gl"
+
+    def __init__(self, cfg: RenderConfig, capacity: int, channels: list[str], *, backend: str = "egl"):
+        super().__init__(cfg, capacity, channels)
+        try:
+            import moderngl
+        except ImportError as exc:
+            raise RenderError(f"moderngl is not installed: {exc}") from exc
+        self._mgl = moderngl
+        try:
+            self.ctx = moderngl.create_standalone_context(backend=backend, require=330)
+        except Exception as exc:  # noqa: BLE001 - EGL missing / no driver
+            raise RenderError(f"no EGL OpenGL 3.3 context: {type(exc).__name__}: {exc}") from exc
+        try:
+            ctx = self.ctx
+            W, H = self.width, self.height
+            mx = ctx.info.get("GL_MAX_RENDERBUFFER_SIZE", 16384)
+            if W > mx or H > mx:
+                raise RenderError(f"viewport {W}x{H} exceeds GL_MAX_RENDERBUFFER_SIZE {mx}")
+            self._color = ctx.renderbuffer((W, H), 4)
+            self._ids = ctx.renderbuffer((W, H), 4)  # slot + 1 as 4 little-endian bytes
+            self._depth = ctx.depth_renderbuffer((W, H))
+            self.fbo = ctx.framebuffer(color_attachments=[self._color, self._ids], depth_attachment=self._depth)
+            self._ids_fbo = ctx.framebuffer(color_attachments=[self._ids])
+            self.prog = ctx.program(vertex_shader=_VERT.replace("MAX_PX", f"{MAX_POINT_PX:.1f}"),
+                                    fragment_shader=_FRAG)
+        except RenderError:
+            self.ctx.release()
+            raise
+        except Exception as exc:  # noqa: BLE001
+            self.ctx.release()
+            raise RenderError(f"GL set-up failed: {type(exc).__name__}: {exc}") from exc
+        self._buf = None
+        self._vao = None
+        self._buf_points = 0
+        self._bg = rgba_u8(cfg.background)
+        self._last: dict[str, np.ndarray] = {}
+        self.nonfinite_total = 0
+        self.frames = 0
+        self._clear()
+
+    def _ensure_buffer(self, n: int) -> None:
+        if self._buf is not None and n <= self._buf_points:
+            return
+        cap = max(n, 1024, int(self._buf_points * 1.5))
+        if self._vao is not None:
+            self._vao.release()
+            self._buf.release()
+        self._buf = self.ctx.buffer(reserve=cap * _INSTANCE.itemsize)
+        self._vao = self.ctx.vertex_array(
+            self.prog, [(self._buf, "3f 4f1 1u /i", "in_pos", "in_color", "in_slot")])
+        self._buf_points = cap
+
+    def _clear(self) -> None:
+        """Background + far depth; the id attachment to 0 (= no point). moderngl clears all
+        colour attachments with one value, so the ids are cleared through their own fbo."""
+        self.fbo.clear(*(self._bg.astype(np.float64) / 255.0), depth=1.0)
+        self._ids_fbo.clear(0.0, 0.0, 0.0, 0.0)
+        self.fbo.use()
+
+    def render(self, frame: FrameInput, camera: Camera) -> FrameStats:
+        t0 = time.perf_counter()
+        W, H = self.width, self.height
+        sel = select_points(frame, camera, self.cfg, W, H)
+        n = sel.n
+        inst = np.empty(n, _INSTANCE)
+        inst["pos"] = frame.positions[sel.slots]
+        inst["color"] = point_colors(frame, self.cfg, sel.slots)
+        inst["slot"] = sel.slots.astype(np.uint32)
+        t1 = time.perf_counter()
+        try:
+            ctx = self.ctx
+            self._ensure_buffer(n)
+            if n:
+                self._buf.write(inst.tobytes())
+            vp = (GL_DEPTH_FIX @ camera.view_proj(W, H, frame.origin)).astype(np.float32)
+            self.prog["u_vp"].write(vp.T.tobytes())  # GLSL matrices are column-major
+            self.prog["u_view"].value = (float(W), float(H))
+            self.prog["u_size"].value = float(self.cfg.point_size)
+            world = self.cfg.point_size_space == "world"
+            self.prog["u_world_k"].value = float(camera.proj(W, H)[1, 1] * H * 0.5) if world else 0.0
+            self.prog["u_height"].value = float(H)
+            self.prog["u_round"].value = 1 if self.cfg.point_shape == "round" else 0
+            t2 = time.perf_counter()
+            self.fbo.use()
+            ctx.viewport = (0, 0, W, H)
+            self._clear()
+            ctx.enable_only(self._mgl.DEPTH_TEST)
+            ctx.depth_func = "<"
+            if n:
+                self._vao.render(self._mgl.TRIANGLES, vertices=6, instances=n)
+            ctx.finish()
+            err = ctx.error
+            if err != "GL_NO_ERROR":
+                raise RenderError(f"GL error after draw: {err}")
+        except RenderError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - a lost context surfaces as any exception
+            raise RenderError(f"GL draw failed: {type(exc).__name__}: {exc}") from exc
+        t3 = time.perf_counter()
+        self._last = drawn_attributes(frame, sel.slots) if self.cfg.pick_strategy != "nearest" else {}
+        self.nonfinite_total += sel.counts["nonfinite"]
+        self.frames += 1
+        ms = lambda a, b: (b - a) * 1e3
+        return FrameStats(
+            drawn=n, uploaded_bytes=n * _INSTANCE.itemsize,
+            timings_ms={"select": ms(t0, t1), "upload": ms(t1, t2), "draw": ms(t2, t3), "total": ms(t0, t3)},
+            extra={**{f"removed_{k}": v for k, v in sel.counts.items() if k not in ("occupied", "drawn")},
+                   "nonfinite_total": self.nonfinite_total},
+        )
+
+    def read_image(self) -> np.ndarray:
+        raw = self.fbo.read(components=4, attachment=0, alignment=1)
+        img = np.frombuffer(raw, np.uint8).reshape(self.height, self.width, 4)
+        return img[::-1].copy()  # GL rows start at the bottom
+
+    def read_ids(self) -> np.ndarray:
+        """(h, w) int64 slot per pixel (-1 = background), top row first."""
+        raw = self.fbo.read(components=4, attachment=1, alignment=1)
+        ids = np.frombuffer(raw, "<u4").reshape(self.height, self.width)[::-1]
+        return ids.astype(np.int64) - 1
+
+    def pick(self, x: float, y: float, pixel_ratio: float = 1.0) -> Optional[int]:
+        win = pick_window(self.width, self.height, x, y, pixel_ratio, self.cfg.pick_radius)
+        if win is None:
+            return None
+        X, Y, xa, xb, ya, yb = win
+        # read only the block: GL's y axis points up
+        raw = self.fbo.read(viewport=(xa, self.height - yb, xb - xa, yb - ya), components=4, attachment=1,
+                            alignment=1)
+        block = np.frombuffer(raw, "<u4").reshape(yb - ya, xb - xa)[::-1].astype(np.int64) - 1
+        return resolve_pick(block, X - xa, Y - ya, self.cfg.pick_strategy, self._last)
+
+    def info(self) -> dict[str, Any]:
+        i = self.ctx.info
+        return {"tier": self.tier, "size": [self.width, self.height], "renderer": i.get("GL_RENDERER"),
+                "vendor": i.get("GL_VENDOR"), "version": i.get("GL_VERSION")}
+
+    def close(self) -> None:
+        ctx = getattr(self, "ctx", None)
+        if ctx is not None:
+            try:
+                ctx.release()
+            finally:
+                self.ctx = None
