@@ -46,7 +46,8 @@ CONFIG_OFF, CONFIG_MAX = 4096, 4096
 COMMIT_OFF, COMMIT_N = 8192, 1024
 
 (I_CAP, I_HEAD, I_SIZE, I_DROPPED, I_WRITES, I_GEN, I_EPOCH, I_ORIGIN_SET, I_DIRTY_N, I_DIRTY_FULL,
- I_COMMIT_COUNT, I_COMMIT_TAKEN, I_TOTAL_WRITTEN, I_RESETS, I_FINGERPRINT, I_OWNER_PID, I_LAST_PUSH_NS) = range(17)
+ I_COMMIT_COUNT, I_COMMIT_TAKEN, I_TOTAL_WRITTEN, I_RESETS, I_FINGERPRINT, I_OWNER_PID, I_LAST_PUSH_NS,
+ I_ORIGIN_GEN) = range(18)
 
 EVICTIONS = ("drop_oldest", "drop_newest", "importance")
 _EVICTION_ALIASES = {"fifo": "drop_oldest", "drop_oldest": "drop_oldest", "drop_newest": "drop_newest",
@@ -234,7 +235,9 @@ class PointRing:
 
     def _map(self) -> None:
         mm = self._seg.mm
-        self._st = np.ndarray((N_STATE,), np.int64, buffer=mm, offset=STATE_OFF)
+        # int64 state as a memoryview: Python-int indexing is several times cheaper than numpy scalars
+        self._stmv = memoryview(mm)[STATE_OFF:STATE_OFF + 8 * N_STATE]
+        self._st = self._stmv.cast("q")
         self._fst = np.ndarray((N_FSTATE,), np.float64, buffer=mm, offset=FSTATE_OFF)
         self._dirty = np.ndarray((DIRTY_MAX, 2), np.int64, buffer=mm, offset=DIRTY_OFF)
         self._commits = np.ndarray((COMMIT_N, 2), np.int64, buffer=mm, offset=COMMIT_OFF)
@@ -264,8 +267,12 @@ class PointRing:
         if self._closed:
             return
         self._closed = True
-        for a in ("arrays", "_pos", "_t", "_imp", "_gen", "_chans", "_all", "_st", "_fst", "_dirty", "_commits"):
+        for a in ("arrays", "_pos", "_t", "_imp", "_gen", "_chans", "_all", "_fst", "_dirty", "_commits", "_otile"):
             self.__dict__.pop(a, None)
+        for a in ("_st", "_stmv"):
+            mv = self.__dict__.pop(a, None)
+            if mv is not None:
+                mv.release()
         self._finalizer()
 
     def unlink(self) -> None:
@@ -402,11 +409,12 @@ class PointRing:
                 gens[s0:s1] = g
 
     def _origin_tile(self, n: int) -> np.ndarray:
-        o = tuple(float(x) for x in self._fst[0:3])
+        """The origin repeated n times (flat float64), cached until the origin changes."""
+        key = self._st[I_ORIGIN_GEN]
         ot = self._otile
-        if ot is None or self._otile_origin != o or ot.shape[0] < 3 * n:
-            ot = np.tile(np.array(o, np.float64), max(n, 1024))
-            self._otile, self._otile_origin = ot, o
+        if ot is None or self._otile_origin != key or ot.shape[0] < 3 * n:
+            ot = np.tile(self._fst[0:3].copy(), max(n, 1024))
+            self._otile, self._otile_origin = ot, key
         return ot
 
     def _scores(self, head: int, W: int, now_ms: float) -> tuple[np.ndarray, np.ndarray]:
@@ -472,6 +480,7 @@ class PointRing:
                 i0 = int(np.argmax(fin)) if fin.any() else -1
                 self._fst[0:3] = np.round(pos[i0].astype(np.float64)) if i0 >= 0 else 0.0
                 st[I_ORIGIN_SET] = 1
+                st[I_ORIGIN_GEN] = st[I_GEN] + 1
             g = int(st[I_GEN]) + 1
             st[I_GEN] = g
             now_ns = time.monotonic_ns()
