@@ -25,6 +25,9 @@ class Transport(ABC):
     name: ClassVar[str] = ""
     #: A dataclass whose fields are the accepted options (validated at config load).
     options_schema: ClassVar[type] = NoOptions
+    #: True for replays (files, as-fast-as-possible generators): when ingest is behind the
+    #: source waits instead of dropping chunks. Live transports leave it False.
+    lossless: bool = False
 
     def __init__(self, options: dict[str, Any], source_id: str):
         self.options = options

@@ -223,6 +223,7 @@ class SyntheticTransport(Transport):
         super().__init__(opts, source_id)
         self.o = SyntheticOptions(**opts)
         o = self.o
+        self.lossless = not o.realtime
         self.prims, self.movers = _build_scene(o)
         self.origin = np.asarray(o.origin, np.float64)
         self.n_az = max(o.chunks_per_scan, int(math.ceil(o.points_per_scan / o.beams)))

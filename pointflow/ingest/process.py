@@ -1,0 +1,330 @@
+"""The ingest stage: ZeroMQ chunks in, validated SoA points into the shared-memory ring.
+
+One loop, one process: drain the PULL socket (bounded by the ZeroMQ receive high-water
+mark), decode each message (binary wire format, or a one-frame JSON chunk), validate,
+drop non-finite points, convert to the ring's channels, resolve the importance field,
+coalesce small chunks into batches (a bounded queue that drops its oldest batch when full)
+and push the batches into the ring. Nothing a sender does can crash it: every defect is a
+:class:`ChunkError` whose reason is counted and logged (rate-limited).
+
+Accounting (exact, see docs/ingest.md)::
+
+    messages_in = chunks_accepted + sum(rejected[reason])          (messages)
+    points_in   = points_out + sum(drops[reason])                  (points of accepted chunks)
+
+where ``points_out`` is what the ring stored and ``drops`` holds ``non_finite``,
+``queue_overflow``, ``thinned`` and ``ring_full`` (incoming points the ring refused,
+``drop_newest``). Points the ring evicted to make room are ``extra["ring_evicted"]``; so
+the ring's own ``dropped_points`` equals ``ring_evicted + drops["ring_full"]`` and its
+``total_written`` equals ``points_out``.
+"""
+from __future__ import annotations
+
+import collections
+import logging
+import time
+from dataclasses import dataclass, field
+from typing import Any, Sequence
+
+import numpy as np
+import zmq
+
+from .. import wire
+from ..chunk import ChunkError, PointChunk
+from .jsonchunk import parse_json_chunk
+
+#: Per-reason log lines at most this often (seconds).
+LOG_EVERY_S = 5.0
+#: Adaptive thinning steps: (ring fill fraction, keep every k-th point).
+THINNING = ((0.985, 4), (0.95, 2))
+
+
+@dataclass
+class _Batch:
+    """Chunks queued for one ring push (converted arrays, not yet concatenated)."""
+
+    positions: list[np.ndarray] = field(default_factory=list)
+    channels: list[dict[str, np.ndarray]] = field(default_factory=list)
+    traces: list[int] = field(default_factory=list)
+    n: int = 0
+
+
+class RateLimitedLog:
+    """Logs the first defect of each reason, then a summary at most every ``every_s``."""
+
+    def __init__(self, log: logging.Logger, every_s: float = LOG_EVERY_S):
+        self.log = log
+        self.every_s = every_s
+        self._last: dict[str, float] = {}
+        self._since: collections.Counter[str] = collections.Counter()
+
+    def __call__(self, reason: str, message: str) -> None:
+        now = time.monotonic()
+        self._since[reason] += 1
+        if now - self._last.get(reason, -1e9) >= self.every_s:
+            n = self._since.pop(reason)
+            self._last[reason] = now
+            more = f" ({n - 1} more since last report)" if n > 1 else ""
+            self.log.warning("rejected chunk [%s]: %s%s", reason, message, more)
+
+
+class Ingestor:
+    """Decode → validate → convert → coalesce → push, with exact counters.
+
+    Independent of the process loop so tests and benchmarks can drive it directly."""
+
+    def __init__(self, ring, *, max_chunk_points: int = 5_000_000, coalesce_points: int = 20_000,
+                 queue_max_batches: int = 64, adaptive_thinning: bool = False,
+                 importance_field: str | None = None, counters=None, spans=None,
+                 log: logging.Logger | None = None):
+        from ..runtime.stage import StageCounters
+
+        self.ring = ring
+        self.max_chunk_points = max_chunk_points
+        self.coalesce_points = coalesce_points
+        self.queue_max_batches = queue_max_batches
+        self.adaptive_thinning = adaptive_thinning
+        self.counters = counters if counters is not None else StageCounters()
+        self.spans = spans
+        self.log = log or logging.getLogger("pointflow.ingest")
+        self._warn = RateLimitedLog(self.log)
+        self.specs = {c.name: c for c in ring.channels}
+        # The supervisor creates the ring with importance_field="importance" when the config
+        # asks for importance; ingest resolves the configured field into that value.
+        self._imp_key = ring.importance_field if ring.importance_field == "importance" and "importance" not in self.specs else None
+        self.importance_source = importance_field
+        self.queue: collections.deque[_Batch] = collections.deque()
+        self.rejected: collections.Counter[str] = collections.Counter()
+        self.messages_in = 0
+        self.chunks_accepted = 0
+        self.ring_evicted = 0
+        self.pushes = 0
+        self._fill = 0.0
+        self._fill_checked = 0.0
+
+    # ------------------------------------------------------------------ receive
+    def receive(self, frames: Sequence[Any]) -> bool:
+        """Take one ZeroMQ message; False when it was rejected (counted)."""
+        self.messages_in += 1
+        t0 = time.monotonic_ns()
+        try:
+            if len(frames) == 1:
+                buf = frames[0].buffer if hasattr(frames[0], "buffer") else frames[0]
+                chunk = parse_json_chunk(buf, self.max_chunk_points)
+            else:
+                chunk = wire.decode(frames, self.max_chunk_points)
+            chunk.t_recv_ns = chunk.t_recv_ns or t0
+        except ChunkError as exc:
+            self.reject(exc.reason, str(exc))
+            return False
+        except Exception as exc:  # noqa: BLE001 - a decoder bug must not kill the stage
+            self.reject("decode_error", f"{type(exc).__name__}: {exc}")
+            return False
+        return self.add_chunk(chunk, t0)
+
+    def reject(self, reason: str, message: str) -> None:
+        self.rejected[reason] += 1
+        self._warn(reason, message)
+
+    def add_chunk(self, chunk: PointChunk, t0_ns: int | None = None) -> bool:
+        """Validate and convert a decoded chunk, then queue it. False when rejected."""
+        t0 = t0_ns or time.monotonic_ns()
+        try:
+            chunk.validate(self.max_chunk_points)
+            pos, chans = self._convert(chunk)
+        except ChunkError as exc:
+            self.reject(exc.reason, f"source {chunk.source_id!r} seq {chunk.seq}: {exc}")
+            return False
+        self.chunks_accepted += 1
+        n = chunk.n
+        self.counters.points_in += n
+        if n:
+            fin = np.isfinite(pos).all(axis=1)
+            bad = n - int(np.count_nonzero(fin))
+            if bad:
+                self.counters.drop("non_finite", bad)
+                pos = pos[fin]
+                chans = {k: v[fin] for k, v in chans.items()}
+        if self.adaptive_thinning and pos.shape[0]:
+            k = self._thin_step()
+            if k > 1:
+                m = pos.shape[0]
+                pos = pos[::k]
+                chans = {c: v[::k] for c, v in chans.items()}
+                self.counters.drop("thinned", m - pos.shape[0])
+        if self.spans is not None:
+            self.spans.record(chunk.trace_id, "ingest_packed", chunk.t_recv_ns or t0, time.monotonic_ns(), pos.shape[0])
+        if pos.shape[0]:
+            self._enqueue(pos, chans, chunk.trace_id)
+        return True
+
+    def _convert(self, chunk: PointChunk) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        """Only the ring's channels, in the ring's dtypes; importance resolved."""
+        out: dict[str, np.ndarray] = {}
+        n = chunk.n
+        for name, spec in self.specs.items():
+            arr = chunk.channels.get(name)
+            if arr is None:
+                continue
+            if spec.width == 1:
+                if arr.ndim == 2 and arr.shape[1] == 1:
+                    arr = arr[:, 0]
+                if arr.ndim != 1:
+                    raise ChunkError("bad_channel_shape", f"channel {name!r} must be one value per point, got shape {arr.shape}")
+            elif arr.ndim != 2 or arr.shape[1] != spec.width:
+                raise ChunkError("bad_channel_shape", f"channel {name!r} must have shape ({n}, {spec.width}), got {arr.shape}")
+            out[name] = _to_dtype(name, arr, np.dtype(spec.dtype))
+        if self._imp_key is not None:
+            src = self._importance_values(chunk)
+            if src is not None:
+                out[self._imp_key] = src
+        return chunk.positions, out
+
+    def _importance_values(self, chunk: PointChunk) -> np.ndarray | None:
+        f = self.importance_source
+        if not f:
+            return None
+        if f == "auto":
+            if "intensity" in chunk.channels:
+                f = "intensity"
+            else:
+                f = next((k for k, v in chunk.channels.items() if v.ndim == 1 or v.shape[1] == 1), None)
+                if f is None:
+                    return None
+        arr = chunk.channels.get(f)
+        if arr is None or (arr.ndim == 2 and arr.shape[1] != 1):
+            return None
+        return np.asarray(arr, dtype=np.float32).reshape(-1)
+
+    def _thin_step(self) -> int:
+        now = time.monotonic()
+        if now - self._fill_checked > 0.02:  # ring.stats() takes the lock: not per chunk
+            st = self.ring.stats()
+            self._fill = st.total_points / max(1, st.capacity)
+            self._fill_checked = now
+        for frac, k in THINNING:
+            if self._fill >= frac:
+                return k
+        return 1
+
+    def _enqueue(self, pos: np.ndarray, chans: dict[str, np.ndarray], trace: int) -> None:
+        n = pos.shape[0]
+        last = self.queue[-1] if self.queue else None
+        if (last is None or last.n + n > self.coalesce_points
+                or last.channels and last.channels[-1].keys() != chans.keys()
+                or last.positions[-1].dtype != pos.dtype):
+            last = _Batch()
+            self.queue.append(last)
+            while len(self.queue) > self.queue_max_batches:
+                old = self.queue.popleft()
+                self.counters.drop("queue_overflow", old.n)
+        last.positions.append(pos)
+        last.channels.append(chans)
+        last.traces.append(trace)
+        last.n += n
+
+    # ------------------------------------------------------------------ push
+    def flush(self, max_batches: int | None = None) -> int:
+        """Push queued batches into the ring (all, or at most ``max_batches``)."""
+        done = 0
+        while self.queue and (max_batches is None or done < max_batches):
+            b = self.queue.popleft()
+            if len(b.positions) == 1:
+                pos, chans = b.positions[0], b.channels[0]
+            else:
+                pos = np.concatenate(b.positions)
+                chans = {k: np.concatenate([c[k] for c in b.channels]) for k in b.channels[0]}
+            trace = next((t for t in reversed(b.traces) if t), 0)
+            t0 = time.monotonic_ns()
+            res = self.ring.push(pos, trace_id=trace, **chans)
+            t1 = time.monotonic_ns()
+            self.pushes += 1
+            refused = b.n - res.written
+            self.counters.points_out += res.written
+            self.counters.drop("ring_full", refused)
+            self.ring_evicted += res.dropped - refused
+            if self.spans is not None:
+                for t in b.traces:
+                    self.spans.record(t, "ring_committed", t0, t1, b.n)
+            done += 1
+        return done
+
+    @property
+    def queued_points(self) -> int:
+        return sum(b.n for b in self.queue)
+
+    def stats_extra(self) -> dict[str, Any]:
+        return {
+            "messages_in": self.messages_in,
+            "chunks_accepted": self.chunks_accepted,
+            "rejected": dict(self.rejected),
+            "rejected_messages": sum(self.rejected.values()),
+            "ring_evicted": self.ring_evicted,
+            "ring_pushes": self.pushes,
+            "queue_batches": len(self.queue),
+            "queued_points": self.queued_points,
+        }
+
+
+def _to_dtype(name: str, arr: np.ndarray, dt: np.dtype) -> np.ndarray:
+    """Convert a channel to the ring's dtype (rgb: 16-bit scaled down, floats 0..1 scaled up)."""
+    if arr.dtype == dt:
+        return arr
+    if dt == np.uint8:
+        if arr.dtype.kind == "f":
+            a = np.nan_to_num(arr.astype(np.float32, copy=False), nan=0.0, posinf=255.0, neginf=0.0)
+            if a.size and float(a.max()) <= 1.0:
+                a = a * 255.0
+            return np.clip(np.rint(a), 0, 255).astype(np.uint8)
+        if arr.dtype.itemsize > 1 or arr.dtype.kind == "i":
+            # 16-bit colour (LAS): scale down, unless the values only use the 8-bit range
+            if arr.size and int(arr.max()) > 255:
+                return (np.clip(arr, 0, 65535).astype(np.uint32) >> 8).astype(np.uint8)
+            return np.clip(arr, 0, 255).astype(np.uint8)
+    return arr.astype(dt)
+
+
+def main(ctx) -> None:
+    """Stage loop (``pointflow.runtime.stage.STAGE_MAINS['ingest']``)."""
+    from ..ring import PointRing
+
+    icfg = ctx.cfg.ingest
+    ring = PointRing.attach(ctx.info.ring_name)
+    sock = ctx.zmq.socket(zmq.PULL)
+    sock.setsockopt(zmq.RCVHWM, icfg.receive_hwm)
+    sock.setsockopt(zmq.LINGER, 0)
+    sock.bind(ctx.endpoints.ingest)
+    ing = Ingestor(ring, max_chunk_points=icfg.max_chunk_points, coalesce_points=icfg.coalesce_points,
+                   queue_max_batches=icfg.queue_max_batches, adaptive_thinning=icfg.adaptive_thinning,
+                   importance_field=ctx.cfg.ring.importance_field, counters=ctx.counters,
+                   spans=ctx.spans, log=ctx.log)
+    ctx.on_beat.append(lambda: ctx.counters.extra.update(ing.stats_extra()))
+    poller = zmq.Poller()
+    poller.register(sock, zmq.POLLIN)
+    # Drain at most this many messages before pushing, so a burst cannot starve the ring.
+    burst = max(1, icfg.queue_max_batches)
+    try:
+        while ctx.running:
+            ctx.beat()
+            if not poller.poll(0 if ing.queue else 50):
+                ing.flush()
+                continue
+            for _ in range(burst):
+                try:
+                    frames = sock.recv_multipart(zmq.NOBLOCK, copy=False)
+                except zmq.Again:
+                    break
+                ing.receive(frames)
+            ing.flush()
+        # stopping: take what already arrived, so nothing received goes unaccounted
+        while True:
+            try:
+                frames = sock.recv_multipart(zmq.NOBLOCK, copy=False)
+            except zmq.Again:
+                break
+            ing.receive(frames)
+        ing.flush()
+    finally:
+        ctx.counters.extra.update(ing.stats_extra())
+        sock.close()
+        ring.close()

@@ -1,0 +1,97 @@
+"""The source stage: one transport, in its own process, pushing chunks to ingest.
+
+Resolves the transport of ``cfg.sources[info.source_index]``, opens it, stamps each chunk
+(source id, sequence number, trace id, send time) and sends it in the wire format on a
+PUSH socket connected to ``endpoints.ingest``. A full send queue (ingest behind) never
+blocks forever: live transports wait at most ``LIVE_SEND_WAIT_MS`` and then drop the chunk
+(counted as ``hwm``); replay transports (``Transport.lossless``) wait, beating, until ingest
+takes it or the stage is stopped. ``close()`` runs on every exit path.
+"""
+from __future__ import annotations
+
+import time
+
+import zmq
+
+from .. import wire
+from ..chunk import new_trace_id
+from .transports import resolve_transport
+
+#: How long a live source waits for room in the send queue before dropping a chunk.
+LIVE_SEND_WAIT_MS = 100
+#: Messages the PUSH socket queues before the wait/drop policy applies.
+SEND_HWM = 64
+
+
+def _send(ctx, sock, frames, lossless: bool) -> bool:
+    """Send one message; False if it was dropped (never blocks past a stop request)."""
+    waited = 0.0
+    while True:
+        try:
+            sock.send_multipart(frames, zmq.NOBLOCK, copy=False)
+            return True
+        except zmq.Again:
+            pass
+        if not ctx.running or (not lossless and waited >= LIVE_SEND_WAIT_MS):
+            return False
+        sock.poll(20, zmq.POLLOUT)
+        waited += 20
+        ctx.beat()
+
+
+def main(ctx) -> None:
+    """Stage loop (``pointflow.runtime.stage.STAGE_MAINS['source']``)."""
+    idx = ctx.info.source_index if ctx.info.source_index >= 0 else 0
+    scfg = ctx.cfg.sources[idx]
+    cls = resolve_transport(scfg.transport)
+    source_id = scfg.name or f"source{idx}"
+    transport = cls(dict(scfg.options), source_id)
+    lossless = bool(getattr(transport, "lossless", False))
+    sock = ctx.zmq.socket(zmq.PUSH)
+    sock.setsockopt(zmq.SNDHWM, SEND_HWM)
+    sock.setsockopt(zmq.LINGER, 2000)  # let the last chunks of a finished replay go out
+    sock.connect(ctx.endpoints.ingest)
+
+    def _stats() -> None:
+        ctx.counters.extra.update({f"transport_{k}": v for k, v in transport.counters.items()})
+        ctx.counters.extra["chunks_sent"] = seq
+
+    ctx.on_beat.append(_stats)
+    seq = 0
+    try:
+        transport.open()
+        it = transport.chunks()
+        while ctx.running:
+            t0 = time.monotonic_ns()
+            try:
+                chunk = next(it)
+            except StopIteration:
+                break
+            ctx.beat()
+            if chunk is None:
+                continue
+            t1 = time.monotonic_ns()
+            n = len(chunk)
+            chunk.source_id = chunk.source_id or source_id
+            chunk.seq = seq
+            chunk.trace_id = new_trace_id()
+            chunk.t_sent_ns = time.monotonic_ns()
+            ctx.counters.points_in += n
+            ctx.spans.record(chunk.trace_id, "transport_receive", t0, t1, n)
+            try:
+                frames = wire.encode(chunk)
+            except Exception as exc:  # noqa: BLE001 - a bad chunk from a plugin is dropped, not fatal
+                ctx.counters.drop("encode_error", n)
+                ctx.log.warning("transport %s produced an unencodable chunk: %s", scfg.transport, exc)
+                continue
+            if _send(ctx, sock, frames, lossless):
+                ctx.counters.points_out += n
+                seq += 1
+            else:
+                ctx.counters.drop("hwm", n)
+    finally:
+        try:
+            transport.close()
+        finally:
+            _stats()
+            sock.close()
