@@ -222,7 +222,6 @@ def main(ctx) -> None:
     ready.setsockopt(zmq.IMMEDIATE, 1)  # never queue handoffs for a renderer that is not there
     ready.connect(ctx.endpoints.frames)
     decision = resolve_policy(cfg)
-    ctx.log.info("%s", decision.summary())
     cad = Cadence(ring, slabs, ready, release, ctx.zmq, cfg, decision, spans=ctx.spans, log=ctx.log)
     if ctx.info.restart_count:
         ctx.log.info("cadence restarted (%d): resuming from the slab headers", ctx.info.restart_count)

@@ -1,0 +1,188 @@
+"""The Cadence tick loop against a real ring, real slabs and real ZeroMQ sockets.
+
+Time comes from a fake clock (ticks are driven with ``ticker.poll()`` after advancing it), so
+skips, lateness and the adaptive interval are tested without timing flakiness.
+"""
+import os
+import time
+
+import numpy as np
+import pytest
+import zmq
+
+from pointflow.cadence.messages import CONTROL_TAG, encode_frame_time, encode_hello
+from pointflow.cadence.policy import resolve_policy
+from pointflow.cadence.process import Cadence
+from pointflow.config import load_config
+from pointflow.profiling.collector import SpanCollector
+from pointflow.profiling.spans import SpanEmitter
+from pointflow.ring import PointRing, SlabPair, SlabReader
+
+from .fakeclock import FakeClock
+
+
+class Rig:
+    def __init__(self, tmp, cfg_over=None, bind_renderer=True):
+        d = {"source": {"transport": "synthetic"}, "cadence": {"target_hz": 100},
+             "policy": {"tier": "M"}, "render": {"size": [320, 240]}, "ring": {"max_points": 5000}}
+        for k, v in (cfg_over or {}).items():
+            d.setdefault(k, {}).update(v)
+        self.cfg = load_config(d)
+        self.ring = PointRing(5000, channels=["intensity"])
+        self.slabs = SlabPair.create(self.ring.layout)
+        self.z = zmq.Context()
+        ep_f, ep_r = f"ipc://{tmp}/f.sock", f"ipc://{tmp}/r.sock"
+        self.rel = self.z.socket(zmq.PULL); self.rel.bind(ep_r)
+        self.rpush = self.z.socket(zmq.PUSH); self.rpush.connect(ep_r)
+        self.rpull = None
+        if bind_renderer:
+            self.rpull = self.z.socket(zmq.PULL); self.rpull.bind(ep_f)
+            self.reader = SlabReader(self.slabs, self.rpull, self.rpush)
+        self.ready = self.z.socket(zmq.PUSH); self.ready.setsockopt(zmq.IMMEDIATE, 1)
+        self.ready.connect(ep_f)
+        self.coll = SpanCollector(self.z, "inproc://spans")
+        self.spans = SpanEmitter(self.z, "inproc://spans", "cadence", batch=10_000)
+        self.clk = FakeClock()
+        self.decision = resolve_policy(self.cfg, probe_gpu=False)
+        self.cad = Cadence(self.ring, self.slabs, self.ready, self.rel, self.z, self.cfg, self.decision,
+                           spans=self.spans, clock=self.clk, sleep=self.clk.sleep)
+        time.sleep(0.05)  # let ipc connections establish
+
+    def tick(self, advance=None):
+        self.clk.advance(self.cad.ticker.interval_s if advance is None else advance)
+        tk = self.cad.ticker.poll()
+        assert tk is not None
+        return self.cad.serve(tk)
+
+    def recv(self):
+        got = self.reader.recv(1000)
+        assert got is not None, "no handoff arrived"
+        return got
+
+    def send(self, frames):
+        self.rpush.send_multipart(frames)
+        deadline = time.monotonic() + 2
+        while time.monotonic() < deadline:  # wait until the cadence has taken it
+            if self.rel.poll(10):
+                self.cad.drain(0)
+                return
+        raise AssertionError("message did not arrive")
+
+    def push(self, n, tid):
+        self.ring.push(np.random.rand(n, 3).astype(np.float32), trace_id=tid,
+                       intensity=np.full(n, tid, np.float32))
+
+    def close(self):
+        self.cad.close()
+        self.spans.close()
+        self.coll.close()
+        for s in (self.rel, self.ready, self.rpush, self.rpull):
+            if s is not None:
+                s.close(0)
+        self.z.term()
+        self.slabs.close(); self.slabs.unlink()
+        self.ring.close(); self.ring.unlink()
+
+
+@pytest.fixture
+def rig(tmp_path):
+    r = Rig(tmp_path)
+    yield r
+    r.close()
+
+
+def test_publishes_budget_and_spans_for_new_trace_ids_once(rig):
+    rig.push(100, 11)
+    rig.push(50, 12)
+    h = rig.tick()
+    assert h and h.extra["budget"] == rig.decision.point_budget == min(350_000, 4 * 320 * 240, 5000)
+    got, view = rig.recv()
+    assert got.seq == h.seq and sorted(got.trace_ids) == [11, 12] and view.size == 150
+    rig.reader.release()
+    rig.push(10, 13)
+    h2 = rig.tick()
+    assert h2.trace_ids == [13]
+    rig.recv()
+    rig.spans.flush()
+    time.sleep(0.05)
+    rig.coll.poll(0)
+    t = rig.coll.table()
+    snap = t.event == t.event_names.index("cadence_snapshot")
+    assert sorted(t.trace_id[snap].tolist()) == [11, 12, 13]  # each trace id once, when first visible
+    assert rig.cad.stats()["published"] == 2
+
+
+def test_skips_when_renderer_holds_both_slabs_no_backlog(rig):
+    rig.push(10, 1)
+    assert rig.tick()            # slab A -> renderer takes it
+    rig.recv()
+    assert rig.tick()            # slab B handed out, renderer not reading yet
+    for _ in range(5):
+        assert rig.tick() is False
+    st = rig.cad.stats()
+    assert st["skipped"] == {"renderer_busy": 5} and st["published"] == 2
+    got, _ = rig.recv()          # renderer takes B and releases A
+    assert got.seq == 2          # only one handoff was waiting: no backlog built up
+    time.sleep(0.05)
+    h = rig.tick()
+    assert h and h.seq == 3
+
+
+def test_late_ticks_skipped_and_counted(rig):
+    rig.tick()
+    h = rig.tick(advance=0.035)  # 3.5 periods of 10 ms: 2 deadlines unservable
+    assert rig.cad.stats()["skipped"]["late"] == 2
+    assert rig.cad.ticks == 2
+
+
+def test_hello_resets_reader_and_next_handoff_is_full(rig):
+    rig.push(10, 1)
+    rig.tick(); rig.recv()
+    rig.push(10, 2)
+    h = rig.tick()
+    assert h.dirty is not None   # incremental
+    assert rig.tick() is False   # both held
+    rig.send(encode_hello(os.getpid(), 1))
+    h = rig.tick()
+    assert h and h.dirty is None  # full copy for the new renderer
+    assert rig.cad.stats()["renderer_hellos"] == 1
+
+
+def test_adaptive_interval_follows_frame_time_ema(tmp_path):
+    r = Rig(tmp_path, {"cadence": {"adaptive": True}, "policy": {"tier": "H", "mode": "max_throughput"}})
+    try:
+        assert r.cad.interval_ms == pytest.approx(78.125)
+        r.send(encode_frame_time(60.0, 1))
+        assert r.cad.frame_ema_ms == pytest.approx(60.0)
+        assert r.cad.interval_ms == pytest.approx(120.0)
+        r.send(encode_frame_time(100.0, 2))
+        assert r.cad.frame_ema_ms == pytest.approx(60.0 + 0.15 * 40.0)
+        assert r.cad.interval_ms == pytest.approx(132.0)
+        assert r.cad.ticker.interval_s == pytest.approx(0.132)
+        r.send(encode_frame_time(1000.0, 3))
+        assert r.cad.interval_ms == pytest.approx(200.0)
+    finally:
+        r.close()
+
+
+def test_fixed_mode_ignores_frame_time(rig):
+    rig.send(encode_frame_time(500.0, 1))
+    assert rig.cad.frame_ema_ms == 500.0
+    assert rig.cad.interval_ms == pytest.approx(10.0)
+
+
+def test_bad_control_message_counted_not_fatal(rig):
+    rig.send([CONTROL_TAG, b"garbage"])
+    rig.send([b"junk"])          # unknown tag: handed to the writer, which ignores it
+    assert rig.cad.stats()["bad_messages"] == 1
+    rig.push(5, 3)
+    assert rig.tick()
+
+
+def test_no_renderer_counted(tmp_path):
+    r = Rig(tmp_path, bind_renderer=False)
+    try:
+        assert r.tick() is False
+        assert r.cad.stats()["skipped"] == {"no_reader": 1}
+    finally:
+        r.close()
