@@ -1,0 +1,312 @@
+"""WGSL sources of the wgpu tier (strings, so the package needs no data files).
+
+Params is one uniform block, written per frame; word offsets are in ``renderer._P_*``.
+"""
+from __future__ import annotations
+
+PARAMS = r"""
+struct Params {
+  vp: mat4x4<f32>,
+  model: mat4x4<f32>,
+  planes: array<vec4<f32>, 6>,
+  fixed_color: vec4<f32>,
+  vw: f32, vh: f32, point_size: f32, size_scale: f32,
+  now_hi: f32, now_lo: f32, window_ms: f32, imp_lo: f32,
+  imp_scale: f32, range_lo: f32, range_scale: f32, range_hi: f32,
+  head: u32, size: u32, capacity: u32, lod_stride: u32,
+  seed: u32, flags: u32, budget: u32, color_mode: u32,
+  budget_seed: u32, groups_x: u32, n_slots: u32, pad1: u32,
+};
+// flags
+const F_WINDOW: u32 = 1u;
+const F_IMPORTANCE: u32 = 2u;
+const F_IMP_DEGENERATE: u32 = 4u;
+const F_WORLD_SIZE: u32 = 16u;
+const F_ROUND: u32 = 32u;
+const F_RANGE_AUTO: u32 = 64u;
+const F_RANGE_DEGENERATE: u32 = 128u;
+// colour modes
+const C_FIXED: u32 = 0u;
+const C_RGB: u32 = 1u;
+const C_SCALAR: u32 = 2u;
+const C_Z: u32 = 3u;
+const C_TIME: u32 = 4u;
+// state words
+const S_COUNT1: u32 = 8u;
+const S_COUNT2: u32 = 9u;
+
+fn pcg(v: u32) -> u32 {
+  let state = v * 747796405u + 2891336453u;
+  let word = ((state >> ((state >> 28u) + 4u)) ^ state) * 277803737u;
+  return (word >> 22u) ^ word;
+}
+fn u01(slot: u32, seed: u32) -> f32 {
+  return f32(pcg(slot ^ seed) >> 8u) * (1.0 / 16777216.0);
+}
+fn is_finite(x: f32) -> bool {
+  return (bitcast<u32>(x) & 0x7f800000u) != 0x7f800000u;
+}
+// order-preserving float -> u32 (for atomic min/max)
+fn ord_f(x: f32) -> u32 {
+  let b = bitcast<u32>(x);
+  if ((b & 0x80000000u) != 0u) { return ~b; }
+  return b | 0x80000000u;
+}
+fn unord_f(u: u32) -> f32 {
+  if ((u & 0x80000000u) != 0u) { return bitcast<f32>(u & 0x7fffffffu); }
+  return bitcast<f32>(~u);
+}
+"""
+
+CULL = PARAMS + r"""
+@group(0) @binding(0) var<uniform> P: Params;
+@group(0) @binding(1) var<storage, read> pos: array<f32>;
+@group(0) @binding(2) var<storage, read> tms: array<vec2<f32>>;
+@group(0) @binding(3) var<storage, read> imp: array<f32>;
+@group(0) @binding(4) var<storage, read> col: array<u32>;
+@group(0) @binding(5) var<storage, read_write> idx_out: array<u32>;
+@group(0) @binding(6) var<storage, read_write> st: array<atomic<u32>, 16>;
+@group(0) @binding(7) var<storage, read_write> rng: array<atomic<u32>, 2>;
+@group(0) @binding(8) var<storage, read_write> dargs: array<u32, 4>;
+
+var<workgroup> wg_count: atomic<u32>;
+var<workgroup> wg_base: u32;
+var<workgroup> wg_min: atomic<u32>;
+var<workgroup> wg_max: atomic<u32>;
+
+fn colour_value(slot: u32, p: vec3<f32>) -> f32 {
+  if (P.color_mode == C_Z) { return p.z; }
+  if (P.color_mode == C_TIME) { return tms[slot].x; }
+  return bitcast<f32>(col[slot]);
+}
+
+@compute @workgroup_size(256)
+fn cull(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: vec3<u32>) {
+  if (lid == 0u) {
+    atomicStore(&wg_count, 0u);
+    atomicStore(&wg_min, 0xffffffffu);
+    atomicStore(&wg_max, 0u);
+  }
+  workgroupBarrier();
+  let slot = (wid.y * P.groups_x + wid.x) * 256u + lid;
+  var keep = false;
+  var li = 0u;
+  if (slot < P.n_slots) {
+    let logical = (slot + P.capacity - P.head) % P.capacity;
+    if (logical < P.size) {
+      let p = vec3<f32>(pos[3u * slot], pos[3u * slot + 1u], pos[3u * slot + 2u]);
+      keep = is_finite(p.x) && is_finite(p.y) && is_finite(p.z);
+      if ((P.flags & F_RANGE_AUTO) != 0u) {
+        let v = colour_value(slot, p);
+        if (keep && is_finite(v)) {
+          atomicMin(&wg_min, ord_f(v));
+          atomicMax(&wg_max, ord_f(v));
+        }
+      }
+      if (keep && (P.flags & F_WINDOW) != 0u) {
+        let t = tms[slot];
+        let dt = (P.now_hi - t.x) + (P.now_lo - t.y);
+        keep = dt <= P.window_ms;
+      }
+      if (keep) {
+        for (var i = 0u; i < 6u; i = i + 1u) {
+          let pl = P.planes[i];
+          keep = keep && (dot(pl.xyz, p) + pl.w >= 0.0);
+        }
+      }
+      if (keep && P.lod_stride > 1u) {
+        keep = (logical % P.lod_stride) == 0u;
+      }
+      if (keep && (P.flags & F_IMPORTANCE) != 0u) {
+        var n = 1.0;
+        if ((P.flags & F_IMP_DEGENERATE) == 0u) {
+          let x = imp[slot];
+          n = clamp((x - P.imp_lo) * P.imp_scale, 0.0, 1.0);
+          if (!is_finite(x)) { n = 0.0; }
+        }
+        keep = u01(slot, P.seed) <= n;
+      }
+    }
+  }
+  if (keep) { li = atomicAdd(&wg_count, 1u); }
+  workgroupBarrier();
+  if (lid == 0u) {
+    let c = atomicLoad(&wg_count);
+    if (c > 0u) { wg_base = atomicAdd(&st[S_COUNT1], c); }
+    if ((P.flags & F_RANGE_AUTO) != 0u) {
+      let mn = atomicLoad(&wg_min);
+      let mx = atomicLoad(&wg_max);
+      if (mn <= mx) { atomicMin(&rng[0], mn); atomicMax(&rng[1], mx); }
+    }
+  }
+  workgroupBarrier();
+  if (keep) { idx_out[wg_base + li] = slot; }
+}
+
+// one thread: draw args (no budget) or the thinning dispatch (budget)
+@compute @workgroup_size(1)
+fn finalize() {
+  let c1 = atomicLoad(&st[S_COUNT1]);
+  atomicStore(&st[0], 6u);
+  atomicStore(&st[2], 0u);
+  atomicStore(&st[3], 0u);
+  if (P.budget == 0xffffffffu) {
+    atomicStore(&st[1], c1);
+  } else {
+    atomicStore(&st[1], 0u);
+    var frac = 2.0;
+    if (c1 > P.budget) { frac = f32(P.budget) / f32(c1); }
+    atomicStore(&st[10], bitcast<u32>(frac));
+    let groups = (c1 + 255u) / 256u;
+    let gx = max(min(groups, 65535u), 1u);
+    dargs[0] = gx;
+    dargs[1] = (groups + gx - 1u) / gx;
+    dargs[2] = 1u;
+    atomicStore(&st[11], gx);
+  }
+}
+
+@compute @workgroup_size(1)
+fn finalize_budget() {
+  atomicStore(&st[1], min(atomicLoad(&st[S_COUNT2]), P.budget));
+}
+"""
+
+THIN = PARAMS + r"""
+@group(0) @binding(0) var<uniform> P: Params;
+@group(0) @binding(1) var<storage, read> idx_in: array<u32>;
+@group(0) @binding(2) var<storage, read_write> idx_out: array<u32>;
+@group(0) @binding(3) var<storage, read_write> st: array<atomic<u32>, 16>;
+
+var<workgroup> wg_count: atomic<u32>;
+var<workgroup> wg_base: u32;
+
+@compute @workgroup_size(256)
+fn thin(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: vec3<u32>) {
+  if (lid == 0u) { atomicStore(&wg_count, 0u); }
+  workgroupBarrier();
+  let i = (wid.y * atomicLoad(&st[11]) + wid.x) * 256u + lid;
+  let c1 = atomicLoad(&st[S_COUNT1]);
+  let frac = bitcast<f32>(atomicLoad(&st[10]));
+  var keep = false;
+  var slot = 0u;
+  var li = 0u;
+  if (i < c1) {
+    slot = idx_in[i];
+    keep = u01(slot, P.budget_seed) < frac;
+  }
+  if (keep) { li = atomicAdd(&wg_count, 1u); }
+  workgroupBarrier();
+  if (lid == 0u) {
+    let c = atomicLoad(&wg_count);
+    if (c > 0u) { wg_base = atomicAdd(&st[S_COUNT2], c); }
+  }
+  workgroupBarrier();
+  if (keep && wg_base + li < P.budget) { idx_out[wg_base + li] = slot; }
+}
+"""
+
+DRAW = PARAMS + r"""
+@group(0) @binding(0) var<uniform> P: Params;
+@group(0) @binding(1) var<storage, read> pos: array<f32>;
+@group(0) @binding(2) var<storage, read> tms: array<vec2<f32>>;
+@group(0) @binding(3) var<storage, read> imp: array<f32>;
+@group(0) @binding(4) var<storage, read> col: array<u32>;
+@group(0) @binding(5) var<storage, read> idx: array<u32>;
+@group(0) @binding(6) var<storage, read> lut: array<u32, 256>;
+@group(0) @binding(7) var<storage, read> rng: array<u32, 2>;
+
+struct VOut {
+  @builtin(position) position: vec4<f32>,
+  @location(0) @interpolate(flat) color: vec4<f32>,
+  @location(1) @interpolate(flat) centre: vec3<f32>,
+  @location(2) @interpolate(flat) slot: u32,
+};
+
+fn lut_colour(v: f32) -> vec4<f32> {
+  if (!is_finite(v)) { return P.fixed_color; }
+  var lo = P.range_lo;
+  var hi = P.range_hi;
+  var scale = P.range_scale;
+  if ((P.flags & F_RANGE_AUTO) != 0u) {
+    lo = unord_f(rng[0]);
+    hi = unord_f(rng[1]);
+    scale = 1.0 / (hi - lo);
+  }
+  var i = 255u;
+  if ((P.flags & F_RANGE_DEGENERATE) == 0u && hi > lo) {
+    let t = (v - lo) * scale;
+    i = u32(floor(clamp(t, 0.0, 1.0) * 255.0 + 0.5));
+  }
+  return unpack4x8unorm(lut[i]);
+}
+
+@vertex
+fn vs(@builtin(vertex_index) vi: u32, @builtin(instance_index) ii: u32) -> VOut {
+  let slot = idx[ii];
+  let p = vec3<f32>(pos[3u * slot], pos[3u * slot + 1u], pos[3u * slot + 2u]);
+  let clip = {CLIP};
+  var s = P.point_size;
+  if ((P.flags & F_WORLD_SIZE) != 0u) { s = P.point_size * P.size_scale / clip.w; }
+  var ext = 0.5 * s;
+  if ((P.flags & F_ROUND) != 0u) { ext = ext + 1.0; }
+  var corners = array<vec2<f32>, 6>(vec2<f32>(-1.0, -1.0), vec2<f32>(1.0, -1.0), vec2<f32>(-1.0, 1.0),
+                                    vec2<f32>(-1.0, 1.0), vec2<f32>(1.0, -1.0), vec2<f32>(1.0, 1.0));
+  let c = corners[vi];
+  var o: VOut;
+  let off = c * ext * vec2<f32>(2.0 / P.vw, 2.0 / P.vh) * clip.w;
+  o.position = vec4<f32>(clip.xy + off, clip.z, clip.w);
+  let ndc = clip.xy / clip.w;
+  o.centre = vec3<f32>((ndc.x * 0.5 + 0.5) * P.vw, (0.5 - ndc.y * 0.5) * P.vh, 0.5 * s);
+  o.slot = slot;
+  var colr = P.fixed_color;
+  if (P.color_mode == C_RGB) {
+    colr = vec4<f32>(unpack4x8unorm(col[slot]).xyz, 1.0);
+  } else if (P.color_mode == C_SCALAR) {
+    colr = lut_colour(bitcast<f32>(col[slot]));
+  } else if (P.color_mode == C_Z) {
+    colr = lut_colour(p.z);
+  } else if (P.color_mode == C_TIME) {
+    colr = lut_colour(tms[slot].x);
+  }
+  o.color = colr;
+  return o;
+}
+
+fn covered(fp: vec2<f32>, centre: vec3<f32>) -> bool {
+  if ((P.flags & F_ROUND) != 0u) {
+    let d = fp - centre.xy;
+    return dot(d, d) <= centre.z * centre.z;
+  }
+  return true;
+}
+
+@fragment
+fn fs(in: VOut) -> @location(0) vec4<f32> {
+  if (!covered(in.position.xy, in.centre)) { discard; }
+  return in.color;
+}
+
+struct PickOut {
+  @location(0) slot: u32,
+  @location(1) attrs: vec4<f32>,
+};
+
+@fragment
+fn fs_pick(in: VOut) -> PickOut {
+  if (!covered(in.position.xy, in.centre)) { discard; }
+  var o: PickOut;
+  o.slot = in.slot + 1u;
+  let t = tms[in.slot];
+  o.attrs = vec4<f32>(in.position.z, imp[in.slot], t.x, t.y);
+  return o;
+}
+"""
+
+CLIP_RELATIVE = "P.vp * vec4<f32>(p, 1.0)"
+#: test-only: absolute float32 model matrix (shows the large-coordinate error)
+CLIP_NAIVE = "P.vp * (P.model * vec4<f32>(p, 1.0))"
+
+
+def draw_source(naive: bool = False) -> str:
+    return DRAW.replace("{CLIP}", CLIP_NAIVE if naive else CLIP_RELATIVE)
