@@ -417,11 +417,10 @@ class PointRing:
             self._otile, self._otile_origin = ot, key
         return ot
 
-    def _scores(self, head: int, W: int, now_ms: float) -> tuple[np.ndarray, np.ndarray]:
-        """(slots, scores) of the W oldest points; score = importance x 0.5^(age / max_staleness_ms)."""
+    def _scores(self, head: int, W: int, now_ms: float) -> np.ndarray:
+        """Scores of the W oldest points (logical order): importance x 0.5^(age / max_staleness_ms)."""
         cap = self.capacity
         if head + W <= cap:
-            slots = np.arange(head, head + W)
             imp = self._imp[head:head + W]
             t = self._t[head:head + W]
         else:
@@ -433,15 +432,15 @@ class PointRing:
         if h > 0:
             x = t - now_ms
             x *= 1.0 / h
-            return slots, imp * np.exp2(x.astype(np.float32))
-        return slots, imp.copy()
+            return imp * np.exp2(x.astype(np.float32))  # float32: faster exp2 and selection
+        return imp.copy()
 
     @staticmethod
     def _evict_mask(score: np.ndarray, p: int) -> np.ndarray:
         """Keep-mask over the window: evicts the p lowest scores, the oldest first among equal scores."""
         W = score.shape[0]
         S = W - p  # survivors
-        if S + 1 <= W // 8:
+        if W >= 8192 and S + 1 <= W // 8:
             # lower bound for the (S+1)-th largest: the minimum of S+1 block maxima
             starts = (np.arange(S + 1) * W) // (S + 1)
             lb = np.maximum.reduceat(score, starts).min()
@@ -544,12 +543,12 @@ class PointRing:
         while a < n:
             p = min(n - a, pmax)
             W = min(cap, p + K - 1)
-            slots, score = self._scores(head, W, t_ms)
+            score = self._scores(head, W, t_ms)
             if p == 1:
                 # exact sequential rule: first strict minimum among the K oldest, swap with head
                 m = int(np.argmin(score))
                 if m:
-                    s = int(slots[m])
+                    s = (head + m) % cap
                     idx = [head, s]
                     rev = [s, head]
                     for arr in self._all:
@@ -562,8 +561,11 @@ class PointRing:
                     surv = np.flatnonzero(keep)
                     tgt = np.arange(p, W)
                     mv = surv != tgt
-                    src = slots[surv[mv]]
-                    dst = slots[tgt[mv]]
+                    src = surv[mv] + head
+                    dst = tgt[mv] + head
+                    if head + W > cap:
+                        src %= cap
+                        dst %= cap
                     for arr in self._all:
                         arr[dst] = arr[src]
             self._write(head, pos, a, a + p, t_ms, g, prepared, imp)
