@@ -185,7 +185,10 @@ def plot_latency(table: SpanTable, profile: dict[str, Any], path: str) -> None:
             series.append(((tr.T1[m, fd] - tr.start.min()) / 1e9, e2e))
         nonempty = [(d, l) for d, l in zip(data, labels) if d.size]
         if nonempty:
-            ax1.boxplot([d for d, _ in nonempty], whis=(1, 99), showfliers=False, vert=False)
+            try:
+                ax1.boxplot([d for d, _ in nonempty], whis=(1, 99), showfliers=False, orientation="horizontal")
+            except TypeError:  # matplotlib < 3.10
+                ax1.boxplot([d for d, _ in nonempty], whis=(1, 99), showfliers=False, vert=False)
             ax1.set_yticks(range(1, len(nonempty) + 1), [l for _, l in nonempty])
             for k, (d, _) in enumerate(nonempty, start=1):
                 p50, p99 = np.percentile(d, [50, 99])
