@@ -383,8 +383,8 @@ class PointRing:
             imp = np.ones(n, np.float32) if imp is None else imp.copy()
             for k, w in self.classification_weights.items():
                 imp[cls == k] = w
-        if imp is not None and not np.isfinite(imp).all():
-            imp = np.where(np.isfinite(imp), imp, 0.0).astype(np.float32)
+        if imp is not None and not (np.isfinite(imp).all() and (imp >= 0).all()):
+            imp = np.where(np.isfinite(imp) & (imp > 0), imp, 0.0).astype(np.float32)
         return prepared, imp
 
     def _write(self, slot: int, pos: np.ndarray, a: int, b: int, t_ms: float, g: int, prepared, imp) -> None:
@@ -430,9 +430,14 @@ class PointRing:
             t = self._t[slots]
         h = self.max_staleness_ms
         if h > 0:
-            x = t - now_ms
-            x *= 1.0 / h
-            return imp * np.exp2(x.astype(np.float32))  # float32: faster exp2 and selection
+            # ranked in the log domain: log2(score) = log2(importance) - age / h. Same order as the
+            # score, but every step is monotone under float rounding, so uniform importance stays FIFO.
+            x = np.empty(W, np.float32)
+            np.subtract(t, now_ms, out=x, casting="unsafe")
+            x *= np.float32(1.0 / h)
+            with np.errstate(divide="ignore"):
+                x += np.log2(imp)
+            return x
         return imp.copy()
 
     @staticmethod
