@@ -93,4 +93,4 @@ def plane_margin(positions: np.ndarray, planes: np.ndarray) -> np.ndarray:
     d = np.abs(p @ pl[:, :3].T + pl[:, 3])
     scale = np.abs(p) @ np.abs(pl[:, :3]).T + np.abs(pl[:, 3])
     with np.errstate(invalid="ignore", divide="ignore"):
-        return np.nanmin(d / np.maximum(scale, 1e-300), axis=1)
+        return (d / np.maximum(scale, 1e-300)).min(axis=1)  # NaN for non-finite points

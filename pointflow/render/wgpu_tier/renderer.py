@@ -180,7 +180,7 @@ class WgpuRenderer(Renderer):
                 "imp": self._buf(cap * 4 if self._need_imp else 16, sto, f"imp{s}"),
                 "col": self._buf(cap * 4 if self._cmode in (C_RGB, C_SCALAR) else 16, sto, f"col{s}"),
             })
-        self._idx1 = self._buf(cap * 4, BU.STORAGE, "idx1")
+        self._idx1 = self._buf(cap * 4, BU.STORAGE | BU.COPY_SRC, "idx1")
         self._idx2: Optional[Any] = None
         self._state = self._buf(64, BU.STORAGE | BU.INDIRECT | BU.COPY_DST | BU.COPY_SRC, "state")
         self._rng = self._buf(8, BU.STORAGE | BU.COPY_DST, "range")
@@ -257,7 +257,7 @@ class WgpuRenderer(Renderer):
             drawn_idx = self._idx1
             if budget:
                 if self._idx2 is None:
-                    self._idx2 = self._buf(self.render_capacity * 4, self._wgpu.BufferUsage.STORAGE, "idx2")
+                    self._idx2 = self._buf(self.render_capacity * 4, self._wgpu.BufferUsage.STORAGE | self._wgpu.BufferUsage.COPY_SRC, "idx2")
                 g["thin"] = self._bind(self._bgl_thin, [self._params, self._idx1, self._idx2, self._state])
                 drawn_idx = self._idx2
             g["draw"] = self._bind(self._bgl_draw, [self._params, *data, drawn_idx, self._lut, self._rng])
@@ -503,6 +503,16 @@ class WgpuRenderer(Renderer):
         st = np.frombuffer(self.queue.read_buffer(self._state), np.uint32)
         return {"culled": int(st[8]), "thinned": int(st[9]), "instance_count": int(st[1]),
                 "vertex_count": int(st[0])}
+
+    def debug_survivors(self) -> np.ndarray:
+        """Tests only (syncs the GPU): sorted slots the last frame draws."""
+        c = self.debug_counts()
+        buf = self._idx2 if self._last and self._last["budget"] else self._idx1
+        n = c["instance_count"]
+        if n == 0:
+            return np.zeros(0, np.int64)
+        idx = np.frombuffer(self.queue.read_buffer(buf, 0, n * 4), np.uint32)
+        return np.sort(idx.astype(np.int64))
 
     # ------------------------------------------------------------------ picking
     def _ensure_pick(self) -> None:
