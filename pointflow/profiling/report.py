@@ -196,11 +196,13 @@ def plot_latency(table: SpanTable, profile: dict[str, Any], path: str) -> None:
                              textcoords="offset points", va="center", fontsize=8)
             ax1.set_xscale("symlog", linthresh=1.0)
             ax1.invert_yaxis()  # pipeline order top to bottom
+            ax1.set_xlim(left=0)
         for (x, y), lab in zip(series, labels):
             if x.size:
                 ax2.plot(x, y, ".", ms=3, label=lab, alpha=0.7)
         if any(x.size for x, _ in series):
             ax2.set_yscale("symlog", linthresh=1.0)
+            ax2.set_ylim(bottom=0)
             ax2.legend(fontsize=8, loc="upper right", markerscale=3)
     else:
         ax1.text(0.5, 0.5, "no spans collected (tracing off or nothing flowed)", ha="center", va="center",

@@ -1,0 +1,38 @@
+"""End to end: a real pipeline (all stage processes) → spans for every event → the three files."""
+import json
+
+from pointflow.profiling.report import format_table, write_profile
+from pointflow.profiling.spans import EVENTS
+
+from .test_report import validate_trace_events
+
+
+def test_profile_of_a_real_pipeline(tmp_path):
+    from pointflow import Pipeline
+
+    cfg = {
+        "source": {"transport": "synthetic", "options": {"scan_hz": 10, "points_per_scan": 5000}},
+        "ring": {"max_points": 50_000},
+        "cadence": {"target_hz": 30},
+        "policy": {"tier": "L"},
+        "render": {"backend": "cpu", "size": [160, 120], "output": {"dir": None}},
+        "tracing": {"flush_ms": 50},
+        "supervisor": {"max_restarts": 0},
+    }
+    pipe = Pipeline.from_dict(cfg, out_dir=str(tmp_path / "run"))
+    stats = pipe.run(3.0)
+    prof = write_profile(str(tmp_path / "prof"), pipe.collector, stats)
+    assert not stats.get("failure"), stats.get("failure")
+    # every stage of the chunk's path was traced, and whole chunks made it to a frame
+    for ev in EVENTS:
+        assert prof["stages"][ev]["count"] > 0, ev
+    assert prof["end_to_end"]["count"] > 0 and prof["end_to_end"]["p50"] > 0
+    assert set(prof["processes"]) >= {"source", "ingest", "cadence", "render"}
+    assert all(p["rss_bytes"] for p in prof["processes"].values())
+    assert prof["cadence"]["target_hz"] == 30
+    doc = json.loads((tmp_path / "prof" / "trace.json").read_text())
+    assert validate_trace_events(doc) > 0
+    tracks = {e["args"]["name"].split(" ")[0] for e in doc["traceEvents"] if e.get("name") == "process_name"}
+    assert tracks == {"source", "ingest", "cadence", "render"}   # one track per process
+    assert (tmp_path / "prof" / "latency.png").stat().st_size > 10_000
+    assert "end_to_end" in format_table(prof)
