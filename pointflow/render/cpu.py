@@ -26,7 +26,7 @@ from .base import FrameInput, FrameStats, Renderer
 from .camera import Camera
 
 __all__ = ["CpuRenderer", "Selection", "pcg_hash", "select_points", "point_colors", "point_sizes_px",
-           "rgba_u8", "keep_probability", "MAX_POINT_PX"]
+           "rgba_u8", "keep_probability", "MAX_POINT_PX", "seed_hash", "budget_seed", "uniform01"]
 
 #: World-size points are clamped to [1, MAX_POINT_PX] pixels (a point at the near plane
 #: would otherwise cover an unbounded area; sub-pixel points would vanish).
@@ -55,13 +55,31 @@ def pcg_hash(index: np.ndarray | int, seed: int = 0) -> np.ndarray:
         fn pcg_hash(index: u32, seed: u32) -> u32 { return pcg(index ^ pcg(seed)); }
 
     ``index`` is the ring *slot* (stable while a point lives, so sampling does not flicker
-    as the head moves); ``seed`` is the frame seed, both taken modulo 2^32.
-    Test vectors: pcg_hash(0, 0) = 2617175861 (see tests/render_tiers).
+    as the head moves); ``seed`` is the frame seed, both taken modulo 2^32. Same as the
+    wgpu tier's ``pcg(slot ^ seed_hash(seed))``.
+    Test vectors: pcg_hash(0, 0) = 817759070, pcg_hash(1, 7) = 2809854175.
     """
     idx = np.atleast_1d(np.asarray(index)).astype(np.int64) & 0xFFFFFFFF
     s = _pcg(np.array([int(seed) & 0xFFFFFFFF], dtype=_U32))
     with np.errstate(over="ignore"):
         return _pcg(idx.astype(_U32) ^ s)
+
+
+def seed_hash(frame_seed: int) -> int:
+    """Per-frame seed of the importance draw: ``pcg(frame_seed)``."""
+    return int(_pcg(np.array([int(frame_seed) & 0xFFFFFFFF], _U32))[0])
+
+
+def budget_seed(frame_seed: int) -> int:
+    """Per-frame seed of the budget thinning: ``pcg(seed_hash(frame_seed) ^ 0x9E3779B9)``."""
+    return int(_pcg(np.array([seed_hash(frame_seed) ^ 0x9E3779B9], _U32))[0])
+
+
+def uniform01(slots: np.ndarray, hashed_seed: int) -> np.ndarray:
+    """float32 draw in [0, 1): ``(pcg(slot ^ hashed_seed) >> 8) * 2^-24`` (exact in float32)."""
+    v = (np.asarray(slots).astype(np.int64) & 0xFFFFFFFF).astype(_U32) ^ _U32(hashed_seed & 0xFFFFFFFF)
+    with np.errstate(over="ignore"):
+        return (_pcg(v) >> _U32(8)).astype(np.float32) * np.float32(2.0 ** -24)
 
 
 def keep_probability(importance: np.ndarray, lo: float, hi: float) -> np.ndarray:
@@ -116,10 +134,13 @@ def check_frame(frame: FrameInput) -> tuple[int, int]:
 
 def select_points(frame: FrameInput, camera: Camera, cfg: RenderConfig, width: int, height: int) -> Selection:
     """Apply, in order: finite positions, time window (``now - t <= window``, off when 0),
-    LOD stride (``slot % stride == 0``), importance sampling (``(pcg_hash(slot, seed) >> 8)
-    * 2^-24 <= p`` in float32, p from :func:`keep_probability` over the ``importance``
-    range), frustum (all six planes ``>= 0``, float64, a point on a plane is kept), and the
-    budget (an even subsample ``survivors[k * n // budget]`` in logical order)."""
+    LOD stride (``logical % stride == 0``), importance sampling (``uniform01(slot,
+    seed_hash(seed)) <= p`` in float32, p from :func:`keep_probability` over the
+    ``importance`` range), frustum (all six planes ``>= 0``, float64, a point on a plane is
+    kept), and the budget, only when survivors n > budget b: keep iff ``uniform01(slot,
+    budget_seed(seed)) < b / n`` (float32), then at most the first b in logical order.
+    These are the wgpu tier's rules (``wgpu_tier/reference.py``) except that the GPU's
+    final truncation picks an arbitrary b."""
     cap, size = check_frame(frame)
     counts = {"occupied": size, "nonfinite": 0, "time_window": 0, "lod": 0, "sampled": 0, "frustum": 0,
               "budget": 0}
@@ -134,14 +155,14 @@ def select_points(frame: FrameInput, camera: Camera, cfg: RenderConfig, width: i
         counts["time_window"] = int(np.count_nonzero(keep & ~tw))
         keep &= tw
     if cfg.lod_stride > 1:
-        lod = (slots % int(cfg.lod_stride)) == 0
+        lod = (logical % int(cfg.lod_stride)) == 0
         counts["lod"] = int(np.count_nonzero(keep & ~lod))
         keep &= lod
     if cfg.importance_sampling:
         lo, hi = frame.channel_ranges.get("importance") or _finite_range(frame.importance[slots])
         idx = np.flatnonzero(keep)
         p = keep_probability(frame.importance[slots[idx]], lo, hi)
-        u = (pcg_hash(slots[idx], frame.frame_seed) >> _U32(8)).astype(np.float32) * np.float32(2.0 ** -24)
+        u = uniform01(slots[idx], seed_hash(frame.frame_seed))
         drop = idx[~(u <= p)]
         counts["sampled"] = int(drop.size)
         keep[drop] = False
@@ -154,8 +175,10 @@ def select_points(frame: FrameInput, camera: Camera, cfg: RenderConfig, width: i
         idx = idx[inside]
     if frame.budget is not None and idx.size > max(int(frame.budget), 0):
         b = max(int(frame.budget), 0)
-        counts["budget"] = int(idx.size - b)
-        idx = idx[(np.arange(b, dtype=np.int64) * idx.size) // b] if b else idx[:0]
+        frac = np.float32(b) / np.float32(idx.size)
+        before = idx.size
+        idx = idx[uniform01(slots[idx], budget_seed(frame.frame_seed)) < frac][:b]
+        counts["budget"] = int(before - idx.size)
     counts["drawn"] = int(idx.size)
     return Selection(logical=logical[idx], slots=slots[idx], counts=counts)
 
@@ -172,7 +195,8 @@ def color_values(frame: FrameInput, cfg: RenderConfig, slots: np.ndarray, all_sl
 
     ``z``/``height`` use the float32 offset and shift the range by the origin (so large
     coordinates keep their colour precision); the automatic range is the handoff's
-    ``channel_ranges`` entry when present, else the finite min/max over occupied slots."""
+    ``channel_ranges`` entry when present, else the finite min/max over the occupied slots
+    whose position is finite (as the wgpu cull computes it)."""
     cb = cfg.color_by
     if cb in (None, "none", "rgb"):
         return None
@@ -194,6 +218,7 @@ def color_values(frame: FrameInput, cfg: RenderConfig, slots: np.ndarray, all_sl
         lo, hi = (float(x) for x in frame.channel_ranges[cb])
     else:
         occ = frame.occupied_slots() if all_slots is None else all_slots
+        occ = occ[np.isfinite(frame.positions[occ]).all(axis=1)]
         lo, hi = _finite_range(np.asarray(src[occ], np.float64) + shift)
     return np.asarray(src[slots]), (lo - shift, hi - shift)
 
@@ -212,7 +237,11 @@ def point_colors(frame: FrameInput, cfg: RenderConfig, slots: np.ndarray) -> np.
     if cv is None:
         return np.broadcast_to(single, (n, 4)).copy()
     values, (lo, hi) = cv
+    bad = ~np.isfinite(values)
+    if bad.any():  # lut_index maps NaN to -1 too, but casts it first (a RuntimeWarning)
+        values = np.where(bad, np.float32(lo if np.isfinite(lo) else 0.0), values)
     idx = colormap.lut_index(values, lo, hi)
+    idx[bad] = -1
     out = colormap.lut(cfg.colormap)[np.maximum(idx, 0)]
     out[idx < 0] = single
     return out

@@ -9,8 +9,9 @@ projected on the GPU with the float32 cast of the float64 origin-relative matrix
 Rasterisation follows the shared rules exactly: the quad is drawn one pixel larger than the
 point and the fragment shader keeps a pixel only when its centre passes the square
 (``[p - s/2, p + s/2)``) or round (``<= s/2``) test, so GL's own edge rules never decide.
-Nearer depth wins (``depth_func '<'``); survivors are drawn in logical order, so equal
-depths keep the lower logical index, as in the cpu tier.
+Nearer depth wins; survivors are drawn in *reverse* logical order with ``depth_func '<='``,
+so at equal depth the lower logical index (drawn last) wins, as in the cpu tier, and a
+point exactly on the far plane (depth 1.0 = the cleared depth) is still drawn.
 
 Depth: camera.py produces clip z in [0, w] (WebGPU). GL clips z to [-w, w], so the
 matrix is premultiplied by ``GL_DEPTH_FIX`` (``z' = 2z - w``); window depth then equals
@@ -156,10 +157,11 @@ class GlRenderer(Renderer):
         W, H = self.width, self.height
         sel = select_points(frame, camera, self.cfg, W, H)
         n = sel.n
+        slots = sel.slots[::-1]  # newest first: with '<=' the lower logical index, drawn last, wins ties
         inst = np.empty(n, _INSTANCE)
-        inst["pos"] = frame.positions[sel.slots]
-        inst["color"] = point_colors(frame, self.cfg, sel.slots)
-        inst["slot"] = sel.slots.astype(np.uint32)
+        inst["pos"] = frame.positions[slots]
+        inst["color"] = point_colors(frame, self.cfg, slots)
+        inst["slot"] = slots.astype(np.uint32)
         t1 = time.perf_counter()
         try:
             ctx = self.ctx
@@ -179,7 +181,7 @@ class GlRenderer(Renderer):
             ctx.viewport = (0, 0, W, H)
             self._clear()
             ctx.enable_only(self._mgl.DEPTH_TEST)
-            ctx.depth_func = "<"
+            ctx.depth_func = "<="
             if n:
                 self._vao.render(self._mgl.TRIANGLES, vertices=6, instances=n)
             ctx.finish()
