@@ -417,17 +417,16 @@ class PointRing:
             self._otile, self._otile_origin = ot, key
         return ot
 
+    def _window(self, arr: np.ndarray, head: int, W: int) -> np.ndarray:
+        """arr at the W oldest logical positions."""
+        if head + W <= self.capacity:
+            return arr[head:head + W]
+        return np.concatenate((arr[head:], arr[:head + W - self.capacity]))
+
     def _scores(self, head: int, W: int, now_ms: float) -> np.ndarray:
         """Scores of the W oldest points (logical order): importance x 0.5^(age / max_staleness_ms)."""
-        cap = self.capacity
-        if head + W <= cap:
-            imp = self._imp[head:head + W]
-            t = self._t[head:head + W]
-        else:
-            slots = np.arange(head, head + W)
-            slots %= cap
-            imp = self._imp[slots]
-            t = self._t[slots]
+        imp = self._window(self._imp, head, W)
+        t = self._window(self._t, head, W)
         h = self.max_staleness_ms
         if h > 0:
             # ranked in the log domain: log2(score) = log2(importance) - age / h. Same order as the
@@ -543,7 +542,7 @@ class PointRing:
             st[I_SIZE] = cap
             a = free
         pmax = max(1, cap - K + 1, (cap + 1) // 2)
-        pieces = 0
+        own = a  # points of this chunk currently in the ring
         dropped = 0
         while a < n:
             p = min(n - a, pmax)
@@ -558,10 +557,14 @@ class PointRing:
                     rev = [s, head]
                     for arr in self._all:
                         arr[idx] = arr[rev]
+                if own and int(self._gen[head]) == g:
+                    own -= 1
             elif p < W:
                 # batched rule: evict the p lowest scores among the oldest W (oldest first on ties),
                 # survivors keep their relative order and move to logical positions p..W-1
                 keep = self._evict_mask(score, p)
+                if own:
+                    own -= int(np.count_nonzero(~keep & (self._window(self._gen, head, W) == g)))
                 if keep[:p].any():
                     surv = np.flatnonzero(keep)
                     tgt = np.arange(p, W)
@@ -573,17 +576,16 @@ class PointRing:
                         dst %= cap
                     for arr in self._all:
                         arr[dst] = arr[src]
+            elif own:
+                own -= int(np.count_nonzero(self._window(self._gen, head, W) == g))
             self._write(head, pos, a, a + p, t_ms, g, prepared, imp)
             self._mark(head, W)
             head = (head + p) % cap
             dropped += p
             a += p
-            pieces += 1
+            own += p
         st[I_HEAD] = head
-        written = n
-        if pieces > 1:  # later pieces may have evicted points of earlier pieces of this chunk
-            written = min(n, int(np.count_nonzero(self._gen == g)))
-        return written, dropped
+        return own, dropped
 
     def push_chunk(self, chunk) -> PushResult:
         """Push a :class:`pointflow.chunk.PointChunk`."""
