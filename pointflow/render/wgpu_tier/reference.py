@@ -13,9 +13,10 @@ exactly the same points:
   keep iff ``u <= clip((imp - lo) / (hi - lo), 0, 1)`` (1.0 when ``hi <= lo``; a NaN
   importance counts as 0). The *slot* (not the logical index) is hashed, so with a fixed
   seed a point's fate does not change as the ring scrolls.
-* budget (applied last, only when survivors > budget): keep a survivor iff
-  ``(pcg_hash(slot ^ budget_seed) >> 8) * 2**-24 < budget / survivors``; if that still
-  leaves more than ``budget``, an arbitrary subset of ``budget`` is drawn (GPU order).
+* budget B (applied last, only when survivors S > B): keep a survivor iff
+  ``(pcg_hash(slot ^ budget_seed) >> 8) * 2**-24 < max(B - 3*sqrt(B), B/2) / S`` (aiming
+  three standard deviations under B, so the set depends only on the hash); in the rare
+  case that still leaves more than B, an arbitrary B of them are drawn (GPU order).
 """
 from __future__ import annotations
 
@@ -84,6 +85,14 @@ def keep_mask(positions: np.ndarray, head: int, size: int, capacity: int, planes
         u = uniform01(slots, seed_hash(frame_seed))
         keep &= u <= normalised_importance(importance, importance_range)
     return keep
+
+
+def budget_fraction(budget: int, survivors: int) -> float:
+    """Keep probability of a survivor under the budget (float32, as on the GPU)."""
+    if survivors <= budget:
+        return 2.0
+    b = np.float32(budget)
+    return float(np.float32(max(b - np.float32(3.0) * np.sqrt(b), np.float32(0.5) * b)) / np.float32(survivors))
 
 
 def plane_margin(positions: np.ndarray, planes: np.ndarray) -> np.ndarray:

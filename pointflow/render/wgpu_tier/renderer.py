@@ -327,6 +327,14 @@ class WgpuRenderer(Renderer):
             return F_RANGE_DEGENERATE, lo, hi, 0.0
         return 0, lo, hi, float(np.float32(1.0 / (hi - lo)))
 
+    @staticmethod
+    def _importance_range(frame: FrameInput) -> tuple[float, float]:
+        """Finite min/max over the occupied slots (the cadence normally sends this range)."""
+        cap, size = int(frame.capacity), min(int(frame.size), int(frame.capacity))
+        imp = frame.importance[:cap] if size == cap else frame.importance[frame.occupied_slots()]
+        imp = imp[np.isfinite(imp)]
+        return (float(imp.min()), float(imp.max())) if imp.size else (0.0, 0.0)
+
     def _params_for(self, frame: FrameInput, camera: Camera, n_slots: int, gx: int) -> np.ndarray:
         cfg, w, h = self.cfg, self.width, self.height
         P = np.zeros(_P_WORDS, np.float32)
@@ -355,8 +363,8 @@ class WgpuRenderer(Renderer):
             flags |= F_WINDOW
         if cfg.importance_sampling:
             flags |= F_IMPORTANCE
-            r = frame.channel_ranges.get("importance")
-            if r is None or not float(r[1]) > float(r[0]):
+            r = frame.channel_ranges.get("importance") or self._importance_range(frame)
+            if not float(r[1]) > float(r[0]):
                 flags |= F_IMP_DEGENERATE
             else:
                 P[_P_IMP_LO] = float(r[0])
