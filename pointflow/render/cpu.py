@@ -138,7 +138,8 @@ def select_points(frame: FrameInput, camera: Camera, cfg: RenderConfig, width: i
     seed_hash(seed)) <= p`` in float32, p from :func:`keep_probability` over the
     ``importance`` range), frustum (all six planes ``>= 0``, float64, a point on a plane is
     kept), and the budget, only when survivors n > budget b: keep iff ``uniform01(slot,
-    budget_seed(seed)) < b / n`` (float32), then at most the first b in logical order.
+    budget_seed(seed)) < max(b - 3 sqrt(b), b / 2) / n`` (float32), then at most the first
+    b in logical order.
     These are the wgpu tier's rules (``wgpu_tier/reference.py``) except that the GPU's
     final truncation picks an arbitrary b."""
     cap, size = check_frame(frame)
@@ -175,7 +176,8 @@ def select_points(frame: FrameInput, camera: Camera, cfg: RenderConfig, width: i
         idx = idx[inside]
     if frame.budget is not None and idx.size > max(int(frame.budget), 0):
         b = max(int(frame.budget), 0)
-        frac = np.float32(b) / np.float32(idx.size)
+        fb = np.float32(b)  # aim three standard deviations under b: the set depends only on the hash
+        frac = np.float32(max(fb - np.float32(3.0) * np.sqrt(fb), np.float32(0.5) * fb)) / np.float32(idx.size)
         before = idx.size
         idx = idx[uniform01(slots[idx], budget_seed(frame.frame_seed)) < frac][:b]
         counts["budget"] = int(before - idx.size)

@@ -60,3 +60,29 @@ def test_pick_front_point_and_hidpi():
     assert r.pick(8, 8, pixel_ratio=2.0) == 2   # window (8, 8) at 2x is pixel (16, 16)
     assert r.pick(1, 30) is None                # nothing within the radius
     assert r.pick(-100, 5) is None
+
+
+def test_selection_matches_wgpu_reference_rules():
+    try:
+        from pointflow.render.wgpu_tier import reference as R
+    except ImportError:
+        import pytest
+        pytest.skip("wgpu tier reference not present")
+    w = terrain(20_000, seed=4)
+    imp = np.abs(np.sin(w[:, 1])).astype(np.float32)
+    f = make_frame(w, capacity=25_000, head=21_000, importance=imp, t_ms=np.linspace(0, 900, len(w)),
+                   now_ms=1000.0, seed=9)
+    cfg = render_cfg(size=[320, 240], time_window_ms=600.0, lod_stride=2, importance_sampling=True)
+    cam = terrain_camera()
+    sel = select_points(f, cam, cfg, 320, 240)
+    occ = f.occupied_slots()
+    keep = R.keep_mask(f.positions, f.head, f.size, f.capacity, cam.frustum_planes(320, 240, f.origin),
+                       t_ingest_ms=f.t_ingest_ms, now_ms=f.now_ms, window_ms=600.0, lod_stride=2,
+                       importance=f.importance, importance_range=(float(imp.min()), float(imp.max())), frame_seed=9)
+    assert set(np.flatnonzero(keep)) == set(sel.slots.tolist())
+    f.budget = sel.n // 3
+    sel_b = select_points(f, cam, cfg, 320, 240)
+    u = R.uniform01(sel.slots, R.budget_seed(9))
+    expect = sel.slots[u < R.budget_fraction(f.budget, sel.n)][: f.budget]
+    assert set(expect.tolist()) == set(sel_b.slots.tolist()) and 0 < sel_b.n <= f.budget
+    assert occ.size == f.size
