@@ -247,3 +247,41 @@ def test_state_survives_writer_restart():
         p.join(60)
         assert r.stats().total_points == 1000 and r.stats().dropped_points == 0
         assert order_x(r) == list(map(float, range(1000)))
+
+
+def _owner_child(q, how):
+    from pointflow.ring import SlabPair as _SP
+
+    r = PointRing(1000, channels=["intensity"])
+    s = _SP.create(r.layout)
+    r.push(xrange_pts(0, 10))
+    q.put((r.name,) + s.names)
+    if how == "raise":
+        raise RuntimeError("boom")
+    if how == "exit":
+        import sys
+
+        sys.exit(2)
+    # "leak": return without close(); interpreter exit must still unlink
+
+
+@pytest.mark.parametrize("how", ["leak", "raise", "exit"])
+def test_owner_unlinks_on_every_exit_path(how):
+    ctx = mp.get_context("spawn")
+    q = ctx.Queue()
+    p = ctx.Process(target=_owner_child, args=(q, how))
+    p.start()
+    names = q.get(timeout=60)
+    p.join(60)
+    assert p.exitcode is not None
+    for n in names:
+        assert not os.path.exists("/dev/shm/" + n), (how, n)
+
+
+def test_attached_close_is_safe_after_owner_close():
+    r = PointRing(10)
+    a = PointRing.attach(r.name)
+    r.close()
+    assert a.stats().capacity == 10  # mapping stays valid
+    a.close()
+    a.close()
