@@ -170,6 +170,7 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("file")
     v.add_argument("--verbose", action="store_true", help="print the resolved config")
     sub.add_parser("info", help="list render backends, adapters and transports")
+    sub.add_parser("schema", help="print the JSON Schema of the pipeline YAML (for editors)")
     return p
 
 
@@ -186,6 +187,11 @@ def main(argv: Optional[list[str]] = None) -> int:
             return _validate(args)
         if args.cmd == "info":
             return _info(args)
+        if args.cmd == "schema":
+            from .config import json_schema
+
+            print(json.dumps(json_schema(), indent=2))
+            return 0
     except ConfigError as exc:
         print(f"config error: {exc}", file=sys.stderr)
         return 1

@@ -407,3 +407,58 @@ def new_run_dir() -> str:
     d = os.path.join(root, f"pointflow-{os.getpid()}-{secrets.token_hex(4)}")
     os.makedirs(d, mode=0o700)
     return d
+
+
+# --------------------------------------------------------------------------- JSON Schema
+def _schema_of(tp: Any) -> dict:
+    origin = typing.get_origin(tp)
+    if tp is Any:
+        return {}
+    if origin in (Union, types.UnionType):
+        return {"anyOf": [_schema_of(a) for a in typing.get_args(tp)]}
+    if origin is Literal:
+        return {"enum": list(typing.get_args(tp))}
+    if tp is type(None):
+        return {"type": "null"}
+    if dataclasses.is_dataclass(tp):
+        return _dataclass_schema(tp)
+    if origin is list:
+        return {"type": "array", "items": _schema_of(typing.get_args(tp)[0])}
+    if origin is dict:
+        return {"type": "object", "additionalProperties": _schema_of(typing.get_args(tp)[1])}
+    return {"type": {bool: "boolean", int: "integer", float: "number", str: "string"}[tp]}
+
+
+def _dataclass_schema(cls) -> dict:
+    hints = typing.get_type_hints(cls)
+    props, required = {}, []
+    for f in dataclasses.fields(cls):
+        if f.metadata.get("internal"):
+            continue
+        s = _schema_of(hints[f.name])
+        if f.default is not dataclasses.MISSING:
+            s["default"] = f.default
+        elif f.default_factory is not dataclasses.MISSING:
+            d = f.default_factory()
+            s["default"] = dataclasses.asdict(d) if dataclasses.is_dataclass(d) else d
+        else:
+            required.append(f.name)
+        props[f.name] = s
+    out = {"type": "object", "additionalProperties": False, "properties": props}
+    if cls.__doc__ and not cls.__doc__.startswith(cls.__name__ + "("):
+        out["description"] = " ".join(cls.__doc__.split())
+    if required:
+        out["required"] = required
+    return out
+
+
+def json_schema() -> dict:
+    """A JSON Schema of the pipeline YAML, for editors (``pointflow schema``). Transport
+    options are checked by each transport at load time and are free-form here."""
+    s = _dataclass_schema(PipelineConfig)
+    s["$schema"] = "https://json-schema.org/draft/2020-12/schema"
+    s["title"] = "pointflow pipeline"
+    s["properties"]["source"] = s["properties"]["sources"]["items"]
+    s.pop("required", None)
+    s["oneOf"] = [{"required": ["source"]}, {"required": ["sources"]}]
+    return s

@@ -119,3 +119,21 @@ def test_cli_validate_reports_key(tmp_path, capsys):
     assert main(["validate", str(p)]) == 1
     err = capsys.readouterr().err
     assert "ring.max_points" in err and "must be >= 1" in err
+
+
+def test_checked_in_json_schema_is_current_and_validates_configs():
+    import json
+    from pathlib import Path
+
+    import jsonschema
+    import yaml
+
+    from pointflow.config import json_schema
+
+    root = Path(__file__).resolve().parents[2]
+    schema = json.loads((root / "pointflow.schema.json").read_text())
+    assert schema == json.loads(json.dumps(json_schema())), "regenerate: pointflow schema > pointflow.schema.json"
+    for path in sorted((root / "configs").glob("*.yaml")):
+        jsonschema.validate(yaml.safe_load(path.read_text()), schema)
+    with pytest.raises(jsonschema.ValidationError):
+        jsonschema.validate({"source": {"transport": "synthetic"}, "ring": {"max_points": "many"}}, schema)
