@@ -13,8 +13,8 @@ Accounting (exact, see docs/ingest.md)::
     points_in   = points_out + sum(drops[reason])                  (points of accepted chunks)
 
 where ``points_out`` is what the ring stored and ``drops`` holds ``non_finite``,
-``queue_overflow``, ``thinned`` and ``ring_full`` (incoming points the ring refused,
-``drop_newest``). Points the ring evicted to make room are ``extra["ring_evicted"]``; so
+``queue_overflow``, ``thinned`` and ``ring_full`` (incoming points the ring did not
+keep: refused under ``drop_newest``, or evicted by more important points of the same push). Points the ring evicted to make room are ``extra["ring_evicted"]``; so
 the ring's own ``dropped_points`` equals ``ring_evicted + drops["ring_full"]`` and its
 ``total_written`` equals ``points_out``.
 """

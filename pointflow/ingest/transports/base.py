@@ -9,6 +9,8 @@ about 100 ms at a time.
 from __future__ import annotations
 
 import dataclasses
+import logging
+import time
 from abc import ABC, abstractmethod
 from typing import Any, ClassVar, Iterator, Optional
 
@@ -55,6 +57,19 @@ class Transport(ABC):
     def opts(self):
         """Options as the schema dataclass (attribute access)."""
         return self.options_schema(**self.options)
+
+    def reject(self, reason: str, message: str) -> None:
+        """Count a malformed message (``rejected`` and ``rejected_<reason>`` in stats) and
+        log it, at most once per reason every 5 s."""
+        self.counters["rejected"] = self.counters.get("rejected", 0) + 1
+        key = f"rejected_{reason}"
+        self.counters[key] = self.counters.get(key, 0) + 1
+        now = time.monotonic()
+        last = self.__dict__.setdefault("_reject_logged", {})
+        if now - last.get(reason, -1e9) >= 5.0:
+            last[reason] = now
+            logging.getLogger(f"pointflow.transport.{self.name or type(self).__name__}").warning(
+                "%s: rejected message [%s]: %s", self.source_id, reason, message)
 
     def open(self) -> None:
         """Connect, open files; raise an exception with a clear message on failure."""

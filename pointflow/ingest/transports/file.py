@@ -1,0 +1,187 @@
+"""``file``: replay point-cloud files as a stream.
+
+Two modes:
+
+* ``scans``: each file (a glob or a directory gives many) is one scan, released whole at
+  ``rate`` scans per second (the Ouster recordings at 10 Hz); cut into pieces of at most
+  ``chunk_points`` if a scan is larger.
+* ``stream``: one big file cut into chunks of ``chunk_points`` released at
+  ``points_per_second`` (LAS/LAZ are read piece by piece, so big files stream).
+
+``auto`` picks ``scans`` for several files, ``stream`` for one. ``realtime: false`` sends
+as fast as ingest accepts (the source waits instead of dropping: a replay is lossless).
+Coordinates stay float64 (georeferenced LAS) and the format's channels come along (see
+:mod:`pointflow.ingest.formats`); ``rename`` maps channel names (e.g. Ouster
+``reflectivity`` -> ``intensity``). A progress bar goes to stderr when it is a terminal.
+"""
+from __future__ import annotations
+
+import dataclasses
+import glob
+import os
+import sys
+import time
+from typing import Any, Iterator, Literal, Optional
+
+import numpy as np
+
+from ...chunk import PointChunk
+from ...config import ConfigError
+from .. import formats
+from .base import Transport
+
+
+@dataclasses.dataclass
+class FileOptions:
+    #: A file, a glob (``scans/*.npz``) or a directory (all point files in it, sorted).
+    path: str
+    format: Literal["auto", "las", "laz", "ply", "pcd", "npy", "npz", "csv", "xyz", "txt", "bin"] = "auto"
+    mode: Literal["auto", "scans", "stream"] = "auto"
+    #: scans mode: scans per second.
+    rate: float = 10.0
+    #: stream mode: points per second.
+    points_per_second: float = 1_000_000.0
+    chunk_points: int = 50_000
+    realtime: bool = True
+    #: Replay forever.
+    loop: bool = False
+    #: Channel renames, e.g. {reflectivity: intensity}.
+    rename: dict[str, str] = dataclasses.field(default_factory=dict)
+    #: Keep only these channels (after renaming); null = all.
+    channels: Optional[list[str]] = None
+    #: CSV/XYZ column names when the file has no header row.
+    columns: Optional[list[str]] = None
+    #: Progress bar on stderr: auto = when stderr is a terminal.
+    progress: Literal["auto", "on", "off"] = "auto"
+
+
+def _expand(path: str) -> list[str]:
+    if os.path.isdir(path):
+        files = [os.path.join(path, f) for f in os.listdir(path)]
+        return sorted(f for f in files if os.path.splitext(f)[1].lower().lstrip(".") in formats.FORMATS)
+    if any(c in path for c in "*?["):
+        return sorted(glob.glob(path))
+    return [path]
+
+
+class FileTransport(Transport):
+    name = "file"
+    options_schema = FileOptions
+    lossless = True
+
+    @classmethod
+    def check_options(cls, o: FileOptions, path: str, base_dir: str) -> None:
+        p = o.path if os.path.isabs(o.path) else os.path.join(base_dir, o.path)
+        files = _expand(p)
+        if not files or not all(os.path.isfile(f) for f in files):
+            raise ConfigError(f"{path}.path", f"no such file(s): {o.path!r} (resolved to {p!r})")
+        if o.format == "auto":
+            for f in files:
+                try:
+                    formats.detect_format(f)
+                except formats.FormatError as exc:
+                    raise ConfigError(f"{path}.path", str(exc)) from None
+        for key in ("rate", "points_per_second"):
+            if getattr(o, key) <= 0:
+                raise ConfigError(f"{path}.{key}", f"must be > 0, got {getattr(o, key)!r}")
+        if o.chunk_points < 1:
+            raise ConfigError(f"{path}.chunk_points", "must be >= 1")
+        o.path = os.path.abspath(p)  # the source process may run elsewhere (cwd)
+
+    def __init__(self, options: dict[str, Any], source_id: str):
+        super().__init__(options, source_id)
+        self.o = FileOptions(**options)
+        self.files = _expand(self.o.path)
+        self.counters = {"files": 0, "points": 0, "loops": 0}
+        self._bar_last = 0.0
+        self._show_bar = self.o.progress == "on" or (self.o.progress == "auto" and sys.stderr.isatty())
+
+    def open(self) -> None:
+        if not self.files:
+            raise FileNotFoundError(f"file transport: no files match {self.o.path!r}")
+        for f in self.files:
+            if not os.path.isfile(f):
+                raise FileNotFoundError(f"file transport: {f} does not exist")
+        mode = self.o.mode
+        if mode == "auto":
+            mode = "scans" if len(self.files) > 1 else "stream"
+        self.mode = mode
+        self.total = None
+        if mode == "stream" and len(self.files) == 1 and self._fmt(self.files[0]) in ("las", "laz"):
+            self.total = formats.las_point_count(self.files[0])
+
+    def _fmt(self, f: str) -> str:
+        return self.o.format if self.o.format != "auto" else formats.detect_format(f)
+
+    def _channels(self, ch: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        out = {self.o.rename.get(k, k): v for k, v in ch.items()}
+        if self.o.channels is not None:
+            out = {k: v for k, v in out.items() if k in self.o.channels}
+        return out
+
+    def _pieces(self, f: str) -> Iterator[tuple[np.ndarray, dict]]:
+        """A file in pieces of at most ``chunk_points``."""
+        cp = self.o.chunk_points
+        fmt = self._fmt(f)
+        if fmt in ("las", "laz"):
+            yield from formats.iter_las(f, cp)
+            return
+        pos, ch = formats.read_points(f, fmt, self.o.columns)
+        n = pos.shape[0]
+        if self.total is None and self.mode == "stream":
+            self.total = n
+        for a in range(0, max(n, 1), cp):
+            yield pos[a:a + cp], {k: v[a:a + cp] for k, v in ch.items()}
+
+    def _progress(self, done: int, total: int | None, final: bool = False) -> None:
+        if not self._show_bar:
+            return
+        now = time.monotonic()
+        if not final and now - self._bar_last < 0.25:
+            return
+        self._bar_last = now
+        if total:
+            frac = min(1.0, done / total)
+            bar = "#" * int(frac * 30)
+            sys.stderr.write(f"\r{self.source_id}: [{bar:<30}] {frac * 100:5.1f}% {done:,}/{total:,} points")
+        else:
+            sys.stderr.write(f"\r{self.source_id}: {done:,} points")
+        if final:
+            sys.stderr.write("\n")
+        sys.stderr.flush()
+
+    def _wait(self, due: float) -> Iterator[None]:
+        while self.o.realtime:
+            left = due - time.monotonic()
+            if left <= 0:
+                return
+            time.sleep(min(left, 0.05))
+            if left > 0.05:
+                yield None
+
+    def chunks(self) -> Iterator[Optional[PointChunk]]:
+        o = self.o
+        t0 = time.monotonic()
+        sent_points = 0
+        scan = 0
+        while True:
+            for f in self.files:
+                if self.mode == "scans":
+                    yield from self._wait(t0 + scan / o.rate)
+                    scan += 1
+                for pos, ch in self._pieces(f):
+                    n = pos.shape[0]
+                    if self.mode == "stream":
+                        yield from self._wait(t0 + sent_points / o.points_per_second)
+                    sent_points += n
+                    self.counters["points"] += n
+                    total = self.total if self.mode == "stream" else None
+                    self._progress(self.counters["points"], total)
+                    yield PointChunk(positions=pos, channels=self._channels(ch), source_id=self.source_id)
+                self.counters["files"] += 1
+            if not o.loop:
+                break
+            self.counters["loops"] += 1
+        if self.mode == "stream":  # the last chunk's time has to pass, as on a live stream
+            yield from self._wait(t0 + sent_points / o.points_per_second)
+        self._progress(self.counters["points"], self.total, final=True)
