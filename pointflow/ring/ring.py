@@ -383,7 +383,7 @@ class PointRing:
             imp = np.ones(n, np.float32) if imp is None else imp.copy()
             for k, w in self.classification_weights.items():
                 imp[cls == k] = w
-        if imp is not None and not (np.isfinite(imp).all() and (imp >= 0).all()):
+        if imp is not None and n and not (imp.min() >= 0 and imp.max() < np.inf):
             imp = np.where(np.isfinite(imp) & (imp > 0), imp, 0.0).astype(np.float32)
         return prepared, imp
 
@@ -475,57 +475,72 @@ class PointRing:
         if n == 0:
             return PushResult(0, 0)
         prepared, imp = self._prepare(n, channels)
+        # the lock, inlined (this is the hot path): thread lock + flock on the segment fd
+        with self._tlock:
+            if self._depth == 0:
+                if self._closed:
+                    raise RuntimeError("ring is closed")
+                fcntl.flock(self._seg.fd, fcntl.LOCK_EX)
+            self._depth += 1
+            try:
+                written, dropped = self._push_locked(pos, n, trace_id, prepared, imp)
+            finally:
+                self._depth -= 1
+                if self._depth == 0:
+                    fcntl.flock(self._seg.fd, fcntl.LOCK_UN)
+        return PushResult(written, dropped)
+
+    def _push_locked(self, pos, n, trace_id, prepared, imp) -> tuple[int, int]:
         cap = self.capacity
-        with self.lock():
-            st = self._st
-            if not st[I_ORIGIN_SET]:
-                fin = np.isfinite(pos).all(axis=1)
-                i0 = int(np.argmax(fin)) if fin.any() else -1
-                self._fst[0:3] = np.round(pos[i0].astype(np.float64)) if i0 >= 0 else 0.0
-                st[I_ORIGIN_SET] = 1
-                st[I_ORIGIN_GEN] = st[I_GEN] + 1
-            g = int(st[I_GEN]) + 1
-            st[I_GEN] = g
-            now_ns = time.monotonic_ns()
-            t_ms = (now_ns - int(st[I_EPOCH])) / 1e6
-            head, size = int(st[I_HEAD]), int(st[I_SIZE])
-            free = cap - size
-            tail = (head + size) % cap
-            ev = self.eviction
-            if ev == "drop_newest":
-                acc = min(n, free)
-                if acc:
-                    self._write(tail, pos, 0, acc, t_ms, g, prepared, imp)
-                    self._mark(tail, acc)
-                    st[I_SIZE] = size + acc
-                written, dropped = acc, n - acc
-            elif ev == "drop_oldest" or n <= free:
-                if n >= cap:
-                    a = n - cap
-                    self._write(tail, pos, a, n, t_ms, g, prepared, imp)
-                    st[I_HEAD] = tail
-                    st[I_SIZE] = cap
-                    st[I_DIRTY_FULL] = 1
-                    written, dropped = cap, size + a
-                else:
-                    self._write(tail, pos, 0, n, t_ms, g, prepared, imp)
-                    self._mark(tail, n)
-                    over = n - free if n > free else 0
-                    st[I_HEAD] = (head + over) % cap
-                    st[I_SIZE] = size + n - over
-                    written, dropped = n, over
+        st = self._st
+        if not st[I_ORIGIN_SET]:
+            fin = np.isfinite(pos).all(axis=1)
+            i0 = int(np.argmax(fin)) if fin.any() else -1
+            self._fst[0:3] = np.round(pos[i0].astype(np.float64)) if i0 >= 0 else 0.0
+            st[I_ORIGIN_SET] = 1
+            st[I_ORIGIN_GEN] = st[I_GEN] + 1
+        g = int(st[I_GEN]) + 1
+        st[I_GEN] = g
+        now_ns = time.monotonic_ns()
+        t_ms = (now_ns - int(st[I_EPOCH])) / 1e6
+        head, size = int(st[I_HEAD]), int(st[I_SIZE])
+        free = cap - size
+        tail = (head + size) % cap
+        ev = self.eviction
+        if ev == "drop_newest":
+            acc = min(n, free)
+            if acc:
+                self._write(tail, pos, 0, acc, t_ms, g, prepared, imp)
+                self._mark(tail, acc)
+                st[I_SIZE] = size + acc
+            written, dropped = acc, n - acc
+        elif ev == "drop_oldest" or n <= free:
+            if n >= cap:
+                a = n - cap
+                self._write(tail, pos, a, n, t_ms, g, prepared, imp)
+                st[I_HEAD] = tail
+                st[I_SIZE] = cap
+                st[I_DIRTY_FULL] = 1
+                written, dropped = cap, size + a
             else:
-                written, dropped = self._push_importance(pos, n, t_ms, g, prepared, imp)
-            st[I_DROPPED] += dropped
-            st[I_WRITES] += 1
-            st[I_TOTAL_WRITTEN] += written
-            st[I_LAST_PUSH_NS] = now_ns
-            if trace_id:
-                c = int(st[I_COMMIT_COUNT])
-                self._commits[c % COMMIT_N, 0] = np.int64(np.uint64(trace_id & 0xFFFFFFFFFFFFFFFF).view(np.int64))
-                self._commits[c % COMMIT_N, 1] = time.monotonic_ns()
-                st[I_COMMIT_COUNT] = c + 1
-        return PushResult(int(written), int(dropped))
+                self._write(tail, pos, 0, n, t_ms, g, prepared, imp)
+                self._mark(tail, n)
+                over = n - free if n > free else 0
+                st[I_HEAD] = (head + over) % cap
+                st[I_SIZE] = size + n - over
+                written, dropped = n, over
+        else:
+            written, dropped = self._push_importance(pos, n, t_ms, g, prepared, imp)
+        st[I_DROPPED] += dropped
+        st[I_WRITES] += 1
+        st[I_TOTAL_WRITTEN] += written
+        st[I_LAST_PUSH_NS] = now_ns
+        if trace_id:
+            c = int(st[I_COMMIT_COUNT])
+            self._commits[c % COMMIT_N, 0] = np.int64(np.uint64(trace_id & 0xFFFFFFFFFFFFFFFF).view(np.int64))
+            self._commits[c % COMMIT_N, 1] = time.monotonic_ns()
+            st[I_COMMIT_COUNT] = c + 1
+        return int(written), int(dropped)
 
     def _push_importance(self, pos, n, t_ms, g, prepared, imp) -> tuple[int, int]:
         st = self._st
