@@ -434,8 +434,11 @@ class PointRing:
             x = np.empty(W, np.float32)
             np.subtract(t, now_ms, out=x, casting="unsafe")
             x *= np.float32(1.0 / h)
-            with np.errstate(divide="ignore"):
+            if imp.min() > 0:
                 x += np.log2(imp)
+            else:  # importance 0 -> log2 = -inf: always evicted first
+                with np.errstate(divide="ignore"):
+                    x += np.log2(imp)
             return x
         return imp.copy()
 
