@@ -226,15 +226,17 @@ class SlabWriter:
             gen = arrs["generation"]
             for bi in blocks:
                 s0, s1 = bi * RANGE_BLOCK, min(cap, (bi + 1) * RANGE_BLOCK)
-                occ = ((np.arange(s0, s1) - head) % cap) < size
+                occ = None if size == cap else ((np.arange(s0, s1) - head) % cap) < size
                 for k in self._range_keys:
                     if k == "importance":
                         v = arrs["importance"][s0:s1]
                         m = occ
                     else:
                         v = arrs["ch:" + k][s0:s1]
-                        m = occ & (arrs["gen:" + k][s0:s1] == gen[s0:s1])
-                    vv = v[m]
+                        m = arrs["gen:" + k][s0:s1] == gen[s0:s1]
+                        if occ is not None:
+                            m &= occ
+                    vv = v if m is None else v[m]
                     if vv.size:
                         self._bmin[k][bi] = np.fmin.reduce(vv)
                         self._bmax[k][bi] = np.fmax.reduce(vv)
