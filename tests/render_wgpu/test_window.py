@@ -1,0 +1,97 @@
+"""The optional window under Xvfb: it presents frames, orbits/pans/zooms and picks on click."""
+import os
+import shutil
+import subprocess
+
+import numpy as np
+import pytest
+
+from gpu_util import gpu_required
+from pointflow.render.camera import Camera, project_to_pixels
+
+from .helpers import cfg, frame
+
+pytestmark = pytest.mark.gpu
+
+
+@pytest.fixture
+def display(monkeypatch):
+    if os.environ.get("DISPLAY"):
+        yield os.environ["DISPLAY"]
+        return
+    xvfb = shutil.which("Xvfb")
+    if xvfb is None:
+        msg = "no DISPLAY and no Xvfb to start one"
+        if gpu_required():
+            pytest.fail(f"POINTFLOW_REQUIRE_GPU=1 but {msg}")
+        pytest.skip(msg)
+    r, w = os.pipe()
+    proc = subprocess.Popen([xvfb, "-displayfd", str(w), "-screen", "0", "800x600x24", "-nolisten", "tcp"],
+                            pass_fds=(w,), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    os.close(w)
+    try:
+        num = b""
+        with os.fdopen(r, "rb") as f:
+            while not num.endswith(b"\n"):
+                ch = f.read(1)
+                if not ch:
+                    break
+                num += ch
+        assert num.strip(), "Xvfb did not report a display number"
+        monkeypatch.setenv("DISPLAY", f":{int(num)}")
+        yield f":{int(num)}"
+    finally:
+        proc.terminate()
+        proc.wait(timeout=10)
+
+
+def test_window_presents_orbits_and_picks(make_renderer, display):
+    from pointflow.render.window import PointWindow
+
+    pts = np.array([[0.0, 0.0, 0.0], [2.0, 0.0, 1.0], [-2.0, 0.0, -1.0]])
+    r = make_renderer(cfg(point_size=6.0, color=[1, 1, 1]), 3)
+    cam = Camera(eye=[0.0, -10.0, 0.0], target=[0.0, 0.0, 0.0], near=0.5, far=100.0)
+    picked = []
+    win = PointWindow(r, cam, title="pf-test", on_pick=lambda slot, x, y: picked.append(slot))
+    try:
+        f = frame(pts)
+        assert win.step(f)
+        title = win.last_title
+        assert "pf-test" in title and "3 pts" in title and "wgpu" in title and "fps" in title
+        assert (r.read_image()[..., :3] == 255).all(axis=-1).sum() > 3 * 30
+
+        # click on point 1 (no drag): picks slot 1
+        px, py, _, _ = project_to_pixels(pts[1:2], cam.view_proj(320, 240), 320, 240)
+        ev = dict(button=1, buttons=(1,), modifiers=())
+        win.canvas.submit_event(dict(event_type="pointer_down", x=float(px[0]), y=float(py[0]), **ev))
+        win.canvas.submit_event(dict(event_type="pointer_up", x=float(px[0]) + 1, y=float(py[0]), **ev))
+        win.process_events()
+        assert picked == [1]
+
+        # left drag orbits about the target: distance kept, eye moved
+        d0 = np.linalg.norm(win.camera.eye - win.camera.target)
+        win.canvas.submit_event(dict(event_type="pointer_down", x=100.0, y=100.0, **ev))
+        win.canvas.submit_event(dict(event_type="pointer_move", x=160.0, y=110.0, **ev))
+        win.canvas.submit_event(dict(event_type="pointer_up", x=160.0, y=110.0, **ev))
+        win.process_events()
+        assert picked == [1]                                   # a drag is not a click
+        assert np.allclose(win.camera.target, 0.0)
+        assert np.isclose(np.linalg.norm(win.camera.eye - win.camera.target), d0)
+        assert not np.allclose(win.camera.eye, cam.eye)
+        before = r.read_image()
+        assert win.step(f)
+        assert not np.array_equal(before, r.read_image())      # the new view was drawn
+
+        # shift-drag pans (target moves), wheel zooms (distance changes)
+        sev = dict(button=1, buttons=(1,), modifiers=("Shift",))
+        win.canvas.submit_event(dict(event_type="pointer_down", x=100.0, y=100.0, **sev))
+        win.canvas.submit_event(dict(event_type="pointer_move", x=130.0, y=100.0, **sev))
+        win.canvas.submit_event(dict(event_type="pointer_up", x=130.0, y=100.0, **sev))
+        win.canvas.submit_event(dict(event_type="wheel", x=100.0, y=100.0, dx=0.0, dy=200.0, buttons=(), modifiers=()))
+        win.process_events()
+        assert not np.allclose(win.camera.target, 0.0)
+        assert np.linalg.norm(win.camera.eye - win.camera.target) > d0 * 1.2
+        assert win.step(f)
+    finally:
+        win.close()
+    assert win.canvas.get_closed()
