@@ -41,6 +41,9 @@ def display(monkeypatch):
         monkeypatch.setenv("DISPLAY", f":{int(num)}")
         yield f":{int(num)}"
     finally:
+        import sys
+        if "glfw" in sys.modules:   # drop the X connection first, or Xlib exit()s at shutdown
+            sys.modules["glfw"].terminate()
         proc.terminate()
         proc.wait(timeout=10)
 
