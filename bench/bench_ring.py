@@ -1,0 +1,189 @@
+"""Ring throughput benchmark.
+
+Points/s for FIFO and importance ingest into a *full* ring (capacities 100k and 1M, chunks of
+1k/10k/100k points), and the time of a full 1M-point snapshot into a slab, each next to a plain
+``numpy.copyto`` of the same number of bytes measured in the same run (the memory-bandwidth limit).
+
+    XDG_RUNTIME_DIR=/tmp/xdg .venv/bin/python bench/bench_ring.py [--quick] [--out bench/results/ring.json]
+
+Each figure is the best of ``--repeats`` batches (the machine is shared; best-of filters noise).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from pointflow.ring import PointRing, SlabPair, SlabWriter  # noqa: E402
+
+
+def best_time(fn, min_batch_s: float, repeats: int) -> float:
+    """Best per-call time over `repeats` batches of at least `min_batch_s` each."""
+    fn()  # warm up
+    best = float("inf")
+    for _ in range(repeats):
+        reps = 0
+        t0 = time.perf_counter()
+        while True:
+            fn()
+            reps += 1
+            dt = time.perf_counter() - t0
+            if dt >= min_batch_s and reps >= 2:
+                break
+        best = min(best, dt / reps)
+    return best
+
+
+def bytes_per_point(ring: PointRing) -> int:
+    return sum(a.itemsize * (a.size // ring.capacity) for a in ring.arrays.values())
+
+
+def bench_ingest(cap: int, chunks, repeats: int, batch_s: float, rng) -> list[dict]:
+    rows = []
+    rings = {
+        "fifo": PointRing(cap, eviction="drop_oldest", importance_field="importance"),
+        "importance": PointRing(cap, eviction="importance", importance_field="importance", max_staleness_ms=1000.0),
+    }
+    try:
+        for r in rings.values():
+            r.push(rng.uniform(-100, 100, (cap, 3)) + [6.4e5, 4.9e6, 0], importance=rng.random(cap).astype(np.float32))
+        bpp = bytes_per_point(rings["fifo"])
+        for n in chunks:
+            pos = rng.uniform(-100, 100, (n, 3)) + [6.4e5, 4.9e6, 0]
+            imp = rng.random(n).astype(np.float32)
+            t = {}
+            for mode, r in rings.items():
+                t[mode] = best_time(lambda r=r: r.push(pos, importance=imp), batch_s, repeats)
+                assert r.stats().total_points == cap
+            # the same bytes with a plain copy, into a ring-sized destination at rotating offsets
+            src = np.ones(n * bpp // 4, np.float32)
+            dst = np.zeros(cap * bpp // 4, np.float32)
+            state = {"off": 0}
+            step = src.shape[0]
+
+            def copy():
+                o = state["off"]
+                if o + step > dst.shape[0]:
+                    o = 0
+                np.copyto(dst[o:o + step], src)
+                state["off"] = o + step
+
+            t_copy = best_time(copy, batch_s, repeats)
+            rows.append({
+                "capacity": cap, "chunk": n, "bytes_per_point": bpp,
+                "fifo_pts_per_s": n / t["fifo"], "importance_pts_per_s": n / t["importance"],
+                "copy_pts_per_s": n / t_copy,
+                "fifo_us": t["fifo"] * 1e6, "importance_us": t["importance"] * 1e6, "copy_us": t_copy * 1e6,
+                "fifo_vs_copy": t_copy / t["fifo"], "importance_vs_fifo_cost": t["importance"] / t["fifo"],
+            })
+    finally:
+        for r in rings.values():
+            r.close()
+    return rows
+
+
+def bench_snapshot(cap: int, repeats: int, rng) -> dict:
+    import zmq
+
+    ctx = zmq.Context()
+    pull = ctx.socket(zmq.PULL)
+    pull.bind("inproc://bench-ready")
+    push = ctx.socket(zmq.PUSH)
+    push.connect("inproc://bench-ready")
+    rel = ctx.socket(zmq.PULL)
+    rel.bind("inproc://bench-rel")
+    with PointRing(cap, channels=(), importance_field="importance") as ring, SlabPair.create(ring.layout) as slabs:
+        ring.push(rng.uniform(-100, 100, (cap, 3)), importance=rng.random(cap).astype(np.float32))
+        writer = SlabWriter(ring, slabs, push, rel)
+        nbytes = sum(a.nbytes for a in ring.arrays.values())
+
+        def full_copy():
+            with ring.lock():
+                writer.copy_to_slab(0, None)
+
+        t_snap = best_time(full_copy, 0.0, repeats)
+        src = np.ones(nbytes // 4, np.float32)
+        dst = np.zeros(nbytes // 4, np.float32)
+        t_copy = best_time(lambda: np.copyto(dst, src), 0.0, repeats)
+
+        # whole publish (lock, full copy, channel ranges, ZeroMQ send), then an incremental one
+        def full_publish():
+            writer.reset_reader()
+            writer._pending = [None, None]
+            h = writer.publish()
+            pull.recv_multipart()
+            return h
+
+        t_pub_full = best_time(full_publish, 0.0, repeats)
+        chunk = rng.uniform(-100, 100, (10_000, 3))
+
+        def incr_publish():
+            writer.reset_reader()
+            writer._force_full = False
+            ring.push(chunk)
+            writer.publish()
+            pull.recv_multipart()
+
+        t_pub_incr = best_time(incr_publish, 0.05, repeats)
+        t_push = best_time(lambda: ring.push(chunk), 0.05, repeats)
+    for s in (pull, push, rel):
+        s.close(0)
+    ctx.term()
+    return {"capacity": cap, "bytes": nbytes, "snapshot_ms": t_snap * 1e3, "copy_ms": t_copy * 1e3,
+            "snapshot_vs_copy_time": t_snap / t_copy, "publish_full_ms": t_pub_full * 1e3,
+            "publish_after_10k_push_ms": max(0.0, (t_pub_incr - t_push)) * 1e3}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="fewer/shorter repeats")
+    ap.add_argument("--repeats", type=int, default=None)
+    ap.add_argument("--out", default=str(Path(__file__).resolve().parent / "results" / "ring.json"))
+    args = ap.parse_args(argv)
+    repeats = args.repeats or (3 if args.quick else 5)
+    batch_s = 0.03 if args.quick else 0.08
+    rng = np.random.default_rng(0)
+    rows = []
+    for cap in (100_000, 1_000_000):
+        rows += bench_ingest(cap, (1_000, 10_000, 100_000), repeats, batch_s, rng)
+    snap = bench_snapshot(1_000_000, repeats, rng)
+
+    print(f"{'capacity':>9} {'chunk':>7} {'FIFO Mpt/s':>11} {'imp Mpt/s':>10} {'copy Mpt/s':>11} "
+          f"{'FIFO/copy':>10} {'imp cost/FIFO':>14}")
+    for r in rows:
+        print(f"{r['capacity']:>9} {r['chunk']:>7} {r['fifo_pts_per_s'] / 1e6:>11.1f} "
+              f"{r['importance_pts_per_s'] / 1e6:>10.1f} {r['copy_pts_per_s'] / 1e6:>11.1f} "
+              f"{r['fifo_vs_copy']:>10.2f} {r['importance_vs_fifo_cost']:>14.2f}")
+    print(f"snapshot of {snap['capacity']} points ({snap['bytes'] / 1e6:.0f} MB): {snap['snapshot_ms']:.2f} ms, "
+          f"copyto {snap['copy_ms']:.2f} ms, ratio {snap['snapshot_vs_copy_time']:.2f}; full publish "
+          f"{snap['publish_full_ms']:.2f} ms; publish after a 10k push {snap['publish_after_10k_push_ms']:.3f} ms")
+    fifo10k = [r for r in rows if r["chunk"] == 10_000]
+    targets = {
+        "fifo_10k_vs_copy_min": min(r["fifo_vs_copy"] for r in fifo10k), "fifo_10k_vs_copy_target": 0.5,
+        "importance_vs_fifo_cost_max": max(r["importance_vs_fifo_cost"] for r in rows),
+        "importance_vs_fifo_cost_target": 3.0,
+        "snapshot_vs_copy_time": snap["snapshot_vs_copy_time"], "snapshot_vs_copy_target": 2.0,
+    }
+    print("targets:", json.dumps({k: round(v, 3) for k, v in targets.items()}))
+    out = {
+        "benchmark": "ring", "time": time.strftime("%Y-%m-%dT%H:%M:%S"),
+        "machine": {"platform": platform.platform(), "python": platform.python_version(),
+                    "numpy": np.__version__, "cpus": os.cpu_count()},
+        "repeats": repeats, "ingest": rows, "snapshot": snap, "targets": targets,
+    }
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.out).write_text(json.dumps(out, indent=2))
+    print("wrote", args.out)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
