@@ -3,8 +3,12 @@
 They share the socket with the ring's slab releases (``pf.ring.release/1``) so they stay
 ordered with them. Format: two frames ``[CONTROL_TAG, json]`` where json is one of
 
-* ``{"type": "hello", "pid": int, "restart_count": int}`` — the render stage (re)started and
-  holds no slab; the cadence calls ``SlabWriter.reset_reader()`` and sends a full handoff next.
+* ``{"type": "hello", "pid": int, "restart_count": int, "gpu": {...} | null}`` — the render
+  stage (re)started and holds no slab; the cadence calls ``SlabWriter.reset_reader()`` and
+  sends a full handoff next. ``gpu`` (optional; build it with
+  :func:`pointflow.cadence.policy.gpu_info_from_adapter`) = ``{"name", "type" (wgpu
+  adapter_type), "max_storage_binding", "max_buffer_size"}`` of the adapter the renderer uses:
+  the policy engine re-resolves the tier and the GPU storage cap from it.
 * ``{"type": "frame", "frame_ms": float, "seq": int}`` — the renderer finished the frame for
   handoff ``seq`` in ``frame_ms`` (wall time of the frame, GPU work included); feeds the
   adaptive cadence's frame-time EMA.
@@ -25,6 +29,7 @@ CONTROL_TAG = b"pf.cadence.ctl/1"
 class Hello:
     pid: int
     restart_count: int = 0
+    gpu: Optional[dict] = None
     type: Literal["hello"] = "hello"
 
 
@@ -42,8 +47,9 @@ class ControlMessageError(ValueError):
     """A frame on the release socket carried the control tag but a bad body."""
 
 
-def encode_hello(pid: int, restart_count: int = 0) -> list[bytes]:
-    return [CONTROL_TAG, json.dumps({"type": "hello", "pid": int(pid), "restart_count": int(restart_count)}).encode()]
+def encode_hello(pid: int, restart_count: int = 0, gpu: Optional[dict] = None) -> list[bytes]:
+    body = {"type": "hello", "pid": int(pid), "restart_count": int(restart_count), "gpu": gpu}
+    return [CONTROL_TAG, json.dumps(body).encode()]
 
 
 def encode_frame_time(frame_ms: float, seq: int = 0) -> list[bytes]:
@@ -71,7 +77,10 @@ def decode_control(frames: Sequence[bytes]) -> Optional[ControlMessage]:
     kind = d.get("type")
     try:
         if kind == "hello":
-            return Hello(pid=int(d["pid"]), restart_count=int(d.get("restart_count", 0)))
+            gpu = d.get("gpu")
+            if gpu is not None and not isinstance(gpu, dict):
+                raise ControlMessageError(f"cadence control message 'hello': gpu must be an object, got {gpu!r}")
+            return Hello(pid=int(d["pid"]), restart_count=int(d.get("restart_count", 0)), gpu=gpu)
         if kind == "frame":
             ms = float(d["frame_ms"])
             if not math.isfinite(ms) or ms < 0:

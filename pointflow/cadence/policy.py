@@ -119,6 +119,19 @@ class PolicyDecision:
 
 
 # --------------------------------------------------------------------------- detection
+def gpu_info_from_adapter(adapter: Any) -> dict[str, Any]:
+    """``{"name", "type", "max_storage_binding", "max_buffer_size"}`` of a wgpu adapter (what
+    the render stage puts in its hello, see :mod:`pointflow.cadence.messages`)."""
+    info = dict(adapter.info)
+    limits = adapter.limits
+    return {
+        "name": str(info.get("device") or info.get("description") or info.get("vendor") or "unknown"),
+        "type": str(info.get("adapter_type") or "Unknown"),
+        "max_storage_binding": int(limits["max-storage-buffer-binding-size"]),
+        "max_buffer_size": int(limits["max-buffer-size"]),
+    }
+
+
 def _probe_gpu(power_preference: str = "high-performance") -> dict[str, Any]:
     """Adapter name/type/limits via wgpu; {} when wgpu or an adapter is unavailable."""
     try:
@@ -127,14 +140,9 @@ def _probe_gpu(power_preference: str = "high-performance") -> dict[str, Any]:
         adapter = wgpu.gpu.request_adapter_sync(power_preference=power_preference)
         if adapter is None:
             return {}
-        info = dict(adapter.info)
-        limits = adapter.limits
-        return {
-            "gpu_name": str(info.get("device") or info.get("description") or info.get("vendor") or "unknown"),
-            "gpu_type": str(info.get("adapter_type") or "Unknown"),
-            "gpu_max_storage_binding": int(limits["max-storage-buffer-binding-size"]),
-            "gpu_max_buffer_size": int(limits["max-buffer-size"]),
-        }
+        g = gpu_info_from_adapter(adapter)
+        return {"gpu_name": g["name"], "gpu_type": g["type"], "gpu_max_storage_binding": g["max_storage_binding"],
+                "gpu_max_buffer_size": g["max_buffer_size"]}
     except Exception as exc:  # noqa: BLE001 - detection is best effort
         log.debug("GPU probe failed: %s", exc)
         return {}

@@ -23,7 +23,7 @@ import zmq
 
 from ..config import PipelineConfig
 from .messages import ControlMessageError, FrameTime, Hello, decode_control
-from .policy import PolicyDecision, resolve_policy, tick_interval_ms
+from .policy import HardwareInfo, PolicyDecision, detect_hardware, resolve_policy, tick_interval_ms
 from .ticker import Clock, Sleep, Tick, Ticker
 
 #: Smoothing factor of the renderer frame-time EMA (adaptive mode).
@@ -105,6 +105,8 @@ class Cadence:
             self._fwd_pull_drain()
             self.writer.reset_reader()
             self.frame_ema_ms = None
+            if msg.gpu:
+                self.on_gpu_info(msg.gpu)
         elif isinstance(msg, FrameTime):
             self.frames_reported += 1
             self.on_frame_time(msg.frame_ms)
@@ -116,6 +118,26 @@ class Cadence:
                 self._fwd_pull.recv_multipart(zmq.NOBLOCK)
             except zmq.Again:
                 return
+
+    def on_gpu_info(self, gpu: dict) -> None:
+        """Re-resolve the policy with the renderer's adapter (tier detection + storage cap)."""
+        base = self.decision.hardware or detect_hardware(probe_gpu=False)
+        try:
+            hw = HardwareInfo(cpu_cores=base.cpu_cores, memory_bytes=base.memory_bytes,
+                              gpu_name=str(gpu.get("name") or "unknown"), gpu_type=str(gpu.get("type") or "Unknown"),
+                              gpu_max_storage_binding=int(gpu["max_storage_binding"]) if gpu.get("max_storage_binding") else None,
+                              gpu_max_buffer_size=int(gpu["max_buffer_size"]) if gpu.get("max_buffer_size") else None)
+        except (TypeError, ValueError) as exc:
+            self.bad_messages += 1
+            self.log.warning("renderer hello: bad gpu info %r (%s); policy unchanged", gpu, exc)
+            return
+        old = self.decision
+        self.decision = resolve_policy(self.cfg, hardware=hw)
+        if (old.tier, old.point_budget) != (self.decision.tier, self.decision.point_budget):
+            self.log.info("policy updated from the renderer's GPU %s: tier %s -> %s, budget %d -> %d",
+                          hw.gpu_name, old.tier, self.decision.tier, old.point_budget, self.decision.point_budget)
+        self.interval_ms = tick_interval_ms(self.cfg, self.decision, self.frame_ema_ms)
+        self.ticker.set_interval(self.interval_ms / 1000.0)
 
     def on_frame_time(self, frame_ms: float) -> None:
         """Update the frame-time EMA (alpha 0.15) and, in adaptive mode, the tick interval."""
@@ -221,7 +243,8 @@ def main(ctx) -> None:
     ready.setsockopt(zmq.SNDHWM, 4)
     ready.setsockopt(zmq.IMMEDIATE, 1)  # never queue handoffs for a renderer that is not there
     ready.connect(ctx.endpoints.frames)
-    decision = resolve_policy(cfg)
+    # No GPU probe here: the renderer owns the adapter and reports its limits in its hello.
+    decision = resolve_policy(cfg, probe_gpu=False)
     cad = Cadence(ring, slabs, ready, release, ctx.zmq, cfg, decision, spans=ctx.spans, log=ctx.log)
     if ctx.info.restart_count:
         ctx.log.info("cadence restarted (%d): resuming from the slab headers", ctx.info.restart_count)
@@ -229,7 +252,7 @@ def main(ctx) -> None:
     def on_beat() -> None:
         ctx.counters.points_out = cad.points_out
         ctx.counters.extra.update(cad.stats())
-        ctx.counters.extra["policy"] = decision.to_dict()
+        ctx.counters.extra["policy"] = cad.decision.to_dict()
 
     ctx.on_beat.append(on_beat)
     try:

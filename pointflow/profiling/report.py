@@ -107,6 +107,10 @@ def build_profile(collector: SpanCollector | SpanTable | None, stats: Optional[d
             m = (tr.T1[:, fd] != _NONE) & keep
             out["end_to_end"] = _pcts((tr.T1[m, fd] - tr.start[m]) / 1e6)
             out["traces"]["complete"] = int(m.sum())
+            if "transport_receive" in tr.names:  # from the source's send (end of its span)
+                tx = tr.names.index("transport_receive")
+                m2 = m & (tr.T1[:, tx] != _NONE)
+                out["send_to_frame"] = _pcts((tr.T1[m2, fd] - tr.T1[m2, tx]) / 1e6)
     out["processes"] = {}
     out["drops"] = {}
     for name, s in (stats.get("stages") or {}).items():
@@ -263,6 +267,8 @@ def format_table(profile: dict[str, Any]) -> str:
     hdr = f"{'stage':<18}{'count':>8}{'p50 ms':>10}{'p95 ms':>10}{'p99 ms':>10}{'max ms':>10}{'chunks/s':>10}{'Mpts/s':>9}"
     lines += [hdr, "-" * len(hdr)]
     rows = list((profile.get("stages") or {}).items()) + [("end_to_end", profile.get("end_to_end") or {})]
+    if profile.get("send_to_frame"):
+        rows.append(("send_to_frame", profile["send_to_frame"]))
     for name, s in rows:
         pps = s.get("points_per_s")
         lines.append(f"{name:<18}{s.get('count', 0):>8}{_f(s.get('p50')):>10}{_f(s.get('p95')):>10}"

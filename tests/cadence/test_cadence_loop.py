@@ -186,3 +186,27 @@ def test_no_renderer_counted(tmp_path):
         assert r.cad.stats()["skipped"] == {"no_reader": 1}
     finally:
         r.close()
+
+
+def test_hello_gpu_info_refines_policy(rig):
+    assert rig.cad.decision.point_budget == 5000          # tier M from config, ring cap
+    gpu = {"name": "tiny", "type": "DiscreteGPU", "max_storage_binding": 16 * 1000, "max_buffer_size": 1 << 30}
+    rig.send(encode_hello(os.getpid(), 0, gpu=gpu))
+    d = rig.cad.decision
+    assert d.point_budget == 1000 and d.hardware.gpu_name == "tiny"
+    assert [c.name for c in d.caps if c.applied][-1] == "gpu_storage"
+    rig.push(5, 1)
+    assert rig.tick().extra["budget"] == 1000             # the renderer gets the new budget
+    assert rig.cad.stats()["budget"] == 1000
+
+
+def test_hello_gpu_info_detects_tier(tmp_path):
+    r = Rig(tmp_path, {"policy": {"tier": "auto"}})
+    try:
+        cpu_only = r.cad.decision.tier
+        r.send(encode_hello(os.getpid(), 0, gpu={"name": "lavapipe", "type": "CPU", "max_storage_binding": 1 << 27}))
+        assert r.cad.decision.tier == "L" and r.cad.decision.tier_source == "detected"
+        assert any(x.startswith("gpu: lavapipe") for x in r.cad.decision.tier_reasons)
+        assert cpu_only in ("L", "M", "H")
+    finally:
+        r.close()

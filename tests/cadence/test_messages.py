@@ -17,6 +17,8 @@ from pointflow.cadence.messages import (
 def test_round_trip():
     assert decode_control(encode_hello(1234, 2)) == Hello(pid=1234, restart_count=2)
     assert decode_control(encode_frame_time(16.5, seq=9)) == FrameTime(frame_ms=16.5, seq=9)
+    gpu = {"name": "x", "type": "DiscreteGPU", "max_storage_binding": 1 << 30, "max_buffer_size": 1 << 31}
+    assert decode_control(encode_hello(1, 0, gpu=gpu)).gpu == gpu
 
 
 def test_release_messages_are_not_control():
@@ -30,6 +32,7 @@ def test_release_messages_are_not_control():
     ([CONTROL_TAG, b"[1]"], "JSON object"),
     ([CONTROL_TAG, json.dumps({"type": "nope"}).encode()], "unknown type 'nope'"),
     ([CONTROL_TAG, json.dumps({"type": "hello"}).encode()], "'hello': missing or bad field"),
+    ([CONTROL_TAG, json.dumps({"type": "hello", "pid": 1, "gpu": 5}).encode()], "gpu must be an object"),
     ([CONTROL_TAG, json.dumps({"type": "frame", "frame_ms": "x"}).encode()], "'frame': missing or bad"),
     ([CONTROL_TAG, json.dumps({"type": "frame", "frame_ms": -1}).encode()], "frame_ms must be finite"),
 ])

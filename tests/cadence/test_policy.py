@@ -11,6 +11,7 @@ from pointflow.cadence.policy import (
     HardwareInfo,
     detect_hardware,
     detect_tier,
+    gpu_info_from_adapter,
     resolve_policy,
     tick_interval_ms,
 )
@@ -156,6 +157,8 @@ def test_detection_reads_real_adapter_limits():
     hw = detect_hardware(probe_gpu=True)
     assert hw.gpu_type is not None, "wgpu found an adapter but policy detection did not"
     assert hw.gpu_max_storage_binding == adapter.limits["max-storage-buffer-binding-size"]
+    g = gpu_info_from_adapter(adapter)  # what the render stage sends in its hello
+    assert g["max_storage_binding"] == hw.gpu_max_storage_binding and g["type"] == adapter.info["adapter_type"]
     tier, reasons = detect_tier(hw)
     assert any(r.startswith("gpu:") and "not probed" not in r for r in reasons)
     if hw.gpu_type == "CPU":

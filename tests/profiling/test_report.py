@@ -76,6 +76,8 @@ def test_stage_and_end_to_end_percentiles():
     e2e = lat[keep].sum(axis=1)
     assert prof["end_to_end"]["p50"] == pytest.approx(np.percentile(e2e, 50), abs=1e-3)
     assert prof["end_to_end"]["p99"] == pytest.approx(np.percentile(e2e, 99), abs=1e-3)
+    s2f = lat[keep, 1:].sum(axis=1)  # from the end of transport_receive (the send)
+    assert prof["send_to_frame"]["p50"] == pytest.approx(np.percentile(s2f, 50), abs=1e-3)
     assert prof["drops"] == {"ingest": {"bad_count": 2, "ring_overwrite": 1000}}
     assert prof["processes"]["render"]["cpu_percent"] == 80.0
     assert prof["processes"]["cadence"]["rss_bytes"] == 60 << 20
