@@ -13,6 +13,9 @@ Frame path (no Python loop over points, no readback):
 
 At most two frames are in flight: before reusing buffer set ``s`` we wait for the frame
 that last read it, which also bounds latency when the GPU is slower than the cadence.
+The wait maps a 64-byte fence into which that frame copied its counters, so the
+``FrameStats`` of a frame gets ``drawn`` / ``removed_nonfinite`` two frames later (or at
+``read_image()``, which waits for the GPU anyway) without ever stalling for them.
 """
 from __future__ import annotations
 
@@ -116,6 +119,8 @@ class WgpuRenderer(Renderer):
             raise RenderError(f"wgpu tier setup failed: {type(e).__name__}: {e}") from e
         self._pending: list[list[Range]] = [[(0, self.render_capacity)], [(0, self.render_capacity)]]
         self._done = [False, False]
+        self._stats: list[Optional[FrameStats]] = [None, None]
+        self.nonfinite_total = 0
         self._ts_used = [False, False]
         self._frame_no = 0
         self._last: Optional[dict[str, Any]] = None
@@ -236,7 +241,7 @@ class WgpuRenderer(Renderer):
         self._row_bytes = (w * 4 + 255) // 256 * 256
         self._readback = self._buf(self._row_bytes * h, BU.MAP_READ | BU.COPY_DST, "readback")
         self._pick_tex: Optional[dict[str, Any]] = None
-        self._fence = [self._buf(16, BU.MAP_READ | BU.COPY_DST, f"fence{s}") for s in range(2)]
+        self._fence = [self._buf(64, BU.MAP_READ | BU.COPY_DST, f"fence{s}") for s in range(2)]
         if self._ts:
             self._qs = dev.create_query_set(type=wgpu.QueryType.timestamp, count=4)
             self._ts_resolve = self._buf(32, BU.QUERY_RESOLVE | BU.COPY_SRC, "ts-resolve")
@@ -392,12 +397,9 @@ class WgpuRenderer(Renderer):
     def _wait_set(self, s: int) -> None:
         """Wait for the frame that last used set ``s`` (two frames ago); collect its GPU times."""
         if self._done[s]:
-            # mapping the fence waits for the frame that cleared it (wgpu-py's
+            # mapping the fence waits for the frame that wrote it (wgpu-py's
             # on_submitted_work_done_async is broken in 0.32 and waits for *all* work anyway)
-            f = self._fence[s]
-            f.map_sync(self._wgpu.MapMode.READ)
-            f.unmap()
-            self._done[s] = False
+            self._collect(s)
         if self._ts and self._ts_used[s]:
             b = self._ts_read[s]
             b.map_sync(self._wgpu.MapMode.READ)
@@ -406,6 +408,22 @@ class WgpuRenderer(Renderer):
             self._ts_used[s] = False
             if t[1] >= t[0] and t[3] >= t[2]:
                 self._gpu_ms = {"gpu_compute": float(t[1] - t[0]) * 1e-6, "gpu_draw": float(t[3] - t[2]) * 1e-6}
+
+    def _collect(self, s: int) -> None:
+        """Map set ``s``'s fence (waits for its frame) and fill that frame's FrameStats with the
+        GPU counters: ``drawn`` and ``extra`` removed_nonfinite / culled / occupied."""
+        f = self._fence[s]
+        f.map_sync(self._wgpu.MapMode.READ)
+        st = np.frombuffer(f.read_mapped(), np.uint32).copy()
+        f.unmap()
+        self._done[s] = False
+        fs = self._stats[s]
+        if fs is not None:
+            fs.drawn = int(st[1])
+            fs.extra.update({"occupied": int(st[13]), "removed_nonfinite": int(st[12]),
+                             "survivors_before_budget": int(st[8]), "counters": "exact (read after the GPU finished)"})
+            self._stats[s] = None
+        self.nonfinite_total += int(st[12])
 
     def render(self, frame: FrameInput, camera: Camera) -> FrameStats:
         if self._closed:
@@ -475,7 +493,8 @@ class WgpuRenderer(Renderer):
             enc.resolve_query_set(self._qs, 0, 4, self._ts_resolve, 0)
             enc.copy_buffer_to_buffer(self._ts_resolve, 0, self._ts_read[s], 0, 32)
             self._ts_used[s] = True
-        enc.clear_buffer(self._fence[s], 0, 16)
+        # the fence doubles as the (lagged) counter readout: copied now, read once the GPU is done
+        enc.copy_buffer_to_buffer(self._state, 0, self._fence[s], 0, 64)
         q.submit([enc.finish()])
         self._done[s] = True
         t_sub = time.perf_counter()
@@ -484,9 +503,11 @@ class WgpuRenderer(Renderer):
         timings = {"wait": (t_wait - t0) * 1e3, "upload": (t_up - t_wait) * 1e3,
                    "encode_submit": (t_sub - t_up) * 1e3, "cpu_total": (t_sub - t0) * 1e3}
         timings.update(self._gpu_ms)
-        return FrameStats(drawn=None, timings_ms=timings, uploaded_bytes=uploaded,
-                          extra={"buffer_set": s, "render_capacity": self.render_capacity,
-                                 "gpu_timings_lag_frames": 2 if self._ts else None})
+        stats = FrameStats(drawn=None, timings_ms=timings, uploaded_bytes=uploaded,
+                           extra={"buffer_set": s, "render_capacity": self.render_capacity,
+                                  "gpu_timings_lag_frames": 2 if self._ts else None})
+        self._stats[s] = stats  # drawn/removed_nonfinite filled in once the GPU is done
+        return stats
 
     # ------------------------------------------------------------------ output
     def read_image(self) -> np.ndarray:
@@ -499,6 +520,8 @@ class WgpuRenderer(Renderer):
                                    (self.width, self.height, 1))
         self.queue.submit([enc.finish()])
         self._readback.map_sync(wgpu.MapMode.READ)
+        if self._last is not None and self._done[self._last["set"]]:
+            self._collect(self._last["set"])  # the GPU is done with the last frame: free counters
         try:
             raw = np.frombuffer(self._readback.read_mapped(), np.uint8)
             img = raw.reshape(self.height, self._row_bytes)[:, :self.width * 4].reshape(self.height, self.width, 4).copy()

@@ -34,6 +34,8 @@ const C_TIME: u32 = 4u;
 // state words
 const S_COUNT1: u32 = 8u;
 const S_COUNT2: u32 = 9u;
+const S_NONFINITE: u32 = 12u;
+const S_OCCUPIED: u32 = 13u;
 
 fn pcg(v: u32) -> u32 {
   let state = v * 747796405u + 2891336453u;
@@ -71,6 +73,8 @@ CULL = PARAMS + r"""
 
 var<workgroup> wg_count: atomic<u32>;
 var<workgroup> wg_base: u32;
+var<workgroup> wg_bad: atomic<u32>;
+var<workgroup> wg_occ: atomic<u32>;
 var<workgroup> wg_min: atomic<u32>;
 var<workgroup> wg_max: atomic<u32>;
 
@@ -84,6 +88,8 @@ fn colour_value(slot: u32, p: vec3<f32>) -> f32 {
 fn cull(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: vec3<u32>) {
   if (lid == 0u) {
     atomicStore(&wg_count, 0u);
+    atomicStore(&wg_bad, 0u);
+    atomicStore(&wg_occ, 0u);
     atomicStore(&wg_min, 0xffffffffu);
     atomicStore(&wg_max, 0u);
   }
@@ -96,6 +102,8 @@ fn cull(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: v
     if (logical < P.size) {
       let p = vec3<f32>(pos[3u * slot], pos[3u * slot + 1u], pos[3u * slot + 2u]);
       keep = is_finite(p.x) && is_finite(p.y) && is_finite(p.z);
+      atomicAdd(&wg_occ, 1u);
+      if (!keep) { atomicAdd(&wg_bad, 1u); }
       if ((P.flags & F_RANGE_AUTO) != 0u) {
         let v = colour_value(slot, p);
         if (keep && is_finite(v)) {
@@ -133,6 +141,10 @@ fn cull(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: v
   if (lid == 0u) {
     let c = atomicLoad(&wg_count);
     if (c > 0u) { wg_base = atomicAdd(&st[S_COUNT1], c); }
+    let bad = atomicLoad(&wg_bad);
+    if (bad > 0u) { atomicAdd(&st[S_NONFINITE], bad); }
+    let occ = atomicLoad(&wg_occ);
+    if (occ > 0u) { atomicAdd(&st[S_OCCUPIED], occ); }
     if ((P.flags & F_RANGE_AUTO) != 0u) {
       let mn = atomicLoad(&wg_min);
       let mx = atomicLoad(&wg_max);
@@ -260,7 +272,8 @@ fn vs(@builtin(vertex_index) vi: u32, @builtin(instance_index) ii: u32) -> VOut 
   let c = corners[vi];
   var o: VOut;
   let off = c * ext * vec2<f32>(2.0 / P.vw, 2.0 / P.vh) * clip.w;
-  o.position = vec4<f32>(clip.xy + off, clip.z, clip.w);
+  // a point exactly on the far plane (depth 1.0) must still pass 'less' against the cleared 1.0
+  o.position = vec4<f32>(clip.xy + off, min(clip.z, clip.w * 0.99999994), clip.w);
   let ndc = clip.xy / clip.w;
   o.centre = vec3<f32>((ndc.x * 0.5 + 0.5) * P.vw, (0.5 - ndc.y * 0.5) * P.vh, 0.5 * s);
   o.slot = slot;
