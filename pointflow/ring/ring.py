@@ -11,7 +11,7 @@ import threading
 import time
 import weakref
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from typing import Iterator, Sequence
 
 import numpy as np
@@ -281,6 +281,10 @@ class PointRing:
 
     def __enter__(self) -> "PointRing":
         return self
+
+    def __reduce__(self):
+        # pickling (e.g. as a multiprocessing argument) attaches by name in the receiving process
+        return (PointRing.attach, (self.name,))
 
     def __exit__(self, *exc) -> None:
         self.close()

@@ -183,5 +183,8 @@ class SlabPair:
     def __enter__(self) -> "SlabPair":
         return self
 
+    def __reduce__(self):
+        return (SlabPair.attach, (self.names,))
+
     def __exit__(self, *exc) -> None:
         self.close()

@@ -285,3 +285,17 @@ def test_attached_close_is_safe_after_owner_close():
     assert a.stats().capacity == 10  # mapping stays valid
     a.close()
     a.close()
+
+
+def test_pickle_attaches_by_name():
+    import pickle
+
+    from pointflow.ring import SlabPair
+
+    with PointRing(10) as r, SlabPair.create(r.layout) as s:
+        r.push(xs(1, 2))
+        a = pickle.loads(pickle.dumps(r))
+        b = pickle.loads(pickle.dumps(s))
+        assert not a.owner and a.stats().total_points == 2 and b.names == s.names
+        a.close()
+        b.close()
