@@ -86,3 +86,13 @@ def test_selection_matches_wgpu_reference_rules():
     expect = sel.slots[u < R.budget_fraction(f.budget, sel.n)][: f.budget]
     assert set(expect.tolist()) == set(sel_b.slots.tolist()) and 0 < sel_b.n <= f.budget
     assert occ.size == f.size
+
+
+def test_importance_range_for_budget_hits_the_budget_in_expectation():
+    from pointflow.render.cpu import importance_range_for_budget, keep_probability
+    rng = np.random.default_rng(0)
+    imp = rng.uniform(0, 1, 100_000).astype(np.float32) ** 3  # mean p = 0.25
+    for budget in (5_000, 50_000, 90_000):
+        lo, hi = importance_range_for_budget(imp, 0.0, 1.0, budget)
+        expected = keep_probability(imp, lo, hi).sum()
+        assert abs(expected - budget) / budget < 0.01

@@ -1,0 +1,360 @@
+"""Speed versus accuracy of the render tiers and their point-saving methods, and the cpu crossover.
+
+Reference: the cpu tier drawing every point (float64 projection). For each scene, tier and
+method (full; LOD stride 2/4/8; importance sampling at budgets of 5/10/25/50/100%; time
+windows keeping the newest 10/25/50%) it measures the median frame time and the image
+error against the reference: PSNR (RGB), the fraction of pixels that differ, and the IoU
+of lit pixels. Then it times the three tiers on growing scenes to find the crossover size
+below which the cpu tier is faster (written to ``bench/results/crossover.json`` and, unless
+``--no-cache``, to the user cache that ``select_renderer`` reads).
+
+    .venv/bin/python bench/bench_tiers.py            # ~2-4 min on 2 cores
+    .venv/bin/python bench/bench_tiers.py --quick    # fewer scenes/sizes
+
+Output: a table on stdout, ``bench/results/tiers.json``, ``bench/results/tiers.png``
+(frame time vs error, one curve per method, Pareto front marked), ``crossover.json``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+from typing import Callable, Optional
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+os.environ.setdefault("XDG_RUNTIME_DIR", "/tmp/xdg")
+os.makedirs(os.environ["XDG_RUNTIME_DIR"], exist_ok=True)
+
+from pointflow.config import RenderConfig  # noqa: E402
+from pointflow.render.base import FrameInput, Renderer  # noqa: E402
+from pointflow.render.camera import Camera  # noqa: E402
+from pointflow.render.cpu import CpuRenderer, importance_range_for_budget  # noqa: E402
+
+RESULTS = ROOT / "bench" / "results"
+DATA = ROOT.parent / "shared" / "data"
+
+
+# ----------------------------------------------------------------------------- scenes
+def _frame(world: np.ndarray, intensity: np.ndarray, *, origin=None, t_ms=None, rgb=None,
+           importance=None) -> FrameInput:
+    """A full ring (capacity = n) in logical order; positions float32 offsets from origin."""
+    n = world.shape[0]
+    org = np.floor(world.min(axis=0)) if origin is None else np.asarray(origin, np.float64)
+    inten = np.asarray(intensity, np.float32)
+    t = np.linspace(0.0, 10_000.0, n) if t_ms is None else np.asarray(t_ms, np.float64)
+    ch = {"intensity": inten}
+    if rgb is not None:
+        ch["rgb"] = rgb
+    lo, hi = float(np.nanmin(inten)), float(np.nanmax(inten))
+    imp = inten if importance is None else np.asarray(importance, np.float32)
+    return FrameInput(positions=(world - org).astype(np.float32), importance=imp, t_ingest_ms=t, channels=ch,
+                      head=0, size=n, capacity=n, origin=org, now_ms=float(t.max()),
+                      channel_ranges={"intensity": (lo, hi), "importance": (float(imp.min()), float(imp.max()))})
+
+
+def _fit(world: np.ndarray, aspect: float, **kw) -> Camera:
+    lo, hi = np.percentile(world, 1, axis=0), np.percentile(world, 99, axis=0)
+    return Camera.fit(lo, hi, aspect=aspect, **kw)
+
+
+def scene_demo(aspect: float, n_target: int) -> tuple[FrameInput, Camera, str]:
+    """The demo: the synthetic town swept by the simulated lidar (as configs/demo.yaml)."""
+    from pointflow.ingest.transports.synthetic import SyntheticTransport
+
+    opts = SyntheticTransport.validate_options({"realtime": False, "points_per_scan": 100_000,
+                                                "scans": max(1, n_target // 100_000)}, "bench")
+    tr = SyntheticTransport(opts, "bench")
+    tr.open()
+    pos, inten = [], []
+    for ch in tr.chunks():
+        if ch is None:
+            continue
+        pos.append(np.asarray(ch.positions, np.float64))
+        inten.append(np.asarray(ch.channels["intensity"], np.float32))
+    tr.close()
+    world, it = np.concatenate(pos), np.concatenate(inten)
+    # ingest time: scans arrive at 10 Hz, in order
+    t = np.linspace(0, 100.0 * len(pos) / 10, len(world))
+    return _frame(world, it, t_ms=t), _fit(world, aspect, elevation_deg=30), f"synthetic town, {len(world):,} pts"
+
+
+def scene_dense(aspect: float, n: int) -> tuple[FrameInput, Camera, str]:
+    """A dense static scan: rolling terrain with buildings, evenly sampled."""
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(-60, 60, (n, 2))
+    z = 2.5 * np.sin(xy[:, 0] / 9) * np.cos(xy[:, 1] / 11)
+    for cx, cy, h in ((10, -5, 9), (-25, 20, 14), (30, 30, 6), (-20, -30, 11)):
+        m = (np.abs(xy[:, 0] - cx) < 7) & (np.abs(xy[:, 1] - cy) < 7)
+        z[m] += h
+    world = np.column_stack([xy, z])
+    inten = ((z - z.min()) / (np.ptp(z) + 1e-9)).astype(np.float32)
+    return _frame(world, inten), _fit(world, aspect), f"dense static scan, {n:,} pts"
+
+
+def scene_autzen(aspect: float) -> Optional[tuple[FrameInput, Camera, str]]:
+    path = DATA / "autzen_trim.laz"
+    if not path.exists():
+        return None
+    import laspy
+
+    las = laspy.read(str(path))
+    world = np.column_stack([las.x, las.y, las.z]).astype(np.float64)
+    inten = np.asarray(las.intensity, np.float32)
+    return _frame(world, inten), _fit(world, aspect, elevation_deg=45), f"autzen_trim.laz (georeferenced), {len(world):,} pts"
+
+
+def scene_ouster(aspect: float) -> Optional[tuple[FrameInput, Camera, str]]:
+    files = sorted((DATA / "ouster_os1_128").glob("*.npz"))
+    if not files:
+        return None
+    pos, refl = [], []
+    for f in files:
+        d = np.load(f)
+        pos.append(d["xyz"].astype(np.float64))
+        refl.append(d["reflectivity"].astype(np.float32))
+    world, inten = np.concatenate(pos), np.concatenate(refl)
+    ok = np.isfinite(world).all(axis=1) & (np.abs(world) < 80).all(axis=1)
+    world, inten = world[ok], inten[ok]
+    t = np.repeat(np.arange(len(files)) * 100.0, [int(o.sum()) for o in np.split(ok, np.cumsum([len(p) for p in pos])[:-1])])
+    cam = Camera(eye=[-25, -18, 14], target=[5, 0, 0], near=0.5, far=200, fov_deg=60)
+    return _frame(world, inten, t_ms=t), cam, f"Ouster OS1-128, {len(files)} scans, {len(world):,} pts"
+
+
+# ----------------------------------------------------------------------------- tiers & methods
+def make_tier(tier: str, cfg: RenderConfig, capacity: int) -> Optional[Renderer]:
+    try:
+        if tier == "cpu":
+            return CpuRenderer(cfg, capacity, ["intensity"])
+        if tier == "gl":
+            from pointflow.render.gl import GlRenderer
+            return GlRenderer(cfg, capacity, ["intensity"])
+        from pointflow.render.wgpu_tier import WgpuRenderer
+        return WgpuRenderer(cfg, capacity, ["intensity"])
+    except Exception as exc:  # noqa: BLE001 - report and go on with the other tiers
+        print(f"  [{tier}] unavailable: {type(exc).__name__}: {exc}", file=sys.stderr)
+        return None
+
+
+def methods(n: int, now_ms: float, span_ms: float) -> list[tuple[str, str, float, dict, Optional[int]]]:
+    """(family, label, x, render-config overrides, budget)."""
+    out = [("full", "full", 1.0, {}, None)]
+    for s in (2, 4, 8):
+        out.append(("lod", f"lod {s}", 1.0 / s, {"lod_stride": s}, None))
+    for p in (0.05, 0.10, 0.25, 0.50, 1.00):
+        out.append(("importance", f"imp {p:.0%}", p, {"importance_sampling": True}, int(n * p)))
+    for p in (0.10, 0.25, 0.50):
+        out.append(("time window", f"window {p:.0%}", p, {"time_window_ms": max(span_ms * p, 1e-3)}, None))
+    return out
+
+
+def timed(r: Renderer, frame: FrameInput, cam: Camera, repeats: int) -> tuple[float, np.ndarray]:
+    """Median frame time (ms): render + finish + read back, after one warm-up frame."""
+    frame.dirty = None
+    r.render(frame, cam)
+    r.read_image()
+    frame.dirty = []  # static scene: nothing new to upload after the first frame
+    ts = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        r.render(frame, cam)
+        img = r.read_image()
+        ts.append((time.perf_counter() - t0) * 1e3)
+    frame.dirty = None
+    return float(np.median(ts)), img
+
+
+def errors(img: np.ndarray, ref: np.ndarray, bg: np.ndarray) -> dict[str, float]:
+    d = img[..., :3].astype(np.float64) - ref[..., :3]
+    mse = float((d * d).mean())
+    psnr = float("inf") if mse == 0 else 10 * np.log10(255.0 ** 2 / mse)
+    a, b = (img != bg).any(axis=-1), (ref != bg).any(axis=-1)
+    union = int((a | b).sum())
+    return {"psnr_db": psnr, "diff_fraction": float((img != ref).any(axis=-1).mean()),
+            "coverage_iou": float((a & b).sum() / union) if union else 1.0}
+
+
+def pareto(points: list[tuple[float, float]]) -> list[int]:
+    """Indices of non-dominated (time, error) points, by increasing time."""
+    order = sorted(range(len(points)), key=lambda i: (points[i][0], points[i][1]))
+    front, best = [], float("inf")
+    for i in order:
+        if points[i][1] < best:
+            front.append(i)
+            best = points[i][1]
+    return front
+
+
+# ----------------------------------------------------------------------------- runs
+def accuracy_runs(scenes, tiers, size, repeats) -> list[dict]:
+    rows = []
+    for key, (frame, cam, desc) in scenes.items():
+        n = frame.size
+        print(f"\n== {key}: {desc} at {size[0]}x{size[1]}")
+        base = dict(size=list(size), color_by="intensity", point_size=2,
+                    color_range=list(frame.channel_ranges["intensity"]))
+        ref_cfg = RenderConfig(**base)
+        ref_r = CpuRenderer(ref_cfg, n, ["intensity"])
+        ref_r.render(frame, cam)
+        ref = ref_r.read_image()
+        bg = ref[0, 0].copy()
+        span = float(frame.t_ingest_ms.max() - frame.t_ingest_ms.min())
+        print(f"{'tier':5} {'method':12} {'ms':>8} {'x ref':>6} {'PSNR dB':>8} {'diff %':>7} {'IoU':>6}")
+        for tier in tiers:
+            full_ms = None
+            for fam, label, frac, over, budget in methods(n, frame.now_ms, span):
+                cfg = RenderConfig(**{**base, **over})
+                r = make_tier(tier, cfg, n)
+                if r is None:
+                    break
+                frame.budget = budget if budget is not None and budget < n else None
+                frame.frame_seed = 1
+                ranges = dict(frame.channel_ranges)
+                if fam == "importance":  # scale the sampling so it aims at the budget (see cpu.py)
+                    lo, hi = ranges["importance"]
+                    frame.channel_ranges["importance"] = importance_range_for_budget(frame.importance, lo, hi, budget)
+                try:
+                    ms, img = timed(r, frame, cam, repeats)
+                finally:
+                    r.close()
+                    frame.budget = None
+                    frame.channel_ranges = ranges
+                e = errors(img, ref, bg)
+                full_ms = full_ms or ms
+                rows.append({"scene": key, "scene_desc": desc, "points": n, "tier": tier, "family": fam,
+                             "method": label, "fraction": frac, "frame_ms": ms, **e})
+                print(f"{tier:5} {label:12} {ms:8.1f} {ms / full_ms:6.2f} {e['psnr_db']:8.2f} "
+                      f"{100 * e['diff_fraction']:7.2f} {e['coverage_iou']:6.3f}")
+    return rows
+
+
+def crossover_runs(tiers, size, sizes, repeats) -> dict:
+    print(f"\n== crossover: frame time vs points at {size[0]}x{size[1]} (full render, static scene)")
+    res: dict[str, dict[int, float]] = {t: {} for t in tiers}
+    for n in sizes:
+        frame, cam, _ = scene_dense(size[0] / size[1], n)
+        cfg = RenderConfig(size=list(size), color_by="intensity", point_size=2, color_range=[0.0, 1.0])
+        line = f"{n:>9,}"
+        for tier in tiers:
+            r = make_tier(tier, cfg, n)
+            if r is None:
+                continue
+            try:
+                ms, _ = timed(r, frame, cam, repeats)
+            finally:
+                r.close()
+            res[tier][n] = ms
+            line += f"  {tier} {ms:8.1f} ms"
+        print(line)
+    gpu = [t for t in tiers if t != "cpu" and res[t]]
+    best_gpu = {n: min(res[t][n] for t in gpu if n in res[t]) for n in sizes if any(n in res[t] for t in gpu)}
+    # smallest n from which a GPU tier is faster at every larger size measured
+    xo = None
+    for n in sorted(best_gpu, reverse=True):
+        if best_gpu[n] < res["cpu"].get(n, float("inf")):
+            xo = n
+        else:
+            break
+    if xo is None:
+        verdict = f"the cpu tier was fastest at every size up to {max(sizes):,}"
+        xo_points = 2 * max(sizes)
+    else:
+        verdict = f"a GPU tier is faster from {xo:,} points up"
+        smaller = [n for n in sizes if n < xo]
+        xo_points = int(np.sqrt(xo * max(smaller))) if smaller else xo  # geometric midpoint of the bracket
+    print(f"crossover: {xo_points:,} points ({verdict})")
+    return {"crossover_points": xo_points, "verdict": verdict, "size": list(size),
+            "frame_ms": {t: {str(k): v for k, v in d.items()} for t, d in res.items()}}
+
+
+def chart(rows: list[dict], path: Path) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    scenes = list(dict.fromkeys(r["scene"] for r in rows))
+    fig, axes = plt.subplots(1, len(scenes), figsize=(5.2 * len(scenes), 4.4), squeeze=False)
+    colours = {"lod": "tab:blue", "importance": "tab:orange", "time window": "tab:green", "full": "black"}
+    markers = {"cpu": "o", "gl": "s", "wgpu": "^"}
+    styles = {"cpu": "-", "gl": "--", "wgpu": ":"}
+    for ax, sc in zip(axes[0], scenes):
+        rs = [r for r in rows if r["scene"] == sc]
+        for tier in dict.fromkeys(r["tier"] for r in rs):
+            full = [r for r in rs if r["tier"] == tier and r["family"] == "full"]
+            for fam in ("lod", "importance", "time window"):
+                pts = [r for r in rs if r["tier"] == tier and r["family"] == fam]
+                pts = sorted(full + pts, key=lambda r: r["frame_ms"])
+                ax.plot([r["frame_ms"] for r in pts], [max(r["diff_fraction"], 1e-5) for r in pts],
+                        styles[tier], marker=markers[tier], color=colours[fam], ms=4, lw=1,
+                        label=f"{tier} {fam}")
+        pts = [(r["frame_ms"], max(r["diff_fraction"], 1e-5)) for r in rs]
+        front = pareto(pts)
+        ax.plot([pts[i][0] for i in front], [pts[i][1] for i in front], color="red", lw=2.5, alpha=0.35,
+                drawstyle="steps-post", label="Pareto front")
+        for i in front:
+            ax.annotate(f"{rs[i]['tier']} {rs[i]['method']}", pts[i], fontsize=6, alpha=0.8)
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("frame time, ms (log)")
+        ax.set_ylabel("pixels differing from the float64 reference (log)")
+        ax.set_title(rs[0]["scene_desc"], fontsize=9)
+        ax.grid(True, which="both", alpha=0.25)
+    h, l = axes[0][0].get_legend_handles_labels()
+    fig.legend(h, l, loc="lower center", ncol=min(len(l), 5), fontsize=7)
+    fig.tight_layout(rect=(0, 0.14, 1, 1))
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--quick", action="store_true", help="fewer scenes and sizes")
+    ap.add_argument("--tiers", default="cpu,gl,wgpu")
+    ap.add_argument("--size", default="960x540")
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--no-cache", action="store_true", help="do not write the user crossover cache")
+    ap.add_argument("--skip-crossover", action="store_true")
+    a = ap.parse_args(argv)
+    size = tuple(int(v) for v in a.size.split("x"))
+    tiers = [t for t in a.tiers.split(",") if t]
+    aspect = size[0] / size[1]
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    scenes = {"demo": scene_demo(aspect, 100_000 if a.quick else 300_000),
+              "dense": scene_dense(aspect, 150_000 if a.quick else 400_000)}
+    if not a.quick:
+        for key, fn in (("autzen", scene_autzen), ("ouster", scene_ouster)):
+            s = fn(aspect)
+            if s is not None:
+                scenes[key] = s
+    rows = accuracy_runs(scenes, tiers, size, a.repeats)
+    out = {"machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "python": platform.python_version(),
+                       "numpy": np.__version__},
+           "size": list(size), "repeats": a.repeats, "reference": "cpu tier, every point, float64 projection",
+           "rows": rows}
+    if not a.skip_crossover:
+        sizes = [1_000, 10_000, 30_000, 100_000, 300_000] if a.quick else [1_000, 3_000, 10_000, 30_000, 100_000, 300_000, 1_000_000]
+        xo = crossover_runs(tiers, (1280, 720), sizes, a.repeats)
+        out["crossover"] = xo
+        blob = json.dumps({"crossover_points": xo["crossover_points"], "verdict": xo["verdict"],
+                           "measured": time.strftime("%Y-%m-%d"), "machine": out["machine"]}, indent=1)
+        (RESULTS / "crossover.json").write_text(blob)
+        if not a.no_cache:
+            from pointflow.render.select import cache_path
+            p = cache_path()
+            p.parent.mkdir(parents=True, exist_ok=True)
+            p.write_text(blob)
+            print(f"crossover written to {p}")
+    (RESULTS / "tiers.json").write_text(json.dumps(out, indent=1))
+    chart(rows, RESULTS / "tiers.png")
+    print(f"\nwrote {RESULTS / 'tiers.json'}, {RESULTS / 'tiers.png'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
