@@ -1,0 +1,321 @@
+"""Render benchmark of the wgpu tier against the numpy cpu tier and a bare-wgpu floor.
+
+For 10k, 100k, 1M and 4M points at 1280x720 on the adapter found, the median frame time
+(upload of the ticks's dirty 1% + compute cull + indirect draw + output = read_image) of:
+
+* ``wgpu``  — the tier (frustum culling and turbo colour by intensity on, 2 px squares);
+* ``floor`` — a bare wgpu program measured in the same run: the same points uploaded once,
+  drawn as 2 px instanced quads pulled from a storage buffer (depth test, one colour, no
+  culling/sampling/colour), same output readback;
+* ``cpu``   — :class:`pointflow.render.cpu.CpuRenderer` (skipped above ``--cpu-max``).
+
+Also: bytes and time of incremental vs full upload when 1% of the ring changes per tick,
+and the cost of a pick. Scene: ``../shared/data/autzen_trim.laz`` tiled to N points when
+present (georeferenced: x ~ 6.4e5 ft), else a synthetic terrain.
+
+    .venv/bin/python bench/bench_render.py            # ~3-4 min on 2 cores (lavapipe)
+    .venv/bin/python bench/bench_render.py --quick    # 10k/100k/1M, fewer repeats
+
+Writes ``bench/results/render.json`` and ``bench/results/render.png``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+from typing import Any, Callable, Optional
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+os.environ.setdefault("XDG_RUNTIME_DIR", "/tmp/xdg")
+os.makedirs(os.environ["XDG_RUNTIME_DIR"], exist_ok=True)
+
+from pointflow.config import RenderConfig  # noqa: E402
+from pointflow.render.base import FrameInput  # noqa: E402
+from pointflow.render.camera import Camera  # noqa: E402
+from pointflow.render.wgpu_tier import WgpuRenderer, select_adapter  # noqa: E402
+
+RESULTS = ROOT / "bench" / "results"
+DATA = ROOT.parent / "shared" / "data"
+W, H = 1280, 720
+
+
+# ----------------------------------------------------------------------------- scene
+def base_cloud() -> tuple[np.ndarray, np.ndarray, str]:
+    """(world xyz float64, intensity float32, name)."""
+    laz = DATA / "autzen_trim.laz"
+    if laz.exists():
+        try:
+            import laspy
+            las = laspy.read(str(laz))
+            xyz = np.column_stack([las.x, las.y, las.z]).astype(np.float64)
+            return xyz, np.asarray(las.intensity, np.float32), "autzen_trim.laz (tiled)"
+        except Exception as e:  # pragma: no cover - data/laspy problems fall back
+            print(f"could not read {laz}: {e}; using a synthetic terrain")
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(0, 1000, size=(110_000, 2))
+    z = 20 * np.sin(xy[:, 0] / 90) * np.cos(xy[:, 1] / 120) + rng.normal(0, 0.5, len(xy))
+    return np.column_stack([xy, z]), (z - z.min()).astype(np.float32), "synthetic terrain"
+
+
+def tiled(base: np.ndarray, inten: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """n points: copies of the base cloud on a square grid of tiles (each tile jittered)."""
+    m = len(base)
+    k = int(np.ceil(n / m))
+    side = int(np.ceil(np.sqrt(k)))
+    ext = base.max(0) - base.min(0)
+    reps = np.arange(k)
+    shift = np.column_stack([(reps % side) * ext[0], (reps // side) * ext[1], np.zeros(k)])
+    idx = np.arange(n)
+    pts = base[idx % m] + shift[idx // m]
+    return pts, inten[idx % m]
+
+
+def make_frame(world: np.ndarray, inten: np.ndarray) -> FrameInput:
+    n = len(world)
+    org = np.floor(world.min(0))
+    lo, hi = float(inten.min()), float(inten.max())
+    return FrameInput(positions=(world - org).astype(np.float32), importance=inten.copy(),
+                      t_ingest_ms=np.zeros(n), channels={"intensity": inten.copy()}, head=0, size=n, capacity=n,
+                      origin=org, now_ms=0.0, channel_ranges={"intensity": (lo, hi), "importance": (lo, hi)})
+
+
+def camera_for(world: np.ndarray) -> Camera:
+    lo, hi = world.min(0), world.max(0)
+    return Camera.fit(lo, hi, aspect=W / H)
+
+
+def median_ms(fn: Callable[[], Any], reps: int, warm: int = 1) -> tuple[float, list[float]]:
+    for _ in range(warm):
+        fn()
+    ts = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        fn()
+        ts.append((time.perf_counter() - t0) * 1e3)
+    return float(np.median(ts)), ts
+
+
+# ----------------------------------------------------------------------------- floor
+FLOOR_WGSL = r"""
+@group(0) @binding(0) var<uniform> vp: mat4x4<f32>;
+@group(0) @binding(1) var<storage, read> pos: array<f32>;
+@vertex fn vs(@builtin(vertex_index) vi: u32, @builtin(instance_index) ii: u32) -> @builtin(position) vec4<f32> {
+  let p = vec3<f32>(pos[3u * ii], pos[3u * ii + 1u], pos[3u * ii + 2u]);
+  let c = vp * vec4<f32>(p, 1.0);
+  var q = array<vec2<f32>, 6>(vec2<f32>(-1.0, -1.0), vec2<f32>(1.0, -1.0), vec2<f32>(-1.0, 1.0),
+                              vec2<f32>(-1.0, 1.0), vec2<f32>(1.0, -1.0), vec2<f32>(1.0, 1.0));
+  return vec4<f32>(c.xy + q[vi] * vec2<f32>(2.0 / 1280.0, 2.0 / 720.0) * c.w, c.z, c.w);
+}
+@fragment fn fs() -> @location(0) vec4<f32> { return vec4<f32>(1.0, 1.0, 1.0, 1.0); }
+"""
+
+
+class Floor:
+    """The bare wgpu program: upload once, draw n 2 px instanced quads, read the image back."""
+
+    def __init__(self, adapter, frame: FrameInput, cam: Camera):
+        import wgpu
+        self.wgpu = wgpu
+        self.dev = adapter.request_device_sync(required_limits={
+            "max-storage-buffer-binding-size": adapter.limits["max-storage-buffer-binding-size"],
+            "max-buffer-size": adapter.limits["max-buffer-size"]})
+        d, BU, TU = self.dev, wgpu.BufferUsage, wgpu.TextureUsage
+        self.n = frame.size
+        pos = np.ascontiguousarray(frame.positions, np.float32)
+        self.pos = d.create_buffer_with_data(data=pos, usage=BU.STORAGE)
+        vp = np.ascontiguousarray(cam.view_proj(W, H, frame.origin).T, np.float32)
+        self.ubo = d.create_buffer_with_data(data=vp, usage=BU.UNIFORM)
+        mod = d.create_shader_module(code=FLOOR_WGSL)
+        self.pipe = d.create_render_pipeline(
+            layout="auto", vertex={"module": mod, "entry_point": "vs", "buffers": []},
+            primitive={"topology": "triangle-list"},
+            depth_stencil={"format": "depth32float", "depth_write_enabled": True, "depth_compare": "less"},
+            multisample={"count": 1},
+            fragment={"module": mod, "entry_point": "fs", "targets": [{"format": "rgba8unorm"}]})
+        self.bg = d.create_bind_group(layout=self.pipe.get_bind_group_layout(0), entries=[
+            {"binding": 0, "resource": {"buffer": self.ubo}}, {"binding": 1, "resource": {"buffer": self.pos}}])
+        self.tex = d.create_texture(size=(W, H, 1), format="rgba8unorm", usage=TU.RENDER_ATTACHMENT | TU.COPY_SRC)
+        self.depth = d.create_texture(size=(W, H, 1), format="depth32float", usage=TU.RENDER_ATTACHMENT)
+        self.rb = d.create_buffer(size=W * 4 * H, usage=BU.MAP_READ | BU.COPY_DST)
+
+    def frame(self) -> None:
+        wgpu = self.wgpu
+        enc = self.dev.create_command_encoder()
+        rp = enc.begin_render_pass(
+            color_attachments=[{"view": self.tex.create_view(), "load_op": "clear", "store_op": "store",
+                                "clear_value": (0, 0, 0, 1)}],
+            depth_stencil_attachment={"view": self.depth.create_view(), "depth_clear_value": 1.0,
+                                      "depth_load_op": "clear", "depth_store_op": "store"})
+        rp.set_pipeline(self.pipe)
+        rp.set_bind_group(0, self.bg)
+        rp.draw(6, self.n)
+        rp.end()
+        enc.copy_texture_to_buffer({"texture": self.tex}, {"buffer": self.rb, "bytes_per_row": W * 4,
+                                                           "rows_per_image": H}, (W, H, 1))
+        self.dev.queue.submit([enc.finish()])
+        self.rb.map_sync(wgpu.MapMode.READ)
+        np.frombuffer(self.rb.read_mapped(), np.uint8).copy()
+        self.rb.unmap()
+
+    def close(self) -> None:
+        for b in (self.pos, self.ubo, self.rb):
+            b.destroy()
+        self.dev.destroy()
+
+
+# ----------------------------------------------------------------------------- main
+def run(sizes: list[int], reps: dict[int, int], cpu_max: int) -> dict[str, Any]:
+    adapter, why = select_adapter()
+    if adapter is None:
+        raise SystemExit(f"no wgpu adapter: {why}")
+    base, inten0, scene = base_cloud()
+    cfg = RenderConfig(size=[W, H], color_by="intensity", colormap="turbo", point_size=2.0, gpu_timestamps=True)
+    rows = []
+    extra: dict[str, Any] = {}
+    for n in sizes:
+        world, inten = tiled(base, inten0, n)
+        f = make_frame(world, inten)
+        del world
+        cam = camera_for(f.positions.astype(np.float64) + f.origin)
+        k = reps.get(n, 3)
+        row: dict[str, Any] = {"points": n, "repeats": k}
+
+        # the tier: steady state, 1% of the ring rewritten per tick (dirty range), output = read_image
+        r = WgpuRenderer(cfg, n, ["intensity"], adapter=adapter)
+        r.render(f, cam)
+        r.read_image()
+        step = max(n // 100, 1)
+        state = {"head": 0}
+        last: dict[str, Any] = {}
+
+        def tick():
+            a = state["head"]
+            b = min(a + step, n)
+            f.dirty = [(a, b)]
+            state["head"] = b % n
+            st = r.render(f, cam)
+            r.read_image()
+            last["st"] = st
+
+        row["wgpu_ms"], row["wgpu_all_ms"] = median_ms(tick, k)
+        st = last["st"]
+        row["wgpu_drawn"] = st.drawn
+        row["wgpu_upload_bytes_1pct"] = st.uploaded_bytes
+        row["wgpu_gpu_ms"] = {kk: v for kk, v in st.timings_ms.items() if kk.startswith("gpu")}
+        row["wgpu_cpu_ms"] = st.timings_ms.get("cpu_total")
+        if n == 1_000_000 or n == max(sizes):
+            # incremental vs full upload (render only, GPU waited on by read_image in both)
+            def full():
+                f.dirty = None
+                r.render(f, cam)
+                r.read_image()
+            full_ms, _ = median_ms(full, max(2, k // 2))
+            f.dirty = None
+            full_bytes = r.render(f, cam).uploaded_bytes
+            r.read_image()
+            up = {"points": n, "full_bytes": full_bytes, "incremental_bytes": row["wgpu_upload_bytes_1pct"],
+                  "full_frame_ms": full_ms, "incremental_frame_ms": row["wgpu_ms"],
+                  "bytes_ratio": row["wgpu_upload_bytes_1pct"] / full_bytes}
+            extra.setdefault("upload", []).append(up)
+            # pick cost on the last frame (pick pass + block readback + resolve)
+            xs = np.random.default_rng(1).uniform([W * 0.3, H * 0.3], [W * 0.7, H * 0.7], size=(7, 2))
+            it = iter(xs.tolist() * 3)
+            pick_ms, _ = median_ms(lambda: r.pick(*next(it)), 7)
+            extra.setdefault("pick", []).append({"points": n, "pick_ms": pick_ms, "radius": cfg.pick_radius})
+        r.close()
+
+        fl = Floor(adapter, f, cam)
+        row["floor_ms"], row["floor_all_ms"] = median_ms(fl.frame, k)
+        fl.close()
+        row["ratio_vs_floor"] = row["wgpu_ms"] / row["floor_ms"]
+
+        if n <= cpu_max:
+            from pointflow.render.cpu import CpuRenderer
+            c = CpuRenderer(cfg, n, ["intensity"])
+
+            def cpu_frame():
+                c.render(f, cam)
+                c.read_image()
+            row["cpu_ms"], row["cpu_all_ms"] = median_ms(cpu_frame, max(1, min(k, 3)), warm=0)
+            row["speedup_vs_cpu"] = row["cpu_ms"] / row["wgpu_ms"]
+        rows.append(row)
+        print(f"  {n:>9,}: wgpu {row['wgpu_ms']:8.1f} ms  floor {row['floor_ms']:8.1f} ms  "
+              f"x{row['ratio_vs_floor']:.2f}  cpu {row.get('cpu_ms', float('nan')):8.1f} ms", flush=True)
+        del f
+    return {"scene": scene, "size": [W, H], "adapter": adapter.summary, "adapter_choice": why,
+            "platform": platform.platform(), "cpu_count": os.cpu_count(), "rows": rows, **extra}
+
+
+def table(res: dict[str, Any]) -> str:
+    out = [f"render benchmark — {res['adapter']} — {res['scene']} — {W}x{H}, 2 px squares, turbo by intensity",
+           f"{'points':>10} {'wgpu ms':>9} {'floor ms':>9} {'wgpu/floor':>10} {'cpu ms':>9} {'cpu/wgpu':>9} "
+           f"{'upload B/tick':>13} {'gpu compute':>11} {'gpu draw':>9}"]
+    for r in res["rows"]:
+        g = r.get("wgpu_gpu_ms", {})
+        out.append(f"{r['points']:>10,} {r['wgpu_ms']:>9.1f} {r['floor_ms']:>9.1f} {r['ratio_vs_floor']:>10.2f} "
+                   f"{r.get('cpu_ms', float('nan')):>9.1f} {r.get('speedup_vs_cpu', float('nan')):>9.2f} "
+                   f"{r['wgpu_upload_bytes_1pct']:>13,} {g.get('gpu_compute', float('nan')):>11.1f} "
+                   f"{g.get('gpu_draw', float('nan')):>9.1f}")
+    for u in res.get("upload", []):
+        out.append(f"upload at {u['points']:,} points, 1% changed per tick: incremental {u['incremental_bytes']:,} B "
+                   f"({u['incremental_frame_ms']:.1f} ms/frame) vs full {u['full_bytes']:,} B "
+                   f"({u['full_frame_ms']:.1f} ms/frame); bytes ratio {u['bytes_ratio']:.4f}")
+    for p in res.get("pick", []):
+        out.append(f"pick at {p['points']:,} points (radius {p['radius']} px): median {p['pick_ms']:.1f} ms")
+    return "\n".join(out)
+
+
+def chart(res: dict[str, Any], path: Path) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    rows = res["rows"]
+    n = [r["points"] for r in rows]
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    ax.loglog(n, [r["wgpu_ms"] for r in rows], "o-", label="wgpu tier (cull + colour + indirect draw)")
+    ax.loglog(n, [r["floor_ms"] for r in rows], "s--", label="bare-wgpu floor (2 px quads)")
+    cpu = [(r["points"], r["cpu_ms"]) for r in rows if "cpu_ms" in r]
+    if cpu:
+        ax.loglog(*zip(*cpu), "^-", label="cpu tier (numpy)")
+    ax.set_xlabel("points")
+    ax.set_ylabel("median frame time, ms (upload 1% + cull + draw + readback)")
+    ax.set_title(f"{W}x{H} on {res['adapter'][:48]}", fontsize=9)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv: Optional[list[str]] = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="10k/100k/1M with fewer repeats")
+    ap.add_argument("--sizes", type=int, nargs="*", default=None)
+    ap.add_argument("--cpu-max", type=int, default=1_000_000, help="largest size timed on the cpu tier")
+    ap.add_argument("--out", default=str(RESULTS / "render.json"))
+    a = ap.parse_args(argv)
+    sizes = a.sizes or ([10_000, 100_000, 1_000_000] if a.quick else [10_000, 100_000, 1_000_000, 4_000_000])
+    reps = {10_000: 15, 100_000: 9, 1_000_000: 5, 4_000_000: 3}
+    if a.quick:
+        reps = {k: max(2, v // 2) for k, v in reps.items()}
+    t0 = time.perf_counter()
+    res = run(sizes, reps, a.cpu_max)
+    res["bench_seconds"] = time.perf_counter() - t0
+    out = Path(a.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(res, indent=2))
+    chart(res, out.with_suffix(".png"))
+    print(table(res))
+    print(f"wrote {out} and {out.with_suffix('.png')} in {res['bench_seconds']:.0f} s")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
