@@ -75,6 +75,7 @@ class SseTransport(Transport):
         self._headers_done = False
         self._chunked = False
         self._chunk_left = 0  # bytes left in the current HTTP chunk (chunked mode)
+        self._ended = False
         self._data: list[str] = []
         self._etype = ""
 
@@ -168,7 +169,9 @@ class SseTransport(Transport):
                 raise _HttpError(f"bad chunk size {size_s[:20]!r}") from None
             del raw[:eol + 2]
             if size == 0:
-                raise _HttpError("server ended the stream")
+                self._ended = True  # parse what came before the last chunk first
+                raw.clear()
+                return
             self._chunk_left = size
 
     def _events(self) -> Iterator[str]:
@@ -235,6 +238,8 @@ class SseTransport(Transport):
                 self._drop(str(exc))
                 yield None
                 continue
+            if self._ended:
+                self._drop("server ended the stream")
             for ev in events:
                 self.counters["events"] += 1
                 try:

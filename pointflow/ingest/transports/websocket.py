@@ -73,9 +73,12 @@ class WebSocketTransport(Transport):
     def _connect(self) -> bool:
         from websockets.sync.client import connect
 
+        kw = dict(open_timeout=self.o.connect_timeout_s, max_size=None, compression=None)
         try:
-            self._ws = connect(self.o.url, open_timeout=self.o.connect_timeout_s, max_size=None,
-                               compression=None)
+            try:  # websockets >= 16: a direct (not context-managed) connection is "legacy"
+                self._ws = connect(self.o.url, legacy=True, **kw)
+            except TypeError:
+                self._ws = connect(self.o.url, **kw)
         except Exception as exc:  # noqa: BLE001 - refused, DNS, handshake: retry later
             if self.counters["connects"] == 0 and self._backoff.delay == self._backoff.initial:
                 log.warning("%s: cannot connect to %s (%s); retrying with backoff", self.source_id, self.o.url, exc)
