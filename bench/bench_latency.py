@@ -27,16 +27,16 @@ from pointflow import Pipeline  # noqa: E402
 from pointflow.profiling.report import build_profile, format_table  # noqa: E402
 
 
-def latency_config(backend: str, size: list[int]) -> dict:
+def latency_config(backend: str, size: list[int], ring: int) -> dict:
     return {
         "name": "bench-latency",
         "source": {"transport": "synthetic", "options": {"scan_hz": 10, "points_per_scan": 100_000,
                                                          "chunks_per_scan": 10, "cache_scans": 20}},
-        "ring": {"max_points": 1_000_000},
+        "ring": {"max_points": ring},
         "cadence": {"target_hz": 60},
         "render": {"backend": backend, "size": size, "output": {"dir": None}},
         "policy": {"tier": "L"},
-        "supervisor": {"max_restarts": 0},
+        "supervisor": {"max_restarts": 0, "hung_after_ms": 10000},
     }
 
 
@@ -50,12 +50,12 @@ def throughput_config(tracing: bool) -> dict:
         "cadence": {"target_hz": 30},
         "render": {"backend": "cpu", "size": [160, 120], "output": {"dir": None}},
         "tracing": {"enabled": tracing},
-        "supervisor": {"max_restarts": 0},
+        "supervisor": {"max_restarts": 0, "hung_after_ms": 10000},
     }
 
 
-def run_latency(seconds: float, backend: str, size: list[int], out_dir: str) -> dict:
-    pipe = Pipeline.from_dict(latency_config(backend, size), out_dir=out_dir)
+def run_latency(seconds: float, backend: str, size: list[int], ring: int, out_dir: str) -> dict:
+    pipe = Pipeline.from_dict(latency_config(backend, size, ring), out_dir=out_dir)
     stats = pipe.run(seconds)
     if stats.get("failure"):
         raise SystemExit(f"latency pipeline failed: {stats['failure']}")
@@ -68,6 +68,7 @@ def run_latency(seconds: float, backend: str, size: list[int], out_dir: str) -> 
     render = stats["stages"].get("render", {})
     return {
         "seconds": seconds, "backend": render.get("tier") or render.get("backend") or backend, "size": size,
+        "ring_points": ring,
         "send_to_frame_ms": s2f, "end_to_end_ms": prof["end_to_end"],
         "frame_ms": frame, "tick_ms": round(tick_ms, 3),
         "target_p99_ms": round(bound_p99, 3),
@@ -93,12 +94,13 @@ def main() -> None:
     ap.add_argument("--tp-rounds", type=int, default=2)
     ap.add_argument("--backend", default="auto")
     ap.add_argument("--size", default="640x480")
+    ap.add_argument("--ring", type=int, default=1_000_000, help="ring capacity (points kept on screen)")
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "latency.json"))
     args = ap.parse_args()
     size = [int(v) for v in args.size.split("x")]
     out_dir = tempfile.mkdtemp(prefix="pf-bench-lat-")
     print("== end-to-end latency (100k-point scans at 10 Hz, cadence 60 Hz)")
-    lat = run_latency(args.seconds, args.backend, size, out_dir)
+    lat = run_latency(args.seconds, args.backend, size, args.ring, out_dir)
     print("\n== tracing overhead (unpaced source, ingest throughput)")
     on, off = [], []
     for r in range(args.tp_rounds):

@@ -28,6 +28,10 @@ from .ticker import Clock, Sleep, Tick, Ticker
 
 #: Smoothing factor of the renderer frame-time EMA (adaptive mode).
 FRAME_EMA_ALPHA = 0.15
+#: latest_only: publish anyway when the renderer has shown no progress for this long
+#: (a renderer that keeps its slab instead of releasing it must not starve).
+STALL_S = 0.25
+_RELEASE_TAG = b"pf.ring.release/1"  # pointflow.ring.handoff.RELEASE_TAG: [tag, int64 (slab, seq)]
 _WINDOW = 1024  # ticks kept for the jitter / rate statistics
 
 
@@ -36,12 +40,18 @@ class Cadence:
 
     ``release_sock`` is the bound PULL the renderer's releases and control messages arrive on;
     ``ready_sock`` the PUSH to the renderer. ``spans`` needs ``record(trace_id, event, t0, t1, n)``.
+
+    ``latest_only`` (default): publish only when the renderer has finished (released, or
+    reported the frame of) every handoff sent so far; otherwise skip (``renderer_pending``).
+    Without it the second slab is filled while the renderer draws the first and then waits a
+    whole frame in the queue, so a slow renderer always shows data one frame older than
+    necessary; with it the renderer gets a snapshot at most one tick old when it is ready.
     """
 
     def __init__(self, ring, slabs, ready_sock: zmq.Socket, release_sock: zmq.Socket, zctx: zmq.Context,
                  cfg: PipelineConfig, decision: PolicyDecision, *, spans: Any = None,
                  clock: Clock = time.monotonic, sleep: Sleep = time.sleep,
-                 log: Optional[logging.Logger] = None):
+                 log: Optional[logging.Logger] = None, latest_only: bool = True):
         from ..ring.handoff import SlabWriter  # noqa: PLC0415 - keep module import light
 
         self.cfg = cfg
@@ -70,6 +80,10 @@ class Cadence:
         self.hellos = 0
         self.frames_reported = 0
         self.bad_messages = 0
+        self.latest_only = latest_only
+        self.last_pub_seq = 0       # newest handoff sent
+        self.done_seq = 0           # newest handoff the renderer released or reported a frame for
+        self._t_progress = clock()
         self._late = collections.deque(maxlen=_WINDOW)
         self._tick_times = collections.deque(maxlen=_WINDOW)
         self._pub_times = collections.deque(maxlen=_WINDOW)
@@ -97,6 +111,8 @@ class Cadence:
                 self.log.warning("release socket: %s (message dropped, %d so far)", exc, self.bad_messages)
             return
         if msg is None:  # a slab release (or junk the writer ignores)
+            if len(frames) == 2 and bytes(frames[0]) == _RELEASE_TAG and len(frames[1]) == 16:
+                self._done(int(np.frombuffer(bytes(frames[1]), dtype="<i8")[1]))
             self._fwd_push.send_multipart(frames)
         elif isinstance(msg, Hello):
             self.hellos += 1
@@ -105,11 +121,18 @@ class Cadence:
             self._fwd_pull_drain()
             self.writer.reset_reader()
             self.frame_ema_ms = None
+            self.done_seq = self.last_pub_seq
             if msg.gpu:
                 self.on_gpu_info(msg.gpu)
         elif isinstance(msg, FrameTime):
             self.frames_reported += 1
+            self._done(msg.seq)
             self.on_frame_time(msg.frame_ms)
+
+    def _done(self, seq: int) -> None:
+        if seq > self.done_seq:
+            self.done_seq = seq
+            self._t_progress = self.clock()
 
     def _fwd_pull_drain(self) -> None:
         """Releases of the previous renderer still queued are stale after a hello."""
@@ -167,6 +190,10 @@ class Cadence:
         if tick.missed:
             self.skipped["late"] += tick.missed
         self.drain(0)
+        if (self.latest_only and self.last_pub_seq > self.done_seq
+                and self.clock() - self._t_progress < STALL_S):
+            self.skipped["renderer_pending"] += 1
+            return False
         t0 = time.monotonic_ns()
         stats = self.writer.stats
         busy0, again0 = stats["skipped_busy"], stats["send_again"]
@@ -181,6 +208,8 @@ class Cadence:
                 self.skipped["other"] += 1
             return False
         self.published += 1
+        self.last_pub_seq = h.seq
+        self._t_progress = self.clock()
         self._pub_times.append(tick.now)
         if h.dirty is None:
             self.points_out += h.count
@@ -245,11 +274,21 @@ def main(ctx) -> None:
     ready.connect(ctx.endpoints.frames)
     # No GPU probe here: the renderer owns the adapter and reports its limits in its hello.
     decision = resolve_policy(cfg, probe_gpu=False)
-    cad = Cadence(ring, slabs, ready, release, ctx.zmq, cfg, decision, spans=ctx.spans, log=ctx.log)
+    # ``cadence.latest_only`` (requested config key; default on until it exists).
+    latest_only = bool(getattr(cfg.cadence, "latest_only", True))
+    cad = Cadence(ring, slabs, ready, release, ctx.zmq, cfg, decision, spans=ctx.spans, log=ctx.log,
+                  latest_only=latest_only)
     if ctx.info.restart_count:
         ctx.log.info("cadence restarted (%d): resuming from the slab headers", ctx.info.restart_count)
 
+    written0 = ring.stats().total_written
+
     def on_beat() -> None:
+        # points_in: points committed to the ring while this cadence ran (what it could hand on)
+        try:
+            ctx.counters.points_in = max(0, ring.stats().total_written - written0)
+        except RuntimeError:  # ring already detached during shutdown
+            pass
         ctx.counters.points_out = cad.points_out
         ctx.counters.extra.update(cad.stats())
         ctx.counters.extra["policy"] = cad.decision.to_dict()

@@ -18,11 +18,12 @@ from pointflow.profiling.collector import SpanCollector
 from pointflow.profiling.spans import SpanEmitter
 from pointflow.ring import PointRing, SlabPair, SlabReader
 
+from .conftest import assert_unlinked
 from .fakeclock import FakeClock
 
 
 class Rig:
-    def __init__(self, tmp, cfg_over=None, bind_renderer=True):
+    def __init__(self, tmp, cfg_over=None, bind_renderer=True, latest_only=True):
         d = {"source": {"transport": "synthetic"}, "cadence": {"target_hz": 100},
              "policy": {"tier": "M"}, "render": {"size": [320, 240]}, "ring": {"max_points": 5000}}
         for k, v in (cfg_over or {}).items():
@@ -45,7 +46,7 @@ class Rig:
         self.clk = FakeClock()
         self.decision = resolve_policy(self.cfg, probe_gpu=False)
         self.cad = Cadence(self.ring, self.slabs, self.ready, self.rel, self.z, self.cfg, self.decision,
-                           spans=self.spans, clock=self.clk, sleep=self.clk.sleep)
+                           spans=self.spans, clock=self.clk, sleep=self.clk.sleep, latest_only=latest_only)
         time.sleep(0.05)  # let ipc connections establish
 
     def tick(self, advance=None):
@@ -80,8 +81,10 @@ class Rig:
             if s is not None:
                 s.close(0)
         self.z.term()
+        names = (self.ring.name, *self.slabs.names)
         self.slabs.close(); self.slabs.unlink()
         self.ring.close(); self.ring.unlink()
+        assert_unlinked(*names)
 
 
 @pytest.fixture
@@ -112,7 +115,15 @@ def test_publishes_budget_and_spans_for_new_trace_ids_once(rig):
     assert rig.cad.stats()["published"] == 2
 
 
-def test_skips_when_renderer_holds_both_slabs_no_backlog(rig):
+def test_skips_when_renderer_holds_both_slabs_no_backlog(tmp_path):
+    rig = Rig(tmp_path, latest_only=False)
+    try:
+        _both_slabs(rig)
+    finally:
+        rig.close()
+
+
+def _both_slabs(rig):
     rig.push(10, 1)
     assert rig.tick()            # slab A -> renderer takes it
     rig.recv()
@@ -128,6 +139,29 @@ def test_skips_when_renderer_holds_both_slabs_no_backlog(rig):
     assert h and h.seq == 3
 
 
+def test_latest_only_waits_for_the_renderer_then_sends_fresh_data(rig):
+    rig.push(10, 1)
+    h1 = rig.tick()
+    got, _ = rig.recv()                       # renderer draws slab A (holds it)
+    rig.push(10, 2)
+    for _ in range(3):                        # a queued second slab would go stale: skip
+        assert rig.tick() is False
+    assert rig.cad.stats()["skipped"] == {"renderer_pending": 3}
+    rig.push(10, 3)
+    rig.reader.release()                      # frame done
+    rig.send(encode_frame_time(30.0, h1.seq))
+    h2 = rig.tick()
+    assert h2 and sorted(h2.trace_ids) == [2, 3]   # the newest data, sent when the renderer is ready
+    rig.recv()
+    # a renderer that never releases does not starve: after STALL_S it gets data anyway
+    from pointflow.cadence.process import STALL_S
+
+    rig.push(10, 4)
+    assert rig.tick() is False
+    h3 = rig.tick(advance=STALL_S + 0.01)
+    assert h3 and h3.trace_ids == [4]
+
+
 def test_late_ticks_skipped_and_counted(rig):
     rig.tick()
     h = rig.tick(advance=0.035)  # 3.5 periods of 10 ms: 2 deadlines unservable
@@ -135,7 +169,15 @@ def test_late_ticks_skipped_and_counted(rig):
     assert rig.cad.ticks == 2
 
 
-def test_hello_resets_reader_and_next_handoff_is_full(rig):
+def test_hello_resets_reader_and_next_handoff_is_full(tmp_path):
+    rig = Rig(tmp_path, latest_only=False)
+    try:
+        _hello(rig)
+    finally:
+        rig.close()
+
+
+def _hello(rig):
     rig.push(10, 1)
     rig.tick(); rig.recv()
     rig.push(10, 2)

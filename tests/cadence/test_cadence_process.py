@@ -16,6 +16,8 @@ from pointflow.profiling.collector import SpanCollector
 from pointflow.ring import PointRing, SlabPair, SlabReader
 from pointflow.runtime.stage import RunInfo, stage_main
 
+from .conftest import assert_unlinked
+
 
 @pytest.fixture
 def world(tmp_path):
@@ -57,8 +59,10 @@ def world(tmp_path):
         s.close(0)
     coll.close()
     z.term()
+    names = (ring.name, *slabs.names)
     slabs.close(); slabs.unlink()
     ring.close(); ring.unlink()
+    assert_unlinked(*names)
 
 
 def recv_handoffs(w, n, timeout=10.0):
