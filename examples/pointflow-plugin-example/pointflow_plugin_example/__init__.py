@@ -1,0 +1,4 @@
+"""Example pointflow transport plugin."""
+from .helix import HelixTransport
+
+__all__ = ["HelixTransport"]
