@@ -181,6 +181,8 @@ class SupervisorConfig:
     heartbeat_ms: float = field(default=200.0, metadata=check(_positive))
     #: A stage silent for this long is considered hung.
     hung_after_ms: float = field(default=1000.0, metadata=check(_positive))
+    #: Grace period before a new stage's first heartbeat (imports, GPU device creation).
+    startup_timeout_ms: float = field(default=30000.0, metadata=check(_positive))
     max_restarts: int = field(default=3, metadata=check(_non_negative))
     restart_backoff_ms: float = field(default=200.0, metadata=check(_non_negative))
 

@@ -40,6 +40,7 @@ class StageProc:
     pid: int = 0
     started_ns: int = 0
     last_seen_ns: int = 0
+    ready: bool = False        # has sent its first heartbeat
     restarts: int = 0
     stats: dict[str, Any] = field(default_factory=dict)
     last_error: Optional[str] = None
@@ -128,6 +129,7 @@ class Supervisor:
             classification_weights=cfg.ring.classification_weights,
         )
         self.slabs = SlabPair.create(self.ring.layout)
+        self.segments = [self.ring.name, *self.slabs.names]
         log.info("ring %s: %d points, channels %s, eviction %s", self.ring.name, cfg.ring.max_points,
                  cfg.ring_channels() or "[]", cfg.ring.eviction)
         order = [("render", "render", -1), ("cadence", "cadence", -1), ("ingest", "ingest", -1)]
@@ -152,6 +154,7 @@ class Supervisor:
         st.process, st.pid = p, p.pid
         st.started_ns = st.last_seen_ns = time.monotonic_ns()
         st.restart_at_ns = 0
+        st.ready = False
         try:
             st.psproc = psutil.Process(p.pid)
             st.psproc.cpu_percent(None)
@@ -206,6 +209,7 @@ class Supervisor:
         if st is None or msg.get("pid") != st.pid:
             return  # from an earlier incarnation
         st.last_seen_ns = time.monotonic_ns()
+        st.ready = True
         kind = msg.get("type")
         if kind == "heartbeat":
             st.stats = msg.get("stats", {})
@@ -229,7 +233,8 @@ class Supervisor:
                     self._notify_restart(st)
                 continue
             code = st.process.exitcode
-            hung = code is None and (now - st.last_seen_ns) > sup.hung_after_ms * 1e6
+            limit_ms = sup.hung_after_ms if st.ready else sup.startup_timeout_ms
+            hung = code is None and (now - st.last_seen_ns) > limit_ms * 1e6
             if code is None and not hung:
                 continue
             if code == 0 and st.finished and st.kind == "source":
@@ -237,7 +242,8 @@ class Supervisor:
                 st.process = None  # its input ended: nothing to restart
                 continue
             if hung:
-                reason = f"hung: no heartbeat for {(now - st.last_seen_ns) / 1e6:.0f} ms"
+                reason = (f"hung: no heartbeat for {(now - st.last_seen_ns) / 1e6:.0f} ms" if st.ready
+                          else f"did not start: no heartbeat within {limit_ms:.0f} ms")
                 st.process.kill()
                 st.process.join(2)
             else:
@@ -369,6 +375,7 @@ class Supervisor:
             "frames": int(stages.get("render", {}).get("frames", 0)),
             "elapsed_s": round(time.monotonic() - self._t_start, 3) if self._t_start else 0.0,
             "events": list(self.events),
+            "shm_segments": list(getattr(self, "segments", [])),
         }
         if self.ring is not None:
             try:

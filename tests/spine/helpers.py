@@ -17,6 +17,15 @@ def shm_names() -> set[str]:
         return set()
 
 
+def assert_segments_gone(stats: dict) -> None:
+    """The pipeline's own shared-memory segments are unlinked (checked by name, so
+    other tests running at the same time cannot disturb the check)."""
+    segs = stats["shm_segments"]
+    assert len(segs) == 3, segs
+    left = [s for s in segs if os.path.exists(os.path.join(SHM, s))]
+    assert not left, f"leaked shared-memory segments: {left}"
+
+
 def free_tcp_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

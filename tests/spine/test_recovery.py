@@ -10,7 +10,7 @@ import pytest
 from pointflow import Pipeline
 from pointflow.runtime.supervisor import PipelineFailed
 
-from .helpers import assert_gone, shm_names, small_config
+from .helpers import assert_gone, assert_segments_gone, small_config
 
 
 def _ingest_balanced(st: dict) -> bool:
@@ -20,7 +20,6 @@ def _ingest_balanced(st: dict) -> bool:
 
 
 def test_kill_each_stage_in_turn_recovers(tmp_path):
-    before = shm_names()
     cfg = small_config(supervisor={"max_restarts": 2, "restart_backoff_ms": 50, "hung_after_ms": 1000})
     pipe = Pipeline.from_dict(cfg, out_dir=str(tmp_path))
     all_pids = set()
@@ -49,11 +48,10 @@ def test_kill_each_stage_in_turn_recovers(tmp_path):
     assert _ingest_balanced(final), final["stages"]["ingest"]
     assert all(s["restarts"] == 1 for s in final["stages"].values())
     assert_gone(all_pids)
-    assert shm_names() == before
+    assert_segments_gone(final)
 
 
 def test_restart_limit_stops_the_pipeline(tmp_path):
-    before = shm_names()
     cfg = small_config(supervisor={"max_restarts": 1, "restart_backoff_ms": 50})
     pipe = Pipeline.from_dict(cfg, out_dir=str(tmp_path))
     pipe.start()
@@ -69,4 +67,4 @@ def test_restart_limit_stops_the_pipeline(tmp_path):
     finally:
         stats = pipe.stop()
     assert [e["action"] for e in stats["events"]] == ["restart", "stop"]
-    assert shm_names() == before
+    assert_segments_gone(stats)
