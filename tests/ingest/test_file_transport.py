@@ -1,0 +1,136 @@
+"""The file transport on real files of every format, written by the test."""
+import os
+
+import numpy as np
+import pytest
+
+from pointflow.ingest import formats
+from pointflow.ingest.transports import resolve_transport
+
+N = 1234
+
+
+def _data(seed=0):
+    rng = np.random.default_rng(seed)
+    pos = rng.uniform(-100, 100, (N, 3)) + [637000.25, 849000.5, 400.0]  # georeferenced
+    return pos, rng.uniform(0, 255, N).astype(np.float32), rng.integers(0, 256, (N, 3)).astype(np.uint8)
+
+
+def _replay(path, **opts):
+    cls = resolve_transport("file")
+    o = cls.validate_options({"path": str(path), "realtime": False, **opts}, "sources[0].options", os.getcwd())
+    t = cls(o, "f")
+    t.open()
+    try:
+        return [c for c in t.chunks() if c is not None], t
+    finally:
+        t.close()
+
+
+def _cat(chunks):
+    return np.concatenate([c.positions for c in chunks]), {k: np.concatenate([c.channels[k] for c in chunks]) for k in chunks[0].channels}
+
+
+def test_las_and_laz_keep_float64_and_channels(tmp_path):
+    laspy = pytest.importorskip("laspy")
+    pos, inten, rgb = _data()
+    for ext in ("las", "laz"):
+        hdr = laspy.LasHeader(point_format=3, version="1.2")
+        hdr.scales = [0.01, 0.01, 0.01]
+        hdr.offsets = [637000.0, 849000.0, 0.0]
+        las = laspy.LasData(hdr)
+        las.x, las.y, las.z = pos[:, 0], pos[:, 1], pos[:, 2]
+        las.intensity = inten.astype(np.uint16)
+        las.classification = np.full(N, 2, np.uint8)
+        las.gps_time = np.arange(N, dtype=np.float64)
+        las.red, las.green, las.blue = (rgb.astype(np.uint16) * 257).T
+        p = tmp_path / f"cloud.{ext}"
+        las.write(str(p))
+        chunks, t = _replay(p, chunk_points=500)
+        assert [c.n for c in chunks] == [500, 500, 234]
+        got, ch = _cat(chunks)
+        assert got.dtype == np.float64 and np.abs(got - pos).max() <= 0.005 + 1e-9  # file precision, not float32's
+        assert np.array_equal(ch["intensity"], inten.astype(np.uint16))
+        assert np.array_equal(ch["gps_time"], np.arange(N))
+        assert (ch["classification"] == 2).all()
+        assert np.array_equal(ch["rgb"], rgb.astype(np.uint16) * 257)
+
+
+@pytest.mark.parametrize("binary", [True, False])
+def test_ply(tmp_path, binary):
+    pos, inten, rgb = _data(1)
+    p = tmp_path / "c.ply"
+    formats.write_ply(str(p), pos, {"intensity": inten, "rgb": rgb}, binary=binary)
+    got, ch = _cat(_replay(p)[0])
+    assert np.allclose(got, pos, atol=1e-9)
+    assert np.allclose(ch["intensity"], inten) and np.array_equal(ch["rgb"], rgb)
+
+
+def test_ply_hand_written_ascii(tmp_path):
+    p = tmp_path / "h.ply"
+    p.write_text("ply\nformat ascii 1.0\ncomment by hand\nelement vertex 2\nproperty float x\nproperty float y\n"
+                 "property float z\nproperty uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n"
+                 "1 2 3 255 0 0\n4 5 6 0 255 0\n")
+    got, ch = _cat(_replay(p)[0])
+    assert np.array_equal(got, [[1, 2, 3], [4, 5, 6]]) and np.array_equal(ch["rgb"], [[255, 0, 0], [0, 255, 0]])
+
+
+@pytest.mark.parametrize("binary", [True, False])
+def test_pcd(tmp_path, binary):
+    pos, inten, rgb = _data(2)
+    pos = pos - [637000, 849000, 0]  # PCD stores float32
+    p = tmp_path / "c.pcd"
+    formats.write_pcd(str(p), pos, {"intensity": inten, **({"rgb": rgb} if binary else {})}, binary=binary)
+    got, ch = _cat(_replay(p)[0])
+    assert np.allclose(got, pos, atol=1e-4) and np.allclose(ch["intensity"], inten, atol=1e-3)
+    if binary:
+        assert np.array_equal(ch["rgb"], rgb)
+
+
+def test_npy_npz_ouster_layout_kitti_csv(tmp_path):
+    pos, inten, _ = _data(3)
+    np.save(tmp_path / "a.npy", np.column_stack([pos, inten]))
+    got, ch = _cat(_replay(tmp_path / "a.npy")[0])
+    assert np.array_equal(got, pos) and np.allclose(ch["intensity"], inten)
+    # Ouster-style npz: xyz float32, per-point range/reflectivity, per-column timestamps (skipped)
+    np.savez(tmp_path / "o.npz", xyz=pos.astype(np.float32), range=np.arange(N, dtype=np.uint32),
+             reflectivity=(np.arange(N) % 256).astype(np.uint8), timestamps_ns=np.arange(1024, dtype=np.uint64))
+    chunks, _ = _replay(tmp_path / "o.npz", rename={"reflectivity": "intensity"})
+    got, ch = _cat(chunks)
+    assert got.dtype == np.float32 and set(ch) == {"range", "intensity"}
+    assert np.array_equal(ch["intensity"], (np.arange(N) % 256).astype(np.uint8))
+    # KITTI .bin: float32 x, y, z, reflectance
+    k = np.column_stack([pos - [637000, 849000, 0], inten]).astype("<f4")
+    k.tofile(tmp_path / "k.bin")
+    got, ch = _cat(_replay(tmp_path / "k.bin")[0])
+    assert np.array_equal(got, k[:, :3]) and np.array_equal(ch["intensity"], k[:, 3])
+    # CSV with a header row, XYZ without
+    np.savetxt(tmp_path / "c.csv", np.column_stack([pos, inten]), delimiter=",", header="x,y,z,intensity", comments="", fmt="%.6f")
+    got, ch = _cat(_replay(tmp_path / "c.csv")[0])
+    assert np.allclose(got, pos, atol=1e-6) and np.allclose(ch["intensity"], inten, atol=1e-5)
+    np.savetxt(tmp_path / "p.xyz", pos, fmt="%.6f")
+    got, _ = _cat(_replay(tmp_path / "p.xyz")[0])
+    assert np.allclose(got, pos, atol=1e-6)
+
+
+def test_scans_mode_directory_of_scans_in_order(tmp_path):
+    for i in range(3):
+        np.savez(tmp_path / f"scan{i}.npz", xyz=np.full((10 + i, 3), float(i), np.float32))
+    chunks, t = _replay(tmp_path, rate=100)
+    assert t.mode == "scans" and [c.n for c in chunks] == [10, 11, 12]
+    assert [c.positions[0, 0] for c in chunks] == [0, 1, 2]
+
+
+def test_bad_files_give_clear_errors(tmp_path):
+    from pointflow.config import ConfigError
+
+    cls = resolve_transport("file")
+    with pytest.raises(ConfigError, match=r"sources\[0\]\.options\.path.*no such file"):
+        cls.validate_options({"path": str(tmp_path / "missing.las")}, "sources[0].options", os.getcwd())
+    (tmp_path / "x.bin").write_bytes(b"\0" * 10)
+    with pytest.raises(formats.FormatError, match="x.bin.*multiple of 16"):
+        _replay(tmp_path / "x.bin")
+    (tmp_path / "t.ply").write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 100\nproperty float x\n"
+                                     b"property float y\nproperty float z\nend_header\n" + b"\0" * 12)
+    with pytest.raises(formats.FormatError, match="promises 100 vertices"):
+        _replay(tmp_path / "t.ply")
