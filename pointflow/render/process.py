@@ -87,10 +87,8 @@ def write_png(path: str, rgba: np.ndarray) -> None:
 def _select(cfg, capacity: int, channels: list[str], log) -> Renderer:
     from .select import select_renderer
 
-    renderer, reasons = select_renderer(cfg.render, capacity, channels, expected_points=cfg.ring.max_points)
-    for line in reasons:
-        log.info("tier selection: %s", line)
-    return renderer
+    renderer, _reasons = select_renderer(cfg.render, capacity, channels, expected_points=cfg.ring.max_points)
+    return renderer  # select_renderer logs why each candidate was taken or skipped
 
 
 def main(ctx: StageContext) -> None:
