@@ -94,3 +94,20 @@ def test_empty_ring_and_single_point(make_renderer):
     assert (img == img[0, 0]).all()
     r.render(frame(np.zeros((1, 3)), capacity=16, head=15), cam)
     assert r.debug_survivors().tolist() == [15]
+
+
+def test_frame_stats_counters_filled_when_gpu_done(make_renderer):
+    """drawn / removed_nonfinite arrive without a stall: at finish() or read_image()."""
+    pts = np.zeros((100, 3))
+    pts[:, 0] = np.linspace(-1, 1, 100)
+    pts[:7, 1] = np.nan
+    pts[7:9, 2] = np.inf
+    cam = Camera(eye=[0.0, -10.0, 0.0], target=[0.0, 0.0, 0.0], near=1.0, far=100.0)
+    r = make_renderer(cfg(), 128)
+    st = r.render(frame(pts, capacity=128), cam)
+    assert st.drawn is None                       # not known yet: no readback on the frame path
+    assert r.finish() is st
+    assert st.drawn == 91 and st.extra["removed_nonfinite"] == 9 and st.extra["occupied"] == 100
+    st2 = r.render(frame(pts[:50], capacity=128), cam)
+    r.read_image()
+    assert st2.drawn == 41

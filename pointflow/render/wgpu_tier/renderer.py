@@ -529,6 +529,17 @@ class WgpuRenderer(Renderer):
             self._readback.unmap()
         return img
 
+    def finish(self) -> Optional[FrameStats]:
+        """Wait until the GPU finished the last frame; returns its FrameStats with the exact
+        counters filled in (for a true ``frame_done`` time; not needed on the frame path)."""
+        if self._last is None:
+            return None
+        s = self._last["set"]
+        fs = self._stats[s]
+        if self._done[s]:
+            self._collect(s)
+        return fs
+
     def debug_counts(self) -> dict[str, int]:
         """Tests only (syncs the GPU): survivors of the cull, after the budget, and the draw count."""
         st = np.frombuffer(self.queue.read_buffer(self._state), np.uint32)
