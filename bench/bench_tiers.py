@@ -6,7 +6,7 @@ windows keeping the newest 10/25/50%) it measures the median frame time and the 
 error against the reference: PSNR (RGB), the fraction of pixels that differ, and the IoU
 of lit pixels. Then it times the three tiers on growing scenes to find the crossover size
 below which the cpu tier is faster (written to ``bench/results/crossover.json`` and, unless
-``--no-cache``, to the user cache that ``select_renderer`` reads).
+``--install`` is given, to the user cache that ``select_renderer`` reads).
 
     .venv/bin/python bench/bench_tiers.py            # ~2-4 min on 2 cores
     .venv/bin/python bench/bench_tiers.py --quick    # fewer scenes/sizes
@@ -252,25 +252,39 @@ def crossover_runs(tiers, size, sizes, repeats) -> dict:
             res[tier][n] = ms
             line += f"  {tier} {ms:8.1f} ms"
         print(line)
-    gpu = [t for t in tiers if t != "cpu" and res[t]]
-    best_gpu = {n: min(res[t][n] for t in gpu if n in res[t]) for n in sizes if any(n in res[t] for t in gpu)}
-    # smallest n from which a GPU tier is faster at every larger size measured
-    xo = None
-    for n in sorted(best_gpu, reverse=True):
-        if best_gpu[n] < res["cpu"].get(n, float("inf")):
+    xo_points, verdict, cpu_from = crossover_from(res, sizes)
+    print(f"crossover: {xo_points:,} points ({verdict})")
+    return {"crossover_points": xo_points, "verdict": verdict, "cpu_faster_from": cpu_from, "size": list(size),
+            "frame_ms": {t: {str(k): v for k, v in d.items()} for t, d in res.items()}}
+
+
+def crossover_from(res: dict[str, dict[int, float]], sizes: list[int]) -> tuple[int, str, Optional[int]]:
+    """(crossover, verdict, cpu_faster_from) for select's rule "cpu below the crossover":
+    the crossover is the largest measured size n such that the cpu tier beat the best GPU
+    tier at every measured size <= n (0 when a GPU tier already wins at the smallest
+    size). ``cpu_faster_from`` is the smallest size from which the cpu tier wins at every
+    larger size (software adapters), or None."""
+    gpu = [t for t in res if t != "cpu" and res[t]]
+    best = {n: min(res[t][n] for t in gpu if n in res[t]) for n in sizes if any(n in res[t] for t in gpu)}
+    cpu = res.get("cpu", {})
+    wins = [n for n in sorted(best) if n in cpu and cpu[n] < best[n]]
+    xo = 0
+    for n in sorted(best):
+        if n in cpu and cpu[n] < best[n]:
             xo = n
         else:
             break
-    if xo is None:
-        verdict = f"the cpu tier was fastest at every size up to {max(sizes):,}"
-        xo_points = 2 * max(sizes)
-    else:
-        verdict = f"a GPU tier is faster from {xo:,} points up"
-        smaller = [n for n in sizes if n < xo]
-        xo_points = int(np.sqrt(xo * max(smaller))) if smaller else xo  # geometric midpoint of the bracket
-    print(f"crossover: {xo_points:,} points ({verdict})")
-    return {"crossover_points": xo_points, "verdict": verdict, "size": list(size),
-            "frame_ms": {t: {str(k): v for k, v in d.items()} for t, d in res.items()}}
+    cpu_from = None
+    for n in sorted(best, reverse=True):
+        if n in cpu and cpu[n] < best[n]:
+            cpu_from = n
+        else:
+            break
+    verdict = (f"cpu tier faster up to {xo:,} points" if xo else "a GPU tier is faster at the smallest size measured")
+    if cpu_from is not None and cpu_from > xo:
+        verdict += f"; the cpu tier is faster again from {cpu_from:,} points up (software GPU adapters)"
+    del wins
+    return xo, verdict, cpu_from
 
 
 def chart(rows: list[dict], path: Path) -> None:
@@ -318,7 +332,8 @@ def main(argv=None) -> int:
     ap.add_argument("--tiers", default="cpu,gl,wgpu")
     ap.add_argument("--size", default="960x540")
     ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--no-cache", action="store_true", help="do not write the user crossover cache")
+    ap.add_argument("--install", action="store_true",
+                    help="also write the crossover to the user cache that select_renderer reads")
     ap.add_argument("--skip-crossover", action="store_true")
     a = ap.parse_args(argv)
     size = tuple(int(v) for v in a.size.split("x"))
@@ -344,7 +359,7 @@ def main(argv=None) -> int:
         blob = json.dumps({"crossover_points": xo["crossover_points"], "verdict": xo["verdict"],
                            "measured": time.strftime("%Y-%m-%d"), "machine": out["machine"]}, indent=1)
         (RESULTS / "crossover.json").write_text(blob)
-        if not a.no_cache:
+        if a.install:
             from pointflow.render.select import cache_path
             p = cache_path()
             p.parent.mkdir(parents=True, exist_ok=True)

@@ -35,9 +35,11 @@ TIERS = {
 }
 ENV_BACKEND = "POINTFLOW_BACKEND"
 ENV_CROSSOVER = "POINTFLOW_CROSSOVER"
-#: Used when nothing was measured on this machine: the crossover ``bench/bench_tiers.py``
-#: measured on the development machine (2 cores, lavapipe/llvmpipe software adapters).
-DEFAULT_CROSSOVER = 20_000
+#: Used when nothing was measured on this machine. ``bench/bench_tiers.py`` measured 0 on the
+#: development machine (2 cores, lavapipe/llvmpipe): the GPU tiers beat the numpy tier even
+#: at 1,000 points there (its fixed per-frame cost is ~12 ms at 1280x720), so size alone
+#: never sends a scene to the cpu tier unless a measurement says so.
+DEFAULT_CROSSOVER = 0
 
 
 def _load_class(tier: str) -> type[Renderer]:
