@@ -1,0 +1,307 @@
+"""Ingest throughput: producer process -> ZeroMQ -> ingest process -> shared-memory ring.
+
+For chunks of 1k, 10k and 100k points (float32 xyz + intensity) it measures, in the same
+run, three paths and reports points/s (median of ``--repeats``):
+
+* ``pointflow``: the real ingest stage (``stage_main``) in its own process: decode,
+  validation, non-finite check, conversion, coalescing, ring push, accounting;
+* ``naive``: the same chunks pickled through a ``multiprocessing.Queue`` into a plain
+  numpy array in another process;
+* ``raw``: the same bytes over ZeroMQ ``copy=False`` into a numpy array, no validation.
+
+Plus end-to-end replay (file transport -> source process -> ingest) of
+``../shared/data/autzen_trim.laz`` and the Ouster scans when that folder exists.
+
+    .venv/bin/python bench/bench_ingest.py [--points 10000000] [--repeats 3]
+
+Prints a table and writes ``bench/results/ingest.json``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing as mp
+import os
+import shutil
+import statistics
+import sys
+import time
+
+import numpy as np
+import zmq
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+DATA = os.path.join(ROOT, "..", "shared", "data")
+SIZES = (1_000, 10_000, 100_000)
+
+
+def _chunk(n: int, seed: int):
+    rng = np.random.default_rng(seed)
+    return rng.uniform(-100, 100, (n, 3)).astype(np.float32), rng.uniform(0, 255, n).astype(np.float32)
+
+
+# ----------------------------------------------------------------------------- producers
+def _wire_producer(endpoint: str, n: int, count: int, go, ready=None) -> None:
+    from pointflow import wire
+    from pointflow.chunk import PointChunk
+
+    pos, inten = _chunk(n, 1)
+    ctx = zmq.Context()
+    s = ctx.socket(zmq.PUSH)
+    s.setsockopt(zmq.SNDHWM, 64)
+    s.connect(endpoint)
+    if ready is not None:
+        ready.set()
+    go.wait()
+    for i in range(count):
+        wire.send(s, PointChunk(positions=pos, channels={"intensity": inten}, source_id="bench", seq=i, trace_id=0))
+    s.close(linger=-1)
+    ctx.term()
+
+
+def _raw_producer(endpoint: str, n: int, count: int, go) -> None:
+    pos, inten = _chunk(n, 1)
+    ctx = zmq.Context()
+    s = ctx.socket(zmq.PUSH)
+    s.setsockopt(zmq.SNDHWM, 64)
+    s.connect(endpoint)
+    go.wait()
+    for _ in range(count):
+        s.send_multipart([pos, inten], copy=False)
+    s.close(linger=-1)
+    ctx.term()
+
+
+def _raw_consumer(endpoint: str, n: int, count: int, cap: int, out) -> None:
+    ctx = zmq.Context()
+    s = ctx.socket(zmq.PULL)
+    s.bind(endpoint)
+    out.put("ready")
+    ring_pos = np.empty((cap, 3), np.float32)
+    ring_i = np.empty(cap, np.float32)
+    head = 0
+    t0 = None
+    for _ in range(count):
+        f = s.recv_multipart(copy=False)
+        if t0 is None:
+            t0 = time.perf_counter()
+        p = np.frombuffer(f[0].buffer, np.float32).reshape(-1, 3)
+        it = np.frombuffer(f[1].buffer, np.float32)
+        m = p.shape[0]
+        if head + m > cap:
+            head = 0
+        ring_pos[head:head + m] = p
+        ring_i[head:head + m] = it
+        head += m
+    out.put(time.perf_counter() - t0)
+    s.close()
+    ctx.term()
+
+
+def _naive_producer(q, n: int, count: int, go) -> None:
+    pos, inten = _chunk(n, 1)
+    go.wait()
+    for i in range(count):
+        q.put({"positions": pos, "intensity": inten, "seq": i})
+    q.put(None)
+
+
+def _naive_consumer(q, cap: int, out) -> None:
+    ring_pos = np.empty((cap, 3), np.float32)
+    ring_i = np.empty(cap, np.float32)
+    head = 0
+    t0 = None
+    out.put("ready")
+    while True:
+        c = q.get()
+        if t0 is None:
+            t0 = time.perf_counter()
+        if c is None:
+            break
+        m = c["positions"].shape[0]
+        if head + m > cap:
+            head = 0
+        ring_pos[head:head + m] = c["positions"]
+        ring_i[head:head + m] = c["intensity"]
+        head += m
+    out.put(time.perf_counter() - t0)
+
+
+# ----------------------------------------------------------------------------- runs
+def run_naive(n: int, count: int, cap: int) -> float:
+    ctx = mp.get_context("spawn")
+    q, out, go = ctx.Queue(maxsize=64), ctx.Queue(), ctx.Event()
+    cons = ctx.Process(target=_naive_consumer, args=(q, cap, out))
+    prod = ctx.Process(target=_naive_producer, args=(q, n, count, go))
+    cons.start(); prod.start()
+    out.get(timeout=60)
+    go.set()
+    dt = out.get(timeout=600)
+    prod.join(); cons.join()
+    return n * count / dt
+
+
+def run_raw(n: int, count: int, cap: int, run_dir: str) -> float:
+    ctx = mp.get_context("spawn")
+    ep = f"ipc://{run_dir}/raw.sock"
+    out, go = ctx.Queue(), ctx.Event()
+    cons = ctx.Process(target=_raw_consumer, args=(ep, n, count, cap, out))
+    cons.start()
+    out.get(timeout=60)
+    prod = ctx.Process(target=_raw_producer, args=(ep, n, count, go))
+    prod.start()
+    go.set()
+    dt = out.get(timeout=600)
+    prod.join(); cons.join()
+    return n * count / dt
+
+
+class _IngestRun:
+    """The real ingest stage in its own process, fed by a producer process."""
+
+    def __init__(self, cap: int):
+        from pointflow.config import load_config, new_run_dir
+        from pointflow.ring import PointRing
+        from pointflow.runtime.stage import RunInfo, stage_main
+
+        self.cfg_dict = {"source": {"transport": "synthetic"}, "ring": {"max_points": cap},
+                         "render": {"color_by": "intensity", "output": {"dir": None}},
+                         "tracing": {"enabled": False}, "supervisor": {"heartbeat_ms": 20}}
+        cfg = load_config(self.cfg_dict)
+        self.ring = PointRing(cap, channels=cfg.ring_channels())
+        self.run_dir = new_run_dir()
+        self.ep = cfg.resolved_endpoints(self.run_dir)
+        self.zctx = zmq.Context()
+        self.control = self.zctx.socket(zmq.PULL)
+        self.control.bind(self.ep.control)
+        self.trace = self.zctx.socket(zmq.PULL)
+        self.trace.bind(self.ep.trace)
+        info = RunInfo(run_dir=self.run_dir, endpoints=self.ep, ring_name=self.ring.name, slab_names=("", ""),
+                       out_dir=None, supervisor_pid=os.getpid(), log_level=40)
+        self.proc = mp.get_context("spawn").Process(target=stage_main, args=("ingest", "ingest", self.cfg_dict, ROOT, info))
+        self.proc.start()
+        self.last: dict = {}
+
+    def stats(self, timeout_ms=100) -> dict:
+        if self.control.poll(timeout_ms):
+            while True:
+                try:
+                    m = json.loads(self.control.recv(zmq.NOBLOCK))
+                except zmq.Again:
+                    break
+                if m.get("type") == "heartbeat":
+                    self.last = m["stats"]
+        return self.last
+
+    def measure(self, n: int, count: int) -> float:
+        ctx = mp.get_context("spawn")
+        go, ready = ctx.Event(), ctx.Event()
+        before = self.stats(2000).get("points_out", 0)
+        while not self.last:
+            before = self.stats(200).get("points_out", 0)
+        prod = ctx.Process(target=_wire_producer, args=(self.ep.ingest, n, count, go, ready))
+        prod.start()
+        ready.wait(60)
+        time.sleep(0.1)
+        go.set()
+        # from the start signal to the heartbeat that shows every point accounted for
+        t_first = time.perf_counter()
+        t_last = None
+        target = before + n * count
+        deadline = time.monotonic() + 600
+        while time.monotonic() < deadline:
+            s = self.stats(5)
+            now = time.perf_counter()
+            if s.get("points_out", 0) + sum(s.get("drops", {}).values()) >= target:
+                t_last = now
+                break
+        prod.join()
+        return n * count / (t_last - t_first)
+
+    def close(self) -> dict:
+        self.proc.terminate()
+        self.proc.join(10)
+        final = self.stats(300)
+        for s in (self.control, self.trace):
+            s.close(linger=0)
+        self.zctx.term()
+        self.ring.close()
+        shutil.rmtree(self.run_dir, ignore_errors=True)
+        return final
+
+
+def run_replay(path: str, label: str, extra: dict) -> dict:
+    """End to end: file source process -> ingest process -> ring, as fast as ingest takes."""
+    from pointflow import Pipeline
+
+    cfg = {"source": {"transport": "file", "options": {"path": path, "realtime": False, "progress": "off", **extra}},
+           "ring": {"max_points": 2_000_000}, "tracing": {"enabled": False},
+           "render": {"backend": "cpu", "size": [320, 240], "color_by": "intensity", "output": {"dir": None}}}
+    from pointflow.ingest.transports.file import _expand
+    from pointflow.ingest import formats
+
+    total = sum(formats.read_points(f)[0].shape[0] for f in _expand(path))
+    t0 = time.perf_counter()
+    with Pipeline.from_dict(cfg) as p:
+        p.wait(120, until=lambda: p.stats()["stages"].get("ingest", {}).get("points_out", 0) >= total)
+        dt = time.perf_counter() - t0
+        st = p.stats()["stages"]
+    return {"what": label, "points": total, "seconds_incl_startup": round(dt, 3),
+            "points_out": st.get("ingest", {}).get("points_out"), "points_per_s_incl_startup": round(total / dt)}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--points", type=int, default=10_000_000, help="points per measurement")
+    ap.add_argument("--repeats", type=int, default=3)
+    args = ap.parse_args()
+    os.environ.setdefault("XDG_RUNTIME_DIR", "/tmp")
+    from pointflow.config import new_run_dir
+
+    cap = 2_000_000
+    results = {"machine": {"cpus": os.cpu_count(), "python": sys.version.split()[0]}, "rows": [], "replay": []}
+    run_dir = new_run_dir()
+    ing = _IngestRun(cap)
+    try:
+        for n in SIZES:
+            count = max(20, args.points // n)
+            med = {}
+            for name, fn in (("naive", lambda: run_naive(n, count, cap)),
+                             ("raw", lambda: run_raw(n, count, cap, run_dir)),
+                             ("pointflow", lambda: ing.measure(n, count))):
+                vals = [fn() for _ in range(args.repeats)]
+                med[name] = statistics.median(vals)
+                med[name + "_all"] = [round(v) for v in vals]
+            row = {"chunk_points": n, "chunks": count,
+                   "pointflow_pts_s": round(med["pointflow"]), "naive_pts_s": round(med["naive"]),
+                   "raw_pts_s": round(med["raw"]),
+                   "vs_naive": round(med["pointflow"] / med["naive"], 2),
+                   "of_raw": round(med["pointflow"] / med["raw"], 2),
+                   "samples": {k: v for k, v in med.items() if k.endswith("_all")}}
+            results["rows"].append(row)
+            print(f"{n:>7} pts/chunk  pointflow {med['pointflow'] / 1e6:7.1f} M/s   naive {med['naive'] / 1e6:7.1f} M/s"
+                  f"   raw {med['raw'] / 1e6:7.1f} M/s   x{row['vs_naive']:.2f} naive   {row['of_raw'] * 100:.0f}% of raw",
+                  flush=True)
+    finally:
+        final = ing.close()
+        shutil.rmtree(run_dir, ignore_errors=True)
+    results["ingest_final_stats"] = {k: final.get(k) for k in ("points_in", "points_out", "drops", "rejected_messages", "ring_pushes")}
+    if os.path.isdir(DATA):
+        laz = os.path.join(DATA, "autzen_trim.laz")
+        if os.path.exists(laz):
+            results["replay"].append(run_replay(os.path.abspath(laz), "autzen_trim.laz", {"chunk_points": 50_000}))
+        ouster = os.path.join(DATA, "ouster_os1_128")
+        if os.path.isdir(ouster):
+            results["replay"].append(run_replay(os.path.abspath(ouster), "ouster_os1_128 (3 scans)",
+                                                {"rename": {"reflectivity": "intensity"}, "rate": 1000}))
+        for r in results["replay"]:
+            print(f"replay {r['what']:<28} {r['points']:>9,} points in {r['seconds_incl_startup']:.2f} s "
+                  f"(incl. pipeline start-up), ingest stored {r['points_out']:,}", flush=True)
+    os.makedirs(os.path.join(ROOT, "bench", "results"), exist_ok=True)
+    with open(os.path.join(ROOT, "bench", "results", "ingest.json"), "w") as f:
+        json.dump(results, f, indent=2)
+    print("wrote bench/results/ingest.json")
+
+
+if __name__ == "__main__":
+    main()
