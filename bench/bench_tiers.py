@@ -291,9 +291,13 @@ def chart(rows: list[dict], path: Path) -> None:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker  # noqa: F401
 
     scenes = list(dict.fromkeys(r["scene"] for r in rows))
-    fig, axes = plt.subplots(1, len(scenes), figsize=(5.2 * len(scenes), 4.4), squeeze=False)
+    cols = 2 if len(scenes) > 1 else 1
+    nrows = (len(scenes) + cols - 1) // cols
+    fig, axs = plt.subplots(nrows, cols, figsize=(7.0 * cols, 4.6 * nrows), squeeze=False)
+    axes = [list(axs.ravel())]
     colours = {"lod": "tab:blue", "importance": "tab:orange", "time window": "tab:green", "full": "black"}
     markers = {"cpu": "o", "gl": "s", "wgpu": "^"}
     styles = {"cpu": "-", "gl": "--", "wgpu": ":"}
@@ -315,13 +319,16 @@ def chart(rows: list[dict], path: Path) -> None:
             ax.annotate(f"{rs[i]['tier']} {rs[i]['method']}", pts[i], fontsize=6, alpha=0.8)
         ax.set_xscale("log")
         ax.set_yscale("log")
+        ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
         ax.set_xlabel("frame time, ms (log)")
         ax.set_ylabel("pixels differing from the float64 reference (log)")
         ax.set_title(rs[0]["scene_desc"], fontsize=9)
         ax.grid(True, which="both", alpha=0.25)
     h, l = axes[0][0].get_legend_handles_labels()
     fig.legend(h, l, loc="lower center", ncol=min(len(l), 5), fontsize=7)
-    fig.tight_layout(rect=(0, 0.14, 1, 1))
+    for ax in axes[0][len(scenes):]:
+        ax.set_visible(False)
+    fig.tight_layout(rect=(0, 0.07, 1, 1))
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
