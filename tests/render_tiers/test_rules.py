@@ -115,3 +115,15 @@ def test_budget_caps_the_drawn_count(make):
     assert 0 < n_lit <= 300
     if st.drawn is not None:
         assert 200 <= st.drawn <= 300  # hash thinning aims at b - 3 sqrt(b) = 248, capped at b
+
+
+def test_pick_returns_the_front_point_and_scales_by_pixel_ratio(make, tier):
+    if tier == "wgpu":
+        pytest.skip("wgpu picking is covered by tests/render_wgpu")
+    cfg = render_cfg(size=[32, 32], point_size=4, pick_radius=2)
+    f = make_frame([[0, 0, 0.0], [0, 0, 2.0], [3, 3, 0]], capacity=4, head=1)  # slots 1, 2, 3
+    r = make(cfg, 4)
+    r.render(f, CAM)
+    assert r.pick(16, 16) == 2                  # the nearer of two stacked points
+    assert r.pick(8, 8, pixel_ratio=2.0) == 2
+    assert r.pick(1, 30) is None
