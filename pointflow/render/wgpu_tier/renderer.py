@@ -210,7 +210,8 @@ class WgpuRenderer(Renderer):
         self._bgl_draw = bgl([uni, ro, ro, ro, ro, ro, ro, ro], SS.VERTEX | SS.FRAGMENT)
         cull_mod = dev.create_shader_module(code=shaders.CULL, label="cull")
         thin_mod = dev.create_shader_module(code=shaders.THIN, label="thin")
-        draw_mod = dev.create_shader_module(code=shaders.draw_source(self.naive_float32), label="draw")
+        self._round = self.cfg.point_shape == "round"
+        draw_mod = dev.create_shader_module(code=shaders.draw_source(self.naive_float32, self._round), label="draw")
         pl_cull = dev.create_pipeline_layout(bind_group_layouts=[self._bgl_cull])
         pl_thin = dev.create_pipeline_layout(bind_group_layouts=[self._bgl_thin])
         self._pl_draw = dev.create_pipeline_layout(bind_group_layouts=[self._bgl_draw])
@@ -218,7 +219,6 @@ class WgpuRenderer(Renderer):
         self._p_final = dev.create_compute_pipeline(layout=pl_cull, compute={"module": cull_mod, "entry_point": "finalize"})
         self._p_final_b = dev.create_compute_pipeline(layout=pl_cull, compute={"module": cull_mod, "entry_point": "finalize_budget"})
         self._p_thin = dev.create_compute_pipeline(layout=pl_thin, compute={"module": thin_mod, "entry_point": "thin"})
-        self._draw_mod = draw_mod
         self._p_draw = dev.create_render_pipeline(
             layout=self._pl_draw,
             vertex={"module": draw_mod, "entry_point": "vs", "buffers": []},
@@ -507,6 +507,7 @@ class WgpuRenderer(Renderer):
                            extra={"buffer_set": s, "render_capacity": self.render_capacity,
                                   "gpu_timings_lag_frames": 2 if self._ts else None})
         self._stats[s] = stats  # drawn/removed_nonfinite filled in once the GPU is done
+        self._last["stats"] = stats
         return stats
 
     # ------------------------------------------------------------------ output
@@ -535,10 +536,9 @@ class WgpuRenderer(Renderer):
         if self._last is None:
             return None
         s = self._last["set"]
-        fs = self._stats[s]
         if self._done[s]:
             self._collect(s)
-        return fs
+        return self._last.get("stats")
 
     def debug_counts(self) -> dict[str, int]:
         """Tests only (syncs the GPU): survivors of the cull, after the budget, and the draw count."""
@@ -563,14 +563,16 @@ class WgpuRenderer(Renderer):
         wgpu, dev = self._wgpu, self.device
         TU, TF = wgpu.TextureUsage, wgpu.TextureFormat
         w, h = self.width, self.height
+        pick_mod = dev.create_shader_module(code=shaders.draw_source(self.naive_float32, self._round, pick=True),
+                                            label="pick")
         self._p_pick = dev.create_render_pipeline(
             layout=self._pl_draw,
-            vertex={"module": self._draw_mod, "entry_point": "vs", "buffers": []},
+            vertex={"module": pick_mod, "entry_point": "vs", "buffers": []},
             primitive={"topology": wgpu.PrimitiveTopology.triangle_list, "cull_mode": wgpu.CullMode.none},
             depth_stencil={"format": TF.depth32float, "depth_write_enabled": True,
                            "depth_compare": wgpu.CompareFunction.less},
             multisample={"count": 1},
-            fragment={"module": self._draw_mod, "entry_point": "fs_pick",
+            fragment={"module": pick_mod, "entry_point": "fs_pick",
                       "targets": [{"format": TF.r32uint}, {"format": TF.rgba32float}]},
         )
         ids = dev.create_texture(size=(w, h, 1), format=TF.r32uint, usage=TU.RENDER_ATTACHMENT | TU.COPY_SRC)

@@ -223,7 +223,7 @@ fn thin(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: v
 }
 """
 
-DRAW = PARAMS + r"""
+DRAW_HEAD = PARAMS + r"""
 @group(0) @binding(0) var<uniform> P: Params;
 @group(0) @binding(1) var<storage, read> pos: array<f32>;
 @group(0) @binding(2) var<storage, read> tms: array<vec2<f32>>;
@@ -233,15 +233,8 @@ DRAW = PARAMS + r"""
 @group(0) @binding(6) var<storage, read> lut: array<u32, 256>;
 @group(0) @binding(7) var<storage, read> rng: array<u32, 2>;
 
-struct VOut {
-  @builtin(position) position: vec4<f32>,
-  @location(0) @interpolate(flat) color: vec4<f32>,
-  @location(1) @interpolate(flat) centre: vec3<f32>,
-  @location(2) @interpolate(flat) slot: u32,
-};
-
-fn lut_colour(v: f32) -> vec4<f32> {
-  if (!is_finite(v)) { return P.fixed_color; }
+fn lut_colour(v: f32) -> u32 {
+  if (!is_finite(v)) { return pack4x8unorm(P.fixed_color); }
   var lo = P.range_lo;
   var hi = P.range_hi;
   var scale = P.range_scale;
@@ -255,8 +248,25 @@ fn lut_colour(v: f32) -> vec4<f32> {
     let t = (v - lo) * scale;
     i = u32(floor(clamp(t, 0.0, 1.0) * 255.0 + 0.5));
   }
-  return unpack4x8unorm(lut[i]);
+  return lut[i];
 }
+
+fn point_colour(slot: u32, p: vec3<f32>) -> u32 {
+  if (P.color_mode == C_RGB) { return col[slot]; }
+  if (P.color_mode == C_SCALAR) { return lut_colour(bitcast<f32>(col[slot])); }
+  if (P.color_mode == C_Z) { return lut_colour(p.z); }
+  if (P.color_mode == C_TIME) { return lut_colour(tms[slot].x); }
+  return pack4x8unorm(P.fixed_color);
+}
+"""
+
+#: The vertex/fragment stage is generated per variant so that square points carry one
+#: flat varying and have no ``discard`` (keeps early depth testing on software rasterisers).
+_VS = r"""
+struct VOut {
+  @builtin(position) position: vec4<f32>,
+  {FIELDS}
+};
 
 @vertex
 fn vs(@builtin(vertex_index) vi: u32, @builtin(instance_index) ii: u32) -> VOut {
@@ -269,42 +279,24 @@ fn vs(@builtin(vertex_index) vi: u32, @builtin(instance_index) ii: u32) -> VOut 
   if ((P.flags & F_ROUND) != 0u) { ext = ext + 1.0; }
   var corners = array<vec2<f32>, 6>(vec2<f32>(-1.0, -1.0), vec2<f32>(1.0, -1.0), vec2<f32>(-1.0, 1.0),
                                     vec2<f32>(-1.0, 1.0), vec2<f32>(1.0, -1.0), vec2<f32>(1.0, 1.0));
-  let c = corners[vi];
+  let off = corners[vi] * ext * vec2<f32>(2.0 / P.vw, 2.0 / P.vh) * clip.w;
   var o: VOut;
-  let off = c * ext * vec2<f32>(2.0 / P.vw, 2.0 / P.vh) * clip.w;
   // a point exactly on the far plane (depth 1.0) must still pass 'less' against the cleared 1.0
   o.position = vec4<f32>(clip.xy + off, min(clip.z, clip.w * 0.99999994), clip.w);
-  let ndc = clip.xy / clip.w;
-  o.centre = vec3<f32>((ndc.x * 0.5 + 0.5) * P.vw, (0.5 - ndc.y * 0.5) * P.vh, 0.5 * s);
-  o.slot = slot;
-  var colr = P.fixed_color;
-  if (P.color_mode == C_RGB) {
-    colr = vec4<f32>(unpack4x8unorm(col[slot]).xyz, 1.0);
-  } else if (P.color_mode == C_SCALAR) {
-    colr = lut_colour(bitcast<f32>(col[slot]));
-  } else if (P.color_mode == C_Z) {
-    colr = lut_colour(p.z);
-  } else if (P.color_mode == C_TIME) {
-    colr = lut_colour(tms[slot].x);
-  }
-  o.color = colr;
+  {ASSIGN}
   return o;
 }
+"""
 
-fn covered(fp: vec2<f32>, centre: vec3<f32>) -> bool {
-  if ((P.flags & F_ROUND) != 0u) {
-    let d = fp - centre.xy;
-    return dot(d, d) <= centre.z * centre.z;
-  }
-  return true;
-}
-
+_FS_DRAW = r"""
 @fragment
 fn fs(in: VOut) -> @location(0) vec4<f32> {
-  if (!covered(in.position.xy, in.centre)) { discard; }
-  return in.color;
+  {COVER}
+  return unpack4x8unorm(in.color);
 }
+"""
 
+_FS_PICK = r"""
 struct PickOut {
   @location(0) slot: u32,
   @location(1) attrs: vec4<f32>,
@@ -312,7 +304,7 @@ struct PickOut {
 
 @fragment
 fn fs_pick(in: VOut) -> PickOut {
-  if (!covered(in.position.xy, in.centre)) { discard; }
+  {COVER}
   var o: PickOut;
   o.slot = in.slot + 1u;
   let t = tms[in.slot];
@@ -321,10 +313,28 @@ fn fs_pick(in: VOut) -> PickOut {
 }
 """
 
+_COVER = r"""let d = in.position.xy - in.centre.xy;
+  if (dot(d, d) > in.centre.z * in.centre.z) { discard; }"""
+
 CLIP_RELATIVE = "P.vp * vec4<f32>(p, 1.0)"
 #: test-only: absolute float32 model matrix (shows the large-coordinate error)
 CLIP_NAIVE = "P.vp * (P.model * vec4<f32>(p, 1.0))"
 
 
-def draw_source(naive: bool = False) -> str:
-    return DRAW.replace("{CLIP}", CLIP_NAIVE if naive else CLIP_RELATIVE)
+def draw_source(naive: bool = False, round_points: bool = False, pick: bool = False) -> str:
+    """WGSL for one draw variant: ``vs`` + ``fs`` (colour) or ``fs_pick`` (slot + attributes)."""
+    fields, assign = [], []
+    if not pick:
+        fields.append("@location(0) @interpolate(flat) color: u32,")
+        assign.append("o.color = point_colour(slot, p);")
+    if round_points:
+        fields.append("@location(1) @interpolate(flat) centre: vec3<f32>,")
+        assign.append("let ndc = clip.xy / clip.w;\n  "
+                      "o.centre = vec3<f32>((ndc.x * 0.5 + 0.5) * P.vw, (0.5 - ndc.y * 0.5) * P.vh, 0.5 * s);")
+    if pick:
+        fields.append("@location(2) @interpolate(flat) slot: u32,")
+        assign.append("o.slot = slot;")
+    vs = (_VS.replace("{FIELDS}", "\n  ".join(fields)).replace("{ASSIGN}", "\n  ".join(assign))
+          .replace("{CLIP}", CLIP_NAIVE if naive else CLIP_RELATIVE))
+    fs = (_FS_PICK if pick else _FS_DRAW).replace("{COVER}", _COVER if round_points else "")
+    return DRAW_HEAD + vs + fs
