@@ -66,7 +66,7 @@ def _run(args, profile: bool = False) -> int:
     t_end = None if args.duration is None else time.monotonic() + args.duration
     last_print = 0.0
     try:
-        while not stop.flag and (t_end is None or time.monotonic() < t_end):
+        while not stop.flag and not pipe.stop_requested and (t_end is None or time.monotonic() < t_end):
             pipe.poll(0.05)
             now = time.monotonic()
             if not args.quiet and now - last_print >= (0.5 if tty else 5.0):

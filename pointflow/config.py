@@ -166,6 +166,8 @@ class EndpointsConfig:
     release: Optional[str] = field(default=None, metadata=check(_endpoint))
     control: Optional[str] = field(default=None, metadata=check(_endpoint))
     trace: Optional[str] = field(default=None, metadata=check(_endpoint))
+    #: Requests to the render stage (pick, save a frame); REP bound by render.
+    render_commands: Optional[str] = field(default=None, metadata=check(_endpoint))
 
 
 @dataclass
@@ -179,8 +181,11 @@ class TracingConfig:
 @dataclass
 class SupervisorConfig:
     heartbeat_ms: float = field(default=200.0, metadata=check(_positive))
-    #: A stage silent for this long is considered hung.
+    #: A stage process silent for this long (no heartbeat or pulse) is considered hung.
     hung_after_ms: float = field(default=1000.0, metadata=check(_positive))
+    #: A stage whose main loop has not come round for this long is considered stuck
+    #: (generous: one frame of a software rasteriser can take a second or more).
+    stall_after_ms: float = field(default=30000.0, metadata=check(_positive))
     #: Grace period before a new stage's first heartbeat (imports, GPU device creation).
     startup_timeout_ms: float = field(default=30000.0, metadata=check(_positive))
     max_restarts: int = field(default=3, metadata=check(_non_negative))
@@ -225,7 +230,7 @@ class PipelineConfig:
         return EndpointsConfig(
             ingest=e.ingest or d("ingest"), frames=e.frames or d("frames"),
             release=e.release or d("release"), control=e.control or d("control"),
-            trace=e.trace or d("trace"),
+            trace=e.trace or d("trace"), render_commands=e.render_commands or d("render-commands"),
         )
 
     def to_dict(self) -> dict:

@@ -65,7 +65,8 @@ def lut_index(values: np.ndarray, lo: float, hi: float) -> np.ndarray:
         idx = np.full(v.shape, 255, np.int32)
     else:
         # float32 arithmetic, as on the GPU
-        t = (v - np.float32(lo)) * np.float32(1.0 / (hi - lo))
-        idx = np.floor(np.clip(t, 0.0, 1.0) * np.float32(255.0) + np.float32(0.5)).astype(np.int32)
+        with np.errstate(invalid="ignore"):  # NaN is handled below
+            t = (v - np.float32(lo)) * np.float32(1.0 / (hi - lo))
+            idx = np.floor(np.nan_to_num(np.clip(t, 0.0, 1.0)) * np.float32(255.0) + np.float32(0.5)).astype(np.int32)
     idx[~np.isfinite(v)] = -1
     return idx

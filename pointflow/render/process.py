@@ -104,10 +104,21 @@ def main(ctx: StageContext) -> None:
     release.setsockopt(zmq.LINGER, 200)
     release.connect(ctx.endpoints.release)
     _announce(release, ctx)
+    commands = ctx.zmq.socket(zmq.REP)
+    commands.setsockopt(zmq.LINGER, 0)
+    commands.bind(ctx.endpoints.render_commands)
     reader = SlabReader(slabs, ready, release)
     renderer = _select(cfg, capacity, channels, ctx.log)
     ctx.log.info("render tier: %s", renderer.info())
     cam = CameraController(cfg, *cfg.render.size)
+    window = None
+    want_window = cfg.render.window
+    if want_window:
+        from .window import display_available
+
+        if not display_available():
+            ctx.log.warning("render.window is set but there is no display (DISPLAY unset); rendering headless")
+            want_window = False
     out = cfg.render.output
     out_dir = ctx.info.out_dir if ctx.info.out_dir else None
     if out_dir:
@@ -119,7 +130,10 @@ def main(ctx: StageContext) -> None:
     try:
         while ctx.running:
             ctx.beat()
-            got = reader.recv(timeout_ms=50)
+            _serve_commands(commands, renderer, ring, ctx)
+            if window is not None:
+                window.process_events()
+            got = reader.recv(timeout_ms=20 if window is not None else 50)
             if got is None:
                 continue
             h, view = got
@@ -130,13 +144,27 @@ def main(ctx: StageContext) -> None:
                 reader.release(h.slab)
                 continue
             try:
-                fs = renderer.render(frame, camera)
+                if want_window and window is None:
+                    from .window import PointWindow
+
+                    window = PointWindow(renderer, camera, title=f"pointflow: {cfg.name}",
+                                         on_pick=lambda slot, x, y: _print_pick(ring, slot, x, y))
+                if window is not None:
+                    if not window.step(frame):
+                        reader.release(h.slab)
+                        ctx.request_stop("window closed")
+                        break
+                    fs = window.last_stats
+                else:
+                    fs = renderer.render(frame, camera)
             except RenderError as exc:
                 reader.release(h.slab)
                 from .select import fallback_after
 
                 ctx.log.error("%s tier failed (%s); falling back", renderer.tier, exc)
                 renderer = fallback_after(renderer, exc, cfg.render, capacity, channels)
+                if window is not None:
+                    window.renderer = renderer
                 c.extra["tier"] = renderer.tier
                 c.drop("render_error", 1)
                 continue
@@ -160,12 +188,15 @@ def main(ctx: StageContext) -> None:
                 c.points_out += fs.drawn
             c.extra.update(frames=frames, frame_ms_ema=round(ema, 3), last_frame_ms=round(ms, 3),
                            uploaded_bytes=c.extra.get("uploaded_bytes", 0) + fs.uploaded_bytes,
-                           **{f"gpu_{k}_ms": round(v, 3) for k, v in fs.timings_ms.items()})
+                           **{f"tier_{k}_ms": round(v, 3) for k, v in fs.timings_ms.items()})
             _feedback(release, ms, h.seq)
             for tid in h.trace_ids:
                 ctx.spans.record(tid, "render_upload", t0, t_up, 0)
                 ctx.spans.record(tid, "frame_done", t0, t1, 0)
     finally:
+        if window is not None:
+            window.close()
+        commands.close(0)
         if frames and out_dir:
             try:  # the last frame, so a short run always leaves a picture
                 write_png(os.path.join(out_dir, "last.png"), renderer.read_image())
@@ -175,6 +206,46 @@ def main(ctx: StageContext) -> None:
         reader.release()
         slabs.close()
         ring.close()
+
+
+def point_to_dict(rec) -> Optional[dict]:
+    if rec is None:
+        return None
+    chans = {k: (np.asarray(v).tolist()) for k, v in rec.channels.items()}
+    return {"slot": int(rec.slot), "position": [float(v) for v in rec.position], "channels": chans,
+            "t_ingest_ms": float(rec.t_ingest_ms), "generation": int(rec.generation),
+            "importance": float(getattr(rec, "importance", 1.0))}
+
+
+def _print_pick(ring, slot, x, y) -> None:
+    rec = ring.get_point(slot) if slot is not None else None
+    print(f"pick ({x:.0f}, {y:.0f}): {point_to_dict(rec) if rec is not None else 'nothing within the pick radius'}",
+          flush=True)
+
+
+def _serve_commands(sock, renderer: Renderer, ring, ctx) -> None:
+    """Answer pending REQ/REP requests: ``pick`` (resolved through the ring, generation-checked)
+    and ``save`` (write the current frame as PNG)."""
+    import json
+
+    while sock.poll(0, zmq.POLLIN):
+        try:
+            req = json.loads(sock.recv())
+            cmd = req.get("cmd")
+            if cmd == "pick":
+                slot = renderer.pick(float(req["x"]), float(req["y"]), float(req.get("pixel_ratio", 1.0)))
+                rep = {"point": point_to_dict(ring.get_point(slot)) if slot is not None else None}
+            elif cmd == "save":
+                path = str(req["path"])
+                os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
+                write_png(path, renderer.read_image())
+                rep = {"path": path}
+            else:
+                rep = {"error": f"unknown command {cmd!r}; expected pick or save"}
+        except Exception as exc:  # noqa: BLE001 - a bad request must not kill the stage
+            ctx.log.warning("render command failed: %s", exc)
+            rep = {"error": f"{type(exc).__name__}: {exc}"}
+        sock.send_string(json.dumps(rep))
 
 
 def _announce(sock, ctx) -> None:

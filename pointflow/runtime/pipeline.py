@@ -68,11 +68,16 @@ class Pipeline:
         if self._sup.failure:
             raise PipelineFailed(self._sup.failure)
 
+    @property
+    def stop_requested(self) -> Optional[str]:
+        """Why a stage asked to end the run (the window was closed), or None."""
+        return self._sup.stop_requested if self._sup is not None else None
+
     def wait(self, duration_s: Optional[float] = None, until=None) -> None:
         """Run the supervisor loop for ``duration_s`` seconds (None = until ``until()`` is
-        true, or forever)."""
+        true, or forever); returns early when a stage asks to stop the run."""
         end = None if duration_s is None else time.monotonic() + duration_s
-        while end is None or time.monotonic() < end:
+        while (end is None or time.monotonic() < end) and not self.stop_requested:
             self.poll(0.05 if end is None else max(0.0, min(0.05, end - time.monotonic())))
             if until is not None and until():
                 return
@@ -104,6 +109,26 @@ class Pipeline:
         finally:
             stats = self.stop()
         return stats
+
+    def pick(self, x: float, y: float, pixel_ratio: float = 1.0, timeout_s: float = 10.0) -> Optional[dict]:
+        """The point under window pixel (x, y) in the last frame, resolved through the ring:
+        ``{"slot", "position" (float64 world), "channels", "t_ingest_ms", "generation"}``,
+        or None when nothing is within ``render.pick_radius``."""
+        rep = self._request({"cmd": "pick", "x": x, "y": y, "pixel_ratio": pixel_ratio}, timeout_s)
+        return rep.get("point")
+
+    def save_frame(self, path: str, timeout_s: float = 10.0) -> str:
+        """Write the current frame as PNG at ``path`` (on request, besides every N frames)."""
+        rep = self._request({"cmd": "save", "path": os.path.abspath(path)}, timeout_s)
+        return rep["path"]
+
+    def _request(self, msg: dict, timeout_s: float) -> dict:
+        if self._sup is None:
+            raise RuntimeError("pipeline is not running")
+        rep = self._sup.request(msg, timeout_s)
+        if "error" in rep:
+            raise RuntimeError(f"render stage: {rep['error']}")
+        return rep
 
     def stats(self) -> dict[str, Any]:
         """Live numbers while running, the final ones after :meth:`stop`."""

@@ -6,9 +6,11 @@ The stage's own loop lives in a ``main(ctx: StageContext)`` function (see
 when ``ctx.running`` turns false.
 
 Control messages (stage PUSH → supervisor PULL on ``endpoints.control``), JSON, one frame:
-``{"type": "heartbeat", "stage", "pid", "t_ns", "stats": {...}}``,
+``{"type": "heartbeat", "stage", "pid", "t_ns", "stats": {...}}`` from the stage's loop,
+``{"type": "pulse", "stage", "pid", "loop_age_ms"}`` from a side thread (liveness),
 ``{"type": "error", "stage", "pid", "message"}`` and ``{"type": "done", "stage", "pid"}``
-(the stage ended on its own, e.g. a file source reached its end).
+(the stage ended on its own, e.g. a file source reached its end; with ``"stop_pipeline":
+true`` and a ``reason`` it asks the supervisor to stop the whole run, e.g. the window closed).
 """
 from __future__ import annotations
 
@@ -20,6 +22,7 @@ import logging
 import os
 import signal
 import sys
+import threading
 import time
 import traceback
 from dataclasses import dataclass, field
@@ -95,6 +98,31 @@ class StageContext:
                                  cfg.tracing.flush_ms, cfg.tracing.enabled)
         #: Called with no arguments on each heartbeat; may add to ``counters.extra``.
         self.on_beat: list[Callable[[], None]] = []
+        self._progress_ns = time.monotonic_ns()
+        self._pulse_stop = threading.Event()
+        self._pulse = threading.Thread(target=self._pulse_loop, name="pointflow-pulse", daemon=True)
+        self._pulse.start()
+
+    def _pulse_loop(self) -> None:
+        """Liveness from a side thread, so a long frame (a software rasteriser drawing 1M
+        points) is not mistaken for a hung process; the main loop's own progress is
+        reported as ``loop_age_ms`` and judged against ``supervisor.stall_after_ms``."""
+        sock = self.zmq.socket(zmq.PUSH)
+        sock.setsockopt(zmq.LINGER, 0)
+        sock.setsockopt(zmq.SNDHWM, 10)
+        sock.connect(self.info.endpoints.control)
+        period = self._hb_interval_ns / 1e9
+        pid = os.getpid()
+        try:
+            while not self._pulse_stop.wait(period):
+                age = (time.monotonic_ns() - self._progress_ns) / 1e6
+                try:
+                    sock.send_string(json.dumps({"type": "pulse", "stage": self.name, "pid": pid,
+                                                 "loop_age_ms": round(age, 1)}), zmq.NOBLOCK)
+                except zmq.Again:
+                    pass
+        finally:
+            sock.close(0)
 
     @property
     def running(self) -> bool:
@@ -108,6 +136,7 @@ class StageContext:
 
     def beat(self, force: bool = False) -> None:
         now = time.monotonic_ns()
+        self._progress_ns = now
         if not force and now - self._last_hb < self._hb_interval_ns:
             return
         self._last_hb = now
@@ -118,6 +147,11 @@ class StageContext:
                 self.log.exception("stats callback failed")
         self._send({"type": "heartbeat", "t_ns": now, "stats": self.counters.to_dict()})
         self.spans.maybe_flush()
+
+    def request_stop(self, reason: str) -> None:
+        """Ask the supervisor to stop the whole pipeline (e.g. the user closed the window)."""
+        self._send({"type": "done", "stop_pipeline": True, "reason": reason})
+        self._running = False
 
     def report_error(self, message: str) -> None:
         self._send({"type": "error", "message": message[-4000:]})
@@ -131,6 +165,8 @@ class StageContext:
             pass
 
     def close(self) -> None:
+        self._pulse_stop.set()
+        self._pulse.join(1.0)
         try:
             self.beat(force=True)
             self.spans.close()
@@ -187,7 +223,7 @@ def stage_main(name: str, kind: str, cfg_dict: dict, base_dir: str, info: RunInf
     try:
         fn = getattr(importlib.import_module(mod_name), fn_name)
         fn(ctx)
-        if ctx.running:  # returned on its own
+        if ctx._running:  # returned on its own
             ctx._send({"type": "done"})
     except Exception as exc:  # noqa: BLE001 - report, then exit non-zero
         ctx.log.error("stage failed: %s", exc)

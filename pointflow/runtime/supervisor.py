@@ -8,12 +8,14 @@ control endpoint and from their exit codes, restarts a dead or hung stage with b
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import multiprocessing as mp
 import os
 import shutil
 import signal
+import sys
 import time
 from dataclasses import dataclass, field
 from typing import Any, Optional
@@ -25,6 +27,22 @@ from ..config import PipelineConfig, new_run_dir
 from .stage import RunInfo, stage_main
 
 log = logging.getLogger("pointflow.supervisor")
+
+
+@contextlib.contextmanager
+def _main_module_importable():
+    """``spawn`` re-runs the parent's ``__main__`` file in each child; when that is not a
+    real file (``python -`` or an embedded interpreter) hide it so children start anyway."""
+    main = sys.modules.get("__main__")
+    path = getattr(main, "__file__", None)
+    hide = path is not None and not os.path.exists(path)
+    if hide:
+        del main.__file__
+    try:
+        yield
+    finally:
+        if hide:
+            main.__file__ = path
 
 
 class PipelineFailed(RuntimeError):
@@ -39,7 +57,8 @@ class StageProc:
     process: Optional[mp.process.BaseProcess] = None
     pid: int = 0
     started_ns: int = 0
-    last_seen_ns: int = 0
+    last_seen_ns: int = 0      # any message (heartbeat or pulse)
+    last_progress_ns: int = 0  # the stage's main loop last came round
     ready: bool = False        # has sent its first heartbeat
     restarts: int = 0
     stats: dict[str, Any] = field(default_factory=dict)
@@ -88,6 +107,8 @@ class Supervisor:
         self.collector = None
         self.started = False
         self.failure: Optional[str] = None
+        #: Set when a stage asked for the whole run to end (the window was closed).
+        self.stop_requested: Optional[str] = None
         self.events: list[dict] = []   # restarts, failures, for stats
         self._zctx: Optional[zmq.Context] = None
         self._control: Optional[zmq.Socket] = None
@@ -150,9 +171,10 @@ class Supervisor:
         )
         p = self._mp.Process(target=stage_main, name=f"pointflow-{st.name}",
                              args=(st.name, st.kind, self.cfg.to_dict(), self.cfg.base_dir, info), daemon=True)
-        p.start()
+        with _main_module_importable():
+            p.start()
         st.process, st.pid = p, p.pid
-        st.started_ns = st.last_seen_ns = time.monotonic_ns()
+        st.started_ns = st.last_seen_ns = st.last_progress_ns = time.monotonic_ns()
         st.restart_at_ns = 0
         st.ready = False
         try:
@@ -208,9 +230,16 @@ class Supervisor:
             return
         if st is None or msg.get("pid") != st.pid:
             return  # from an earlier incarnation
-        st.last_seen_ns = time.monotonic_ns()
-        st.ready = True
+        now = time.monotonic_ns()
+        st.last_seen_ns = now
         kind = msg.get("type")
+        if kind == "pulse":
+            if st.ready:
+                age = msg.get("loop_age_ms", 0)
+                st.last_progress_ns = now - int(age * 1e6) if isinstance(age, (int, float)) else st.last_progress_ns
+            return
+        st.ready = True
+        st.last_progress_ns = now
         if kind == "heartbeat":
             st.stats = msg.get("stats", {})
         elif kind == "error":
@@ -218,7 +247,11 @@ class Supervisor:
             log.error("%s reported: %s", st.name, st.last_error.strip().splitlines()[-1] if st.last_error.strip() else "")
         elif kind == "done":
             st.finished = True
-            log.info("%s finished (its input ended)", st.name)
+            if msg.get("stop_pipeline"):
+                self.stop_requested = f"{st.name}: {msg.get('reason', 'asked to stop')}"
+                log.info("stop requested by %s", self.stop_requested)
+            else:
+                log.info("%s finished (its input ended)", st.name)
 
     def _check_stages(self) -> None:
         now = time.monotonic_ns()
@@ -234,16 +267,22 @@ class Supervisor:
                 continue
             code = st.process.exitcode
             limit_ms = sup.hung_after_ms if st.ready else sup.startup_timeout_ms
-            hung = code is None and (now - st.last_seen_ns) > limit_ms * 1e6
+            silent = (now - st.last_seen_ns) > limit_ms * 1e6
+            stalled = st.ready and (now - st.last_progress_ns) > sup.stall_after_ms * 1e6
+            hung = code is None and (silent or stalled)
             if code is None and not hung:
                 continue
-            if code == 0 and st.finished and st.kind == "source":
+            if code == 0 and st.finished and (st.kind == "source" or self.stop_requested):
                 st.process.join(0)
                 st.process = None  # its input ended: nothing to restart
                 continue
             if hung:
-                reason = (f"hung: no heartbeat for {(now - st.last_seen_ns) / 1e6:.0f} ms" if st.ready
-                          else f"did not start: no heartbeat within {limit_ms:.0f} ms")
+                if not st.ready:
+                    reason = f"did not start: no heartbeat within {limit_ms:.0f} ms"
+                elif silent:
+                    reason = f"hung: no heartbeat for {(now - st.last_seen_ns) / 1e6:.0f} ms"
+                else:
+                    reason = f"stuck: its loop has not come round for {(now - st.last_progress_ns) / 1e6:.0f} ms"
                 st.process.kill()
                 st.process.join(2)
             else:
@@ -353,7 +392,22 @@ class Supervisor:
 
     # ------------------------------------------------------------------ stats
     def alive(self) -> bool:
-        return self.started and self.failure is None
+        return self.started and self.failure is None and self.stop_requested is None
+
+    def request(self, msg: dict, timeout_s: float = 10.0) -> dict:
+        """Send a request to the render stage (REQ/REP on ``endpoints.render_commands``)."""
+        if not self.started:
+            raise RuntimeError("pipeline is not running")
+        sock = self._zctx.socket(zmq.REQ)
+        sock.setsockopt(zmq.LINGER, 0)
+        try:
+            sock.connect(self.endpoints.render_commands)
+            sock.send_string(json.dumps(msg))
+            if not sock.poll(int(timeout_s * 1000)):
+                raise TimeoutError(f"render stage did not answer {msg.get('cmd')!r} within {timeout_s} s")
+            return json.loads(sock.recv())
+        finally:
+            sock.close()
 
     def stats(self) -> dict[str, Any]:
         if not self.started and getattr(self, "final_stats", None):

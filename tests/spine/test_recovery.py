@@ -68,3 +68,23 @@ def test_restart_limit_stops_the_pipeline(tmp_path):
         stats = pipe.stop()
     assert [e["action"] for e in stats["events"]] == ["restart", "stop"]
     assert_segments_gone(stats)
+
+
+def test_a_frozen_stage_is_detected_and_restarted(tmp_path):
+    """SIGSTOP freezes a stage: no heartbeat, no pulse. The supervisor kills it after
+    ``hung_after_ms`` and restarts it; the run goes on."""
+    cfg = small_config(supervisor={"max_restarts": 1, "restart_backoff_ms": 50, "hung_after_ms": 800})
+    with Pipeline.from_dict(cfg, out_dir=str(tmp_path)) as pipe:
+        pipe.wait(60, until=lambda: pipe.stats()["frames"] >= 2)
+        old = pipe.stats()["stages"]["ingest"]["pid"]
+        os.kill(old, signal.SIGSTOP)
+        pipe.wait(20, until=lambda: pipe.stats()["stages"]["ingest"]["pid"] != old
+                  and pipe.stats()["stages"]["ingest"]["alive"])
+        n0 = pipe.stats()["stages"]["ingest"]["points_in"]
+        pipe.wait(20, until=lambda: pipe.stats()["stages"]["ingest"]["points_in"] > n0)
+        st = pipe.stats()
+    ev = st["events"][0]
+    assert ev["stage"] == "ingest" and ev["action"] == "restart" and ev["reason"].startswith("hung")
+    assert st["stages"]["ingest"]["points_in"] > n0, "ingest did not resume"
+    assert_gone([old])
+    assert_segments_gone(pipe.stats())
