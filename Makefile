@@ -11,7 +11,7 @@ export XDG_RUNTIME_DIR ?= /tmp/pointflow-xdg-$(shell id -u)
 
 $(STAMP): pyproject.toml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
-	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -m pip install -q --upgrade pip setuptools wheel
 	$(BIN)/python -m pip install -q -e '.[test]'
 	@touch $@
 
