@@ -263,6 +263,7 @@ def main() -> None:
     run_dir = new_run_dir()
     ing = _IngestRun(cap)
     try:
+        ing.measure(10_000, 2 * cap // 10_000)  # warm-up: every ring page touched once
         for n in SIZES:
             count = max(20, args.points // n)
             med = {}

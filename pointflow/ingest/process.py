@@ -111,26 +111,28 @@ class Ingestor:
             if len(frames) == 1:
                 buf = frames[0].buffer if hasattr(frames[0], "buffer") else frames[0]
                 chunk = parse_json_chunk(buf, self.max_chunk_points)
-            else:
-                chunk = wire.decode(frames, self.max_chunk_points)
-            chunk.t_recv_ns = chunk.t_recv_ns or t0
+                return self.add_chunk(chunk, t0)
+            # wire.decode already checks counts, shapes, dtypes and the size limit
+            chunk = wire.decode(frames, self.max_chunk_points)
         except ChunkError as exc:
             self.reject(exc.reason, str(exc))
             return False
         except Exception as exc:  # noqa: BLE001 - a decoder bug must not kill the stage
             self.reject("decode_error", f"{type(exc).__name__}: {exc}")
             return False
-        return self.add_chunk(chunk, t0)
+        return self.add_chunk(chunk, t0, validated=True)
 
     def reject(self, reason: str, message: str) -> None:
         self.rejected[reason] += 1
         self._warn(reason, message)
 
-    def add_chunk(self, chunk: PointChunk, t0_ns: int | None = None) -> bool:
+    def add_chunk(self, chunk: PointChunk, t0_ns: int | None = None, validated: bool = False) -> bool:
         """Validate and convert a decoded chunk, then queue it. False when rejected."""
         t0 = t0_ns or time.monotonic_ns()
+        chunk.t_recv_ns = chunk.t_recv_ns or t0
         try:
-            chunk.validate(self.max_chunk_points)
+            if not validated:
+                chunk.validate(self.max_chunk_points)
             pos, chans = self._convert(chunk)
         except ChunkError as exc:
             self.reject(exc.reason, f"source {chunk.source_id!r} seq {chunk.seq}: {exc}")
@@ -138,7 +140,9 @@ class Ingestor:
         self.chunks_accepted += 1
         n = chunk.n
         self.counters.points_in += n
-        if n:
+        # fast path: one contiguous pass (a NaN/Inf anywhere makes the sum non-finite; a
+        # finite overflow only sends us to the exact per-row check)
+        if n and not np.isfinite(pos.sum(dtype=np.float64)):
             fin = np.isfinite(pos).all(axis=1)
             bad = n - int(np.count_nonzero(fin))
             if bad:
@@ -210,7 +214,9 @@ class Ingestor:
     def _enqueue(self, pos: np.ndarray, chans: dict[str, np.ndarray], trace: int) -> None:
         n = pos.shape[0]
         last = self.queue[-1] if self.queue else None
-        if (last is None or last.n + n > self.coalesce_points
+        # Only small chunks are coalesced: for big ones the copy costs more than the push saved.
+        if (last is None or last.n + n > self.coalesce_points or 2 * n >= self.coalesce_points
+                or 2 * last.n >= self.coalesce_points
                 or last.channels and last.channels[-1].keys() != chans.keys()
                 or last.positions[-1].dtype != pos.dtype):
             last = _Batch()
