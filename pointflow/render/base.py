@@ -6,6 +6,12 @@ a :class:`~pointflow.render.camera.Camera`. Rasterisation rules shared by all ti
 a square point of size s px centred at (px, py) covers the pixels whose centres lie in
 [px - s/2, px + s/2) x [py - s/2, py + s/2); a round point covers those whose centre is
 within s/2 of (px, py) (``<=``); nearer depth wins, ties go to the lower logical index.
+World-size points are converted to pixels and clamped to [1, 4096] px. The LOD stride
+keeps logical indices divisible by it. Importance sampling keeps a point when
+``pcg_hash(slot, seed) / 2**32 <= p`` with p the importance normalised over its range
+(p = 1 for a degenerate range); a budget b below the survivors n thins them by
+``max(b - 3*sqrt(b), b/2) / n`` and then keeps at most b. The auto colour range is taken
+over occupied slots with finite positions. Reference implementation: ``cpu.py``.
 """
 from __future__ import annotations
 
