@@ -281,33 +281,44 @@ class SyntheticTransport(Transport):
         p = self.prims
         sel = _in_sector(*_ang_extent(self._box_c[:, 0], self._box_c[:, 1], self._box_r, s[0], s[1]), a0, a1)
         mv_min, mv_max = self._movers_at(t)
+        if len(mv_min):  # moving cars: culled like the static boxes
+            mc = (mv_min + mv_max) / 2
+            msel = _in_sector(*_ang_extent(mc[:, 0], mc[:, 1], np.full(len(mc), 2.5), s[0], s[1]), a0, a1)
+            mv_min, mv_max = mv_min[msel], mv_max[msel]
         bmin = np.concatenate([p.box_min[sel], mv_min])
         bmax = np.concatenate([p.box_max[sel], mv_max])
         brefl = np.concatenate([p.box_refl[sel], np.full(len(mv_min), 0.8)])
         bcls = np.concatenate([p.box_cls[sel], np.full(len(mv_min), C_OTHER, np.uint8)])
         bwin = np.concatenate([p.box_window[sel], np.zeros(len(mv_min), bool)])
         if len(bmin):
+            # slab test per axis on (M, B) arrays (reductions over a length-3 axis are slow)
             with np.errstate(divide="ignore", invalid="ignore"):
                 inv = 1.0 / np.where(np.abs(d) < 1e-12, 1e-12, d)
-                t1 = (bmin[None, :, :] - s) * inv[:, None, :]
-                t2 = (bmax[None, :, :] - s) * inv[:, None, :]
-            tmin = np.minimum(t1, t2)
-            tnear = tmin.max(axis=2)
-            tfar = np.maximum(t1, t2).min(axis=2)
+                tmins, tnear, tfar = [], None, None
+                for k in range(3):
+                    t1 = (bmin[:, k] - s[k]) * inv[:, k:k + 1]
+                    t2 = (bmax[:, k] - s[k]) * inv[:, k:k + 1]
+                    lo, hi = np.minimum(t1, t2), np.maximum(t1, t2)
+                    tmins.append(lo)
+                    tnear = lo if tnear is None else np.maximum(tnear, lo)
+                    tfar = hi if tfar is None else np.minimum(tfar, hi)
             ok = (tnear <= tfar) & (tnear > 0)
             tb = np.where(ok, tnear, np.inf)
             j = tb.argmin(axis=1)
             tj = tb[np.arange(M), j]
             hit = tj < best
             if hit.any():
-                best[hit] = tj[hit]
-                ax = tmin[hit, j[hit]].argmax(axis=1)
-                nrm = np.zeros((int(hit.sum()), 3))
-                nrm[np.arange(nrm.shape[0]), ax] = -np.sign(d[hit, ax])
-                normal[hit] = nrm
-                refl[hit] = brefl[j[hit]]
-                cls[hit] = bcls[j[hit]]
-                window[hit] = bwin[j[hit]]
+                hi_idx = np.flatnonzero(hit)
+                jh = j[hi_idx]
+                best[hi_idx] = tj[hi_idx]
+                # the face hit is the axis whose entry time is the latest
+                ax = np.argmax(np.stack([tm[hi_idx, jh] for tm in tmins], axis=1), axis=1)
+                nrm = np.zeros((hi_idx.size, 3))
+                nrm[np.arange(hi_idx.size), ax] = -np.sign(d[hi_idx, ax])
+                normal[hi_idx] = nrm
+                refl[hi_idx] = brefl[jh]
+                cls[hi_idx] = bcls[jh]
+                window[hi_idx] = bwin[jh]
 
         # vertical cylinders (trunks, lamp posts)
         sel = _in_sector(*_ang_extent(p.cyl[:, 0], p.cyl[:, 1], p.cyl[:, 2], s[0], s[1]), a0, a1)
@@ -341,9 +352,11 @@ class SyntheticTransport(Transport):
             e = p.ell[sel]
             scale = np.stack([e[:, 3], e[:, 3], e[:, 4]], axis=1)  # (E,3)
             oc = (s - e[:, :3]) / scale  # (E,3)
-            dd = d[:, None, :] / scale[None]  # (M,E,3)
-            a = (dd ** 2).sum(axis=2)
-            b = 2 * (dd * oc[None]).sum(axis=2)
+            a = b = 0.0
+            for k in range(3):  # per axis on (M, E) arrays
+                ddk = d[:, k:k + 1] / scale[:, k]
+                a = a + ddk * ddk
+                b = b + 2 * ddk * oc[:, k]
             cc = (oc ** 2).sum(axis=1) - 1
             disc = b * b - 4 * a * cc
             sq = np.sqrt(np.maximum(disc, 0))
