@@ -5,8 +5,13 @@
    (``send_to_frame`` in the profile; ``end_to_end`` also counts the transport's own time).
    Target (issue 5): p99 <= one tick period + the frame's render time + 5 ms; the bound is
    computed from the same run (frame time = ``frame_done`` span duration).
-2. Tracing overhead: the same source unpaced (``realtime: false``) pushing as fast as the
-   pipeline takes it, tracing off vs on, alternated; throughput = points through ingest per s.
+2. Tracing overhead, two ways:
+   * hot path (controlled): the ingest stage's per-chunk work (``wire.decode`` of a
+     10k-point chunk + ``PointRing.push``) with the ingest's two span records sent through a
+     real ``SpanEmitter`` → ZeroMQ → ``SpanCollector``, vs the same with tracing disabled;
+     blocks alternated (ABAB) and medians compared, so machine noise hits both alike;
+   * whole pipeline: the source unpaced (``realtime: false``), tracing off vs on, alternated,
+     points through ingest per second after a warm-up (noisy on a shared machine).
 
     XDG_RUNTIME_DIR=/tmp/xdg .venv/bin/python bench/bench_latency.py [--seconds 10] [--backend auto]
 """
@@ -31,7 +36,7 @@ def latency_config(backend: str, size: list[int], ring: int) -> dict:
     return {
         "name": "bench-latency",
         "source": {"transport": "synthetic", "options": {"scan_hz": 10, "points_per_scan": 100_000,
-                                                         "chunks_per_scan": 10, "cache_scans": 20}},
+                                                         "chunks_per_scan": 10, "cache_scans": 3}},
         "ring": {"max_points": ring},
         "cadence": {"target_hz": 60},
         "render": {"backend": backend, "size": size, "output": {"dir": None}},
@@ -59,7 +64,7 @@ def run_latency(seconds: float, backend: str, size: list[int], ring: int, out_di
     stats = pipe.run(seconds)
     if stats.get("failure"):
         raise SystemExit(f"latency pipeline failed: {stats['failure']}")
-    prof = build_profile(pipe.collector, stats)
+    prof = build_profile(pipe.collector, stats, skip=100)  # ~1 s of chunks at each end
     print(format_table(prof))
     s2f = prof.get("send_to_frame") or {}
     frame = prof["stages"].get("frame_done", {}).get("duration", {})
@@ -78,13 +83,95 @@ def run_latency(seconds: float, backend: str, size: list[int], ring: int, out_di
     }
 
 
-def run_throughput(seconds: float, tracing: bool) -> float:
+def run_throughput(seconds: float, tracing: bool, warmup_s: float = 3.0) -> float:
+    """Points/s through ingest, measured between two stats samples after a warm-up (the
+    source computes its cached scans first)."""
     pipe = Pipeline.from_dict(throughput_config(tracing), out_dir=tempfile.mkdtemp(prefix="pf-bench-"))
-    stats = pipe.run(seconds)
+    pipe.start()
+    try:
+        pipe.wait(warmup_s)
+        s0 = pipe.stats()
+        pipe.wait(seconds)
+        s1 = pipe.stats()
+    finally:
+        stats = pipe.stop()
     if stats.get("failure"):
         raise SystemExit(f"throughput pipeline failed: {stats['failure']}")
-    ing = stats["stages"]["ingest"]
-    return ing.get("points_in", 0) / max(stats.get("elapsed_s") or seconds, 1e-9)
+    n = s1["stages"]["ingest"]["points_in"] - s0["stages"]["ingest"]["points_in"]
+    return n / max(s1["elapsed_s"] - s0["elapsed_s"], 1e-9)
+
+
+def tracing_hot_path(blocks: int = 12, chunks_per_block: int = 100, n: int = 10_000) -> dict:
+    """Per-chunk ingest work with tracing on vs off (alternating blocks); points/s medians."""
+    import time
+
+    import numpy as np
+    import zmq
+
+    from pointflow import wire
+    from pointflow.chunk import PointChunk
+    from pointflow.profiling.collector import SpanCollector
+    from pointflow.profiling.spans import SpanEmitter
+    from pointflow.ring import PointRing
+
+    rng = np.random.default_rng(0)
+    chunk = PointChunk(positions=rng.uniform(-50, 50, (n, 3)), channels={"intensity": rng.random(n).astype(np.float32)},
+                       source_id="bench", seq=0, trace_id=1)
+    frames = [bytes(memoryview(f)) for f in wire.encode(chunk)]
+    ring = PointRing(1_000_000, channels=["intensity"])
+    z = zmq.Context()
+    ep = f"ipc://{tempfile.mkdtemp(prefix='pf-bench-')}/trace.sock"
+    coll = SpanCollector(z, ep)
+    on_em = SpanEmitter(z, ep, "ingest", batch=256, flush_ms=100, enabled=True)
+    off_em = SpanEmitter(z, ep, "ingest", enabled=False)
+    rates: dict[bool, list[float]] = {True: [], False: []}
+    tid = 1
+    try:
+        for b in range(blocks * 2):
+            traced = b % 2 == 1
+            em = on_em if traced else off_em
+            t_start = time.perf_counter()
+            for _ in range(chunks_per_block):
+                t0 = time.monotonic_ns()
+                c = wire.decode(frames)
+                t1 = time.monotonic_ns()
+                em.record(tid, "ingest_packed", t0, t1, n)
+                ring.push(c.positions, trace_id=tid, intensity=c.channels["intensity"])
+                em.record(tid, "ring_committed", t1, time.monotonic_ns(), n)
+                em.maybe_flush()
+                tid += 1
+            rates[traced].append(chunks_per_block * n / (time.perf_counter() - t_start))
+            coll.poll(0)  # the collector runs in the supervisor, not in the timed path
+        on_em.flush()
+        time.sleep(0.1)
+        coll.poll(100)
+        got = coll.received
+        # incremental cost of one span record (batching, header, send included): the same
+        # loop against an enabled and a disabled emitter, best of 7 each
+        k = 20_000
+
+        def loop(em) -> float:
+            rec = em.record
+            t_start = time.perf_counter()
+            for _ in range(k):
+                rec(123456789, "ingest_packed", 1000, 2000, n)
+            em.flush()
+            return (time.perf_counter() - t_start) / k
+
+        best_on = min(loop(on_em) for _ in range(7))
+        coll.poll(0)
+        best_off = min(loop(off_em) for _ in range(7))
+        span_us = max(0.0, best_on - best_off) * 1e6
+    finally:
+        on_em.close(); off_em.close(); coll.close(); z.term()
+        ring.close(); ring.unlink()
+    med_on, med_off = statistics.median(rates[True]), statistics.median(rates[False])
+    chunk_us = n / med_off * 1e6
+    return {"span_record_us": round(span_us, 3), "chunk_work_us": round(chunk_us, 2),
+            "estimated_overhead_pct": round(100 * 2 * span_us / chunk_us, 3),"chunk_points": n, "blocks_each": blocks, "chunks_per_block": chunks_per_block,
+            "median_off": med_off, "median_on": med_on, "ratio_on_off": round(med_on / med_off, 4),
+            "overhead_pct": round(100 * (med_off - med_on) / med_off, 2), "spans_collected": got,
+            "spans_expected": blocks * chunks_per_block * 2}
 
 
 def main() -> None:
@@ -101,14 +188,22 @@ def main() -> None:
     out_dir = tempfile.mkdtemp(prefix="pf-bench-lat-")
     print("== end-to-end latency (100k-point scans at 10 Hz, cadence 60 Hz)")
     lat = run_latency(args.seconds, args.backend, size, args.ring, out_dir)
-    print("\n== tracing overhead (unpaced source, ingest throughput)")
+    print("\n== tracing overhead, hot path (ingest per-chunk work, spans through ZeroMQ to a collector)")
+    hot = tracing_hot_path()
+    print(f"  off {hot['median_off'] / 1e6:.2f} M points/s, on {hot['median_on'] / 1e6:.2f} M points/s "
+          f"(ratio {hot['ratio_on_off']:.4f}, overhead {hot['overhead_pct']:.2f} %), "
+          f"{hot['spans_collected']}/{hot['spans_expected']} spans collected")
+    print(f"  one span record costs {hot['span_record_us']:.2f} us; ingest work per 10k-point chunk "
+          f"{hot['chunk_work_us']:.0f} us -> 2 spans/chunk = {hot['estimated_overhead_pct']:.2f} % of the work")
+    print("\n== tracing overhead, whole pipeline (unpaced source, ingest throughput)")
     on, off = [], []
     for r in range(args.tp_rounds):
         for tracing in (False, True):
             pts = run_throughput(args.tp_seconds, tracing)
             (on if tracing else off).append(pts)
             print(f"  round {r + 1} tracing {'on ' if tracing else 'off'}: {pts / 1e6:6.2f} M points/s", flush=True)
-    med_on, med_off = statistics.median(on), statistics.median(off)
+    med_on = statistics.median(on) if on else 0.0
+    med_off = statistics.median(off) if off else 0.0
     overhead = 100.0 * (med_off - med_on) / med_off if med_off else 0.0
     s = lat["send_to_frame_ms"]
     print()
@@ -121,8 +216,12 @@ def main() -> None:
     print(f"{'frame time p50 / p99 (ms)':<40}{(lat['frame_ms'].get('p50') or 0):>7.2f} / {(lat['frame_ms'].get('p99') or 0):.2f}")
     print(f"{'throughput tracing off (Mpts/s, median)':<40}{med_off / 1e6:>14.2f}")
     print(f"{'throughput tracing on  (Mpts/s, median)':<40}{med_on / 1e6:>14.2f}")
-    print(f"{'tracing overhead (%)':<40}{overhead:>14.2f}")
-    res = {"benchmark": "latency", "latency": lat,
+    print(f"{'tracing overhead, pipeline (%)':<40}{overhead:>14.2f}")
+    print(f"{'hot path tracing off (Mpts/s, median)':<40}{hot['median_off'] / 1e6:>14.2f}")
+    print(f"{'hot path tracing on  (Mpts/s, median)':<40}{hot['median_on'] / 1e6:>14.2f}")
+    print(f"{'tracing overhead, hot path (%)':<40}{hot['overhead_pct']:>14.2f}")
+    print(f"{'tracing cost from span cost (%)':<40}{hot['estimated_overhead_pct']:>14.3f}")
+    res = {"benchmark": "latency", "latency": lat, "tracing_hot_path": hot,
            "tracing": {"seconds_each": args.tp_seconds, "off_points_per_s": off, "on_points_per_s": on,
                        "median_off": med_off, "median_on": med_on, "ratio_on_off": round(med_on / med_off, 4)
                        if med_off else None, "overhead_pct": round(overhead, 2)},

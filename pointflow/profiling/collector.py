@@ -14,7 +14,7 @@ from typing import Optional
 import numpy as np
 import zmq
 
-from .spans import EVENTS
+from .spans import EVENTS, SPAN_FIELDS
 
 log = logging.getLogger("pointflow.profiling")
 
@@ -88,13 +88,16 @@ class SpanCollector:
             return 0
         while True:
             try:
-                msg = self._sock.recv(zmq.NOBLOCK)
+                frames = self._sock.recv_multipart(zmq.NOBLOCK)
             except zmq.Again:
                 return added
-            added += self.add_batch(msg)
+            added += self.add_batch(*frames)
 
-    def add_batch(self, msg: bytes) -> int:
-        """Parse one batch (see :mod:`pointflow.profiling.spans`) and store it."""
+    def add_batch(self, msg: bytes, body: Optional[bytes] = None, *extra: bytes) -> int:
+        """Parse one batch (see :mod:`pointflow.profiling.spans`: v2 = JSON header + raw
+        uint64 body, v1 = one JSON frame) and store it; returns the spans added."""
+        if body is not None or extra:
+            return self._add_binary(msg, body, extra)
         self.batches += 1
         try:
             d = json.loads(msg)
@@ -126,6 +129,42 @@ class SpanCollector:
         self._append(tid, ev, st, pid, t0, t1, n)
         self.received += len(ok)
         return len(ok)
+
+    def _bad(self, what: str) -> int:
+        self.bad_batches += 1
+        if self.bad_batches <= 10:
+            log.warning("span collector: bad batch on %s dropped: %s", self.endpoint, what)
+        return 0
+
+    def _add_binary(self, head: bytes, body: Optional[bytes], extra) -> int:
+        self.batches += 1
+        if extra or body is None:
+            return self._bad(f"expected 2 frames, got {2 + len(extra) if body is not None else 1}")
+        try:
+            d = json.loads(head)
+            stage, pid, events = str(d["stage"]), int(d["pid"]), d["events"]
+            if not isinstance(events, list) or not all(isinstance(e, str) for e in events):
+                raise TypeError("'events' is not a list of names")
+        except (ValueError, KeyError, TypeError, UnicodeDecodeError) as exc:
+            return self._bad(f"header: {exc}")
+        body = bytes(body)
+        if len(body) % (8 * SPAN_FIELDS):
+            return self._bad(f"body of {len(body)} bytes is not a whole number of {8 * SPAN_FIELDS}-byte spans")
+        a = np.frombuffer(body, dtype="<u8").reshape(-1, SPAN_FIELDS)
+        if a.size == 0:
+            return 0
+        ev_idx = a[:, 1]
+        ok = ev_idx < len(events)
+        self.bad_spans += int((~ok).sum())
+        a = a[ok]
+        if a.size == 0:
+            return 0
+        remap = np.array([self._event(e) for e in events], dtype=np.int16)
+        self.processes[pid] = stage
+        self._append(a[:, 0].copy(), remap[a[:, 1].astype(np.intp)], self._stage(stage), pid,
+                     a[:, 2].astype(np.int64), a[:, 3].astype(np.int64), a[:, 4].astype(np.int64))
+        self.received += int(a.shape[0])
+        return int(a.shape[0])
 
     def _event(self, name: str) -> int:
         i = self._event_idx.get(name)

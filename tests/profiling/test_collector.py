@@ -72,3 +72,40 @@ def test_bad_batches_counted(msg):
     ok = {"stage": "s", "pid": 2, "spans": [[5, "ev", 1, 2, 3], [1, 2], "x"]}
     assert coll.add_batch(json.dumps(ok).encode()) == 1
     assert coll.bad_spans == 2 and coll.table().event_names[coll.table().event[0]] == "ev"
+
+
+def test_binary_batches_and_bad_binary_batches():
+    z = zmq.Context()
+    coll = SpanCollector(z, "inproc://t")
+    em = SpanEmitter(z, "inproc://t", "render", batch=3)
+    em.record(2**63 + 5, "frame_done", 10, 20, 7)      # full 64-bit trace id survives
+    em.record(9, "custom_event", 30, 40, 0)             # events beyond EVENTS are named in the header
+    em.record(0, "frame_done", 1, 2, 3)                 # trace id 0 = untraced: not recorded
+    em.flush()
+    assert coll.poll(1000) == 2
+    t = coll.table()
+    assert t.trace_id.tolist() == [2**63 + 5, 9]
+    assert [t.event_names[e] for e in t.event] == ["frame_done", "custom_event"]
+    assert t.t0_ns.tolist() == [10, 30] and t.t1_ns.tolist() == [20, 40] and t.n.tolist() == [7, 0]
+    head = json.dumps({"v": 2, "stage": "x", "pid": 1, "events": ["a"]}).encode()
+    assert coll.add_batch(head, b"\0" * 39) == 0                               # ragged body
+    assert coll.add_batch(b"{", b"\0" * 40) == 0                               # bad header
+    assert coll.add_batch(head, b"\0" * 40, b"extra") == 0                     # 3 frames
+    body = np.array([[1, 0, 1, 2, 3], [2, 5, 1, 2, 3]], dtype="<u8").tobytes()  # event 5 unknown
+    assert coll.add_batch(head, body) == 1
+    assert coll.bad_batches == 3 and coll.bad_spans == 1
+    em.close(); coll.close(); z.term()
+
+
+def test_emitter_clamps_bad_values_without_misaligning():
+    z = zmq.Context()
+    coll = SpanCollector(z, "inproc://c")
+    em = SpanEmitter(z, "inproc://c", "ingest", batch=100)
+    em.record(1, "ingest_packed", 5, 6, 1)
+    em.record(2, "ingest_packed", 7, -1, 2)   # negative end: clamped to 0, row stays aligned
+    em.record(3, "ingest_packed", 8, 9, 3)
+    em.close()
+    assert coll.poll(1000) == 3
+    t = coll.table()
+    assert t.trace_id.tolist() == [1, 2, 3] and t.t1_ns.tolist() == [6, 0, 9] and t.n.tolist() == [1, 2, 3]
+    coll.close(); z.term()
