@@ -47,6 +47,8 @@ class _Batch:
     channels: list[dict[str, np.ndarray]] = field(default_factory=list)
     traces: list[int] = field(default_factory=list)
     n: int = 0
+    #: Holds one big chunk: pushed as is, nothing added to it.
+    solo: bool = False
 
 
 class RateLimitedLog:
@@ -215,11 +217,11 @@ class Ingestor:
         n = pos.shape[0]
         last = self.queue[-1] if self.queue else None
         # Only small chunks are coalesced: for big ones the copy costs more than the push saved.
-        if (last is None or last.n + n > self.coalesce_points or 2 * n >= self.coalesce_points
-                or 2 * last.n >= self.coalesce_points
+        big = 2 * n >= self.coalesce_points
+        if (big or last is None or last.solo or last.n + n > self.coalesce_points
                 or last.channels and last.channels[-1].keys() != chans.keys()
                 or last.positions[-1].dtype != pos.dtype):
-            last = _Batch()
+            last = _Batch(solo=big)
             self.queue.append(last)
             while len(self.queue) > self.queue_max_batches:
                 old = self.queue.popleft()
