@@ -60,6 +60,15 @@ class Rig:
         assert got is not None, "no handoff arrived"
         return got
 
+    def release(self):
+        """Renderer releases its slab; wait until the cadence has seen it."""
+        seq = self.reader._held[1] if self.reader._held else None
+        self.reader.release()
+        deadline = time.monotonic() + 2
+        while seq is not None and self.cad.done_seq < seq and time.monotonic() < deadline:
+            self.cad.drain(0.01)
+        assert seq is None or self.cad.done_seq >= seq, "release did not arrive"
+
     def send(self, frames):
         self.rpush.send_multipart(frames)
         deadline = time.monotonic() + 2
@@ -101,7 +110,7 @@ def test_publishes_budget_and_spans_for_new_trace_ids_once(rig):
     assert h and h.extra["budget"] == rig.decision.point_budget == min(350_000, 4 * 320 * 240, 5000)
     got, view = rig.recv()
     assert got.seq == h.seq and sorted(got.trace_ids) == [11, 12] and view.size == 150
-    rig.reader.release()
+    rig.release()
     rig.push(10, 13)
     h2 = rig.tick()
     assert h2.trace_ids == [13]
@@ -148,7 +157,7 @@ def test_latest_only_waits_for_the_renderer_then_sends_fresh_data(rig):
         assert rig.tick() is False
     assert rig.cad.stats()["skipped"] == {"renderer_pending": 3}
     rig.push(10, 3)
-    rig.reader.release()                      # frame done
+    rig.release()                             # frame done
     rig.send(encode_frame_time(30.0, h1.seq))
     h2 = rig.tick()
     assert h2 and sorted(h2.trace_ids) == [2, 3]   # the newest data, sent when the renderer is ready
