@@ -9,6 +9,7 @@ import shutil
 import time
 from typing import Any
 
+import numpy as np
 import zmq
 
 from pointflow.config import load_config, new_run_dir
@@ -22,6 +23,15 @@ def base_config(**ring) -> dict:
            "render": {"backend": "cpu", "color_by": "intensity", "output": {"dir": None}},
            "supervisor": {"heartbeat_ms": 50}}
     return cfg
+
+
+def decode_spans(frames) -> list:
+    """[trace_id, event, t0, t1, n] rows from a span batch (v1 JSON or v2 binary)."""
+    head = json.loads(frames[0])
+    if head.get("v") == 2:
+        rows = np.frombuffer(frames[1], "<u8").reshape(-1, 5)
+        return [[int(t), head["events"][int(e)], int(a), int(b), int(n)] for t, e, a, b, n in rows]
+    return head["spans"]
 
 
 class IngestStage:
@@ -67,9 +77,10 @@ class IngestStage:
                     raise AssertionError("ingest stage failed:\n" + m["message"])
         while True:
             try:
-                self.spans.extend(json.loads(self.trace.recv(zmq.NOBLOCK))["spans"])
+                frames = self.trace.recv_multipart(zmq.NOBLOCK)
             except zmq.Again:
                 break
+            self.spans.extend(decode_spans(frames))
 
     def wait_stats(self, pred, timeout: float = 60.0) -> dict:
         end = time.monotonic() + timeout
