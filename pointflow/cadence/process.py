@@ -28,9 +28,10 @@ from .ticker import Clock, Sleep, Tick, Ticker
 
 #: Smoothing factor of the renderer frame-time EMA (adaptive mode).
 FRAME_EMA_ALPHA = 0.15
-#: latest_only: publish anyway when the renderer has shown no progress for this long
-#: (a renderer that keeps its slab instead of releasing it must not starve).
+#: latest_only: publish anyway when the renderer has shown no progress for this long, or
+#: for 3 frame times if that is longer (a renderer that keeps its slab must not starve).
 STALL_S = 0.25
+STALL_FRAMES = 3.0
 _RELEASE_TAG = b"pf.ring.release/1"  # pointflow.ring.handoff.RELEASE_TAG: [tag, int64 (slab, seq)]
 _WINDOW = 1024  # ticks kept for the jitter / rate statistics
 
@@ -129,6 +130,11 @@ class Cadence:
             self._done(msg.seq)
             self.on_frame_time(msg.frame_ms)
 
+    @property
+    def stall_s(self) -> float:
+        ema = self.frame_ema_ms or 0.0
+        return max(STALL_S, STALL_FRAMES * ema / 1000.0)
+
     def _done(self, seq: int) -> None:
         if seq > self.done_seq:
             self.done_seq = seq
@@ -191,7 +197,7 @@ class Cadence:
             self.skipped["late"] += tick.missed
         self.drain(0)
         if (self.latest_only and self.last_pub_seq > self.done_seq
-                and self.clock() - self._t_progress < STALL_S):
+                and self.clock() - self._t_progress < self.stall_s):
             self.skipped["renderer_pending"] += 1
             return False
         t0 = time.monotonic_ns()

@@ -167,8 +167,16 @@ def test_latest_only_waits_for_the_renderer_then_sends_fresh_data(rig):
 
     rig.push(10, 4)
     assert rig.tick() is False
+    assert rig.cad.stall_s == STALL_S                    # 3 x 30 ms frames < 250 ms
     h3 = rig.tick(advance=STALL_S + 0.01)
     assert h3 and h3.trace_ids == [4]
+    # a slow renderer (frames of 400 ms) is given 3 frame times before the cadence gives up
+    rig.recv()
+    rig.cad.frame_ema_ms = 400.0
+    assert rig.cad.stall_s == pytest.approx(1.2)
+    rig.push(10, 5)
+    assert rig.tick(advance=0.5) is False
+    assert rig.tick(advance=1.25)   # 1.25 s after the last progress (the release of h2)
 
 
 def test_late_ticks_skipped_and_counted(rig):
