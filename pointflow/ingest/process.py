@@ -311,6 +311,9 @@ def main(ctx) -> None:
     poller.register(sock, zmq.POLLIN)
     # Drain at most this many messages before pushing, so a burst cannot starve the ring.
     burst = max(1, icfg.queue_max_batches)
+    # Zero-copy receive pays off only for big frames; small ones are cheaper as bytes. The
+    # choice follows the size of the previous message.
+    copy = True
     try:
         while ctx.running:
             ctx.beat()
@@ -319,9 +322,11 @@ def main(ctx) -> None:
                 continue
             for _ in range(burst):
                 try:
-                    frames = sock.recv_multipart(zmq.NOBLOCK, copy=False)
+                    frames = sock.recv_multipart(zmq.NOBLOCK, copy=copy)
                 except zmq.Again:
                     break
+                big = frames[-1] if len(frames) < 2 else frames[1]
+                copy = (len(big) if copy else big.buffer.nbytes) < wire.ZERO_COPY_MIN_BYTES
                 ing.receive(frames)
             ing.flush()
         # stopping: take what already arrived, so nothing received goes unaccounted
