@@ -54,7 +54,7 @@ def test_plugin_from_dotted_path(installed_plugin, tmp_path):
 
 
 def test_plugin_option_rejection_names_the_key(installed_plugin):
-    with pytest.raises(ConfigError, match=r"sources\[0\]\.options\.radius.*must be > 0"):
+    with pytest.raises(ConfigError, match=r"sources\[0\]\.options\.radius.*must be > 0.*transport 'helix'"):
         load_config({"source": {"transport": "helix", "options": {"radius": -1}}})
     with pytest.raises(ConfigError, match=r"sources\[0\]\.options\.colour.*unknown key"):
         load_config({"source": {"transport": "helix", "options": {"colour": 1}}})

@@ -43,10 +43,16 @@ class Transport(ABC):
 
         Returns a plain dict (picklable) with defaults filled in. Override
         :meth:`check_options` for checks beyond types."""
-        from ...config import _load_dataclass
+        from ...config import ConfigError, _load_dataclass
 
-        obj = _load_dataclass(cls.options_schema, options if options is not None else {}, path)
-        cls.check_options(obj, path, base_dir)
+        who = f"transport {cls.name or cls.__name__!r} ({cls.__module__}.{cls.__qualname__})"
+        try:
+            obj = _load_dataclass(cls.options_schema, options if options is not None else {}, path)
+            cls.check_options(obj, path, base_dir)
+        except ConfigError as exc:
+            raise ConfigError(exc.path, f"{_msg(exc)} [{who}]") from None
+        except Exception as exc:  # noqa: BLE001 - a plugin's checks can fail in any way
+            raise ConfigError(path, f"{who} failed to check its options: {type(exc).__name__}: {exc}") from None
         return dataclasses.asdict(obj)
 
     @classmethod
@@ -80,3 +86,10 @@ class Transport(ABC):
 
     def close(self) -> None:
         """Release sockets and files. Called on every exit path."""
+
+
+def _msg(exc) -> str:
+    """A ConfigError's message without its ``path: `` prefix."""
+    text = str(exc)
+    prefix = f"{exc.path}: "
+    return text[len(prefix):] if exc.path and text.startswith(prefix) else text
