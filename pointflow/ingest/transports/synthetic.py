@@ -14,8 +14,8 @@ Rays are cast against the analytic primitives with numpy (rays x primitives arra
 the primitives inside the sector's azimuth range), so there is no per-point Python work.
 Rays that hit nothing within ``max_range`` (the sky) give no return, as on a real sensor.
 
-Channels: ``intensity`` (float32, 0..255: reflectance x incidence x range falloff +
-noise), ``classification`` (uint8, LAS codes: 2 ground, 5 vegetation, 6 building,
+Channels: ``intensity`` (float32, 0..255: (reflectance x incidence x range falloff)^0.6
++ noise), ``classification`` (uint8, LAS codes: 2 ground, 5 vegetation, 6 building,
 1 other, 11 road), ``beam`` (uint16 laser index), ``range`` (float32 metres).
 """
 from __future__ import annotations
@@ -434,7 +434,8 @@ class SyntheticTransport(Transport):
             refl[w] = np.where(band, refl[w] * 0.35, refl[w])
         cos_inc = np.abs((normal[keep] * dk).sum(axis=1))
         falloff = 1.0 / (1.0 + (rng_m / (0.6 * o.max_range)) ** 2)
-        inten = 255.0 * refl * (0.35 + 0.65 * cos_inc) * falloff + rng.normal(0, 2.0, rng_m.size)
+        # gamma 0.6 spreads the returns over the 0..255 range, like a sensor's calibrated output
+        inten = 255.0 * (refl * (0.35 + 0.65 * cos_inc) * falloff) ** 0.6 + rng.normal(0, 2.0, rng_m.size)
         out = {
             "positions": pos,
             "intensity": np.clip(inten, 0, 255).astype(np.float32),
