@@ -1,4 +1,4 @@
-"""``pointflow`` command line: run, validate, info, profile, source."""
+"""``pointflow`` command line: run, profile, validate, info, schema."""
 from __future__ import annotations
 
 import argparse

@@ -63,7 +63,8 @@ class SourceConfig:
     transport: str
     name: str = ""
     options: dict[str, Any] = field(default_factory=dict)
-    #: True when the source runs elsewhere (``pointflow source``) and only connects in.
+    #: True when the source runs elsewhere (another program or machine sending the wire
+    #: format to ``endpoints.ingest``); the supervisor does not start it.
     external: bool = False
 
 
@@ -182,7 +183,7 @@ class TracingConfig:
 class SupervisorConfig:
     heartbeat_ms: float = field(default=200.0, metadata=check(_positive))
     #: A stage process silent for this long (no heartbeat or pulse) is considered hung.
-    hung_after_ms: float = field(default=1000.0, metadata=check(_positive))
+    hung_after_ms: float = field(default=800.0, metadata=check(_positive))
     #: A stage whose main loop has not come round for this long is considered stuck
     #: (generous: one frame of a software rasteriser can take a second or more).
     stall_after_ms: float = field(default=30000.0, metadata=check(_positive))

@@ -123,10 +123,10 @@ def main(ctx: StageContext) -> None:
     out_dir = ctx.info.out_dir if ctx.info.out_dir else None
     if out_dir:
         os.makedirs(out_dir, exist_ok=True)
-    frames = 0
+    frames = base = int(ctx.info.extra.get("frames_base", 0))  # PNG numbering survives a restart
     ema = None
     c = ctx.counters
-    c.extra.update(frames=0, tier=renderer.tier, pngs=0, frame_ms_ema=0.0)
+    c.extra.update(frames=0, tier=renderer.tier, pngs=0, frame_ms_ema=0.0, tier_info=renderer.info())
     try:
         while ctx.running:
             ctx.beat()
@@ -166,6 +166,7 @@ def main(ctx: StageContext) -> None:
                 if window is not None:
                     window.renderer = renderer
                 c.extra["tier"] = renderer.tier
+                c.extra["tier_info"] = renderer.info()
                 c.drop("render_error", 1)
                 continue
             t_up = time.monotonic_ns()
@@ -186,7 +187,7 @@ def main(ctx: StageContext) -> None:
             c.points_in += h.count
             if fs.drawn is not None:
                 c.points_out += fs.drawn
-            c.extra.update(frames=frames, frame_ms_ema=round(ema, 3), last_frame_ms=round(ms, 3),
+            c.extra.update(frames=frames - base, frame_ms_ema=round(ema, 3), last_frame_ms=round(ms, 3),
                            uploaded_bytes=c.extra.get("uploaded_bytes", 0) + fs.uploaded_bytes,
                            **{f"tier_{k}_ms": round(v, 3) for k, v in fs.timings_ms.items()})
             _feedback(release, ms, h.seq)

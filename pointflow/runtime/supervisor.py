@@ -84,15 +84,26 @@ def _describe_exit(code: Optional[int]) -> str:
     return f"exited with code {code}"
 
 
+#: Stage stats that are running totals (carried over a restart); everything else is a
+#: gauge and shows the current incarnation's value.
+COUNTERS = ("points_in", "points_out", "frames", "pngs", "uploaded_bytes", "messages_in", "chunks_accepted",
+            "rejected_messages", "ring_evicted", "ring_pushes", "published", "chunks_out", "reconnects")
+COUNTER_MAPS = ("drops", "rejected", "skipped")
+
+
 def _merge_counts(a: dict, b: dict) -> dict:
-    """Add numeric counters of two stats dicts (drops merged per reason)."""
+    """Totals of two incarnations' stats: counters added, per-reason maps merged."""
     out = dict(b)
-    for k in ("points_in", "points_out"):
-        out[k] = int(a.get(k, 0)) + int(b.get(k, 0))
-    drops = dict(a.get("drops", {}))
-    for r, n in b.get("drops", {}).items():
-        drops[r] = drops.get(r, 0) + n
-    out["drops"] = drops
+    for k in COUNTERS:
+        va, vb = a.get(k, 0), b.get(k, 0)
+        if isinstance(va, (int, float)) and isinstance(vb, (int, float)) and (k in a or k in b):
+            out[k] = va + vb
+    for k in COUNTER_MAPS:
+        if isinstance(a.get(k), dict) or isinstance(b.get(k), dict):
+            m = dict(a.get(k) or {})
+            for r, n in (b.get(k) or {}).items():
+                m[r] = m.get(r, 0) + n if isinstance(n, (int, float)) else n
+            out[k] = m
     return out
 
 
@@ -168,6 +179,8 @@ class Supervisor:
             slab_names=tuple(self.slabs.names), out_dir=self.out_dir, supervisor_pid=os.getpid(),
             source_index=st.source_index, restart_count=st.restarts,
             log_level=logging.getLogger("pointflow").getEffectiveLevel() or logging.INFO,
+            # a restarted renderer numbers its frames on from where the last one stopped
+            extra={"frames_base": int((st.carried or {}).get("frames", 0))},
         )
         p = self._mp.Process(target=stage_main, name=f"pointflow-{st.name}",
                              args=(st.name, st.kind, self.cfg.to_dict(), self.cfg.base_dir, info), daemon=True)
