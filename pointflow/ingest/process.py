@@ -35,6 +35,9 @@ from .jsonchunk import parse_json_chunk
 
 #: Per-reason log lines at most this often (seconds).
 LOG_EVERY_S = 5.0
+#: On stop, drain the ingest socket until it is quiet this long, for at most STOP_GRACE_S.
+STOP_QUIET_S = 0.15
+STOP_GRACE_S = 1.5
 #: Adaptive thinning steps: (ring fill fraction, keep every k-th point).
 THINNING = ((0.985, 4), (0.95, 2))
 
@@ -329,13 +332,19 @@ def main(ctx) -> None:
                 copy = (len(big) if copy else big.buffer.nbytes) < wire.ZERO_COPY_MIN_BYTES
                 ing.receive(frames)
             ing.flush()
-        # stopping: take what already arrived, so nothing received goes unaccounted
-        while True:
-            try:
-                frames = sock.recv_multipart(zmq.NOBLOCK, copy=False)
-            except zmq.Again:
-                break
-            ing.receive(frames)
+        # Stopping (all stages get SIGTERM together): keep taking messages until the link
+        # has been quiet for STOP_QUIET_S (at most STOP_GRACE_S), so chunks the sources sent
+        # before they exited still reach the ring and the counts on both sides agree.
+        end = time.monotonic() + STOP_GRACE_S
+        while time.monotonic() < end and poller.poll(int(STOP_QUIET_S * 1000)):
+            for _ in range(burst):
+                try:
+                    frames = sock.recv_multipart(zmq.NOBLOCK, copy=False)
+                except zmq.Again:
+                    break
+                ing.receive(frames)
+            ing.flush()
+            ctx.beat()
         ing.flush()
     finally:
         ctx.counters.extra.update(ing.stats_extra())
