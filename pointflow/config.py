@@ -104,6 +104,9 @@ class PolicyConfig:
 class CadenceConfig:
     target_hz: float = field(default=60.0, metadata=check(_positive))
     adaptive: bool = False
+    #: Hand over a new snapshot only once the renderer has finished the last one, so a slow
+    #: renderer always draws the newest data instead of one queued a frame ago.
+    latest_only: bool = True
 
 
 @dataclass

@@ -103,13 +103,13 @@ def main(ctx: StageContext) -> None:
     release = ctx.zmq.socket(zmq.PUSH)
     release.setsockopt(zmq.LINGER, 200)
     release.connect(ctx.endpoints.release)
-    _announce(release, ctx)
     commands = ctx.zmq.socket(zmq.REP)
     commands.setsockopt(zmq.LINGER, 0)
     commands.bind(ctx.endpoints.render_commands)
     reader = SlabReader(slabs, ready, release)
     renderer = _select(cfg, capacity, channels, ctx.log)
     ctx.log.info("render tier: %s", renderer.info())
+    _announce(release, ctx, renderer)
     cam = CameraController(cfg, *cfg.render.size)
     window = None
     want_window = cfg.render.window
@@ -249,13 +249,23 @@ def _serve_commands(sock, renderer: Renderer, ring, ctx) -> None:
         sock.send_string(json.dumps(rep))
 
 
-def _announce(sock, ctx) -> None:
-    """Tell the cadence a (new) renderer holds no slab."""
-    try:
-        from ..cadence.messages import encode_hello
+def _announce(sock, ctx, renderer: Renderer) -> None:
+    """Tell the cadence a (new) renderer holds no slab, and what GPU it drives (the policy
+    engine caps the budget by the adapter's storage limits and detects the tier from it)."""
+    from ..cadence.messages import encode_hello
 
-        sock.send_multipart(encode_hello(os.getpid(), ctx.info.restart_count), zmq.NOBLOCK)
-    except (ImportError, zmq.Again):
+    gpu = None
+    adapter = getattr(renderer, "adapter", None)
+    if adapter is not None:
+        try:
+            from ..cadence.policy import gpu_info_from_adapter
+
+            gpu = gpu_info_from_adapter(adapter)
+        except Exception as exc:  # noqa: BLE001 - the policy then works from CPU and memory alone
+            ctx.log.warning("could not describe the GPU adapter for the policy engine: %s", exc)
+    try:
+        sock.send_multipart(encode_hello(os.getpid(), ctx.info.restart_count, gpu=gpu), zmq.NOBLOCK)
+    except zmq.Again:
         pass
 
 
