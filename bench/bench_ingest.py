@@ -181,6 +181,12 @@ class _IngestRun:
         self.proc = mp.get_context("spawn").Process(target=stage_main, args=("ingest", "ingest", self.cfg_dict, ROOT, info))
         self.proc.start()
         self.last: dict = {}
+        import psutil
+
+        self.ps = psutil.Process(self.proc.pid)
+        #: points per CPU-second of the ingest process in the last measure() (its own cost,
+        #: independent of how busy the shared machine is)
+        self.cpu_rate = 0.0
 
     def stats(self, timeout_ms=100) -> dict:
         if self.control.poll(timeout_ms):
@@ -203,6 +209,7 @@ class _IngestRun:
         prod.start()
         ready.wait(60)
         time.sleep(0.1)
+        c0 = self.ps.cpu_times()
         go.set()
         # from the start signal to the heartbeat that shows every point accounted for
         t_first = time.perf_counter()
@@ -215,7 +222,9 @@ class _IngestRun:
             if s.get("points_out", 0) + sum(s.get("drops", {}).values()) >= target:
                 t_last = now
                 break
+        c1 = self.ps.cpu_times()
         prod.join()
+        self.cpu_rate = n * count / max(1e-9, (c1.user + c1.system) - (c0.user + c0.system))
         return n * count / (t_last - t_first)
 
     def close(self) -> dict:
@@ -259,29 +268,33 @@ def main() -> None:
     from pointflow.config import new_run_dir
 
     cap = 2_000_000
-    results = {"machine": {"cpus": os.cpu_count(), "python": sys.version.split()[0]}, "rows": [], "replay": []}
+    results = {"machine": {"cpus": os.cpu_count(), "python": sys.version.split()[0],
+                           "loadavg_at_start": os.getloadavg()}, "rows": [], "replay": []}
     run_dir = new_run_dir()
     ing = _IngestRun(cap)
     try:
         ing.measure(10_000, 2 * cap // 10_000)  # warm-up: every ring page touched once
         for n in SIZES:
             count = max(20, args.points // n)
-            med = {}
-            for name, fn in (("naive", lambda: run_naive(n, count, cap)),
-                             ("raw", lambda: run_raw(n, count, cap, run_dir)),
-                             ("pointflow", lambda: ing.measure(n, count))):
-                vals = [fn() for _ in range(args.repeats)]
-                med[name] = statistics.median(vals)
-                med[name + "_all"] = [round(v) for v in vals]
+            samples: dict[str, list[float]] = {"naive": [], "raw": [], "pointflow": [], "cpu": []}
+            for _ in range(args.repeats):  # interleaved, so machine load hits all three alike
+                samples["naive"].append(run_naive(n, count, cap))
+                samples["raw"].append(run_raw(n, count, cap, run_dir))
+                samples["pointflow"].append(ing.measure(n, count))
+                samples["cpu"].append(ing.cpu_rate)
+            med = {k: statistics.median(v) for k, v in samples.items()}
+            med.update({k + "_all": [round(x) for x in v] for k, v in samples.items()})
             row = {"chunk_points": n, "chunks": count,
                    "pointflow_pts_s": round(med["pointflow"]), "naive_pts_s": round(med["naive"]),
                    "raw_pts_s": round(med["raw"]),
+                   "ingest_pts_per_cpu_s": round(med["cpu"]),
                    "vs_naive": round(med["pointflow"] / med["naive"], 2),
                    "of_raw": round(med["pointflow"] / med["raw"], 2),
                    "samples": {k: v for k, v in med.items() if k.endswith("_all")}}
             results["rows"].append(row)
             print(f"{n:>7} pts/chunk  pointflow {med['pointflow'] / 1e6:7.1f} M/s   naive {med['naive'] / 1e6:7.1f} M/s"
-                  f"   raw {med['raw'] / 1e6:7.1f} M/s   x{row['vs_naive']:.2f} naive   {row['of_raw'] * 100:.0f}% of raw",
+                  f"   raw {med['raw'] / 1e6:7.1f} M/s   x{row['vs_naive']:.2f} naive   {row['of_raw'] * 100:.0f}% of raw"
+                  f"   (ingest process: {med['cpu'] / 1e6:.1f} M pts per CPU-s)",
                   flush=True)
     finally:
         final = ing.close()
