@@ -134,3 +134,13 @@ def test_bad_files_give_clear_errors(tmp_path):
                                      b"property float y\nproperty float z\nend_header\n" + b"\0" * 12)
     with pytest.raises(formats.FormatError, match="promises 100 vertices"):
         _replay(tmp_path / "t.ply")
+
+
+def test_progress_bar_when_asked(tmp_path, capsys):
+    pos, inten, _ = _data(5)
+    np.save(tmp_path / "a.npy", np.column_stack([pos, inten]))
+    _replay(tmp_path / "a.npy", progress="on", chunk_points=100)
+    err = capsys.readouterr().err
+    assert "100.0%" in err and f"{N:,}/{N:,} points" in err
+    _replay(tmp_path / "a.npy", progress="auto")  # stderr is not a terminal here: silent
+    assert capsys.readouterr().err == ""
