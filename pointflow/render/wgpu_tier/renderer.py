@@ -45,7 +45,7 @@ _P_VP, _P_MODEL, _P_PLANES, _P_COLOR = 0, 16, 32, 56
 _P_WORDS = 84
 
 F_WINDOW, F_IMPORTANCE, F_IMP_DEGENERATE = 1, 2, 4
-F_WORLD_SIZE, F_ROUND, F_RANGE_AUTO, F_RANGE_DEGENERATE = 16, 32, 64, 128
+F_WORLD_SIZE, F_ROUND, F_RANGE_AUTO, F_RANGE_DEGENERATE, F_COLOUR_IN_VS = 16, 32, 64, 128, 256
 C_FIXED, C_RGB, C_SCALAR, C_Z, C_TIME = range(5)
 NO_BUDGET = 0xFFFFFFFF
 _MAX_GROUPS = 65535
@@ -185,8 +185,11 @@ class WgpuRenderer(Renderer):
                 "imp": self._buf(cap * 4 if self._need_imp else 16, sto, f"imp{s}"),
                 "col": self._buf(cap * 4 if self._cmode in (C_RGB, C_SCALAR) else 16, sto, f"col{s}"),
             })
-        self._idx1 = self._buf(cap * 4, BU.STORAGE | BU.COPY_SRC, "idx1")
+        # compacted survivors: (slot, packed RGBA8 colour) pairs
+        self._idx1 = self._buf(cap * 8, BU.STORAGE | BU.COPY_SRC, "idx1")
+        self._clip1 = self._buf(cap * 16, BU.STORAGE, "clip1")  # survivors' clip positions
         self._idx2: Optional[Any] = None
+        self._clip2: Optional[Any] = None
         self._state = self._buf(64, BU.STORAGE | BU.INDIRECT | BU.COPY_DST | BU.COPY_SRC, "state")
         self._rng = self._buf(8, BU.STORAGE | BU.COPY_DST, "range")
         self._dargs = self._buf(16, BU.STORAGE | BU.INDIRECT | BU.COPY_DST, "dispatch-args")
@@ -201,17 +204,20 @@ class WgpuRenderer(Renderer):
         rw = {"type": wgpu.BufferBindingType.storage}
         uni = {"type": wgpu.BufferBindingType.uniform}
 
-        def bgl(kinds, vis):
+        def bgl(kinds, vis, vis_of=None):
+            vis_of = vis_of or {}
             return dev.create_bind_group_layout(entries=[
-                {"binding": i, "visibility": vis, "buffer": k} for i, k in enumerate(kinds)])
+                {"binding": i, "visibility": vis_of.get(i, vis), "buffer": k} for i, k in enumerate(kinds)])
 
-        self._bgl_cull = bgl([uni, ro, ro, ro, ro, rw, rw, rw, rw], SS.COMPUTE)
-        self._bgl_thin = bgl([uni, ro, rw, rw], SS.COMPUTE)
-        self._bgl_draw = bgl([uni, ro, ro, ro, ro, ro, ro, ro], SS.VERTEX | SS.FRAGMENT)
-        cull_mod = dev.create_shader_module(code=shaders.CULL, label="cull")
+        self._bgl_cull = bgl([uni, ro, ro, ro, ro, rw, rw, rw, rw, ro, rw], SS.COMPUTE)
+        self._bgl_thin = bgl([uni, ro, rw, rw, ro, rw], SS.COMPUTE)
+        # only the pick fragment shader reads storage (t_ingest, importance)
+        self._bgl_draw = bgl([uni, ro, ro, ro, ro, ro, ro, ro, ro], SS.VERTEX,
+                             {2: SS.VERTEX | SS.FRAGMENT, 3: SS.VERTEX | SS.FRAGMENT})
+        cull_mod = dev.create_shader_module(code=shaders.cull_source(self.naive_float32), label="cull")
         thin_mod = dev.create_shader_module(code=shaders.THIN, label="thin")
         self._round = self.cfg.point_shape == "round"
-        draw_mod = dev.create_shader_module(code=shaders.draw_source(self.naive_float32, self._round), label="draw")
+        self._world = self.cfg.point_size_space == "world"
         pl_cull = dev.create_pipeline_layout(bind_group_layouts=[self._bgl_cull])
         pl_thin = dev.create_pipeline_layout(bind_group_layouts=[self._bgl_thin])
         self._pl_draw = dev.create_pipeline_layout(bind_group_layouts=[self._bgl_draw])
@@ -219,16 +225,8 @@ class WgpuRenderer(Renderer):
         self._p_final = dev.create_compute_pipeline(layout=pl_cull, compute={"module": cull_mod, "entry_point": "finalize"})
         self._p_final_b = dev.create_compute_pipeline(layout=pl_cull, compute={"module": cull_mod, "entry_point": "finalize_budget"})
         self._p_thin = dev.create_compute_pipeline(layout=pl_thin, compute={"module": thin_mod, "entry_point": "thin"})
-        self._p_draw = dev.create_render_pipeline(
-            layout=self._pl_draw,
-            vertex={"module": draw_mod, "entry_point": "vs", "buffers": []},
-            primitive={"topology": wgpu.PrimitiveTopology.triangle_list, "cull_mode": wgpu.CullMode.none},
-            depth_stencil={"format": wgpu.TextureFormat.depth32float, "depth_write_enabled": True,
-                           "depth_compare": wgpu.CompareFunction.less},
-            multisample={"count": 1},
-            fragment={"module": draw_mod, "entry_point": "fs",
-                      "targets": [{"format": wgpu.TextureFormat.rgba8unorm}]},
-        )
+        self._p_draw_cache: dict[bool, Any] = {}
+        self._draw_pipeline(False)
         self._p_pick = None
         TU = wgpu.TextureUsage
         w, h = self.width, self.height
@@ -248,6 +246,25 @@ class WgpuRenderer(Renderer):
             self._ts_read = [self._buf(32, BU.MAP_READ | BU.COPY_DST, f"ts-read{s}") for s in range(2)]
         self._bg_cache: dict[Any, Any] = {}
 
+    def _draw_pipeline(self, colour_in_vs: bool) -> Any:
+        """The draw pipeline variant (colour from the cull, or computed per vertex)."""
+        p = self._p_draw_cache.get(colour_in_vs)
+        if p is None:
+            wgpu = self._wgpu
+            code = shaders.draw_source(self._round, world_size=self._world, colour_in_vs=colour_in_vs)
+            mod = self.device.create_shader_module(code=code, label="draw")
+            p = self.device.create_render_pipeline(
+                layout=self._pl_draw,
+                vertex={"module": mod, "entry_point": "vs", "buffers": []},
+                primitive={"topology": wgpu.PrimitiveTopology.triangle_list, "cull_mode": wgpu.CullMode.none},
+                depth_stencil={"format": wgpu.TextureFormat.depth32float, "depth_write_enabled": True,
+                               "depth_compare": wgpu.CompareFunction.less},
+                multisample={"count": 1},
+                fragment={"module": mod, "entry_point": "fs", "targets": [{"format": wgpu.TextureFormat.rgba8unorm}]},
+            )
+            self._p_draw_cache[colour_in_vs] = p
+        return p
+
     def _bind(self, layout, bufs: list[Any]) -> Any:
         return self.device.create_bind_group(layout=layout, entries=[
             {"binding": i, "resource": {"buffer": b, "offset": 0, "size": b.size}} for i, b in enumerate(bufs)])
@@ -258,14 +275,17 @@ class WgpuRenderer(Renderer):
         if g is None:
             S = self._sets[s]
             data = [S["pos"], S["tms"], S["imp"], S["col"]]
-            g = {"cull": self._bind(self._bgl_cull, [self._params, *data, self._idx1, self._state, self._rng, self._dargs])}
-            drawn_idx = self._idx1
+            g = {"cull": self._bind(self._bgl_cull, [self._params, *data, self._idx1, self._state, self._rng,
+                                                     self._dargs, self._lut, self._clip1])}
+            drawn_idx, drawn_clip = self._idx1, self._clip1
             if budget:
                 if self._idx2 is None:
-                    self._idx2 = self._buf(self.render_capacity * 4, self._wgpu.BufferUsage.STORAGE | self._wgpu.BufferUsage.COPY_SRC, "idx2")
-                g["thin"] = self._bind(self._bgl_thin, [self._params, self._idx1, self._idx2, self._state])
-                drawn_idx = self._idx2
-            g["draw"] = self._bind(self._bgl_draw, [self._params, *data, drawn_idx, self._lut, self._rng])
+                    self._idx2 = self._buf(self.render_capacity * 8, self._wgpu.BufferUsage.STORAGE | self._wgpu.BufferUsage.COPY_SRC, "idx2")
+                    self._clip2 = self._buf(self.render_capacity * 16, self._wgpu.BufferUsage.STORAGE, "clip2")
+                g["thin"] = self._bind(self._bgl_thin, [self._params, self._idx1, self._idx2, self._state,
+                                                        self._clip1, self._clip2])
+                drawn_idx, drawn_clip = self._idx2, self._clip2
+            g["draw"] = self._bind(self._bgl_draw, [self._params, *data, drawn_idx, self._lut, self._rng, drawn_clip])
             self._bg_cache[key] = g
         return g
 
@@ -380,6 +400,8 @@ class WgpuRenderer(Renderer):
             flags |= F_ROUND
         rflags, lo, hi, scale = self._colour_range(frame)
         flags |= rflags
+        if rflags & F_RANGE_AUTO:  # the range is reduced during the cull: colour in the draw
+            flags |= F_COLOUR_IN_VS
         P[_P_RANGE_LO], P[_P_RANGE_HI], P[_P_RANGE_SCALE] = lo, hi, scale
         U[_P_HEAD] = int(frame.head) % max(frame.capacity, 1)
         U[_P_SIZE] = min(int(frame.size), int(frame.capacity))
@@ -485,7 +507,7 @@ class WgpuRenderer(Renderer):
             depth_stencil_attachment={"view": self._depth_view, "depth_clear_value": 1.0,
                                       "depth_load_op": wgpu.LoadOp.clear, "depth_store_op": wgpu.StoreOp.store},
             **rpass_kw)
-        rp.set_pipeline(self._p_draw)
+        rp.set_pipeline(self._draw_pipeline(bool(int(P.view(np.uint32)[_P_FLAGS]) & F_COLOUR_IN_VS)))
         rp.set_bind_group(0, g["draw"])
         rp.draw_indirect(self._state, 0)
         rp.end()
@@ -553,7 +575,7 @@ class WgpuRenderer(Renderer):
         n = c["instance_count"]
         if n == 0:
             return np.zeros(0, np.int64)
-        idx = np.frombuffer(self.queue.read_buffer(buf, 0, n * 4), np.uint32)
+        idx = np.frombuffer(self.queue.read_buffer(buf, 0, n * 8), np.uint32)[0::2]
         return np.sort(idx.astype(np.int64))
 
     # ------------------------------------------------------------------ picking
@@ -563,7 +585,7 @@ class WgpuRenderer(Renderer):
         wgpu, dev = self._wgpu, self.device
         TU, TF = wgpu.TextureUsage, wgpu.TextureFormat
         w, h = self.width, self.height
-        pick_mod = dev.create_shader_module(code=shaders.draw_source(self.naive_float32, self._round, pick=True),
+        pick_mod = dev.create_shader_module(code=shaders.draw_source(self._round, pick=True, world_size=self._world),
                                             label="pick")
         self._p_pick = dev.create_render_pipeline(
             layout=self._pl_draw,
@@ -657,7 +679,7 @@ class WgpuRenderer(Renderer):
         except Exception:
             pass
         bufs = [b for S in getattr(self, "_sets", []) for b in S.values()]
-        bufs += [getattr(self, n, None) for n in ("_idx1", "_idx2", "_state", "_rng", "_dargs", "_params",
+        bufs += [getattr(self, n, None) for n in ("_idx1", "_idx2", "_clip1", "_clip2", "_state", "_rng", "_dargs", "_params",
                                                    "_lut", "_readback", "_ts_resolve")]
         bufs += list(getattr(self, "_ts_read", [])) + list(getattr(self, "_fence", []))
         for b in bufs:
