@@ -306,6 +306,8 @@ class Supervisor:
         sup = self.cfg.supervisor
         last = (st.last_error or "").strip().splitlines()
         detail = f"; last error: {last[-1]}" if last else ""
+        if st.kind == "ingest":
+            self._reconcile_ingest(st)
         st.carried = _merge_counts(st.carried, st.stats)
         st.stats = {}
         ev = {"stage": st.name, "pid": st.pid, "reason": reason, "last_error": st.last_error,
@@ -325,6 +327,23 @@ class Supervisor:
         st.last_error = None
         ev["action"] = "restart"
         self.events.append(ev)
+
+    def _reconcile_ingest(self, st: StageProc) -> None:
+        """Points a killed ingest wrote after its last heartbeat are in the ring but not in
+        its counters; the ring's write count is authoritative, so add them (they were
+        received and written)."""
+        if self.ring is None:
+            return
+        try:
+            written = int(self.ring.stats().total_written)
+        except Exception:  # noqa: BLE001
+            return
+        reported = int(st.carried.get("points_out", 0)) + int(st.stats.get("points_out", 0))
+        if written > reported:
+            st.stats = dict(st.stats)
+            for k in ("points_in", "points_out"):
+                st.stats[k] = int(st.stats.get(k, 0)) + (written - reported)
+            log.info("ingest: %d points written after its last heartbeat added to its counts", written - reported)
 
     def _notify_restart(self, st: StageProc) -> None:
         """A new renderer holds no slab: the cadence must consider both free."""
@@ -451,6 +470,31 @@ class Supervisor:
                 pass
         elif getattr(self, "final_stats", None):
             out["ring"] = self.final_stats.get("ring")
+        out["accounting"] = self._accounting(stages, out.get("ring"))
         if self.failure:
             out["failure"] = self.failure
         return out
+
+    def _accounting(self, stages: dict, ring: Optional[dict]) -> dict[str, Any]:
+        """Where every point went: ingest's balance (points of accepted chunks = written +
+        dropped by reason; rejected messages are counted per message and reason),
+        the ring agreeing with ingest, and points the sources sent that ingest never saw
+        (lost in the socket buffers of a killed ingest; only known without external sources)."""
+        ing = stages.get("ingest", {})
+        rejected = ing.get("rejected", {})
+        acc: dict[str, Any] = {
+            "ingest_received": ing.get("points_in", 0),
+            "ingest_written": ing.get("points_out", 0),
+            "ingest_dropped": sum(ing.get("drops", {}).values()),
+            "ingest_rejected_messages": sum(v for v in rejected.values() if isinstance(v, (int, float)))
+            if isinstance(rejected, dict) else 0,
+        }
+        acc["ingest_balanced"] = acc["ingest_received"] == acc["ingest_written"] + acc["ingest_dropped"]
+        if ring:
+            acc["ring_written"] = ring.get("total_written")
+            acc["ring_agrees"] = ring.get("total_written") == acc["ingest_written"]
+        if not any(s.external for s in self.cfg.sources):
+            sent = sum(v.get("points_out", 0) for v in stages.values() if v.get("kind") == "source")
+            acc["sources_sent"] = sent
+            acc["lost_before_ingest"] = sent - acc["ingest_received"]
+        return acc

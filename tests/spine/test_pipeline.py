@@ -53,6 +53,9 @@ def test_full_run_produces_frames_and_stats(tmp_path):
     # ingest accounting agrees with the ring
     ing = stats["stages"]["ingest"]
     assert stats["ring"]["total_written"] == ing["points_out"]
+    acc = stats["accounting"]
+    assert acc["ingest_balanced"] and acc["ring_agrees"]
+    assert acc["lost_before_ingest"] == 0, "a clean stop delivers every point the source sent"
     assert_gone(pids)
     assert_segments_gone(stats)
 
