@@ -298,8 +298,8 @@ def chart(res: dict[str, Any], path: Path) -> None:
     if cpu:
         ax.loglog(*zip(*cpu), "^-", label="cpu tier (numpy)")
     ax.set_xlabel("points")
-    ax.set_ylabel("median frame time, ms (upload 1% + cull + draw + readback)")
-    ax.set_title(f"{W}x{H} on {res['adapter'][:48]}", fontsize=9)
+    ax.set_ylabel("median frame time, ms")
+    ax.set_title(f"frame = upload 1% + cull + draw + readback, {W}x{H}\n{res['adapter']}", fontsize=9)
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()

@@ -6,10 +6,12 @@ Frame path (no Python loop over points, no readback):
    be read by the previous frame; each set catches up on the ranges it missed);
 2. compute ``cull`` (one thread per slot, workgroup 256): occupancy, finite, time window,
    6 frustum planes, LOD stride, importance sampling; survivors are compacted with one
-   global ``atomicAdd`` per workgroup; ``finalize`` writes the count into the
-   ``drawIndirect`` arguments (and, with a budget, ``thin`` + ``finalize_budget`` thin
-   the survivors to the budget);
-3. ``draw_indirect`` of instanced quads (6 vertices per point) into an RGBA8 target.
+   global ``atomicAdd`` per workgroup as (slot, RGBA8 colour) + clip position, so the
+   projection and colour are computed once per point, not once per quad vertex;
+   ``finalize`` writes the count into the ``drawIndirect`` arguments (and, with a budget,
+   ``thin`` + ``finalize_budget`` thin the survivors to the budget);
+3. ``draw_indirect`` of instanced quads (6 vertices per point) into an RGBA8 target, with
+   a vertex/fragment variant specialised for the shape, size space and colour source.
 
 At most two frames are in flight: before reusing buffer set ``s`` we wait for the frame
 that last read it, which also bounds latency when the GPU is slower than the cadence.
