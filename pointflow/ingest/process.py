@@ -145,9 +145,9 @@ class Ingestor:
         self.chunks_accepted += 1
         n = chunk.n
         self.counters.points_in += n
-        # fast path: one contiguous pass (a NaN/Inf anywhere makes the sum non-finite; a
-        # finite overflow only sends us to the exact per-row check)
-        if n and not np.isfinite(pos.sum(dtype=np.float64)):
+        # fast path: one contiguous pass over all values (the per-row reduction is ~10x
+        # slower and only needed when something is not finite)
+        if n and not np.isfinite(pos).all():
             fin = np.isfinite(pos).all(axis=1)
             bad = n - int(np.count_nonzero(fin))
             if bad:
