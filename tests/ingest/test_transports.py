@@ -80,6 +80,18 @@ def test_synthetic_is_deterministic_and_sweeps_a_scene():
     assert not np.array_equal(next(iter(other.chunks())).channels["intensity"][:100], ca[0].channels["intensity"][:100])
 
 
+def test_synthetic_cache_scans_replays_and_float32_option():
+    t = make("synthetic", {"realtime": False, "scans": 3, "points_per_scan": 5000, "chunks_per_scan": 5,
+                           "cache_scans": 1, "positions_dtype": "float32"})
+    cs = list(t.chunks())
+    assert [c.seq for c in cs] == list(range(15))
+    assert all(c.positions.dtype == np.float32 for c in cs)
+    for k in range(5):  # scans 1 and 2 replay scan 0
+        assert np.array_equal(cs[k].positions, cs[5 + k].positions)
+        assert np.array_equal(cs[k].positions, cs[10 + k].positions)
+    assert t.counters["rays"] == t.n_az * 32 >= 5000  # cast once (rays per scan: a whole number of firings)
+
+
 def test_synthetic_options_are_validated():
     with pytest.raises(ConfigError, match=r"sources\[0\]\.options\.scan_hz"):
         load_config({"source": {"transport": "synthetic", "options": {"scan_hz": -1}}})

@@ -6,7 +6,8 @@ roads (dark asphalt, bright lane markings, grass verges), blocks of buildings (b
 window bands), street trees (trunk cylinder + ellipsoid crown), lamp posts, parked cars,
 and a few cars driving along the roads. The sensor drives up and down the main road
 (``drive_speed``, ``sensor_height`` above the ground) with ``beams`` lasers spread over ``vertical_fov`` and turns at
-``scan_hz``; every turn fires ``points_per_scan`` rays, cut into ``chunks_per_scan``
+``scan_hz``; every turn fires ``points_per_scan`` rays (rounded up to whole firings of all
+beams), cut into ``chunks_per_scan``
 azimuth sectors that are released at the time the real sensor would have finished them
 (``realtime``), ``rate`` times faster, or as fast as possible.
 
