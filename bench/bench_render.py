@@ -203,6 +203,7 @@ def run(sizes: list[int], reps: dict[int, int], cpu_max: int) -> dict[str, Any]:
             st = r.render(f, cam)
             r.read_image()
             last["st"] = st
+            last.setdefault("upload_ms", []).append(st.timings_ms["upload"])
 
         # the floor runs in the same process, interleaved with the tier frame by frame, so both
         # see the same load on this shared machine (lavapipe runs on the CPU cores)
@@ -229,9 +230,11 @@ def run(sizes: list[int], reps: dict[int, int], cpu_max: int) -> dict[str, Any]:
         row["wgpu_cpu_ms"] = st.timings_ms.get("cpu_total")
         if n == 1_000_000 or n == max(sizes):
             # incremental vs full upload (render only, GPU waited on by read_image in both)
+            full_up: list[float] = []
+
             def full():
                 f.dirty = None
-                r.render(f, cam)
+                full_up.append(r.render(f, cam).timings_ms["upload"])
                 r.read_image()
             full_ms, _ = median_ms(full, max(2, k // 2))
             f.dirty = None
@@ -239,7 +242,9 @@ def run(sizes: list[int], reps: dict[int, int], cpu_max: int) -> dict[str, Any]:
             r.read_image()
             up = {"points": n, "full_bytes": full_bytes, "incremental_bytes": row["wgpu_upload_bytes_1pct"],
                   "full_frame_ms": full_ms, "incremental_frame_ms": row["wgpu_ms"],
-                  "bytes_ratio": row["wgpu_upload_bytes_1pct"] / full_bytes}
+                  "bytes_ratio": row["wgpu_upload_bytes_1pct"] / full_bytes,
+                  "full_upload_ms": float(np.median(full_up)),
+                  "incremental_upload_ms": float(np.median(last["upload_ms"]))}
             extra.setdefault("upload", []).append(up)
             # pick cost on the last frame (pick pass + block readback + resolve)
             xs = np.random.default_rng(1).uniform([W * 0.3, H * 0.3], [W * 0.7, H * 0.7], size=(7, 2))
@@ -278,8 +283,9 @@ def table(res: dict[str, Any]) -> str:
                    f"{g.get('gpu_draw', float('nan')):>9.1f}")
     for u in res.get("upload", []):
         out.append(f"upload at {u['points']:,} points, 1% changed per tick: incremental {u['incremental_bytes']:,} B "
-                   f"({u['incremental_frame_ms']:.1f} ms/frame) vs full {u['full_bytes']:,} B "
-                   f"({u['full_frame_ms']:.1f} ms/frame); bytes ratio {u['bytes_ratio']:.4f}")
+                   f"in {u['incremental_upload_ms']:.2f} ms ({u['incremental_frame_ms']:.1f} ms/frame) vs full "
+                   f"{u['full_bytes']:,} B in {u['full_upload_ms']:.2f} ms ({u['full_frame_ms']:.1f} ms/frame); "
+                   f"bytes ratio {u['bytes_ratio']:.4f}")
     for p in res.get("pick", []):
         out.append(f"pick at {p['points']:,} points (radius {p['radius']} px): median {p['pick_ms']:.1f} ms")
     return "\n".join(out)
