@@ -1,0 +1,49 @@
+"""Adapter selection, failure as RenderError, capacity caps, dirty-range bookkeeping, gpu_util."""
+import numpy as np
+import pytest
+
+import gpu_util
+from pointflow.render.base import RenderError
+from pointflow.render.wgpu_tier import WgpuRenderer, merge_ranges, select_adapter
+
+from .helpers import cfg
+
+
+def test_merge_ranges():
+    assert merge_ranges([(5, 10), (0, 3), (8, 12), (12, 14)], 100) == [(0, 3), (5, 14)]
+    assert merge_ranges([(90, 10)], 100) == [(0, 10), (90, 100)]        # wraps around the ring end
+    assert merge_ranges([(50, 150), (-5, 2)], 100) == [(0, 2), (50, 100)]
+    assert merge_ranges([(3, 3)], 100) == []
+
+
+def test_unknown_adapter_name_is_a_render_error(monkeypatch):
+    monkeypatch.setenv("POINTFLOW_WGPU_ADAPTER", "no-such-adapter-xyz")
+    adapter, why = select_adapter()
+    assert adapter is None and "no-such-adapter-xyz" in why
+    with pytest.raises(RenderError, match="no-such-adapter-xyz"):
+        WgpuRenderer(cfg(), 100, [])
+
+
+@pytest.mark.gpu
+def test_info_and_capacity_caps(make_renderer):
+    r = make_renderer(cfg(), 1000)
+    info = r.info()
+    assert info["tier"] == "wgpu" and info["render_capacity"] == 1000 and info["caps"] == []
+    assert info["limits"]["max-storage-buffer-binding-size"] > 0 and isinstance(info["timestamps"], bool)
+    r._limits = {"max-storage-buffer-binding-size": 1200, "max-buffer-size": 1 << 30,
+                 "max-compute-workgroups-per-dimension": 65535}
+    r._caps = []
+    assert r._cap_capacity(1000) == 100
+    assert "1000" in r._caps[0] and "1200" in r._caps[0]      # says why, with the numbers
+
+
+def test_require_adapter_fails_under_require_gpu(monkeypatch):
+    monkeypatch.setattr(gpu_util, "_CACHE", {})
+    monkeypatch.setenv("POINTFLOW_WGPU_ADAPTER", "no-such-adapter-xyz")
+    monkeypatch.setenv("POINTFLOW_REQUIRE_GPU", "1")
+    with pytest.raises(pytest.fail.Exception, match="POINTFLOW_REQUIRE_GPU=1"):
+        gpu_util.require_adapter()
+    monkeypatch.setattr(gpu_util, "_CACHE", {})
+    monkeypatch.setenv("POINTFLOW_REQUIRE_GPU", "0")
+    with pytest.raises(pytest.skip.Exception):
+        gpu_util.require_adapter()
