@@ -245,9 +245,8 @@ class Ingestor:
             else:
                 pos = np.concatenate(b.positions)
                 chans = {k: np.concatenate([c[k] for c in b.channels]) for k in b.channels[0]}
-            trace = next((t for t in reversed(b.traces) if t), 0)
             t0 = time.monotonic_ns()
-            res = self.ring.push(pos, trace_id=trace, **chans)
+            res = self.ring.push(pos, trace_id=b.traces, **chans)
             t1 = time.monotonic_ns()
             self.pushes += 1
             refused = b.n - res.written

@@ -467,8 +467,11 @@ class PointRing:
         return keep
 
     # ------------------------------------------------------------------ push
-    def push(self, positions, *, trace_id: int = 0, **channels) -> PushResult:
-        """Store points (world coordinates, (N,3) float64/float32) with optional channels."""
+    def push(self, positions, *, trace_id: "int | Sequence[int]" = 0, **channels) -> PushResult:
+        """Store points (world coordinates, (N,3) float64/float32) with optional channels.
+
+        ``trace_id`` may be a sequence when one push carries several coalesced chunks; each
+        id goes into the commit log, so the cadence sees every chunk become visible."""
         pos = np.asarray(positions)
         if pos.dtype != np.float64 and pos.dtype != np.float32:
             pos = pos.astype(np.float64)
@@ -542,11 +545,14 @@ class PointRing:
         st[I_WRITES] += 1
         st[I_TOTAL_WRITTEN] += written
         st[I_LAST_PUSH_NS] = now_ns
-        if trace_id:
-            c = int(st[I_COMMIT_COUNT])
-            self._commits[c % COMMIT_N, 0] = np.int64(np.uint64(trace_id & 0xFFFFFFFFFFFFFFFF).view(np.int64))
-            self._commits[c % COMMIT_N, 1] = time.monotonic_ns()
-            st[I_COMMIT_COUNT] = c + 1
+        tids = (trace_id,) if isinstance(trace_id, (int, np.integer)) else trace_id
+        t_commit = time.monotonic_ns()
+        for tid in tids:  # one entry per chunk of a coalesced push (a handful, not per point)
+            if tid:
+                c = int(st[I_COMMIT_COUNT])
+                self._commits[c % COMMIT_N, 0] = np.int64(np.uint64(int(tid) & 0xFFFFFFFFFFFFFFFF).view(np.int64))
+                self._commits[c % COMMIT_N, 1] = t_commit
+                st[I_COMMIT_COUNT] = c + 1
         return int(written), int(dropped)
 
     def _push_importance(self, pos, n, t_ms, g, prepared, imp) -> tuple[int, int]:

@@ -352,29 +352,34 @@ class Supervisor:
 
     # ------------------------------------------------------------------ stop
     def stop(self, timeout_s: float = 5.0) -> None:
+        """Stop upstream first: sources, then (once they are gone, so their last chunks are
+        in ingest's socket) ingest, which drains before it exits, then cadence and render."""
         if not self.started:
             return
         self.started = False
-        order = [st for st in self.stages.values() if st.kind == "source"]
-        order += [self.stages[n] for n in ("ingest", "cadence", "render") if n in self.stages]
-        for st in order:
-            p = st.process
-            if p is not None and p.exitcode is None:
-                try:
-                    p.terminate()
-                except OSError:
-                    pass
-        # Drain final heartbeats while they exit, so the last counts are recorded.
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline and any(st.process is not None and st.process.exitcode is None for st in order):
-            self._drain_control(0.05)
+        sources = [st for st in self.stages.values() if st.kind == "source"]
+        waves = [sources, [self.stages[n] for n in ("ingest",) if n in self.stages],
+                 [self.stages[n] for n in ("cadence", "render") if n in self.stages]]
+        for wave in waves:
+            for st in wave:
+                p = st.process
+                if p is not None and p.exitcode is None:
+                    try:
+                        p.terminate()
+                    except OSError:
+                        pass
+            # drain heartbeats while they exit, so the last counts are recorded
+            deadline = time.monotonic() + timeout_s
+            while time.monotonic() < deadline and any(
+                    st.process is not None and st.process.exitcode is None for st in wave):
+                self._drain_control(0.02)
+            for st in wave:
+                p = st.process
+                if p is not None and p.exitcode is None:
+                    log.warning("%s did not stop within %.1f s; killing it", st.name, timeout_s)
+                    p.kill()
+                    p.join(2)
         self._drain_control(0.1)
-        for st in order:
-            p = st.process
-            if p is not None and p.exitcode is None:
-                log.warning("%s did not stop within %.1f s; killing it", st.name, timeout_s)
-                p.kill()
-                p.join(2)
         self.final_stats = self.stats()
         self._release()
 

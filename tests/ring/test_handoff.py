@@ -279,3 +279,34 @@ def test_concurrent_handoff_stress(tmp_path):
                 checked += 1
         assert checked >= n_handoffs // 3
         assert ring.stats().write_count > 10
+
+
+def test_coalesced_push_reports_every_trace_id():
+    """One push carrying several coalesced chunks puts each chunk's trace id in the commit
+    log, so the cadence's handoff names all of them (profiling sees every chunk)."""
+    import zmq
+
+    from pointflow.ring import PointRing, SlabPair
+    from pointflow.ring.handoff import SlabReader, SlabWriter
+
+    ctx = zmq.Context()
+    ring = PointRing(100, channels=["intensity"])
+    slabs = SlabPair.create(ring.layout)
+    try:
+        ready_w, ready_r = ctx.socket(zmq.PUSH), ctx.socket(zmq.PULL)
+        rel_w, rel_r = ctx.socket(zmq.PUSH), ctx.socket(zmq.PULL)
+        ready_r.bind("inproc://tid-ready"); ready_w.connect("inproc://tid-ready")
+        rel_r.bind("inproc://tid-rel"); rel_w.connect("inproc://tid-rel")
+        writer = SlabWriter(ring, slabs, ready_w, rel_r)
+        reader = SlabReader(slabs, ready_r, rel_w)
+        ring.push(np.zeros((6, 3)), trace_id=[11, 0, 12, 13], intensity=np.ones(6, np.float32))
+        ring.push(np.ones((2, 3)), trace_id=14, intensity=np.ones(2, np.float32))
+        assert writer.publish() is not None
+        h, _view = reader.recv(timeout_ms=1000)
+        assert sorted(h.trace_ids) == [11, 12, 13, 14]
+        reader.release()
+        for s in (ready_w, ready_r, rel_w, rel_r):
+            s.close(0)
+    finally:
+        slabs.close(); slabs.unlink(); ring.close(); ring.unlink()
+        ctx.term()
