@@ -63,11 +63,7 @@ def test_pick_front_point_and_hidpi():
 
 
 def test_selection_matches_wgpu_reference_rules():
-    try:
-        from pointflow.render.wgpu_tier import reference as R
-    except ImportError:
-        import pytest
-        pytest.skip("wgpu tier reference not present")
+    from pointflow.render.wgpu_tier import reference as R
     w = terrain(20_000, seed=4)
     imp = np.abs(np.sin(w[:, 1])).astype(np.float32)
     f = make_frame(w, capacity=25_000, head=21_000, importance=imp, t_ms=np.linspace(0, 900, len(w)),

@@ -151,13 +151,19 @@ def test_push_chunk_and_commit_log():
 def test_temporal_stats_inclusive_window():
     with PointRing(10) as r:
         r.push(xrange_pts(0, 3))
-        time.sleep(0.15)
+        time.sleep(0.05)
         r.push(xrange_pts(3, 5))
-        ts = r.temporal_stats(100)
+        t = r.snapshot().t_ingest_ms
+        t_old, t_new = float(t[0]), float(t[-1])
+        assert t_new > t_old
+        # freeze "now" 100 ms after the newest push: no dependence on scheduling
+        r._now_ms = lambda: t_new + 100.0
+        ts = r.temporal_stats(100)  # cutoff exactly at the newest points: inclusive
         assert ts.count_in_window == 2
-        assert ts.oldest_age_ms >= 150 and ts.newest_age_ms < 150
-        assert r.temporal_stats(1e9).count_in_window == 5
-        assert r.temporal_stats(0).count_in_window in (0, 2)
+        assert ts.newest_age_ms == pytest.approx(100.0)
+        assert ts.oldest_age_ms == pytest.approx(100.0 + t_new - t_old)
+        assert r.temporal_stats(99.99).count_in_window == 0
+        assert r.temporal_stats(100.0 + t_new - t_old + 1e-3).count_in_window == 5
         r.reset()
         assert r.temporal_stats(10).count_in_window == 0
 
