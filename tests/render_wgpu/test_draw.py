@@ -142,3 +142,22 @@ def test_incremental_upload_is_proportional_to_new_points(make_renderer):
         assert np.array_equal(img, fresh.read_image())    # incremental == full upload
         assert lit(img).mean() > 0.05
     assert per_tick[50_000] == per_tick[200_000]          # bytes per new point: independent of ring size
+
+
+def test_equal_depth_ties_go_to_lower_logical_index(make_renderer):
+    """Compaction is a prefix sum in logical order (no atomics order), so equal-depth ties are
+    deterministic and follow the shared rule, also when the ring wraps."""
+    cam = Camera(eye=[0.0, 0.0, 10.0], target=[0.0, 0.0, 0.0], up=[0.0, 1.0, 0.0], near=1.0, far=100.0)
+    n, cap, head = 3000, 4096, 3000            # wraps: logical order != slot order
+    rng = np.random.default_rng(5)
+    pts = np.column_stack([rng.uniform(-3, 3, n), rng.uniform(-2, 2, n), np.zeros(n)])  # all at one depth
+    pts[1500:] = pts[:1500]                    # every point has a twin drawn later, same place
+    rgb = np.zeros((n, 3), np.uint8)
+    rgb[:1500] = [255, 0, 0]
+    rgb[1500:] = [0, 255, 0]
+    r = make_renderer(cfg(point_size=3.0, color_by="rgb"), cap, ["rgb"])
+    for _ in range(3):
+        r.render(frame(pts, capacity=cap, head=head, channels={"rgb": rgb}), cam)
+        img = r.read_image()
+        assert not (img[..., 1] == 255).any()  # the older twin (lower logical index) always wins
+        assert (img[..., 0] == 255).sum() > 1000

@@ -15,8 +15,11 @@ exactly the same points:
   seed a point's fate does not change as the ring scrolls.
 * budget B (applied last, only when survivors S > B): keep a survivor iff
   ``(pcg_hash(slot ^ budget_seed) >> 8) * 2**-24 < max(B - 3*sqrt(B), B/2) / S`` (aiming
-  three standard deviations under B, so the set depends only on the hash); in the rare
-  case that still leaves more than B, an arbitrary B of them are drawn (GPU order).
+  three standard deviations under B, so the hard cap rarely bites); if that still leaves
+  more than B, the first B in logical order are drawn (the oldest).
+
+Survivors are compacted in logical order (per-workgroup counts + a prefix sum, no atomic
+ordering), so equal-depth ties go to the lower logical index, as in every tier.
 """
 from __future__ import annotations
 

@@ -4,12 +4,14 @@ Frame path (no Python loop over points, no readback):
 
 1. upload the dirty slot ranges into the GPU buffer set ``k % 2`` (the other set may still
    be read by the previous frame; each set catches up on the ranges it missed);
-2. compute ``cull`` (one thread per slot, workgroup 256): occupancy, finite, time window,
-   6 frustum planes, LOD stride, importance sampling; survivors are compacted with one
-   global ``atomicAdd`` per workgroup as (slot, RGBA8 colour) + clip position, so the
-   projection and colour are computed once per point, not once per quad vertex;
-   ``finalize`` writes the count into the ``drawIndirect`` arguments (and, with a budget,
-   ``thin`` + ``finalize_budget`` thin the survivors to the budget);
+2. compute ``cull`` (one thread per logical index, workgroup 256): occupancy, finite,
+   time window, 6 frustum planes, LOD stride, importance sampling -> a keep flag and a
+   count per workgroup; ``scan`` (one workgroup) turns the counts into offsets; ``emit``
+   writes survivors in logical order as (slot, RGBA8 colour) + clip position, so the
+   projection and colour are computed once per point, not once per quad vertex, and
+   equal-depth ties resolve to the lower logical index; ``finalize`` writes the count
+   into the ``drawIndirect`` arguments (with a budget, ``thin``/``thin_scan``/``thin_emit``
+   + ``finalize_budget`` thin the survivors to the budget the same way);
 3. ``draw_indirect`` of instanced quads (6 vertices per point) into an RGBA8 target, with
    a vertex/fragment variant specialised for the shape, size space and colour source.
 
@@ -43,7 +45,7 @@ _P_VP, _P_MODEL, _P_PLANES, _P_COLOR = 0, 16, 32, 56
 (_P_VW, _P_VH, _P_PSIZE, _P_SSCALE, _P_NOW_HI, _P_NOW_LO, _P_WINDOW, _P_IMP_LO, _P_IMP_SCALE,
  _P_RANGE_LO, _P_RANGE_SCALE, _P_RANGE_HI) = range(60, 72)
 (_P_HEAD, _P_SIZE, _P_CAP, _P_LOD, _P_SEED, _P_FLAGS, _P_BUDGET, _P_CMODE, _P_BSEED, _P_GX,
- _P_NSLOTS) = range(72, 83)
+ _P_NSLOTS, _P_GTOTAL) = range(72, 84)
 _P_WORDS = 84
 
 F_WINDOW, F_IMPORTANCE, F_IMP_DEGENERATE = 1, 2, 4
@@ -190,6 +192,9 @@ class WgpuRenderer(Renderer):
         # compacted survivors: (slot, packed RGBA8 colour) pairs
         self._idx1 = self._buf(cap * 8, BU.STORAGE | BU.COPY_SRC, "idx1")
         self._clip1 = self._buf(cap * 16, BU.STORAGE, "clip1")  # survivors' clip positions
+        groups = (cap + 255) // 256
+        self._flags = self._buf(groups * 256 * 4, BU.STORAGE, "keep-flags")   # per logical index
+        self._wgc = self._buf(groups * 4, BU.STORAGE, "workgroup-counts")     # -> offsets (scan)
         self._idx2: Optional[Any] = None
         self._clip2: Optional[Any] = None
         self._state = self._buf(64, BU.STORAGE | BU.INDIRECT | BU.COPY_DST | BU.COPY_SRC, "state")
@@ -211,8 +216,8 @@ class WgpuRenderer(Renderer):
             return dev.create_bind_group_layout(entries=[
                 {"binding": i, "visibility": vis_of.get(i, vis), "buffer": k} for i, k in enumerate(kinds)])
 
-        self._bgl_cull = bgl([uni, ro, ro, ro, ro, rw, rw, rw, rw, ro, rw], SS.COMPUTE)
-        self._bgl_thin = bgl([uni, ro, rw, rw, ro, rw], SS.COMPUTE)
+        self._bgl_cull = bgl([uni, ro, ro, ro, ro, rw, rw, rw, rw, ro, rw, rw, rw], SS.COMPUTE)
+        self._bgl_thin = bgl([uni, ro, rw, rw, ro, rw, rw, rw], SS.COMPUTE)
         # only the pick fragment shader reads storage (t_ingest, importance)
         self._bgl_draw = bgl([uni, ro, ro, ro, ro, ro, ro, ro, ro], SS.VERTEX,
                              {2: SS.VERTEX | SS.FRAGMENT, 3: SS.VERTEX | SS.FRAGMENT})
@@ -224,9 +229,15 @@ class WgpuRenderer(Renderer):
         pl_thin = dev.create_pipeline_layout(bind_group_layouts=[self._bgl_thin])
         self._pl_draw = dev.create_pipeline_layout(bind_group_layouts=[self._bgl_draw])
         self._p_cull = dev.create_compute_pipeline(layout=pl_cull, compute={"module": cull_mod, "entry_point": "cull"})
-        self._p_final = dev.create_compute_pipeline(layout=pl_cull, compute={"module": cull_mod, "entry_point": "finalize"})
-        self._p_final_b = dev.create_compute_pipeline(layout=pl_cull, compute={"module": cull_mod, "entry_point": "finalize_budget"})
-        self._p_thin = dev.create_compute_pipeline(layout=pl_thin, compute={"module": thin_mod, "entry_point": "thin"})
+        cpipe = lambda layout, mod, entry: dev.create_compute_pipeline(  # noqa: E731
+            layout=layout, compute={"module": mod, "entry_point": entry})
+        self._p_scan = cpipe(pl_cull, cull_mod, "scan")
+        self._p_emit = cpipe(pl_cull, cull_mod, "emit")
+        self._p_final = cpipe(pl_cull, cull_mod, "finalize")
+        self._p_final_b = cpipe(pl_cull, cull_mod, "finalize_budget")
+        self._p_thin = cpipe(pl_thin, thin_mod, "thin")
+        self._p_thin_scan = cpipe(pl_thin, thin_mod, "thin_scan")
+        self._p_thin_emit = cpipe(pl_thin, thin_mod, "thin_emit")
         self._p_draw_cache: dict[bool, Any] = {}
         self._draw_pipeline(False)
         self._p_pick = None
@@ -278,14 +289,14 @@ class WgpuRenderer(Renderer):
             S = self._sets[s]
             data = [S["pos"], S["tms"], S["imp"], S["col"]]
             g = {"cull": self._bind(self._bgl_cull, [self._params, *data, self._idx1, self._state, self._rng,
-                                                     self._dargs, self._lut, self._clip1])}
+                                                     self._dargs, self._lut, self._clip1, self._flags, self._wgc])}
             drawn_idx, drawn_clip = self._idx1, self._clip1
             if budget:
                 if self._idx2 is None:
                     self._idx2 = self._buf(self.render_capacity * 8, self._wgpu.BufferUsage.STORAGE | self._wgpu.BufferUsage.COPY_SRC, "idx2")
                     self._clip2 = self._buf(self.render_capacity * 16, self._wgpu.BufferUsage.STORAGE, "clip2")
                 g["thin"] = self._bind(self._bgl_thin, [self._params, self._idx1, self._idx2, self._state,
-                                                        self._clip1, self._clip2])
+                                                        self._clip1, self._clip2, self._flags, self._wgc])
                 drawn_idx, drawn_clip = self._idx2, self._clip2
             g["draw"] = self._bind(self._bgl_draw, [self._params, *data, drawn_idx, self._lut, self._rng, drawn_clip])
             self._bg_cache[key] = g
@@ -362,7 +373,7 @@ class WgpuRenderer(Renderer):
         imp = imp[np.isfinite(imp)]
         return (float(imp.min()), float(imp.max())) if imp.size else (0.0, 0.0)
 
-    def _params_for(self, frame: FrameInput, camera: Camera, n_slots: int, gx: int) -> np.ndarray:
+    def _params_for(self, frame: FrameInput, camera: Camera, n_slots: int, gx: int, groups: int) -> np.ndarray:
         cfg, w, h = self.cfg, self.width, self.height
         P = np.zeros(_P_WORDS, np.float32)
         U = P.view(np.uint32)
@@ -416,6 +427,7 @@ class WgpuRenderer(Renderer):
         U[_P_CMODE] = self._cmode
         U[_P_GX] = gx
         U[_P_NSLOTS] = n_slots
+        U[_P_GTOTAL] = groups
         return P
 
     def _wait_set(self, s: int) -> None:
@@ -468,11 +480,13 @@ class WgpuRenderer(Renderer):
         self._mark_dirty(frame)
         uploaded = self._upload(frame, s)
         n_slots = min(self.render_capacity, int(frame.capacity))
-        groups = max(1, math.ceil(n_slots / 256))
+        # one thread per logical index (oldest first); a capped ring renders its oldest slots
+        n_threads = min(int(frame.size), int(frame.capacity), self.render_capacity)
+        groups = max(1, math.ceil(n_threads / 256))
         gx = min(groups, _MAX_GROUPS)
         gy = math.ceil(groups / gx)
         budget = frame.budget is not None
-        P = self._params_for(frame, camera, n_slots, gx)
+        P = self._params_for(frame, camera, n_slots, gx, groups)
         q = self.queue
         q.write_buffer(self._params, 0, P)
         q.write_buffer(self._state, 0, self._state_reset)
@@ -491,11 +505,19 @@ class WgpuRenderer(Renderer):
         cp.set_bind_group(0, g["cull"])
         cp.set_pipeline(self._p_cull)
         cp.dispatch_workgroups(gx, gy, 1)
+        cp.set_pipeline(self._p_scan)
+        cp.dispatch_workgroups(1, 1, 1)
+        cp.set_pipeline(self._p_emit)
+        cp.dispatch_workgroups(gx, gy, 1)
         cp.set_pipeline(self._p_final)
         cp.dispatch_workgroups(1, 1, 1)
         if budget:
-            cp.set_pipeline(self._p_thin)
             cp.set_bind_group(0, g["thin"])
+            cp.set_pipeline(self._p_thin)
+            cp.dispatch_workgroups_indirect(self._dargs, 0)
+            cp.set_pipeline(self._p_thin_scan)
+            cp.dispatch_workgroups(1, 1, 1)
+            cp.set_pipeline(self._p_thin_emit)
             cp.dispatch_workgroups_indirect(self._dargs, 0)
             cp.set_pipeline(self._p_final_b)
             cp.set_bind_group(0, g["cull"])
@@ -681,7 +703,7 @@ class WgpuRenderer(Renderer):
         except Exception:
             pass
         bufs = [b for S in getattr(self, "_sets", []) for b in S.values()]
-        bufs += [getattr(self, n, None) for n in ("_idx1", "_idx2", "_clip1", "_clip2", "_state", "_rng", "_dargs", "_params",
+        bufs += [getattr(self, n, None) for n in ("_idx1", "_idx2", "_clip1", "_clip2", "_flags", "_wgc", "_state", "_rng", "_dargs", "_params",
                                                    "_lut", "_readback", "_ts_resolve")]
         bufs += list(getattr(self, "_ts_read", [])) + list(getattr(self, "_fence", []))
         for b in bufs:

@@ -15,7 +15,7 @@ struct Params {
   imp_scale: f32, range_lo: f32, range_scale: f32, range_hi: f32,
   head: u32, size: u32, capacity: u32, lod_stride: u32,
   seed: u32, flags: u32, budget: u32, color_mode: u32,
-  budget_seed: u32, groups_x: u32, n_slots: u32, pad1: u32,
+  budget_seed: u32, groups_x: u32, n_slots: u32, groups_total: u32,
 };
 // flags
 const F_WINDOW: u32 = 1u;
@@ -61,6 +61,42 @@ fn unord_f(u: u32) -> f32 {
 }
 """
 
+SCAN = r"""
+var<workgroup> sh: array<u32, 256>;
+
+// exclusive prefix sum over the 256 lanes of a workgroup (call in uniform control flow)
+fn wg_exclusive(lid: u32, v: u32) -> u32 {
+  sh[lid] = v;
+  workgroupBarrier();
+  for (var off = 1u; off < 256u; off = off * 2u) {
+    var t = 0u;
+    if (lid >= off) { t = sh[lid - off]; }
+    workgroupBarrier();
+    sh[lid] = sh[lid] + t;
+    workgroupBarrier();
+  }
+  return sh[lid] - v;
+}
+
+// one workgroup: per-workgroup counts wgc[0..n) -> exclusive offsets (in place); the total
+// lands in st[total_at]. Offsets in workgroup order make the compaction deterministic.
+fn scan_counts(lid: u32, n: u32, total_at: u32) {
+  let chunk = (n + 255u) / 256u;
+  let a = min(lid * chunk, n);
+  let b = min(a + chunk, n);
+  var sum = 0u;
+  for (var i = a; i < b; i = i + 1u) { sum = sum + wgc[i]; }
+  let base = wg_exclusive(lid, sum);
+  var run = base;
+  for (var i = a; i < b; i = i + 1u) {
+    let c = wgc[i];
+    wgc[i] = run;
+    run = run + c;
+  }
+  if (lid == 255u) { atomicStore(&st[total_at], base + sum); }
+}
+"""
+
 CULL = PARAMS + r"""
 @group(0) @binding(0) var<uniform> P: Params;
 @group(0) @binding(1) var<storage, read> pos: array<f32>;
@@ -73,9 +109,10 @@ CULL = PARAMS + r"""
 @group(0) @binding(8) var<storage, read_write> dargs: array<u32, 4>;
 @group(0) @binding(9) var<storage, read> lut: array<u32, 256>;
 @group(0) @binding(10) var<storage, read_write> clip_out: array<vec4<f32>>;
-
+@group(0) @binding(11) var<storage, read_write> flags: array<u32>;
+@group(0) @binding(12) var<storage, read_write> wgc: array<u32>;
+""" + SCAN + r"""
 var<workgroup> wg_count: atomic<u32>;
-var<workgroup> wg_base: u32;
 var<workgroup> wg_bad: atomic<u32>;
 var<workgroup> wg_occ: atomic<u32>;
 var<workgroup> wg_min: atomic<u32>;
@@ -103,6 +140,12 @@ fn cull_colour(slot: u32, p: vec3<f32>) -> u32 {
   return lut[i];
 }
 
+fn slot_of(logical: u32) -> u32 {
+  // logical index -> ring slot (threads run in logical order: oldest first)
+  return (P.head + logical) % P.capacity;
+}
+
+// pass 1: one thread per logical index; keep flag + per-workgroup count
 @compute @workgroup_size(256)
 fn cull(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: vec3<u32>) {
   if (lid == 0u) {
@@ -113,14 +156,12 @@ fn cull(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: v
     atomicStore(&wg_max, 0u);
   }
   workgroupBarrier();
-  let slot = (wid.y * P.groups_x + wid.x) * 256u + lid;
+  let g = wid.y * P.groups_x + wid.x;
+  let logical = g * 256u + lid;
   var keep = false;
-  var li = 0u;
-  var colour = 0u;
-  var clip = vec4<f32>(0.0);
-  if (slot < P.n_slots) {
-    let logical = (slot + P.capacity - P.head) % P.capacity;
-    if (logical < P.size) {
+  if (logical < P.size) {
+    let slot = slot_of(logical);
+    if (slot < P.n_slots) {
       let p = vec3<f32>(pos[3u * slot], pos[3u * slot + 1u], pos[3u * slot + 2u]);
       keep = is_finite(p.x) && is_finite(p.y) && is_finite(p.z);
       atomicAdd(&wg_occ, 1u);
@@ -155,17 +196,13 @@ fn cull(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: v
         }
         keep = u01(slot, P.seed) <= n;
       }
-      if (keep) {
-        colour = cull_colour(slot, p);
-        clip = {CLIP};  // projected once per point here, not once per quad vertex
-      }
     }
   }
-  if (keep) { li = atomicAdd(&wg_count, 1u); }
+  if (logical < P.groups_total * 256u) { flags[logical] = select(0u, 1u, keep); }
+  if (keep) { atomicAdd(&wg_count, 1u); }
   workgroupBarrier();
   if (lid == 0u) {
-    let c = atomicLoad(&wg_count);
-    if (c > 0u) { wg_base = atomicAdd(&st[S_COUNT1], c); }
+    if (g < P.groups_total) { wgc[g] = atomicLoad(&wg_count); }
     let bad = atomicLoad(&wg_bad);
     if (bad > 0u) { atomicAdd(&st[S_NONFINITE], bad); }
     let occ = atomicLoad(&wg_occ);
@@ -176,10 +213,28 @@ fn cull(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: v
       if (mn <= mx) { atomicMin(&rng[0], mn); atomicMax(&rng[1], mx); }
     }
   }
-  workgroupBarrier();
-  if (keep) {
-    idx_out[wg_base + li] = vec2<u32>(slot, colour);
-    clip_out[wg_base + li] = clip;
+}
+
+// pass 2: one workgroup scans the per-workgroup counts
+@compute @workgroup_size(256)
+fn scan(@builtin(local_invocation_index) lid: u32) {
+  scan_counts(lid, P.groups_total, S_COUNT1);
+}
+
+// pass 3: survivors written in logical order, projected and coloured once per point
+@compute @workgroup_size(256)
+fn emit(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: vec3<u32>) {
+  let g = wid.y * P.groups_x + wid.x;
+  let logical = g * 256u + lid;
+  var k = 0u;
+  if (logical < P.groups_total * 256u) { k = flags[logical]; }
+  let local = wg_exclusive(lid, k);
+  if (k == 1u) {
+    let slot = slot_of(logical);
+    let p = vec3<f32>(pos[3u * slot], pos[3u * slot + 1u], pos[3u * slot + 2u]);
+    let o = wgc[g] + local;
+    idx_out[o] = vec2<u32>(slot, cull_colour(slot, p));
+    clip_out[o] = {CLIP};
   }
 }
 
@@ -196,8 +251,8 @@ fn finalize() {
     atomicStore(&st[1], 0u);
     var frac = 2.0;
     if (c1 > P.budget) {
-      // aim 3 sigma under the budget so the hard cap (arbitrary GPU order) rarely bites:
-      // the drawn set then depends only on the hash, not on thread timing (no flicker)
+      // aim 3 sigma under the budget so the hard cap rarely bites: the drawn set then
+      // depends only on the hash
       let b = f32(P.budget);
       frac = max(b - 3.0 * sqrt(b), 0.5 * b) / f32(c1);
     }
@@ -224,34 +279,51 @@ THIN = PARAMS + r"""
 @group(0) @binding(3) var<storage, read_write> st: array<atomic<u32>, 16>;
 @group(0) @binding(4) var<storage, read> clip_in: array<vec4<f32>>;
 @group(0) @binding(5) var<storage, read_write> clip_out: array<vec4<f32>>;
-
+@group(0) @binding(6) var<storage, read_write> flags: array<u32>;
+@group(0) @binding(7) var<storage, read_write> wgc: array<u32>;
+""" + SCAN + r"""
 var<workgroup> wg_count: atomic<u32>;
-var<workgroup> wg_base: u32;
 
+fn thin_groups() -> u32 {
+  return (atomicLoad(&st[S_COUNT1]) + 255u) / 256u;
+}
+
+// budget pass 1 (indirect, one thread per survivor in logical order): hashed keep flag
 @compute @workgroup_size(256)
 fn thin(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: vec3<u32>) {
   if (lid == 0u) { atomicStore(&wg_count, 0u); }
   workgroupBarrier();
-  let i = (wid.y * atomicLoad(&st[11]) + wid.x) * 256u + lid;
+  let g = wid.y * atomicLoad(&st[11]) + wid.x;
+  let i = g * 256u + lid;
   let c1 = atomicLoad(&st[S_COUNT1]);
   let frac = bitcast<f32>(atomicLoad(&st[10]));
   var keep = false;
-  var e = vec2<u32>(0u, 0u);
-  var li = 0u;
-  if (i < c1) {
-    e = idx_in[i];
-    keep = u01(e.x, P.budget_seed) < frac;
-  }
-  if (keep) { li = atomicAdd(&wg_count, 1u); }
+  if (i < c1) { keep = u01(idx_in[i].x, P.budget_seed) < frac; }
+  if (i < thin_groups() * 256u) { flags[i] = select(0u, 1u, keep); }
+  if (keep) { atomicAdd(&wg_count, 1u); }
   workgroupBarrier();
-  if (lid == 0u) {
-    let c = atomicLoad(&wg_count);
-    if (c > 0u) { wg_base = atomicAdd(&st[S_COUNT2], c); }
-  }
-  workgroupBarrier();
-  if (keep && wg_base + li < P.budget) {
-    idx_out[wg_base + li] = e;
-    clip_out[wg_base + li] = clip_in[i];
+  if (lid == 0u && g < thin_groups()) { wgc[g] = atomicLoad(&wg_count); }
+}
+
+@compute @workgroup_size(256)
+fn thin_scan(@builtin(local_invocation_index) lid: u32) {
+  scan_counts(lid, thin_groups(), S_COUNT2);
+}
+
+// budget pass 3: kept survivors in logical order; beyond the budget: the newest dropped
+@compute @workgroup_size(256)
+fn thin_emit(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: vec3<u32>) {
+  let g = wid.y * atomicLoad(&st[11]) + wid.x;
+  let i = g * 256u + lid;
+  var k = 0u;
+  if (i < thin_groups() * 256u) { k = flags[i]; }
+  let local = wg_exclusive(lid, k);
+  if (k == 1u) {
+    let o = wgc[g] + local;
+    if (o < P.budget) {
+      idx_out[o] = idx_in[i];
+      clip_out[o] = clip_in[i];
+    }
   }
 }
 """
