@@ -52,6 +52,7 @@ F_WINDOW, F_IMPORTANCE, F_IMP_DEGENERATE = 1, 2, 4
 F_WORLD_SIZE, F_ROUND, F_RANGE_AUTO, F_RANGE_DEGENERATE, F_COLOUR_IN_VS = 16, 32, 64, 128, 256
 C_FIXED, C_RGB, C_SCALAR, C_Z, C_TIME = range(5)
 NO_BUDGET = 0xFFFFFFFF
+_EMIT_K = 8  # logical indices per thread in the emit pass (shaders.EMIT_K)
 _MAX_GROUPS = 65535
 
 #: test-only switch: draw with an absolute float32 model matrix instead of the float64
@@ -194,7 +195,7 @@ class WgpuRenderer(Renderer):
         self._clip1 = self._buf(cap * 16, BU.STORAGE, "clip1")  # survivors' clip positions
         groups = (cap + 255) // 256
         self._flags = self._buf(groups * 256 * 4, BU.STORAGE, "keep-flags")   # per logical index
-        self._wgc = self._buf(groups * 4, BU.STORAGE, "workgroup-counts")     # -> offsets (scan)
+        self._wgc = self._buf((groups + _EMIT_K) * 4, BU.STORAGE, "workgroup-counts")  # -> offsets (scan)
         self._idx2: Optional[Any] = None
         self._clip2: Optional[Any] = None
         self._state = self._buf(64, BU.STORAGE | BU.INDIRECT | BU.COPY_DST | BU.COPY_SRC, "state")
@@ -508,7 +509,7 @@ class WgpuRenderer(Renderer):
         cp.set_pipeline(self._p_scan)
         cp.dispatch_workgroups(1, 1, 1)
         cp.set_pipeline(self._p_emit)
-        cp.dispatch_workgroups(gx, gy, 1)
+        cp.dispatch_workgroups(math.ceil(groups / _EMIT_K), 1, 1)
         cp.set_pipeline(self._p_final)
         cp.dispatch_workgroups(1, 1, 1)
         if budget:

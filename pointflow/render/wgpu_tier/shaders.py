@@ -221,20 +221,34 @@ fn scan(@builtin(local_invocation_index) lid: u32) {
   scan_counts(lid, P.groups_total, S_COUNT1);
 }
 
-// pass 3: survivors written in logical order, projected and coloured once per point
+// pass 3: survivors written in logical order, projected and coloured once per point.
+// Each thread walks EMIT_K consecutive logical indices, so one 256-lane prefix sum (the
+// barrier-heavy part on CPU adapters) covers 256 * EMIT_K points.
+const EMIT_K: u32 = 8u;
+
 @compute @workgroup_size(256)
 fn emit(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: vec3<u32>) {
-  let g = wid.y * P.groups_x + wid.x;
-  let logical = g * 256u + lid;
-  var k = 0u;
-  if (logical < P.groups_total * 256u) { k = flags[logical]; }
-  let local = wg_exclusive(lid, k);
-  if (k == 1u) {
-    let slot = slot_of(logical);
-    let p = vec3<f32>(pos[3u * slot], pos[3u * slot + 1u], pos[3u * slot + 2u]);
-    let o = wgc[g] + local;
-    idx_out[o] = vec2<u32>(slot, cull_colour(slot, p));
-    clip_out[o] = {CLIP};
+  let G = wid.x;                       // emit group: cull groups G*EMIT_K .. G*EMIT_K+EMIT_K-1
+  let first = G * 256u * EMIT_K + lid * EMIT_K;
+  let limit = P.groups_total * 256u;
+  var c = 0u;
+  for (var j = 0u; j < EMIT_K; j = j + 1u) {
+    let l = first + j;
+    if (l < limit) { c = c + flags[l]; }
+  }
+  let local = wg_exclusive(lid, c);
+  if (c > 0u) {
+    var o = wgc[G * EMIT_K] + local;
+    for (var j = 0u; j < EMIT_K; j = j + 1u) {
+      let l = first + j;
+      if (l < limit && flags[l] == 1u) {
+        let slot = slot_of(l);
+        let p = vec3<f32>(pos[3u * slot], pos[3u * slot + 1u], pos[3u * slot + 2u]);
+        idx_out[o] = vec2<u32>(slot, cull_colour(slot, p));
+        clip_out[o] = {CLIP};
+        o = o + 1u;
+      }
+    }
   }
 }
 
