@@ -47,3 +47,21 @@ def test_require_adapter_fails_under_require_gpu(monkeypatch):
     monkeypatch.setenv("POINTFLOW_REQUIRE_GPU", "0")
     with pytest.raises(pytest.skip.Exception):
         gpu_util.require_adapter()
+
+
+@pytest.mark.gpu
+def test_malformed_frame_is_a_value_error_naming_the_field(make_renderer):
+    from pointflow.render.camera import Camera
+    from .helpers import frame
+    r = make_renderer(cfg(), 10)
+    cam = Camera(eye=[0.0, -10.0, 0.0], target=[0.0, 0.0, 0.0])
+    f = frame(np.zeros((10, 3)))
+    f.positions = np.zeros((10, 2), np.float32)
+    with pytest.raises(ValueError, match="positions"):
+        r.render(f, cam)
+    f = frame(np.zeros((10, 3)))
+    f.size = 11
+    with pytest.raises(ValueError, match="size"):
+        r.render(f, cam)
+    r.render(frame(np.zeros((10, 3))), cam)       # the renderer is still usable
+    assert r.finish().drawn == 10

@@ -462,9 +462,29 @@ class WgpuRenderer(Renderer):
             self._stats[s] = None
         self.nonfinite_total += int(st[12])
 
+    @staticmethod
+    def check_frame(frame: FrameInput) -> None:
+        """Reject a malformed FrameInput with a ValueError naming the field (not a RenderError:
+        another tier would fail on the same input)."""
+        cap = int(frame.capacity)
+        if cap < 1:
+            raise ValueError(f"FrameInput.capacity must be >= 1, got {cap}")
+        p = frame.positions
+        if p.ndim != 2 or p.shape[1] != 3 or p.shape[0] < cap:
+            raise ValueError(f"FrameInput.positions: expected ({cap}, 3), got {p.shape}")
+        for name in ("importance", "t_ingest_ms"):
+            a = getattr(frame, name)
+            if a.shape[0] < cap:
+                raise ValueError(f"FrameInput.{name}: expected {cap} entries, got {a.shape[0]}")
+        if not 0 <= int(frame.size) <= cap:
+            raise ValueError(f"FrameInput.size must be in 0..capacity ({cap}), got {frame.size}")
+        if not 0 <= int(frame.head) < cap:
+            raise ValueError(f"FrameInput.head must be in 0..capacity-1 ({cap - 1}), got {frame.head}")
+
     def render(self, frame: FrameInput, camera: Camera) -> FrameStats:
         if self._closed:
             raise RenderError("wgpu tier is closed")
+        self.check_frame(frame)
         try:
             return self._render(frame, camera)
         except RenderError:
