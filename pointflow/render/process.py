@@ -127,6 +127,7 @@ def main(ctx: StageContext) -> None:
     ema = None
     c = ctx.counters
     c.extra.update(frames=0, tier=renderer.tier, pngs=0, frame_ms_ema=0.0, tier_info=renderer.info())
+    tracing = cfg.tracing.enabled
     try:
         while ctx.running:
             ctx.beat()
@@ -157,6 +158,11 @@ def main(ctx: StageContext) -> None:
                     fs = window.last_stats
                 else:
                     fs = renderer.render(frame, camera)
+            except ValueError as exc:  # a malformed frame (tiers check their input): skip it, counted
+                reader.release(h.slab)
+                ctx.log.error("frame %d rejected by the %s tier: %s", h.seq, renderer.tier, exc)
+                c.drop("bad_frame", 1)
+                continue
             except RenderError as exc:
                 reader.release(h.slab)
                 from .select import fallback_after
@@ -171,6 +177,8 @@ def main(ctx: StageContext) -> None:
                 continue
             t_up = time.monotonic_ns()
             reader.release(h.slab)
+            if tracing and h.trace_ids and hasattr(renderer, "finish"):
+                renderer.finish()  # frame_done means the GPU work is complete
             frames += 1
             png = out_dir is not None and frames % out.every_n_frames == 0
             if png:
@@ -187,6 +195,7 @@ def main(ctx: StageContext) -> None:
             c.points_in += h.count
             if fs.drawn is not None:
                 c.points_out += fs.drawn
+            c.extra["nonfinite_skipped"] = int(getattr(renderer, "nonfinite_total", 0))  # point-draws not made
             c.extra.update(frames=frames - base, frame_ms_ema=round(ema, 3), last_frame_ms=round(ms, 3),
                            uploaded_bytes=c.extra.get("uploaded_bytes", 0) + fs.uploaded_bytes,
                            **{f"tier_{k}_ms": round(v, 3) for k, v in fs.timings_ms.items()})

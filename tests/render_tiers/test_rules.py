@@ -54,8 +54,6 @@ def test_nearer_point_wins_regardless_of_order(make):
 
 
 def test_equal_depth_ties_go_to_lower_logical_index(make, tier, request):
-    if tier == "wgpu":  # known deviation, reported: GPU compaction order is slot order, not logical
-        request.node.add_marker(pytest.mark.xfail(strict=True, reason="wgpu: equal-depth ties follow slot order"))
     cfg = render_cfg(size=[16, 16], point_size=4, color_range=[0, 1])
     # slots wrap: logical 0 sits in slot 2, logical 1 in slot 0
     f = make_frame([[0, 0, 0], [0, 0, 0]], capacity=3, head=2, intensity=np.array([0.0, 1.0], np.float32))
