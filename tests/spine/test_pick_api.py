@@ -44,12 +44,27 @@ def test_pick_returns_the_point_under_the_cursor(tmp_path, backend):
     pts = _grid()
     ctx = zmq.Context()
     push = ctx.socket(zmq.PUSH)
-    push.setsockopt(zmq.LINGER, 1000)
+    push.setsockopt(zmq.LINGER, 0)
+    try:
+        saved = _pick_session(cfg, tmp_path, push, port, pts, eye, target)
+    finally:
+        push.close(0)
+        ctx.term()
+    from PIL import Image
+
+    img = np.asarray(Image.open(saved))
+    assert img.shape == (150, 200, 4)
+    assert (img[..., :3] != img[0, 0, :3]).any(axis=-1).sum() >= len(pts)
+
+
+def _pick_session(cfg, tmp_path, push, port, pts, eye, target) -> str:
     with Pipeline.from_dict(cfg, out_dir=str(tmp_path)) as pipe:
         push.connect(f"tcp://127.0.0.1:{port}")
         wire.send(push, PointChunk(positions=pts, channels={"intensity": np.arange(len(pts), dtype=np.float32)},
                                    source_id="remote", trace_id=new_trace_id(), t_sent_ns=time.monotonic_ns()))
-        pipe.wait(30, until=lambda: pipe.stats()["frames"] >= 3 and pipe.stats()["stages"]["render"]["points_in"] >= len(pts))
+        ready = lambda: pipe.stats()["frames"] >= 3 and pipe.stats()["stages"]["render"]["points_in"] >= len(pts)
+        pipe.wait(60, until=ready)
+        assert ready(), "the points never reached the renderer"
         cam = Camera(eye=eye, target=target, up=[0, 1, 0], near=1.0, far=100.0)
         px, py, _, _ = project_to_pixels(pts - ORIGIN, cam.view_proj(200, 150, ORIGIN), 200, 150)
         k = 30
@@ -61,11 +76,4 @@ def test_pick_returns_the_point_under_the_cursor(tmp_path, backend):
         got2 = pipe.pick(px[k] / 2.0, py[k] / 2.0, pixel_ratio=2.0)
         assert got2 is not None and got2["slot"] == got["slot"]
         assert pipe.pick(2.0, 2.0) is None  # empty corner
-        saved = pipe.save_frame(str(tmp_path / "requested.png"))
-    push.close()
-    ctx.term()
-    from PIL import Image
-
-    img = np.asarray(Image.open(saved))
-    assert img.shape == (150, 200, 4)
-    assert (img[..., :3] != img[0, 0, :3]).any(axis=-1).sum() >= len(pts)
+        return pipe.save_frame(str(tmp_path / "requested.png"))

@@ -151,6 +151,17 @@ def test_external_source_over_tcp(tmp_path):
     ctx = zmq.Context()
     push = ctx.socket(zmq.PUSH)
     push.setsockopt(zmq.LINGER, 1000)
+    try:
+        s = _send_remote(pipe, push, port)
+    finally:
+        push.close(0)
+        ctx.term()
+    assert s["synth"]["points_out"] > 0
+    assert s["ingest"]["points_in"] == 20 * 500 + s["synth"]["points_out"]
+    assert "remote" not in s, "an external source is not started by the supervisor"
+
+
+def _send_remote(pipe, push, port) -> dict:
     with pipe:
         pipe.wait(30, until=lambda: pipe.stats()["stages"]["ingest"]["points_in"] > 0)
         push.connect(f"tcp://127.0.0.1:{port}")
@@ -163,9 +174,4 @@ def test_external_source_over_tcp(tmp_path):
         synthetic_sent = lambda: pipe.stats()["stages"]["synth"]["points_out"]
         pipe.wait(20, until=lambda: pipe.stats()["stages"]["synth"]["finished"]
                   and pipe.stats()["stages"]["ingest"]["points_in"] >= n_sent + synthetic_sent())
-    s = pipe.stats()["stages"]
-    push.close()
-    ctx.term()
-    assert s["synth"]["points_out"] > 0
-    assert s["ingest"]["points_in"] == n_sent + s["synth"]["points_out"]
-    assert "remote" not in s, "an external source is not started by the supervisor"
+    return pipe.stats()["stages"]
