@@ -15,28 +15,11 @@ from .config import ConfigError, load_config
 log = logging.getLogger("pointflow")
 
 
-def _fmt_n(n: float) -> str:
-    for unit, div in (("G", 1e9), ("M", 1e6), ("k", 1e3)):
-        if abs(n) >= div:
-            return f"{n / div:.1f}{unit}"
-    return f"{n:.0f}"
-
-
 def summary_line(stats: dict) -> str:
-    """One line: points in, in ring, frames, drops (the live view of ``pointflow run``)."""
-    try:
-        from .profiling.report import live_summary
+    """One line: points in, in ring, frames, cadence, drops, CPU (the live view of ``pointflow run``)."""
+    from .profiling.report import live_summary
 
-        return live_summary(stats)
-    except (ImportError, AttributeError):
-        pass
-    st = stats.get("stages", {})
-    src_out = sum(s.get("points_out", 0) for s in st.values() if s.get("kind") == "source")
-    drops = sum(sum(s.get("drops", {}).values()) for s in st.values())
-    ring = stats.get("ring") or {}
-    r = st.get("render", {})
-    return (f"t={stats.get('elapsed_s', 0):6.1f}s  in={_fmt_n(src_out)}  ring={_fmt_n(ring.get('total_points', 0))}"
-            f"  frames={stats.get('frames', 0)}  frame={r.get('frame_ms_ema', 0):.1f}ms  drops={_fmt_n(drops)}")
+    return live_summary(stats)
 
 
 class _Stop:
