@@ -24,14 +24,14 @@ from .camera import Camera
 
 class CameraController:
     """Frames the scene automatically (``camera.mode: auto``/``orbit``) or uses the fixed
-    camera from the config. Bounds come from a strided sample of the occupied slots, taken
-    on the first frame and again when the ring has grown a lot (not every frame)."""
+    camera from the config. Bounds come from a strided sample of the occupied slots, checked
+    about once a second (not every frame); the camera refits when they changed by more than
+    10%, so it follows a growing map or a moving sensor without jitter."""
 
     def __init__(self, ctx_cfg, width: int, height: int):
         self.cfg = ctx_cfg.render.camera
         self.aspect = width / max(height, 1)
         self.camera: Optional[Camera] = None
-        self._fit_size = 0
         self._last_fit = 0.0
         self._box = None
         self._t0 = time.monotonic()
@@ -39,20 +39,34 @@ class CameraController:
             self.camera = Camera(eye=self.cfg.position, target=self.cfg.target, up=self.cfg.up,
                                  fov_deg=self.cfg.fov_deg, near=self.cfg.near, far=self.cfg.far)
 
+    @staticmethod
+    def _bounds(frame: FrameInput):
+        """1st-99th percentile box of a strided sample of the occupied slots (world coords)."""
+        slots = frame.occupied_slots()
+        step = max(1, slots.size // 50_000)
+        p = frame.positions[slots[::step]].astype(np.float64)
+        p = p[np.isfinite(p).all(axis=1)]
+        if not p.size:
+            return None
+        lo, hi = np.percentile(p, [1, 99], axis=0)
+        return lo + frame.origin, hi + frame.origin
+
+    def _moved(self, box) -> bool:
+        """Refit only when the data's box changed by more than 10% of its size (no jitter)."""
+        lo0, hi0 = self._box
+        diag = max(float(np.linalg.norm(hi0 - lo0)), 1e-9)
+        return max(float(np.abs(box[0] - lo0).max()), float(np.abs(box[1] - hi0).max())) > 0.1 * diag
+
     def update(self, frame: FrameInput) -> Optional[Camera]:
         c = self.cfg
         if c.mode == "fixed":
             return self.camera
         now = time.monotonic()
-        if frame.size and (self._box is None or (frame.size > 1.5 * self._fit_size and now - self._last_fit > 1.0)):
-            slots = frame.occupied_slots()
-            step = max(1, slots.size // 200_000)
-            p = frame.positions[slots[::step]].astype(np.float64)
-            p = p[np.isfinite(p).all(axis=1)]
-            if p.size:
-                lo, hi = np.percentile(p, 1, axis=0), np.percentile(p, 99, axis=0)
-                self._box = (lo + frame.origin, hi + frame.origin)
-                self._fit_size, self._last_fit = frame.size, now
+        if frame.size and (self._box is None or now - self._last_fit > 1.0):
+            self._last_fit = now
+            box = self._bounds(frame)
+            if box is not None and (self._box is None or self._moved(box)):
+                self._box = box
         if self._box is None:
             return None
         az = -60.0 + (c.orbit_deg_per_s * (now - self._t0) if c.orbit_deg_per_s else 0.0)
