@@ -484,7 +484,8 @@ class Supervisor:
         """Where every point went: ingest's balance (points of accepted chunks = written +
         dropped by reason; rejected messages are counted per message and reason),
         the ring agreeing with ingest, and points the sources sent that ingest never saw
-        (lost in the socket buffers of a killed ingest; only known without external sources)."""
+        (lost in the socket buffers of a killed ingest; known only without external sources and
+        while no source was killed, since a killed source's last counts die with it)."""
         ing = stages.get("ingest", {})
         rejected = ing.get("rejected", {})
         acc: dict[str, Any] = {
@@ -498,8 +499,12 @@ class Supervisor:
         if ring:
             acc["ring_written"] = ring.get("total_written")
             acc["ring_agrees"] = ring.get("total_written") == acc["ingest_written"]
+        sources = [v for v in stages.values() if v.get("kind") == "source"]
         if not any(s.external for s in self.cfg.sources):
-            sent = sum(v.get("points_out", 0) for v in stages.values() if v.get("kind") == "source")
-            acc["sources_sent"] = sent
-            acc["lost_before_ingest"] = sent - acc["ingest_received"]
+            acc["sources_sent"] = sum(v.get("points_out", 0) for v in sources)
+            if any(v.get("restarts") for v in sources):
+                # a killed source's sends since its last heartbeat died with it
+                acc["lost_before_ingest"] = None
+            else:
+                acc["lost_before_ingest"] = acc["sources_sent"] - acc["ingest_received"]
         return acc

@@ -156,14 +156,17 @@ def test_temporal_stats_inclusive_window():
         t = r.snapshot().t_ingest_ms
         t_old, t_new = float(t[0]), float(t[-1])
         assert t_new > t_old
-        # freeze "now" 100 ms after the newest push: no dependence on scheduling
-        r._now_ms = lambda: t_new + 100.0
-        ts = r.temporal_stats(100)  # cutoff exactly at the newest points: inclusive
+        # freeze "now" (no dependence on scheduling) so that the window w = now - t_new is
+        # exact (Sterbenz: t_new >= now / 2), hence the cutoff now - w is exactly t_new
+        now = t_new * 1.5
+        w = now - t_new
+        r._now_ms = lambda: now
+        ts = r.temporal_stats(w)  # cutoff exactly at the newest points: inclusive
         assert ts.count_in_window == 2
-        assert ts.newest_age_ms == pytest.approx(100.0)
-        assert ts.oldest_age_ms == pytest.approx(100.0 + t_new - t_old)
-        assert r.temporal_stats(99.99).count_in_window == 0
-        assert r.temporal_stats(100.0 + t_new - t_old + 1e-3).count_in_window == 5
+        assert ts.newest_age_ms == w
+        assert ts.oldest_age_ms == pytest.approx(now - t_old)
+        assert r.temporal_stats(w * (1 - 1e-9)).count_in_window == 0  # a hair shorter: excluded
+        assert r.temporal_stats(now - t_old + 1e-6).count_in_window == 5
         r.reset()
         assert r.temporal_stats(10).count_in_window == 0
 

@@ -48,8 +48,8 @@ def test_kill_each_stage_in_turn_recovers(tmp_path):
     assert final["ring"]["total_written"] == final["stages"]["ingest"]["points_out"], "ring and ingest disagree"
     acc = final["accounting"]
     assert acc["ingest_balanced"] and acc["ring_agrees"]
-    # points the sources sent that a killed ingest never received are counted, never negative
-    assert acc["lost_before_ingest"] >= 0
+    # the source was killed too, so what it sent after its last heartbeat is unknowable
+    assert acc["lost_before_ingest"] is None
     assert final["frames"] >= 15, "frame count must carry over render restarts"
     pngs = sorted(tmp_path.glob("frame_*.png"))
     assert len(pngs) == final["stages"]["render"]["pngs"], "a restarted renderer overwrote earlier frames"
