@@ -241,11 +241,15 @@ class PointRing:
         self._fst = np.ndarray((N_FSTATE,), np.float64, buffer=mm, offset=FSTATE_OFF)
         self._dirty = np.ndarray((DIRTY_MAX, 2), np.int64, buffer=mm, offset=DIRTY_OFF)
         self._commits = np.ndarray((COMMIT_N, 2), np.int64, buffer=mm, offset=COMMIT_OFF)
+        # the same two tables as flat int64 memoryviews for the push path (cheaper element access)
+        self._dmv = memoryview(mm)[DIRTY_OFF:DIRTY_OFF + 16 * DIRTY_MAX].cast("q")
+        self._cmv = memoryview(mm)[COMMIT_OFF:COMMIT_OFF + 16 * COMMIT_N].cast("q")
         self.arrays = map_arrays(mm, HEADER_SIZE, self.layout)
         self._pos = self.arrays["positions"]
         self._t = self.arrays["t_ingest_ms"]
         self._imp = self.arrays["importance"]
         self._gen = self.arrays["generation"]
+        self._pflat = self._pos.reshape(-1)  # flat float32 view of the offsets (x, y, z per slot)
         self._chans = {c.name: (c, self.arrays["ch:" + c.name], self.arrays["gen:" + c.name]) for c in self.layout.channels}
         self._all = list(self.arrays.values())
         self.capacity = self.layout.capacity
@@ -267,9 +271,10 @@ class PointRing:
         if self._closed:
             return
         self._closed = True
-        for a in ("arrays", "_pos", "_t", "_imp", "_gen", "_chans", "_all", "_fst", "_dirty", "_commits", "_otile"):
+        for a in ("arrays", "_pos", "_pflat", "_t", "_imp", "_gen", "_chans", "_all", "_fst", "_dirty", "_commits",
+                  "_otile"):
             self.__dict__.pop(a, None)
-        for a in ("_st", "_stmv"):
+        for a in ("_st", "_stmv", "_dmv", "_cmv"):
             mv = self.__dict__.pop(a, None)
             if mv is not None:
                 mv.release()
@@ -334,19 +339,22 @@ class PointRing:
 
     def _add_range(self, a: int, b: int) -> None:
         st = self._st
-        n = int(st[I_DIRTY_N])
-        d = self._dirty
+        n = st[I_DIRTY_N]
+        d = self._dmv  # flat int64 view of the dirty table: d[2i], d[2i+1] = range i
         if n:
-            la, lb = int(d[n - 1, 0]), int(d[n - 1, 1])
+            i = 2 * n - 2
+            la, lb = d[i], d[i + 1]
             if a <= lb and b >= la:
-                d[n - 1, 0] = min(a, la)
-                d[n - 1, 1] = max(b, lb)
+                if a < la:
+                    d[i] = a
+                if b > lb:
+                    d[i + 1] = b
                 return
         if n >= DIRTY_MAX:
             st[I_DIRTY_FULL] = 1
             return
-        d[n, 0] = a
-        d[n, 1] = b
+        d[2 * n] = a
+        d[2 * n + 1] = b
         st[I_DIRTY_N] = n + 1
 
     def _prepare(self, n: int, channels: dict) -> tuple[list, np.ndarray | None]:
@@ -387,9 +395,19 @@ class PointRing:
             imp = np.ones(n, np.float32) if imp is None else imp.copy()
             for k, w in self.classification_weights.items():
                 imp[cls == k] = w
-        if imp is not None and n and not (imp.min() >= 0 and imp.max() < np.inf):
+        if imp is not None and n and not self._imp_ok(imp):
             imp = np.where(np.isfinite(imp) & (imp > 0), imp, 0.0).astype(np.float32)
         return prepared, imp
+
+    @staticmethod
+    def _imp_ok(imp: np.ndarray) -> bool:
+        """True iff every importance is >= 0 and finite (float32 (n,), n >= 1)."""
+        # one integer reduction: as uint32, +0.0 .. the largest finite float32 are exactly the bit
+        # patterns below 0x7F800000 (+inf); negatives (sign bit), NaN and inf lie above. -0.0 also
+        # lies above, so a miss falls back to the float test, which accepts -0.0.
+        if int(imp.view(np.uint32).max()) < 0x7F800000:
+            return True
+        return bool(imp.min() >= 0 and imp.max() < np.inf)
 
     def _write(self, slot: int, pos: np.ndarray, a: int, b: int, t_ms: float, g: int, prepared, imp) -> None:
         """Write incoming points [a, b) to slots slot.. (mod capacity); b - a <= capacity."""
@@ -397,8 +415,22 @@ class PointRing:
         n = b - a
         otile = self._origin_tile(n)
         pflat = pos.reshape(-1)
-        dflat = self._pos.reshape(-1)
-        segs = [(slot, slot + n, a, b)] if slot + n <= cap else [(slot, cap, a, a + cap - slot), (0, slot + n - cap, a + cap - slot, b)]
+        dflat = self._pflat
+        if slot + n <= cap:
+            # the common case (no wrap), one numpy call per array
+            s1 = slot + n
+            np.subtract(pflat[3 * a:3 * b], otile[:3 * n], out=dflat[3 * slot:3 * s1], casting="unsafe")
+            self._t[slot:s1] = t_ms
+            self._gen[slot:s1] = g
+            if imp is None:
+                self._imp[slot:s1] = 1.0
+            else:
+                self._imp[slot:s1] = imp[a:b]
+            for vals, gens, arr in prepared:
+                vals[slot:s1] = arr[a:b]
+                gens[slot:s1] = g
+            return
+        segs = ((slot, cap, a, a + cap - slot), (0, slot + n - cap, a + cap - slot, b))
         for s0, s1, c0, c1 in segs:
             # offsets computed in float64, stored as float32 (flat: avoids numpy's slow 3-wide broadcast)
             np.subtract(pflat[3 * c0:3 * c1], otile[:3 * (c1 - c0)], out=dflat[3 * s0:3 * s1], casting="unsafe")
@@ -547,11 +579,14 @@ class PointRing:
         st[I_LAST_PUSH_NS] = now_ns
         tids = (trace_id,) if isinstance(trace_id, (int, np.integer)) else trace_id
         t_commit = time.monotonic_ns()
+        cm = self._cmv  # flat int64 view of the commit log: cm[2i], cm[2i+1] = entry i
         for tid in tids:  # one entry per chunk of a coalesced push (a handful, not per point)
             if tid:
-                c = int(st[I_COMMIT_COUNT])
-                self._commits[c % COMMIT_N, 0] = np.int64(np.uint64(int(tid) & 0xFFFFFFFFFFFFFFFF).view(np.int64))
-                self._commits[c % COMMIT_N, 1] = t_commit
+                c = st[I_COMMIT_COUNT]
+                v = int(tid) & 0xFFFFFFFFFFFFFFFF  # stored as the int64 with the same bits
+                i = 2 * (c % COMMIT_N)
+                cm[i] = v - (1 << 64) if v >= 1 << 63 else v
+                cm[i + 1] = t_commit
                 st[I_COMMIT_COUNT] = c + 1
         return int(written), int(dropped)
 
