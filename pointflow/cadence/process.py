@@ -280,8 +280,7 @@ def main(ctx) -> None:
     ready.connect(ctx.endpoints.frames)
     # No GPU probe here: the renderer owns the adapter and reports its limits in its hello.
     decision = resolve_policy(cfg, probe_gpu=False)
-    # ``cadence.latest_only`` (requested config key; default on until it exists).
-    latest_only = bool(getattr(cfg.cadence, "latest_only", True))
+    latest_only = cfg.cadence.latest_only
     cad = Cadence(ring, slabs, ready, release, ctx.zmq, cfg, decision, spans=ctx.spans, log=ctx.log,
                   latest_only=latest_only)
     if ctx.info.restart_count:
