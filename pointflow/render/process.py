@@ -217,6 +217,7 @@ def main(ctx: StageContext) -> None:
             for tid in h.trace_ids:
                 ctx.spans.record(tid, "render_upload", t0, t_up, 0)
                 ctx.spans.record(tid, "frame_done", t0, t1, 0)
+            _gpu_spans(ctx, fs, t0)
     finally:
         if window is not None:
             window.close()
@@ -230,6 +231,23 @@ def main(ctx: StageContext) -> None:
         reader.release()
         slabs.close()
         ring.close()
+
+
+def _gpu_spans(ctx, fs, t0: int) -> None:
+    """GPU timestamp-query durations as spans of their own trace (a ``gpu_compute`` and a
+    ``gpu_draw`` slice per frame on the render track). The GPU clock is not the CPU's
+    monotonic clock, so the slices are placed at the frame's start; their lengths are the
+    GPU's own measurement (which lags the frame by up to two frames)."""
+    tm = fs.timings_ms
+    if "gpu_compute" not in tm and "gpu_draw" not in tm:
+        return
+    from ..chunk import new_trace_id
+
+    gid = new_trace_id()
+    dc = int(tm.get("gpu_compute", 0.0) * 1e6)
+    dd = int(tm.get("gpu_draw", 0.0) * 1e6)
+    ctx.spans.record(gid, "gpu_compute", t0, t0 + dc, 0)
+    ctx.spans.record(gid, "gpu_draw", t0 + dc, t0 + dc + dd, 0)
 
 
 def point_to_dict(rec) -> Optional[dict]:
