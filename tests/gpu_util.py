@@ -6,6 +6,7 @@ so a broken GPU stack can never pass silently as "skipped".
 """
 from __future__ import annotations
 
+import contextlib
 import os
 from typing import Any, Optional
 
@@ -75,3 +76,43 @@ def require_egl() -> Any:
         return moderngl.create_standalone_context(backend="egl")
     except Exception as e:
         _missing(f"no EGL/OpenGL context: {type(e).__name__}: {e}")
+
+
+@contextlib.contextmanager
+def xvfb_display():
+    """The display to use: $DISPLAY, or a private Xvfb started for the block (fails under
+    POINTFLOW_REQUIRE_GPU=1 when neither exists, skips otherwise). Yields ":N"."""
+    import shutil
+    import subprocess
+
+    if os.environ.get("DISPLAY"):
+        yield os.environ["DISPLAY"]
+        return
+    xvfb = shutil.which("Xvfb")
+    if xvfb is None:
+        _missing("no DISPLAY and no Xvfb to start one")
+    r, w = os.pipe()
+    proc = subprocess.Popen([xvfb, "-displayfd", str(w), "-screen", "0", "800x600x24", "-nolisten", "tcp"],
+                            pass_fds=(w,), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    os.close(w)
+    try:
+        num = b""
+        with os.fdopen(r, "rb") as f:
+            while not num.endswith(b"\n"):
+                ch = f.read(1)
+                if not ch:
+                    break
+                num += ch
+        assert num.strip(), "Xvfb did not report a display number"
+        os.environ["DISPLAY"] = f":{int(num)}"
+        try:
+            yield f":{int(num)}"
+        finally:
+            os.environ.pop("DISPLAY", None)
+    finally:
+        import sys
+
+        if "glfw" in sys.modules:  # drop the X connection first, or Xlib exit()s at shutdown
+            sys.modules["glfw"].terminate()
+        proc.terminate()
+        proc.wait(timeout=10)

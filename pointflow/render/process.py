@@ -164,6 +164,8 @@ def main(ctx: StageContext) -> None:
 
                     window = PointWindow(renderer, camera, title=f"pointflow: {cfg.name}",
                                          on_pick=lambda slot, x, y: _print_pick(ring, slot, x, y))
+                    c.extra["window"] = True
+                    ctx.log.info("window open on display %s", os.environ.get("DISPLAY"))
                 if window is not None:
                     if not window.step(frame):
                         reader.release(h.slab)

@@ -1,12 +1,8 @@
 """The optional window under Xvfb: it presents frames, orbits/pans/zooms and picks on click."""
-import os
-import shutil
-import subprocess
-
 import numpy as np
 import pytest
 
-from gpu_util import gpu_required
+from gpu_util import xvfb_display
 from pointflow.render.camera import Camera, project_to_pixels
 
 from .helpers import cfg, frame
@@ -15,37 +11,9 @@ pytestmark = pytest.mark.gpu
 
 
 @pytest.fixture
-def display(monkeypatch):
-    if os.environ.get("DISPLAY"):
-        yield os.environ["DISPLAY"]
-        return
-    xvfb = shutil.which("Xvfb")
-    if xvfb is None:
-        msg = "no DISPLAY and no Xvfb to start one"
-        if gpu_required():
-            pytest.fail(f"POINTFLOW_REQUIRE_GPU=1 but {msg}")
-        pytest.skip(msg)
-    r, w = os.pipe()
-    proc = subprocess.Popen([xvfb, "-displayfd", str(w), "-screen", "0", "800x600x24", "-nolisten", "tcp"],
-                            pass_fds=(w,), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    os.close(w)
-    try:
-        num = b""
-        with os.fdopen(r, "rb") as f:
-            while not num.endswith(b"\n"):
-                ch = f.read(1)
-                if not ch:
-                    break
-                num += ch
-        assert num.strip(), "Xvfb did not report a display number"
-        monkeypatch.setenv("DISPLAY", f":{int(num)}")
-        yield f":{int(num)}"
-    finally:
-        import sys
-        if "glfw" in sys.modules:   # drop the X connection first, or Xlib exit()s at shutdown
-            sys.modules["glfw"].terminate()
-        proc.terminate()
-        proc.wait(timeout=10)
+def display():
+    with xvfb_display() as d:
+        yield d
 
 
 def test_window_presents_orbits_and_picks(make_renderer, display):
