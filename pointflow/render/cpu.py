@@ -284,9 +284,10 @@ def point_sizes_px(cfg: RenderConfig, camera: Camera, width: int, height: int, w
 # --------------------------------------------------------------------------- picking
 def pick_window(width: int, height: int, x: float, y: float, pixel_ratio: float, radius: int):
     """(X, Y, xa, xb, ya, yb): the framebuffer pixel under window (x, y) × pixel_ratio and
-    the block within ``radius`` around it clipped to the viewport; None when empty."""
+    the block within ``radius`` × pixel_ratio around it (the radius is in logical pixels,
+    as in the wgpu tier) clipped to the viewport; None when empty."""
     X, Y = int(np.floor(x * pixel_ratio)), int(np.floor(y * pixel_ratio))
-    r = int(radius)
+    r = int(np.ceil(radius * pixel_ratio))
     xa, xb, ya, yb = max(X - r, 0), min(X + r + 1, width), max(Y - r, 0), min(Y + r + 1, height)
     if xa >= xb or ya >= yb:
         return None
