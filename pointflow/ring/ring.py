@@ -389,7 +389,9 @@ class PointRing:
             prepared.append((vals, gens, arr))
         imp = None
         if self.importance_field is not None and self.importance_field in channels:
-            imp = np.asarray(channels[self.importance_field], dtype=np.float32).reshape(n)
+            imp = channels[self.importance_field]
+            if type(imp) is not np.ndarray or imp.dtype != np.float32 or imp.shape != (n,):
+                imp = np.asarray(imp, dtype=np.float32).reshape(n)
         if self.classification_weights and "classification" in channels:
             cls = np.asarray(channels["classification"]).reshape(n)
             imp = np.ones(n, np.float32) if imp is None else imp.copy()
