@@ -94,6 +94,7 @@ class Ingestor:
         self.log = log or logging.getLogger("pointflow.ingest")
         self._warn = RateLimitedLog(self.log)
         self.specs = {c.name: c for c in ring.channels}
+        self._dtypes = {c.name: np.dtype(c.dtype) for c in ring.channels}  # not rebuilt per chunk
         # The supervisor creates the ring with importance_field="importance" when the config
         # asks for importance; ingest resolves the configured field into that value.
         self._imp_key = ring.importance_field if ring.importance_field == "importance" and "importance" not in self.specs else None
@@ -182,7 +183,7 @@ class Ingestor:
                     raise ChunkError("bad_channel_shape", f"channel {name!r} must be one value per point, got shape {arr.shape}")
             elif arr.ndim != 2 or arr.shape[1] != spec.width:
                 raise ChunkError("bad_channel_shape", f"channel {name!r} must have shape ({n}, {spec.width}), got {arr.shape}")
-            out[name] = _to_dtype(name, arr, np.dtype(spec.dtype))
+            out[name] = _to_dtype(name, arr, self._dtypes[name])
         if self._imp_key is not None:
             src = self._importance_values(chunk)
             if src is not None:
