@@ -52,3 +52,43 @@ def test_commit_log_and_dirty_ranges_through_flat_views():
         assert ch.dirty == [(0, 8)]
         r.push(xrange_pts(8, 13))  # wraps: 8..10 and 0..3
         assert r.take_changes().dirty == [(0, 3), (8, 10)]
+
+
+def _stored_offsets(r, n):
+    return np.array(r.arrays["positions"][:n])
+
+
+@pytest.mark.parametrize("origin", [(0.0, 0.0, 0.0), (6.4e5, 4.9e6, 12.0), (-5e6, 3.0, -16777216.0),
+                                    (16777217.0, 1.0, 2.0), (3.0e20, -7.0, 1.0e-3)])
+def test_float32_positions_offsets_bit_identical_to_float64_path(origin):
+    # float32 input takes a float32 subtraction when the origin is a float32 value; it must store
+    # exactly what the float64 subtraction rounded once to float32 stores
+    rng = np.random.default_rng(7)
+    n = 4000
+    o = np.array(origin)
+    parts = [
+        (o + rng.standard_normal((n, 3)) * 10.0 ** rng.integers(-8, 7, (n, 1))).astype(np.float32),
+        rng.integers(0, 2**32, (n, 3), dtype=np.uint64).astype(np.uint32).view(np.float32),  # any bits
+        np.array([[np.inf, -np.inf, np.nan], [-0.0, 0.0, 1e-45], [3.4e38, -3.4e38, -1e-45]], np.float32),
+    ]
+    for p in parts:
+        with PointRing(len(p) + 1) as r, np.errstate(all="ignore"):
+            r.push(np.asarray(o, np.float64).reshape(1, 3))  # sets the origin to round(origin)
+            org = np.array(r.stats().origin)
+            r.push(p)
+            got = np.array(r.arrays["positions"][1:len(p) + 1])
+            ref = (p.astype(np.float64) - org).astype(np.float32)
+        same = (got.view(np.uint32) == ref.view(np.uint32)) | (np.isnan(got) & np.isnan(ref))
+        assert same.all(), (origin, p[~same.all(axis=1)][:3])
+
+
+def test_float32_and_float64_inputs_store_the_same():
+    rng = np.random.default_rng(3)
+    p32 = (rng.uniform(-500, 500, (3000, 3)) + [6.4e5, 4.9e6, 30.0]).astype(np.float32)
+    with PointRing(5000) as a, PointRing(5000) as b:
+        a.push(p32[:1].astype(np.float64))
+        b.push(p32[:1].astype(np.float64))
+        a.push(p32)
+        b.push(p32.astype(np.float64))
+        assert np.array_equal(a.arrays["positions"], b.arrays["positions"])
+        assert np.array_equal(a.snapshot().positions, b.snapshot().positions)
