@@ -1,7 +1,23 @@
-"""Reconnect backoff shared by the network transports."""
+"""Reconnect backoff and the options every network transport shares."""
 from __future__ import annotations
 
+import dataclasses
 import time
+
+
+@dataclasses.dataclass
+class NetworkOptions:
+    """Options of every network transport (subclasses add theirs after these)."""
+
+    #: Chunks larger than this are rejected (``too_large``).
+    max_points: int = 5_000_000
+    #: Reconnect backoff: first delay, doubling up to the maximum.
+    reconnect_initial_s: float = 0.1
+    reconnect_max_s: float = 5.0
+    #: websocket and sse: TCP connect and handshake timeout (ZeroMQ connects lazily).
+    connect_timeout_s: float = 3.0
+    #: Stop after this many chunks (0 = never); for tests and captures.
+    max_chunks: int = 0
 
 
 class Backoff:

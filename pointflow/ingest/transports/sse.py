@@ -21,7 +21,7 @@ from urllib.parse import urlsplit
 from ...chunk import ChunkError, PointChunk
 from ...config import ConfigError
 from ..jsonchunk import parse_json_chunk
-from ._backoff import Backoff
+from ._backoff import Backoff, NetworkOptions
 from .base import Transport
 
 log = logging.getLogger("pointflow.transport.sse")
@@ -31,16 +31,11 @@ MAX_EVENT_BYTES = 64 * 1024 * 1024
 
 
 @dataclasses.dataclass
-class SseOptions:
+class SseOptions(NetworkOptions):
     url: str = "http://127.0.0.1:8080/stream"
     #: Only events of this type (``event:`` field; default type is "message"); null = all.
     event: Optional[str] = None
     headers: dict[str, str] = dataclasses.field(default_factory=dict)
-    max_points: int = 5_000_000
-    reconnect_initial_s: float = 0.1
-    reconnect_max_s: float = 5.0
-    connect_timeout_s: float = 3.0
-    max_chunks: int = 0
 
 
 class _HttpError(Exception):

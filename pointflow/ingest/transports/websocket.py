@@ -17,7 +17,7 @@ from ...chunk import ChunkError, PointChunk
 from ...config import ConfigError
 from ..jsonchunk import parse_json_chunk
 from ..quantised import AttributeRange, decode_quantised
-from ._backoff import Backoff
+from ._backoff import Backoff, NetworkOptions
 from .base import Transport
 
 log = logging.getLogger("pointflow.transport.websocket")
@@ -31,18 +31,12 @@ class AttributeOption:
 
 
 @dataclasses.dataclass
-class WebSocketOptions:
+class WebSocketOptions(NetworkOptions):
     url: str = "ws://127.0.0.1:8765"
     #: Schema of the quantised binary frames: attribute j -> channel name and range.
     attributes: list[AttributeOption] = dataclasses.field(default_factory=list)
     #: Sent once after every (re)connect, e.g. a subscription request.
     subscribe: Optional[str] = None
-    max_points: int = 5_000_000
-    reconnect_initial_s: float = 0.1
-    reconnect_max_s: float = 5.0
-    connect_timeout_s: float = 3.0
-    #: Stop after this many chunks (0 = never); for tests and captures.
-    max_chunks: int = 0
 
 
 class WebSocketTransport(Transport):

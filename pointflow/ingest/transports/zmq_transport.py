@@ -19,13 +19,14 @@ from ... import wire
 from ...chunk import ChunkError, PointChunk
 from ...config import ConfigError
 from ..jsonchunk import parse_json_chunk
+from ._backoff import NetworkOptions
 from .base import Transport
 
 log = logging.getLogger("pointflow.transport.zmq")
 
 
 @dataclasses.dataclass
-class ZmqOptions:
+class ZmqOptions(NetworkOptions):
     endpoint: str = "tcp://127.0.0.1:5556"
     socket: Literal["sub", "pull"] = "sub"
     bind: bool = False
@@ -34,10 +35,6 @@ class ZmqOptions:
     #: The first frame of each message is a topic to skip.
     topic_frame: bool = False
     receive_hwm: int = 1000
-    max_points: int = 5_000_000
-    reconnect_initial_s: float = 0.1
-    reconnect_max_s: float = 5.0
-    max_chunks: int = 0
 
 
 class ZmqTransport(Transport):
