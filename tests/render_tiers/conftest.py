@@ -15,7 +15,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(__file__)))
 os.environ.setdefault("XDG_RUNTIME_DIR", "/tmp/xdg")
 os.makedirs(os.environ["XDG_RUNTIME_DIR"], exist_ok=True)
 
-from gpu_util import gpu_required, require_adapter, require_egl  # noqa: E402
+from gpu_util import require_adapter, require_egl  # noqa: E402
 
 TIERS = ["cpu", "gl", "wgpu"]
 
@@ -31,12 +31,7 @@ def tier_class(tier: str):
         from pointflow.render.gl import GlRenderer
         return GlRenderer
     require_adapter()
-    try:
-        from pointflow.render.wgpu_tier import WgpuRenderer
-    except (ImportError, AttributeError) as exc:
-        if gpu_required():
-            pytest.fail(f"POINTFLOW_REQUIRE_GPU=1 but the wgpu tier is not importable: {exc}")
-        pytest.skip(f"wgpu tier not importable yet: {exc}")
+    from pointflow.render.wgpu_tier import WgpuRenderer
     return WgpuRenderer
 
 

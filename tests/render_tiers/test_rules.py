@@ -116,8 +116,6 @@ def test_budget_caps_the_drawn_count(make):
 
 
 def test_pick_returns_the_front_point_and_scales_by_pixel_ratio(make, tier):
-    if tier == "wgpu":
-        pytest.skip("wgpu picking is covered by tests/render_wgpu")
     cfg = render_cfg(size=[32, 32], point_size=4, pick_radius=2)
     f = make_frame([[0, 0, 0.0], [0, 0, 2.0], [3, 3, 0]], capacity=4, head=1)  # slots 1, 2, 3
     r = make(cfg, 4)
