@@ -420,20 +420,9 @@ class PointRing:
         otile = self._origin_tile(n, pflat.dtype.char == "f")
         dflat = self._pflat
         if slot + n <= cap:
-            # the common case (no wrap), one numpy call per array
-            s1 = slot + n
-            np.subtract(pflat[3 * a:3 * b], otile[:3 * n], out=dflat[3 * slot:3 * s1], casting="unsafe")
-            self._t[slot:s1] = t_ms
-            self._gen[slot:s1] = g
-            if imp is None:
-                self._imp[slot:s1] = 1.0
-            else:
-                self._imp[slot:s1] = imp[a:b]
-            for vals, gens, arr in prepared:
-                vals[slot:s1] = arr[a:b]
-                gens[slot:s1] = g
-            return
-        segs = ((slot, cap, a, a + cap - slot), (0, slot + n - cap, a + cap - slot, b))
+            segs = ((slot, slot + n, a, b),)  # the common case: no wrap, one numpy call per array
+        else:
+            segs = ((slot, cap, a, a + cap - slot), (0, slot + n - cap, a + cap - slot, b))
         for s0, s1, c0, c1 in segs:
             # offsets computed in float64, stored as float32 (flat: avoids numpy's slow 3-wide broadcast)
             np.subtract(pflat[3 * c0:3 * c1], otile[:3 * (c1 - c0)], out=dflat[3 * s0:3 * s1], casting="unsafe")
