@@ -231,4 +231,10 @@ def stage_main(name: str, kind: str, cfg_dict: dict, base_dir: str, info: RunInf
         code = 1
     finally:
         ctx.close()
+        if os.getppid() != info.supervisor_pid:
+            # the supervisor was killed and could not unlink its segments: do it for it
+            from ..ring.sweep import sweep_orphans
+
+            for name in sweep_orphans():
+                logging.getLogger("pointflow").warning("removed %s (its supervisor is gone)", name)
     sys.exit(code)

@@ -130,8 +130,13 @@ class Supervisor:
     # ------------------------------------------------------------------ start
     def start(self) -> None:
         from ..ring import PointRing, SlabPair
+        from ..ring.sweep import sweep_orphans
 
         cfg = self.cfg
+        stale = sweep_orphans()
+        if stale:
+            log.warning("removed %d shared-memory segment(s) left by a pipeline that was killed: %s",
+                        len(stale), ", ".join(stale))
         self.run_dir = new_run_dir()
         self.endpoints = cfg.resolved_endpoints(self.run_dir)
         if self.out_dir:
@@ -162,8 +167,8 @@ class Supervisor:
         )
         self.slabs = SlabPair.create(self.ring.layout)
         self.segments = [self.ring.name, *self.slabs.names]
-        log.info("ring %s: %d points, channels %s, eviction %s", self.ring.name, cfg.ring.max_points,
-                 cfg.ring_channels() or "[]", cfg.ring.eviction)
+        log.info("ring %s: %d points, channels %s, eviction %s; slabs %s", self.ring.name, cfg.ring.max_points,
+                 cfg.ring_channels() or "[]", cfg.ring.eviction, " ".join(self.slabs.names))
         order = [("render", "render", -1), ("cadence", "cadence", -1), ("ingest", "ingest", -1)]
         order += [(s.name, "source", i) for i, s in enumerate(cfg.sources) if not s.external]
         for name, kind, idx in order:

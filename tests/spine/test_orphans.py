@@ -1,0 +1,71 @@
+"""A supervisor killed outright cannot clean up; its stages (SIGTERM from the kernel via
+PR_SET_PDEATHSIG) and the next supervisor remove what it left."""
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import re
+import signal
+import subprocess
+import sys
+
+import yaml
+
+from pointflow.ring import PointRing
+from pointflow.ring.sweep import sweep_orphans
+
+from .helpers import assert_gone, small_config, wait_for
+
+SHM = "/dev/shm"
+
+
+def _make_ring_and_die(conn) -> None:
+    r = PointRing(1000, channels=["intensity"])
+    conn.send(r.name)  # synchronous, unlike a Queue's feeder thread
+    os.kill(os.getpid(), signal.SIGKILL)
+
+
+def test_sweep_removes_only_segments_of_dead_owners():
+    ctx = mp.get_context("spawn")
+    parent, child = ctx.Pipe()
+    p = ctx.Process(target=_make_ring_and_die, args=(child,))
+    p.start()
+    assert parent.poll(60), "the child did not report its ring"
+    dead_name = parent.recv()
+    p.join(30)
+    assert p.exitcode == -signal.SIGKILL
+    assert os.path.exists(os.path.join(SHM, dead_name)), "a SIGKILLed owner leaves its segment"
+    with PointRing(10) as alive:
+        removed = sweep_orphans()
+        assert dead_name in removed
+        assert alive.name not in removed and os.path.exists(os.path.join(SHM, alive.name))
+    assert not os.path.exists(os.path.join(SHM, dead_name))
+
+
+def test_sigkill_of_the_supervisor_leaves_nothing(tmp_path):
+    path = tmp_path / "p.yaml"
+    path.write_text(yaml.safe_dump(small_config()))
+    out = tmp_path / "out"
+    proc = subprocess.Popen([sys.executable, "-m", "pointflow.cli", "run", str(path), "--out", str(out), "-q"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    lines = []
+    try:
+        for line in proc.stderr:  # the supervisor logs its segment names at start
+            lines.append(line)
+            if "ring pfring_" in line:
+                break
+        assert wait_for(lambda: list(out.glob("frame_*.png")), timeout=60), "no frame before the kill"
+        import psutil
+
+        kids = [c.pid for c in psutil.Process(proc.pid).children(recursive=True)]
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait(10)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.stderr.close()
+    m = re.search(r"ring (pfring_\w+):.*slabs (pfslab_\w+) (pfslab_\w+)", "".join(lines))
+    assert m, "segment names not logged"
+    assert_gone(kids)  # stages saw their supervisor die and exited
+    assert wait_for(lambda: not any(os.path.exists(os.path.join(SHM, n)) for n in m.groups()), timeout=10), \
+        "segments of a killed supervisor were not removed"
