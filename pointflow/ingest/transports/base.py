@@ -12,9 +12,9 @@ import dataclasses
 import logging
 import time
 from abc import ABC, abstractmethod
-from typing import Any, ClassVar, Iterator, Optional
+from typing import Any, Callable, ClassVar, Iterator, Optional
 
-from ...chunk import PointChunk
+from ...chunk import ChunkError, PointChunk
 
 
 @dataclasses.dataclass
@@ -76,6 +76,17 @@ class Transport(ABC):
             last[reason] = now
             logging.getLogger(f"pointflow.transport.{self.name or type(self).__name__}").warning(
                 "%s: rejected message [%s]: %s", self.source_id, reason, message)
+
+    def accept(self, parse: Callable[[Any], PointChunk], message: Any) -> Optional[PointChunk]:
+        """``parse(message)``, or None when it is malformed: a :class:`ChunkError` is rejected
+        with its reason, anything else as ``decode_error``; a bad message never ends the stream."""
+        try:
+            return parse(message)
+        except ChunkError as exc:
+            self.reject(exc.reason, str(exc))
+        except Exception as exc:  # noqa: BLE001 - never let a message kill the source
+            self.reject("decode_error", f"{type(exc).__name__}: {exc}")
+        return None
 
     def open(self) -> None:
         """Connect, open files; raise an exception with a clear message on failure."""

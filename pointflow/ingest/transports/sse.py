@@ -18,7 +18,7 @@ import time
 from typing import Any, Iterator, Optional
 from urllib.parse import urlsplit
 
-from ...chunk import ChunkError, PointChunk
+from ...chunk import PointChunk
 from ...config import ConfigError
 from ..jsonchunk import parse_json_chunk
 from ._backoff import Backoff, NetworkOptions
@@ -237,15 +237,16 @@ class SseTransport(Transport):
                 self._drop("server ended the stream")
             for ev in events:
                 self.counters["events"] += 1
-                try:
-                    chunk = parse_json_chunk(ev, self.o.max_points, self.source_id)
-                except ChunkError as exc:
-                    self.reject(exc.reason, str(exc))
+                chunk = self.accept(self._parse, ev)
+                if chunk is None:
                     continue
                 yield chunk
                 sent += 1
                 if self.o.max_chunks and sent >= self.o.max_chunks:
                     return
+
+    def _parse(self, event: str) -> PointChunk:
+        return parse_json_chunk(event, self.o.max_points, self.source_id)
 
     def close(self) -> None:
         if self._sock is not None:

@@ -127,10 +127,8 @@ class WebSocketTransport(Transport):
                 yield None
                 continue
             self.counters["messages"] += 1
-            try:
-                chunk = self.parse(msg)
-            except ChunkError as exc:
-                self.reject(exc.reason, str(exc))
+            chunk = self.accept(self.parse, msg)
+            if chunk is None:
                 continue
             yield chunk
             sent += 1

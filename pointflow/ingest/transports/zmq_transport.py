@@ -16,7 +16,7 @@ import zmq
 from zmq.utils.monitor import recv_monitor_message
 
 from ... import wire
-from ...chunk import ChunkError, PointChunk
+from ...chunk import PointChunk
 from ...config import ConfigError
 from ..jsonchunk import parse_json_chunk
 from ._backoff import NetworkOptions
@@ -107,13 +107,8 @@ class ZmqTransport(Transport):
                 except zmq.Again:
                     break
                 self.counters["messages"] += 1
-                try:
-                    chunk = self.parse(frames)
-                except ChunkError as exc:
-                    self.reject(exc.reason, str(exc))
-                    continue
-                except Exception as exc:  # noqa: BLE001 - never let a message kill the source
-                    self.reject("decode_error", f"{type(exc).__name__}: {exc}")
+                chunk = self.accept(self.parse, frames)
+                if chunk is None:
                     continue
                 yield chunk
                 sent += 1
