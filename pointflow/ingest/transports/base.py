@@ -88,6 +88,13 @@ class Transport(ABC):
             self.reject("decode_error", f"{type(exc).__name__}: {exc}")
         return None
 
+    def quota_reached(self) -> bool:
+        """Count one chunk handed out; True once ``max_chunks`` (an option of the network
+        transports, 0 = never) have been, so ``chunks()`` can return."""
+        self._handed_out = getattr(self, "_handed_out", 0) + 1
+        limit = self.options.get("max_chunks", 0) or 0
+        return bool(limit) and self._handed_out >= limit
+
     def open(self) -> None:
         """Connect, open files; raise an exception with a clear message on failure."""
 

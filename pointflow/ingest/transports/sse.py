@@ -209,7 +209,6 @@ class SseTransport(Transport):
 
     # ------------------------------------------------------------------ Transport API
     def chunks(self) -> Iterator[Optional[PointChunk]]:
-        sent = 0
         while True:
             if self._sock is None:
                 if not self._backoff.ready() or not self._connect():
@@ -241,8 +240,7 @@ class SseTransport(Transport):
                 if chunk is None:
                     continue
                 yield chunk
-                sent += 1
-                if self.o.max_chunks and sent >= self.o.max_chunks:
+                if self.quota_reached():
                     return
 
     def _parse(self, event: str) -> PointChunk:

@@ -109,8 +109,6 @@ class WebSocketTransport(Transport):
 
     def chunks(self) -> Iterator[Optional[PointChunk]]:
         import time
-
-        sent = 0
         while True:
             if self._ws is None:
                 if not self._backoff.ready() or not self._connect():
@@ -131,8 +129,7 @@ class WebSocketTransport(Transport):
             if chunk is None:
                 continue
             yield chunk
-            sent += 1
-            if self.o.max_chunks and sent >= self.o.max_chunks:
+            if self.quota_reached():
                 return
 
     def close(self) -> None:

@@ -95,7 +95,6 @@ class ZmqTransport(Transport):
         return wire.decode(frames, self.o.max_points)
 
     def chunks(self) -> Iterator[Optional[PointChunk]]:
-        sent = 0
         while True:
             self._poll_monitor()
             if not self._sock.poll(50, zmq.POLLIN):
@@ -111,8 +110,7 @@ class ZmqTransport(Transport):
                 if chunk is None:
                     continue
                 yield chunk
-                sent += 1
-                if self.o.max_chunks and sent >= self.o.max_chunks:
+                if self.quota_reached():
                     return
 
     def close(self) -> None:
