@@ -10,48 +10,17 @@ import dataclasses
 import os
 import secrets
 import tempfile
-import types
-import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, Optional, Union
 
 import yaml
 
+from .ingest.transports import resolve_transport
+from .typed import ConfigError, check, dataclass_schema, load_dataclass
+from .typed import at_least_one, endpoint, non_negative, positive
 
-class ConfigError(ValueError):
-    """A configuration value is wrong; ``path`` is the dotted key path."""
-
-    def __init__(self, path: str, message: str):
-        super().__init__(f"{path or '<root>'}: {message}" if path else message)
-        self.path = path
-
-
-def _positive(v, path):
-    if v <= 0:
-        raise ConfigError(path, f"must be > 0, got {v!r}")
-
-
-def _non_negative(v, path):
-    if v < 0:
-        raise ConfigError(path, f"must be >= 0, got {v!r}")
-
-
-def _at_least_one(v, path):
-    if v < 1:
-        raise ConfigError(path, f"must be >= 1, got {v!r}")
-
-
-def _endpoint(v, path):
-    if v is None:
-        return
-    if not any(v.startswith(p) for p in ("ipc://", "tcp://", "inproc://")):
-        raise ConfigError(path, f"must be a ZeroMQ endpoint (ipc://, tcp://), got {v!r}")
-
-
-def check(fn):
-    """Field metadata: a validator called with (value, path)."""
-    return {"check": fn}
+__all__ = ["ConfigError", "PipelineConfig", "load_config", "json_schema", "new_run_dir"]
 
 
 # --------------------------------------------------------------------------- sections
@@ -70,11 +39,11 @@ class SourceConfig:
 
 @dataclass
 class RingConfig:
-    max_points: int = field(default=1_000_000, metadata=check(_at_least_one))
+    max_points: int = field(default=1_000_000, metadata=check(at_least_one))
     eviction: Literal["drop_oldest", "drop_newest", "importance"] = "drop_oldest"
     #: A channel name, ``auto`` (intensity if present, else the first channel), or none.
     importance_field: Optional[str] = None
-    max_staleness_ms: float = field(default=0.0, metadata=check(_non_negative))
+    max_staleness_ms: float = field(default=0.0, metadata=check(non_negative))
     classification_weights: Optional[dict[int, float]] = None
     #: Extra channels to keep beyond those the render config uses.
     extra_channels: list[str] = field(default_factory=list)
@@ -82,10 +51,10 @@ class RingConfig:
 
 @dataclass
 class IngestConfig:
-    max_chunk_points: int = field(default=5_000_000, metadata=check(_at_least_one))
-    coalesce_points: int = field(default=20_000, metadata=check(_at_least_one))
-    queue_max_batches: int = field(default=64, metadata=check(_at_least_one))
-    receive_hwm: int = field(default=256, metadata=check(_at_least_one))
+    max_chunk_points: int = field(default=5_000_000, metadata=check(at_least_one))
+    coalesce_points: int = field(default=20_000, metadata=check(at_least_one))
+    queue_max_batches: int = field(default=64, metadata=check(at_least_one))
+    receive_hwm: int = field(default=256, metadata=check(at_least_one))
     adaptive_thinning: bool = False
 
 
@@ -93,16 +62,16 @@ class IngestConfig:
 class PolicyConfig:
     tier: Literal["auto", "L", "M", "H"] = "auto"
     mode: Literal["eco", "balanced", "max_throughput", "custom"] = "balanced"
-    point_budget_cap: Optional[int] = field(default=None, metadata=check(lambda v, p: v is None or _at_least_one(v, p)))
-    update_cadence_min_ms: Optional[float] = field(default=None, metadata=check(lambda v, p: v is None or _non_negative(v, p)))
+    point_budget_cap: Optional[int] = field(default=None, metadata=check(lambda v, p: v is None or at_least_one(v, p)))
+    update_cadence_min_ms: Optional[float] = field(default=None, metadata=check(lambda v, p: v is None or non_negative(v, p)))
     legacy: bool = False
     #: The view cap: budget <= this multiple of the viewport's pixel count.
-    points_per_pixel: float = field(default=4.0, metadata=check(_positive))
+    points_per_pixel: float = field(default=4.0, metadata=check(positive))
 
 
 @dataclass
 class CadenceConfig:
-    target_hz: float = field(default=60.0, metadata=check(_positive))
+    target_hz: float = field(default=60.0, metadata=check(positive))
     adaptive: bool = False
     #: Hand over a new snapshot only once the renderer has finished the last one, so a slow
     #: renderer always draws the newest data instead of one queued a frame ago.
@@ -118,8 +87,8 @@ class CameraConfig:
     target: Optional[list[float]] = None
     up: list[float] = field(default_factory=lambda: [0.0, 0.0, 1.0])
     fov_deg: float = field(default=60.0, metadata=check(lambda v, p: (0 < v < 180) or (_ for _ in ()).throw(ConfigError(p, f"must be in (0, 180), got {v!r}"))))
-    near: float = field(default=0.1, metadata=check(_positive))
-    far: float = field(default=10_000.0, metadata=check(_positive))
+    near: float = field(default=0.1, metadata=check(positive))
+    far: float = field(default=10_000.0, metadata=check(positive))
     #: Degrees per second the auto/orbit camera turns around the scene (0 = still).
     orbit_deg_per_s: float = 0.0
     #: Elevation of the auto camera above the horizontal, degrees.
@@ -129,9 +98,9 @@ class CameraConfig:
 @dataclass
 class OutputConfig:
     dir: Optional[str] = "out"
-    every_n_frames: int = field(default=30, metadata=check(_at_least_one))
+    every_n_frames: int = field(default=30, metadata=check(at_least_one))
     #: Keep at most this many PNG files (oldest removed); 0 = all.
-    keep_last: int = field(default=0, metadata=check(_non_negative))
+    keep_last: int = field(default=0, metadata=check(non_negative))
 
 
 @dataclass
@@ -144,17 +113,17 @@ class RenderConfig:
     color_range: Union[Literal["auto"], list[float]] = "auto"
     color: list[float] = field(default_factory=lambda: [1.0, 1.0, 1.0])
     background: list[float] = field(default_factory=lambda: [0.02, 0.02, 0.05])
-    point_size: float = field(default=2.0, metadata=check(_positive))
+    point_size: float = field(default=2.0, metadata=check(positive))
     point_size_space: Literal["screen", "world"] = "screen"
     point_shape: Literal["square", "round"] = "square"
     camera: CameraConfig = field(default_factory=CameraConfig)
-    time_window_ms: float = field(default=0.0, metadata=check(_non_negative))
-    lod_stride: int = field(default=1, metadata=check(_at_least_one))
+    time_window_ms: float = field(default=0.0, metadata=check(non_negative))
+    lod_stride: int = field(default=1, metadata=check(at_least_one))
     importance_sampling: bool = False
     power_preference: Literal["high-performance", "low-power"] = "high-performance"
     output: OutputConfig = field(default_factory=OutputConfig)
     window: bool = False
-    pick_radius: int = field(default=8, metadata=check(_non_negative))
+    pick_radius: int = field(default=8, metadata=check(non_negative))
     pick_strategy: Literal["nearest", "highest_importance", "recent_first"] = "nearest"
     #: Below this many points ``auto`` uses the cpu tier; ``auto`` reads the measured value.
     cpu_crossover_points: Union[Literal["auto"], int] = "auto"
@@ -165,35 +134,35 @@ class RenderConfig:
 class EndpointsConfig:
     """ZeroMQ endpoints of the links between stages; ``None`` = ``ipc://`` in the run dir."""
 
-    ingest: Optional[str] = field(default=None, metadata=check(_endpoint))
-    frames: Optional[str] = field(default=None, metadata=check(_endpoint))
-    release: Optional[str] = field(default=None, metadata=check(_endpoint))
-    control: Optional[str] = field(default=None, metadata=check(_endpoint))
-    trace: Optional[str] = field(default=None, metadata=check(_endpoint))
+    ingest: Optional[str] = field(default=None, metadata=check(endpoint))
+    frames: Optional[str] = field(default=None, metadata=check(endpoint))
+    release: Optional[str] = field(default=None, metadata=check(endpoint))
+    control: Optional[str] = field(default=None, metadata=check(endpoint))
+    trace: Optional[str] = field(default=None, metadata=check(endpoint))
     #: Requests to the render stage (pick, save a frame); REP bound by render.
-    render_commands: Optional[str] = field(default=None, metadata=check(_endpoint))
+    render_commands: Optional[str] = field(default=None, metadata=check(endpoint))
 
 
 @dataclass
 class TracingConfig:
     enabled: bool = True
     #: Spans are sent in batches of this many (or every flush interval).
-    batch: int = field(default=256, metadata=check(_at_least_one))
-    flush_ms: float = field(default=100.0, metadata=check(_positive))
+    batch: int = field(default=256, metadata=check(at_least_one))
+    flush_ms: float = field(default=100.0, metadata=check(positive))
 
 
 @dataclass
 class SupervisorConfig:
-    heartbeat_ms: float = field(default=200.0, metadata=check(_positive))
+    heartbeat_ms: float = field(default=200.0, metadata=check(positive))
     #: A stage process silent for this long (no heartbeat or pulse) is considered hung.
-    hung_after_ms: float = field(default=800.0, metadata=check(_positive))
+    hung_after_ms: float = field(default=800.0, metadata=check(positive))
     #: A stage whose main loop has not come round for this long is considered stuck
     #: (generous: one frame of a software rasteriser can take a second or more).
-    stall_after_ms: float = field(default=30000.0, metadata=check(_positive))
+    stall_after_ms: float = field(default=30000.0, metadata=check(positive))
     #: Grace period before a new stage's first heartbeat (imports, GPU device creation).
-    startup_timeout_ms: float = field(default=30000.0, metadata=check(_positive))
-    max_restarts: int = field(default=3, metadata=check(_non_negative))
-    restart_backoff_ms: float = field(default=200.0, metadata=check(_non_negative))
+    startup_timeout_ms: float = field(default=30000.0, metadata=check(positive))
+    max_restarts: int = field(default=3, metadata=check(non_negative))
+    restart_backoff_ms: float = field(default=200.0, metadata=check(non_negative))
 
 
 @dataclass
@@ -244,102 +213,6 @@ class PipelineConfig:
 
 
 # --------------------------------------------------------------------------- loader
-def _type_name(tp) -> str:
-    origin = typing.get_origin(tp)
-    if origin is Literal:
-        return " | ".join(repr(a) for a in typing.get_args(tp))
-    if origin in (Union, types.UnionType):
-        return " or ".join(_type_name(a) for a in typing.get_args(tp))
-    if origin is list:
-        return f"list of {_type_name(typing.get_args(tp)[0])}"
-    if origin is dict:
-        k, v = typing.get_args(tp)
-        return f"mapping of {_type_name(k)} to {_type_name(v)}"
-    if tp is type(None):
-        return "null"
-    return getattr(tp, "__name__", str(tp))
-
-
-def _convert(value: Any, tp: Any, path: str) -> Any:
-    origin = typing.get_origin(tp)
-    if tp is Any:
-        return value
-    if origin in (Union, types.UnionType):
-        errors = []
-        for alt in typing.get_args(tp):
-            try:
-                return _convert(value, alt, path)
-            except ConfigError as exc:
-                errors.append(exc)
-        raise ConfigError(path, f"expected {_type_name(tp)}, got {value!r}")
-    if origin is Literal:
-        choices = typing.get_args(tp)
-        if value not in choices:
-            raise ConfigError(path, f"must be one of {', '.join(map(str, choices))}; got {value!r}")
-        return value
-    if tp is type(None):
-        if value is not None:
-            raise ConfigError(path, f"expected null, got {value!r}")
-        return None
-    if dataclasses.is_dataclass(tp):
-        return _load_dataclass(tp, value, path)
-    if origin is list:
-        if not isinstance(value, list):
-            raise ConfigError(path, f"expected a list, got {type(value).__name__} {value!r}")
-        (item,) = typing.get_args(tp)
-        return [_convert(v, item, f"{path}[{i}]") for i, v in enumerate(value)]
-    if origin is dict:
-        if not isinstance(value, dict):
-            raise ConfigError(path, f"expected a mapping, got {type(value).__name__} {value!r}")
-        kt, vt = typing.get_args(tp)
-        return {_convert(k, kt, f"{path}.{k}"): _convert(v, vt, f"{path}.{k}") for k, v in value.items()}
-    if tp is bool:
-        if not isinstance(value, bool):
-            raise ConfigError(path, f"expected true or false, got {value!r}")
-        return value
-    if tp is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise ConfigError(path, f"expected an integer, got {type(value).__name__} {value!r}")
-        return value
-    if tp is float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ConfigError(path, f"expected a number, got {type(value).__name__} {value!r}")
-        if value != value or value in (float("inf"), float("-inf")):
-            raise ConfigError(path, f"must be finite, got {value!r}")
-        return float(value)
-    if tp is str:
-        if not isinstance(value, str):
-            raise ConfigError(path, f"expected a string, got {type(value).__name__} {value!r}")
-        return value
-    raise ConfigError(path, f"unsupported type {tp!r}")  # pragma: no cover
-
-
-def _load_dataclass(cls, data: Any, path: str):
-    if not isinstance(data, dict):
-        raise ConfigError(path, f"expected a mapping, got {type(data).__name__} {data!r}")
-    hints = typing.get_type_hints(cls)
-    fields = {f.name: f for f in dataclasses.fields(cls) if not f.metadata.get("internal")}
-    unknown = [k for k in data if k not in fields]
-    if unknown:
-        key = unknown[0]
-        raise ConfigError(_join(path, str(key)), f"unknown key; expected one of {', '.join(fields)}")
-    kwargs = {}
-    for name, f in fields.items():
-        p = _join(path, name)
-        if name in data:
-            kwargs[name] = _convert(data[name], hints[name], p)
-            fn = f.metadata.get("check")
-            if fn is not None and kwargs[name] is not None:
-                fn(kwargs[name], p)
-        elif f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
-            raise ConfigError(p, "required key is missing")
-    return cls(**kwargs)
-
-
-def _join(path: str, key: str) -> str:
-    return f"{path}.{key}" if path else key
-
-
 def _check_semantics(cfg: PipelineConfig) -> None:
     r = cfg.render
     if len(r.size) != 2 or any(v < 1 or v > 16384 for v in r.size):
@@ -365,8 +238,6 @@ def _check_semantics(cfg: PipelineConfig) -> None:
         raise ConfigError("sources", "at least one source is required")
     if cfg.ring.eviction == "importance" and not cfg.ring.importance_field and not cfg.ring.classification_weights:
         cfg.ring.importance_field = "auto"
-    from .ingest.transports import resolve_transport  # late: transports import config
-
     seen = set()
     for i, s in enumerate(cfg.sources):
         p = f"sources[{i}]"
@@ -406,7 +277,7 @@ def load_config(data: dict | str | os.PathLike, *, base_dir: str | None = None) 
         data["sources"] = [data.pop("source")]
     if "sources" not in data:
         raise ConfigError("sources", "required key is missing (a 'source:' mapping or a 'sources:' list)")
-    cfg = _load_dataclass(PipelineConfig, data, "")
+    cfg = load_dataclass(PipelineConfig, data, "")
     cfg.base_dir = base_dir or os.getcwd()
     _check_semantics(cfg)
     return cfg
@@ -421,52 +292,10 @@ def new_run_dir() -> str:
 
 
 # --------------------------------------------------------------------------- JSON Schema
-def _schema_of(tp: Any) -> dict:
-    origin = typing.get_origin(tp)
-    if tp is Any:
-        return {}
-    if origin in (Union, types.UnionType):
-        return {"anyOf": [_schema_of(a) for a in typing.get_args(tp)]}
-    if origin is Literal:
-        return {"enum": list(typing.get_args(tp))}
-    if tp is type(None):
-        return {"type": "null"}
-    if dataclasses.is_dataclass(tp):
-        return _dataclass_schema(tp)
-    if origin is list:
-        return {"type": "array", "items": _schema_of(typing.get_args(tp)[0])}
-    if origin is dict:
-        return {"type": "object", "additionalProperties": _schema_of(typing.get_args(tp)[1])}
-    return {"type": {bool: "boolean", int: "integer", float: "number", str: "string"}[tp]}
-
-
-def _dataclass_schema(cls) -> dict:
-    hints = typing.get_type_hints(cls)
-    props, required = {}, []
-    for f in dataclasses.fields(cls):
-        if f.metadata.get("internal"):
-            continue
-        s = _schema_of(hints[f.name])
-        if f.default is not dataclasses.MISSING:
-            s["default"] = f.default
-        elif f.default_factory is not dataclasses.MISSING:
-            d = f.default_factory()
-            s["default"] = dataclasses.asdict(d) if dataclasses.is_dataclass(d) else d
-        else:
-            required.append(f.name)
-        props[f.name] = s
-    out = {"type": "object", "additionalProperties": False, "properties": props}
-    if cls.__doc__ and not cls.__doc__.startswith(cls.__name__ + "("):
-        out["description"] = " ".join(cls.__doc__.split())
-    if required:
-        out["required"] = required
-    return out
-
-
 def json_schema() -> dict:
     """A JSON Schema of the pipeline YAML, for editors (``pointflow schema``). Transport
     options are checked by each transport at load time and are free-form here."""
-    s = _dataclass_schema(PipelineConfig)
+    s = dataclass_schema(PipelineConfig)
     s["$schema"] = "https://json-schema.org/draft/2020-12/schema"
     s["title"] = "pointflow pipeline"
     s["properties"]["source"] = s["properties"]["sources"]["items"]

@@ -5,7 +5,7 @@ from __future__ import annotations
 import importlib
 from importlib import metadata
 
-from ...config import ConfigError
+from ...typed import ConfigError
 from .base import NoOptions, Transport
 
 #: Built-in transports: name -> "module:Class" (imported lazily).

@@ -15,6 +15,7 @@ from abc import ABC, abstractmethod
 from typing import Any, Callable, ClassVar, Iterator, Optional
 
 from ...chunk import ChunkError, PointChunk
+from ...typed import ConfigError, load_dataclass
 
 
 @dataclasses.dataclass
@@ -43,11 +44,9 @@ class Transport(ABC):
 
         Returns a plain dict (picklable) with defaults filled in. Override
         :meth:`check_options` for checks beyond types."""
-        from ...config import ConfigError, _load_dataclass
-
         who = f"transport {cls.name or cls.__name__!r} ({cls.__module__}.{cls.__qualname__})"
         try:
-            obj = _load_dataclass(cls.options_schema, options if options is not None else {}, path)
+            obj = load_dataclass(cls.options_schema, options if options is not None else {}, path)
             cls.check_options(obj, path, base_dir)
         except ConfigError as exc:
             raise ConfigError(exc.path, f"{_msg(exc)} [{who}]") from None

@@ -26,7 +26,7 @@ from typing import Any, Iterator, Literal, Optional
 import numpy as np
 
 from ...chunk import PointChunk
-from ...config import ConfigError
+from ...typed import ConfigError
 from .. import formats
 from .base import Transport
 

@@ -19,7 +19,7 @@ from typing import Any, Iterator, Optional
 from urllib.parse import urlsplit
 
 from ...chunk import PointChunk
-from ...config import ConfigError
+from ...typed import ConfigError
 from ..jsonchunk import parse_json_chunk
 from ._backoff import Backoff, NetworkOptions
 from .base import Transport

@@ -29,7 +29,7 @@ from typing import Any, Iterator, Optional
 import numpy as np
 
 from ...chunk import PointChunk
-from ...config import ConfigError
+from ...typed import ConfigError
 from .base import Transport
 
 CHANNELS = ("intensity", "classification", "beam", "range")

@@ -14,7 +14,7 @@ import logging
 from typing import Any, Iterator, Optional
 
 from ...chunk import ChunkError, PointChunk
-from ...config import ConfigError
+from ...typed import ConfigError
 from ..jsonchunk import parse_json_chunk
 from ..quantised import AttributeRange, decode_quantised
 from ._backoff import Backoff, NetworkOptions

@@ -17,7 +17,7 @@ from zmq.utils.monitor import recv_monitor_message
 
 from ... import wire
 from ...chunk import PointChunk
-from ...config import ConfigError
+from ...typed import ConfigError
 from ..jsonchunk import parse_json_chunk
 from ._backoff import NetworkOptions
 from .base import Transport
