@@ -13,7 +13,7 @@ from typing import Iterator, Optional
 import numpy as np
 
 from pointflow.chunk import PointChunk
-from pointflow.config import ConfigError
+from pointflow.typed import ConfigError
 from pointflow.ingest.transports import Transport
 
 
