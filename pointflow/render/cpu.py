@@ -284,14 +284,33 @@ def point_sizes_px(cfg: RenderConfig, camera: Camera, width: int, height: int, w
 # --------------------------------------------------------------------------- picking
 def pick_window(width: int, height: int, x: float, y: float, pixel_ratio: float, radius: int):
     """(X, Y, xa, xb, ya, yb): the framebuffer pixel under window (x, y) × pixel_ratio and
-    the block within ``radius`` × pixel_ratio around it (the radius is in logical pixels,
-    as in the wgpu tier) clipped to the viewport; None when empty."""
+    the square block within ``radius`` × pixel_ratio around it (the radius is in logical
+    pixels, as in the wgpu tier) clipped to the viewport; None when empty. Only the pixels
+    of the block inside the circle count (:func:`in_pick_circle`)."""
     X, Y = int(np.floor(x * pixel_ratio)), int(np.floor(y * pixel_ratio))
     r = int(np.ceil(radius * pixel_ratio))
     xa, xb, ya, yb = max(X - r, 0), min(X + r + 1, width), max(Y - r, 0), min(Y + r + 1, height)
     if xa >= xb or ya >= yb:
         return None
     return X, Y, xa, xb, ya, yb
+
+
+def in_pick_circle(block: np.ndarray, xa: int, ya: int, x: float, y: float, pixel_ratio: float,
+                   radius: float) -> np.ndarray:
+    """``block`` (from :func:`pick_window`) with -1 outside the pick circle: a pixel counts
+    when its centre lies within ``radius`` × pixel_ratio of the cursor (x, y) × pixel_ratio,
+    the rule of every tier (the wgpu tier's ``resolve_pick``); below half a pixel only the
+    pixel under the cursor."""
+    px, py = x * pixel_ratio, y * pixel_ratio
+    r = float(radius) * pixel_ratio
+    bh, bw = block.shape
+    xx = np.arange(xa, xa + bw) + 0.5 - px
+    yy = np.arange(ya, ya + bh) + 0.5 - py
+    if r < 0.5:
+        m = (np.floor(xx + px)[None, :] == np.floor(px)) & (np.floor(yy + py)[:, None] == np.floor(py))
+    else:
+        m = yy[:, None] ** 2 + xx[None, :] ** 2 <= r * r + 1e-9
+    return np.where(m, block, -1)
 
 
 def drawn_attributes(frame: FrameInput, slots: np.ndarray) -> dict[str, np.ndarray]:
@@ -460,6 +479,7 @@ class CpuRenderer(Renderer):
             return None
         X, Y, xa, xb, ya, yb = win
         block = self._slot_at.reshape(self.height, self.width)[ya:yb, xa:xb]
+        block = in_pick_circle(block, xa, ya, x, y, pixel_ratio, self.cfg.pick_radius)
         return resolve_pick(block, X - xa, Y - ya, self.cfg.pick_strategy, self._last)
 
     def info(self) -> dict[str, Any]:

@@ -29,7 +29,7 @@ import numpy as np
 from ..config import RenderConfig
 from .base import FrameInput, FrameStats, Renderer, RenderError
 from .camera import Camera
-from .cpu import (MAX_POINT_PX, drawn_attributes, pick_window, point_colors, resolve_pick, rgba_u8,
+from .cpu import (MAX_POINT_PX, drawn_attributes, in_pick_circle, pick_window, point_colors, resolve_pick, rgba_u8,
                   select_points)
 
 __all__ = ["GlRenderer", "GL_DEPTH_FIX"]
@@ -224,6 +224,7 @@ class GlRenderer(Renderer):
         raw = self.fbo.read(viewport=(xa, self.height - yb, xb - xa, yb - ya), components=4, attachment=1,
                             alignment=1)
         block = np.frombuffer(raw, "<u4").reshape(yb - ya, xb - xa)[::-1].astype(np.int64) - 1
+        block = in_pick_circle(block, xa, ya, x, y, pixel_ratio, self.cfg.pick_radius)
         return resolve_pick(block, X - xa, Y - ya, self.cfg.pick_strategy, self._last)
 
     def info(self) -> dict[str, Any]:

@@ -123,3 +123,20 @@ def test_pick_returns_the_front_point_and_scales_by_pixel_ratio(make, tier):
     assert r.pick(16, 16) == 2                  # the nearer of two stacked points
     assert r.pick(8, 8, pixel_ratio=2.0) == 2
     assert r.pick(1, 30) is None
+
+
+@pytest.mark.parametrize("offset, picked", [((6, 6), False), ((5, 5), True), ((8, 0), True), ((0, -8), True),
+                                            ((6, -6), False), ((-7, 5), False)])
+def test_pick_radius_is_a_circle_in_every_tier(make, offset, picked):
+    """A pixel counts when its centre is within pick_radius of the cursor: (6, 6) is 8.49 px
+    away, outside radius 8, though inside the 17 x 17 square around the cursor."""
+    cfg = render_cfg(size=[32, 32], point_size=1, pick_radius=8, color_by=None, background=[0, 0, 0])
+    r = make(cfg, 4)
+    r.render(make_frame([[0, 0, 0.0]], capacity=4, head=2), CAM)
+    ys, xs = np.nonzero(lit(r.read_image(), rgba_u8(cfg.background)))
+    assert len(xs) == 1
+    cx, cy = xs[0] + 0.5 + offset[0], ys[0] + 0.5 + offset[1]  # the cursor, offset from the pixel centre
+    assert r.pick(cx, cy) == (2 if picked else None)
+    # at pixel_ratio 2 the radius is 16 framebuffer px: the same offsets, doubled, give the same answers
+    cx2, cy2 = xs[0] + 0.5 + 2 * offset[0], ys[0] + 0.5 + 2 * offset[1]
+    assert r.pick(cx2 / 2, cy2 / 2, pixel_ratio=2.0) == (2 if picked else None)
