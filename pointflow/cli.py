@@ -15,6 +15,29 @@ from .config import ConfigError, load_config
 log = logging.getLogger("pointflow")
 
 
+#: Exit code for every configuration or input-path error (nothing was started).
+EXIT_CONFIG = 1
+
+
+def config_error_line(exc: ConfigError, file: Optional[str] = None) -> str:
+    """One line (ends in a newline when printed) naming the file and the key."""
+    msg = " ".join(str(exc).split())  # a message from a library may span lines
+    if file and file not in msg:
+        msg = f"{file}: {msg}"
+    return f"config error: {msg}"
+
+
+def _out_dir(path: str) -> str:
+    """Create the output directory up front, so a bad ``--out`` is a config error, not a traceback."""
+    if os.path.exists(path) and not os.path.isdir(path):
+        raise ConfigError("", f"output directory {path}: exists and is not a directory")
+    try:
+        os.makedirs(path, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError("", f"cannot create output directory {path}: {exc.strerror or exc}") from None
+    return path
+
+
 def summary_line(stats: dict) -> str:
     """One line: points in, in ring, frames, cadence, drops, CPU (the live view of ``pointflow run``)."""
     from .profiling.report import live_summary
@@ -37,7 +60,7 @@ def _run(args, profile: bool = False) -> int:
     from .runtime.supervisor import PipelineFailed
 
     cfg = load_config(args.file)
-    out_dir = args.out or cfg.render.output.dir or "out"
+    out_dir = _out_dir(args.out or cfg.render.output.dir or "out")
     if args.backend:
         os.environ["POINTFLOW_BACKEND"] = args.backend
     pipe = Pipeline(cfg, out_dir=out_dir)
@@ -176,8 +199,8 @@ def main(argv: Optional[list[str]] = None) -> int:
             print(json.dumps(json_schema(), indent=2))
             return 0
     except ConfigError as exc:
-        print(f"config error: {exc}", file=sys.stderr)
-        return 1
+        print(config_error_line(exc, getattr(args, "file", None)), file=sys.stderr, flush=True)
+        return EXIT_CONFIG
     return 0
 
 

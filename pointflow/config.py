@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import os
 import secrets
+import stat
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -257,14 +258,7 @@ def load_config(data: dict | str | os.PathLike, *, base_dir: str | None = None) 
     """Load from a dict, a YAML file path. ``source:`` (one) and ``sources:`` (list) both work."""
     if isinstance(data, (str, os.PathLike)):
         path = Path(data)
-        try:
-            text = path.read_text()
-        except OSError as exc:
-            raise ConfigError("", f"cannot read config file {path}: {exc.strerror}") from None
-        try:
-            data = yaml.safe_load(text)
-        except yaml.YAMLError as exc:
-            raise ConfigError("", f"{path}: invalid YAML: {exc}") from None
+        data = yaml_load(_read_text(path), path)
         base_dir = base_dir or str(path.resolve().parent)
     if data is None:
         data = {}
@@ -281,6 +275,42 @@ def load_config(data: dict | str | os.PathLike, *, base_dir: str | None = None) 
     cfg.base_dir = base_dir or os.getcwd()
     _check_semantics(cfg)
     return cfg
+
+
+def _read_text(path: Path) -> str:
+    """The config file as text; every failure is a one-line ConfigError naming the file."""
+    try:
+        st = os.stat(path)
+        if stat.S_ISDIR(st.st_mode):
+            raise ConfigError("", f"cannot read config file {path}: it is a directory")
+        if not stat.S_ISREG(st.st_mode):  # a FIFO or device would block or never end
+            raise ConfigError("", f"cannot read config file {path}: not a regular file")
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise ConfigError("", f"cannot read config file {path}: {exc.strerror or exc}") from None
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = raw.count(b"\n", 0, exc.start) + 1
+        col = exc.start - (raw.rfind(b"\n", 0, exc.start) + 1) + 1
+        raise ConfigError("", f"{path}: not UTF-8 text: byte 0x{raw[exc.start]:02x} at byte position {exc.start} "
+                              f"(line {line}, column {col}); save the file as UTF-8") from None
+
+
+def yaml_load(text: str, path: Path | str) -> Any:
+    """``yaml.safe_load`` whose errors are one line: file, line, column and the problem."""
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        if isinstance(exc, yaml.reader.ReaderError):
+            ch = exc.character if isinstance(exc.character, int) else ord(exc.character)
+            raise ConfigError("", f"{path}: invalid YAML: character #x{ch:04x} at character position "
+                                  f"{exc.position} is not allowed in YAML ({exc.reason})") from None
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        what = getattr(exc, "problem", None) or " ".join(str(exc).split())
+        ctx = getattr(exc, "context", None)
+        raise ConfigError("", f"{path}: invalid YAML{where}: {what}" + (f" ({ctx})" if ctx else "")) from None
 
 
 def new_run_dir() -> str:
