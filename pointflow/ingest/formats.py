@@ -15,9 +15,16 @@ Ouster ``range``, ``reflectivity``), CSV/XYZ/TXT (header row optional), KITTI ``
 from __future__ import annotations
 
 import os
+import struct
+import tokenize
+import warnings
+import zipfile
 from typing import Iterator, Sequence
 
 import numpy as np
+
+#: read_points reads LAS/LAZ in pieces of at most this many points.
+LAS_PIECE_POINTS = 1 << 20
 
 FORMATS = ("las", "laz", "ply", "pcd", "npy", "npz", "csv", "xyz", "txt", "bin")
 
@@ -35,23 +42,54 @@ def detect_format(path: str) -> str:
     return ext
 
 
+#: What numpy, zipfile and the header parsers raise on a corrupt file (zipfile: a damaged or
+#: encrypted archive; tokenize/SyntaxError: an .npy header dict that does not parse;
+#: MemoryError: a count the size checks let through).
+_READ_FAILURES = (OSError, ValueError, KeyError, IndexError, EOFError, zipfile.BadZipFile, NotImplementedError,
+                  tokenize.TokenError, SyntaxError, struct.error, MemoryError, OverflowError)
+
+
+def _check_npy_header(path: str, f, nbytes: int, member: str = "") -> None:
+    """The .npy header's shape and dtype must fit the ``nbytes`` that hold it (numpy
+    allocates the whole array from the header before reading)."""
+    where = f"member {member}: " if member else ""
+    major, _ = np.lib.format.read_magic(f)
+    read_header = np.lib.format.read_array_header_1_0 if major == 1 else np.lib.format.read_array_header_2_0
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", "Reading `.npy` or `.npz` file required additional header parsing")
+        shape, _, dtype = read_header(f)
+    if dtype.hasobject:
+        raise FormatError(path, f"{where}holds Python objects, not numbers")
+    count = int(np.prod(shape, dtype=object)) if shape else 1
+    if count * dtype.itemsize > nbytes - f.tell():
+        raise FormatError(path, f"{where}array header says shape {shape} of {dtype}, only {nbytes - f.tell()} "
+                                "bytes follow")
+
+
 def read_points(path: str, fmt: str | None = None, columns: Sequence[str] | None = None):
     """Read a whole file."""
     fmt = (fmt or detect_format(path)).lower()
     try:
         if fmt in ("las", "laz"):
-            pos, ch = None, None
-            for pos_c, ch_c in iter_las(path, 1 << 62):
-                pos, ch = pos_c, ch_c
-            if pos is None:
+            # pieces of bounded size: a LAZ header's point count cannot be checked against the
+            # file size, and one piece of that many points would be allocated up front
+            pieces = list(iter_las(path, LAS_PIECE_POINTS))
+            if not pieces:
                 return np.zeros((0, 3)), {}
-            return pos, ch
+            if len(pieces) == 1:
+                return pieces[0]
+            return (np.concatenate([p for p, _ in pieces]),
+                    {k: np.concatenate([c[k] for _, c in pieces]) for k in pieces[0][1]})
         if fmt == "ply":
             return read_ply(path)
         if fmt == "pcd":
             return read_pcd(path)
         if fmt == "npy":
-            return _from_array(path, np.load(path, allow_pickle=False))
+            with open(path, "rb") as f:
+                _check_npy_header(path, f, os.fstat(f.fileno()).st_size)
+            with warnings.catch_warnings():
+                warnings.filterwarnings("ignore", "Reading `.npy` or `.npz` file required additional header parsing")
+                return _from_array(path, np.load(path, allow_pickle=False))
         if fmt == "npz":
             return read_npz(path)
         if fmt in ("csv", "xyz", "txt"):
@@ -60,36 +98,166 @@ def read_points(path: str, fmt: str | None = None, columns: Sequence[str] | None
             return read_kitti(path)
     except FormatError:
         raise
-    except (OSError, ValueError, KeyError, IndexError, EOFError) as exc:
-        raise FormatError(path, f"cannot read as {fmt}: {type(exc).__name__}: {exc}") from None
+    except _READ_FAILURES as exc:
+        raise FormatError(path, f"cannot read as {fmt}: {type(exc).__name__}: {' '.join(str(exc).split())}") from None
     raise FormatError(path, f"unsupported format {fmt!r}")
 
 
 # --------------------------------------------------------------------------- LAS / LAZ
-def iter_las(path: str, chunk_points: int) -> Iterator[tuple[np.ndarray, dict]]:
-    """LAS/LAZ in pieces of ``chunk_points`` (laspy's chunk iterator: big files stream)."""
+def _las_failures() -> tuple[type[BaseException], ...]:
+    """What laspy (and its LAZ backend) raise on a malformed file, besides OSError/ValueError."""
     import laspy
 
-    with laspy.open(path) as f:
-        dims = set(f.header.point_format.dimension_names)
-        for pts in f.chunk_iterator(chunk_points):
-            pos = np.column_stack([np.asarray(pts.x, np.float64), np.asarray(pts.y, np.float64),
-                                   np.asarray(pts.z, np.float64)])
-            ch: dict[str, np.ndarray] = {"intensity": np.asarray(pts.intensity, np.uint16),
-                                         "classification": np.asarray(pts.classification, np.uint8),
-                                         "return_number": np.asarray(pts.return_number, np.uint8)}
-            if "gps_time" in dims:
-                ch["gps_time"] = np.asarray(pts.gps_time, np.float64)
-            if {"red", "green", "blue"} <= dims:
-                ch["rgb"] = np.column_stack([np.asarray(pts.red), np.asarray(pts.green), np.asarray(pts.blue)]).astype(np.uint16)
-            yield pos, ch
+    try:
+        from lazrs import LazrsError
+    except ImportError:  # pragma: no cover - LAZ through another backend
+        LazrsError = laspy.LaspyException
+    return (laspy.LaspyException, LazrsError, struct.error, OSError, ValueError, KeyError, IndexError, EOFError, MemoryError,
+            OverflowError, TypeError, AttributeError)
+
+
+def _laz_backend():
+    """lazrs single-threaded: its parallel decompressor sizes buffers from the chunk table's
+    byte counts, so a corrupt table aborts the process on a failed allocation."""
+    import laspy
+
+    return laspy.LazBackend.Lazrs if laspy.LazBackend.Lazrs.is_available() else None
+
+
+def _is_las_failure(exc: BaseException) -> bool:
+    # a Rust panic in lazrs arrives as pyo3's PanicException, a BaseException
+    return isinstance(exc, _las_failures()) or type(exc).__name__ == "PanicException"
+
+
+def _las_error(path: str, exc: BaseException) -> FormatError:
+    return FormatError(path, f"not a valid LAS/LAZ file ({type(exc).__name__}: {' '.join(str(exc).split())})")
+
+
+def iter_las(path: str, chunk_points: int) -> Iterator[tuple[np.ndarray, dict]]:
+    """LAS/LAZ in pieces of ``chunk_points`` (laspy's chunk iterator: big files stream).
+    A malformed file (header or points) raises :class:`FormatError`, never laspy's own errors."""
+    import laspy
+
+    _precheck_las(path)
+    try:
+        with laspy.open(path, laz_backend=_laz_backend()) as f:
+            _check_las_header(path, f.header)
+            dims = set(f.header.point_format.dimension_names)
+            for pts in f.chunk_iterator(chunk_points):
+                pos = np.column_stack([np.asarray(pts.x, np.float64), np.asarray(pts.y, np.float64),
+                                       np.asarray(pts.z, np.float64)])
+                ch: dict[str, np.ndarray] = {"intensity": np.asarray(pts.intensity, np.uint16),
+                                             "classification": np.asarray(pts.classification, np.uint8),
+                                             "return_number": np.asarray(pts.return_number, np.uint8)}
+                if "gps_time" in dims:
+                    ch["gps_time"] = np.asarray(pts.gps_time, np.float64)
+                if {"red", "green", "blue"} <= dims:
+                    ch["rgb"] = np.column_stack([np.asarray(pts.red), np.asarray(pts.green),
+                                                 np.asarray(pts.blue)]).astype(np.uint16)
+                yield pos, ch
+    except FormatError:
+        raise
+    except BaseException as exc:
+        raise _las_error(path, exc) if _is_las_failure(exc) else exc from None
+
+
+def _check_las_header(path: str, h) -> None:
+    """Header values laspy accepts but that cannot describe points."""
+    scales, offsets = np.asarray(h.scales, np.float64), np.asarray(h.offsets, np.float64)
+    with np.errstate(over="ignore", invalid="ignore"):
+        span = np.abs(scales) * 2.0 ** 31 + np.abs(offsets)  # the largest coordinate a record can give
+    if not (np.all(np.isfinite(span)) and np.all(span < 1e300) and np.all(scales != 0)):
+        raise FormatError(path, f"not a valid LAS/LAZ file (scales {list(h.scales)}, offsets {list(h.offsets)})")
+
+
+def _precheck_las(path: str) -> None:
+    """Check the public header block's sizes and counts against the file before laspy reads
+    it: laspy trusts them (a VLR count of 2^32 loops for minutes, a point count of 2^32
+    allocates hundreds of GB). Offsets as in the LAS 1.0-1.4 specifications."""
+    size = os.path.getsize(path)
+
+    def bad(what: str) -> FormatError:
+        return FormatError(path, f"not a valid LAS/LAZ file ({what})")
+
+    with open(path, "rb") as f:
+        raw = f.read(375)
+    if len(raw) < 227:
+        raise bad(f"truncated header: {len(raw)} bytes, a LAS header has at least 227")
+    if raw[:4] != b"LASF":
+        raise bad(f"no 'LASF' signature at the start, found {raw[:4]!r}")
+    major, minor = raw[24], raw[25]
+    if major != 1 or minor > 4:
+        raise bad(f"version {major}.{minor}, expected 1.0 to 1.4")
+    hsize, offset, nvlr = struct.unpack_from("<HII", raw, 94)
+    fmt_id, reclen, legacy = struct.unpack_from("<BHI", raw, 104)
+    if not 227 <= hsize <= offset <= size:
+        raise bad(f"header size {hsize} and point data offset {offset} do not fit a file of {size} bytes")
+    if nvlr * 54 > offset - hsize:
+        raise bad(f"{nvlr} VLRs do not fit in the {offset - hsize} bytes between header and points")
+    if (fmt_id & 0x3F) > 10 or reclen == 0:
+        raise bad(f"point format {fmt_id & 0x3F} with {reclen}-byte records")
+    count = legacy
+    if minor >= 4:
+        if hsize < 375 or len(raw) < 375:
+            raise bad(f"a LAS 1.4 header has 375 bytes, this one {min(hsize, len(raw))}")
+        evlr_start, n_evlr, count = struct.unpack_from("<QIQ", raw, 235)
+        count = count or legacy
+        if n_evlr and (evlr_start > size or n_evlr * 60 > size - evlr_start):
+            raise bad(f"{n_evlr} extended VLRs at byte {evlr_start} do not fit a file of {size} bytes")
+    compressed = bool(fmt_id & 0xC0)
+    if not compressed and count * reclen > size - offset:
+        raise bad(f"header promises {count} points of {reclen} bytes, the file has {size - offset} bytes of points")
+    if compressed:
+        _precheck_laz_chunks(path, size, hsize, nvlr, offset, reclen, bad)
+
+
+def _precheck_laz_chunks(path: str, size: int, hsize: int, nvlr: int, offset: int, reclen: int, bad) -> None:
+    """LAZ: the chunk table's place and length fit the file (lazrs allocates the table from
+    its count before reading it, and a failed allocation aborts the process). Every chunk
+    starts with one raw point, so there are at most (compressed bytes / record length) chunks."""
+    with open(path, "rb") as f:
+        f.seek(hsize)
+        vlrs = f.read(offset - hsize)
+        pos, found = 0, False
+        for _ in range(nvlr):
+            if pos + 54 > len(vlrs):
+                raise bad("VLR headers run past the point data")
+            user, rec_id, length = vlrs[pos + 2:pos + 18], *struct.unpack_from("<HH", vlrs, pos + 18)
+            found = found or (user.rstrip(b"\0") == b"laszip encoded" and rec_id == 22204)
+            pos += 54 + length
+        if pos > len(vlrs):
+            raise bad("VLRs run past the point data")
+        if not found:
+            raise bad("compressed points but no laszip VLR")
+        f.seek(offset)
+        head = f.read(8)
+        if len(head) < 8:
+            raise bad("compressed point data is missing")
+        table = struct.unpack("<q", head)[0]
+        if table == -1:  # written while streaming: the offset is in the last 8 bytes
+            f.seek(size - 8)
+            table = struct.unpack("<q", f.read(8))[0]
+        if not offset + 8 <= table <= size - 8:
+            raise bad(f"LAZ chunk table at byte {table} lies outside the point data (bytes {offset + 8} to {size - 8})")
+        f.seek(table)
+        _version, n_chunks = struct.unpack("<II", f.read(8))
+        if n_chunks > max(1, (table - offset - 8) // reclen):
+            raise bad(f"LAZ chunk table lists {n_chunks} chunks, {table - offset - 8} compressed bytes hold at most "
+                      f"{max(1, (table - offset - 8) // reclen)}")
 
 
 def las_point_count(path: str) -> int:
     import laspy
 
-    with laspy.open(path) as f:
-        return int(f.header.point_count)
+    _precheck_las(path)
+    try:
+        with laspy.open(path, laz_backend=_laz_backend()) as f:
+            _check_las_header(path, f.header)
+            return int(f.header.point_count)
+    except FormatError:
+        raise
+    except BaseException as exc:
+        raise _las_error(path, exc) if _is_las_failure(exc) else exc from None
 
 
 # --------------------------------------------------------------------------- helpers
@@ -132,16 +300,25 @@ def _from_array(path: str, arr: np.ndarray) -> tuple[np.ndarray, dict]:
     if pos.dtype not in (np.float32, np.float64):
         pos = pos.astype(np.float64)
     ch = {}
-    if arr.shape[1] >= 4:
-        ch["intensity"] = np.ascontiguousarray(arr[:, 3]).astype(np.float32)
-    for j in range(4, arr.shape[1]):
-        ch[f"col{j}"] = np.ascontiguousarray(arr[:, j]).astype(np.float32)
+    with np.errstate(over="ignore", invalid="ignore"):  # beyond float32: inf, as a float32 file holds it
+        if arr.shape[1] >= 4:
+            ch["intensity"] = np.ascontiguousarray(arr[:, 3]).astype(np.float32)
+        for j in range(4, arr.shape[1]):
+            ch[f"col{j}"] = np.ascontiguousarray(arr[:, j]).astype(np.float32)
     return pos, ch
 
 
 # --------------------------------------------------------------------------- NPZ / KITTI
 def read_npz(path: str) -> tuple[np.ndarray, dict]:
-    with np.load(path, allow_pickle=False) as z:
+    with zipfile.ZipFile(path) as zf:
+        for info in zf.infolist():
+            if info.filename.endswith(".npy"):
+                # a member can expand at most ~1032x by deflate; its header must fit that
+                limit = info.compress_size * (1 if info.compress_type == zipfile.ZIP_STORED else 1032)
+                with zf.open(info) as f:
+                    _check_npy_header(path, f, min(info.file_size, limit), info.filename)
+    with np.load(path, allow_pickle=False) as z, warnings.catch_warnings():
+        warnings.filterwarnings("ignore", "Reading `.npy` or `.npz` file required additional header parsing")
         keys = list(z.keys())
         data = {k: z[k] for k in keys}
     for k in ("xyz", "points", "positions"):
@@ -190,7 +367,9 @@ def read_text(path: str, columns: Sequence[str] | None = None) -> tuple[np.ndarr
         skip = 1
         if names is None:
             names = [t.strip().strip('"').lower() for t in toks]
-    arr = np.loadtxt(path, delimiter=delim, skiprows=skip, ndmin=2, comments="#")
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", "loadtxt: input contained no data")
+        arr = np.loadtxt(path, delimiter=delim, skiprows=skip, ndmin=2, comments="#")
     if arr.shape[1] < 3:
         raise FormatError(path, f"text file has {arr.shape[1]} column(s); need at least x, y, z")
     if names is None:
@@ -199,7 +378,28 @@ def read_text(path: str, columns: Sequence[str] | None = None) -> tuple[np.ndarr
         raise FormatError(path, f"{len(names)} column names for {arr.shape[1]} columns")
     idx = {n: j for j, n in enumerate(names)}
     pos, ch = _split_fields(path, names, lambda n: arr[:, idx[n]])
-    return pos, {k: (v.astype(np.float32) if v.dtype == np.float64 else v) for k, v in ch.items()}
+    with np.errstate(over="ignore"):  # a value beyond float32 becomes inf, as a float32 file would hold it
+        return pos, {k: (v.astype(np.float32) if v.dtype == np.float64 else v) for k, v in ch.items()}
+
+
+# --------------------------------------------------------------------------- header counts
+def _check_count(path: str, f, n: int, values: int, what: str, unit: str) -> None:
+    """A header's element count must fit the bytes after the header (checked before numpy
+    allocates that many rows): at least one byte per binary value, two (a digit and a
+    separator) per ascii value."""
+    left = os.fstat(f.fileno()).st_size - f.tell()
+    if n < 0 or n * max(values, 1) > left:
+        raise FormatError(path, f"{what} header promises {n} {unit} of {values} values, "
+                                f"only {left} bytes follow the header")
+
+
+def _loadtxt(f, n: int, values: int) -> np.ndarray:
+    """Up to n rows of numbers (an empty body gives 0 rows, not numpy's warning)."""
+    if not n:
+        return np.zeros((0, values))
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", "loadtxt: input contained no data")
+        return np.loadtxt(f, max_rows=n, ndmin=2)
 
 
 # --------------------------------------------------------------------------- PLY
@@ -239,8 +439,9 @@ def read_ply(path: str) -> tuple[np.ndarray, dict]:
         if not elements or elements[0][0] != "vertex":
             raise FormatError(path, "PLY has no leading 'vertex' element")
         _, n, props = elements[0]
+        _check_count(path, f, n, len(props), "PLY", "vertices")
         if fmt == "ascii":
-            arr = np.loadtxt(f, max_rows=n, ndmin=2) if n else np.zeros((0, len(props)))
+            arr = _loadtxt(f, n, len(props))
             if arr.shape[0] != n:
                 raise FormatError(path, f"PLY promises {n} vertices, file has {arr.shape[0]}")
             names = [p[0] for p in props]
@@ -310,11 +511,14 @@ def read_pcd(path: str) -> tuple[np.ndarray, dict]:
         for nm, sz, ty, ct in zip(names, sizes, types, counts):
             if ty not in kinds:
                 raise FormatError(path, f"bad PCD TYPE {ty!r}")
+            if sz not in ((4, 8) if ty == "F" else (1, 2, 4, 8)) or ct < 1:
+                raise FormatError(path, f"bad PCD field {nm!r}: SIZE {sz}, TYPE {ty}, COUNT {ct}")
             dt = np.dtype(f"<{kinds[ty]}{sz}")
             cols.append((nm if nm != "_" else f"_pad{len(cols)}", dt, ct))
-        mode = meta["DATA"][0].lower()
+        mode = meta["DATA"][0].lower() if meta["DATA"] else ""
+        _check_count(path, f, n, sum(c[2] for c in cols), "PCD", "points")
         if mode == "ascii":
-            arr = np.loadtxt(f, ndmin=2, max_rows=n) if n else np.zeros((0, sum(c[2] for c in cols)))
+            arr = _loadtxt(f, n, sum(c[2] for c in cols))
             if arr.shape[0] != n:
                 raise FormatError(path, f"PCD promises {n} points, file has {arr.shape[0]}")
             rec = np.empty(n, dtype=[(nm, dt, (ct,)) if ct > 1 else (nm, dt) for nm, dt, ct in cols])

@@ -129,11 +129,15 @@ def test_bad_files_give_clear_errors(tmp_path):
         cls.validate_options({"path": str(tmp_path / "missing.las")}, "sources[0].options", os.getcwd())
     (tmp_path / "x.bin").write_bytes(b"\0" * 10)
     with pytest.raises(formats.FormatError, match="x.bin.*multiple of 16"):
-        _replay(tmp_path / "x.bin")
+        formats.read_points(str(tmp_path / "x.bin"))
     (tmp_path / "t.ply").write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 100\nproperty float x\n"
                                      b"property float y\nproperty float z\nend_header\n" + b"\0" * 12)
     with pytest.raises(formats.FormatError, match="promises 100 vertices"):
-        _replay(tmp_path / "t.ply")
+        formats.read_points(str(tmp_path / "t.ply"))
+    # the transport skips a bad file (logged, counted) instead of ending its stage
+    for name in ("x.bin", "t.ply"):
+        chunks, t = _replay(tmp_path / name)
+        assert chunks == [] and t.counters["bad_files"] == 1 and t.counters["files"] == 0
 
 
 def test_progress_bar_when_asked(tmp_path, capsys):

@@ -13,11 +13,15 @@ as fast as ingest accepts (the source waits instead of dropping: a replay is los
 Coordinates stay float64 (georeferenced LAS) and the format's channels come along (see
 :mod:`pointflow.ingest.formats`); ``rename`` maps channel names (e.g. Ouster
 ``reflectivity`` -> ``intensity``). A progress bar goes to stderr when it is a terminal.
+A file that cannot be read (a :class:`~pointflow.ingest.formats.FormatError`, or anything a
+reader raises) is logged with the reason, counted (``transport_bad_files``) and skipped: what
+was read before the defect is kept, and the other files go on; the stage never fails on one.
 """
 from __future__ import annotations
 
 import dataclasses
 import glob
+import logging
 import os
 import sys
 import time
@@ -29,6 +33,8 @@ from ...chunk import PointChunk
 from ...typed import ConfigError
 from .. import formats
 from .base import Transport
+
+log = logging.getLogger("pointflow.transport.file")
 
 
 @dataclasses.dataclass
@@ -92,7 +98,7 @@ class FileTransport(Transport):
         super().__init__(options, source_id)
         self.o = FileOptions(**options)
         self.files = _expand(self.o.path)
-        self.counters = {"files": 0, "points": 0, "loops": 0}
+        self.counters = {"files": 0, "points": 0, "loops": 0, "bad_files": 0}
         self._bar_last = 0.0
         self._show_bar = self.o.progress == "on" or (self.o.progress == "auto" and sys.stderr.isatty())
 
@@ -108,7 +114,10 @@ class FileTransport(Transport):
         self.mode = mode
         self.total = None
         if mode == "stream" and len(self.files) == 1 and self._fmt(self.files[0]) in ("las", "laz"):
-            self.total = formats.las_point_count(self.files[0])
+            try:
+                self.total = formats.las_point_count(self.files[0])
+            except formats.FormatError:
+                self.total = None  # reported (and counted) when the file is read
 
     def _fmt(self, f: str) -> str:
         return self.o.format if self.o.format != "auto" else formats.detect_format(f)
@@ -132,6 +141,12 @@ class FileTransport(Transport):
             self.total = n
         for a in range(0, max(n, 1), cp):
             yield pos[a:a + cp], {k: v[a:a + cp] for k, v in ch.items()}
+
+    def _bad_file(self, f: str, exc: Exception) -> None:
+        """Count and log a file that cannot be read (the rest of it and the next files go on)."""
+        self.counters["bad_files"] = self.counters.get("bad_files", 0) + 1
+        msg = str(exc) if isinstance(exc, formats.FormatError) else f"{f}: {type(exc).__name__}: {exc}"
+        log.warning("%s: skipped a file that cannot be read: %s", self.source_id, msg)
 
     def _progress(self, done: int, total: int | None, final: bool = False) -> None:
         if not self._show_bar:
@@ -169,15 +184,19 @@ class FileTransport(Transport):
                 if self.mode == "scans":
                     yield from self._wait(t0 + scan / o.rate)
                     scan += 1
-                for pos, ch in self._pieces(f):
-                    n = pos.shape[0]
-                    if self.mode == "stream":
-                        yield from self._wait(t0 + sent_points / o.points_per_second)
-                    sent_points += n
-                    self.counters["points"] += n
-                    total = self.total if self.mode == "stream" else None
-                    self._progress(self.counters["points"], total)
-                    yield PointChunk(positions=pos, channels=self._channels(ch), source_id=self.source_id)
+                try:
+                    for pos, ch in self._pieces(f):
+                        n = pos.shape[0]
+                        if self.mode == "stream":
+                            yield from self._wait(t0 + sent_points / o.points_per_second)
+                        sent_points += n
+                        self.counters["points"] += n
+                        total = self.total if self.mode == "stream" else None
+                        self._progress(self.counters["points"], total)
+                        yield PointChunk(positions=pos, channels=self._channels(ch), source_id=self.source_id)
+                except Exception as exc:  # noqa: BLE001 - a bad file is skipped, never the end of the stage
+                    self._bad_file(f, exc)
+                    continue
                 self.counters["files"] += 1
             if not o.loop:
                 break
