@@ -237,4 +237,8 @@ def stage_main(name: str, kind: str, cfg_dict: dict, base_dir: str, info: RunInf
 
             for name in sweep_orphans():
                 logging.getLogger("pointflow").warning("removed %s (its supervisor is gone)", name)
+            from .rundir import remove_orphaned_run_dir
+
+            if remove_orphaned_run_dir(info.run_dir, info.supervisor_pid):
+                logging.getLogger("pointflow").warning("removed %s (its supervisor is gone)", info.run_dir)
     sys.exit(code)

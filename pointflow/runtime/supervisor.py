@@ -9,6 +9,7 @@ control endpoint and from their exit codes, restarts a dead or hung stage with b
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import logging
 import multiprocessing as mp
@@ -23,7 +24,7 @@ from typing import Any, Optional
 import psutil
 import zmq
 
-from ..config import PipelineConfig, new_run_dir
+from ..config import ConfigError, PipelineConfig, new_run_dir
 from .stage import RunInfo, stage_main
 
 log = logging.getLogger("pointflow.supervisor")
@@ -107,6 +108,10 @@ def _merge_counts(a: dict, b: dict) -> dict:
     return out
 
 
+#: sizeof(sockaddr_un.sun_path) - 1 on Linux: the longest ipc:// path ZeroMQ can bind.
+IPC_PATH_MAX = 107
+
+
 class Supervisor:
     def __init__(self, cfg: PipelineConfig, out_dir: Optional[str] = None):
         self.cfg = cfg
@@ -129,16 +134,32 @@ class Supervisor:
 
     # ------------------------------------------------------------------ start
     def start(self) -> None:
-        from ..ring import PointRing, SlabPair
+        from ..ring import PointRing, RingLayout, SlabPair
+        from ..ring.layout import as_channel_specs
+        from ..ring.space import RingSpaceError, check_shm_space, shm_bytes
         from ..ring.sweep import sweep_orphans
+        from .rundir import sweep_run_dirs
 
         cfg = self.cfg
         stale = sweep_orphans()
         if stale:
             log.warning("removed %d shared-memory segment(s) left by a pipeline that was killed: %s",
                         len(stale), ", ".join(stale))
+        for d in sweep_run_dirs():
+            log.warning("removed %s, the socket directory of a pipeline that was killed", d)
+        layout = RingLayout(cfg.ring.max_points, as_channel_specs(cfg.ring_channels()))
+        try:  # before anything is created: nothing to clean up when it does not fit
+            check_shm_space(layout)
+        except RingSpaceError as exc:
+            raise ConfigError("ring.max_points", str(exc)) from None
         self.run_dir = new_run_dir()
         self.endpoints = cfg.resolved_endpoints(self.run_dir)
+        for key, ep in dataclasses.asdict(self.endpoints).items():
+            sock = ep[len("ipc://"):] if ep.startswith("ipc://") else ""
+            if len(sock.encode()) > IPC_PATH_MAX:  # the caller removes the run directory
+                raise ConfigError(f"endpoints.{key}", f"socket path {sock} has {len(sock.encode())} bytes, a Unix "
+                                                      f"socket allows {IPC_PATH_MAX}; set XDG_RUNTIME_DIR (or the "
+                                                      "endpoint) to a shorter path")
         if self.out_dir:
             os.makedirs(self.out_dir, exist_ok=True)
         self._zctx = zmq.Context()
@@ -157,15 +178,19 @@ class Supervisor:
             self._trace_sink.setsockopt(zmq.LINGER, 0)
             self._trace_sink.bind(self.endpoints.trace)
         imp = "importance" if (cfg.ring.importance_field or cfg.ring.eviction == "importance") else None
-        self.ring = PointRing(
-            cfg.ring.max_points,
-            channels=cfg.ring_channels(),
-            eviction=cfg.ring.eviction,
-            importance_field=imp,
-            max_staleness_ms=cfg.ring.max_staleness_ms,
-            classification_weights=cfg.ring.classification_weights,
-        )
-        self.slabs = SlabPair.create(self.ring.layout)
+        try:
+            self.ring = PointRing(
+                cfg.ring.max_points,
+                channels=cfg.ring_channels(),
+                eviction=cfg.ring.eviction,
+                importance_field=imp,
+                max_staleness_ms=cfg.ring.max_staleness_ms,
+                classification_weights=cfg.ring.classification_weights,
+            )
+            self.slabs = SlabPair.create(self.ring.layout)
+        except OSError as exc:  # space taken since the check, or a memory limit: the caller releases
+            raise ConfigError("ring.max_points", f"cannot allocate the ring and slabs ({shm_bytes(layout):,} bytes) "
+                                                 f"in shared memory: {exc.strerror or exc}") from None
         self.segments = [self.ring.name, *self.slabs.names]
         log.info("ring %s: %d points, channels %s, eviction %s; slabs %s", self.ring.name, cfg.ring.max_points,
                  cfg.ring_channels() or "[]", cfg.ring.eviction, " ".join(self.slabs.names))

@@ -5,9 +5,12 @@ from __future__ import annotations
 import multiprocessing as mp
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
+import tempfile
+from pathlib import Path
 
 import yaml
 
@@ -46,8 +49,12 @@ def test_sigkill_of_the_supervisor_leaves_nothing(tmp_path):
     path = tmp_path / "p.yaml"
     path.write_text(yaml.safe_dump(small_config()))
     out = tmp_path / "out"
+    # the supervisor's run directory of ipc:// sockets goes here (a short path: a socket path
+    # has at most 107 bytes)
+    xdg = Path(tempfile.mkdtemp(prefix="pfx"))
     proc = subprocess.Popen([sys.executable, "-m", "pointflow.cli", "run", str(path), "--out", str(out), "-q"],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True)
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            env=dict(os.environ, XDG_RUNTIME_DIR=str(xdg)))
     lines = []
     try:
         for line in proc.stderr:  # the supervisor logs its segment names at start
@@ -58,6 +65,8 @@ def test_sigkill_of_the_supervisor_leaves_nothing(tmp_path):
         import psutil
 
         kids = [c.pid for c in psutil.Process(proc.pid).children(recursive=True)]
+        run_dirs = list(xdg.glob(f"pointflow-{proc.pid}-*"))
+        assert len(run_dirs) == 1 and list(run_dirs[0].iterdir()), "no run directory with sockets"
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait(10)
     finally:
@@ -69,3 +78,34 @@ def test_sigkill_of_the_supervisor_leaves_nothing(tmp_path):
     assert_gone(kids)  # stages saw their supervisor die and exited
     assert wait_for(lambda: not any(os.path.exists(os.path.join(SHM, n)) for n in m.groups()), timeout=10), \
         "segments of a killed supervisor were not removed"
+    # issue 14.4: the stages also removed the run directory of ipc:// sockets
+    assert wait_for(lambda: not run_dirs[0].exists(), timeout=10), "run directory of a killed supervisor stays"
+    xdg.rmdir()
+
+
+def _dead_pid() -> int:
+    p = subprocess.Popen([sys.executable, "-c", "pass"])
+    p.wait()
+    return p.pid
+
+
+def test_new_supervisor_sweeps_run_dirs_of_dead_supervisors(tmp_path, monkeypatch):
+    from pointflow.runtime.pipeline import Pipeline
+
+    xdg = Path(tempfile.mkdtemp(prefix="pfx"))
+    dead = xdg / f"pointflow-{_dead_pid()}-0123abcd"
+    live = xdg / f"pointflow-{os.getppid()}-89abcdef"   # its supervisor (our parent) is alive
+    other = xdg / "pointflow-notarun"                    # not a run directory name
+    for d in (dead, live, other):
+        d.mkdir()
+        (d / "control").write_text("")  # stands for a socket file left behind
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(xdg))
+    pipe = Pipeline.from_dict(small_config(), out_dir=str(tmp_path / "out"))
+    pipe.start()
+    try:
+        assert not dead.exists(), "a new supervisor keeps the run directory of a dead one"
+        assert live.exists() and other.exists()
+    finally:
+        pipe.stop()
+    assert sorted(p.name for p in xdg.iterdir()) == sorted([live.name, other.name])  # its own went too
+    shutil.rmtree(xdg)
