@@ -13,7 +13,9 @@ Accounting (exact, see docs/ingest.md)::
     points_in   = points_out + sum(drops[reason])                  (points of accepted chunks)
 
 where ``points_out`` is what the ring stored and ``drops`` holds ``non_finite``,
-``queue_overflow``, ``thinned`` and ``ring_full`` (incoming points the ring did not
+``out_of_range`` (finite, but too far from the ring's origin to be stored as a float32
+offset: see ``pointflow.ring.ring.MAX_OFFSET``), ``queue_overflow``, ``thinned`` and
+``ring_full`` (incoming points the ring did not
 keep: refused under ``drop_newest``, or evicted by more important points of the same push). Points the ring evicted to make room are ``extra["ring_evicted"]``; so
 the ring's own ``dropped_points`` equals ``ring_evicted + drops["ring_full"]`` and its
 ``total_written`` equals ``points_out``.
@@ -250,8 +252,9 @@ class Ingestor:
             res = self.ring.push(pos, trace_id=b.traces, **chans)
             t1 = time.monotonic_ns()
             self.pushes += 1
-            refused = b.n - res.written
+            refused = b.n - res.written - res.rejected
             self.counters.points_out += res.written
+            self.counters.drop("out_of_range", res.rejected)  # too far from the ring's origin
             self.counters.drop("ring_full", refused)
             self.ring_evicted += res.dropped - refused
             if self.spans is not None:

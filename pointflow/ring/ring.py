@@ -47,7 +47,16 @@ COMMIT_OFF, COMMIT_N = 8192, 1024
 
 (I_CAP, I_HEAD, I_SIZE, I_DROPPED, I_WRITES, I_GEN, I_EPOCH, I_ORIGIN_SET, I_DIRTY_N, I_DIRTY_FULL,
  I_COMMIT_COUNT, I_COMMIT_TAKEN, I_TOTAL_WRITTEN, I_RESETS, I_FINGERPRINT, I_OWNER_PID, I_LAST_PUSH_NS,
- I_ORIGIN_GEN) = range(18)
+ I_ORIGIN_GEN, I_REJECTED) = range(19)
+
+#: A point is stored only when its offset from the origin is below this on every axis: a
+#: float32 offset below 2^24 has a spacing of at most 1, so it is stored with an error of at
+#: most 0.5 units (and at most 2^-24 of the offset). Farther points are rejected
+#: (``PushResult.rejected``, ingest's ``out_of_range``), so no offset is ever inf or overflows.
+MAX_OFFSET = float(2 ** 24)
+#: Only points with every |coordinate| at most this (2^53: float64 still resolves whole
+#: units) take part in choosing the origin.
+MAX_ORIGIN_ABS = float(2 ** 53)
 
 EVICTIONS = ("drop_oldest", "drop_newest", "importance")
 _EVICTION_ALIASES = {"fifo": "drop_oldest", "drop_oldest": "drop_oldest", "drop_newest": "drop_newest",
@@ -58,6 +67,9 @@ _EVICTION_ALIASES = {"fifo": "drop_oldest", "drop_oldest": "drop_oldest", "drop_
 class PushResult:
     written: int  # incoming points stored
     dropped: int  # points lost by this push (overwritten old ones + discarded incoming ones)
+    #: incoming points not stored because they are not finite or too far from the origin
+    #: (offset >= MAX_OFFSET on some axis); not part of ``dropped``
+    rejected: int = 0
 
 
 @dataclass
@@ -73,6 +85,7 @@ class RingStats:
     eviction: str = "drop_oldest"
     total_written: int = 0
     resets: int = 0
+    rejected_points: int = 0  # out of range or not finite, since the last reset
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -150,6 +163,7 @@ class PointRing:
         self._otile: np.ndarray | None = None
         self._otile32: np.ndarray | None = None
         self._otile_origin: tuple | None = None
+        self._bounds: tuple[int, float, float] = (-1, 0.0, 0.0)  # (origin gen, lowest, highest in-range value)
         self._closed = False
         if _attach_segment is not None:
             self._seg = _attach_segment
@@ -522,6 +536,9 @@ class PointRing:
         if n == 0:
             return PushResult(0, 0)
         prepared, imp = self._prepare(n, channels)
+        pflat = pos.reshape(-1)
+        lo, hi = pflat.min(), pflat.max()  # NaN when any value is NaN: then the exact check runs
+        rejected = 0
         # the lock, inlined (this is the hot path): thread lock + flock on the segment fd
         with self._tlock:
             if self._depth == 0:
@@ -530,22 +547,74 @@ class PointRing:
                 fcntl.flock(self._seg.fd, fcntl.LOCK_EX)
             self._depth += 1
             try:
-                written, dropped = self._push_locked(pos, n, trace_id, prepared, imp)
+                st = self._st
+                if not st[I_ORIGIN_SET]:
+                    self._choose_origin(pos)
+                gen, blo, bhi = self._bounds
+                if gen != st[I_ORIGIN_GEN] or not st[I_ORIGIN_SET]:
+                    gen, blo, bhi = self._origin_bounds()
+                if not (lo > blo and hi < bhi):  # some point may be out of range: the exact test
+                    pos, prepared, imp, rejected = self._drop_out_of_range(pos, prepared, imp)
+                    st[I_REJECTED] += rejected
+                if pos.shape[0]:
+                    written, dropped = self._push_locked(pos, pos.shape[0], trace_id, prepared, imp)
+                else:
+                    written, dropped = 0, 0
             finally:
                 self._depth -= 1
                 if self._depth == 0:
                     fcntl.flock(self._seg.fd, fcntl.LOCK_UN)
-        return PushResult(written, dropped)
+        return PushResult(written, dropped, rejected)
+
+    def _choose_origin(self, pos: np.ndarray) -> None:
+        """Origin from the first push that has usable points: the per-axis (lower) median of its
+        finite points with |coordinate| <= MAX_ORIGIN_ABS, rounded to whole units. Fewer than
+        half the points, however absurd, cannot move it off the others."""
+        with np.errstate(invalid="ignore"):
+            ok = np.isfinite(pos).all(axis=1) & (np.abs(pos) <= MAX_ORIGIN_ABS).all(axis=1)
+        cand = pos[ok]
+        m = cand.shape[0]
+        if m == 0:
+            return  # nothing usable: every point is rejected and the origin stays unset
+        k = (m - 1) // 2
+        med = np.partition(cand.astype(np.float64), k, axis=0)[k]
+        self._fst[0:3] = np.round(med)
+        st = self._st
+        st[I_ORIGIN_SET] = 1
+        st[I_ORIGIN_GEN] = st[I_GEN] + 1
+
+    def _origin_bounds(self) -> tuple[int, float, float]:
+        """(origin gen, lo, hi): every coordinate in (lo, hi) is within MAX_OFFSET of the origin
+        on any axis (a conservative box around all three axes; the exact test is per axis)."""
+        st = self._st
+        if not st[I_ORIGIN_SET]:
+            return (-1, np.inf, -np.inf)  # nothing passes: the exact test rejects all
+        o = self._fst[0:3]
+        b = (int(st[I_ORIGIN_GEN]), float(o.max()) - MAX_OFFSET, float(o.min()) + MAX_OFFSET)
+        self._bounds = b
+        return b
+
+    def _drop_out_of_range(self, pos, prepared, imp):
+        """Keep the points whose offset from the origin is below MAX_OFFSET on every axis (not
+        NaN, not inf); the channels and importance follow. Returns (pos, prepared, imp, rejected)."""
+        n = pos.shape[0]
+        if not self._st[I_ORIGIN_SET]:
+            keep = np.zeros(n, bool)
+        else:
+            with np.errstate(invalid="ignore", over="ignore"):
+                keep = (np.abs(pos.astype(np.float64) - self._fst[0:3]) < MAX_OFFSET).all(axis=1)
+        k = int(np.count_nonzero(keep))
+        if k == n:
+            return pos, prepared, imp, 0
+        pos = np.ascontiguousarray(pos[keep])
+        prepared = [(vals, gens, arr[keep]) for vals, gens, arr in prepared]
+        if imp is not None:
+            imp = imp[keep]
+        return pos, prepared, imp, n - k
 
     def _push_locked(self, pos, n, trace_id, prepared, imp) -> tuple[int, int]:
         cap = self.capacity
         st = self._st
-        if not st[I_ORIGIN_SET]:
-            fin = np.isfinite(pos).all(axis=1)
-            i0 = int(np.argmax(fin)) if fin.any() else -1
-            self._fst[0:3] = np.round(pos[i0].astype(np.float64)) if i0 >= 0 else 0.0
-            st[I_ORIGIN_SET] = 1
-            st[I_ORIGIN_GEN] = st[I_GEN] + 1
         g = int(st[I_GEN]) + 1
         st[I_GEN] = g
         now_ns = time.monotonic_ns()
@@ -668,7 +737,8 @@ class PointRing:
             return RingStats(total_points=size, dropped_points=int(st[I_DROPPED]), under_pressure=size >= self.capacity,
                              capacity=self.capacity, head=int(st[I_HEAD]), origin=origin, epoch_ns=int(st[I_EPOCH]),
                              write_count=int(st[I_WRITES]), eviction=self.eviction,
-                             total_written=int(st[I_TOTAL_WRITTEN]), resets=int(st[I_RESETS]))
+                             total_written=int(st[I_TOTAL_WRITTEN]), resets=int(st[I_RESETS]),
+                             rejected_points=int(st[I_REJECTED]))
 
     def _logical_slots(self) -> np.ndarray:
         head, size = int(self._st[I_HEAD]), int(self._st[I_SIZE])
@@ -743,6 +813,7 @@ class PointRing:
             st[I_HEAD] = 0
             st[I_SIZE] = 0
             st[I_DROPPED] = 0
+            st[I_REJECTED] = 0
             st[I_WRITES] = 0
             st[I_TOTAL_WRITTEN] = 0
             st[I_ORIGIN_SET] = 0
