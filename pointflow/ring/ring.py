@@ -58,6 +58,8 @@ MAX_OFFSET = float(2 ** 24)
 #: units) take part in choosing the origin.
 MAX_ORIGIN_ABS = float(2 ** 53)
 
+_min, _max = np.minimum.reduce, np.maximum.reduce
+
 EVICTIONS = ("drop_oldest", "drop_newest", "importance")
 _EVICTION_ALIASES = {"fifo": "drop_oldest", "drop_oldest": "drop_oldest", "drop_newest": "drop_newest",
                      "importance": "importance"}
@@ -536,8 +538,11 @@ class PointRing:
         if n == 0:
             return PushResult(0, 0)
         prepared, imp = self._prepare(n, channels)
+        # the range of all coordinates (NaN when any is NaN): when it lies within MAX_OFFSET of
+        # every origin axis, no point needs the exact per-axis test (two passes; the only cost
+        # the range rule adds to an ordinary push)
         pflat = pos.reshape(-1)
-        lo, hi = pflat.min(), pflat.max()  # NaN when any value is NaN: then the exact check runs
+        lo, hi = _min(pflat), _max(pflat)
         rejected = 0
         # the lock, inlined (this is the hot path): thread lock + flock on the segment fd
         with self._tlock:

@@ -1,0 +1,84 @@
+"""A/B of the ring's hot path between two checkouts: 10k-point FIFO pushes into a full
+100k ring (float64 and float32 positions near [6.4e5, 4.9e6, 0]), each checkout in its own
+process, alternating, medians of all batches. For changes to ``PointRing.push``:
+
+    git archive main pointflow | tar -x -C /tmp/base
+    .venv/bin/python bench/ab_ring_push.py /tmp/base . --rounds 10
+
+Prints the medians and the time ratio B/A; nothing is written.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import subprocess
+import sys
+import time
+
+
+def worker(root: str) -> dict[str, list[float]]:
+    sys.path.insert(0, root)
+    import numpy as np
+
+    from pointflow.ring import PointRing
+
+    rng = np.random.default_rng(0)
+    cap, n = 100_000, 10_000
+    out: dict[str, list[float]] = {}
+    for dt in ("f64", "f32"):
+        r = PointRing(cap, eviction="drop_oldest", importance_field="importance")
+        r.push(rng.uniform(-100, 100, (cap, 3)) + [6.4e5, 4.9e6, 0], importance=rng.random(cap).astype(np.float32))
+        pos = rng.uniform(-100, 100, (n, 3)) + [6.4e5, 4.9e6, 0]
+        if dt == "f32":
+            pos = pos.astype(np.float32)
+        imp = rng.random(n).astype(np.float32)
+
+        def f():
+            r.push(pos, importance=imp)
+
+        for _ in range(50):
+            f()
+        ts = []
+        for _ in range(7):
+            reps, t0 = 0, time.perf_counter()
+            while True:
+                f()
+                reps += 1
+                d = time.perf_counter() - t0
+                if d >= 0.05 and reps >= 2:
+                    break
+            ts.append(d / reps)
+        out[dt] = ts
+        r.close()
+    return out
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("a", help="checkout A (the baseline)")
+    ap.add_argument("b", help="checkout B")
+    ap.add_argument("--rounds", type=int, default=8)
+    ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.worker:
+        print(json.dumps(worker(args.a)))
+        return 0
+    roots = {"A": args.a, "B": args.b}
+    res: dict[str, dict[str, list[float]]] = {k: {"f64": [], "f32": []} for k in roots}
+    for i in range(args.rounds):
+        order = list(roots.items()) if i % 2 == 0 else list(reversed(roots.items()))
+        for k, root in order:
+            o = json.loads(subprocess.run([sys.executable, __file__, root, root, "--worker"], capture_output=True,
+                                          text=True, check=True).stdout)
+            for d in o:
+                res[k][d] += o[d]
+    for d in ("f64", "f32"):
+        m = {k: statistics.median(res[k][d]) * 1e6 for k in roots}
+        print(f"{d}: A {m['A']:.1f} us ({1e4 / m['A']:.0f} Mpts/s)  B {m['B']:.1f} us ({1e4 / m['B']:.0f} Mpts/s)  "
+              f"B/A time {m['B'] / m['A']:.3f}  ({len(res['A'][d])} batches each)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
