@@ -516,7 +516,8 @@ def read_pcd(path: str) -> tuple[np.ndarray, dict]:
             dt = np.dtype(f"<{kinds[ty]}{sz}")
             cols.append((nm if nm != "_" else f"_pad{len(cols)}", dt, ct))
         mode = meta["DATA"][0].lower() if meta["DATA"] else ""
-        _check_count(path, f, n, sum(c[2] for c in cols), "PCD", "points")
+        if mode in ("ascii", "binary"):  # uncompressed: the count must fit the bytes that follow
+            _check_count(path, f, n, sum(c[2] for c in cols), "PCD", "points")
         if mode == "ascii":
             arr = _loadtxt(f, n, sum(c[2] for c in cols))
             if arr.shape[0] != n:
