@@ -95,3 +95,28 @@ def test_ingest_counts_out_of_range_and_stays_exact():
         assert np.array_equal(snap.positions, good)
         assert snap.channels["intensity"].tolist() == [1.0 + i for i in range(10)] + [13.0 + i for i in range(10)]
         assert ring.stats().total_written == c.points_out == 20
+
+
+def test_pipeline_with_an_absurd_point_counts_it_and_stays_balanced(tmp_path):
+    """A real pipeline (file source, ingest, ring, cadence, cpu tier): a scan whose first
+    point is at x = 1e30 lands without it; stats say out_of_range 1, accounting balanced."""
+    import os
+
+    from pointflow.runtime.pipeline import Pipeline
+
+    good = _ordinary(2000, 6)
+    np.save(tmp_path / "scan.npy", np.concatenate([[[1e30, 0.0, 0.0]], good]))
+    cfg = {"source": {"transport": "file", "options": {"path": str(tmp_path / "scan.npy"), "realtime": False}},
+           "ring": {"max_points": 10_000}, "render": {"backend": "cpu", "size": [64, 48]},
+           "supervisor": {"max_restarts": 0}}
+    with Pipeline.from_dict(cfg, out_dir=str(tmp_path / "out")) as pipe:
+        pipe.wait(60, until=lambda: pipe.stats()["stages"]["ingest"]["points_in"] >= 2001)
+        pipe.wait(60, until=lambda: pipe.stats()["ring"]["total_written"] >= 2000)
+        stats = pipe.stop()
+    ing = stats["stages"]["ingest"]
+    assert ing["drops"].get("out_of_range") == 1 and ing["points_out"] == 2000
+    assert stats["ring"]["rejected_points"] == 1 and stats["ring"]["total_written"] == 2000
+    assert np.all(np.abs(np.array(stats["ring"]["origin"]) - BASE) <= 100)
+    acc = stats["accounting"]
+    assert acc["ingest_balanced"] and acc["ring_agrees"] and acc["lost_before_ingest"] == 0
+    assert not [n for n in stats["shm_segments"] if os.path.exists(os.path.join("/dev/shm", n))]
