@@ -138,6 +138,9 @@ def test_bad_files_give_clear_errors(tmp_path):
     for name in ("x.bin", "t.ply"):
         chunks, t = _replay(tmp_path / name)
         assert chunks == [] and t.counters["bad_files"] == 1 and t.counters["files"] == 0
+    # looping over files that are all bad ends instead of spinning forever
+    chunks, t = _replay(tmp_path / "x.bin", loop=True)
+    assert chunks == [] and t.counters["bad_files"] == 1 and t.counters["loops"] == 0
 
 
 def test_progress_bar_when_asked(tmp_path, capsys):

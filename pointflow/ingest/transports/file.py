@@ -196,9 +196,13 @@ class FileTransport(Transport):
                         yield PointChunk(positions=pos, channels=self._channels(ch), source_id=self.source_id)
                 except Exception as exc:  # noqa: BLE001 - a bad file is skipped, never the end of the stage
                     self._bad_file(f, exc)
+                    yield None  # the stage beats between files, however many are bad
                     continue
                 self.counters["files"] += 1
             if not o.loop:
+                break
+            if not self.counters["files"]:  # looping over files none of which can be read
+                log.error("%s: none of the %d file(s) can be read; not looping", self.source_id, len(self.files))
                 break
             self.counters["loops"] += 1
         if self.mode == "stream":  # the last chunk's time has to pass, as on a live stream
