@@ -277,6 +277,10 @@ def load_config(data: dict | str | os.PathLike, *, base_dir: str | None = None) 
     return cfg
 
 
+#: A config file larger than this is refused unread.
+MAX_CONFIG_BYTES = 16 << 20
+
+
 def _read_text(path: Path) -> str:
     """The config file as text; every failure is a one-line ConfigError naming the file."""
     try:
@@ -285,6 +289,9 @@ def _read_text(path: Path) -> str:
             raise ConfigError("", f"cannot read config file {path}: it is a directory")
         if not stat.S_ISREG(st.st_mode):  # a FIFO or device would block or never end
             raise ConfigError("", f"cannot read config file {path}: not a regular file")
+        if st.st_size > MAX_CONFIG_BYTES:  # e.g. a point cloud given by mistake: not read into memory
+            raise ConfigError("", f"{path}: {st.st_size:,} bytes is not a pipeline config (a YAML file of at most "
+                                  f"{MAX_CONFIG_BYTES:,} bytes)")
         raw = path.read_bytes()
     except OSError as exc:
         raise ConfigError("", f"cannot read config file {path}: {exc.strerror or exc}") from None

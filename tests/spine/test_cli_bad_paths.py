@@ -38,6 +38,9 @@ def _bad_path(tmp_path, kind: str) -> str:
         p.write_text("source: [unclosed\n")
     elif kind == "not_a_mapping":
         p.write_text("- 1\n- 2\n")
+    elif kind == "huge":  # e.g. a point cloud passed by mistake (sparse: costs no disk)
+        with open(p, "wb") as f:
+            f.truncate(64 << 20)
     return str(p)
 
 
@@ -52,7 +55,7 @@ def _check_one_line(err: str, path: str) -> str:
 
 @pytest.mark.parametrize("cmd", COMMANDS, ids=lambda c: c[0])
 @pytest.mark.parametrize("kind", ["missing", "empty", "directory", "fifo", "under_a_file", "binary", "latin1",
-                                  "bad_yaml", "not_a_mapping"])
+                                  "bad_yaml", "not_a_mapping", "huge"])
 @pytest.mark.timeout(60)  # a FIFO used to block the read forever
 def test_bad_config_path_is_one_line_config_error(tmp_path, capsys, monkeypatch, cmd, kind):
     monkeypatch.chdir(tmp_path)  # a run that wrongly started would write out/ here
