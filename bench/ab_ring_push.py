@@ -1,6 +1,7 @@
 """A/B of the ring's hot path between two checkouts: 10k-point FIFO pushes into a full
-100k ring (float64 and float32 positions near [6.4e5, 4.9e6, 0]), each checkout in its own
-process, alternating, medians of all batches. For changes to ``PointRing.push``:
+100k ring (float64 and float32 positions near [6.4e5, 4.9e6, 0]), and the same float32 chunks
+through ingest's ``Ingestor`` (add_chunk + flush), each checkout in its own process,
+alternating, medians of all batches. For changes to ``PointRing.push``:
 
     git archive main pointflow | tar -x -C /tmp/base
     .venv/bin/python bench/ab_ring_push.py /tmp/base . --rounds 10
@@ -51,6 +52,33 @@ def worker(root: str) -> dict[str, list[float]]:
             ts.append(d / reps)
         out[dt] = ts
         r.close()
+    # the same through ingest's Ingestor (convert, non-finite check, queue, push), float32 chunks
+    from pointflow.chunk import PointChunk
+    from pointflow.ingest.process import Ingestor
+
+    r = PointRing(cap, eviction="drop_oldest", importance_field="importance")
+    r.push(rng.uniform(-100, 100, (cap, 3)) + [6.4e5, 4.9e6, 0], importance=rng.random(cap).astype(np.float32))
+    ing = Ingestor(r, coalesce_points=n)
+    pos32 = (rng.uniform(-100, 100, (n, 3)) + [6.4e5, 4.9e6, 0]).astype(np.float32)
+
+    def g():
+        ing.add_chunk(PointChunk(positions=pos32, channels={}))
+        ing.flush()
+
+    for _ in range(50):
+        g()
+    ts = []
+    for _ in range(7):
+        reps, t0 = 0, time.perf_counter()
+        while True:
+            g()
+            reps += 1
+            d = time.perf_counter() - t0
+            if d >= 0.05 and reps >= 2:
+                break
+        ts.append(d / reps)
+    out["ingest_f32"] = ts
+    r.close()
     return out
 
 
@@ -65,7 +93,7 @@ def main() -> int:
         print(json.dumps(worker(args.a)))
         return 0
     roots = {"A": args.a, "B": args.b}
-    res: dict[str, dict[str, list[float]]] = {k: {"f64": [], "f32": []} for k in roots}
+    res: dict[str, dict[str, list[float]]] = {k: {"f64": [], "f32": [], "ingest_f32": []} for k in roots}
     for i in range(args.rounds):
         order = list(roots.items()) if i % 2 == 0 else list(reversed(roots.items()))
         for k, root in order:
@@ -73,7 +101,7 @@ def main() -> int:
                                           text=True, check=True).stdout)
             for d in o:
                 res[k][d] += o[d]
-    for d in ("f64", "f32"):
+    for d in ("f64", "f32", "ingest_f32"):
         m = {k: statistics.median(res[k][d]) * 1e6 for k in roots}
         print(f"{d}: A {m['A']:.1f} us ({1e4 / m['A']:.0f} Mpts/s)  B {m['B']:.1f} us ({1e4 / m['B']:.0f} Mpts/s)  "
               f"B/A time {m['B'] / m['A']:.3f}  ({len(res['A'][d])} batches each)")

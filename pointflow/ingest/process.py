@@ -40,6 +40,7 @@ LOG_EVERY_S = 5.0
 #: On stop, drain the ingest socket until it is quiet this long, for at most STOP_GRACE_S.
 STOP_QUIET_S = 0.15
 STOP_GRACE_S = 1.5
+_min, _max = np.minimum.reduce, np.maximum.reduce
 #: Adaptive thinning steps: (ring fill fraction, keep every k-th point).
 THINNING = ((0.985, 4), (0.95, 2))
 
@@ -52,6 +53,9 @@ class _Batch:
     channels: list[dict[str, np.ndarray]] = field(default_factory=list)
     traces: list[int] = field(default_factory=list)
     n: int = 0
+    #: min and max over every coordinate of the batch (passed to ``PointRing.push``)
+    lo: float = float("inf")
+    hi: float = float("-inf")
     #: Holds one big chunk: pushed as is, nothing added to it.
     solo: bool = False
 
@@ -148,15 +152,19 @@ class Ingestor:
         self.chunks_accepted += 1
         n = chunk.n
         self.counters.points_in += n
-        # fast path: one contiguous pass over all values (the per-row reduction is ~10x
-        # slower and only needed when something is not finite)
-        if n and not np.isfinite(pos).all():
+        # fast path: the min and max of all values (NaN or inf there iff some value is not
+        # finite; the per-row test is ~10x slower and only needed then). The ring reuses them
+        # for its range rule instead of scanning the points again.
+        lo, hi = (float(_min(pos, axis=None)), float(_max(pos, axis=None))) if n else (0.0, 0.0)
+        if n and not (np.isfinite(lo) and np.isfinite(hi)):
             fin = np.isfinite(pos).all(axis=1)
             bad = n - int(np.count_nonzero(fin))
             if bad:
                 self.counters.drop("non_finite", bad)
                 pos = pos[fin]
                 chans = {k: v[fin] for k, v in chans.items()}
+            if pos.shape[0]:
+                lo, hi = float(_min(pos, axis=None)), float(_max(pos, axis=None))
         if self.adaptive_thinning and pos.shape[0]:
             k = self._thin_step()
             if k > 1:
@@ -167,7 +175,7 @@ class Ingestor:
         if self.spans is not None:
             self.spans.record(chunk.trace_id, "ingest_packed", chunk.t_recv_ns or t0, time.monotonic_ns(), pos.shape[0])
         if pos.shape[0]:
-            self._enqueue(pos, chans, chunk.trace_id)
+            self._enqueue(pos, chans, chunk.trace_id, lo, hi)  # thinning keeps a subset: still bounds
         return True
 
     def _convert(self, chunk: PointChunk) -> tuple[np.ndarray, dict[str, np.ndarray]]:
@@ -219,7 +227,7 @@ class Ingestor:
                 return k
         return 1
 
-    def _enqueue(self, pos: np.ndarray, chans: dict[str, np.ndarray], trace: int) -> None:
+    def _enqueue(self, pos: np.ndarray, chans: dict[str, np.ndarray], trace: int, lo: float, hi: float) -> None:
         n = pos.shape[0]
         last = self.queue[-1] if self.queue else None
         # Only small chunks are coalesced: for big ones the copy costs more than the push saved.
@@ -236,6 +244,8 @@ class Ingestor:
         last.channels.append(chans)
         last.traces.append(trace)
         last.n += n
+        last.lo = min(last.lo, lo)
+        last.hi = max(last.hi, hi)
 
     # ------------------------------------------------------------------ push
     def flush(self, max_batches: int | None = None) -> int:
@@ -249,7 +259,7 @@ class Ingestor:
                 pos = np.concatenate(b.positions)
                 chans = {k: np.concatenate([c[k] for c in b.channels]) for k in b.channels[0]}
             t0 = time.monotonic_ns()
-            res = self.ring.push(pos, trace_id=b.traces, **chans)
+            res = self.ring.push(pos, trace_id=b.traces, value_range=(b.lo, b.hi), **chans)
             t1 = time.monotonic_ns()
             self.pushes += 1
             refused = b.n - res.written - res.rejected

@@ -520,11 +520,15 @@ class PointRing:
         return keep
 
     # ------------------------------------------------------------------ push
-    def push(self, positions, *, trace_id: "int | Sequence[int]" = 0, **channels) -> PushResult:
+    def push(self, positions, *, trace_id: "int | Sequence[int]" = 0,
+             value_range: "tuple[float, float] | None" = None, **channels) -> PushResult:
         """Store points (world coordinates, (N,3) float64/float32) with optional channels.
 
         ``trace_id`` may be a sequence when one push carries several coalesced chunks; each
-        id goes into the commit log, so the cadence sees every chunk become visible."""
+        id goes into the commit log, so the cadence sees every chunk become visible.
+        ``value_range`` is (min, max) over every coordinate when the caller already has it
+        (ingest computes it to find non-finite points); it saves the ring those two passes and
+        must hold every coordinate, or an out-of-range point could be stored."""
         pos = np.asarray(positions)
         if pos.dtype != np.float64 and pos.dtype != np.float32:
             pos = pos.astype(np.float64)
@@ -541,8 +545,11 @@ class PointRing:
         # the range of all coordinates (NaN when any is NaN): when it lies within MAX_OFFSET of
         # every origin axis, no point needs the exact per-axis test (two passes; the only cost
         # the range rule adds to an ordinary push)
-        pflat = pos.reshape(-1)
-        lo, hi = _min(pflat), _max(pflat)
+        if value_range is None:
+            pflat = pos.reshape(-1)
+            lo, hi = _min(pflat), _max(pflat)
+        else:
+            lo, hi = value_range
         rejected = 0
         # the lock, inlined (this is the hot path): thread lock + flock on the segment fd
         with self._tlock:
