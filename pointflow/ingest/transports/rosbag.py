@@ -200,12 +200,15 @@ class RosbagTransport(Transport):
         o = self.o
         while True:
             wall0 = time.monotonic()
-            last_t = self.start_ns
+            first_t = last_t = None
+            count = 0
             for conn, t_ns, raw in self.reader.messages(connections=self.connections, start=self.start_ns,
                                                         stop=self.stop_ns):
                 if o.rate > 0:
                     yield from self._wait(wall0 + (t_ns - self.start_ns) / 1e9 / o.rate)
+                first_t = t_ns if first_t is None else first_t
                 last_t = t_ns
+                count += 1
                 self.counters["messages"] += 1
                 chunk = self.accept(self._parse, (conn, raw))
                 self._progress(t_ns)
@@ -216,11 +219,12 @@ class RosbagTransport(Transport):
                     chunk.stamp_ns = int(t_ns)  # no header stamp: the recording time
                 self.counters["points"] += chunk.n
                 yield chunk
-            if not o.loop:
-                break
+            if not o.loop or not count:
+                break  # done, or an empty window: nothing to loop over
             self.counters["loops"] += 1
-            if last_t == self.start_ns and self.counters["messages"] == 0:
-                break  # an empty window: nothing to loop over
+            if o.rate > 0 and count > 1:  # one mean message interval before the recording starts again
+                gap = (last_t - first_t) / (count - 1)
+                yield from self._wait(wall0 + (last_t - self.start_ns + gap) / 1e9 / o.rate)
         self._progress(0, final=True)
 
     def close(self) -> None:
