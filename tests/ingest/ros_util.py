@@ -247,6 +247,23 @@ def write_bag(path: Path, kind: str, messages: list[tuple[str, int, Cloud]], ext
     return path
 
 
+def strip_definitions(folder: Path) -> None:
+    """Make a ROS 2 sqlite3 bag look like one recorded by Humble or older: no message
+    definitions, no type hashes (rosbag2 only began storing them with Iron)."""
+    import re
+    import sqlite3
+
+    db = sqlite3.connect(next(folder.glob("*.db3")))
+    db.execute("DELETE FROM message_definitions")
+    db.execute("UPDATE topics SET type_description_hash = ''")
+    db.commit()
+    db.close()
+    meta = folder / "metadata.yaml"
+    meta.write_text(re.sub(r"type_description_hash:[^\n]*\n\s*RIHS01_[0-9a-f]+\n", "type_description_hash: ''\n",
+                           meta.read_text()))
+    assert "RIHS01" not in meta.read_text()
+
+
 # ----------------------------------------------------------------------------- source + ingest
 class SourceIngest(IngestStage):
     """The real source stage (this config's transport) and the real ingest stage, each in

@@ -115,6 +115,16 @@ def test_topics_source_ids_header_stamps_and_count_fields(tmp_path):
     assert t.counters["messages"] == 2 and t.counters["rejected"] == 0
 
 
+def test_ros2_bag_without_message_definitions_as_humble_records_them(tmp_path):
+    msgs = [("/os/points", SEC, ru.cloud_padded(), None), ("/rgb", 2 * SEC, ru.cloud_rgb(), None)]
+    path = _write(tmp_path, "sqlite3", msgs)
+    ru.strip_definitions(path)
+    chunks, _ = _replay(path)
+    assert [c.source_id for c in chunks] == ["bag:/os/points", "bag:/rgb"]
+    assert np.array_equal(chunks[1].channels["rgb"], ru.cloud_rgb().expected()[1]["rgb"])
+    assert np.array_equal(chunks[0].positions, ru.cloud_padded().expected()[0])
+
+
 def test_start_end_window_loop_rename_and_channels(tmp_path):
     msgs = [("/os/points", SEC * (k + 1), ru.cloud_padded(k, n=10), None) for k in range(5)]
     path = _write(tmp_path, "sqlite3", msgs)

@@ -61,9 +61,13 @@ def _anyreader():
 def _open_reader(path: str):
     """An opened rosbags AnyReader, or ValueError with a message naming the file."""
     AnyReader = _anyreader()
+    from rosbags.typesys import Stores, get_typestore
+
     p = Path(path)
     try:
-        r = AnyReader([p])
+        # ROS 2 bags up to Humble carry no message definitions: PointCloud2 has not changed
+        # since, so the latest standard types decode them
+        r = AnyReader([p], default_typestore=get_typestore(Stores.LATEST))
         r.open()
     except FileNotFoundError as exc:
         raise ValueError(f"{path}: not a ROS recording ({exc})") from None
