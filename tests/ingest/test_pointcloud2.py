@@ -136,3 +136,75 @@ def test_other_defects_are_rejected_with_reasons():
     with pytest.raises(ChunkError, match="'x' has count 2") as e:
         decode(dataclasses.replace(c, fields=[("x", 0, 7, 2)] + c.fields[1:]).as_dict())
     assert e.value.reason == "no_xyz"
+
+
+from hypothesis import given, settings, strategies as st  # noqa: E402
+
+_field = st.tuples(st.sampled_from(["x", "y", "z", "intensity", "rgb", "rgba", "ring", "", "t"]),
+                   st.integers(-8, 64), st.integers(-1, 10), st.integers(-1, 4))
+
+
+_xyz = st.tuples(st.integers(0, 40), st.sampled_from([7, 7, 8, 2, 5]))
+
+
+@settings(max_examples=500, deadline=None)
+@given(xyz=st.lists(_xyz, min_size=3, max_size=3), drop=st.sampled_from([None, None, None, "x", "z"]),
+       extra=st.lists(_field, max_size=5), point_step=st.integers(-4, 64), width=st.integers(-2, 9),
+       height=st.integers(-1, 4), row_extra=st.integers(-70, 40), data_len=st.integers(0, 2000), big=st.booleans())
+def test_any_layout_decodes_or_is_rejected_with_a_reason(xyz, drop, extra, point_step, width, height, row_extra,
+                                                         data_len, big):
+    """Whatever a publisher sends, the decoder returns a consistent chunk or raises ChunkError."""
+    fields = [(k, o, d, 1) for k, (o, d) in zip("xyz", xyz) if k != drop] + extra
+    msg = {"header": {"stamp": {"sec": 1, "nanosec": 2}}, "width": width, "height": height,
+           "fields": [{"name": n, "offset": o, "datatype": d, "count": c} for n, o, d, c in fields],
+           "is_bigendian": big, "point_step": point_step, "row_step": max(0, width) * point_step + row_extra,
+           "data": bytes(range(256)) * (data_len // 256) + bytes(data_len % 256)}
+    try:
+        c = decode(msg)
+    except ChunkError as exc:
+        assert exc.reason in {"truncated", "field_overflow", "unknown_datatype", "no_xyz", "bad_field", "bad_layout"}
+        return
+    c.validate()
+    assert c.n == width * height and c.stamp_ns == 1_000_000_002
+
+
+_LIMITS = {1: (-128, 127), 2: (0, 255), 3: (-32768, 32767), 4: (0, 65535), 5: (-2**31, 2**31 - 1),
+           6: (0, 2**32 - 1)}
+
+
+@settings(max_examples=300, deadline=None)
+@given(data=st.data(), xyz_types=st.lists(st.sampled_from([7, 7, 7, 8, 3, 5]), min_size=3, max_size=3),
+       extra=st.lists(st.tuples(st.integers(1, 8), st.integers(1, 3)), max_size=4), width=st.integers(0, 6),
+       height=st.integers(1, 3), row_pad=st.integers(0, 9), tail_pad=st.integers(0, 9), big=st.booleans(),
+       seed=st.integers(0, 2**31))
+def test_random_valid_layouts_decode_like_the_struct_packer(data, xyz_types, extra, width, height, row_pad, tail_pad,
+                                                             big, seed):
+    """Random fields (types, counts, order, gaps, padding, endianness, row padding) packed point
+    by point with struct: the decoder returns exactly those values."""
+    rng = np.random.default_rng(seed)
+    specs = [(k, t, 1) for k, t in zip("xyz", xyz_types)] + [(f"f{i}", t, c) for i, (t, c) in enumerate(extra)]
+    order = data.draw(st.permutations(range(len(specs))))
+    fields, off = [], 0
+    for j in order:  # laid out in a random order with random gaps; listed in another random order
+        name, t, c = specs[j]
+        off += data.draw(st.integers(0, 3))
+        fields.append((name, off, t, c))
+        off += ru.DT[t][1]().itemsize * c
+    fields = data.draw(st.permutations(fields))
+    n = width * height
+    values = {}
+    for name, _, t, c in fields:
+        shape = (n,) if c == 1 else (n, c)
+        if t in (7, 8):
+            values[name] = (rng.integers(-2**20, 2**20, shape) / 64).astype(ru.DT[t][1])
+        else:
+            lo, hi = _LIMITS[t]
+            values[name] = rng.integers(lo, hi, shape, endpoint=True).astype(ru.DT[t][1])
+    cloud = ru.pack(fields, off + tail_pad, width, height, values, big=big, row_pad=row_pad)
+    c = decode(cloud.as_dict())
+    pos, ch = cloud.expected()
+    assert c.positions.dtype == (np.float32 if xyz_types == [7, 7, 7] else np.float64)
+    assert np.array_equal(c.positions, pos.astype(np.float64))
+    assert set(c.channels) == set(ch)
+    for k, v in ch.items():
+        assert c.channels[k].dtype == v.dtype and np.array_equal(c.channels[k], v), k
