@@ -210,24 +210,31 @@ REJECT_KINDS = ("truncated", "field_overflow", "unknown_datatype", "no_xyz")
 PC2 = "sensor_msgs/msg/PointCloud2"
 
 
-def write_bag(path: Path, kind: str, messages: list[tuple[str, int, Cloud]], extra_string_topic: bool = True) -> Path:
+def write_bag(path: Path, kind: str, messages: list[tuple[str, int, Cloud]], extra_string_topic: bool = True,
+              compression: str = "") -> Path:
     """Write ``(topic, bag time ns, cloud)`` messages with the rosbags writers.
 
     kind: ``ros1`` (.bag), ``sqlite3`` / ``mcap`` (ROS 2 bag folders), ``bare_mcap`` (the
-    .mcap file of a ROS 2 MCAP bag, on its own)."""
+    .mcap file of a ROS 2 MCAP bag, on its own). compression: ROS 1 ``bz2``/``lz4`` chunks,
+    ROS 2 ``file``/``message`` (zstd)."""
     from rosbags.typesys import Stores, get_typestore
 
     if kind == "ros1":
         from rosbags.rosbag1 import Writer
         ts = get_typestore(Stores.ROS1_NOETIC)
         w = Writer(path)
+        if compression:
+            w.set_compression(getattr(Writer.CompressionFormat, compression.upper()))
         ser = lambda m: ts.serialize_ros1(m, PC2)  # noqa: E731
     else:
         from rosbags.rosbag2 import StoragePlugin, Writer
+        from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
         ts = get_typestore(Stores.ROS2_HUMBLE)
         folder = path.with_suffix("") if kind == "bare_mcap" else path
         plugin = StoragePlugin.SQLITE3 if kind == "sqlite3" else StoragePlugin.MCAP
         w = Writer(folder, version=9, storage_plugin=plugin)
+        if compression:
+            w.set_compression(getattr(CompressionMode, compression.upper()), CompressionFormat.ZSTD)
         ser = lambda m: ts.serialize_cdr(m, PC2)  # noqa: E731
     with w:
         conns = {}

@@ -115,6 +115,21 @@ def test_topics_source_ids_header_stamps_and_count_fields(tmp_path):
     assert t.counters["messages"] == 2 and t.counters["rejected"] == 0
 
 
+@pytest.mark.parametrize("kind,compression", [("ros1", "bz2"), ("ros1", "lz4"), ("sqlite3", "message"),
+                                              ("mcap", "file")])
+def test_compressed_recordings(tmp_path, kind, compression):
+    msgs = [("/os/points", SEC * (k + 1), ru.cloud_padded(k, n=30), None) for k in range(3)] + \
+        [("/organised", 5 * SEC, ru.cloud_organised(), None)]
+    path = ru.write_bag(tmp_path / ("c.bag" if kind == "ros1" else "c"), kind, [(tp, t, c) for tp, t, c, _ in msgs],
+                        compression=compression)
+    chunks, t = _replay(path)
+    assert len(chunks) == 4 and t.counters["rejected"] == 0
+    for chunk, (_, _, cloud, _) in zip(chunks, msgs):
+        pos, ch = cloud.expected()
+        assert np.array_equal(chunk.positions, pos, equal_nan=True)
+        assert all(np.array_equal(chunk.channels[k], v) for k, v in ch.items())
+
+
 def test_ros2_bag_without_message_definitions_as_humble_records_them(tmp_path):
     msgs = [("/os/points", SEC, ru.cloud_padded(), None), ("/rgb", 2 * SEC, ru.cloud_rgb(), None)]
     path = _write(tmp_path, "sqlite3", msgs)
