@@ -238,8 +238,7 @@ class PointCloud2Decoder:
         stamp = stamp_ns(msg)
         if n == 0:
             pos = np.zeros((0, 3), np.float32 if plan.pos_kind == "f4" else np.float64)
-            chans = {c: np.zeros(0, plan.dtype[f].base.newbyteorder("=")) if plan.dtype[f].ndim == 0
-                     else np.zeros((0,) + plan.dtype[f].shape, plan.dtype[f].base.newbyteorder("="))
+            chans = {c: np.zeros((0,) + plan.dtype[f].shape, plan.dtype[f].base.newbyteorder("="))
                      for f, c in plan.channels}
             if plan.rgb:
                 chans[plan.rgb_name] = np.zeros((0, 3), np.uint8)
