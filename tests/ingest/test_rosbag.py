@@ -130,6 +130,19 @@ def test_compressed_recordings(tmp_path, kind, compression):
         assert all(np.array_equal(chunk.channels[k], v) for k, v in ch.items())
 
 
+def test_split_ros1_bags_by_glob_replay_together_in_time_order(tmp_path):
+    a = [("/os/points", SEC * k, ru.cloud_padded(k, n=10), None) for k in (1, 3, 5)]
+    b = [("/os/points", SEC * k, ru.cloud_padded(k, n=10), None) for k in (2, 4)]
+    ru.write_bag(tmp_path / "run_0.bag", "ros1", [(tp, t, c) for tp, t, c, _ in a])
+    ru.write_bag(tmp_path / "run_1.bag", "ros1", [(tp, t, c) for tp, t, c, _ in b])
+    chunks, _ = _replay(tmp_path / "run_*.bag")
+    assert [c.stamp_ns for c in chunks] == [ru.cloud_padded(k, n=10).stamp_ns for k in (1, 2, 3, 4, 5)]
+    cls = resolve_transport("rosbag")
+    ru.write_bag(tmp_path / "run_x", "mcap", [(tp, t, c) for tp, t, c, _ in b])
+    with pytest.raises(ConfigError, match=r"options\.path.*matches 3 paths; only split ROS 1 \.bag"):
+        cls.validate_options({"path": str(tmp_path / "run_*")}, "sources[0].options", os.getcwd())
+
+
 def test_ros2_bag_without_message_definitions_as_humble_records_them(tmp_path):
     msgs = [("/os/points", SEC, ru.cloud_padded(), None), ("/rgb", 2 * SEC, ru.cloud_rgb(), None)]
     path = _write(tmp_path, "sqlite3", msgs)

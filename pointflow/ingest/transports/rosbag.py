@@ -1,6 +1,6 @@
 """``rosbag``: replay ``sensor_msgs/PointCloud2`` topics from ROS recordings, no ROS needed.
 
-Reads ROS 1 ``.bag`` files, ROS 2 bag folders (sqlite3 or MCAP storage, the folder with
+Reads ROS 1 ``.bag`` files (a glob reads split bags together), ROS 2 bag folders (sqlite3 or MCAP storage, the folder with
 ``metadata.yaml``) and bare ``.mcap`` / ``.db3`` files through the pure-Python ``rosbags``
 package (``pip install 'pointflow[ros]'``). Each message becomes one chunk, decoded by
 :mod:`pointflow.ingest.pointcloud2` and stamped with its ``header.stamp``
@@ -17,6 +17,7 @@ rejected (counted as ``rejected_<reason>``) and the replay goes on.
 from __future__ import annotations
 
 import dataclasses
+import glob
 import os
 import sys
 import time
@@ -31,7 +32,8 @@ from .base import Transport
 
 @dataclasses.dataclass
 class RosbagOptions:
-    #: A ROS 1 .bag, a ROS 2 bag folder (metadata.yaml + .db3/.mcap), or a bare .mcap/.db3 file.
+    #: A ROS 1 .bag, a ROS 2 bag folder (metadata.yaml + .db3/.mcap), or a bare .mcap/.db3 file;
+    #: a glob (run_*.bag) reads split ROS 1 bags together, in time order.
     path: str
     #: PointCloud2 topics to replay; null = every PointCloud2 topic of the recording.
     topics: Optional[list[str]] = None
@@ -58,16 +60,23 @@ def _anyreader():
     return AnyReader
 
 
+def _expand(path: str) -> list[str]:
+    """The recording's paths: a glob gives several (split ROS 1 bags), sorted."""
+    if any(c in path for c in "*?[") and not os.path.exists(path):
+        return sorted(glob.glob(path))
+    return [path]
+
+
 def _open_reader(path: str):
     """An opened rosbags AnyReader, or ValueError with a message naming the file."""
     AnyReader = _anyreader()
     from rosbags.typesys import Stores, get_typestore
 
-    p = Path(path)
+    p = [Path(x) for x in _expand(path)]
     try:
         # ROS 2 bags up to Humble carry no message definitions: PointCloud2 has not changed
         # since, so the latest standard types decode them
-        r = AnyReader([p], default_typestore=get_typestore(Stores.LATEST))
+        r = AnyReader(p, default_typestore=get_typestore(Stores.LATEST))
         r.open()
     except FileNotFoundError as exc:
         raise ValueError(f"{path}: not a ROS recording ({exc})") from None
@@ -99,8 +108,12 @@ class RosbagTransport(Transport):
     @classmethod
     def check_options(cls, o: RosbagOptions, path: str, base_dir: str) -> None:
         p = o.path if os.path.isabs(o.path) else os.path.join(base_dir, o.path)
-        if not os.path.exists(p):
+        files = _expand(p)
+        if not files or not all(os.path.exists(f) for f in files):
             raise ConfigError(f"{path}.path", f"no such file or folder: {o.path!r} (resolved to {p!r})")
+        if len(files) > 1 and not all(f.endswith(".bag") for f in files):
+            raise ConfigError(f"{path}.path", f"{o.path!r} matches {len(files)} paths; only split ROS 1 .bag files "
+                              f"can be read together (a ROS 2 bag is one folder): {', '.join(files[:5])}")
         if o.rate < 0:
             raise ConfigError(f"{path}.rate", f"must be >= 0 (0 = as fast as possible), got {o.rate!r}")
         if o.start < 0:
