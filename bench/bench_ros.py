@@ -20,7 +20,7 @@
 
     .venv/bin/python bench/bench_ros.py [--repeats 5] [--messages 16] [--points 60e6]
 
-Prints a table and writes ``bench/results/ros.json``. Real Ouster xyz/reflectivity/range from
+Prints a table and writes ``bench/results/ros.json`` and ``ros.png``. Real Ouster xyz/reflectivity/range from
 ``../shared/data/ouster_os1_128`` are used when that folder exists (else random values).
 """
 from __future__ import annotations
@@ -255,6 +255,37 @@ def bench_replay(repeats: int, messages: int, small_points: int, large_points: i
         shutil.rmtree(tmp, ignore_errors=True)
 
 
+def plot(res: dict, path: str) -> None:
+    """bench/results/ros.png: decode vs floor, replay rates (matplotlib, the plot extra)."""
+    try:
+        import matplotlib
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return
+    d = res["decode"]["mpoints_per_s"]
+    fig, (a, b) = plt.subplots(1, 2, figsize=(10, 3.6))
+    names = ["floor_all", "decoder_all", "floor_xyz", "decoder_xyz"]
+    a.bar(range(4), [d[k] for k in names], color=["#999", "#3b7", "#999", "#3b7"])
+    a.set_xticks(range(4), ["floor\nxyz+6 ch", "decoder\nxyz+6 ch", "floor\nxyz", "decoder\nxyz"])
+    a.set_ylabel("Mpoints/s")
+    a.set_title(f"PointCloud2 decode, {N:,} pts x {STEP} B")
+    if "replay" in res:
+        r = res["replay"]
+        ks = list(r["points_per_s"])
+        x = np.arange(len(ks))
+        b.bar(x - 0.2, [r["points_per_s"][k] / 1e6 for k in ks], 0.4, label="full pipeline", color="#37b")
+        b.bar(x + 0.2, [r["transport_alone_points_per_s"][k] / 1e6 for k in ks], 0.4, label="transport alone",
+              color="#bbb")
+        b.set_xticks(x, [k.replace("_", "\n") for k in ks])
+        b.set_ylabel("Mpoints/s")
+        b.set_title("replay (shared 2-core VM)")
+        b.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=5)
@@ -262,7 +293,13 @@ def main() -> None:
     ap.add_argument("--messages", type=int, default=16, help="messages in the replayed bag (replayed in a loop)")
     ap.add_argument("--points", type=float, default=60e6, help="points replayed in the long run (the short run: a sixth)")
     ap.add_argument("--skip-replay", action="store_true")
+    ap.add_argument("--plot-only", action="store_true", help="redraw ros.png from ros.json")
     args = ap.parse_args()
+    out_dir = os.path.join(ROOT, "bench", "results")
+    if args.plot_only:
+        with open(os.path.join(out_dir, "ros.json")) as f:
+            plot(json.load(f), os.path.join(out_dir, "ros.png"))
+        return
     os.environ.setdefault("XDG_RUNTIME_DIR", "/tmp")
     res = {"machine": {"cpus": os.cpu_count(), "python": sys.version.split()[0], "numpy": np.__version__,
                        "loadavg_at_start": os.getloadavg()}}
@@ -285,9 +322,10 @@ def main() -> None:
                          f"in rosbags' deserialiser {r['deserialize_share_of_replay'][k] * 100:.1f}%")
             print(line)
     res["machine"]["loadavg_at_end"] = os.getloadavg()
-    os.makedirs(os.path.join(ROOT, "bench", "results"), exist_ok=True)
-    with open(os.path.join(ROOT, "bench", "results", "ros.json"), "w") as f:
+    os.makedirs(out_dir, exist_ok=True)
+    with open(os.path.join(out_dir, "ros.json"), "w") as f:
         json.dump(res, f, indent=2)
+    plot(res, os.path.join(out_dir, "ros.png"))
 
 
 if __name__ == "__main__":
