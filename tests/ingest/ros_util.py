@@ -215,7 +215,7 @@ def write_bag(path: Path, kind: str, messages: list[tuple[str, int, Cloud]], ext
     """Write ``(topic, bag time ns, cloud)`` messages with the rosbags writers.
 
     kind: ``ros1`` (.bag), ``sqlite3`` / ``mcap`` (ROS 2 bag folders), ``bare_mcap`` (the
-    .mcap file of a ROS 2 MCAP bag, on its own). compression: ROS 1 ``bz2``/``lz4`` chunks,
+    .mcap file of a ROS 2 MCAP bag, on its own), ``bare_db3`` (likewise). compression: ROS 1 ``bz2``/``lz4`` chunks,
     ROS 2 ``file``/``message`` (zstd)."""
     from rosbags.typesys import Stores, get_typestore
 
@@ -230,8 +230,8 @@ def write_bag(path: Path, kind: str, messages: list[tuple[str, int, Cloud]], ext
         from rosbags.rosbag2 import StoragePlugin, Writer
         from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
         ts = get_typestore(Stores.ROS2_HUMBLE)
-        folder = path.with_suffix("") if kind == "bare_mcap" else path
-        plugin = StoragePlugin.SQLITE3 if kind == "sqlite3" else StoragePlugin.MCAP
+        folder = path.with_suffix("") if kind in ("bare_mcap", "bare_db3") else path
+        plugin = StoragePlugin.SQLITE3 if kind in ("sqlite3", "bare_db3") else StoragePlugin.MCAP
         w = Writer(folder, version=9, storage_plugin=plugin)
         if compression:
             w.set_compression(getattr(CompressionMode, compression.upper()), CompressionFormat.ZSTD)
@@ -248,9 +248,9 @@ def write_bag(path: Path, kind: str, messages: list[tuple[str, int, Cloud]], ext
                     else ts.serialize_cdr(s, "std_msgs/msg/String"))
         for topic, t_ns, cloud in messages:
             w.write(conns[topic], t_ns, ser(cloud.ros_msg(ts)))
-    if kind == "bare_mcap":
+    if kind in ("bare_mcap", "bare_db3"):
         folder = path.with_suffix("")
-        (folder / f"{folder.name}.mcap").rename(path)
+        (folder / f"{folder.name}{path.suffix}").rename(path)
     return path
 
 

@@ -103,8 +103,10 @@ def test_every_storage_replays_through_source_and_ingest_into_the_ring_exactly(t
         st.close()
 
 
-def test_topics_source_ids_header_stamps_and_count_fields(tmp_path):
-    path = _write(tmp_path, "mcap")
+@pytest.mark.parametrize("kind", ["mcap", "bare_db3"])
+def test_topics_source_ids_header_stamps_and_count_fields(tmp_path, kind):
+    path = _write(tmp_path, kind) if kind != "bare_db3" else \
+        ru.write_bag(tmp_path / "rec.db3", kind, [(tp, t, c) for tp, t, c, _ in _recording()])
     chunks, t = _replay(path, topics=["/count", "/be"])
     clouds = ru.all_clouds()
     assert [c.source_id for c in chunks] == ["bag:/be", "bag:/count"]  # recording order
