@@ -170,7 +170,8 @@ def run_pipeline(source: dict, total: int) -> dict:
     from pointflow import Pipeline
 
     cfg = {"source": source, "ring": {"max_points": 2_000_000}, "tracing": {"enabled": False},
-           "supervisor": {"heartbeat_ms": 50},
+           # stats every 50 ms (fine timing); a stage starved for a while on a shared machine is not hung
+           "supervisor": {"heartbeat_ms": 50, "hung_after_ms": 5000},
            "render": {"backend": "cpu", "size": [320, 240], "color_by": "intensity", "output": {"dir": None}}}
     t0 = time.perf_counter()
     with Pipeline.from_dict(cfg) as p:
