@@ -174,7 +174,7 @@ def _packed(rgb: np.ndarray, alpha: int) -> np.ndarray:
     return u.astype(np.uint32).view(np.float32)
 
 
-def cloud_rgb(seed=5, n=30, rgba=False) -> Cloud:
+def cloud_rgb(seed=5, n=30, rgba=False, big=False) -> Cloud:
     """PCL-packed colour as float32: ``rgb`` 0x00RRGGBB, or ``rgba`` with alpha 0xFF (the float
     bits are then NaN patterns, which must survive)."""
     rng = np.random.default_rng(seed)
@@ -182,7 +182,7 @@ def cloud_rgb(seed=5, n=30, rgba=False) -> Cloud:
     name = "rgba" if rgba else "rgb"
     f = [("x", 0, 7, 1), ("y", 4, 7, 1), ("z", 8, 7, 1), (name, 16, 7, 1)]
     v = {"x": _coords(rng, n), "y": _coords(rng, n), "z": _coords(rng, n), name: _packed(col, 255 if rgba else 0)}
-    return pack(f, 32 if not rgba else 20, n, 1, v, stamp=(1700000500 + seed, 15))
+    return pack(f, 32 if not rgba else 20, n, 1, v, big=big, stamp=(1700000500 + seed, 15))
 
 
 def all_clouds() -> dict[str, Cloud]:

@@ -14,7 +14,7 @@ from . import ros_util as ru
 
 CASES = {"padded": ru.cloud_padded, "bigendian": ru.cloud_bigendian, "unsorted": ru.cloud_unsorted,
          "count": ru.cloud_count, "organised": ru.cloud_organised, "rgb": ru.cloud_rgb,
-         "rgba": lambda: ru.cloud_rgb(6, rgba=True)}
+         "rgba": lambda: ru.cloud_rgb(6, rgba=True), "rgba_bigendian": lambda: ru.cloud_rgb(7, rgba=True, big=True)}
 
 
 def assert_matches(chunk, cloud, rename=None):
@@ -68,6 +68,17 @@ def test_packed_colour_nan_bit_patterns_survive():
     assert np.isnan(cloud.values["rgba"]).sum() >= 5  # alpha 0xFF and red >= 128: the float is a NaN
     c = decode(cloud.as_dict())
     assert np.array_equal(c.channels["rgb"], cloud.expected()[1]["rgb"])
+
+
+def test_data_as_a_list_of_ints_or_a_cbor_typed_array_tag():
+    import cbor2
+
+    cloud = ru.cloud_padded(n=6)
+    assert_matches(decode(cloud.as_dict(data=list(cloud.data))), cloud)  # older rosbridge JSON
+    assert_matches(decode(cloud.as_dict(data=cbor2.CBORTag(64, cloud.data))), cloud)  # RFC 8746 uint8 array
+    with pytest.raises(ChunkError, match="bytes 0..255") as e:
+        decode(cloud.as_dict(data=[1, 2, 300]))
+    assert e.value.reason == "bad_data"
 
 
 def test_rename_and_channel_filter_choose_what_is_copied():
