@@ -219,3 +219,18 @@ def test_random_valid_layouts_decode_like_the_struct_packer(data, xyz_types, ext
     assert set(c.channels) == set(ch)
     for k, v in ch.items():
         assert c.channels[k].dtype == v.dtype and np.array_equal(c.channels[k], v), k
+
+
+def test_header_stamp_travels_in_the_wire_header():
+    import json
+
+    from pointflow import wire
+
+    cloud = ru.cloud_padded(n=5)
+    frames = wire.encode(decode(cloud.as_dict(), source_id="bag:/os/points"))
+    head = json.loads(bytes(frames[0]))
+    assert head["stamp_ns"] == cloud.stamp_ns
+    assert bytes(frames[0]) == json.dumps(head, separators=(",", ":")).encode()  # the fast path's bytes
+    assert wire.decode(frames).stamp_ns == cloud.stamp_ns
+    frames = wire.encode(decode(dataclasses.replace(cloud, stamp=(0, 0)).as_dict()))
+    assert "stamp_ns" not in json.loads(bytes(frames[0]))  # unknown: not sent
