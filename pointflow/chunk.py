@@ -37,7 +37,9 @@ class PointChunk:
     ``positions`` is (N, 3) float64 or float32 in world coordinates (float64 keeps
     georeferenced data exact until the ring subtracts its origin). ``channels`` maps a
     name to an (N,) or (N, k) array (``rgb`` is (N, 3) uint8 or uint16).
-    Times are ``time.monotonic_ns()`` values, comparable across processes on one machine.
+    Times are ``time.monotonic_ns()`` values, comparable across processes on one machine;
+    ``stamp_ns`` is the data's own capture time when the source has one (a ROS
+    ``header.stamp``, ns since the epoch; 0 = unknown), carried unchanged.
     """
 
     positions: np.ndarray
@@ -47,6 +49,7 @@ class PointChunk:
     trace_id: int = 0
     t_sent_ns: int = 0
     t_recv_ns: int = 0
+    stamp_ns: int = 0
 
     def __len__(self) -> int:
         return int(self.positions.shape[0])

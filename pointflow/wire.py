@@ -66,6 +66,8 @@ def encode(chunk: PointChunk) -> list[Any]:
         "positions": {"dtype": _dtype_str(pos.dtype), "shape": [n, 3]},
         "channels": chans,
     }
+    if chunk.stamp_ns:  # optional: only sources with a capture time (ROS header.stamp) send it
+        header["stamp_ns"] = int(chunk.stamp_ns)
     frames[0] = _header_json(header)
     return [f if isinstance(f, bytes) else (memoryview(f).cast("B") if f.nbytes >= ZERO_COPY_MIN_BYTES else f.tobytes()) for f in frames]
 
@@ -87,7 +89,7 @@ def _header_json(h: dict) -> bytes:
     for i, c in enumerate(chans):
         shape = ",".join([repr(int(x)) for x in c["shape"]])
         parts.append(f'{"," if i else ""}{{"name":{_json_str(c["name"])},"dtype":{_json_str(c["dtype"])},"shape":[{shape}]}}')
-    parts.append("]}")
+    parts.append(f'],"stamp_ns":{h["stamp_ns"]!r}}}' if "stamp_ns" in h else "]}")
     return "".join(parts).encode()
 
 
@@ -178,6 +180,7 @@ def decode(frames: Sequence[Any], max_points: int | None = None) -> PointChunk:
         trace_id=_header_int(header, "trace"),
         t_sent_ns=_header_int(header, "t_sent_ns"),
         t_recv_ns=time.monotonic_ns(),
+        stamp_ns=_header_int(header, "stamp_ns"),
     )
 
 

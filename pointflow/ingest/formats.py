@@ -7,7 +7,7 @@ file's own dtypes; ``rgb`` is (N, 3). Readers are vectorised (numpy structured d
 is wrong.
 
 Formats: LAS/LAZ (laspy; intensity, classification, gps_time, rgb, return_number), PLY
-(ascii, binary little/big endian), PCD (ascii, binary), NPY ((N,>=3) array or structured
+(ascii, binary little/big endian), PCD (ascii, binary, binary_compressed via python-lzf), NPY ((N,>=3) array or structured
 x/y/z), NPZ (``xyz``/``points``/``positions`` or x/y/z arrays + per-point arrays, e.g.
 Ouster ``range``, ``reflectivity``), CSV/XYZ/TXT (header row optional), KITTI ``.bin``
 (float32 x, y, z, reflectance -> ``intensity``).
@@ -533,8 +533,10 @@ def read_pcd(path: str) -> tuple[np.ndarray, dict]:
             if len(buf) < n * dt.itemsize:
                 raise FormatError(path, f"PCD promises {n} points ({n * dt.itemsize} bytes), file has {len(buf)}")
             rec = np.frombuffer(buf, dtype=dt)
+        elif mode == "binary_compressed":
+            rec = _pcd_lzf(path, f, n, cols)
         else:
-            raise FormatError(path, f"PCD DATA {mode!r} is not supported (ascii, binary); re-save without compression")
+            raise FormatError(path, f"PCD DATA {mode!r} is not supported (ascii, binary, binary_compressed)")
     fields = [c[0] for c in cols if not c[0].startswith("_pad") and c[2] == 1]
 
     def get(nm):
@@ -546,6 +548,37 @@ def read_pcd(path: str) -> tuple[np.ndarray, dict]:
             u = np.ascontiguousarray(rec[packed]).view(np.uint32)
             ch["rgb"] = np.column_stack([(u >> 16) & 255, (u >> 8) & 255, u & 255]).astype(np.uint8)
     return pos, ch
+
+
+def _pcd_lzf(path: str, f, n: int, cols: list) -> np.ndarray:
+    """PCL's ``DATA binary_compressed``: uint32 compressed and uncompressed sizes, then LZF
+    of the fields stored column after column (all x, then all y, ...)."""
+    import lzf  # python-lzf (pointflow[formats])
+
+    dt = np.dtype([(nm, dt, (ct,)) if ct > 1 else (nm, dt) for nm, dt, ct in cols])
+    head = f.read(8)
+    if len(head) < 8:
+        raise FormatError(path, f"PCD binary_compressed has {len(head)} of the 8 size bytes after DATA")
+    csize, usize = np.frombuffer(head, "<u4").tolist()
+    if usize != n * dt.itemsize:
+        raise FormatError(path, f"PCD binary_compressed promises {usize} uncompressed bytes; "
+                                f"{n} points of {dt.itemsize} bytes are {n * dt.itemsize}")
+    comp = f.read(csize)
+    if len(comp) < csize:
+        raise FormatError(path, f"PCD binary_compressed promises {csize} compressed bytes, file has {len(comp)}")
+    try:
+        raw = lzf.decompress(comp, usize + 1) if usize else b""  # +1: a longer output shows as too long
+    except ValueError as exc:
+        raise FormatError(path, f"PCD binary_compressed data is not valid LZF: {exc}") from None
+    if raw is None or len(raw) != usize:
+        raise FormatError(path, f"PCD binary_compressed data does not decompress to the promised {usize} bytes")
+    rec = np.empty(n, dtype=dt)
+    off = 0
+    for nm, fdt, ct in cols:
+        col = np.frombuffer(raw, dtype=fdt, count=n * ct, offset=off)
+        rec[nm] = col.reshape(n, ct) if ct > 1 else col
+        off += n * ct * fdt.itemsize
+    return rec
 
 
 def write_pcd(path: str, positions: np.ndarray, channels: dict[str, np.ndarray] | None = None,

@@ -15,6 +15,8 @@ BUILTINS: dict[str, str] = {
     "websocket": "pointflow.ingest.transports.websocket:WebSocketTransport",
     "sse": "pointflow.ingest.transports.sse:SseTransport",
     "file": "pointflow.ingest.transports.file:FileTransport",
+    "rosbag": "pointflow.ingest.transports.rosbag:RosbagTransport",
+    "rosbridge": "pointflow.ingest.transports.rosbridge:RosbridgeTransport",
 }
 
 ENTRY_POINT_GROUP = "pointflow.transports"

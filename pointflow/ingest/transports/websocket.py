@@ -83,9 +83,13 @@ class WebSocketTransport(Transport):
             log.info("%s: reconnected to %s", self.source_id, self.o.url)
         self.counters["connects"] += 1
         self._backoff.ok()
+        self.on_connect()
+        return True
+
+    def on_connect(self) -> None:
+        """After every (re)connect: send the ``subscribe`` option (subclasses send their own)."""
         if self.o.subscribe:
             self._ws.send(self.o.subscribe)
-        return True
 
     def _drop_connection(self, why: str) -> None:
         log.warning("%s: connection to %s lost (%s); reconnecting", self.source_id, self.o.url, why)
