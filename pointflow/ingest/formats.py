@@ -563,6 +563,9 @@ def _pcd_lzf(path: str, f, n: int, cols: list) -> np.ndarray:
     if usize != n * dt.itemsize:
         raise FormatError(path, f"PCD binary_compressed promises {usize} uncompressed bytes; "
                                 f"{n} points of {dt.itemsize} bytes are {n * dt.itemsize}")
+    if usize > 90 * csize + 64:  # an LZF back-reference yields at most 264 bytes from 3
+        raise FormatError(path, f"PCD binary_compressed promises {usize} bytes from {csize} compressed bytes, "
+                                "more than LZF can expand to")
     comp = f.read(csize)
     if len(comp) < csize:
         raise FormatError(path, f"PCD binary_compressed promises {csize} compressed bytes, file has {len(comp)}")

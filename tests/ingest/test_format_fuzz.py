@@ -46,6 +46,12 @@ def _write(fmt: str, path) -> None:
         formats.write_ply(str(path), pos, {"intensity": inten, "rgb": rgb}, binary=fmt == "ply")
     elif fmt in ("pcd", "pcd_ascii"):
         formats.write_pcd(str(path), pos, {"intensity": inten, "rgb": rgb}, binary=fmt == "pcd")
+    elif fmt == "pcd_lzf":
+        from .test_pcd_compressed import write_compressed
+
+        write_compressed(str(path), ["x", "y", "z", "intensity"], [4, 4, 4, 4], ["F", "F", "F", "F"], [1, 1, 1, 1],
+                         [pos[:, 0].astype("<f4"), pos[:, 1].astype("<f4"), pos[:, 2].astype("<f4"),
+                          inten.astype("<f4")], len(pos))
     elif fmt == "npy":
         np.save(str(path), np.column_stack([pos, inten]))
     elif fmt == "npz":
@@ -59,7 +65,7 @@ def _write(fmt: str, path) -> None:
         np.column_stack([pos, inten]).astype("<f4").tofile(str(path))
 
 
-EXT = {"las": "las", "laz": "laz", "ply": "ply", "ply_ascii": "ply", "pcd": "pcd", "pcd_ascii": "pcd", "npy": "npy",
+EXT = {"las": "las", "laz": "laz", "ply": "ply", "ply_ascii": "ply", "pcd": "pcd", "pcd_ascii": "pcd", "pcd_lzf": "pcd", "npy": "npy",
        "npz": "npz", "csv": "csv", "xyz": "xyz", "bin": "bin"}
 #: Bytes at the start that hold a header (where "set a header field" mutations aim).
 HEADER_BYTES = {"las": 227, "laz": 227, "npy": 128, "zip": 200, "bin": 64}
@@ -68,10 +74,11 @@ SPECIAL_TOKENS = [b"0", b"-1", b"-99999", b"99999999999999", b"4294967296", b"1e
 
 
 def _header_len(fmt: str, data: bytes) -> int:
-    for end in (b"end_header\n", b"\nDATA ascii\n", b"\nDATA binary\n"):
+    for end, extra in ((b"end_header\n", 0), (b"\nDATA ascii\n", 0), (b"\nDATA binary\n", 0),
+                       (b"\nDATA binary_compressed\n", 8)):  # + the two uint32 sizes
         i = data.find(end)
         if i >= 0:
-            return i + len(end)
+            return min(len(data), i + len(end) + extra)
     if fmt in ("csv", "xyz"):
         return min(len(data), 200)
     return min(len(data), HEADER_BYTES.get(fmt, 64))
