@@ -566,7 +566,8 @@ class WgpuRenderer(Renderer):
         self._done[s] = True
         t_sub = time.perf_counter()
         self._last = {"set": s, "budget": budget, "capacity": int(frame.capacity), "groups": groups,
-                      "size": n_threads, "budget_n": frame.budget}
+                      "size": n_threads, "budget_n": frame.budget,
+                      "head": int(frame.head) % max(int(frame.capacity), 1)}
         self._frame_no += 1
         timings = {"wait": (t_wait - t0) * 1e3, "upload": (t_up - t_wait) * 1e3,
                    "encode_submit": (t_sub - t_up) * 1e3, "cpu_total": (t_sub - t0) * 1e3}
@@ -669,8 +670,7 @@ class WgpuRenderer(Renderer):
             logical = self._compute.debug_keep(L["set"], L["groups"], L["size"], L["budget"])
             if L["budget"]:
                 logical = logical[:max(int(L["budget_n"]), 0)]
-            U = np.frombuffer(self.queue.read_buffer(self._params), np.uint32)
-            return np.sort((int(U[_P_HEAD]) + logical.astype(np.int64)) % max(int(U[_P_CAP]), 1))
+            return np.sort((L["head"] + logical.astype(np.int64)) % max(L["capacity"], 1))
         c = self.debug_counts()
         buf = self._idx2 if self._last and self._last["budget"] else self._idx1
         n = c["instance_count"]
