@@ -118,9 +118,9 @@ class ComputeRaster:
         b = lambda k: {"buffer": k}  # noqa: E731
         self.bgl_raster = layout([b(uni), b(uni), b(ro), b(ro), b(ro), b(ro), b(rw), b(rw), b(rw), b(rw), b(rw), b(rw)])
         res = [b(uni), b(uni), b(ro), b(ro), b(ro), b(ro), b(ro), b(ro), b(ro), b(ro)]
-        self.bgl_resolve = layout(res + [{"storage_texture": {
-            "access": wgpu.StorageTextureAccess.write_only, "format": wgpu.TextureFormat.rgba8unorm,
-            "view_dimension": wgpu.TextureViewDimension.d2}}])
+        self.bgl_resolve = layout(res + [b(rw)])
+        # the RGBA8 image, rows padded to the readback pitch: read_image copies it as is
+        self.img = r._buf(r._row_bytes * H, BU.STORAGE | BU.COPY_SRC, "image")
         self.bgl_pick = layout(res + [b(rw)])
         naive = r.naive_float32
 
@@ -177,7 +177,7 @@ class ComputeRaster:
             r = self.r
             head = [r._params, self.cparams, *self._data(s), self.keys, self.ikeys]
             g = {"raster": self._bind(self.bgl_raster, head + [r._state, r._rng, self.wgc, self.dbg]),
-                 "resolve": self._bind(self.bgl_resolve, head + [r._lut, r._rng, r._color_view])}
+                 "resolve": self._bind(self.bgl_resolve, head + [r._lut, r._rng, self.img])}
             self._bg_cache[s] = g
         return g
 
@@ -194,7 +194,7 @@ class ComputeRaster:
         """Record the frame: clear, (budget passes), raster pass(es), resolve pass."""
         r = self.r
         gx, gy = self.grid(groups)
-        self.write_cparams(gx, budget_on)
+        self.write_cparams(gx, budget_on, (r._row_bytes // 4, 0, 0, 0))
         g = self.groups(s)
         enc.clear_buffer(self.keys)
         if not self.key64:
@@ -280,7 +280,7 @@ class ComputeRaster:
         return np.flatnonzero(flags == 1)
 
     def close(self) -> None:
-        for b in (self.keys, self.ikeys, self.wgc, self.dbg, self.cparams, self.pick_buf):
+        for b in (self.keys, self.ikeys, self.wgc, self.dbg, self.cparams, self.pick_buf, self.img):
             if b is not None:
                 try:
                     b.destroy()

@@ -74,7 +74,10 @@ fn colour_value(slot: u32, p: vec3<f32>) -> f32 {
 
 struct Pt {
   keep: bool,        // passed every test before the budget
+  occupied: bool,    // an occupied slot the tier renders
+  finite: bool,      // ... with a finite position
   slot: u32,
+  cval: f32,         // colour value for the auto range (NaN-free only when finite)
   clip: vec4<f32>,
 };
 
@@ -87,20 +90,12 @@ fn test_point(logical: u32, count: bool) -> Pt {
   let slot = slot_of(logical);
   r.slot = slot;
   if (slot >= P.n_slots) { return r; }
+  r.occupied = true;
   let p = vec3<f32>(pos[3u * slot], pos[3u * slot + 1u], pos[3u * slot + 2u]);
   var keep = is_finite(p.x) && is_finite(p.y) && is_finite(p.z);
-  if (count) {
-    atomicAdd(&wg_occ, 1u);
-    if (!keep) { atomicAdd(&wg_bad, 1u); }
-    if ((P.flags & F_RANGE_AUTO) != 0u && keep) {
-      let v = colour_value(slot, p);
-      if (is_finite(v)) {
-        atomicMin(&wg_min, ord_f(v));
-        atomicMax(&wg_max, ord_f(v));
-      }
-    }
-  }
+  r.finite = keep;
   if (!keep) { return r; }
+  if (count && (P.flags & F_RANGE_AUTO) != 0u) { r.cval = colour_value(slot, p); }
   r.clip = {CLIP};
   for (var i = 0u; i < 6u; i = i + 1u) {
     let pl = P.planes[i];
@@ -203,13 +198,28 @@ fn main(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: v
   let base = workgroupUniformLoad(&wg_base);
   if (C.budget_on != 0u && MODE != MODE_COUNT) { frac = thin_frac(); }
   var run = base;
+  // per-thread counters: one workgroup atomic per thread, not per point
+  var n_keep = 0u;
+  var n_drawn = 0u;
+  var n_occ = 0u;
+  var n_bad = 0u;
+  var vmin = 0xffffffffu;
+  var vmax = 0u;
   for (var j = 0u; j < K; j = j + 1u) {
     let logical = first + j * 256u + lid;
     var pt = test_point(logical, count);
     var keep = pt.keep;
-    if (count && keep) { atomicAdd(&wg_count, 1u); }
+    if (count) {
+      if (pt.occupied) { n_occ = n_occ + 1u; }
+      if (pt.occupied && !pt.finite) { n_bad = n_bad + 1u; }
+      if (pt.finite && (P.flags & F_RANGE_AUTO) != 0u && is_finite(pt.cval)) {
+        vmin = min(vmin, ord_f(pt.cval));
+        vmax = max(vmax, ord_f(pt.cval));
+      }
+      if (keep) { n_keep = n_keep + 1u; }
+    }
     if (C.budget_on != 0u && MODE != MODE_COUNT && keep) { keep = u01(pt.slot, P.budget_seed) < frac; }
-    if (MODE == MODE_THIN_COUNT && keep) { atomicAdd(&wg_count, 1u); }
+    if (MODE == MODE_THIN_COUNT && keep) { n_keep = n_keep + 1u; }
     if (MODE == MODE_DEBUG && logical < P.size) { dbg[logical] = select(0u, 1u, keep); }
     if (MODE == MODE_RASTER) {
       if (mode == 1u) {
@@ -222,11 +232,16 @@ fn main(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: v
         run = run + row;
       }
       if (keep) {
-        if (PASS_COUNTS) { atomicAdd(&wg_drawn, 1u); }
+        n_drawn = n_drawn + 1u;
         splat(logical, pt.clip);
       }
     }
   }
+  if (n_keep > 0u) { atomicAdd(&wg_count, n_keep); }
+  if (PASS_COUNTS && n_drawn > 0u) { atomicAdd(&wg_drawn, n_drawn); }
+  if (n_occ > 0u) { atomicAdd(&wg_occ, n_occ); }
+  if (n_bad > 0u) { atomicAdd(&wg_bad, n_bad); }
+  if (vmin <= vmax) { atomicMin(&wg_min, vmin); atomicMax(&wg_max, vmax); }
   workgroupBarrier();
   if (lid == 0u) {
     if (MODE == MODE_THIN_COUNT) {
@@ -337,7 +352,7 @@ _WINNER32 = r"""let ik = ikeys[i];
   return true;"""
 
 _RESOLVE = r"""
-@group(0) @binding(10) var out_tex: texture_storage_2d<rgba8unorm, write>;
+@group(0) @binding(10) var<storage, read_write> img: array<u32>;
 
 @compute @workgroup_size(16, 16)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
@@ -349,7 +364,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
   if (winner(gid.y * W + gid.x, &logical, &depth)) {
     c = point_colour((P.head + logical) % P.capacity);
   }
-  textureStore(out_tex, vec2<i32>(gid.xy), unpack4x8unorm(c));
+  img[gid.y * C.pick_x0 + gid.x] = c;  // pick_x0 holds the row pitch in pixels here
 }
 """
 

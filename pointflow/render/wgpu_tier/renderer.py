@@ -231,11 +231,7 @@ class WgpuRenderer(Renderer):
         self._p_pick = None
         TU = wgpu.TextureUsage
         w, h = self.width, self.height
-        storage = TU.STORAGE_BINDING if self.raster == "compute" else 0
-        self._color_tex = dev.create_texture(size=(w, h, 1), format=wgpu.TextureFormat.rgba8unorm,
-                                             usage=TU.RENDER_ATTACHMENT | TU.COPY_SRC | storage, label="colour")
-        self._color_view = self._color_tex.create_view()
-        self._depth_tex = None
+        self._color_tex = self._depth_tex = None
         self._row_bytes = (w * 4 + 255) // 256 * 256
         self._readback = self._buf(self._row_bytes * h, BU.MAP_READ | BU.COPY_DST, "readback")
         self._pick_tex: Optional[dict[str, Any]] = None
@@ -287,6 +283,9 @@ class WgpuRenderer(Renderer):
         self._p_thin_emit = cpipe(pl_thin, thin_mod, "thin_emit")
         self._p_draw_cache: dict[bool, Any] = {}
         self._draw_pipeline(False)
+        self._color_tex = dev.create_texture(size=(w, h, 1), format=wgpu.TextureFormat.rgba8unorm,
+                                             usage=TU.RENDER_ATTACHMENT | TU.COPY_SRC, label="colour")
+        self._color_view = self._color_tex.create_view()
         self._depth_tex = dev.create_texture(size=(w, h, 1), format=wgpu.TextureFormat.depth32float,
                                              usage=TU.RENDER_ATTACHMENT, label="depth")
         self._depth_view = self._depth_tex.create_view()
@@ -629,10 +628,13 @@ class WgpuRenderer(Renderer):
         """(h, w, 4) uint8 of the last frame (waits for the GPU)."""
         wgpu = self._wgpu
         enc = self.device.create_command_encoder()
-        enc.copy_texture_to_buffer({"texture": self._color_tex, "mip_level": 0, "origin": (0, 0, 0)},
-                                   {"buffer": self._readback, "offset": 0, "bytes_per_row": self._row_bytes,
-                                    "rows_per_image": self.height},
-                                   (self.width, self.height, 1))
+        if self._compute is not None:  # the resolve pass wrote the image with the readback's pitch
+            enc.copy_buffer_to_buffer(self._compute.img, 0, self._readback, 0, self._readback.size)
+        else:
+            enc.copy_texture_to_buffer({"texture": self._color_tex, "mip_level": 0, "origin": (0, 0, 0)},
+                                       {"buffer": self._readback, "offset": 0, "bytes_per_row": self._row_bytes,
+                                        "rows_per_image": self.height},
+                                       (self.width, self.height, 1))
         self.queue.submit([enc.finish()])
         self._readback.map_sync(wgpu.MapMode.READ)
         if self._last is not None and self._done[self._last["set"]]:
