@@ -129,11 +129,12 @@ class ComputeRaster:
             return dev.create_compute_pipeline(layout=dev.create_pipeline_layout(bind_group_layouts=[bgl]),
                                                compute={"module": mod, "entry_point": entry})
 
-        self.p_raster = [pipe(self.bgl_raster, cs.raster_source(2, self.key64, False, naive), label="raster")]
-        if not self.key64:
-            self.p_raster.append(pipe(self.bgl_raster, cs.raster_source(2, False, True, naive), label="raster-index"))
+        # specialised per shape and size space (constants, so the splat loop carries no branch on them)
+        self._shape = {"round_points": r.cfg.point_shape == "round", "world_size": r.cfg.point_size_space == "world"}
+        self._variant: dict[str, Any] = {}
         self._lazy: dict[str, Any] = {}
-        self.p_resolve = pipe(self.bgl_resolve, cs.resolve_source(self.key64), label="resolve")
+        self._resolve_pipes: dict[bool, Any] = {}
+        self._pipe_fn = pipe
         self._bg_cache: dict[Any, Any] = {}
 
     # ------------------------------------------------------------------ helpers
@@ -145,17 +146,24 @@ class ComputeRaster:
         gx = min(groups, self.max_groups)
         return gx, math.ceil(groups / gx)
 
+    def set_variant(self, window: bool, lod: bool, importance: bool, range_auto: bool) -> None:
+        """Which per-point tests this frame runs: selects the specialised pipelines
+        (compiled on first use)."""
+        self._variant = {"window": bool(window), "lod": bool(lod), "importance": bool(importance),
+                         "range_auto": bool(range_auto), "cmode": int(self.r._cmode)}
+
     def _pipe(self, name: str) -> Any:
-        p = self._lazy.get(name)
+        key = (name, tuple(sorted(self._variant.items())))
+        p = self._lazy.get(key)
         if p is None:
             dev, naive = self.r.device, self.r.naive_float32
-            mode = {"count": 0, "thin": 1, "scan": 1, "debug": 3}[name]
-            code = cs.raster_source(mode, self.key64, False, naive)
+            mode = {"count": 0, "thin": 1, "scan": 1, "raster": 2, "index": 2, "debug": 3}[name]
+            code = cs.raster_source(mode, self.key64, name == "index", naive, **self._shape, **self._variant)
             mod = dev.create_shader_module(code=code, label=name)
             p = dev.create_compute_pipeline(
                 layout=dev.create_pipeline_layout(bind_group_layouts=[self.bgl_raster]),
                 compute={"module": mod, "entry_point": "scan" if name == "scan" else "main"})
-            self._lazy[name] = p
+            self._lazy[key] = p
         return p
 
     def _bind(self, layout, res: list[Any]) -> Any:
@@ -190,7 +198,18 @@ class ComputeRaster:
             [packed, gx, 1 if budget_on else 0, 0, *pick], np.uint32))
 
     # ------------------------------------------------------------------ frame
-    def encode(self, enc: Any, s: int, groups: int, budget_on: bool, ts: Optional[dict[str, Any]]) -> None:
+    def resolve_pipeline(self, range_auto: bool) -> Any:
+        """The resolve variant for the tier's colour mode; ``range_auto``: the colour range
+        is this frame's GPU reduction (no range in the config or the handoff)."""
+        p = self._resolve_pipes.get(range_auto)
+        if p is None:
+            p = self._pipe_fn(self.bgl_resolve, cs.resolve_source(self.key64, cmode=self.r._cmode,
+                                                                  range_auto=range_auto), label="resolve")
+            self._resolve_pipes[range_auto] = p
+        return p
+
+    def encode(self, enc: Any, s: int, groups: int, budget_on: bool, ts: Optional[dict[str, Any]],
+               range_auto: bool = False) -> None:
         """Record the frame: clear, (budget passes), raster pass(es), resolve pass."""
         r = self.r
         gx, gy = self.grid(groups)
@@ -211,8 +230,8 @@ class ComputeRaster:
                 cp.dispatch_workgroups(gx, gy, 1)
             cp.set_pipeline(self._pipe("scan"))
             cp.dispatch_workgroups(1, 1, 1)
-        for p in self.p_raster:
-            cp.set_pipeline(p)
+        for name in (("raster",) if self.key64 else ("raster", "index")):
+            cp.set_pipeline(self._pipe(name))
             cp.dispatch_workgroups(gx, gy, 1)
         cp.end()
         if ts is not None:
@@ -220,8 +239,8 @@ class ComputeRaster:
                                       "end_of_pass_write_index": 3}
         cp = enc.begin_compute_pass(**kw)
         cp.set_bind_group(0, g["resolve"])
-        cp.set_pipeline(self.p_resolve)
-        cp.dispatch_workgroups(math.ceil(r.width / 16), math.ceil(r.height / 16), 1)
+        cp.set_pipeline(self.resolve_pipeline(range_auto))
+        cp.dispatch_workgroups(math.ceil(r.width / 256), r.height, 1)
         cp.end()
 
     # ------------------------------------------------------------------ picking
@@ -237,7 +256,7 @@ class ComputeRaster:
                 self.pick_buf.destroy()
             self.pick_buf = r._buf(max(n, 1024) * 32, BU.STORAGE | BU.COPY_SRC, "pick-block")
             self._lazy.pop("pick-bg", None)
-        if "pick" not in self._lazy:
+        if "pick" not in self._lazy:  # (the gather needs no colour: the default variant)
             mod = dev.create_shader_module(code=cs.resolve_source(self.key64, pick=True), label="pick")
             self._lazy["pick"] = dev.create_compute_pipeline(
                 layout=dev.create_pipeline_layout(bind_group_layouts=[self.bgl_pick]),

@@ -63,12 +63,14 @@ var<workgroup> wg_mode: u32;
 var<workgroup> wg_base: u32;
 
 fn slot_of(logical: u32) -> u32 {
-  return (P.head + logical) % P.capacity;
+  // head < capacity and logical < size <= capacity: one conditional subtract, no modulo
+  let s = P.head + logical;
+  return select(s, s - P.capacity, s >= P.capacity);
 }
 
 fn colour_value(slot: u32, p: vec3<f32>) -> f32 {
-  if (P.color_mode == C_Z) { return p.z; }
-  if (P.color_mode == C_TIME) { return tms[slot].x; }
+  if (CMODE == C_Z) { return p.z; }
+  if (CMODE == C_TIME) { return tms[slot].x; }
   return bitcast<f32>(col[slot]);
 }
 
@@ -95,20 +97,20 @@ fn test_point(logical: u32, count: bool) -> Pt {
   var keep = is_finite(p.x) && is_finite(p.y) && is_finite(p.z);
   r.finite = keep;
   if (!keep) { return r; }
-  if (count && (P.flags & F_RANGE_AUTO) != 0u) { r.cval = colour_value(slot, p); }
+  if (count && RANGE_AUTO) { r.cval = colour_value(slot, p); }
   r.clip = {CLIP};
   for (var i = 0u; i < 6u; i = i + 1u) {
     let pl = P.planes[i];
     keep = keep && (dot(pl.xyz, p) + pl.w >= 0.0);
   }
-  if (keep && (P.flags & F_WINDOW) != 0u) {
+  if (HAS_WINDOW && keep) {
     let t = tms[slot];
     keep = (P.now_hi - t.x) + (P.now_lo - t.y) <= P.window_ms;
   }
-  if (keep && P.lod_stride > 1u) {
+  if (HAS_LOD && keep) {
     keep = (logical % P.lod_stride) == 0u;
   }
-  if (keep && (P.flags & F_IMPORTANCE) != 0u) {
+  if (HAS_IMP && keep) {
     var n = 1.0;
     if ((P.flags & F_IMP_DEGENERATE) == 0u) {
       let x = imp[slot];
@@ -135,9 +137,9 @@ fn splat(logical: u32, clip: vec4<f32>) {
   let px = (clip.x / w * 0.5 + 0.5) * P.vw;
   let py = (0.5 - clip.y / w * 0.5) * P.vh;
   var s = P.point_size;
-  if ((P.flags & F_WORLD_SIZE) != 0u) { s = clamp(P.point_size * P.size_scale / w, 1.0, 4096.0); }
+  if (WORLD) { s = clamp(P.point_size * P.size_scale / w, 1.0, 4096.0); }
   let h = 0.5 * s;
-  let round_pt = (P.flags & F_ROUND) != 0u;
+  let round_pt = ROUND;
   // square: centres in [p - s/2, p + s/2); round: |centre - p| <= s/2
   let x0 = i32(clamp(ceil(px - h - 0.5), 0.0, P.vw));
   let y0 = i32(clamp(ceil(py - h - 0.5), 0.0, P.vh));
@@ -212,7 +214,7 @@ fn main(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: v
     if (count) {
       if (pt.occupied) { n_occ = n_occ + 1u; }
       if (pt.occupied && !pt.finite) { n_bad = n_bad + 1u; }
-      if (pt.finite && (P.flags & F_RANGE_AUTO) != 0u && is_finite(pt.cval)) {
+      if (RANGE_AUTO && pt.finite && is_finite(pt.cval)) {
         vmin = min(vmin, ord_f(pt.cval));
         vmax = max(vmax, ord_f(pt.cval));
       }
@@ -254,7 +256,7 @@ fn main(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: v
       if (bad > 0u) { atomicAdd(&st[S_NONFINITE], bad); }
       let occ = atomicLoad(&wg_occ);
       if (occ > 0u) { atomicAdd(&st[S_OCCUPIED], occ); }
-      if ((P.flags & F_RANGE_AUTO) != 0u) {
+      if (RANGE_AUTO) {
         let mn = atomicLoad(&wg_min);
         let mx = atomicLoad(&wg_max);
         if (mn <= mx) { atomicMin(&rng[0], mn); atomicMax(&rng[1], mx); }
@@ -276,13 +278,19 @@ fn scan(@builtin(local_invocation_index) lid: u32) {
 #: key write per key layout: 64-bit one atomic; 32-bit pass 0 depth, pass 1 index
 _KEY64 = ("let key = ~((u64(dbits) << 32u) | u64(logical));", "atomicMax(&keys[i], key);")
 _KEY32_DEPTH = ("let key = ~dbits;", "atomicMax(&keys[i], key);")
+#: read the key before the atomic (skips the atomic where a nearer point is already there)
+READ_FIRST = True
 _KEY32_INDEX = ("let key = ~dbits;\n  let ikey = ~logical;",
                 "if (atomicLoad(&keys[i]) == key) { atomicMax(&ikeys[i], ikey); }")
 
 
-def raster_source(mode: int, key64: bool, index_pass: bool = False, naive: bool = False) -> str:
+def raster_source(mode: int, key64: bool, index_pass: bool = False, naive: bool = False,
+                  round_points: bool = False, world_size: bool = False, window: bool = True,
+                  lod: bool = True, importance: bool = True, range_auto: bool = True, cmode: int = 2) -> str:
     """One specialised entry point ``main``: mode 0 count, 1 thin count, 2 raster, 3 debug.
-    ``index_pass``: the second of the two 32-bit passes (writes indices, counts nothing)."""
+    ``index_pass``: the second of the two 32-bit passes (writes indices, counts nothing).
+    The other flags are constants of the variant (which tests run, the colour mode): CPU
+    adapters flatten branches, so a test that is off must not be in the code at all."""
     from .shaders import CLIP_NAIVE, CLIP_RELATIVE
     if key64:
         kdef, write = _KEY64
@@ -290,10 +298,19 @@ def raster_source(mode: int, key64: bool, index_pass: bool = False, naive: bool 
     else:
         kdef, write = _KEY32_INDEX if index_pass else _KEY32_DEPTH
         ktype = "atomic<u32>"
+    if READ_FIRST and not index_pass:
+        write = "if (atomicLoad(&keys[i]) < key) { " + write + " }"
     src = (_RASTER_HEAD.replace("{KEYTYPE}", ktype).replace("{K}", str(K))
            .replace("{CLIP}", CLIP_NAIVE if naive else CLIP_RELATIVE)
            .replace("{KEYDEF}", kdef).replace("{WRITE}", write))
-    consts = f"const MODE: u32 = {int(mode)}u;\nconst PASS_COUNTS: bool = {'false' if index_pass else 'true'};\n"
+    consts = (f"const MODE: u32 = {int(mode)}u;\nconst PASS_COUNTS: bool = {'false' if index_pass else 'true'};\n"
+              f"const ROUND: bool = {'true' if round_points else 'false'};\n"
+              f"const WORLD: bool = {'true' if world_size else 'false'};\n"
+              f"const HAS_WINDOW: bool = {'true' if window else 'false'};\n"
+              f"const HAS_LOD: bool = {'true' if lod else 'false'};\n"
+              f"const HAS_IMP: bool = {'true' if importance else 'false'};\n"
+              f"const RANGE_AUTO: bool = {'true' if range_auto else 'false'};\n"
+              f"const CMODE: u32 = {int(cmode)}u;\n")
     return consts + src + (SCAN_ENTRY if mode == 1 else "")
 
 
@@ -318,7 +335,7 @@ fn lut_colour(v: f32) -> u32 {
   var lo = P.range_lo;
   var hi = P.range_hi;
   var scale = P.range_scale;
-  if ((P.flags & F_RANGE_AUTO) != 0u) {
+  if (RANGE_AUTO) {
     lo = unord_f(rng[0]);
     hi = unord_f(rng[1]);
     scale = 1.0 / (hi - lo);
@@ -331,15 +348,27 @@ fn lut_colour(v: f32) -> u32 {
   return lut[i];
 }
 
+// CMODE / RANGE_AUTO are constants of the pipeline variant: on CPU adapters branches are
+// often flattened, and a generic colour function made the resolve pass 6x slower
 fn point_colour(slot: u32) -> u32 {
-  if (P.color_mode == C_RGB) { return col[slot]; }
-  if (P.color_mode == C_SCALAR) { return lut_colour(bitcast<f32>(col[slot])); }
-  if (P.color_mode == C_Z) { return lut_colour(pos[3u * slot + 2u]); }
-  if (P.color_mode == C_TIME) { return lut_colour(tms[slot].x); }
+  if (CMODE == C_RGB) { return col[slot]; }
+  if (CMODE == C_SCALAR) { return lut_colour(bitcast<f32>(col[slot])); }
+  if (CMODE == C_Z) { return lut_colour(pos[3u * slot + 2u]); }
+  if (CMODE == C_TIME) { return lut_colour(tms[slot].x); }
   return pack4x8unorm(P.fixed_color);
 }
 """
 
+_RESOLVE64 = r"""let k = keys[gid.y * W + x];
+  if (k.x != 0u || k.y != 0u) {
+    let s = P.head + ~k.x;
+    c = point_colour(select(s, s - P.capacity, s >= P.capacity));
+  }"""
+_RESOLVE32 = r"""let ik = ikeys[gid.y * W + x];
+  if (ik != 0u) {
+    let s = P.head + ~ik;
+    c = point_colour(select(s, s - P.capacity, s >= P.capacity));
+  }"""
 _WINNER64 = r"""let k = keys[i];
   if (k.x == 0u && k.y == 0u) { return false; }
   *out_logical = ~k.x;
@@ -354,17 +383,15 @@ _WINNER32 = r"""let ik = ikeys[i];
 _RESOLVE = r"""
 @group(0) @binding(10) var<storage, read_write> img: array<u32>;
 
-@compute @workgroup_size(16, 16)
+// one thread per pixel, a workgroup along a row (one row of threads: cheapest on lavapipe)
+@compute @workgroup_size(256, 1)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
   let W = u32(P.vw);
-  if (gid.x >= W || gid.y >= u32(P.vh)) { return; }
-  var logical = 0u;
-  var depth = 0u;
+  let x = gid.x;
+  if (x >= W) { return; }
   var c = C.background;
-  if (winner(gid.y * W + gid.x, &logical, &depth)) {
-    c = point_colour((P.head + logical) % P.capacity);
-  }
-  img[gid.y * C.pick_x0 + gid.x] = c;  // pick_x0 holds the row pitch in pixels here
+  {RESOLVE_PIXEL}
+  img[gid.y * C.pick_x0 + x] = c;  // pick_x0 holds the row pitch in pixels here
 }
 """
 
@@ -398,8 +425,10 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
 """
 
 
-def resolve_source(key64: bool, pick: bool = False) -> str:
-    """The per-pixel resolve into the RGBA8 target, or (``pick``) the pick-block gather."""
-    head = (_RESOLVE_HEAD.replace("{KEYTYPE}", "vec2<u32>" if key64 else "u32")
+def resolve_source(key64: bool, pick: bool = False, cmode: int = 0, range_auto: bool = False) -> str:
+    """The per-pixel resolve into the RGBA8 target for colour mode ``cmode`` (renderer.C_*)
+    and a range reduced on the GPU (``range_auto``), or (``pick``) the pick-block gather."""
+    consts = f"const CMODE: u32 = {int(cmode)}u;\nconst RANGE_AUTO: bool = {'true' if range_auto else 'false'};\n"
+    head = consts + (_RESOLVE_HEAD.replace("{KEYTYPE}", "vec2<u32>" if key64 else "u32")
             .replace("{WINNER}", _WINNER64 if key64 else _WINNER32))
-    return head + (_PICK if pick else _RESOLVE)
+    return head + (_PICK if pick else _RESOLVE.replace("{RESOLVE_PIXEL}", _RESOLVE64 if key64 else _RESOLVE32))

@@ -552,7 +552,11 @@ class WgpuRenderer(Renderer):
 
         enc = self.device.create_command_encoder()
         if self._compute is not None:
-            self._compute.encode(enc, s, groups, budget, {"qs": self._qs} if self._ts else None)
+            fl = int(P.view(np.uint32)[_P_FLAGS])
+            self._compute.set_variant(bool(fl & F_WINDOW), int(P.view(np.uint32)[_P_LOD]) > 1,
+                                      bool(fl & F_IMPORTANCE), bool(fl & F_RANGE_AUTO))
+            self._compute.encode(enc, s, groups, budget, {"qs": self._qs} if self._ts else None,
+                                 bool(int(P.view(np.uint32)[_P_FLAGS]) & F_RANGE_AUTO))
         else:
             self._encode_quads(enc, s, budget, gx, gy, groups, P)
         if self._ts:
