@@ -186,3 +186,15 @@ def test_compute_pick_matches_the_cpu_tier_winners(make_compute, strategy):
         assert r.pick(x, y) == want, (x, y)
         hits += want is not None
     assert hits > 20
+
+
+def test_tier_selection_log_names_the_raster_method(monkeypatch):
+    require_adapter()
+    from pointflow.render.select import select_renderer
+    monkeypatch.delenv("POINTFLOW_RASTER", raising=False)
+    monkeypatch.delenv("POINTFLOW_BACKEND", raising=False)
+    r, lines = select_renderer(cfg(backend="wgpu", raster="auto", point_size=2.0), 100, [])
+    try:
+        assert any(line.startswith("wgpu: raster method compute (render.raster=auto") for line in lines), lines
+    finally:
+        r.close()
