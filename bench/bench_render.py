@@ -309,22 +309,11 @@ def run(sizes: list[int], reps: dict[int, int], cpu_max: int) -> dict[str, Any]:
             "platform": platform.platform(), "cpu_count": os.cpu_count(), "rows": rows, **extra}
 
 
-def point_size_crossover(n: int, sizes_px: list[float], reps: int) -> dict[str, Any]:
-    """Compute vs quads frame time over point sizes at n points (interleaved, medians):
-    ``max_compute_point_px`` = the largest size up to which compute was faster at every size."""
-    adapter, why = select_adapter()
-    base, inten0, scene = base_cloud()
-    world, inten = tiled(base, inten0, n)
-    f = make_frame(world, inten)
-    cam = camera_for(world)
-    del world
-    out = []
-    best = 0.0
-    ok = True
-    for s in sizes_px:
-        cfg = RenderConfig(size=[W, H], color_by="intensity", point_size=float(s), gpu_timestamps=False)
-        rs = {m: WgpuRenderer(replace(cfg, raster=m), n, ["intensity"], adapter=adapter) for m in METHODS}
-        ts: dict[str, list[float]] = {m: [] for m in METHODS}
+def _race(adapter, f: FrameInput, cam: Camera, cfg: RenderConfig, n: int, reps: int) -> dict[str, float]:
+    """Median frame ms of both methods, interleaved (ABBA), after one warm-up frame each."""
+    rs = {m: WgpuRenderer(replace(cfg, raster=m), n, ["intensity"], adapter=adapter) for m in METHODS}
+    ts: dict[str, list[float]] = {m: [] for m in METHODS}
+    try:
         for i in range(reps + 1):
             for m in (METHODS if i % 2 == 0 else METHODS[::-1]):
                 t0 = time.perf_counter()
@@ -332,19 +321,55 @@ def point_size_crossover(n: int, sizes_px: list[float], reps: int) -> dict[str, 
                 rs[m].read_image()
                 if i:
                     ts[m].append((time.perf_counter() - t0) * 1e3)
+    finally:
         for r in rs.values():
             r.close()
-        row = {"point_px": s, **{f"{m}_ms": float(np.median(v)) for m, v in ts.items()}}
+    return {f"{m}_ms": float(np.median(v)) for m, v in ts.items()}
+
+
+def raster_crossover(n: int, sizes_px: list[float], counts: list[int], reps: int) -> dict[str, Any]:
+    """Compute vs quads frame time (interleaved, medians) over point sizes at n points and over
+    point counts at 2 px: ``max_compute_point_px`` = the largest size up to which compute was
+    faster at every size; ``min_compute_points_per_pixel`` = the smallest count from which it
+    was faster at every larger count, per target pixel (its resolve pass is per pixel)."""
+    adapter, why = select_adapter()
+    base, inten0, scene = base_cloud()
+    world, inten = tiled(base, inten0, n)
+    f = make_frame(world, inten)
+    cam = camera_for(world)
+    del world
+    out, best, ok = [], 0.0, True
+    for s in sizes_px:
+        cfg = RenderConfig(size=[W, H], color_by="intensity", point_size=float(s), gpu_timestamps=False)
+        row = {"point_px": s, **_race(adapter, f, cam, cfg, n, reps)}
         row["quads_over_compute"] = row["quads_ms"] / row["compute_ms"]
         out.append(row)
-        print(f"  {s:5.1f} px: quads {row['quads_ms']:8.1f} ms  compute {row['compute_ms']:8.1f} ms  "
+        print(f"  {n:,} points, {s:5.1f} px: quads {row['quads_ms']:8.1f} ms  compute {row['compute_ms']:8.1f} ms  "
               f"x{row['quads_over_compute']:.2f}", flush=True)
         if ok and row["compute_ms"] < row["quads_ms"]:
             best = float(s)
         else:
             ok = False
-    return {"points": n, "adapter": adapter.summary, "scene": scene, "size": [W, H], "rows": out,
-            "max_compute_point_px": best, "measured_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+    by_count = []
+    cfg = RenderConfig(size=[W, H], color_by="intensity", point_size=2.0, gpu_timestamps=False)
+    for c in counts:
+        w2, i2 = tiled(base, inten0, c)
+        fc = make_frame(w2, i2)
+        row = {"points": c, **_race(adapter, fc, camera_for(w2), cfg, c, reps)}
+        row["quads_over_compute"] = row["quads_ms"] / row["compute_ms"]
+        by_count.append(row)
+        print(f"  {c:>9,} points, 2 px: quads {row['quads_ms']:8.1f} ms  compute {row['compute_ms']:8.1f} ms  "
+              f"x{row['quads_over_compute']:.2f}", flush=True)
+    from_n = counts[-1] * 2
+    for row in reversed(by_count):
+        if row["compute_ms"] < row["quads_ms"]:
+            from_n = row["points"]
+        else:
+            break
+    return {"points": n, "adapter": adapter.summary, "scene": scene, "size": [W, H], "by_point_px": out,
+            "by_points": by_count, "max_compute_point_px": best, "min_compute_points": from_n,
+            "min_compute_points_per_pixel": round(from_n / (W * H), 6),
+            "measured_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
             "platform": platform.platform(), "cpu_count": os.cpu_count()}
 
 
@@ -404,10 +429,12 @@ def main(argv: Optional[list[str]] = None) -> int:
                          "bench/results/raster_crossover.json (read by render.raster: auto)")
     a = ap.parse_args(argv)
     if a.raster_crossover:
-        res = point_size_crossover(1_000_000, [1, 2, 3, 4, 6, 8, 12, 16, 24, 32], 3)
+        res = raster_crossover(1_000_000, [1, 2, 3, 4, 6, 8, 12, 16, 24, 32],
+                               [1_000, 3_000, 10_000, 30_000, 100_000, 300_000], 5)
         path = RESULTS / "raster_crossover.json"
         path.write_text(json.dumps(res, indent=2))
-        print(f"max_compute_point_px = {res['max_compute_point_px']:g}; wrote {path}")
+        print(f"max_compute_point_px = {res['max_compute_point_px']:g}, min_compute_points = "
+              f"{res['min_compute_points']:,} ({res['min_compute_points_per_pixel']:g} per pixel); wrote {path}")
         return 0
     sizes = a.sizes or ([10_000, 100_000, 1_000_000] if a.quick else [10_000, 100_000, 1_000_000, 4_000_000])
     reps = {10_000: 15, 100_000: 9, 1_000_000: 5, 4_000_000: 3}

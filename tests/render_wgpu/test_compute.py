@@ -119,18 +119,27 @@ def test_compute_capacity_caps_use_its_workgroup_size(make_renderer, raster):
     assert "dispatch" in r._caps[0]
 
 
-def test_auto_chooses_compute_for_small_screen_points_and_says_why(make_any, monkeypatch):
+def test_auto_chooses_by_the_measured_crossover_and_says_why(make_any, monkeypatch, tmp_path):
+    """auto: compute for screen-size points up to the measured size and from the measured
+    ring size per pixel on; quads otherwise, with the reason in info()."""
     make_renderer = make_any
     monkeypatch.delenv("POINTFLOW_RASTER", raising=False)
-    r = make_renderer(cfg(raster="auto", point_size=2.0), 10)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    (tmp_path / "pointflow").mkdir()
+    (tmp_path / "pointflow" / "raster_crossover.json").write_text(
+        '{"max_compute_point_px": 8, "min_compute_points_per_pixel": 0.05}')
+    big = 320 * 240   # cfg() is 320x240: 0.05 per pixel = 3840 points
+    r = make_renderer(cfg(raster="auto", point_size=2.0), big)
     info = r.info()
-    assert info["raster"] == "compute" and "compute" in info["raster_choice"]
+    assert info["raster"] == "compute" and "raster_crossover.json" in info["raster_choice"]
     assert "64-bit" in info["compute_keys"]            # lavapipe has shader-int64-atomic-min-max
-    w = make_renderer(cfg(raster="auto", point_size_space="world", point_size=0.2), 10)
+    small = make_renderer(cfg(raster="auto", point_size=2.0), 1000)
+    assert small.info()["raster"] == "quads" and "per pixel" in small.info()["raster_choice"]
+    w = make_renderer(cfg(raster="auto", point_size_space="world", point_size=0.2), big)
     assert w.info()["raster"] == "quads" and "world-size" in w.info()["raster_choice"]
-    big = make_renderer(cfg(raster="auto", point_size=64.0), 10)
-    assert big.info()["raster"] == "quads" and "64" in big.info()["raster_choice"]
-    assert big.info()["compute_keys"] is None
+    wide = make_renderer(cfg(raster="auto", point_size=12.0), big)
+    assert wide.info()["raster"] == "quads" and "12.0 px > 8 px" in wide.info()["raster_choice"]
+    assert wide.info()["compute_keys"] is None
     forced = make_renderer(cfg(raster="compute", point_size=64.0), 10)
     assert forced.info()["raster"] == "compute"        # explicit: any size (slower above the limit)
     monkeypatch.setenv("POINTFLOW_RASTER", "quads")
@@ -193,8 +202,8 @@ def test_tier_selection_log_names_the_raster_method(monkeypatch):
     from pointflow.render.select import select_renderer
     monkeypatch.delenv("POINTFLOW_RASTER", raising=False)
     monkeypatch.delenv("POINTFLOW_BACKEND", raising=False)
-    r, lines = select_renderer(cfg(backend="wgpu", raster="auto", point_size=2.0), 100, [])
+    r, lines = select_renderer(cfg(backend="wgpu", raster="compute"), 100, [])
     try:
-        assert any(line.startswith("wgpu: raster method compute (render.raster=auto") for line in lines), lines
+        assert any(line.startswith("wgpu: raster method compute (render.raster=compute") for line in lines), lines
     finally:
         r.close()

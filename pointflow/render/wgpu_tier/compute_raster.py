@@ -39,9 +39,11 @@ log = logging.getLogger("pointflow.render.wgpu")
 
 #: adapter features for the single-atomic 64-bit key
 KEY64_FEATURES = ("shader-int64", "shader-int64-atomic-min-max")
-#: ``auto`` uses the compute method for screen-size points up to this many pixels unless
-#: ``bench/bench_render.py --sizes`` measured another limit (see :func:`max_compute_px`)
+#: ``auto`` uses the compute method for screen-size points up to this many pixels and from
+#: this many ring slots per target pixel on (its per-pixel resolve is a fixed cost), unless
+#: ``bench/bench_render.py --raster-crossover`` measured other limits (see :func:`crossover`)
 DEFAULT_MAX_COMPUTE_PX = 8.0
+DEFAULT_MIN_POINTS_PER_PIXEL = 0.02
 ENV_RASTER = "POINTFLOW_RASTER"
 
 _CX_WORDS = 8  # CParams
@@ -51,18 +53,22 @@ def raster_crossover_path() -> Path:
     return Path(__file__).resolve().parents[3] / "bench" / "results" / "raster_crossover.json"
 
 
-def max_compute_px() -> tuple[float, str]:
-    """(largest screen point size in px for which compute measured faster than quads, source)."""
+def crossover() -> tuple[float, float, str]:
+    """(largest screen point size in px at which compute measured faster than quads, smallest
+    ring capacity per target pixel from which it did, where the numbers come from): the user
+    cache, then the checkout's ``bench/results/raster_crossover.json``, then the defaults."""
     for p in (Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "pointflow" / "raster_crossover.json",
               raster_crossover_path()):
         try:
-            return float(json.loads(p.read_text())["max_compute_point_px"]), str(p)
+            d = json.loads(p.read_text())
+            return float(d["max_compute_point_px"]), float(d["min_compute_points_per_pixel"]), str(p)
         except (OSError, ValueError, KeyError, TypeError):
             continue
-    return DEFAULT_MAX_COMPUTE_PX, "built-in default"
+    return DEFAULT_MAX_COMPUTE_PX, DEFAULT_MIN_POINTS_PER_PIXEL, "built-in default"
 
 
-def choose_raster(cfg: Any, features: Any, key_bytes_needed: int, max_binding: int) -> tuple[str, str]:
+def choose_raster(cfg: Any, features: Any, key_bytes_needed: int, max_binding: int,
+                  capacity: int = 0) -> tuple[str, str]:
     """("compute" | "quads", why) for ``render.raster`` (or env ``POINTFLOW_RASTER``)."""
     want = os.environ.get(ENV_RASTER, "").strip().lower() or cfg.raster
     src = f"${ENV_RASTER}={want}" if os.environ.get(ENV_RASTER, "").strip() else f"render.raster={want}"
@@ -81,11 +87,16 @@ def choose_raster(cfg: Any, features: Any, key_bytes_needed: int, max_binding: i
     if cfg.point_size_space == "world":
         return "quads", (f"{src}: world-size points may cover up to 4096 px each; the compute method's cost "
                          "grows with the footprint area: quads")
-    lim, where = max_compute_px()
+    lim, ppp, where = crossover()
     if float(cfg.point_size) > lim:
         return "quads", (f"{src}: point_size {cfg.point_size} px > {lim:g} px, the largest size at which "
                          f"compute measured faster (from {where}): quads")
-    return "compute", f"{src}: point_size {cfg.point_size} px <= {lim:g} px (from {where}): compute"
+    px = int(cfg.size[0]) * int(cfg.size[1])
+    if capacity < ppp * px:
+        return "quads", (f"{src}: ring of {capacity} points < {ppp:g} points per pixel x {px} pixels, below "
+                         f"which compute's per-pixel pass costs more than it saves (from {where}): quads")
+    return "compute", (f"{src}: point_size {cfg.point_size} px <= {lim:g} px and {capacity} points >= "
+                       f"{ppp:g} per pixel (from {where}): compute")
 
 
 class ComputeRaster:

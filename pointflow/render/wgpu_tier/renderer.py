@@ -110,7 +110,8 @@ class WgpuRenderer(Renderer):
         try:
             self.raster, self._raster_why = choose_raster(
                 cfg, adapter.features, self.width * self.height * 8,
-                int(min(lim.get("max-storage-buffer-binding-size", 2 ** 27), lim.get("max-buffer-size", 2 ** 28))))
+                int(min(lim.get("max-storage-buffer-binding-size", 2 ** 27), lim.get("max-buffer-size", 2 ** 28))),
+                int(capacity))
         except ValueError as e:
             raise RenderError(str(e)) from e
         # key64=False (tests) forces the two-pass 32-bit variant where 64-bit atomics exist
