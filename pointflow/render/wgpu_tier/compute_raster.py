@@ -110,6 +110,7 @@ class ComputeRaster:
         BU = wgpu.BufferUsage
         W, H = r.width, r.height
         self.n_px = W * H
+        self.k = cs.K  # points per thread (fixed when the pipelines are generated)
         self.keys = r._buf(self.n_px * (8 if self.key64 else 4), BU.STORAGE | BU.COPY_DST, "keys")
         self.ikeys = r._buf(16 if self.key64 else self.n_px * 4, BU.STORAGE | BU.COPY_DST, "index-keys")
         groups = self.groups_for(r.render_capacity)
@@ -149,9 +150,8 @@ class ComputeRaster:
         self._bg_cache: dict[Any, Any] = {}
 
     # ------------------------------------------------------------------ helpers
-    @staticmethod
-    def groups_for(n: int) -> int:
-        return max(1, math.ceil(int(n) / cs.POINTS_PER_GROUP))
+    def groups_for(self, n: int) -> int:
+        return max(1, math.ceil(int(n) / (256 * self.k)))
 
     def grid(self, groups: int) -> tuple[int, int]:
         gx = min(groups, self.max_groups)
@@ -169,7 +169,8 @@ class ComputeRaster:
         if p is None:
             dev, naive = self.r.device, self.r.naive_float32
             mode = {"count": 0, "thin": 1, "scan": 1, "raster": 2, "index": 2, "debug": 3}[name]
-            code = cs.raster_source(mode, self.key64, name == "index", naive, **self._shape, **self._variant)
+            code = cs.raster_source(mode, self.key64, name == "index", naive, **self._shape, **self._variant,
+                                    k=self.k)
             mod = dev.create_shader_module(code=code, label=name)
             p = dev.create_compute_pipeline(
                 layout=dev.create_pipeline_layout(bind_group_layouts=[self.bgl_raster]),

@@ -286,7 +286,8 @@ _KEY32_INDEX = ("let key = ~dbits;\n  let ikey = ~logical;",
 
 def raster_source(mode: int, key64: bool, index_pass: bool = False, naive: bool = False,
                   round_points: bool = False, world_size: bool = False, window: bool = True,
-                  lod: bool = True, importance: bool = True, range_auto: bool = True, cmode: int = 2) -> str:
+                  lod: bool = True, importance: bool = True, range_auto: bool = True, cmode: int = 2,
+                  k: int = K) -> str:
     """One specialised entry point ``main``: mode 0 count, 1 thin count, 2 raster, 3 debug.
     ``index_pass``: the second of the two 32-bit passes (writes indices, counts nothing).
     The other flags are constants of the variant (which tests run, the colour mode): CPU
@@ -300,7 +301,7 @@ def raster_source(mode: int, key64: bool, index_pass: bool = False, naive: bool 
         ktype = "atomic<u32>"
     if READ_FIRST and not index_pass:
         write = "if (atomicLoad(&keys[i]) < key) { " + write + " }"
-    src = (_RASTER_HEAD.replace("{KEYTYPE}", ktype).replace("{K}", str(K))
+    src = (_RASTER_HEAD.replace("{KEYTYPE}", ktype).replace("{K}", str(int(k)))
            .replace("{CLIP}", CLIP_NAIVE if naive else CLIP_RELATIVE)
            .replace("{KEYDEF}", kdef).replace("{WRITE}", write))
     consts = (f"const MODE: u32 = {int(mode)}u;\nconst PASS_COUNTS: bool = {'false' if index_pass else 'true'};\n"
