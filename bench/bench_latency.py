@@ -32,14 +32,14 @@ from pointflow import Pipeline  # noqa: E402
 from pointflow.profiling.report import build_profile, format_table  # noqa: E402
 
 
-def latency_config(backend: str, size: list[int], ring: int) -> dict:
+def latency_config(backend: str, size: list[int], ring: int, raster: str = "auto") -> dict:
     return {
         "name": "bench-latency",
         "source": {"transport": "synthetic", "options": {"scan_hz": 10, "points_per_scan": 100_000,
                                                          "chunks_per_scan": 10, "cache_scans": 3}},
         "ring": {"max_points": ring},
         "cadence": {"target_hz": 60},
-        "render": {"backend": backend, "size": size, "output": {"dir": None}},
+        "render": {"backend": backend, "size": size, "output": {"dir": None}, "raster": raster},
         "policy": {"tier": "L"},
         "supervisor": {"max_restarts": 0, "hung_after_ms": 10000},
     }
@@ -59,8 +59,8 @@ def throughput_config(tracing: bool) -> dict:
     }
 
 
-def run_latency(seconds: float, backend: str, size: list[int], ring: int, out_dir: str) -> dict:
-    pipe = Pipeline.from_dict(latency_config(backend, size, ring), out_dir=out_dir)
+def run_latency(seconds: float, backend: str, size: list[int], ring: int, out_dir: str, raster: str = "auto") -> dict:
+    pipe = Pipeline.from_dict(latency_config(backend, size, ring, raster), out_dir=out_dir)
     stats = pipe.run(seconds)
     if stats.get("failure"):
         raise SystemExit(f"latency pipeline failed: {stats['failure']}")
@@ -73,6 +73,7 @@ def run_latency(seconds: float, backend: str, size: list[int], ring: int, out_di
     render = stats["stages"].get("render", {})
     return {
         "seconds": seconds, "backend": render.get("tier") or render.get("backend") or backend, "size": size,
+        "raster": raster, "raster_used": (render.get("tier_info") or {}).get("raster"),
         "ring_points": ring,
         "send_to_frame_ms": s2f, "end_to_end_ms": prof["end_to_end"],
         "frame_ms": frame, "tick_ms": round(tick_ms, 3),
@@ -182,12 +183,22 @@ def main() -> None:
     ap.add_argument("--backend", default="auto")
     ap.add_argument("--size", default="640x480")
     ap.add_argument("--ring", type=int, default=1_000_000, help="ring capacity (points kept on screen)")
+    ap.add_argument("--raster", default="auto", help="render.raster of the wgpu tier (auto, compute, quads)")
+    ap.add_argument("--latency-only", action="store_true", help="skip the tracing-overhead parts")
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "latency.json"))
     args = ap.parse_args()
     size = [int(v) for v in args.size.split("x")]
     out_dir = tempfile.mkdtemp(prefix="pf-bench-lat-")
     print("== end-to-end latency (100k-point scans at 10 Hz, cadence 60 Hz)")
-    lat = run_latency(args.seconds, args.backend, size, args.ring, out_dir)
+    lat = run_latency(args.seconds, args.backend, size, args.ring, out_dir, args.raster)
+    if args.latency_only:
+        s = lat["send_to_frame_ms"]
+        print(f"raster {args.raster} ({lat['raster_used']}): send -> frame p50 {s.get('p50')} ms, p99 {s.get('p99')} ms; "
+              f"frame p50/p99 {lat['frame_ms'].get('p50')} / {lat['frame_ms'].get('p99')} ms")
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(json.dumps({"benchmark": "latency", "latency": lat}, indent=1, default=str))
+        print(f"wrote {args.out}")
+        return
     print("\n== tracing overhead, hot path (ingest per-chunk work, spans through ZeroMQ to a collector)")
     hot = tracing_hot_path()
     print(f"  off {hot['median_off'] / 1e6:.2f} M points/s, on {hot['median_on'] / 1e6:.2f} M points/s "

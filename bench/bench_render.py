@@ -1,16 +1,21 @@
 """Render benchmark of the wgpu tier against the numpy cpu tier and a bare-wgpu floor.
 
 For 10k, 100k, 1M and 4M points at 1280x720 on the adapter found, the median frame time
-(upload of the ticks's dirty 1% + compute cull + indirect draw + output = read_image) of:
+(upload of the ticks's dirty 1% + cull + raster + output = read_image), interleaved frame by
+frame in one process, of:
 
-* ``wgpu``  — the tier (frustum culling and turbo colour by intensity on, 2 px squares);
+* ``compute`` — the tier with ``render.raster: compute`` (fused tests + atomic depth keys +
+  per-pixel resolve; frustum culling and turbo colour by intensity on, 2 px squares);
+* ``quads`` — the tier with ``render.raster: quads`` (cull + compaction + indirect draw);
 * ``floor`` — a bare wgpu program measured in the same run: the same points uploaded once,
   drawn as 2 px instanced quads pulled from a storage buffer (depth test, one colour, no
   culling/sampling/colour), same output readback;
 * ``cpu``   — :class:`pointflow.render.cpu.CpuRenderer` (skipped above ``--cpu-max``).
 
-Also: bytes and time of incremental vs full upload when 1% of the ring changes per tick,
-and the cost of a pick. Scene: ``../shared/data/autzen_trim.laz`` tiled to N points when
+Also: each method's image error against the cpu tier (fraction of pixels that differ), bytes
+and time of incremental vs full upload when 1% of the ring changes per tick, and the cost of
+a pick with each method. ``--raster-crossover`` measures compute vs quads over point sizes
+(what ``render.raster: auto`` reads from ``bench/results/raster_crossover.json``). Scene: ``../shared/data/autzen_trim.laz`` tiled to N points when
 present (georeferenced: x ~ 6.4e5 ft), else a synthetic terrain.
 
     .venv/bin/python bench/bench_render.py            # ~3-4 min on 2 cores (lavapipe)
@@ -26,6 +31,7 @@ import os
 import platform
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, Callable, Optional
 
@@ -171,6 +177,14 @@ class Floor:
 
 
 # ----------------------------------------------------------------------------- main
+METHODS = ("quads", "compute")
+
+
+def image_error(img: np.ndarray, ref: np.ndarray) -> float:
+    """Fraction of pixels whose RGB differs from the reference."""
+    return float((img[..., :3] != ref[..., :3]).any(axis=-1).mean())
+
+
 def run(sizes: list[int], reps: dict[int, int], cpu_max: int) -> dict[str, Any]:
     adapter, why = select_adapter()
     if adapter is None:
@@ -186,48 +200,57 @@ def run(sizes: list[int], reps: dict[int, int], cpu_max: int) -> dict[str, Any]:
         cam = camera_for(f.positions.astype(np.float64) + f.origin)
         k = reps.get(n, 3)
         row: dict[str, Any] = {"points": n, "repeats": k}
-
-        # the tier: steady state, 1% of the ring rewritten per tick (dirty range), output = read_image
-        r = WgpuRenderer(cfg, n, ["intensity"], adapter=adapter)
-        r.render(f, cam)
-        r.read_image()
+        # both raster methods of the tier: steady state, 1% of the ring rewritten per tick
+        # (dirty range), output = read_image; interleaved frame by frame with the floor so all
+        # three see the same load on this shared machine (lavapipe runs on the CPU cores)
+        rs = {m: WgpuRenderer(replace(cfg, raster=m), n, ["intensity"], adapter=adapter) for m in METHODS}
+        imgs = {}
+        for m, r in rs.items():
+            r.render(f, cam)
+            imgs[m] = r.read_image()
         step = max(n // 100, 1)
         state = {"head": 0}
-        last: dict[str, Any] = {}
+        last: dict[str, dict[str, Any]] = {m: {} for m in METHODS}
 
-        def tick():
-            a = state["head"]
-            b = min(a + step, n)
+        def tick(m: str, a: int, b: int) -> None:
             f.dirty = [(a, b)]
-            state["head"] = b % n
-            st = r.render(f, cam)
-            r.read_image()
-            last["st"] = st
-            last.setdefault("upload_ms", []).append(st.timings_ms["upload"])
+            st = rs[m].render(f, cam)
+            rs[m].read_image()
+            last[m]["st"] = st
+            last[m].setdefault("upload_ms", []).append(st.timings_ms["upload"])
 
-        # the floor runs in the same process, interleaved with the tier frame by frame, so both
-        # see the same load on this shared machine (lavapipe runs on the CPU cores)
         fl = Floor(adapter, f, cam)
         fl.frame()
-        tw, tf = [], []
-        for _ in range(k):
+        times: dict[str, list[float]] = {m: [] for m in (*METHODS, "floor")}
+        for i in range(k):
+            a = state["head"]
+            b = min(a + step, n)
+            state["head"] = b % n
+            order = list(METHODS) if i % 2 == 0 else list(reversed(METHODS))
+            for m in order:
+                t0 = time.perf_counter()
+                tick(m, a, b)
+                times[m].append((time.perf_counter() - t0) * 1e3)
             t0 = time.perf_counter()
-            tick()
-            t1 = time.perf_counter()
             fl.frame()
-            t2 = time.perf_counter()
-            tw.append((t1 - t0) * 1e3)
-            tf.append((t2 - t1) * 1e3)
+            times["floor"].append((time.perf_counter() - t0) * 1e3)
         fl.close()
-        row["wgpu_ms"], row["wgpu_all_ms"] = float(np.median(tw)), tw
-        row["floor_ms"], row["floor_all_ms"] = float(np.median(tf)), tf
-        row["ratio_vs_floor"] = row["wgpu_ms"] / row["floor_ms"]
-        row["ratio_vs_floor_per_frame_median"] = float(np.median(np.asarray(tw) / np.asarray(tf)))
-        st = last["st"]
-        row["wgpu_drawn"] = st.drawn
-        row["wgpu_upload_bytes_1pct"] = st.uploaded_bytes
-        row["wgpu_gpu_ms"] = {kk: v for kk, v in st.timings_ms.items() if kk.startswith("gpu")}
-        row["wgpu_cpu_ms"] = st.timings_ms.get("cpu_total")
+        for m, ts in times.items():
+            row[f"{m}_ms"], row[f"{m}_all_ms"] = float(np.median(ts)), ts
+        tf = np.asarray(times["floor"])
+        for m in METHODS:
+            tm = np.asarray(times[m])
+            row[f"{m}_vs_floor"] = row[f"{m}_ms"] / row["floor_ms"]
+            row[f"floor_over_{m}_per_frame_median"] = float(np.median(tf / tm))
+            st = last[m]["st"]
+            row[f"{m}_drawn"] = st.drawn
+            row[f"{m}_upload_bytes_1pct"] = st.uploaded_bytes
+            row[f"{m}_gpu_ms"] = {kk: v for kk, v in st.timings_ms.items() if kk.startswith("gpu")}
+            row[f"{m}_cpu_ms"] = st.timings_ms.get("cpu_total")
+        row["quads_over_compute_per_frame_median"] = float(np.median(np.asarray(times["quads"]) /
+                                                                     np.asarray(times["compute"])))
+        row["compute_keys"] = rs["compute"].info()["compute_keys"]
+        r = rs["compute"]
         if n == 1_000_000 or n == max(sizes):
             # incremental vs full upload (render only, GPU waited on by read_image in both)
             full_up: list[float] = []
@@ -240,54 +263,135 @@ def run(sizes: list[int], reps: dict[int, int], cpu_max: int) -> dict[str, Any]:
             f.dirty = None
             full_bytes = r.render(f, cam).uploaded_bytes
             r.read_image()
-            up = {"points": n, "full_bytes": full_bytes, "incremental_bytes": row["wgpu_upload_bytes_1pct"],
-                  "full_frame_ms": full_ms, "incremental_frame_ms": row["wgpu_ms"],
-                  "bytes_ratio": row["wgpu_upload_bytes_1pct"] / full_bytes,
+            up = {"points": n, "full_bytes": full_bytes, "incremental_bytes": row["compute_upload_bytes_1pct"],
+                  "full_frame_ms": full_ms, "incremental_frame_ms": row["compute_ms"],
+                  "bytes_ratio": row["compute_upload_bytes_1pct"] / full_bytes,
                   "full_upload_ms": float(np.median(full_up)),
-                  "incremental_upload_ms": float(np.median(last["upload_ms"]))}
+                  "incremental_upload_ms": float(np.median(last["compute"]["upload_ms"]))}
             extra.setdefault("upload", []).append(up)
-            # pick cost on the last frame (pick pass + block readback + resolve)
-            xs = np.random.default_rng(1).uniform([W * 0.3, H * 0.3], [W * 0.7, H * 0.7], size=(7, 2))
-            it = iter(xs.tolist() * 3)
-            pick_ms, _ = median_ms(lambda: r.pick(*next(it)), 7)
-            extra.setdefault("pick", []).append({"points": n, "pick_ms": pick_ms, "radius": cfg.pick_radius})
-        r.close()
-
+            # pick cost on the last frame, both methods, interleaved
+            xs = np.random.default_rng(1).uniform([W * 0.3, H * 0.3], [W * 0.7, H * 0.7], size=(7, 2)).tolist()
+            pk: dict[str, list[float]] = {m: [] for m in METHODS}
+            for m in METHODS:
+                rs[m].render(f, cam)
+                rs[m].read_image()
+            for x, y in xs * 2:
+                for m in METHODS:
+                    t0 = time.perf_counter()
+                    rs[m].pick(x, y)
+                    pk[m].append((time.perf_counter() - t0) * 1e3)
+            agree = sum(rs["quads"].pick(x, y) == rs["compute"].pick(x, y) for x, y in xs)
+            extra.setdefault("pick", []).append({"points": n, "radius": cfg.pick_radius,
+                                                 **{f"{m}_pick_ms": float(np.median(v)) for m, v in pk.items()},
+                                                 "same_answer": f"{agree}/{len(xs)}"})
+        for rr in rs.values():
+            rr.close()
 
         if n <= cpu_max:
             from pointflow.render.cpu import CpuRenderer
             c = CpuRenderer(cfg, n, ["intensity"])
 
             def cpu_frame():
+                f.dirty = None
                 c.render(f, cam)
-                c.read_image()
+                imgs["cpu"] = c.read_image()
             row["cpu_ms"], row["cpu_all_ms"] = median_ms(cpu_frame, max(1, min(k, 3)), warm=0)
-            row["speedup_vs_cpu"] = row["cpu_ms"] / row["wgpu_ms"]
+            row["speedup_vs_cpu"] = row["cpu_ms"] / row["compute_ms"]
+            for m in METHODS:
+                row[f"{m}_image_error_vs_cpu"] = image_error(imgs[m], imgs["cpu"])
         rows.append(row)
-        print(f"  {n:>9,}: wgpu {row['wgpu_ms']:8.1f} ms  floor {row['floor_ms']:8.1f} ms  "
-              f"x{row['ratio_vs_floor']:.2f}  cpu {row.get('cpu_ms', float('nan')):8.1f} ms", flush=True)
+        print(f"  {n:>9,}: quads {row['quads_ms']:8.1f} ms  compute {row['compute_ms']:8.1f} ms  floor "
+              f"{row['floor_ms']:8.1f} ms  floor/compute x{row['floor_over_compute_per_frame_median']:.2f}  "
+              f"quads/compute x{row['quads_over_compute_per_frame_median']:.2f}  "
+              f"err vs cpu {row.get('compute_image_error_vs_cpu', float('nan')):.2e}", flush=True)
         del f
     return {"scene": scene, "size": [W, H], "adapter": adapter.summary, "adapter_choice": why,
             "platform": platform.platform(), "cpu_count": os.cpu_count(), "rows": rows, **extra}
 
 
+def _race(adapter, f: FrameInput, cam: Camera, cfg: RenderConfig, n: int, reps: int) -> dict[str, float]:
+    """Median frame ms of both methods, interleaved (ABBA), after one warm-up frame each."""
+    rs = {m: WgpuRenderer(replace(cfg, raster=m), n, ["intensity"], adapter=adapter) for m in METHODS}
+    ts: dict[str, list[float]] = {m: [] for m in METHODS}
+    try:
+        for i in range(reps + 1):
+            for m in (METHODS if i % 2 == 0 else METHODS[::-1]):
+                t0 = time.perf_counter()
+                rs[m].render(f, cam)
+                rs[m].read_image()
+                if i:
+                    ts[m].append((time.perf_counter() - t0) * 1e3)
+    finally:
+        for r in rs.values():
+            r.close()
+    return {f"{m}_ms": float(np.median(v)) for m, v in ts.items()}
+
+
+def raster_crossover(n: int, sizes_px: list[float], counts: list[int], reps: int) -> dict[str, Any]:
+    """Compute vs quads frame time (interleaved, medians) over point sizes at n points and over
+    point counts at 2 px: ``max_compute_point_px`` = the largest size up to which compute was
+    faster at every size; ``min_compute_points_per_pixel`` = the smallest count from which it
+    was faster at every larger count, per target pixel (its resolve pass is per pixel)."""
+    adapter, why = select_adapter()
+    base, inten0, scene = base_cloud()
+    world, inten = tiled(base, inten0, n)
+    f = make_frame(world, inten)
+    cam = camera_for(world)
+    del world
+    out, best, ok = [], 0.0, True
+    for s in sizes_px:
+        cfg = RenderConfig(size=[W, H], color_by="intensity", point_size=float(s), gpu_timestamps=False)
+        row = {"point_px": s, **_race(adapter, f, cam, cfg, n, reps)}
+        row["quads_over_compute"] = row["quads_ms"] / row["compute_ms"]
+        out.append(row)
+        print(f"  {n:,} points, {s:5.1f} px: quads {row['quads_ms']:8.1f} ms  compute {row['compute_ms']:8.1f} ms  "
+              f"x{row['quads_over_compute']:.2f}", flush=True)
+        if ok and row["compute_ms"] < row["quads_ms"]:
+            best = float(s)
+        else:
+            ok = False
+    by_count = []
+    cfg = RenderConfig(size=[W, H], color_by="intensity", point_size=2.0, gpu_timestamps=False)
+    for c in counts:
+        w2, i2 = tiled(base, inten0, c)
+        fc = make_frame(w2, i2)
+        row = {"points": c, **_race(adapter, fc, camera_for(w2), cfg, c, reps)}
+        row["quads_over_compute"] = row["quads_ms"] / row["compute_ms"]
+        by_count.append(row)
+        print(f"  {c:>9,} points, 2 px: quads {row['quads_ms']:8.1f} ms  compute {row['compute_ms']:8.1f} ms  "
+              f"x{row['quads_over_compute']:.2f}", flush=True)
+    from_n = counts[-1] * 2
+    for row in reversed(by_count):
+        if row["compute_ms"] < row["quads_ms"]:
+            from_n = row["points"]
+        else:
+            break
+    return {"points": n, "adapter": adapter.summary, "scene": scene, "size": [W, H], "by_point_px": out,
+            "by_points": by_count, "max_compute_point_px": best, "min_compute_points": from_n,
+            "min_compute_points_per_pixel": round(from_n / (W * H), 6),
+            "measured_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+            "platform": platform.platform(), "cpu_count": os.cpu_count()}
+
+
 def table(res: dict[str, Any]) -> str:
     out = [f"render benchmark — {res['adapter']} — {res['scene']} — {W}x{H}, 2 px squares, turbo by intensity",
-           f"{'points':>10} {'wgpu ms':>9} {'floor ms':>9} {'wgpu/floor':>10} {'cpu ms':>9} {'cpu/wgpu':>9} "
-           f"{'upload B/tick':>13} {'gpu compute':>11} {'gpu draw':>9}"]
+           f"{'points':>10} {'floor ms':>9} {'quads ms':>9} {'compute ms':>10} {'floor/comp':>10} "
+           f"{'quads/comp':>10} {'cpu ms':>8} {'err quads':>9} {'err comp':>9} {'gpu raster':>10} {'resolve':>8}"]
     for r in res["rows"]:
-        g = r.get("wgpu_gpu_ms", {})
-        out.append(f"{r['points']:>10,} {r['wgpu_ms']:>9.1f} {r['floor_ms']:>9.1f} {r['ratio_vs_floor']:>10.2f} "
-                   f"{r.get('cpu_ms', float('nan')):>9.1f} {r.get('speedup_vs_cpu', float('nan')):>9.2f} "
-                   f"{r['wgpu_upload_bytes_1pct']:>13,} {g.get('gpu_compute', float('nan')):>11.1f} "
-                   f"{g.get('gpu_draw', float('nan')):>9.1f}")
+        g = r.get("compute_gpu_ms", {})
+        out.append(f"{r['points']:>10,} {r['floor_ms']:>9.1f} {r['quads_ms']:>9.1f} {r['compute_ms']:>10.1f} "
+                   f"{r['floor_over_compute_per_frame_median']:>10.2f} {r['quads_over_compute_per_frame_median']:>10.2f} "
+                   f"{r.get('cpu_ms', float('nan')):>8.1f} {r.get('quads_image_error_vs_cpu', float('nan')):>9.1e} "
+                   f"{r.get('compute_image_error_vs_cpu', float('nan')):>9.1e} "
+                   f"{g.get('gpu_compute', float('nan')):>10.1f} {g.get('gpu_draw', float('nan')):>8.1f}")
     for u in res.get("upload", []):
         out.append(f"upload at {u['points']:,} points, 1% changed per tick: incremental {u['incremental_bytes']:,} B "
                    f"in {u['incremental_upload_ms']:.2f} ms ({u['incremental_frame_ms']:.1f} ms/frame) vs full "
                    f"{u['full_bytes']:,} B in {u['full_upload_ms']:.2f} ms ({u['full_frame_ms']:.1f} ms/frame); "
                    f"bytes ratio {u['bytes_ratio']:.4f}")
     for p in res.get("pick", []):
-        out.append(f"pick at {p['points']:,} points (radius {p['radius']} px): median {p['pick_ms']:.1f} ms")
+        out.append(f"pick at {p['points']:,} points (radius {p['radius']} px): compute {p['compute_pick_ms']:.1f} ms, "
+                   f"quads {p['quads_pick_ms']:.1f} ms (same answer {p['same_answer']})")
     return "\n".join(out)
 
 
@@ -298,14 +402,15 @@ def chart(res: dict[str, Any], path: Path) -> None:
     rows = res["rows"]
     n = [r["points"] for r in rows]
     fig, ax = plt.subplots(figsize=(7, 4.5))
-    ax.loglog(n, [r["wgpu_ms"] for r in rows], "o-", label="wgpu tier (cull + colour + indirect draw)")
-    ax.loglog(n, [r["floor_ms"] for r in rows], "s--", label="bare-wgpu floor (2 px quads)")
+    ax.loglog(n, [r["compute_ms"] for r in rows], "o-", label="wgpu tier, compute method (fused tests + atomics)")
+    ax.loglog(n, [r["quads_ms"] for r in rows], "d-", label="wgpu tier, quads method (cull + compaction + draw)")
+    ax.loglog(n, [r["floor_ms"] for r in rows], "s--", label="bare-wgpu floor (2 px instanced quads)")
     cpu = [(r["points"], r["cpu_ms"]) for r in rows if "cpu_ms" in r]
     if cpu:
         ax.loglog(*zip(*cpu), "^-", label="cpu tier (numpy)")
     ax.set_xlabel("points")
     ax.set_ylabel("median frame time, ms")
-    ax.set_title(f"frame = upload 1% + cull + draw + readback, {W}x{H}\n{res['adapter']}", fontsize=9)
+    ax.set_title(f"frame = upload 1% + cull + raster + readback, {W}x{H}\n{res['adapter']}", fontsize=9)
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
@@ -319,7 +424,18 @@ def main(argv: Optional[list[str]] = None) -> int:
     ap.add_argument("--sizes", type=int, nargs="*", default=None)
     ap.add_argument("--cpu-max", type=int, default=1_000_000, help="largest size timed on the cpu tier")
     ap.add_argument("--out", default=str(RESULTS / "render.json"))
+    ap.add_argument("--raster-crossover", action="store_true",
+                    help="only measure compute vs quads over point sizes at 1M points and write "
+                         "bench/results/raster_crossover.json (read by render.raster: auto)")
     a = ap.parse_args(argv)
+    if a.raster_crossover:
+        res = raster_crossover(1_000_000, [1, 2, 3, 4, 6, 8, 12, 16, 24, 32],
+                               [1_000, 3_000, 10_000, 30_000, 100_000, 300_000], 5)
+        path = RESULTS / "raster_crossover.json"
+        path.write_text(json.dumps(res, indent=2))
+        print(f"max_compute_point_px = {res['max_compute_point_px']:g}, min_compute_points = "
+              f"{res['min_compute_points']:,} ({res['min_compute_points_per_pixel']:g} per pixel); wrote {path}")
+        return 0
     sizes = a.sizes or ([10_000, 100_000, 1_000_000] if a.quick else [10_000, 100_000, 1_000_000, 4_000_000])
     reps = {10_000: 15, 100_000: 9, 1_000_000: 5, 4_000_000: 3}
     if a.quick:

@@ -1,6 +1,7 @@
 """Speed versus accuracy of the render tiers and their point-saving methods, and the cpu crossover.
 
-Reference: the cpu tier drawing every point (float64 projection). For each scene, tier and
+Reference: the cpu tier drawing every point (float64 projection). For each scene, tier (the
+wgpu tier once per raster method: ``wgpu-quads``, ``wgpu-compute``) and
 method (full; LOD stride 2/4/8; importance sampling at budgets of 5/10/25/50/100%; time
 windows keeping the newest 10/25/50%) it measures the median frame time and the image
 error against the reference: PSNR (RGB), the fraction of pixels that differ, and the IoU
@@ -135,7 +136,11 @@ def make_tier(tier: str, cfg: RenderConfig, capacity: int) -> Optional[Renderer]
         if tier == "gl":
             from pointflow.render.gl import GlRenderer
             return GlRenderer(cfg, capacity, ["intensity"])
+        from dataclasses import replace
+
         from pointflow.render.wgpu_tier import WgpuRenderer
+        if tier.startswith("wgpu-"):  # wgpu-quads / wgpu-compute: one raster method
+            cfg = replace(cfg, raster=tier[5:])
         return WgpuRenderer(cfg, capacity, ["intensity"])
     except Exception as exc:  # noqa: BLE001 - report and go on with the other tiers
         print(f"  [{tier}] unavailable: {type(exc).__name__}: {exc}", file=sys.stderr)
@@ -205,7 +210,7 @@ def accuracy_runs(scenes, tiers, size, repeats) -> list[dict]:
         ref = ref_r.read_image()
         bg = ref[0, 0].copy()
         span = float(frame.t_ingest_ms.max() - frame.t_ingest_ms.min())
-        print(f"{'tier':5} {'method':12} {'ms':>8} {'x ref':>6} {'PSNR dB':>8} {'diff %':>7} {'IoU':>6}")
+        print(f"{'tier':12} {'method':12} {'ms':>8} {'x ref':>6} {'PSNR dB':>8} {'diff %':>7} {'IoU':>6}")
         for tier in tiers:
             full_ms = None
             for fam, label, frac, over, budget in methods(n, frame.now_ms, span):
@@ -229,7 +234,7 @@ def accuracy_runs(scenes, tiers, size, repeats) -> list[dict]:
                 full_ms = full_ms or ms
                 rows.append({"scene": key, "scene_desc": desc, "points": n, "tier": tier, "family": fam,
                              "method": label, "fraction": frac, "frame_ms": ms, **e})
-                print(f"{tier:5} {label:12} {ms:8.1f} {ms / full_ms:6.2f} {e['psnr_db']:8.2f} "
+                print(f"{tier:12} {label:12} {ms:8.1f} {ms / full_ms:6.2f} {e['psnr_db']:8.2f} "
                       f"{100 * e['diff_fraction']:7.2f} {e['coverage_iou']:6.3f}")
     return rows
 
@@ -299,8 +304,8 @@ def chart(rows: list[dict], path: Path) -> None:
     fig, axs = plt.subplots(nrows, cols, figsize=(7.0 * cols, 4.6 * nrows), squeeze=False)
     axes = [list(axs.ravel())]
     colours = {"lod": "tab:blue", "importance": "tab:orange", "time window": "tab:green", "full": "black"}
-    markers = {"cpu": "o", "gl": "s", "wgpu": "^"}
-    styles = {"cpu": "-", "gl": "--", "wgpu": ":"}
+    markers = {"cpu": "o", "gl": "s", "wgpu": "^", "wgpu-quads": "^", "wgpu-compute": "D"}
+    styles = {"cpu": "-", "gl": "--", "wgpu": ":", "wgpu-quads": ":", "wgpu-compute": "-."}
     for ax, sc in zip(axes[0], scenes):
         rs = [r for r in rows if r["scene"] == sc]
         for tier in dict.fromkeys(r["tier"] for r in rs):
@@ -336,7 +341,8 @@ def chart(rows: list[dict], path: Path) -> None:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="fewer scenes and sizes")
-    ap.add_argument("--tiers", default="cpu,gl,wgpu")
+    ap.add_argument("--tiers", default="cpu,gl,wgpu-quads,wgpu-compute",
+                    help="cpu, gl, wgpu (its auto raster method), wgpu-quads, wgpu-compute")
     ap.add_argument("--size", default="960x540")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--install", action="store_true",

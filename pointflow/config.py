@@ -129,6 +129,9 @@ class RenderConfig:
     #: Below this many points ``auto`` uses the cpu tier; ``auto`` reads the measured value.
     cpu_crossover_points: Union[Literal["auto"], int] = "auto"
     gpu_timestamps: bool = True
+    #: wgpu tier: ``compute`` (atomic per-pixel keys), ``quads`` (instanced-quad draw) or
+    #: ``auto`` (compute where it measured faster; see docs/render-wgpu.md).
+    raster: Literal["auto", "compute", "quads"] = "auto"
 
 
 @dataclass

@@ -127,6 +127,8 @@ def _try(tiers: list[str], cfg: RenderConfig, capacity: int, channels: list[str]
             first = first or (tier, exc)
             continue
         lines.append(f"{tier}: chosen")
+        if getattr(r, "raster", None):  # the wgpu tier's raster method and why (render.raster)
+            lines.append(f"{tier}: raster method {r.raster} ({getattr(r, '_raster_why', '')})")
         for line in lines:
             log.info("tier selection: %s", line)
         return r

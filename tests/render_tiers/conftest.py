@@ -1,6 +1,7 @@
 """Fixtures for the render tier tests: every tier that can run here, and a ring → slab path."""
 from __future__ import annotations
 
+import dataclasses
 import os
 import sys
 import uuid
@@ -17,7 +18,8 @@ os.makedirs(os.environ["XDG_RUNTIME_DIR"], exist_ok=True)
 
 from gpu_util import require_adapter, require_egl  # noqa: E402
 
-TIERS = ["cpu", "gl", "wgpu"]
+#: the wgpu tier runs once per raster method (render.raster)
+TIERS = ["cpu", "gl", "wgpu-quads", "wgpu-compute"]
 
 
 def tier_class(tier: str):
@@ -47,6 +49,8 @@ def make(tier):
     cls = tier_class(tier)
 
     def _make(cfg, capacity, channels=("intensity",)):
+        if tier.startswith("wgpu-") and cfg.raster == "auto":
+            cfg = dataclasses.replace(cfg, raster=tier[5:])
         r = cls(cfg, capacity, list(channels))
         made.append(r)
         return r

@@ -10,8 +10,10 @@ from .helpers import cfg, frame
 pytestmark = pytest.mark.gpu
 
 
-@pytest.fixture
+@pytest.fixture(scope="module")
 def display():
+    # one display for every raster method: glfw keeps its X connection across windows, and
+    # a second private Xvfb in the same process made Xlib abort (BadRequest on a stale one)
     with xvfb_display() as d:
         yield d
 

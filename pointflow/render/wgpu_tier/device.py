@@ -59,19 +59,23 @@ def select_adapter(power_preference: str = "high-performance") -> tuple[Optional
     return best, f"{best.summary} ({power_preference}; {len(adapters)} adapter(s) found)"
 
 
-def request_device(adapter: Any, want_timestamps: bool) -> tuple[Any, dict[str, Any]]:
-    """Device with the adapter's storage/buffer limits and timestamp queries when offered."""
+def request_device(adapter: Any, want_timestamps: bool,
+                   optional_features: tuple[str, ...] = ()) -> tuple[Any, dict[str, Any]]:
+    """Device with the adapter's storage/buffer limits, timestamp queries when offered, and
+    those of ``optional_features`` the adapter has (all or none: they are used together)."""
     feats = []
     ts = bool(want_timestamps and "timestamp-query" in adapter.features)
     if ts:
         feats.append("timestamp-query")
+    extra = list(optional_features) if all(f in adapter.features for f in optional_features) else []
+    feats += extra
     lim = adapter.limits
     keys = ("max-storage-buffer-binding-size", "max-buffer-size", "max-compute-workgroups-per-dimension",
             "max-storage-buffers-per-shader-stage", "max-texture-dimension-2d")
     required = {k: lim[k] for k in keys if k in lim}
     device = adapter.request_device_sync(required_features=feats, required_limits=required,
                                          label="pointflow-wgpu")
-    return device, {"timestamps": ts, "limits": {k: int(device.limits[k]) for k in keys if k in device.limits}}
+    return device, {"timestamps": ts, "features": extra, "limits": {k: int(device.limits[k]) for k in keys if k in device.limits}}
 
 
 def adapter_summary(adapter: Any) -> dict[str, Any]:

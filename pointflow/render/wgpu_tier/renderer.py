@@ -35,6 +35,7 @@ from .. import colormap
 from ..base import FrameInput, FrameStats, Renderer, RenderError
 from ..camera import Camera
 from . import shaders
+from .compute_raster import KEY64_FEATURES, ComputeRaster, choose_raster
 from .device import adapter_summary, request_device, select_adapter
 from .reference import budget_seed, seed_hash
 
@@ -92,7 +93,8 @@ class WgpuRenderer(Renderer):
     tier = "wgpu"
 
     def __init__(self, cfg: RenderConfig, capacity: int, channels: list[str], *,
-                 adapter: Any = None, naive_float32: Optional[bool] = None):
+                 adapter: Any = None, naive_float32: Optional[bool] = None,
+                 key64: Optional[bool] = None, max_groups: Optional[int] = None):
         super().__init__(cfg, capacity, channels)
         import wgpu
         self._wgpu = wgpu
@@ -104,8 +106,18 @@ class WgpuRenderer(Renderer):
             adapter, why = select_adapter(cfg.power_preference)
             if adapter is None:
                 raise RenderError(f"wgpu tier unavailable: {why}")
+        lim = adapter.limits
         try:
-            self.device, dinfo = request_device(adapter, bool(cfg.gpu_timestamps))
+            self.raster, self._raster_why = choose_raster(
+                cfg, adapter.features, self.width * self.height * 8,
+                int(min(lim.get("max-storage-buffer-binding-size", 2 ** 27), lim.get("max-buffer-size", 2 ** 28))),
+                int(capacity))
+        except ValueError as e:
+            raise RenderError(str(e)) from e
+        # key64=False (tests) forces the two-pass 32-bit variant where 64-bit atomics exist
+        want64 = KEY64_FEATURES if self.raster == "compute" and key64 is not False else ()
+        try:
+            self.device, dinfo = request_device(adapter, bool(cfg.gpu_timestamps), want64)
         except Exception as e:
             raise RenderError(f"wgpu device request failed on {adapter.summary}: {e}") from e
         self.adapter = adapter
@@ -113,6 +125,9 @@ class WgpuRenderer(Renderer):
         self.queue = self.device.queue
         self._ts = dinfo["timestamps"]
         self._limits = dinfo["limits"]
+        self._key64 = bool(dinfo["features"])
+        self._max_groups = int(max_groups or self._limits.get("max-compute-workgroups-per-dimension", _MAX_GROUPS))
+        self._compute: Optional[ComputeRaster] = None
         self._caps: list[str] = []
         self.render_capacity = self._cap_capacity(int(capacity))
         self._setup_colour(channels)
@@ -136,6 +151,8 @@ class WgpuRenderer(Renderer):
         log.info("wgpu tier on %s (%s); capacity %d%s; timestamps %s", adapter.summary, why,
                  self.render_capacity, f" (capped: {'; '.join(self._caps)})" if self._caps else "",
                  "on" if self._ts else "off")
+        log.info("wgpu tier raster method: %s (%s)%s", self.raster, self._raster_why,
+                 f"; keys: {self.key_variant}" if self._compute else "")
 
     # ------------------------------------------------------------------ setup
     def _cap_capacity(self, capacity: int) -> int:
@@ -148,7 +165,8 @@ class WgpuRenderer(Renderer):
             self._caps.append(f"ring capacity {cap} > {max_pos} points: positions would need {cap * 12} bytes, "
                               f"device allows {min(per_binding, per_buffer)} per storage buffer")
             cap = max_pos
-        max_dispatch = int(lim.get("max-compute-workgroups-per-dimension", _MAX_GROUPS)) ** 2 * 256
+        per_group = 256 * 16 if self.raster == "compute" else 256
+        max_dispatch = int(lim.get("max-compute-workgroups-per-dimension", _MAX_GROUPS)) ** 2 * per_group
         if cap > max_dispatch:
             self._caps.append(f"capped to {max_dispatch} points by the compute dispatch limit")
             cap = max_dispatch
@@ -190,12 +208,14 @@ class WgpuRenderer(Renderer):
                 "imp": self._buf(cap * 4 if self._need_imp else 16, sto, f"imp{s}"),
                 "col": self._buf(cap * 4 if self._cmode in (C_RGB, C_SCALAR) else 16, sto, f"col{s}"),
             })
-        # compacted survivors: (slot, packed RGBA8 colour) pairs
-        self._idx1 = self._buf(cap * 8, BU.STORAGE | BU.COPY_SRC, "idx1")
-        self._clip1 = self._buf(cap * 16, BU.STORAGE, "clip1")  # survivors' clip positions
-        groups = (cap + 255) // 256
-        self._flags = self._buf(groups * 256 * 4, BU.STORAGE, "keep-flags")   # per logical index
-        self._wgc = self._buf((groups + _EMIT_K) * 4, BU.STORAGE, "workgroup-counts")  # -> offsets (scan)
+        self._idx1 = self._clip1 = self._flags = self._wgc = None
+        if self.raster == "quads":
+            # compacted survivors: (slot, packed RGBA8 colour) pairs
+            self._idx1 = self._buf(cap * 8, BU.STORAGE | BU.COPY_SRC, "idx1")
+            self._clip1 = self._buf(cap * 16, BU.STORAGE, "clip1")  # survivors' clip positions
+            groups = (cap + 255) // 256
+            self._flags = self._buf(groups * 256 * 4, BU.STORAGE, "keep-flags")   # per logical index
+            self._wgc = self._buf((groups + _EMIT_K) * 4, BU.STORAGE, "workgroup-counts")  # -> offsets (scan)
         self._idx2: Optional[Any] = None
         self._clip2: Optional[Any] = None
         self._state = self._buf(64, BU.STORAGE | BU.INDIRECT | BU.COPY_DST | BU.COPY_SRC, "state")
@@ -207,6 +227,31 @@ class WgpuRenderer(Renderer):
         self._state_reset = np.array([6, 0, 0, 0, 0, 1, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0], np.uint32)
         self._rng_reset = np.array([0xFFFFFFFF, 0], np.uint32)
 
+        self._round = self.cfg.point_shape == "round"
+        self._world = self.cfg.point_size_space == "world"
+        self._p_pick = None
+        TU = wgpu.TextureUsage
+        w, h = self.width, self.height
+        self._color_tex = self._depth_tex = None
+        self._row_bytes = (w * 4 + 255) // 256 * 256
+        self._readback = self._buf(self._row_bytes * h, BU.MAP_READ | BU.COPY_DST, "readback")
+        self._pick_tex: Optional[dict[str, Any]] = None
+        self._fence = [self._buf(64, BU.MAP_READ | BU.COPY_DST, f"fence{s}") for s in range(2)]
+        if self._ts:
+            self._qs = dev.create_query_set(type=wgpu.QueryType.timestamp, count=4)
+            self._ts_resolve = self._buf(32, BU.QUERY_RESOLVE | BU.COPY_SRC, "ts-resolve")
+            self._ts_read = [self._buf(32, BU.MAP_READ | BU.COPY_DST, f"ts-read{s}") for s in range(2)]
+        self._bg_cache: dict[Any, Any] = {}
+        if self.raster == "compute":
+            self._compute = ComputeRaster(self, self._key64, self._max_groups)
+            return
+        self._create_quads()
+
+    def _create_quads(self) -> None:
+        """Pipelines and targets of the quads method (cull + compaction + indirect draw)."""
+        wgpu, dev = self._wgpu, self.device
+        TU = wgpu.TextureUsage
+        w, h = self.width, self.height
         SS = wgpu.ShaderStage
         ro = {"type": wgpu.BufferBindingType.read_only_storage}
         rw = {"type": wgpu.BufferBindingType.storage}
@@ -224,8 +269,6 @@ class WgpuRenderer(Renderer):
                              {2: SS.VERTEX | SS.FRAGMENT, 3: SS.VERTEX | SS.FRAGMENT})
         cull_mod = dev.create_shader_module(code=shaders.cull_source(self.naive_float32), label="cull")
         thin_mod = dev.create_shader_module(code=shaders.THIN, label="thin")
-        self._round = self.cfg.point_shape == "round"
-        self._world = self.cfg.point_size_space == "world"
         pl_cull = dev.create_pipeline_layout(bind_group_layouts=[self._bgl_cull])
         pl_thin = dev.create_pipeline_layout(bind_group_layouts=[self._bgl_thin])
         self._pl_draw = dev.create_pipeline_layout(bind_group_layouts=[self._bgl_draw])
@@ -241,24 +284,12 @@ class WgpuRenderer(Renderer):
         self._p_thin_emit = cpipe(pl_thin, thin_mod, "thin_emit")
         self._p_draw_cache: dict[bool, Any] = {}
         self._draw_pipeline(False)
-        self._p_pick = None
-        TU = wgpu.TextureUsage
-        w, h = self.width, self.height
         self._color_tex = dev.create_texture(size=(w, h, 1), format=wgpu.TextureFormat.rgba8unorm,
                                              usage=TU.RENDER_ATTACHMENT | TU.COPY_SRC, label="colour")
+        self._color_view = self._color_tex.create_view()
         self._depth_tex = dev.create_texture(size=(w, h, 1), format=wgpu.TextureFormat.depth32float,
                                              usage=TU.RENDER_ATTACHMENT, label="depth")
-        self._color_view = self._color_tex.create_view()
         self._depth_view = self._depth_tex.create_view()
-        self._row_bytes = (w * 4 + 255) // 256 * 256
-        self._readback = self._buf(self._row_bytes * h, BU.MAP_READ | BU.COPY_DST, "readback")
-        self._pick_tex: Optional[dict[str, Any]] = None
-        self._fence = [self._buf(64, BU.MAP_READ | BU.COPY_DST, f"fence{s}") for s in range(2)]
-        if self._ts:
-            self._qs = dev.create_query_set(type=wgpu.QueryType.timestamp, count=4)
-            self._ts_resolve = self._buf(32, BU.QUERY_RESOLVE | BU.COPY_SRC, "ts-resolve")
-            self._ts_read = [self._buf(32, BU.MAP_READ | BU.COPY_DST, f"ts-read{s}") for s in range(2)]
-        self._bg_cache: dict[Any, Any] = {}
 
     def _draw_pipeline(self, colour_in_vs: bool) -> Any:
         """The draw pipeline variant (colour from the cull, or computed per vertex)."""
@@ -503,10 +534,16 @@ class WgpuRenderer(Renderer):
         n_slots = min(self.render_capacity, int(frame.capacity))
         # one thread per logical index (oldest first); a capped ring renders its oldest slots
         n_threads = min(int(frame.size), int(frame.capacity), self.render_capacity)
-        groups = max(1, math.ceil(n_threads / 256))
-        gx = min(groups, _MAX_GROUPS)
-        gy = math.ceil(groups / gx)
-        budget = frame.budget is not None
+        if self._compute is not None:
+            groups = self._compute.groups_for(n_threads)
+            gx, gy = self._compute.grid(groups)
+            # a budget at or above the occupied slots can never bite: no budget passes
+            budget = frame.budget is not None and int(frame.budget) < n_threads
+        else:
+            groups = max(1, math.ceil(n_threads / 256))
+            gx = min(groups, self._max_groups)
+            gy = math.ceil(groups / gx)
+            budget = frame.budget is not None
         P = self._params_for(frame, camera, n_slots, gx, groups)
         q = self.queue
         q.write_buffer(self._params, 0, P)
@@ -514,8 +551,42 @@ class WgpuRenderer(Renderer):
         q.write_buffer(self._rng, 0, self._rng_reset)
         t_up = time.perf_counter()
 
-        g = self._groups(s, budget)
         enc = self.device.create_command_encoder()
+        if self._compute is not None:
+            fl = int(P.view(np.uint32)[_P_FLAGS])
+            self._compute.set_variant(bool(fl & F_WINDOW), int(P.view(np.uint32)[_P_LOD]) > 1,
+                                      bool(fl & F_IMPORTANCE), bool(fl & F_RANGE_AUTO))
+            self._compute.encode(enc, s, groups, budget, {"qs": self._qs} if self._ts else None,
+                                 bool(int(P.view(np.uint32)[_P_FLAGS]) & F_RANGE_AUTO))
+        else:
+            self._encode_quads(enc, s, budget, gx, gy, groups, P)
+        if self._ts:
+            enc.resolve_query_set(self._qs, 0, 4, self._ts_resolve, 0)
+            enc.copy_buffer_to_buffer(self._ts_resolve, 0, self._ts_read[s], 0, 32)
+            self._ts_used[s] = True
+        # the fence doubles as the (lagged) counter readout: copied now, read once the GPU is done
+        enc.copy_buffer_to_buffer(self._state, 0, self._fence[s], 0, 64)
+        q.submit([enc.finish()])
+        self._done[s] = True
+        t_sub = time.perf_counter()
+        self._last = {"set": s, "budget": budget, "capacity": int(frame.capacity), "groups": groups,
+                      "size": n_threads, "budget_n": frame.budget,
+                      "head": int(frame.head) % max(int(frame.capacity), 1)}
+        self._frame_no += 1
+        timings = {"wait": (t_wait - t0) * 1e3, "upload": (t_up - t_wait) * 1e3,
+                   "encode_submit": (t_sub - t_up) * 1e3, "cpu_total": (t_sub - t0) * 1e3}
+        timings.update(self._gpu_ms)
+        stats = FrameStats(drawn=None, timings_ms=timings, uploaded_bytes=uploaded,
+                           extra={"buffer_set": s, "render_capacity": self.render_capacity, "raster": self.raster,
+                                  "gpu_timings_lag_frames": 2 if self._ts else None})
+        self._stats[s] = stats  # drawn/removed_nonfinite filled in once the GPU is done
+        self._last["stats"] = stats
+        return stats
+
+    def _encode_quads(self, enc: Any, s: int, budget: bool, gx: int, gy: int, groups: int, P: np.ndarray) -> None:
+        """Record the quads method: cull + compaction (+ budget thinning), indirect draw."""
+        wgpu = self._wgpu
+        g = self._groups(s, budget)
         cpass_kw, rpass_kw = {}, {}
         if self._ts:
             cpass_kw["timestamp_writes"] = {"query_set": self._qs, "beginning_of_pass_write_index": 0,
@@ -556,36 +627,19 @@ class WgpuRenderer(Renderer):
         rp.set_bind_group(0, g["draw"])
         rp.draw_indirect(self._state, 0)
         rp.end()
-        if self._ts:
-            enc.resolve_query_set(self._qs, 0, 4, self._ts_resolve, 0)
-            enc.copy_buffer_to_buffer(self._ts_resolve, 0, self._ts_read[s], 0, 32)
-            self._ts_used[s] = True
-        # the fence doubles as the (lagged) counter readout: copied now, read once the GPU is done
-        enc.copy_buffer_to_buffer(self._state, 0, self._fence[s], 0, 64)
-        q.submit([enc.finish()])
-        self._done[s] = True
-        t_sub = time.perf_counter()
-        self._last = {"set": s, "budget": budget, "capacity": int(frame.capacity)}
-        self._frame_no += 1
-        timings = {"wait": (t_wait - t0) * 1e3, "upload": (t_up - t_wait) * 1e3,
-                   "encode_submit": (t_sub - t_up) * 1e3, "cpu_total": (t_sub - t0) * 1e3}
-        timings.update(self._gpu_ms)
-        stats = FrameStats(drawn=None, timings_ms=timings, uploaded_bytes=uploaded,
-                           extra={"buffer_set": s, "render_capacity": self.render_capacity,
-                                  "gpu_timings_lag_frames": 2 if self._ts else None})
-        self._stats[s] = stats  # drawn/removed_nonfinite filled in once the GPU is done
-        self._last["stats"] = stats
-        return stats
 
     # ------------------------------------------------------------------ output
     def read_image(self) -> np.ndarray:
         """(h, w, 4) uint8 of the last frame (waits for the GPU)."""
         wgpu = self._wgpu
         enc = self.device.create_command_encoder()
-        enc.copy_texture_to_buffer({"texture": self._color_tex, "mip_level": 0, "origin": (0, 0, 0)},
-                                   {"buffer": self._readback, "offset": 0, "bytes_per_row": self._row_bytes,
-                                    "rows_per_image": self.height},
-                                   (self.width, self.height, 1))
+        if self._compute is not None:  # the resolve pass wrote the image with the readback's pitch
+            enc.copy_buffer_to_buffer(self._compute.img, 0, self._readback, 0, self._readback.size)
+        else:
+            enc.copy_texture_to_buffer({"texture": self._color_tex, "mip_level": 0, "origin": (0, 0, 0)},
+                                       {"buffer": self._readback, "offset": 0, "bytes_per_row": self._row_bytes,
+                                        "rows_per_image": self.height},
+                                       (self.width, self.height, 1))
         self.queue.submit([enc.finish()])
         self._readback.map_sync(wgpu.MapMode.READ)
         if self._last is not None and self._done[self._last["set"]]:
@@ -608,13 +662,22 @@ class WgpuRenderer(Renderer):
         return self._last.get("stats")
 
     def debug_counts(self) -> dict[str, int]:
-        """Tests only (syncs the GPU): survivors of the cull, after the budget, and the draw count."""
+        """Tests only (syncs the GPU): survivors of the cull, after the budget, and the draw count
+        (compute: ``instance_count`` is the raster pass's count of points written)."""
         st = np.frombuffer(self.queue.read_buffer(self._state), np.uint32)
         return {"culled": int(st[8]), "thinned": int(st[9]), "instance_count": int(st[1]),
                 "vertex_count": int(st[0])}
 
     def debug_survivors(self) -> np.ndarray:
         """Tests only (syncs the GPU): sorted slots the last frame draws."""
+        if self._compute is not None:
+            L = self._last
+            if L is None:
+                return np.zeros(0, np.int64)
+            logical = self._compute.debug_keep(L["set"], L["groups"], L["size"], L["budget"])
+            if L["budget"]:
+                logical = logical[:max(int(L["budget_n"]), 0)]
+            return np.sort((L["head"] + logical.astype(np.int64)) % max(L["capacity"], 1))
         c = self.debug_counts()
         buf = self._idx2 if self._last and self._last["budget"] else self._idx1
         n = c["instance_count"]
@@ -668,9 +731,12 @@ class WgpuRenderer(Renderer):
         y0, y1 = max(int(math.floor(py)) - ri, 0), min(int(math.floor(py)) + ri + 1, self.height)
         if x1 <= x0 or y1 <= y0:
             return None
+        bw, bh = x1 - x0, y1 - y0
+        if self._compute is not None:
+            ids, attrs = self._compute.pick_block(self._last["set"], x0, y0, bw, bh)
+            return resolve_pick(ids, attrs, x0, y0, px, py, r, self.cfg.pick_strategy)
         self._ensure_pick()
         T = self._pick_tex
-        bw, bh = x1 - x0, y1 - y0
         g = self._groups(self._last["set"], self._last["budget"])
         enc = self.device.create_command_encoder()
         rp = enc.begin_render_pass(
@@ -713,7 +779,13 @@ class WgpuRenderer(Renderer):
                 "backend": self.adapter.info.get("backend_type", ""), "limits": dict(self._limits),
                 "ring_capacity": self.capacity, "render_capacity": self.render_capacity,
                 "caps": list(self._caps), "timestamps": self._ts, "naive_float32": self.naive_float32,
-                "size": [self.width, self.height]}
+                "size": [self.width, self.height], "raster": self.raster, "raster_choice": self._raster_why,
+                "compute_keys": self.key_variant if self._compute else None}
+
+    @property
+    def key_variant(self) -> str:
+        """The compute method's depth-key variant (deterministic either way)."""
+        return "64-bit atomicMax" if self._key64 else "2x32-bit (depth pass, then index pass)"
 
     def close(self) -> None:
         if self._closed:
@@ -743,6 +815,8 @@ class WgpuRenderer(Renderer):
                 except Exception:
                     pass
         self._bg_cache.clear()
+        if self._compute is not None:
+            self._compute.close()
         self._pick_tex = None
         try:
             self.device.destroy()

@@ -1,0 +1,83 @@
+"""Frames per second of the full pipeline (``configs/demo.yaml``, 1M-point ring) per raster method.
+
+Runs the real pipeline (synthetic lidar 100k points/scan at 10 scans/s → ingest → ring →
+cadence → render) once per method and round, alternating ``render.raster: quads`` and
+``compute`` so both see the same machine load; after a warm-up that fills the 1M ring, the
+render stage's frames are counted between two stats samples. PNG output is off (it is not
+part of the render rate).
+
+    XDG_RUNTIME_DIR=/tmp/xdg .venv/bin/python bench/bench_pipeline.py [--seconds 8] [--rounds 2]
+
+Writes ``bench/results/pipeline_raster.json``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import sys
+import tempfile
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+import yaml  # noqa: E402
+
+from pointflow import Pipeline  # noqa: E402
+
+
+def run_once(raster: str, seconds: float, warmup_s: float) -> dict:
+    cfg = yaml.safe_load((ROOT / "configs" / "demo.yaml").read_text())
+    cfg["render"]["raster"] = raster
+    cfg["render"]["output"] = {"dir": None}
+    cfg.setdefault("supervisor", {})["hung_after_ms"] = 10000
+    pipe = Pipeline.from_dict(cfg, out_dir=tempfile.mkdtemp(prefix="pf-bench-pipe-"))
+    pipe.start()
+    try:
+        pipe.wait(warmup_s)
+        s0 = pipe.stats()
+        pipe.wait(seconds)
+        s1 = pipe.stats()
+    finally:
+        stats = pipe.stop()
+    if stats.get("failure"):
+        raise SystemExit(f"pipeline failed: {stats['failure']}")
+    r1 = s1["stages"].get("render", {})
+    frames = s1["frames"] - s0["frames"]
+    dt = max(s1["elapsed_s"] - s0["elapsed_s"], 1e-9)
+    info = r1.get("tier_info") or {}
+    return {"raster": raster, "fps": frames / dt, "frames": frames, "seconds": dt, "tier": r1.get("tier"),
+            "raster_used": info.get("raster"), "compute_keys": info.get("compute_keys"),
+            "ring_points": s1["stages"].get("ingest", {}).get("ring_size")}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seconds", type=float, default=8.0)
+    ap.add_argument("--warmup", type=float, default=12.0, help="fills the 1M ring (1M points/s)")
+    ap.add_argument("--rounds", type=int, default=2)
+    ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "pipeline_raster.json"))
+    a = ap.parse_args()
+    runs = []
+    for r in range(a.rounds):
+        for raster in (("quads", "compute") if r % 2 == 0 else ("compute", "quads")):
+            res = run_once(raster, a.seconds, a.warmup)
+            runs.append(res)
+            print(f"  round {r + 1} {raster:8}: {res['fps']:6.2f} frames/s ({res['frames']} frames in "
+                  f"{res['seconds']:.1f} s; tier {res['tier']}, raster {res['raster_used']})", flush=True)
+    med = {m: statistics.median(x["fps"] for x in runs if x["raster"] == m) for m in ("quads", "compute")}
+    print(f"median frames/s: quads {med['quads']:.2f}, compute {med['compute']:.2f} "
+          f"(x{med['compute'] / max(med['quads'], 1e-9):.2f})")
+    Path(a.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(a.out).write_text(json.dumps({"config": "configs/demo.yaml (1M ring, 1280x720, 2 px, intensity)",
+                                       "runs": runs, "median_fps": med,
+                                       "machine": {"cpus": os.cpu_count(), "platform": platform.platform()}},
+                                      indent=1))
+    print(f"wrote {a.out}")
+
+
+if __name__ == "__main__":
+    main()
