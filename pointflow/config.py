@@ -17,6 +17,7 @@ from typing import Any, Literal, Optional, Union
 import yaml
 
 from .ingest.transports import resolve_transport
+from .remote.options import SendConfig, check_send
 from .typed import ConfigError, check, dataclass_schema, load_dataclass
 from .typed import at_least_one, endpoint, non_negative, positive
 
@@ -177,6 +178,8 @@ class PipelineConfig:
     endpoints: EndpointsConfig = field(default_factory=EndpointsConfig)
     tracing: TracingConfig = field(default_factory=TracingConfig)
     supervisor: SupervisorConfig = field(default_factory=SupervisorConfig)
+    #: Where ``pointflow send`` publishes the sources (docs/remote.md); unused by ``run``.
+    send: Optional[SendConfig] = None
     #: Where the YAML came from (for relative paths in options); not a YAML key.
     base_dir: str = field(default=".", metadata={"internal": True})
 
@@ -251,6 +254,8 @@ def _check_semantics(cfg: PipelineConfig) -> None:
         except ConfigError as exc:
             raise ConfigError(f"{p}.transport", str(exc)) from None
         s.options = tcls.validate_options(s.options, f"{p}.options", base_dir=cfg.base_dir)
+    if cfg.send is not None:
+        check_send(cfg.send, "send", cfg.base_dir)
 
 
 def load_config(data: dict | str | os.PathLike, *, base_dir: str | None = None) -> PipelineConfig:
