@@ -52,9 +52,16 @@ class SendConfig(LinkOptions):
     bind: bool = True
     #: ZeroMQ send high-water mark (messages per peer). PUB drops for a peer at this mark.
     send_hwm: int = 16
+    #: Kernel send buffer of the link socket (KiB; 0 = the OS default, often megabytes).
+    #: Small keeps a thin link's backlog in the sender's queue, where the oldest is dropped,
+    #: instead of seconds of stale data in the kernel.
+    send_buffer_kb: int = 256
     #: The sender's own queue (chunks); when the link is slower than the sensor the oldest
     #: chunk is dropped (``link_queue_full``) so the sensor never waits.
     queue_chunks: int = 64
+    #: true: with the queue full, stop taking chunks from the sources instead (replays then
+    #: wait; live sources drop at their own send queue, counted as ``hwm``).
+    backpressure: bool = False
     compression: Literal["none", "lz4", "zstd"] = "none"
     #: 0 = the codec's default (lz4 0, zstd 3).
     compression_level: int = 0
@@ -143,7 +150,7 @@ def check_send(s: SendConfig, path: str, base_dir: str) -> None:
     for key in ("send_hwm", "queue_chunks"):
         if getattr(s, key) < 1:
             raise ConfigError(f"{path}.{key}", f"must be >= 1, got {getattr(s, key)!r}")
-    for key in ("quantise", "sync_every_s", "wait_s", "reconnect_initial_s", "reconnect_max_s"):
+    for key in ("send_buffer_kb", "quantise", "sync_every_s", "wait_s", "reconnect_initial_s", "reconnect_max_s"):
         if getattr(s, key) < 0:
             raise ConfigError(f"{path}.{key}", f"must be >= 0, got {getattr(s, key)!r}")
     if s.sync_every_s == 0:

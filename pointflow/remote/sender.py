@@ -30,7 +30,7 @@ from .security import LinkSecurity
 
 #: On stop, take the sources' last chunks until the PULL socket is quiet this long.
 STOP_QUIET_S = 0.15
-STOP_GRACE_S = 1.5
+STOP_GRACE_S = 1.0
 #: On stop, try this long to hand the queue and the final syncs to the link.
 FLUSH_S = 2.0
 
@@ -137,7 +137,9 @@ def main(ctx) -> None:
     pub = s.socket == "pub"
     out = ctx.zmq.socket(zmq.XPUB if pub else zmq.PUSH)
     out.setsockopt(zmq.SNDHWM, s.send_hwm)
-    out.setsockopt(zmq.LINGER, int(FLUSH_S * 1000))
+    out.setsockopt(zmq.LINGER, 1500)
+    if s.send_buffer_kb:
+        out.setsockopt(zmq.SNDBUF, s.send_buffer_kb * 1024)
     if pub:
         out.setsockopt(zmq.XPUB_VERBOSE, 1)
     link = LinkSecurity(ctx.zmq, s, s.bind, ctx.log, s.reconnect_initial_s, s.reconnect_max_s)
@@ -193,8 +195,9 @@ def main(ctx) -> None:
                     msg = out.recv()
                     subscriptions += bool(msg) and msg[0] == 1
             room = snd.pump()
-            if pull.poll(0 if not room else 20, zmq.POLLIN):
-                _take(64)
+            take = not s.backpressure or len(snd.queue) < s.queue_chunks
+            if take and pull.poll(0 if not room else 20, zmq.POLLIN):
+                _take(64 if not s.backpressure else max(1, s.queue_chunks - len(snd.queue)))
             if time.monotonic() >= next_sync:
                 snd.sync()
                 next_sync = time.monotonic() + s.sync_every_s
@@ -204,8 +207,9 @@ def main(ctx) -> None:
         # stopping: the sources were stopped first; take what they sent, then flush
         end = time.monotonic() + STOP_GRACE_S
         while time.monotonic() < end and pull.poll(int(STOP_QUIET_S * 1000), zmq.POLLIN):
-            _take(256)
-            snd.pump()
+            _take(256 if not s.backpressure else max(1, s.queue_chunks - len(snd.queue)))
+            if not snd.pump():
+                out.poll(20, zmq.POLLOUT)
             ctx.beat()
         snd.sync(end=True)
         end = time.monotonic() + FLUSH_S

@@ -45,6 +45,8 @@ class TransitLedger:
 
     def __init__(self) -> None:
         self.streams: dict[str, _Stream] = {}
+        #: Sources whose sender said it stopped (a sync with ``"end": true``).
+        self.ended: set[str] = set()
         #: Totals of earlier epochs (a sender that restarted), per source.
         self._past: dict[str, dict[str, int]] = {}
 
@@ -78,7 +80,10 @@ class TransitLedger:
         st.sent = sent
         if sync:
             st.next_seq = seq
+            if link.get("end") is True:
+                self.ended.add(source)
             return False
+        self.ended.discard(source)
         st.next_seq = seq + 1
         st.received += n
         return True

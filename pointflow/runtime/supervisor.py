@@ -167,8 +167,16 @@ class Supervisor:
                     self.stages[s.name] = StageProc(name=s.name, kind="source", source_index=i)
             self._t_start = time.monotonic()
             self.started = True
+            # the sender binds the socket the sources push to: start it first and wait for
+            # its first heartbeat, so a short replay is not over before anyone listens
+            snd = self.stages["sender"]
+            self._spawn(snd)
+            end = time.monotonic() + cfg.supervisor.startup_timeout_ms / 1000
+            while not snd.ready and time.monotonic() < end and snd.process.exitcode is None:
+                self.poll(0.05)
             for st in self.stages.values():
-                self._spawn(st)
+                if st is not snd:
+                    self._spawn(st)
             return
         imp = "importance" if (cfg.ring.importance_field or cfg.ring.eviction == "importance") else None
         self.ring = PointRing(

@@ -94,10 +94,15 @@ class ZmqTransport(Transport):
         chunk, header = wire.decode_message(frames, self.o.max_points)
         link = header.get("link")
         if link is not None:
-            delivered = self.ledger.observe(chunk.source_id or self.source_id, link, chunk.n)
+            src = chunk.source_id or self.source_id
+            delivered = self.ledger.observe(src, link, chunk.n)
             self.counters.update(self.ledger.counters())
-            if not delivered:
-                return None  # a sync: totals only
+            if not delivered:  # a sync: totals only
+                if src in self.ledger.ended:
+                    t = self.ledger.per_source()[src]
+                    log.info("%s: sender of %r stopped: sent %d, received %d, lost in transit %d point(s)",
+                             self.source_id, src, t["sent"], t["received"], t["lost_points"])
+                return None
         return chunk
 
     def chunks(self) -> Iterator[Optional[PointChunk]]:
