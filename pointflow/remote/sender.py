@@ -223,6 +223,8 @@ def main(ctx) -> None:
             snd.queue.clear()
     finally:
         _stats()
+        ctx.log.info("link closing: %d message(s), %d point(s) handed to the link; ZeroMQ lingers up to 1.5 s",
+                     snd.messages_out, ctx.counters.points_out)
         link.close()
         out.close()  # lingers up to FLUSH_S for what ZeroMQ still holds
         pull.close()

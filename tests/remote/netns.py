@@ -140,6 +140,9 @@ class Net:
                 pytest.skip(why + " (this kernel lacks sch_" + kind + ")")
             raise RuntimeError(why)
 
+    def del_qdisc(self, ns: str, peer: str) -> None:
+        sh("ip", "netns", "exec", ns, "tc", "qdisc", "del", "dev", self.veths[(ns, peer)], "root")
+
     def spawn(self, ns: str, *argv: str, log: str) -> subprocess.Popen:
         """Start ``argv`` inside ``ns`` (stdout+stderr to ``workdir/log``)."""
         env = dict(os.environ, PYTHONUNBUFFERED="1")

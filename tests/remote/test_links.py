@@ -204,18 +204,22 @@ def test_netem_delay_and_loss(net):
 
 
 def test_slow_link_drops_oldest_and_the_sensor_never_waits(net):
-    """A link slower than the sensor (tbf 4 Mbit/s): the sender's bounded queue drops its
-    oldest chunks, the source never waits or drops, and the receiver counts exactly those
-    points as lost in transit."""
+    """For 2.5 s the link is slower than the sensor (tbf 4 Mbit/s): the sender's bounded queue
+    drops its oldest chunks, the source never waits or drops, and the receiver counts exactly
+    those points as lost in transit. (The link is fast again for the tail, so the final
+    sync gets through in time.)"""
     sensor, viewer = net.host("sensor"), net.host("viewer")
     _, a_viewer = net.link(sensor, viewer)
-    net.qdisc(sensor, viewer, "tbf", "rate", "4mbit", "burst", "32kbit", "latency", "400ms")
     ep = f"tcp://{a_viewer}:{PORT}"
     hb = {"heartbeat_timeout_s": 3.0, "heartbeat_ttl_s": 3.0}
     recv = start_receiver(net, viewer, receiver_cfg(ep, insecure=True, **hb))
     wait_listening(net, "recv.log")
-    send = start_sender(net, sensor, sender_cfg(synthetic_source(scans=20, points=8000, hz=10), endpoint=ep,
+    send = start_sender(net, sensor, sender_cfg(synthetic_source(scans=50, points=8000, hz=10), endpoint=ep,
                                                 insecure=True, queue_chunks=4, send_hwm=2, send_buffer_kb=64, **hb))
+    wait_for(lambda: "sending on" in net.log("send.log"), 40, "the sender", lambda: net.log("send.log"))
+    net.qdisc(sensor, viewer, "tbf", "rate", "4mbit", "burst", "32kbit", "latency", "400ms")
+    time.sleep(2.5)
+    net.del_qdisc(sensor, viewer)
     snd, rcv = finish(net, send, recv, timeout=90)
     assert_exact(snd, rcv, lost_ok=True)
     dropped = snd["stages"]["sender"]["drops"].get("link_queue_full", 0)
