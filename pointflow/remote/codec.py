@@ -101,13 +101,15 @@ def quantise(pos: np.ndarray, resolution: float) -> tuple[np.ndarray, list[float
     if pos.shape[0] == 0:
         return np.zeros((0, 3), np.int32), [0.0, 0.0, 0.0]
     p = np.asarray(pos, dtype=np.float64)
-    lo = p.min(axis=0)
-    if not np.isfinite(lo).all() or not np.isfinite(p.max(axis=0)).all():
+    lo, hi = p.min(axis=0), p.max(axis=0)  # NaN and inf propagate into these
+    if not (np.isfinite(lo).all() and np.isfinite(hi).all()):
         return None
     origin = np.floor(lo / resolution) * resolution
-    q = np.rint((p - origin) / resolution)
-    if q.max() > _QMAX:
+    if ((hi - origin) / resolution).max() > _QMAX:
         return None
+    q = p - origin  # a new array: the caller's positions stay as they are
+    q *= 1.0 / resolution
+    np.rint(q, out=q)
     return q.astype(np.int32), [float(v) for v in origin]
 
 
