@@ -10,6 +10,10 @@ a receiver process in the other. 10k-point chunks, sent as fast as the link take
 * ``curve``, ``curve+lz4``, ``curve+zstd``, ``curve+q1mm`` (positions quantised to 1 mm),
   ``curve+q1mm+zstd``.
 
+The sender runs flat out, so the slower end sets the pace through TCP backpressure;
+ZeroMQ heartbeats are off here because a receiver that falls behind stops reading its
+socket, and then also the peer's heartbeats (docs/remote.md, "Limits").
+
 Data: the demo scene (synthetic lidar, float64 xyz + intensity float32 + classification
 uint8) and, when ``../shared/data/ouster_os1_128`` exists, the Ouster OS-1-128 scans (float32
 xyz + reflectivity uint8). Modes are interleaved, ``--rounds`` times; medians, and ratios
@@ -115,7 +119,7 @@ def role_send(args) -> None:
         sock.send_multipart([b"END"])
     else:
         s = SendConfig(endpoint=args.endpoint, socket="push", bind=False, compression=m.get("compression", "none"),
-                       quantise=m.get("quantise", 0.0), insecure=True, queue_chunks=4)
+                       quantise=m.get("quantise", 0.0), insecure=True, queue_chunks=4, heartbeat_ivl_s=0.0)
         if m.get("curve"):
             s.curve_secret_key, s.curve_server_key = args.keys + "/sensor.key_secret", args.keys + "/viewer.key"
         link = LinkSecurity(ctx, s, False, logging.getLogger("bench"))
@@ -169,7 +173,8 @@ def role_recv(args) -> None:
         from pointflow.ingest.transports.zmq_transport import ZmqTransport
 
         m = MODES[args.mode]
-        opts = {"endpoint": args.endpoint, "socket": "pull", "bind": True, "insecure": True, "receive_hwm": 64}
+        opts = {"endpoint": args.endpoint, "socket": "pull", "bind": True, "insecure": True, "receive_hwm": 64,
+                "heartbeat_ivl_s": 0.0}
         if m.get("curve"):
             opts.update(insecure=False, curve_secret_key=args.keys + "/viewer.key_secret",
                         curve_authorized_keys=args.keys + "/clients")
