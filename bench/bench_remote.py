@@ -8,7 +8,7 @@ a receiver process in the other. 10k-point chunks, sent as fast as the link take
   header, encode; :class:`~pointflow.ingest.transports.zmq_transport.ZmqTransport` on the
   receiving end: decode, ledger), no CURVE;
 * ``curve``, ``curve+lz4``, ``curve+zstd``, ``curve+q1mm`` (positions quantised to 1 mm),
-  ``curve+q1mm+zstd``.
+  ``curve+q1mm+lz4``, ``curve+q1mm+zstd``.
 
 The sender runs flat out, so the slower end sets the pace through TCP backpressure;
 ZeroMQ heartbeats are off here because a receiver that falls behind stops reading its
@@ -19,7 +19,10 @@ uint8) and, when ``../shared/data/ouster_os1_128`` exists, the Ouster OS-1-128 s
 xyz + reflectivity uint8). Modes are interleaved, ``--rounds`` times; medians, and ratios
 to ``plain`` from the same round.
 
-    sudo .venv/bin/python bench/bench_remote.py [--rounds 3] [--seconds 2]
+    sudo .venv/bin/python bench/bench_remote.py [--rounds 3] [--seconds 2] [--rate 1gbit]
+
+A second pass repeats the main modes on the same veth shaped to ``--rate`` (tc tbf), the
+case of a real network link, where the wire and not the CPU sets the pace.
 
 Prints a table, writes ``bench/results/remote.json``.
 """
@@ -49,6 +52,7 @@ MODES = {
     "curve+lz4": {"curve": True, "compression": "lz4"},
     "curve+zstd": {"curve": True, "compression": "zstd"},
     "curve+q1mm": {"curve": True, "quantise": 0.001},
+    "curve+q1mm+lz4": {"curve": True, "quantise": 0.001, "compression": "lz4"},
     "curve+q1mm+zstd": {"curve": True, "quantise": 0.001, "compression": "zstd"},
 }
 
@@ -215,6 +219,16 @@ class Link:
         sh("ip", "-n", self.b, "addr", "add", "10.232.0.2/24", "dev", f"pf{tag}b")
         sh("ip", "-n", self.a, "link", "set", f"pf{tag}a", "up")
         sh("ip", "-n", self.b, "link", "set", f"pf{tag}b", "up")
+        self.tx_dev = f"pf{tag}a"
+
+    def shape(self, rate: str | None) -> None:
+        """Limit the sender's side to ``rate`` (tc tbf), or remove the limit."""
+        if rate:
+            sh("ip", "netns", "exec", self.a, "tc", "qdisc", "replace", "dev", self.tx_dev, "root", "tbf",
+               "rate", rate, "burst", "1mb", "latency", "100ms")
+        else:
+            subprocess.run(["ip", "netns", "exec", self.a, "tc", "qdisc", "del", "dev", self.tx_dev, "root"],
+                           capture_output=True)
 
     def close(self) -> None:
         for ns in (self.a, self.b):
@@ -254,6 +268,7 @@ def main() -> int:
     ap.add_argument("--seconds", type=float, default=2.0)
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--modes", default=",".join(MODES))
+    ap.add_argument("--rate", default="1gbit", help="also run on a link shaped to this rate (tc tbf); '' = skip")
     args = ap.parse_args()
     if args.role == "send":
         role_send(args)
@@ -277,38 +292,47 @@ def main() -> int:
     if len(datasets) == 1:
         print("note: ../shared/data/ouster_os1_128 not found; Ouster part skipped", file=sys.stderr)
     modes = args.modes.split(",")
-    runs: dict = {d: {m: [] for m in modes} for d in datasets}
     link = Link()
+    passes = [("veth", None, modes)]
+    if args.rate:
+        passes.append((f"tbf {args.rate}", args.rate, [m for m in ("plain", "curve", "curve+lz4", "curve+q1mm+lz4", "curve+q1mm+zstd") if m in modes]))
+    runs: dict = {p: {d: {m: [] for m in ms} for d in datasets} for p, _, ms in passes}
     try:
-        for r in range(args.rounds):
-            for d in datasets:
-                for m in modes:
-                    res = one(link, m, d, args.seconds, keys)
-                    runs[d][m].append(res)
-                    print(f"round {r + 1} {d:7s} {m:16s} {res['points_per_s'] / 1e6:7.2f} Mpts/s "
-                          f"{res['bytes_per_point']:6.2f} B/pt lost {res['lost']}", file=sys.stderr, flush=True)
+        for pname, rate, pmodes in passes:
+            link.shape(rate)
+            for r in range(args.rounds):
+                for d in datasets:
+                    for m in pmodes:
+                        res = one(link, m, d, args.seconds, keys)
+                        runs[pname][d][m].append(res)
+                        print(f"{pname} round {r + 1} {d:7s} {m:16s} {res['points_per_s'] / 1e6:7.2f} Mpts/s "
+                              f"{res['bytes_per_point']:6.2f} B/pt lost {res['lost']}", file=sys.stderr, flush=True)
     finally:
         link.close()
         import shutil
 
         shutil.rmtree(keys, ignore_errors=True)
     summary: dict = {}
-    for d in datasets:
-        summary[d] = {}
-        for m in modes:
-            rs = runs[d][m]
-            ratios = [x["points_per_s"] / p["points_per_s"] for x, p in zip(rs, runs[d].get("plain", rs))]
-            summary[d][m] = {"points_per_s_median": statistics.median(x["points_per_s"] for x in rs),
-                             "bytes_per_point": statistics.median(x["bytes_per_point"] for x in rs),
-                             "throughput_vs_plain_median": statistics.median(ratios),
-                             "lost_in_transit": sum(x["lost"] for x in rs)}
-    print(f"\n{'data':7s} {'mode':16s} {'Mpts/s':>8s} {'vs plain':>9s} {'B/point':>8s} {'vs plain':>9s}")
-    for d in datasets:
-        plain_b = summary[d].get("plain", {}).get("bytes_per_point", float("nan"))
-        for m, s in summary[d].items():
-            print(f"{d:7s} {m:16s} {s['points_per_s_median'] / 1e6:8.2f} {s['throughput_vs_plain_median']:9.2f} "
-                  f"{s['bytes_per_point']:8.2f} {s['bytes_per_point'] / plain_b:9.2f}")
-    out = {"chunk_points": CHUNK, "seconds_per_run": args.seconds, "rounds": args.rounds,
+    for pname, _, pmodes in passes:
+        summary[pname] = {}
+        for d in datasets:
+            summary[pname][d] = {}
+            for m in pmodes:
+                rs = runs[pname][d][m]
+                ratios = [x["points_per_s"] / p["points_per_s"] for x, p in zip(rs, runs[pname][d].get("plain", rs))]
+                summary[pname][d][m] = {"points_per_s_median": statistics.median(x["points_per_s"] for x in rs),
+                                        "bytes_per_point": statistics.median(x["bytes_per_point"] for x in rs),
+                                        "throughput_vs_plain_median": statistics.median(ratios),
+                                        "lost_in_transit": sum(x["lost"] for x in rs)}
+    print(f"\n{'link':14s} {'data':7s} {'mode':16s} {'Mpts/s':>8s} {'MB/s':>7s} {'vs plain':>9s} {'B/point':>8s} {'vs plain':>9s}")
+    for pname in summary:
+        for d in datasets:
+            plain_b = summary[pname][d].get("plain", {}).get("bytes_per_point", float("nan"))
+            for m, s in summary[pname][d].items():
+                print(f"{pname:14s} {d:7s} {m:16s} {s['points_per_s_median'] / 1e6:8.2f} "
+                      f"{s['points_per_s_median'] * s['bytes_per_point'] / 1e6:7.1f} {s['throughput_vs_plain_median']:9.2f} "
+                      f"{s['bytes_per_point']:8.2f} {s['bytes_per_point'] / plain_b:9.2f}")
+    out = {"chunk_points": CHUNK, "seconds_per_run": args.seconds, "rounds": args.rounds, "rate": args.rate,
            "machine": f"{os.cpu_count()} cores, shared with other jobs", "summary": summary, "runs": runs}
     os.makedirs(os.path.join(ROOT, "bench", "results"), exist_ok=True)
     with open(os.path.join(ROOT, "bench", "results", "remote.json"), "w") as f:
