@@ -100,8 +100,13 @@ def _send(args) -> int:
     last_print = time.monotonic()
 
     def sources_done() -> bool:
+        """Every source ended and the sender has taken all they sent (it may still be
+        waiting for subscribers, with the chunks queued in its socket)."""
         st = pipe.stats()["stages"]
-        return all(v.get("finished") for v in st.values() if v.get("kind") == "source")
+        srcs = [v for v in st.values() if v.get("kind") == "source"]
+        snd = st.get("sender", {})
+        taken = snd.get("points_in", 0) + snd.get("rejected_messages", 0)
+        return all(v.get("finished") for v in srcs) and taken >= sum(v.get("points_out", 0) for v in srcs)
 
     try:
         while not stop.flag and not sources_done() and (t_end is None or time.monotonic() < t_end):

@@ -48,7 +48,8 @@ class LinkSender:
         self.log = log
         self.epoch = secrets.token_hex(6)
         self.streams: dict[str, list[int]] = {}  # source -> [next seq, points sent]
-        self.queue: collections.deque[tuple[list[Any], int]] = collections.deque()
+        #: (frames, points) of data chunks, (frames, None) of syncs.
+        self.queue: collections.deque[tuple[list[Any], int | None]] = collections.deque()
         self.compressor = Compressor(send_cfg.compression, send_cfg.compression_level, send_cfg.shuffle) \
             if send_cfg.compression != "none" else None
         self.resolution = send_cfg.quantise or None
@@ -73,19 +74,28 @@ class LinkSender:
         self._enqueue(frames, n)
 
     def sync(self, end: bool = False) -> None:
-        """Queue one sync per source (its totals so far)."""
+        """Queue one sync per source (its totals so far). Syncs still queued are dropped
+        first: the new ones supersede them, so a stalled link never piles them up."""
+        if any(n is None for _, n in self.queue):
+            self.queue = collections.deque(e for e in self.queue if e[1] is not None)
         for src, (seq, sent) in self.streams.items():
             link = {"epoch": self.epoch, "seq": seq, "sent": sent, "sync": True}
             if end:
                 link["end"] = True
-            frames = wire.encode(PointChunk(positions=self._empty, source_id=src), link=link)
-            self._enqueue(frames, 0)
+            self.queue.append((wire.encode(PointChunk(positions=self._empty, source_id=src), link=link), None))
 
     def _enqueue(self, frames: list[Any], n: int) -> None:
+        """Queue a data chunk; beyond ``queue_chunks`` data chunks the oldest is dropped
+        (syncs do not count and are never dropped for data)."""
         self.queue.append((frames, n))
-        while len(self.queue) > self.s.queue_chunks:
-            _, old = self.queue.popleft()
-            self.counters.drop("link_queue_full", old)
+        data = sum(1 for _, m in self.queue if m is not None)
+        while data > self.s.queue_chunks:
+            for i, (_, m) in enumerate(self.queue):
+                if m is not None:
+                    del self.queue[i]
+                    self.counters.drop("link_queue_full", m)
+                    data -= 1
+                    break
 
     def pump(self) -> bool:
         """Hand queued messages to the socket without blocking; False if the socket is full."""
@@ -96,15 +106,21 @@ class LinkSender:
             except zmq.Again:
                 return False
             self.queue.popleft()
-            self.counters.points_out += n
             self.messages_out += 1
-            self.syncs_out += n == 0
+            if n is None:
+                self.syncs_out += 1
+            else:
+                self.counters.points_out += n
             self.bytes_out += sum(len(f) if isinstance(f, bytes) else f.nbytes for f in frames)
         return True
 
     @property
     def queued_points(self) -> int:
-        return sum(n for _, n in self.queue)
+        return sum(n for _, n in self.queue if n is not None)
+
+    @property
+    def queued_chunks(self) -> int:
+        return sum(1 for _, n in self.queue if n is not None)
 
     def stats(self) -> dict[str, Any]:
         return {"link_bytes_out": self.bytes_out, "link_messages_out": self.messages_out,
@@ -122,7 +138,7 @@ def _wait_subscribers(ctx, sock, want: int, wait_s: float) -> int:
             msg = sock.recv()
             got += bool(msg) and msg[0] == 1
         ctx.beat()
-    if got < want:
+    if got < want and ctx.running:
         ctx.log.warning("only %d of %d subscriber(s) after %.1f s; sending anyway", got, want, wait_s)
     return got
 
@@ -195,9 +211,9 @@ def main(ctx) -> None:
                     msg = out.recv()
                     subscriptions += bool(msg) and msg[0] == 1
             room = snd.pump()
-            take = not s.backpressure or len(snd.queue) < s.queue_chunks
+            take = not s.backpressure or snd.queued_chunks < s.queue_chunks
             if take and pull.poll(0 if not room else 20, zmq.POLLIN):
-                _take(64 if not s.backpressure else max(1, s.queue_chunks - len(snd.queue)))
+                _take(64 if not s.backpressure else max(1, s.queue_chunks - snd.queued_chunks))
             if time.monotonic() >= next_sync:
                 snd.sync()
                 next_sync = time.monotonic() + s.sync_every_s
@@ -207,7 +223,7 @@ def main(ctx) -> None:
         # stopping: the sources were stopped first; take what they sent, then flush
         end = time.monotonic() + STOP_GRACE_S
         while time.monotonic() < end and pull.poll(int(STOP_QUIET_S * 1000), zmq.POLLIN):
-            _take(256 if not s.backpressure else max(1, s.queue_chunks - len(snd.queue)))
+            _take(256 if not s.backpressure else max(1, s.queue_chunks - snd.queued_chunks))
             if not snd.pump():
                 out.poll(20, zmq.POLLOUT)
             ctx.beat()

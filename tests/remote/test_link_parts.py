@@ -164,3 +164,36 @@ def test_ledger_counts_gaps_syncs_and_late_joins():
     with pytest.raises(ChunkError) as e:
         t.observe("s", {"epoch": "B", "seq": "x", "sent": 20}, 10)
     assert e.value.reason == "bad_link"
+
+
+def test_sender_queue_drops_oldest_data_never_syncs():
+    """A link that takes nothing (a PUSH socket with no peer): beyond queue_chunks the oldest
+    chunk is dropped and counted; syncs never push data out and never pile up."""
+    import logging
+
+    import zmq
+
+    from pointflow.remote.options import SendConfig
+    from pointflow.remote.sender import LinkSender
+    from pointflow.runtime.stage import StageCounters
+
+    ctx = zmq.Context()
+    sock = ctx.socket(zmq.PUSH)
+    sock.setsockopt(zmq.SNDHWM, 1)
+    sock.bind("inproc://nobody")
+    try:
+        counters = StageCounters()
+        snd = LinkSender(sock, SendConfig(queue_chunks=2), counters, logging.getLogger("test"))
+        for i in range(5):
+            snd.add(_chunk(100, seed=i))
+            snd.sync()
+            snd.sync()
+        assert not snd.pump()
+        assert counters.drops == {"link_queue_full": 300} and counters.points_out == 0
+        assert snd.queued_chunks == 2 and len(snd.queue) == 3  # two newest chunks + one sync
+        frames = snd.queue[0][0]
+        assert wire.decode_message(frames)[1]["link"]["seq"] == 3  # the oldest kept is chunk 3
+        assert wire.decode_message(snd.queue[-1][0])[1]["link"] == {"epoch": snd.epoch, "seq": 5, "sent": 500, "sync": True}
+    finally:
+        sock.close(0)
+        ctx.term()

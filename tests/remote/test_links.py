@@ -151,7 +151,7 @@ def test_one_sender_fans_out_to_two_pipelines(net):
     recv2 = start_receiver(net, v2, receiver_cfg(f"tcp://{s_b}:{PORT}", socket="sub", bind=False,
                                                  curve_secret_key=k["v2"][1], curve_server_key=k["sensor"][0]), name="r2")
     send = start_sender(net, sensor, sender_cfg(synthetic_source(), endpoint=f"tcp://0.0.0.0:{PORT}", socket="pub",
-                                                bind=True, wait_subscribers=2, wait_s=60,
+                                                bind=True, wait_subscribers=2, wait_s=60, send_hwm=256,
                                                 curve_secret_key=k["sensor"][1], curve_authorized_keys=clients))
     assert send.wait(90) == 0, net.log("send.log")
     snd = read_stats(net.workdir / "send" / "stats.json")
