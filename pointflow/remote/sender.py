@@ -21,6 +21,7 @@ import secrets
 import time
 from typing import Any
 
+import numpy as np
 import zmq
 
 from .. import wire
@@ -40,8 +41,6 @@ class LinkSender:
     so tests and the benchmark can drive it too)."""
 
     def __init__(self, sock: zmq.Socket, send_cfg, counters, log):
-        import numpy as np
-
         self.sock = sock
         self.s = send_cfg
         self.counters = counters
