@@ -24,7 +24,7 @@ to ``plain`` from the same round.
 A second pass repeats the main modes on the same veth shaped to ``--rate`` (tc tbf), the
 case of a real network link, where the wire and not the CPU sets the pace.
 
-Prints a table, writes ``bench/results/remote.json``.
+Prints a table, writes ``bench/results/remote.json`` and ``remote.png``.
 """
 from __future__ import annotations
 
@@ -200,6 +200,34 @@ def role_recv(args) -> None:
     print(json.dumps(result), flush=True)
 
 
+# --------------------------------------------------------------------------- chart
+def chart(out: dict, path: str) -> None:
+    """Throughput and bytes/point per mode, one panel per link and data set."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return
+    panels = [(p, d) for p, ds in out["summary"].items() for d in ds]
+    fig, axes = plt.subplots(2, len(panels), figsize=(4.2 * len(panels), 6.5), squeeze=False)
+    for i, (p, d) in enumerate(panels):
+        ms = out["summary"][p][d]
+        names = list(ms)
+        axes[0][i].bar(names, [ms[m]["points_per_s_median"] / 1e6 for m in names], color="tab:blue")
+        axes[0][i].set_title(f"{d}, {p}")
+        axes[0][i].set_ylabel("Mpoints/s (median)")
+        axes[1][i].bar(names, [ms[m]["bytes_per_point"] for m in names], color="tab:orange")
+        axes[1][i].set_ylabel("bytes/point on the wire")
+        for ax in (axes[0][i], axes[1][i]):
+            ax.tick_params(axis="x", rotation=60, labelsize=7)
+    fig.suptitle("pointflow link, 10k-point chunks between two network namespaces (shared 2-core machine)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
 # --------------------------------------------------------------------------- orchestration
 def sh(*a: str) -> None:
     subprocess.run(list(a), check=True, capture_output=True)
@@ -268,6 +296,7 @@ def main() -> int:
     ap.add_argument("--seconds", type=float, default=2.0)
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--modes", default=",".join(MODES))
+    ap.add_argument("--chart-only", action="store_true", help="redraw the chart from bench/results/remote.json")
     ap.add_argument("--rate", default="1gbit", help="also run on a link shaped to this rate (tc tbf); '' = skip")
     args = ap.parse_args()
     if args.role == "send":
@@ -275,6 +304,10 @@ def main() -> int:
         return 0
     if args.role == "recv":
         role_recv(args)
+        return 0
+    if args.chart_only:
+        with open(os.path.join(ROOT, "bench", "results", "remote.json")) as f:
+            chart(json.load(f), os.path.join(ROOT, "bench", "results", "remote.png"))
         return 0
     if os.geteuid() != 0 or not subprocess.run(["sh", "-c", "command -v ip"], capture_output=True).returncode == 0:
         print("bench_remote needs root and iproute2 (ip netns); skipped", file=sys.stderr)
@@ -337,7 +370,8 @@ def main() -> int:
     os.makedirs(os.path.join(ROOT, "bench", "results"), exist_ok=True)
     with open(os.path.join(ROOT, "bench", "results", "remote.json"), "w") as f:
         json.dump(out, f, indent=2)
-    print("wrote bench/results/remote.json")
+    chart(out, os.path.join(ROOT, "bench", "results", "remote.png"))
+    print("wrote bench/results/remote.json and remote.png")
     return 0
 
 
