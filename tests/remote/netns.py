@@ -188,9 +188,11 @@ class Net:
 
 
 def stop(p: subprocess.Popen, timeout: float = 20.0) -> int:
-    """SIGTERM a ``pointflow run`` (it stops its stages and writes stats.json) and wait."""
+    """SIGTERM a ``pointflow run`` (it stops its stages in order and writes stats.json) and
+    wait. Only the supervisor gets the signal (``ip netns exec`` execs it, same pid): the
+    stages would otherwise stop on their own at once, and it would see them die."""
     if p.poll() is None:
-        os.killpg(p.pid, signal.SIGTERM)
+        os.kill(p.pid, signal.SIGTERM)
     return p.wait(timeout)
 
 
