@@ -35,6 +35,16 @@ def test_non_loopback_tcp_without_curve_is_refused(ep):
         load_config({"source": {"transport": "synthetic"}, "send": {"endpoint": ep}})
 
 
+def test_stage_endpoints_off_loopback_need_insecure():
+    cfg = {"source": {"transport": "synthetic"}, "endpoints": {"ingest": "tcp://0.0.0.0:5555"}}
+    with pytest.raises(ConfigError) as e:
+        load_config(cfg)
+    assert e.value.path == "endpoints.ingest" and "pointflow send" in str(e.value)
+    cfg["endpoints"]["insecure"] = True
+    load_config(cfg)
+    load_config({"source": {"transport": "synthetic"}, "endpoints": {"ingest": "tcp://127.0.0.1:5555"}})
+
+
 @pytest.mark.parametrize("ep", ["tcp://127.0.0.1:5556", "tcp://localhost:1", "tcp://[::1]:5556", "ipc:///tmp/x.sock"])
 def test_loopback_needs_no_keys(ep):
     assert is_loopback_endpoint(ep)
