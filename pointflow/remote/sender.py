@@ -139,6 +139,8 @@ def _wait_subscribers(ctx, sock, want: int, wait_s: float) -> int:
         ctx.beat()
     if got < want and ctx.running:
         ctx.log.warning("only %d of %d subscriber(s) after %.1f s; sending anyway", got, want, wait_s)
+    elif got >= want:
+        ctx.log.info("%d subscriber(s) joined; sending", got)
     return got
 
 

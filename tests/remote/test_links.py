@@ -226,3 +226,30 @@ def test_slow_link_drops_oldest_and_the_sensor_never_waits(net):
     assert dropped > 0, "the link was not the bottleneck"
     assert snd["stages"]["lidar"]["drops"] == {}, "the sensor had to wait or drop"
     assert rcv["accounting"]["lost_in_transit"] == dropped
+
+
+def test_fan_out_a_slow_viewer_loses_only_its_own_chunks(net):
+    """PUB fan-out with one viewer behind a slow link (tbf 4 Mbit/s for 2.5 s): PUB drops at
+    that viewer's high-water mark only; it counts exactly what it lost, the other viewer
+    gets everything."""
+    sensor, fast, slow = net.host("sensor"), net.host("fast"), net.host("slow")
+    s_fast, _ = net.link(sensor, fast)
+    s_slow, _ = net.link(sensor, slow)
+    hb = {"heartbeat_timeout_s": 3.0, "heartbeat_ttl_s": 3.0}
+    r1 = start_receiver(net, fast, receiver_cfg(f"tcp://{s_fast}:{PORT}", socket="sub", bind=False, insecure=True, **hb),
+                        name="r1")
+    r2 = start_receiver(net, slow, receiver_cfg(f"tcp://{s_slow}:{PORT}", socket="sub", bind=False, insecure=True, **hb),
+                        name="r2")
+    send = start_sender(net, sensor, sender_cfg(synthetic_source(scans=50, points=8000, hz=10), socket="pub", bind=True,
+                                                endpoint=f"tcp://0.0.0.0:{PORT}", insecure=True, wait_subscribers=2,
+                                                wait_s=60, send_hwm=64, send_buffer_kb=64, **hb))
+    wait_for(lambda: "subscriber(s) joined" in net.log("send.log"), 60, "both viewers", lambda: net.log("send.log"))
+    net.qdisc(sensor, slow, "tbf", "rate", "4mbit", "burst", "32kbit", "latency", "400ms")
+    time.sleep(2.5)
+    net.del_qdisc(sensor, slow)
+    snd, fast_stats = finish(net, send, r1, name="r1", timeout=90)
+    _, slow_stats = finish(net, send, r2, name="r2")
+    assert snd["stages"]["sender"]["drops"] == {}  # PUB never blocks the sender
+    assert_exact(snd, fast_stats)
+    assert_exact(snd, slow_stats, lost_ok=True)
+    assert slow_stats["accounting"]["lost_in_transit"] > 0
