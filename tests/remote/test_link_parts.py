@@ -207,3 +207,60 @@ def test_sender_queue_drops_oldest_data_never_syncs():
     finally:
         sock.close(0)
         ctx.term()
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.mark.parametrize("client", ["no-curve", "wrong-server-key"])
+def test_curve_server_refuses_clients_without_the_right_keys(tmp_path, client):
+    """A client without CURVE, or one holding the wrong server key, gets no chunk in; the
+    server counts the refused handshake and goes on."""
+    import time
+
+    import zmq
+
+    from pointflow.ingest.transports.zmq_transport import ZmqTransport
+
+    srv_pub, srv_sec = create_keypair("server", tmp_path / "s")
+    cli_pub, cli_sec = create_keypair("client", tmp_path / "c")
+    other_pub, _ = create_keypair("other", tmp_path / "o")
+    (tmp_path / "ok").mkdir()
+    (tmp_path / "ok" / "client.key").write_text(cli_pub.read_text())
+    port = _free_port()
+    t = ZmqTransport(ZmqTransport.validate_options(
+        {"endpoint": f"tcp://127.0.0.1:{port}", "socket": "pull", "bind": True, "curve_secret_key": str(srv_sec),
+         "curve_authorized_keys": str(tmp_path / "ok")}, "t"), "t")
+    t.open()
+    ctx = zmq.Context()
+    push = ctx.socket(zmq.PUSH)
+    push.setsockopt(zmq.LINGER, 0)
+    if client == "wrong-server-key":
+        pub, sec = zmq.auth.load_certificate(str(cli_sec))
+        push.curve_publickey, push.curve_secretkey = pub, sec
+        push.curve_serverkey = zmq.auth.load_certificate(str(other_pub))[0]
+    push.connect(f"tcp://127.0.0.1:{port}")
+    try:
+        for _ in range(3):
+            try:
+                wire.send(push, _chunk(100), zmq.NOBLOCK)
+            except zmq.Again:
+                pass
+        got, it, end = 0, t.chunks(), time.monotonic() + 3
+        while time.monotonic() < end:
+            c = next(it)
+            got += c is not None
+            t._poll_monitor()
+            if t.counters["refused_handshakes"] and time.monotonic() > end - 2:
+                break
+        assert got == 0
+        assert t.counters["refused_handshakes"] >= 1 and t.counters["handshakes"] == 0
+    finally:
+        push.close(0)
+        ctx.term()
+        t.close()
