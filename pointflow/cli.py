@@ -1,4 +1,4 @@
-"""``pointflow`` command line: run, profile, validate, info, schema."""
+"""``pointflow`` command line: run, profile, validate, info, schema, send, keys."""
 from __future__ import annotations
 
 import argparse
@@ -102,6 +102,67 @@ def _run(args, profile: bool = False) -> int:
     return code
 
 
+def _send(args) -> int:
+    """``pointflow send``: run only the sources and publish them on ``send.endpoint``; ends
+    when every source has ended, after ``--duration``, or on Ctrl-C."""
+    from .remote.sender import send_summary
+    from .runtime.pipeline import Pipeline
+    from .runtime.supervisor import PipelineFailed
+
+    cfg = load_config(args.file)
+    if cfg.send is None:
+        raise ConfigError("send", f"{args.file} has no 'send:' section saying where to publish "
+                          "(endpoint, keys; see docs/remote.md and configs/remote-send.yaml)")
+    out_dir = args.out
+    pipe = Pipeline(cfg, out_dir=out_dir, role="send")
+    stop = _Stop()
+    old = {s: signal.signal(s, stop) for s in (signal.SIGINT, signal.SIGTERM)}
+    code = 0
+    pipe.start()
+    t_end = None if args.duration is None else time.monotonic() + args.duration
+    last_print = time.monotonic()
+
+    def sources_done() -> bool:
+        """Every source ended and the sender has taken all they sent (it may still be
+        waiting for subscribers, with the chunks queued in its socket)."""
+        st = pipe.stats()["stages"]
+        srcs = [v for v in st.values() if v.get("kind") == "source"]
+        snd = st.get("sender", {})
+        taken = snd.get("points_in", 0) + snd.get("rejected_messages", 0)
+        return all(v.get("finished") for v in srcs) and taken >= sum(v.get("points_out", 0) for v in srcs)
+
+    try:
+        while not stop.flag and not sources_done() and (t_end is None or time.monotonic() < t_end):
+            pipe.poll(0.05)
+            if not args.quiet and time.monotonic() - last_print >= 5.0:
+                last_print = time.monotonic()
+                print(send_summary(pipe.stats()), file=sys.stderr)
+    except PipelineFailed as exc:
+        log.error("%s", exc)
+        code = 2
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+        stats = pipe.stop()
+    print(send_summary(stats))
+    if out_dir:
+        print(f"stats.json in {os.path.abspath(out_dir)}")
+    return code
+
+
+def _keys(args) -> int:
+    from .remote.keys import KeyFileError, create_keypair
+
+    try:
+        pub, sec = create_keypair(args.name, args.dir, overwrite=args.force)
+    except KeyFileError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    print(f"public key: {pub}  (give this file to the peer)")
+    print(f"secret key: {sec}  (keep it on this host; mode 0600)")
+    return 0
+
+
 def _validate(args) -> int:
     cfg = load_config(args.file)
     print(f"{args.file}: OK ({len(cfg.sources)} source(s), ring {cfg.ring.max_points} points, "
@@ -177,6 +238,15 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--verbose", action="store_true", help="print the resolved config")
     sub.add_parser("info", help="list render backends, adapters and transports")
     sub.add_parser("schema", help="print the JSON Schema of the pipeline YAML (for editors)")
+    snd = sub.add_parser("send", help="run only the sources of a config and publish them on its send: endpoint")
+    snd.add_argument("file", help="YAML with sources and a send: section")
+    snd.add_argument("--duration", type=float, default=None, help="seconds to run (default: until the sources end or Ctrl-C)")
+    snd.add_argument("--out", default=None, help="write stats.json here")
+    snd.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
+    k = sub.add_parser("keys", help="write a CURVE key pair NAME.key (public) and NAME.key_secret")
+    k.add_argument("name")
+    k.add_argument("--dir", default="keys", help="folder to write into (default: keys)")
+    k.add_argument("--force", action="store_true", help="overwrite an existing pair")
     return p
 
 
@@ -193,6 +263,10 @@ def main(argv: Optional[list[str]] = None) -> int:
             return _validate(args)
         if args.cmd == "info":
             return _info(args)
+        if args.cmd == "send":
+            return _send(args)
+        if args.cmd == "keys":
+            return _keys(args)
         if args.cmd == "schema":
             from .config import json_schema
 

@@ -18,6 +18,7 @@ from typing import Any, Literal, Optional, Union
 import yaml
 
 from .ingest.transports import resolve_transport
+from .remote.options import SendConfig, check_send, is_loopback_endpoint
 from .typed import ConfigError, check, dataclass_schema, load_dataclass
 from .typed import at_least_one, endpoint, non_negative, positive
 
@@ -145,6 +146,8 @@ class EndpointsConfig:
     trace: Optional[str] = field(default=None, metadata=check(endpoint))
     #: Requests to the render stage (pick, save a frame); REP bound by render.
     render_commands: Optional[str] = field(default=None, metadata=check(endpoint))
+    #: Allow these (unencrypted) endpoints on a non-loopback tcp:// address.
+    insecure: bool = False
 
 
 @dataclass
@@ -181,6 +184,8 @@ class PipelineConfig:
     endpoints: EndpointsConfig = field(default_factory=EndpointsConfig)
     tracing: TracingConfig = field(default_factory=TracingConfig)
     supervisor: SupervisorConfig = field(default_factory=SupervisorConfig)
+    #: Where ``pointflow send`` publishes the sources (docs/remote.md); unused by ``run``.
+    send: Optional[SendConfig] = None
     #: Where the YAML came from (for relative paths in options); not a YAML key.
     base_dir: str = field(default=".", metadata={"internal": True})
 
@@ -255,6 +260,16 @@ def _check_semantics(cfg: PipelineConfig) -> None:
         except ConfigError as exc:
             raise ConfigError(f"{p}.transport", str(exc)) from None
         s.options = tcls.validate_options(s.options, f"{p}.options", base_dir=cfg.base_dir)
+    if cfg.send is not None:
+        check_send(cfg.send, "send", cfg.base_dir)
+    e = cfg.endpoints
+    for key in ("ingest", "frames", "release", "control", "trace", "render_commands"):
+        ep = getattr(e, key)
+        if ep and not e.insecure and not is_loopback_endpoint(ep):
+            raise ConfigError(f"endpoints.{key}", f"{ep} is reachable from other hosts and the links between "
+                              "stages have no encryption or authentication. To take points from another machine, "
+                              "run `pointflow send` there and a zmq source with CURVE keys here (docs/remote.md); "
+                              "or set endpoints.insecure: true")
 
 
 def load_config(data: dict | str | os.PathLike, *, base_dir: str | None = None) -> PipelineConfig:

@@ -41,9 +41,17 @@ def _dtype_str(dt: np.dtype) -> str:
     return name
 
 
-def encode(chunk: PointChunk) -> list[Any]:
+def encode(chunk: PointChunk, *, link: dict | None = None, compressor: Any = None,
+           resolution: float | None = None) -> list[Any]:
     """Frames for ``socket.send_multipart(frames, copy=False)``; arrays are not copied
-    unless they are not C-contiguous little-endian."""
+    unless they are not C-contiguous little-endian.
+
+    A link may add a ``link`` header object (per-source link sequence, see
+    :mod:`pointflow.remote.transit`), compress the data frames (a
+    :class:`pointflow.remote.codec.Compressor`) and quantise positions to ``resolution``;
+    without those the output is the plain format, byte for byte."""
+    if link is not None or compressor is not None or resolution:
+        return _encode_link(chunk, link, compressor, resolution)
     pos = np.ascontiguousarray(chunk.positions)
     if pos.dtype.byteorder == ">":
         pos = pos.astype(pos.dtype.newbyteorder("<"))
@@ -93,6 +101,46 @@ def _header_json(h: dict) -> bytes:
     return "".join(parts).encode()
 
 
+def _encode_link(chunk: PointChunk, link: dict | None, compressor: Any, resolution: float | None) -> list[Any]:
+    """The encoded form (docs/wire-format.md, "Encoded chunks")."""
+    from .remote import codec
+
+    pos = np.ascontiguousarray(chunk.positions)
+    n = int(pos.shape[0])
+    pos_meta: dict[str, Any] = {"dtype": _dtype_str(pos.dtype), "shape": [n, 3]}
+    if resolution:
+        qo = codec.quantise(pos, resolution)
+        if qo is not None:  # else (too wide for int32, non-finite) the floats go as they are
+            pos = qo[0]
+            pos_meta = {"dtype": "int32", "shape": [n, 3], "origin": qo[1], "resolution": float(resolution)}
+    arrays = [pos]
+    chans = []
+    for name, arr in chunk.channels.items():
+        a = np.ascontiguousarray(arr)
+        chans.append({"name": name, "dtype": _dtype_str(a.dtype), "shape": list(a.shape)})
+        arrays.append(a)
+    header: dict[str, Any] = {
+        "schema": SCHEMA, "source": chunk.source_id, "seq": int(chunk.seq), "trace": int(chunk.trace_id),
+        "t_sent_ns": int(chunk.t_sent_ns or time.monotonic_ns()), "n": n, "positions": pos_meta, "channels": chans,
+    }
+    if chunk.stamp_ns:
+        header["stamp_ns"] = int(chunk.stamp_ns)
+    if link is not None:
+        header["link"] = link
+    frames: list[Any] = [json.dumps(header, separators=(",", ":")).encode()]
+    if compressor is not None:
+        header_codec = {"codec": compressor.codec, "shuffle": bool(compressor.shuffle)}
+        header.update(header_codec)
+        frames[0] = json.dumps(header, separators=(",", ":")).encode()
+        frames += [compressor.frame(a.astype(a.dtype.newbyteorder("<"), copy=False)) for a in arrays]
+    else:
+        for a in arrays:
+            if a.dtype.byteorder == ">":
+                a = a.astype(a.dtype.newbyteorder("<"))
+            frames.append(memoryview(a).cast("B") if a.nbytes >= ZERO_COPY_MIN_BYTES else a.tobytes())
+    return frames
+
+
 def send(sock, chunk: PointChunk, flags: int = 0) -> None:
     """Send one chunk; large frames go without a copy."""
     sock.send_multipart(encode(chunk), flags=flags, copy=False)
@@ -108,7 +156,7 @@ _BIG_DIM = 2**40
 _I64_WRAP, _I64_HALF = 1 << 64, 1 << 63
 
 
-def _array(frame, dtype_name: Any, shape: Sequence[int], what: str) -> np.ndarray:
+def _array(frame, dtype_name: Any, shape: Sequence[int], what: str, codec: Any = None, shuffled: bool = False) -> np.ndarray:
     dt = _DTYPE_BY_NAME.get(dtype_name) if isinstance(dtype_name, str) else None
     if dt is None:
         raise ChunkError("bad_dtype", f"{what}: unsupported dtype {dtype_name!r}")
@@ -121,8 +169,13 @@ def _array(frame, dtype_name: Any, shape: Sequence[int], what: str) -> np.ndarra
         count *= s
     if count >= _I64_HALF:  # the product as int64 (wrapping), as np.prod(shape, dtype=int64) gave
         count = (count + _I64_HALF) % _I64_WRAP - _I64_HALF
-    buf = _buf(frame)
     expected = count * dt.itemsize
+    if codec is not None:
+        from .remote.codec import decompress
+
+        buf = memoryview(decompress(_buf(frame), codec, expected, dt.itemsize, shuffled))
+    else:
+        buf = _buf(frame)
     if buf.nbytes != expected:
         raise ChunkError(
             "truncated" if buf.nbytes < expected else "size_mismatch",
@@ -134,7 +187,13 @@ def _array(frame, dtype_name: Any, shape: Sequence[int], what: str) -> np.ndarra
 def decode(frames: Sequence[Any], max_points: int | None = None) -> PointChunk:
     """Parse a multipart message; raises :class:`ChunkError` with a reason on any defect.
 
-    The arrays returned are read-only views on the received frames (no copy)."""
+    The arrays returned are read-only views on the received frames (no copy), except
+    for compressed or quantised chunks, which are decoded into new arrays."""
+    return decode_message(frames, max_points)[0]
+
+
+def decode_message(frames: Sequence[Any], max_points: int | None = None) -> tuple[PointChunk, dict]:
+    """:func:`decode`, also returning the parsed header (for its ``link`` object)."""
     if len(frames) < 2:
         raise ChunkError("bad_frame_count", f"expected a header and a positions frame, got {len(frames)} frame(s)")
     hbuf = _buf(frames[0])
@@ -159,9 +218,18 @@ def decode(frames: Sequence[Any], max_points: int | None = None) -> PointChunk:
         raise ChunkError("bad_frame_count", f"header lists {len(chans)} channel(s) but message has {len(frames) - 2} data frame(s)")
     if pos_meta.get("shape") != [n, 3]:
         raise ChunkError("bad_header", f"positions shape must be [{n}, 3], got {pos_meta.get('shape')!r}")
-    if pos_meta.get("dtype") not in ("float32", "float64"):
-        raise ChunkError("bad_dtype", f"positions must be float32 or float64, got {pos_meta.get('dtype')!r}")
-    positions = _array(frames[1], pos_meta["dtype"], [n, 3], "positions")
+    codec = header.get("codec")
+    shuffled = header.get("shuffle") is True
+    if shuffled and codec is None:
+        raise ChunkError("bad_header", "'shuffle' is only defined together with a 'codec'")
+    quantised = pos_meta.get("dtype") == "int32" and "resolution" in pos_meta
+    if pos_meta.get("dtype") not in ("float32", "float64") and not quantised:
+        raise ChunkError("bad_dtype", f"positions must be float32 or float64 (or int32 with origin and resolution), got {pos_meta.get('dtype')!r}")
+    positions = _array(frames[1], pos_meta["dtype"], [n, 3], "positions", codec, shuffled)
+    if quantised:
+        from .remote.codec import dequantise
+
+        positions = dequantise(positions, pos_meta.get("origin"), pos_meta.get("resolution"))
     channels: dict[str, np.ndarray] = {}
     for i, meta in enumerate(chans):
         if not isinstance(meta, dict) or not isinstance(meta.get("name"), str):
@@ -170,7 +238,7 @@ def decode(frames: Sequence[Any], max_points: int | None = None) -> PointChunk:
         shape = meta.get("shape")
         if not isinstance(shape, list) or not shape or shape[0] != n:
             raise ChunkError("length_mismatch", f"channel {name!r} has shape {shape!r}, expected first dimension {n}")
-        channels[name] = _array(frames[2 + i], meta.get("dtype"), shape, f"channel {name!r}")
+        channels[name] = _array(frames[2 + i], meta.get("dtype"), shape, f"channel {name!r}", codec, shuffled)
     src = header.get("source", "")
     return PointChunk(
         positions=positions,
@@ -181,7 +249,7 @@ def decode(frames: Sequence[Any], max_points: int | None = None) -> PointChunk:
         t_sent_ns=_header_int(header, "t_sent_ns"),
         t_recv_ns=time.monotonic_ns(),
         stamp_ns=_header_int(header, "stamp_ns"),
-    )
+    ), header
 
 
 def _header_int(header: dict, key: str) -> int:

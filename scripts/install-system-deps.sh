@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # System packages the renderer and its tests use: Mesa's software Vulkan (lavapipe) and
-# GL/EGL (llvmpipe) drivers, and Xvfb for the window test. Installs them when run as root
+# GL/EGL (llvmpipe) drivers, Xvfb for the window test, iproute2 (ip, tc) for the link tests. Installs them when run as root
 # and something is missing; otherwise says what to install.
 set -u
 need=()
@@ -9,6 +9,8 @@ ldconfig -p 2>/dev/null | grep -q 'libEGL.so.1' || need+=(libegl1)
 ldconfig -p 2>/dev/null | grep -q 'libGL.so.1' || need+=(libgl1)
 ldconfig -p 2>/dev/null | grep -q 'libEGL_mesa' || need+=(libegl-mesa0)
 command -v Xvfb >/dev/null 2>&1 || need+=(xvfb)
+# ip netns / veth / tc netem for the network-namespace link tests (tests/remote)
+command -v ip >/dev/null 2>&1 || need+=(iproute2)
 [ ${#need[@]} -eq 0 ] && exit 0
 if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
     echo "installing system packages: ${need[*]}" >&2

@@ -23,8 +23,10 @@ class Pipeline:
     ...     print(p.stats()["frames"])
     """
 
-    def __init__(self, cfg: PipelineConfig, out_dir: Optional[str] = None):
+    def __init__(self, cfg: PipelineConfig, out_dir: Optional[str] = None, role: str = "pipeline"):
         self.cfg = cfg
+        #: "send": run only the sources and publish them on ``cfg.send`` (``pointflow send``).
+        self.role = role
         self.out_dir = out_dir if out_dir is not None else cfg.render.output.dir
         if self.out_dir:
             self.out_dir = str(Path(self.out_dir).resolve())
@@ -44,7 +46,7 @@ class Pipeline:
         if self._sup is not None and self._sup.started:
             raise RuntimeError("pipeline already running")
         self._final = None
-        self._sup = Supervisor(self.cfg, out_dir=self.out_dir)
+        self._sup = Supervisor(self.cfg, out_dir=self.out_dir, role=self.role)
         atexit.register(self.stop)
         try:
             self._sup.start()

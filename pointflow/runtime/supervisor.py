@@ -88,7 +88,10 @@ def _describe_exit(code: Optional[int]) -> str:
 #: Stage stats that are running totals (carried over a restart); everything else is a
 #: gauge and shows the current incarnation's value.
 COUNTERS = ("points_in", "points_out", "frames", "pngs", "uploaded_bytes", "messages_in", "chunks_accepted",
-            "rejected_messages", "ring_evicted", "ring_pushes", "published", "chunks_out", "reconnects")
+            "rejected_messages", "ring_evicted", "ring_pushes", "published", "chunks_out", "reconnects",
+            # a link source (docs/remote.md): its ledger starts again in a restarted process
+            "transport_link_sent", "transport_link_received", "transport_lost_in_transit",
+            "transport_lost_chunks", "transport_joined_after")
 COUNTER_MAPS = ("drops", "rejected", "skipped")
 
 
@@ -113,8 +116,11 @@ IPC_PATH_MAX = 107
 
 
 class Supervisor:
-    def __init__(self, cfg: PipelineConfig, out_dir: Optional[str] = None):
+    def __init__(self, cfg: PipelineConfig, out_dir: Optional[str] = None, role: str = "pipeline"):
         self.cfg = cfg
+        #: "pipeline", or "send": only the sources and the link sender (``pointflow send``,
+        #: docs/remote.md), no ring, no shared memory.
+        self.role = role
         self.out_dir = out_dir
         self.stages: dict[str, StageProc] = {}
         self.ring = None
@@ -177,6 +183,25 @@ class Supervisor:
             self._trace_sink = self._zctx.socket(zmq.PULL)
             self._trace_sink.setsockopt(zmq.LINGER, 0)
             self._trace_sink.bind(self.endpoints.trace)
+        if self.role == "send":
+            self.segments = []
+            self.stages["sender"] = StageProc(name="sender", kind="sender")
+            for i, s in enumerate(cfg.sources):
+                if not s.external:
+                    self.stages[s.name] = StageProc(name=s.name, kind="source", source_index=i)
+            self._t_start = time.monotonic()
+            self.started = True
+            # the sender binds the socket the sources push to: start it first and wait for
+            # its first heartbeat, so a short replay is not over before anyone listens
+            snd = self.stages["sender"]
+            self._spawn(snd)
+            end = time.monotonic() + cfg.supervisor.startup_timeout_ms / 1000
+            while not snd.ready and time.monotonic() < end and snd.process.exitcode is None:
+                self.poll(0.05)
+            for st in self.stages.values():
+                if st is not snd:
+                    self._spawn(st)
+            return
         imp = "importance" if (cfg.ring.importance_field or cfg.ring.eviction == "importance") else None
         try:
             self.ring = PointRing(
@@ -205,8 +230,9 @@ class Supervisor:
 
     def _spawn(self, st: StageProc) -> None:
         info = RunInfo(
-            run_dir=self.run_dir, endpoints=self.endpoints, ring_name=self.ring.name,
-            slab_names=tuple(self.slabs.names), out_dir=self.out_dir, supervisor_pid=os.getpid(),
+            run_dir=self.run_dir, endpoints=self.endpoints, ring_name=self.ring.name if self.ring else "",
+            slab_names=tuple(self.slabs.names) if self.slabs else ("", ""), out_dir=self.out_dir,
+            supervisor_pid=os.getpid(),
             source_index=st.source_index, restart_count=st.restarts,
             log_level=logging.getLogger("pointflow").getEffectiveLevel() or logging.INFO,
             # a restarted renderer numbers its frames on from where the last one stopped
@@ -388,7 +414,7 @@ class Supervisor:
             return
         self.started = False
         sources = [st for st in self.stages.values() if st.kind == "source"]
-        waves = [sources, [self.stages[n] for n in ("ingest",) if n in self.stages],
+        waves = [sources, [self.stages[n] for n in ("ingest", "sender") if n in self.stages],
                  [self.stages[n] for n in ("cadence", "render") if n in self.stages]]
         for wave in waves:
             for st in wave:
@@ -516,6 +542,8 @@ class Supervisor:
         the ring agreeing with ingest, and points the sources sent that ingest never saw
         (lost in the socket buffers of a killed ingest; known only without external sources and
         while no source was killed, since a killed source's last counts die with it)."""
+        if self.role == "send":
+            return self._send_accounting(stages)
         ing = stages.get("ingest", {})
         rejected = ing.get("rejected", {})
         acc: dict[str, Any] = {
@@ -537,4 +565,30 @@ class Supervisor:
                 acc["lost_before_ingest"] = None
             else:
                 acc["lost_before_ingest"] = acc["sources_sent"] - acc["ingest_received"]
+        link = [v for v in sources if "transport_link_sent" in v]
+        if link:
+            # zmq sources fed by `pointflow send` (docs/remote.md): what the senders sent
+            # since this pipeline joined = what arrived + what the link lost
+            acc["link_sent"] = sum(v.get("transport_link_sent", 0) for v in link)
+            acc["link_received"] = sum(v.get("transport_link_received", 0) for v in link)
+            acc["lost_in_transit"] = sum(v.get("transport_lost_in_transit", 0) for v in link)
+            acc["lost_in_transit_by_source"] = {k.split(":", 1)[1]: n for v in link for k, n in v.items()
+                                                if k.startswith("transport_lost_in_transit:")}
+            acc["link_balanced"] = acc["link_sent"] == acc["link_received"] + acc["lost_in_transit"]
+        return acc
+
+    def _send_accounting(self, stages: dict) -> dict[str, Any]:
+        """``pointflow send``: points the sources produced = handed to the link + dropped."""
+        snd = stages.get("sender", {})
+        sources = [v for v in stages.values() if v.get("kind") == "source"]
+        acc: dict[str, Any] = {
+            "sources_sent": sum(v.get("points_out", 0) for v in sources),
+            "sender_received": snd.get("points_in", 0),
+            "link_sent": snd.get("points_out", 0),
+            "sender_dropped": sum(snd.get("drops", {}).values()),
+            "sender_queued": snd.get("queued_points", 0),
+        }
+        acc["sender_balanced"] = acc["sender_received"] == acc["link_sent"] + acc["sender_dropped"] + acc["sender_queued"]
+        if not any(v.get("restarts") for v in sources):
+            acc["lost_before_sender"] = acc["sources_sent"] - acc["sender_received"]
         return acc

@@ -40,7 +40,9 @@ def test_zmq_transport_feeds_a_pipeline(tmp_path):
                 wire.send(peer, PointChunk(positions=rng.uniform(-5, 5, (1000, 3)),
                                            channels={"intensity": np.full(1000, k, np.float32)}))
             peer.send(b"garbage")
-            p.wait(60, until=lambda: p.stats()["stages"].get("ingest", {}).get("points_out", 0) >= 20_000)
+            # the source reports its rejection in its own heartbeat, maybe after ingest's
+            p.wait(60, until=lambda: p.stats()["stages"].get("ingest", {}).get("points_out", 0) >= 20_000
+                   and p.stats()["stages"].get("source", {}).get("transport_rejected", 0) >= 1)
             st = p.stats()["stages"]
         assert st["ingest"]["points_out"] == 20_000
         assert st["source"]["transport_rejected"] == 1

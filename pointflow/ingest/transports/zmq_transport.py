@@ -5,6 +5,12 @@ chunks. With ``topic_frame: true`` the first frame of each message is a topic (a
 publishers send) and is skipped. The socket connects by default (ZeroMQ then reconnects
 by itself, with ``reconnect_initial_s`` doubling up to ``reconnect_max_s``); a socket
 monitor counts disconnects and reconnects for the stats. ``bind: true`` binds instead.
+
+The receiving end of a link from ``pointflow send`` (docs/remote.md): CURVE keys, ZeroMQ
+heartbeats (:class:`pointflow.remote.options.LinkOptions`), compressed or quantised
+chunks (decoded by :mod:`pointflow.wire`) and ``lost_in_transit`` per source from the
+``link`` header (:mod:`pointflow.remote.transit`). A ``tcp://`` endpoint on a
+non-loopback address without CURVE is refused at load unless ``insecure: true``.
 """
 from __future__ import annotations
 
@@ -13,10 +19,12 @@ import logging
 from typing import Any, Iterator, Literal, Optional
 
 import zmq
-from zmq.utils.monitor import recv_monitor_message
 
 from ... import wire
 from ...chunk import PointChunk
+from ...remote.options import LinkOptions, check_link_options
+from ...remote.security import LinkSecurity
+from ...remote.transit import TransitLedger
 from ...typed import ConfigError
 from ..jsonchunk import parse_json_chunk
 from ._backoff import NetworkOptions
@@ -26,7 +34,7 @@ log = logging.getLogger("pointflow.transport.zmq")
 
 
 @dataclasses.dataclass
-class ZmqOptions(NetworkOptions):
+class ZmqOptions(NetworkOptions, LinkOptions):
     endpoint: str = "tcp://127.0.0.1:5556"
     socket: Literal["sub", "pull"] = "sub"
     bind: bool = False
@@ -47,6 +55,7 @@ class ZmqTransport(Transport):
             raise ConfigError(f"{path}.endpoint", f"must be a ZeroMQ endpoint (tcp://host:port, ipc://path), got {o.endpoint!r}")
         if o.receive_hwm < 1:
             raise ConfigError(f"{path}.receive_hwm", "must be >= 1")
+        check_link_options(o, path, o.endpoint, o.bind, base_dir)
 
     def __init__(self, options: dict[str, Any], source_id: str):
         super().__init__(options, source_id)
@@ -54,7 +63,8 @@ class ZmqTransport(Transport):
         self.counters = {"messages": 0, "rejected": 0, "connects": 0, "disconnects": 0, "reconnects": 0}
         self._ctx: zmq.Context | None = None
         self._sock = None
-        self._mon = None
+        self._link: LinkSecurity | None = None
+        self.ledger = TransitLedger()
 
     def open(self) -> None:
         o = self.o
@@ -62,37 +72,38 @@ class ZmqTransport(Transport):
         self._sock = self._ctx.socket(zmq.SUB if o.socket == "sub" else zmq.PULL)
         self._sock.setsockopt(zmq.RCVHWM, o.receive_hwm)
         self._sock.setsockopt(zmq.LINGER, 0)
-        self._sock.setsockopt(zmq.RECONNECT_IVL, int(o.reconnect_initial_s * 1000))
-        self._sock.setsockopt(zmq.RECONNECT_IVL_MAX, int(o.reconnect_max_s * 1000))
         if o.socket == "sub":
             self._sock.setsockopt(zmq.SUBSCRIBE, o.topic.encode())
-        self._mon = self._sock.get_monitor_socket(zmq.EVENT_CONNECTED | zmq.EVENT_DISCONNECTED | zmq.EVENT_ACCEPTED)
+        self._link = LinkSecurity(self._ctx, o, o.bind, log, o.reconnect_initial_s, o.reconnect_max_s)
+        self._link.apply(self._sock)
         try:
             (self._sock.bind if o.bind else self._sock.connect)(o.endpoint)
         except zmq.ZMQError as exc:
             raise RuntimeError(f"zmq transport: cannot {'bind' if o.bind else 'connect'} {o.endpoint}: {exc}") from None
 
     def _poll_monitor(self) -> None:
-        while True:
-            try:
-                ev = recv_monitor_message(self._mon, zmq.NOBLOCK)
-            except zmq.Again:
-                return
-            e = ev["event"]
-            if e in (zmq.EVENT_CONNECTED, zmq.EVENT_ACCEPTED):
-                if self.counters["connects"]:
-                    self.counters["reconnects"] += 1
-                self.counters["connects"] += 1
-            elif e == zmq.EVENT_DISCONNECTED:
-                self.counters["disconnects"] += 1
-                log.warning("%s: peer at %s went away; ZeroMQ reconnects", self.source_id, self.o.endpoint)
+        if self._link is not None:
+            self._link.poll()
+            self.counters.update(self._link.counters)
 
     def parse(self, frames: list) -> PointChunk:
         if self.o.topic_frame:
             frames = frames[1:]
         if len(frames) == 1:
             return parse_json_chunk(frames[0].buffer, self.o.max_points, self.source_id)
-        return wire.decode(frames, self.o.max_points)
+        chunk, header = wire.decode_message(frames, self.o.max_points)
+        link = header.get("link")
+        if link is not None:
+            src = chunk.source_id or self.source_id
+            delivered = self.ledger.observe(src, link, chunk.n)
+            self.counters.update(self.ledger.counters())
+            if not delivered:  # a sync: totals only
+                if src in self.ledger.ended:
+                    t = self.ledger.per_source()[src]
+                    log.info("%s: sender of %r stopped: sent %d, received %d, lost in transit %d point(s)",
+                             self.source_id, src, t["sent"], t["received"], t["lost_points"])
+                return None
+        return chunk
 
     def chunks(self) -> Iterator[Optional[PointChunk]]:
         while True:
@@ -107,22 +118,19 @@ class ZmqTransport(Transport):
                     break
                 self.counters["messages"] += 1
                 chunk = self.accept(self.parse, frames)
-                if chunk is None:
+                if chunk is None:  # rejected (counted) or a link sync
                     continue
                 yield chunk
                 if self.quota_reached():
                     return
 
     def close(self) -> None:
-        if self._sock is not None and self._mon is not None:
-            try:
-                self._sock.disable_monitor()
-            except zmq.ZMQError:
-                pass
-        for s in (self._mon, self._sock):
-            if s is not None:
-                s.close(linger=0)
+        if self._link is not None:
+            self._poll_monitor()
+            self._link.close()
+            self._link = None
         if self._sock is not None:
+            self._sock.close(linger=0)
             self._sock = None
         if self._ctx is not None:
             self._ctx.term()

@@ -1,0 +1,166 @@
+"""The options of a network link, shared by the sending end (``send:``) and the receiving
+``zmq`` transport, and the safe-default check both run at config load.
+
+The end that binds is the CURVE server: it has its own secret key and a folder of the
+client public keys it accepts. The end that connects is the client: its own secret key and
+the server's public key. A ``tcp://`` endpoint on anything but a loopback address needs
+CURVE, unless ``insecure: true`` says the user wants it in the clear.
+"""
+from __future__ import annotations
+
+import dataclasses
+import ipaddress
+import os
+from typing import Literal
+
+from ..typed import ConfigError
+from .keys import KeyFileError, authorized_keys, load_public, load_secret
+
+HOW_TO_KEYS = ("create keys with `pointflow keys NAME --dir keys` on each host, then set curve_secret_key "
+               "(this end's NAME.key_secret) and, on the connecting end, curve_server_key (the binding "
+               "end's public NAME.key), on the binding end curve_authorized_keys (a folder of the "
+               "connecting ends' public .key files); see docs/remote.md. Or set insecure: true to send "
+               "points unauthenticated and in the clear")
+
+
+@dataclasses.dataclass
+class LinkOptions:
+    """Security and liveness of one ZeroMQ link."""
+
+    #: This end's ``NAME.key_secret`` (turns CURVE on).
+    curve_secret_key: str = ""
+    #: Connecting end: the binding end's public ``NAME.key``.
+    curve_server_key: str = ""
+    #: Binding end: folder of the public ``.key`` files of the peers it accepts.
+    curve_authorized_keys: str = ""
+    #: Allow a tcp:// endpoint on a non-loopback address without CURVE.
+    insecure: bool = False
+    #: ZeroMQ heartbeats: PING every interval; a peer silent for timeout is dropped; ttl
+    #: tells the peer to drop us after that long. 0 = off.
+    heartbeat_ivl_s: float = 1.0
+    heartbeat_timeout_s: float = 3.0
+    heartbeat_ttl_s: float = 3.0
+
+
+@dataclasses.dataclass
+class SendConfig(LinkOptions):
+    """``send:`` section: where ``pointflow send`` publishes the sources' chunks."""
+
+    endpoint: str = "tcp://127.0.0.1:5556"
+    #: pub: every connected viewer gets every chunk (fan-out); push: one receiver per chunk.
+    socket: Literal["pub", "push"] = "pub"
+    bind: bool = True
+    #: ZeroMQ send high-water mark (messages per peer). PUB drops for a peer at this mark.
+    send_hwm: int = 16
+    #: Kernel send buffer of the link socket (KiB; 0 = the OS default, often megabytes).
+    #: Small keeps a thin link's backlog in the sender's queue, where the oldest is dropped,
+    #: instead of seconds of stale data in the kernel.
+    send_buffer_kb: int = 256
+    #: The sender's own queue (chunks); when the link is slower than the sensor the oldest
+    #: chunk is dropped (``link_queue_full``) so the sensor never waits.
+    queue_chunks: int = 64
+    #: true: with the queue full, stop taking chunks from the sources instead (replays then
+    #: wait; live sources drop at their own send queue, counted as ``hwm``).
+    backpressure: bool = False
+    compression: Literal["none", "lz4", "zstd"] = "none"
+    #: 0 = the codec's default (lz4 0, zstd 3).
+    compression_level: int = 0
+    #: Byte-shuffle frames before compressing (better ratios on numbers).
+    shuffle: bool = True
+    #: Quantise positions to this resolution (metres, e.g. 0.001); 0 = send floats.
+    quantise: float = 0.0
+    #: Send a sync (per-source totals) this often, so receivers see losses at the tail.
+    sync_every_s: float = 0.5
+    #: Before sending, wait for this many subscribers (pub) for at most wait_s.
+    wait_subscribers: int = 0
+    wait_s: float = 10.0
+    reconnect_initial_s: float = 0.1
+    reconnect_max_s: float = 5.0
+
+
+def is_loopback_endpoint(endpoint: str) -> bool:
+    """True for ipc://, inproc:// and tcp:// on 127.0.0.0/8, ::1 or localhost."""
+    if not endpoint.startswith(("tcp://", "pgm://", "epgm://")):
+        return True
+    host = endpoint.split("://", 1)[1].rsplit(":", 1)[0]
+    if ";" in host:  # tcp://source;dest: the remote part decides
+        host = host.split(";", 1)[1]
+    host = host.strip("[]")
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False  # "*", an interface name or a host name
+
+
+def _abs(p: str, base_dir: str) -> str:
+    return p if not p or os.path.isabs(p) else os.path.normpath(os.path.join(base_dir, p))
+
+
+def check_link_options(o: LinkOptions, path: str, endpoint: str, bind: bool, base_dir: str) -> None:
+    """Resolve key paths against ``base_dir`` (in place) and check them; refuse a
+    non-loopback tcp:// link without CURVE unless ``insecure``."""
+    o.curve_secret_key = _abs(o.curve_secret_key, base_dir)
+    o.curve_server_key = _abs(o.curve_server_key, base_dir)
+    o.curve_authorized_keys = _abs(o.curve_authorized_keys, base_dir)
+    for key in ("heartbeat_ivl_s", "heartbeat_timeout_s", "heartbeat_ttl_s"):
+        if getattr(o, key) < 0:
+            raise ConfigError(f"{path}.{key}", f"must be >= 0, got {getattr(o, key)!r}")
+    if o.heartbeat_ttl_s > 6553:
+        raise ConfigError(f"{path}.heartbeat_ttl_s", "must be at most 6553 s (ZeroMQ's limit)")
+    if o.curve_secret_key:
+        try:
+            load_secret(o.curve_secret_key)
+        except KeyFileError as exc:
+            raise ConfigError(f"{path}.curve_secret_key", str(exc)) from None
+        if bind:
+            if o.curve_server_key:
+                raise ConfigError(f"{path}.curve_server_key", "the binding end is the CURVE server: it takes "
+                                  "curve_authorized_keys (the clients' public keys), not curve_server_key")
+            if not o.curve_authorized_keys:
+                raise ConfigError(f"{path}.curve_authorized_keys", "the binding end needs a folder of the public "
+                                  "keys it accepts (the connecting ends' NAME.key files)")
+            try:
+                authorized_keys(o.curve_authorized_keys)
+            except KeyFileError as exc:
+                raise ConfigError(f"{path}.curve_authorized_keys", str(exc)) from None
+        else:
+            if o.curve_authorized_keys:
+                raise ConfigError(f"{path}.curve_authorized_keys", "the connecting end is the CURVE client: it "
+                                  "takes curve_server_key (the binding end's public key), not a keys folder")
+            if not o.curve_server_key:
+                raise ConfigError(f"{path}.curve_server_key", "the connecting end needs the binding end's "
+                                  "public key file (NAME.key)")
+            try:
+                load_public(o.curve_server_key)
+            except KeyFileError as exc:
+                raise ConfigError(f"{path}.curve_server_key", str(exc)) from None
+    elif o.curve_server_key or o.curve_authorized_keys:
+        raise ConfigError(f"{path}.curve_secret_key", "CURVE needs this end's secret key file (NAME.key_secret)")
+    elif not o.insecure and not is_loopback_endpoint(endpoint):
+        raise ConfigError(f"{path}.endpoint", f"{endpoint} is reachable from other hosts and this link has no "
+                          f"CURVE keys: anyone on the network could read or inject points. To fix: {HOW_TO_KEYS}")
+
+
+def check_send(s: SendConfig, path: str, base_dir: str) -> None:
+    """Semantic checks of a ``send:`` section (errors name the key)."""
+    if not s.endpoint.startswith(("tcp://", "ipc://", "inproc://")):
+        raise ConfigError(f"{path}.endpoint", f"must be a ZeroMQ endpoint (tcp://host:port, ipc://path), got {s.endpoint!r}")
+    for key in ("send_hwm", "queue_chunks"):
+        if getattr(s, key) < 1:
+            raise ConfigError(f"{path}.{key}", f"must be >= 1, got {getattr(s, key)!r}")
+    for key in ("send_buffer_kb", "quantise", "sync_every_s", "wait_s", "reconnect_initial_s", "reconnect_max_s"):
+        if getattr(s, key) < 0:
+            raise ConfigError(f"{path}.{key}", f"must be >= 0, got {getattr(s, key)!r}")
+    if s.sync_every_s == 0:
+        raise ConfigError(f"{path}.sync_every_s", "must be > 0")
+    if s.wait_subscribers and s.socket != "pub":
+        raise ConfigError(f"{path}.wait_subscribers", "only a pub socket has subscribers to wait for")
+    if s.compression != "none":
+        try:
+            __import__("lz4.frame" if s.compression == "lz4" else "zstandard")
+        except ImportError:
+            raise ConfigError(f"{path}.compression", f"{s.compression} needs its Python package: "
+                              "pip install 'pointflow[remote]'") from None
+    check_link_options(s, path, s.endpoint, s.bind, base_dir)

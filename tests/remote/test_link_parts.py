@@ -1,0 +1,266 @@
+"""The parts of a link that need no second host: config refusals, key files, the encoded
+wire format, and the lost-in-transit ledger."""
+from __future__ import annotations
+
+import os
+import stat
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from pointflow import wire
+from pointflow.chunk import ChunkError, PointChunk
+from pointflow.config import ConfigError, load_config
+from pointflow.remote.codec import Compressor
+from pointflow.remote.keys import create_keypair
+from pointflow.remote.options import is_loopback_endpoint
+from pointflow.remote.transit import TransitLedger
+
+
+def _zmq_cfg(**opts):
+    return {"source": {"transport": "zmq", "options": {"socket": "pull", **opts}}}
+
+
+@pytest.mark.parametrize("ep", ["tcp://10.1.2.3:5556", "tcp://*:5556", "tcp://0.0.0.0:5556", "tcp://eth0:5556",
+                                "tcp://sensor.local:5556"])
+def test_non_loopback_tcp_without_curve_is_refused(ep):
+    with pytest.raises(ConfigError) as e:
+        load_config(_zmq_cfg(endpoint=ep))
+    assert e.value.path == "sources[0].options.endpoint"
+    assert "pointflow keys" in str(e.value) and "insecure: true" in str(e.value)
+    load_config(_zmq_cfg(endpoint=ep, insecure=True))  # explicit opt-out
+    with pytest.raises(ConfigError, match="pointflow keys"):
+        load_config({"source": {"transport": "synthetic"}, "send": {"endpoint": ep}})
+
+
+def test_stage_endpoints_off_loopback_need_insecure():
+    cfg = {"source": {"transport": "synthetic"}, "endpoints": {"ingest": "tcp://0.0.0.0:5555"}}
+    with pytest.raises(ConfigError) as e:
+        load_config(cfg)
+    assert e.value.path == "endpoints.ingest" and "pointflow send" in str(e.value)
+    cfg["endpoints"]["insecure"] = True
+    load_config(cfg)
+    load_config({"source": {"transport": "synthetic"}, "endpoints": {"ingest": "tcp://127.0.0.1:5555"}})
+
+
+@pytest.mark.parametrize("ep", ["tcp://127.0.0.1:5556", "tcp://localhost:1", "tcp://[::1]:5556", "ipc:///tmp/x.sock"])
+def test_loopback_needs_no_keys(ep):
+    assert is_loopback_endpoint(ep)
+    load_config(_zmq_cfg(endpoint=ep))
+
+
+def test_curve_config_errors_name_the_key(tmp_path):
+    pub, sec = create_keypair("a", tmp_path)
+    ep = "tcp://10.0.0.1:5556"
+    with pytest.raises(ConfigError) as e:
+        load_config(_zmq_cfg(endpoint=ep, curve_secret_key=str(tmp_path / "nope.key_secret"), curve_server_key=str(pub)))
+    assert e.value.path == "sources[0].options.curve_secret_key" and "does not exist" in str(e.value)
+    with pytest.raises(ConfigError) as e:
+        load_config(_zmq_cfg(endpoint=ep, curve_secret_key=str(pub), curve_server_key=str(pub)))
+    assert "no secret key" in str(e.value)
+    with pytest.raises(ConfigError) as e:  # a connecting end needs the server's key
+        load_config(_zmq_cfg(endpoint=ep, curve_secret_key=str(sec)))
+    assert e.value.path == "sources[0].options.curve_server_key"
+    with pytest.raises(ConfigError) as e:  # a binding end needs the authorized folder
+        load_config(_zmq_cfg(endpoint=ep, bind=True, curve_secret_key=str(sec)))
+    assert e.value.path == "sources[0].options.curve_authorized_keys"
+    cfg = load_config(_zmq_cfg(endpoint=ep, bind=True, curve_secret_key="a.key_secret", curve_authorized_keys="."),
+                      base_dir=str(tmp_path))
+    assert cfg.sources[0].options["curve_secret_key"] == str(sec)  # relative to the config file
+
+
+def test_keys_cli_writes_a_private_pair(tmp_path):
+    run = lambda *a: subprocess.run([sys.executable, "-m", "pointflow.cli", "keys", *a], capture_output=True, text=True)
+    p = run("robot1", "--dir", str(tmp_path))
+    assert p.returncode == 0, p.stderr
+    sec = tmp_path / "robot1.key_secret"
+    assert stat.S_IMODE(os.stat(sec).st_mode) == 0o600 and (tmp_path / "robot1.key").is_file()
+    p = run("robot1", "--dir", str(tmp_path))
+    assert p.returncode == 1 and "already exists" in p.stderr and "Traceback" not in p.stderr
+
+
+def test_send_needs_a_send_section(tmp_path):
+    f = tmp_path / "c.yaml"
+    f.write_text("source: {transport: synthetic}\n")
+    p = subprocess.run([sys.executable, "-m", "pointflow.cli", "send", str(f)], capture_output=True, text=True)
+    assert p.returncode == 1 and "send:" in p.stderr and "Traceback" not in p.stderr
+
+
+def _chunk(n=1000, seed=0):
+    rng = np.random.default_rng(seed)
+    return PointChunk(positions=rng.normal(size=(n, 3)) * 30 + [6.4e5, 4.9e6, 10], source_id="s", seq=4,
+                      channels={"intensity": rng.random(n).astype(np.float32),
+                                "rgb": rng.integers(0, 255, (n, 3), dtype=np.uint8)})
+
+
+def test_plain_encoding_is_unchanged():
+    c = _chunk()
+    c.t_sent_ns = 123
+    assert [bytes(f) for f in wire.encode(c)] == [bytes(f) for f in wire.encode(c, link=None, compressor=None)]
+    assert b"codec" not in bytes(wire.encode(c)[0])
+
+
+@pytest.mark.parametrize("codec", [None, "lz4", "zstd"])
+@pytest.mark.parametrize("res", [None, 0.001])
+def test_encoded_round_trip(codec, res):
+    c = _chunk()
+    frames = wire.encode(c, link={"epoch": "e", "seq": 0, "sent": 1000},
+                         compressor=Compressor(codec) if codec else None, resolution=res)
+    d, header = wire.decode_message([bytes(f) for f in frames])
+    assert header["link"] == {"epoch": "e", "seq": 0, "sent": 1000}
+    assert header.get("codec") == codec
+    if res:
+        assert header["positions"]["dtype"] == "int32" and header["positions"]["resolution"] == res
+        assert np.abs(d.positions - c.positions).max() <= res / 2 * (1 + 1e-6)
+    else:
+        assert np.array_equal(d.positions, c.positions)
+    assert d.positions.dtype == np.float64
+    for k in c.channels:
+        assert np.array_equal(d.channels[k], c.channels[k])
+
+
+def test_encoded_defects_are_rejected_with_a_reason():
+    c = _chunk(100)
+    frames = [bytes(f) for f in wire.encode(c, compressor=Compressor("zstd"))]
+    bad = list(frames)
+    bad[1] = bad[1][:-5]
+    with pytest.raises(ChunkError) as e:
+        wire.decode(bad)
+    assert e.value.reason in ("bad_compression", "truncated")
+    hdr = frames[0].replace(b'"codec":"zstd"', b'"codec":"brotli"')
+    with pytest.raises(ChunkError) as e:
+        wire.decode([hdr, *frames[1:]])
+    assert e.value.reason == "unsupported_codec"
+    plain = [bytes(f) for f in wire.encode(c)]
+    hdr = plain[0].replace(b'"n":100', b'"shuffle":true,"n":100')
+    with pytest.raises(ChunkError) as e:
+        wire.decode([hdr, *plain[1:]])
+    assert e.value.reason == "bad_header"
+    q = [bytes(f) for f in wire.encode(c, resolution=0.01)]
+    hdr = q[0].replace(b'"resolution":0.01', b'"resolution":-1')
+    with pytest.raises(ChunkError) as e:
+        wire.decode([hdr, *q[1:]])
+    assert e.value.reason == "bad_header"
+
+
+def test_too_wide_for_int32_falls_back_to_floats():
+    c = PointChunk(positions=np.array([[0.0, 0, 0], [1e7, 0, 0]]))
+    d, h = wire.decode_message([bytes(f) for f in wire.encode(c, resolution=0.001)])
+    assert h["positions"]["dtype"] == "float64" and np.array_equal(d.positions, c.positions)
+
+
+def test_ledger_counts_gaps_syncs_and_late_joins():
+    t = TransitLedger()
+    link = lambda seq, sent, **kw: {"epoch": "A", "seq": seq, "sent": sent, **kw}
+    assert t.observe("s", link(0, 100), 100)
+    assert t.observe("s", link(1, 200), 100)
+    assert t.observe("s", link(4, 500), 100)           # chunks 2 and 3 (200 points) lost
+    assert not t.observe("s", link(6, 650, sync=True), 0)  # chunk 5 (50 points) lost at the tail
+    c = t.counters()
+    assert (c["link_sent"], c["link_received"], c["lost_in_transit"], c["lost_chunks"]) == (650, 300, 350, 3)
+    assert not t.observe("s", link(6, 650, sync=True, end=True), 0) and t.ended == {"s"}
+    # a receiver that joins late does not count what came before as lost
+    late = TransitLedger()
+    assert late.observe("s", link(10, 1100), 100)
+    assert late.counters()["joined_after"] == 1000 and late.counters()["lost_in_transit"] == 0
+    # the sender restarted: a new epoch starts from zero, totals add up
+    assert t.observe("s", {"epoch": "B", "seq": 0, "sent": 10}, 10)
+    assert t.counters()["link_sent"] == 660 and t.counters()["link_received"] == 310
+    with pytest.raises(ChunkError) as e:
+        t.observe("s", {"epoch": "B", "seq": 0, "sent": 20}, 10)
+    assert e.value.reason == "stale_link_seq"
+    with pytest.raises(ChunkError) as e:
+        t.observe("s", {"epoch": "B", "seq": "x", "sent": 20}, 10)
+    assert e.value.reason == "bad_link"
+
+
+def test_sender_queue_drops_oldest_data_never_syncs():
+    """A link that takes nothing (a PUSH socket with no peer): beyond queue_chunks the oldest
+    chunk is dropped and counted; syncs never push data out and never pile up."""
+    import logging
+
+    import zmq
+
+    from pointflow.remote.options import SendConfig
+    from pointflow.remote.sender import LinkSender
+    from pointflow.runtime.stage import StageCounters
+
+    ctx = zmq.Context()
+    sock = ctx.socket(zmq.PUSH)
+    sock.setsockopt(zmq.SNDHWM, 1)
+    sock.bind("inproc://nobody")
+    try:
+        counters = StageCounters()
+        snd = LinkSender(sock, SendConfig(queue_chunks=2), counters, logging.getLogger("test"))
+        for i in range(5):
+            snd.add(_chunk(100, seed=i))
+            snd.sync()
+            snd.sync()
+        assert not snd.pump()
+        assert counters.drops == {"link_queue_full": 300} and counters.points_out == 0
+        assert snd.queued_chunks == 2 and len(snd.queue) == 3  # two newest chunks + one sync
+        frames = snd.queue[0][0]
+        assert wire.decode_message(frames)[1]["link"]["seq"] == 3  # the oldest kept is chunk 3
+        assert wire.decode_message(snd.queue[-1][0])[1]["link"] == {"epoch": snd.epoch, "seq": 5, "sent": 500, "sync": True}
+    finally:
+        sock.close(0)
+        ctx.term()
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.mark.parametrize("client", ["no-curve", "wrong-server-key"])
+def test_curve_server_refuses_clients_without_the_right_keys(tmp_path, client):
+    """A client without CURVE, or one holding the wrong server key, gets no chunk in; the
+    server counts the refused handshake and goes on."""
+    import time
+
+    import zmq
+
+    from pointflow.ingest.transports.zmq_transport import ZmqTransport
+
+    srv_pub, srv_sec = create_keypair("server", tmp_path / "s")
+    cli_pub, cli_sec = create_keypair("client", tmp_path / "c")
+    other_pub, _ = create_keypair("other", tmp_path / "o")
+    (tmp_path / "ok").mkdir()
+    (tmp_path / "ok" / "client.key").write_text(cli_pub.read_text())
+    port = _free_port()
+    t = ZmqTransport(ZmqTransport.validate_options(
+        {"endpoint": f"tcp://127.0.0.1:{port}", "socket": "pull", "bind": True, "curve_secret_key": str(srv_sec),
+         "curve_authorized_keys": str(tmp_path / "ok")}, "t"), "t")
+    t.open()
+    ctx = zmq.Context()
+    push = ctx.socket(zmq.PUSH)
+    push.setsockopt(zmq.LINGER, 0)
+    if client == "wrong-server-key":
+        pub, sec = zmq.auth.load_certificate(str(cli_sec))
+        push.curve_publickey, push.curve_secretkey = pub, sec
+        push.curve_serverkey = zmq.auth.load_certificate(str(other_pub))[0]
+    push.connect(f"tcp://127.0.0.1:{port}")
+    try:
+        for _ in range(3):
+            try:
+                wire.send(push, _chunk(100), zmq.NOBLOCK)
+            except zmq.Again:
+                pass
+        got, it, end = 0, t.chunks(), time.monotonic() + 3
+        while time.monotonic() < end:
+            c = next(it)
+            got += c is not None
+            t._poll_monitor()
+            if t.counters["refused_handshakes"] and time.monotonic() > end - 2:
+                break
+        assert got == 0
+        assert t.counters["refused_handshakes"] >= 1 and t.counters["handshakes"] == 0
+    finally:
+        push.close(0)
+        ctx.term()
+        t.close()
