@@ -17,7 +17,8 @@ from .slabs import _S_STATE_OFF, S_OWNER_PID, SLAB_MAGIC
 PREFIXES = ("pfring_", "pfslab_")
 
 
-def _alive(pid: int) -> bool:
+def pid_alive(pid: int) -> bool:
+    """True while ``pid`` exists (someone else's process counts as alive)."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
@@ -58,7 +59,7 @@ def sweep_orphans(shm_dir: str = SHM_DIR) -> list[str]:
             if os.stat(path).st_uid != uid:
                 continue
             pid = owner_pid(path)
-            if pid is not None and pid > 0 and not _alive(pid):
+            if pid is not None and pid > 0 and not pid_alive(pid):
                 os.unlink(path)
                 removed.append(name)
         except (FileNotFoundError, PermissionError):

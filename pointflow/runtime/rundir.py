@@ -14,6 +14,8 @@ import re
 import shutil
 import tempfile
 
+from ..ring.sweep import pid_alive
+
 #: The names :func:`pointflow.config.new_run_dir` gives; group 1 is the supervisor's pid.
 RUN_DIR_RE = re.compile(r"pointflow-(\d+)-[0-9a-f]{8}")
 
@@ -21,16 +23,6 @@ RUN_DIR_RE = re.compile(r"pointflow-(\d+)-[0-9a-f]{8}")
 def runtime_root() -> str:
     """Where run directories are made (the same rule as ``new_run_dir``)."""
     return os.environ.get("XDG_RUNTIME_DIR") or tempfile.gettempdir()
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
 
 
 def owner_pid(path: str) -> int | None:
@@ -57,7 +49,7 @@ def sweep_run_dirs(root: str | None = None) -> list[str]:
             st = os.lstat(path)
         except FileNotFoundError:
             continue
-        if st.st_uid != uid or not os.path.isdir(path) or os.path.islink(path) or _alive(pid):
+        if st.st_uid != uid or not os.path.isdir(path) or os.path.islink(path) or pid_alive(pid):
             continue
         shutil.rmtree(path, ignore_errors=True)
         if not os.path.exists(path):
@@ -68,7 +60,7 @@ def sweep_run_dirs(root: str | None = None) -> list[str]:
 def remove_orphaned_run_dir(run_dir: str, supervisor_pid: int) -> bool:
     """A stage on its way out: remove its supervisor's run directory if that supervisor is
     dead (never a live supervisor's). True when it was removed here."""
-    if not run_dir or owner_pid(run_dir) != supervisor_pid or _alive(supervisor_pid):
+    if not run_dir or owner_pid(run_dir) != supervisor_pid or pid_alive(supervisor_pid):
         return False
     if not os.path.isdir(run_dir):
         return False

@@ -161,7 +161,7 @@ class Supervisor:
         self.run_dir = new_run_dir()
         self.endpoints = cfg.resolved_endpoints(self.run_dir)
         for key, ep in dataclasses.asdict(self.endpoints).items():
-            sock = ep[len("ipc://"):] if ep.startswith("ipc://") else ""
+            sock = ep[len("ipc://"):] if isinstance(ep, str) and ep.startswith("ipc://") else ""
             if len(sock.encode()) > IPC_PATH_MAX:  # the caller removes the run directory
                 raise ConfigError(f"endpoints.{key}", f"socket path {sock} has {len(sock.encode())} bytes, a Unix "
                                                       f"socket allows {IPC_PATH_MAX}; set XDG_RUNTIME_DIR (or the "
