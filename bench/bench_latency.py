@@ -84,10 +84,10 @@ def run_latency(seconds: float, backend: str, size: list[int], ring: int, out_di
     }
 
 
-def run_throughput(seconds: float, tracing: bool, warmup_s: float = 3.0) -> float:
-    """Points/s through ingest, measured between two stats samples after a warm-up (the
-    source computes its cached scans first)."""
-    pipe = Pipeline.from_dict(throughput_config(tracing), out_dir=tempfile.mkdtemp(prefix="pf-bench-"))
+def stats_window(cfg: dict, seconds: float, warmup_s: float, what: str) -> tuple[dict, dict]:
+    """Run ``cfg`` and sample stats after a warm-up and again ``seconds`` later; the
+    pipeline is stopped either way and a failed run ends the benchmark."""
+    pipe = Pipeline.from_dict(cfg, out_dir=tempfile.mkdtemp(prefix="pf-bench-"))
     pipe.start()
     try:
         pipe.wait(warmup_s)
@@ -97,7 +97,14 @@ def run_throughput(seconds: float, tracing: bool, warmup_s: float = 3.0) -> floa
     finally:
         stats = pipe.stop()
     if stats.get("failure"):
-        raise SystemExit(f"throughput pipeline failed: {stats['failure']}")
+        raise SystemExit(f"{what} pipeline failed: {stats['failure']}")
+    return s0, s1
+
+
+def run_throughput(seconds: float, tracing: bool, warmup_s: float = 3.0) -> float:
+    """Points/s through ingest, measured between two stats samples after a warm-up (the
+    source computes its cached scans first)."""
+    s0, s1 = stats_window(throughput_config(tracing), seconds, warmup_s, "throughput")
     n = s1["stages"]["ingest"]["points_in"] - s0["stages"]["ingest"]["points_in"]
     return n / max(s1["elapsed_s"] - s0["elapsed_s"], 1e-9)
 

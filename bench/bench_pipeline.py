@@ -18,7 +18,6 @@ import os
 import platform
 import statistics
 import sys
-import tempfile
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -26,7 +25,7 @@ sys.path.insert(0, str(ROOT))
 
 import yaml  # noqa: E402
 
-from pointflow import Pipeline  # noqa: E402
+from bench_latency import stats_window  # noqa: E402 - same folder
 
 
 def run_once(raster: str, seconds: float, warmup_s: float) -> dict:
@@ -34,17 +33,7 @@ def run_once(raster: str, seconds: float, warmup_s: float) -> dict:
     cfg["render"]["raster"] = raster
     cfg["render"]["output"] = {"dir": None}
     cfg.setdefault("supervisor", {})["hung_after_ms"] = 10000
-    pipe = Pipeline.from_dict(cfg, out_dir=tempfile.mkdtemp(prefix="pf-bench-pipe-"))
-    pipe.start()
-    try:
-        pipe.wait(warmup_s)
-        s0 = pipe.stats()
-        pipe.wait(seconds)
-        s1 = pipe.stats()
-    finally:
-        stats = pipe.stop()
-    if stats.get("failure"):
-        raise SystemExit(f"pipeline failed: {stats['failure']}")
+    s0, s1 = stats_window(cfg, seconds, warmup_s, f"raster {raster}")
     r1 = s1["stages"].get("render", {})
     frames = s1["frames"] - s0["frames"]
     dt = max(s1["elapsed_s"] - s0["elapsed_s"], 1e-9)

@@ -134,7 +134,6 @@ class ComputeRaster:
         # the RGBA8 image, rows padded to the readback pitch: read_image copies it as is
         self.img = r._buf(r._row_bytes * H, BU.STORAGE | BU.COPY_SRC, "image")
         self.bgl_pick = layout(res + [b(rw)])
-        naive = r.naive_float32
 
         def pipe(bgl, code, entry="main", label=""):
             mod = dev.create_shader_module(code=code, label=label)

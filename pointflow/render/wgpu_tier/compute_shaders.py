@@ -18,7 +18,7 @@ inverted: the largest stored value is the smallest key):
 """
 from __future__ import annotations
 
-from .shaders import PARAMS, SCAN
+from .shaders import LUT_COLOUR, PARAMS, SCAN
 
 #: points per thread (a workgroup of 256 covers 256 * K consecutive logical indices; row j
 #: of a workgroup is 256 consecutive indices, so rows in order are logical order)
@@ -331,24 +331,7 @@ fn winner(i: u32, out_logical: ptr<function, u32>, out_depth: ptr<function, u32>
   {WINNER}
 }
 
-fn lut_colour(v: f32) -> u32 {
-  if (!is_finite(v)) { return pack4x8unorm(P.fixed_color); }
-  var lo = P.range_lo;
-  var hi = P.range_hi;
-  var scale = P.range_scale;
-  if (RANGE_AUTO) {
-    lo = unord_f(rng[0]);
-    hi = unord_f(rng[1]);
-    scale = 1.0 / (hi - lo);
-  }
-  var i = 255u;
-  if ((P.flags & F_RANGE_DEGENERATE) == 0u && hi > lo) {
-    let t = (v - lo) * scale;
-    i = u32(floor(clamp(t, 0.0, 1.0) * 255.0 + 0.5));
-  }
-  return lut[i];
-}
-
+""" + LUT_COLOUR.replace("{RANGE_AUTO}", "RANGE_AUTO") + r"""
 // CMODE / RANGE_AUTO are constants of the pipeline variant: on CPU adapters branches are
 // often flattened, and a generic colour function made the resolve pass 6x slower
 fn point_colour(slot: u32) -> u32 {

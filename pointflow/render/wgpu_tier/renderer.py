@@ -230,7 +230,6 @@ class WgpuRenderer(Renderer):
         self._round = self.cfg.point_shape == "round"
         self._world = self.cfg.point_size_space == "world"
         self._p_pick = None
-        TU = wgpu.TextureUsage
         w, h = self.width, self.height
         self._color_tex = self._depth_tex = None
         self._row_bytes = (w * 4 + 255) // 256 * 256
@@ -524,7 +523,6 @@ class WgpuRenderer(Renderer):
             raise RenderError(f"wgpu tier frame failed: {type(e).__name__}: {e}") from e
 
     def _render(self, frame: FrameInput, camera: Camera) -> FrameStats:
-        wgpu = self._wgpu
         t0 = time.perf_counter()
         s = self._frame_no % 2
         self._wait_set(s)

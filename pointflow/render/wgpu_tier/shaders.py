@@ -342,23 +342,14 @@ fn thin_emit(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) w
 }
 """
 
-DRAW_HEAD = PARAMS + r"""
-@group(0) @binding(0) var<uniform> P: Params;
-@group(0) @binding(1) var<storage, read> pos: array<f32>;
-@group(0) @binding(2) var<storage, read> tms: array<vec2<f32>>;
-@group(0) @binding(3) var<storage, read> imp: array<f32>;
-@group(0) @binding(4) var<storage, read> col: array<u32>;
-@group(0) @binding(5) var<storage, read> idx: array<vec2<u32>>;
-@group(0) @binding(6) var<storage, read> lut: array<u32, 256>;
-@group(0) @binding(7) var<storage, read> rng: array<u32, 2>;
-@group(0) @binding(8) var<storage, read> clipb: array<vec4<f32>>;
-
-fn lut_colour(v: f32) -> u32 {
+#: A scalar through the colormap LUT; ``{RANGE_AUTO}`` is the test for an auto range (a
+#: uniform flag here, a pipeline constant in the compute resolve pass).
+LUT_COLOUR = r"""fn lut_colour(v: f32) -> u32 {
   if (!is_finite(v)) { return pack4x8unorm(P.fixed_color); }
   var lo = P.range_lo;
   var hi = P.range_hi;
   var scale = P.range_scale;
-  if ((P.flags & F_RANGE_AUTO) != 0u) {
+  if ({RANGE_AUTO}) {
     lo = unord_f(rng[0]);
     hi = unord_f(rng[1]);
     scale = 1.0 / (hi - lo);
@@ -370,7 +361,21 @@ fn lut_colour(v: f32) -> u32 {
   }
   return lut[i];
 }
+"""
 
+
+DRAW_HEAD = PARAMS + r"""
+@group(0) @binding(0) var<uniform> P: Params;
+@group(0) @binding(1) var<storage, read> pos: array<f32>;
+@group(0) @binding(2) var<storage, read> tms: array<vec2<f32>>;
+@group(0) @binding(3) var<storage, read> imp: array<f32>;
+@group(0) @binding(4) var<storage, read> col: array<u32>;
+@group(0) @binding(5) var<storage, read> idx: array<vec2<u32>>;
+@group(0) @binding(6) var<storage, read> lut: array<u32, 256>;
+@group(0) @binding(7) var<storage, read> rng: array<u32, 2>;
+@group(0) @binding(8) var<storage, read> clipb: array<vec4<f32>>;
+
+""" + LUT_COLOUR.replace("{RANGE_AUTO}", "(P.flags & F_RANGE_AUTO) != 0u") + r"""
 fn point_colour(slot: u32, p: vec3<f32>) -> u32 {
   if (P.color_mode == C_RGB) { return col[slot]; }
   if (P.color_mode == C_SCALAR) { return lut_colour(bitcast<f32>(col[slot])); }
