@@ -19,7 +19,7 @@ import yaml
 
 from .ingest.transports import resolve_transport
 from .remote.options import SendConfig, check_send, is_loopback_endpoint
-from .typed import Bound, ConfigError, Each, Length, check, dataclass_schema, load_dataclass
+from .typed import Bound, ConfigError, Each, Length, check, check_keys, dataclass_schema, load_dataclass
 from .typed import at_least_one, endpoint, non_negative, positive
 
 __all__ = ["ConfigError", "PipelineConfig", "load_config", "json_schema", "new_run_dir"]
@@ -282,6 +282,7 @@ def load_config(data: dict | str | os.PathLike, *, base_dir: str | None = None) 
     if not isinstance(data, dict):
         raise ConfigError("", f"top level must be a mapping, got {type(data).__name__}")
     data = dict(data)
+    check_keys(data, ["source"] + [f.name for f in dataclasses.fields(PipelineConfig) if not f.metadata.get("internal")], "")
     if "source" in data:
         if "sources" in data:
             raise ConfigError("source", "give either 'source' or 'sources', not both")

@@ -247,12 +247,7 @@ def load_dataclass(cls, data: Any, path: str):
         raise ConfigError(path, f"expected a mapping, got {type(data).__name__} {data!r}")
     hints = typing.get_type_hints(cls)
     fields = {f.name: f for f in dataclasses.fields(cls) if not f.metadata.get("internal")}
-    unknown = [k for k in data if k not in fields]
-    if unknown:
-        key = str(unknown[0])
-        near = difflib.get_close_matches(key, list(fields), n=1, cutoff=0.75)
-        hint = f" (did you mean {near[0]!r}?)" if near else ""
-        raise ConfigError(join_path(path, key), f"unknown key {key!r}{hint}; expected one of {', '.join(fields)}")
+    check_keys(data, list(fields), path)
     kwargs = {}
     for name, f in fields.items():
         p = join_path(path, name)
@@ -264,6 +259,16 @@ def load_dataclass(cls, data: Any, path: str):
         elif f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
             raise ConfigError(p, "required key is missing")
     return cls(**kwargs)
+
+
+def check_keys(data: dict, valid: list[str], path: str) -> None:
+    """Refuse the first key not in ``valid``, naming it, the closest valid key and all of them."""
+    unknown = [k for k in data if k not in valid]
+    if unknown:
+        key = str(unknown[0])
+        near = difflib.get_close_matches(key, valid, n=1, cutoff=0.75)
+        hint = f" (did you mean {near[0]!r}?)" if near else ""
+        raise ConfigError(join_path(path, key), f"unknown key {key!r}{hint}; expected one of {', '.join(valid)}")
 
 
 def join_path(path: str, key: str) -> str:

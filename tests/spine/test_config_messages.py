@@ -64,3 +64,25 @@ def test_validate_prints_one_line_with_the_file_name(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.count("\n") == 1, err
     assert str(p) in err and "send.compresion" in err and "did you mean 'compression'" in err
+
+
+DOC_SAMPLES = {  # the bad.yaml behind each sample line of docs/config.md
+    "ring.max_points": "source: {transport: synthetic}\nring: {max_points: 0}\n",
+    "render.backend": "source: {transport: synthetic}\nrender: {backend: vulkan}\n",
+    "send.compression": "source: {transport: synthetic}\nsend: {compression: gzip}\n",
+    "rnder": "source: {transport: synthetic}\nrnder: {}\n",
+}
+
+
+def test_the_sample_errors_in_config_md_are_what_validate_prints(tmp_path, monkeypatch, capsys):
+    from pathlib import Path
+
+    doc = (Path(__file__).resolve().parents[2] / "docs" / "config.md").read_text()
+    shown = [l for l in doc.split("```")[1].splitlines() if l.startswith("config error:")]
+    monkeypatch.chdir(tmp_path)
+    printed = []
+    for text in DOC_SAMPLES.values():
+        Path("bad.yaml").write_text(text)
+        assert main(["validate", "bad.yaml"]) == 1
+        printed.append(capsys.readouterr().err.strip())
+    assert printed == shown
