@@ -164,12 +164,37 @@ def _keys(args) -> int:
 
 
 def _validate(args) -> int:
+    """What ``run`` (or, for a config with ``send:``, ``send``) would refuse here, refused here too."""
     cfg = load_config(args.file)
-    print(f"{args.file}: OK ({len(cfg.sources)} source(s), ring {cfg.ring.max_points} points, "
-          f"render {cfg.render.backend} {cfg.render.size[0]}x{cfg.render.size[1]})")
+    if cfg.send is not None:  # a sensor host's file: `pointflow send` runs no ring, cadence or render
+        s = cfg.send
+        extras = [x for x in (s.compression if s.compression != "none" else "",
+                              f"quantise {s.quantise:g} m" if s.quantise else "",
+                              "CURVE" if s.curve_secret_key else "no encryption") if x]
+        print(f"{args.file}: OK for `pointflow send` ({len(cfg.sources)} source(s), {s.socket} "
+              f"{'bound on' if s.bind else 'connecting to'} {s.endpoint}, {', '.join(extras)})")
+    else:
+        need = _check_ring_space(cfg)
+        print(f"{args.file}: OK ({len(cfg.sources)} source(s), ring {cfg.ring.max_points:,} points "
+              f"({need / 2**20:,.0f} MiB of shared memory, free on this machine), "
+              f"render {cfg.render.backend} {cfg.render.size[0]}x{cfg.render.size[1]})")
     if args.verbose:
         print(json.dumps(cfg.to_dict(), indent=2))
     return 0
+
+
+def _check_ring_space(cfg) -> int:
+    """The shared-memory check ``run`` makes before it starts anything (same message); the
+    bytes the ring and its two slabs need."""
+    from .ring import RingLayout
+    from .ring.layout import as_channel_specs
+    from .ring.space import RingSpaceError, check_shm_space
+
+    try:
+        return check_shm_space(RingLayout(cfg.ring.max_points, as_channel_specs(cfg.ring_channels())))
+    except RingSpaceError as exc:
+        raise ConfigError("ring.max_points", f"{exc} (checked on this machine, where `pointflow run` "
+                                             "would refuse it)") from None
 
 
 def _info(args) -> int:
@@ -215,10 +240,18 @@ def probe_backends() -> dict[str, str]:
         from .render.select import crossover_points
 
         n, where = crossover_points()
-        out["auto"] = f"wgpu > gl > cpu; cpu below {n} points ({where})"
+        out["auto"] = auto_rule(n, where)
     except Exception:  # noqa: BLE001
         pass
     return out
+
+
+def auto_rule(crossover: int, where: str) -> str:
+    """How ``render.backend: auto`` picks, in words (a crossover of 0 means the cpu tier is never picked
+    first)."""
+    if crossover <= 0:
+        return f"wgpu > gl > cpu: a GPU tier at every ring size (measured crossover 0 points: {where})"
+    return f"wgpu > gl > cpu; the cpu tier for rings of fewer than {crossover:,} points ({where})"
 
 
 def build_parser() -> argparse.ArgumentParser:
