@@ -346,9 +346,11 @@ def live_summary(stats: dict) -> str:
                      + (f" p99jit={j:.2f}ms" if j is not None else "") + (f" skip={skipped}" if skipped else ""))
     parts.append(f"drops={_n(drops)}")
     acc = stats.get("accounting") or {}
+    refused = sum(s.get("transport_refused_handshakes", 0) or 0 for s in st.values())
     if "lost_in_transit" in acc:  # a link from `pointflow send` (docs/remote.md)
-        refused = sum(s.get("transport_refused_handshakes", 0) or 0 for s in st.values())
         parts.append(f"link_lost={_n(acc['lost_in_transit'])}" + (f" refused={refused}" if refused else ""))
+    elif refused:  # nothing came over the link: a refused handshake is the likely reason
+        parts.append(f"link refused={refused}")
     cpu = " ".join(f"{n[:3]}:{s.get('cpu_percent', 0) or 0:.0f}%" for n, s in st.items())
     if cpu:
         parts.append(f"cpu[{cpu}]")
