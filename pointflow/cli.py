@@ -18,6 +18,13 @@ log = logging.getLogger("pointflow")
 #: Exit code for every configuration or input-path error (nothing was started).
 EXIT_CONFIG = 1
 
+#: When the command started: ``--duration`` counts from here, so starting the stages (spawn,
+#: imports, GPU device) is inside it; stopping them (about a second) comes after.
+_T0 = time.monotonic()
+
+DURATION_HELP = ("seconds from the command's start until it stops the pipeline (starting the stages is "
+                 "included; stopping them takes about a second more)")
+
 
 def config_error_line(exc: ConfigError, file: Optional[str] = None) -> str:
     """One line (ends in a newline when printed) naming the file and the key."""
@@ -69,7 +76,7 @@ def _run(args, profile: bool = False) -> int:
     tty = sys.stderr.isatty() and not args.quiet
     code = 0
     pipe.start()
-    t_end = None if args.duration is None else time.monotonic() + args.duration
+    t_end = None if args.duration is None else _T0 + args.duration  # from the command's start (--help)
     last_print = 0.0
     try:
         while not stop.flag and not pipe.stop_requested and (t_end is None or time.monotonic() < t_end):
@@ -119,7 +126,7 @@ def _send(args) -> int:
     old = {s: signal.signal(s, stop) for s in (signal.SIGINT, signal.SIGTERM)}
     code = 0
     pipe.start()
-    t_end = None if args.duration is None else time.monotonic() + args.duration
+    t_end = None if args.duration is None else _T0 + args.duration  # from the command's start (--help)
     last_print = time.monotonic()
 
     def sources_done() -> bool:
@@ -262,7 +269,7 @@ def build_parser() -> argparse.ArgumentParser:
         r = sub.add_parser(name, help=help_)
         r.add_argument("file", help="pipeline YAML")
         r.add_argument("--duration", type=float, default=None if name == "run" else 10.0,
-                       help="seconds to run (default: until Ctrl-C)" if name == "run" else "seconds to run (default 10)")
+                       help=DURATION_HELP + ("; default: until Ctrl-C" if name == "run" else "; default 10"))
         r.add_argument("--out", default=None, help="output directory (default: render.output.dir)")
         r.add_argument("--backend", choices=["auto", "wgpu", "gl", "cpu"], default=None, help="override render.backend")
         r.add_argument("-q", "--quiet", action="store_true", help="no live progress line")
@@ -273,7 +280,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub.add_parser("schema", help="print the JSON Schema of the pipeline YAML (for editors)")
     snd = sub.add_parser("send", help="run only the sources of a config and publish them on its send: endpoint")
     snd.add_argument("file", help="YAML with sources and a send: section")
-    snd.add_argument("--duration", type=float, default=None, help="seconds to run (default: until the sources end or Ctrl-C)")
+    snd.add_argument("--duration", type=float, default=None, help=DURATION_HELP + "; default: until the sources end or Ctrl-C")
     snd.add_argument("--out", default=None, help="write stats.json here")
     snd.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
     k = sub.add_parser("keys", help="write a CURVE key pair NAME.key (public) and NAME.key_secret")
@@ -284,6 +291,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Optional[list[str]] = None) -> int:
+    global _T0
+    _T0 = time.monotonic()
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose and args.cmd != "validate" else logging.INFO,
                         format="%(asctime)s %(name)s %(levelname)s %(message)s", stream=sys.stderr)
