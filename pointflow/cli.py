@@ -19,11 +19,12 @@ log = logging.getLogger("pointflow")
 EXIT_CONFIG = 1
 
 #: When the command started: ``--duration`` counts from here, so starting the stages (spawn,
-#: imports, GPU device) is inside it; stopping them (about a second) comes after.
+#: imports, GPU device) is inside it; stopping them comes after.
 _T0 = time.monotonic()
 
 DURATION_HELP = ("seconds from the command's start until it stops the pipeline (starting the stages is "
-                 "included; stopping them takes about a second more)")
+                 "included; stopping them comes after: usually under a second, up to 5 s per stage wave "
+                 "when a stage is busy, e.g. in a slow software-GPU frame)")
 
 
 def config_error_line(exc: ConfigError, file: Optional[str] = None) -> str:
