@@ -146,3 +146,31 @@ def test_the_issues_examples_are_refused_by_both(name, value):
         load_config(copy.deepcopy(data))
     with pytest.raises(jsonschema.ValidationError):
         jsonschema.validate(data, SCHEMA)
+
+
+def test_a_new_block_using_the_shared_checks_gets_schema_bounds():
+    """What another block gets by writing ``field(default=..., metadata=check(positive))``."""
+    from dataclasses import dataclass, field
+    from typing import Optional
+
+    from pointflow.typed import Length, at_least_one, check, dataclass_schema, load_dataclass, non_negative, positive
+
+    @dataclass
+    class NewBlock:
+        rate_hz: float = field(default=1.0, metadata=check(positive))
+        keep: int = field(default=0, metadata=check(non_negative))
+        cap: Optional[int] = field(default=None, metadata=check(at_least_one))
+        pair: list[float] = field(default_factory=lambda: [0.0, 1.0], metadata=check(Length(2)))
+
+    props = dataclass_schema(NewBlock)["properties"]
+    assert props["rate_hz"]["exclusiveMinimum"] == 0 and props["keep"]["minimum"] == 0
+    assert props["cap"]["minimum"] == 1 and props["pair"]["minItems"] == props["pair"]["maxItems"] == 2
+    schema = dataclass_schema(NewBlock)
+    for bad in ({"rate_hz": 0}, {"keep": -1}, {"cap": 0}, {"pair": [1.0]}, {"rat_hz": 2}):
+        with pytest.raises(ConfigError):
+            load_dataclass(NewBlock, bad, "new")
+        with pytest.raises(jsonschema.ValidationError):
+            jsonschema.validate(bad, schema)
+    for ok in ({"rate_hz": 0.5}, {"keep": 0}, {"cap": None}, {"cap": 1}, {"pair": [2.0, 3.0]}):
+        load_dataclass(NewBlock, ok, "new")
+        jsonschema.validate(ok, schema)
