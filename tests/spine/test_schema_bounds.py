@@ -8,7 +8,7 @@ import copy
 import dataclasses
 import types
 import typing
-from typing import Any, Literal, Union
+from typing import Any, Literal, Optional, Union  # Optional: NewBlock's hints resolve here
 
 import jsonschema
 import pytest
@@ -151,7 +151,6 @@ def test_the_issues_examples_are_refused_by_both(name, value):
 def test_a_new_block_using_the_shared_checks_gets_schema_bounds():
     """What another block gets by writing ``field(default=..., metadata=check(positive))``."""
     from dataclasses import dataclass, field
-    from typing import Optional
 
     from pointflow.typed import Length, at_least_one, check, dataclass_schema, load_dataclass, non_negative, positive
 
