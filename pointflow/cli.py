@@ -18,6 +18,14 @@ log = logging.getLogger("pointflow")
 #: Exit code for every configuration or input-path error (nothing was started).
 EXIT_CONFIG = 1
 
+#: When the command started: ``--duration`` counts from here, so starting the stages (spawn,
+#: imports, GPU device) is inside it; stopping them comes after.
+_T0 = time.monotonic()
+
+DURATION_HELP = ("seconds from the command's start until it stops the pipeline (starting the stages is "
+                 "included; stopping them comes after: usually under a second, up to 5 s per stage wave "
+                 "when a stage is busy, e.g. in a slow software-GPU frame)")
+
 
 def config_error_line(exc: ConfigError, file: Optional[str] = None) -> str:
     """One line (ends in a newline when printed) naming the file and the key."""
@@ -69,7 +77,7 @@ def _run(args, profile: bool = False) -> int:
     tty = sys.stderr.isatty() and not args.quiet
     code = 0
     pipe.start()
-    t_end = None if args.duration is None else time.monotonic() + args.duration
+    t_end = None if args.duration is None else _T0 + args.duration  # from the command's start (--help)
     last_print = 0.0
     try:
         while not stop.flag and not pipe.stop_requested and (t_end is None or time.monotonic() < t_end):
@@ -119,7 +127,7 @@ def _send(args) -> int:
     old = {s: signal.signal(s, stop) for s in (signal.SIGINT, signal.SIGTERM)}
     code = 0
     pipe.start()
-    t_end = None if args.duration is None else time.monotonic() + args.duration
+    t_end = None if args.duration is None else _T0 + args.duration  # from the command's start (--help)
     last_print = time.monotonic()
 
     def sources_done() -> bool:
@@ -164,12 +172,37 @@ def _keys(args) -> int:
 
 
 def _validate(args) -> int:
+    """What ``run`` (or, for a config with ``send:``, ``send``) would refuse here, refused here too."""
     cfg = load_config(args.file)
-    print(f"{args.file}: OK ({len(cfg.sources)} source(s), ring {cfg.ring.max_points} points, "
-          f"render {cfg.render.backend} {cfg.render.size[0]}x{cfg.render.size[1]})")
+    if cfg.send is not None:  # a sensor host's file: `pointflow send` runs no ring, cadence or render
+        s = cfg.send
+        extras = [x for x in (s.compression if s.compression != "none" else "",
+                              f"quantise {s.quantise:g} m" if s.quantise else "",
+                              "CURVE" if s.curve_secret_key else "no encryption") if x]
+        print(f"{args.file}: OK for `pointflow send` ({len(cfg.sources)} source(s), {s.socket} "
+              f"{'bound on' if s.bind else 'connecting to'} {s.endpoint}, {', '.join(extras)})")
+    else:
+        need = _check_ring_space(cfg)
+        print(f"{args.file}: OK ({len(cfg.sources)} source(s), ring {cfg.ring.max_points:,} points "
+              f"({need / 2**20:,.0f} MiB of shared memory, free on this machine), "
+              f"render {cfg.render.backend} {cfg.render.size[0]}x{cfg.render.size[1]})")
     if args.verbose:
         print(json.dumps(cfg.to_dict(), indent=2))
     return 0
+
+
+def _check_ring_space(cfg) -> int:
+    """The shared-memory check ``run`` makes before it starts anything (same message); the
+    bytes the ring and its two slabs need."""
+    from .ring import RingLayout
+    from .ring.layout import as_channel_specs
+    from .ring.space import RingSpaceError, check_shm_space
+
+    try:
+        return check_shm_space(RingLayout(cfg.ring.max_points, as_channel_specs(cfg.ring_channels())))
+    except RingSpaceError as exc:
+        raise ConfigError("ring.max_points", f"{exc} (checked on this machine, where `pointflow run` "
+                                             "would refuse it)") from None
 
 
 def _info(args) -> int:
@@ -215,10 +248,18 @@ def probe_backends() -> dict[str, str]:
         from .render.select import crossover_points
 
         n, where = crossover_points()
-        out["auto"] = f"wgpu > gl > cpu; cpu below {n} points ({where})"
+        out["auto"] = auto_rule(n, where)
     except Exception:  # noqa: BLE001
         pass
     return out
+
+
+def auto_rule(crossover: int, where: str) -> str:
+    """How ``render.backend: auto`` picks, in words (a crossover of 0 means the cpu tier is never picked
+    first)."""
+    if crossover <= 0:
+        return f"wgpu > gl > cpu: a GPU tier at every ring size (measured crossover 0 points: {where})"
+    return f"wgpu > gl > cpu; the cpu tier for rings of fewer than {crossover:,} points ({where})"
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -229,7 +270,7 @@ def build_parser() -> argparse.ArgumentParser:
         r = sub.add_parser(name, help=help_)
         r.add_argument("file", help="pipeline YAML")
         r.add_argument("--duration", type=float, default=None if name == "run" else 10.0,
-                       help="seconds to run (default: until Ctrl-C)" if name == "run" else "seconds to run (default 10)")
+                       help=DURATION_HELP + ("; default: until Ctrl-C" if name == "run" else "; default 10"))
         r.add_argument("--out", default=None, help="output directory (default: render.output.dir)")
         r.add_argument("--backend", choices=["auto", "wgpu", "gl", "cpu"], default=None, help="override render.backend")
         r.add_argument("-q", "--quiet", action="store_true", help="no live progress line")
@@ -240,7 +281,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub.add_parser("schema", help="print the JSON Schema of the pipeline YAML (for editors)")
     snd = sub.add_parser("send", help="run only the sources of a config and publish them on its send: endpoint")
     snd.add_argument("file", help="YAML with sources and a send: section")
-    snd.add_argument("--duration", type=float, default=None, help="seconds to run (default: until the sources end or Ctrl-C)")
+    snd.add_argument("--duration", type=float, default=None, help=DURATION_HELP + "; default: until the sources end or Ctrl-C")
     snd.add_argument("--out", default=None, help="write stats.json here")
     snd.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
     k = sub.add_parser("keys", help="write a CURVE key pair NAME.key (public) and NAME.key_secret")
@@ -251,6 +292,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Optional[list[str]] = None) -> int:
+    global _T0
+    _T0 = time.monotonic()
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose and args.cmd != "validate" else logging.INFO,
                         format="%(asctime)s %(name)s %(levelname)s %(message)s", stream=sys.stderr)

@@ -13,13 +13,13 @@ import stat
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal, Optional, Union
+from typing import Any, ClassVar, Literal, Optional, Union
 
 import yaml
 
 from .ingest.transports import resolve_transport
 from .remote.options import SendConfig, check_send, is_loopback_endpoint
-from .typed import ConfigError, check, dataclass_schema, load_dataclass
+from .typed import Bound, ConfigError, Each, Length, check, check_keys, dataclass_schema, load_dataclass
 from .typed import at_least_one, endpoint, non_negative, positive
 
 __all__ = ["ConfigError", "PipelineConfig", "load_config", "json_schema", "new_run_dir"]
@@ -64,8 +64,8 @@ class IngestConfig:
 class PolicyConfig:
     tier: Literal["auto", "L", "M", "H"] = "auto"
     mode: Literal["eco", "balanced", "max_throughput", "custom"] = "balanced"
-    point_budget_cap: Optional[int] = field(default=None, metadata=check(lambda v, p: v is None or at_least_one(v, p)))
-    update_cadence_min_ms: Optional[float] = field(default=None, metadata=check(lambda v, p: v is None or non_negative(v, p)))
+    point_budget_cap: Optional[int] = field(default=None, metadata=check(at_least_one))
+    update_cadence_min_ms: Optional[float] = field(default=None, metadata=check(non_negative))
     legacy: bool = False
     #: The view cap: budget <= this multiple of the viewport's pixel count.
     points_per_pixel: float = field(default=4.0, metadata=check(positive))
@@ -84,11 +84,15 @@ class CadenceConfig:
 class CameraConfig:
     """``position``/``target`` in world coordinates; ``auto`` frames the ring's contents."""
 
+    #: The cross-option rule of _check_semantics, for the JSON Schema too.
+    json_schema_extra: ClassVar[dict] = {"if": {"properties": {"mode": {"const": "fixed"}}, "required": ["mode"]},
+                                         "then": {"required": ["position", "target"]}}
+
     mode: Literal["auto", "fixed", "orbit"] = "auto"
-    position: Optional[list[float]] = None
-    target: Optional[list[float]] = None
-    up: list[float] = field(default_factory=lambda: [0.0, 0.0, 1.0])
-    fov_deg: float = field(default=60.0, metadata=check(lambda v, p: (0 < v < 180) or (_ for _ in ()).throw(ConfigError(p, f"must be in (0, 180), got {v!r}"))))
+    position: Optional[list[float]] = field(default=None, metadata=check(Length(3), message="must be [x, y, z]"))
+    target: Optional[list[float]] = field(default=None, metadata=check(Length(3), message="must be [x, y, z]"))
+    up: list[float] = field(default_factory=lambda: [0.0, 0.0, 1.0], metadata=check(Length(3), message="must be [x, y, z]"))
+    fov_deg: float = field(default=60.0, metadata=check(Bound(0, 180, lo_open=True, hi_open=True)))
     near: float = field(default=0.1, metadata=check(positive))
     far: float = field(default=10_000.0, metadata=check(positive))
     #: Degrees per second the auto/orbit camera turns around the scene (0 = still).
@@ -108,13 +112,17 @@ class OutputConfig:
 @dataclass
 class RenderConfig:
     backend: Literal["auto", "wgpu", "gl", "cpu"] = "auto"
-    size: list[int] = field(default_factory=lambda: [1280, 720])
+    size: list[int] = field(default_factory=lambda: [1280, 720], metadata=check(
+        Length(2), Each(Bound(1, 16384)), message="must be [width, height] with each in 1..16384"))
     color_by: Optional[str] = "intensity"
     colormap: Literal["turbo", "viridis", "grayscale"] = "turbo"
     #: ``auto`` or ``[lo, hi]``.
-    color_range: Union[Literal["auto"], list[float]] = "auto"
-    color: list[float] = field(default_factory=lambda: [1.0, 1.0, 1.0])
-    background: list[float] = field(default_factory=lambda: [0.02, 0.02, 0.05])
+    color_range: Union[Literal["auto"], list[float]] = field(
+        default="auto", metadata=check(Length(2), message="must be 'auto' or [lo, hi] with lo < hi"))
+    color: list[float] = field(default_factory=lambda: [1.0, 1.0, 1.0], metadata=check(
+        Length(3, 4), Each(Bound(0.0, 1.0)), message="must be 3 or 4 numbers in [0, 1]"))
+    background: list[float] = field(default_factory=lambda: [0.02, 0.02, 0.05], metadata=check(
+        Length(3, 4), Each(Bound(0.0, 1.0)), message="must be 3 or 4 numbers in [0, 1]"))
     point_size: float = field(default=2.0, metadata=check(positive))
     point_size_space: Literal["screen", "world"] = "screen"
     point_shape: Literal["square", "round"] = "square"
@@ -128,7 +136,8 @@ class RenderConfig:
     pick_radius: int = field(default=8, metadata=check(non_negative))
     pick_strategy: Literal["nearest", "highest_importance", "recent_first"] = "nearest"
     #: Below this many points ``auto`` uses the cpu tier; ``auto`` reads the measured value.
-    cpu_crossover_points: Union[Literal["auto"], int] = "auto"
+    cpu_crossover_points: Union[Literal["auto"], int] = field(
+        default="auto", metadata=check(non_negative, message="must be >= 0 or 'auto'"))
     gpu_timestamps: bool = True
     #: wgpu tier: ``compute`` (atomic per-pixel keys), ``quads`` (instanced-quad draw) or
     #: ``auto`` (compute where it measured faster; see docs/render-wgpu.md).
@@ -223,24 +232,14 @@ class PipelineConfig:
 
 # --------------------------------------------------------------------------- loader
 def _check_semantics(cfg: PipelineConfig) -> None:
+    # Single-option bounds are declared on the fields (check(...)) and reach the JSON
+    # Schema; only what relates two values is checked here.
     r = cfg.render
-    if len(r.size) != 2 or any(v < 1 or v > 16384 for v in r.size):
-        raise ConfigError("render.size", f"must be [width, height] with each in 1..16384, got {r.size!r}")
-    for key in ("color", "background"):
-        v = getattr(r, key)
-        if len(v) not in (3, 4) or any(not 0.0 <= c <= 1.0 for c in v):
-            raise ConfigError(f"render.{key}", f"must be 3 or 4 numbers in [0, 1], got {v!r}")
-    if isinstance(r.color_range, list) and (len(r.color_range) != 2 or not r.color_range[0] < r.color_range[1]):
+    if isinstance(r.color_range, list) and not r.color_range[0] < r.color_range[1]:
         raise ConfigError("render.color_range", f"must be 'auto' or [lo, hi] with lo < hi, got {r.color_range!r}")
-    if isinstance(r.cpu_crossover_points, int) and r.cpu_crossover_points < 0:
-        raise ConfigError("render.cpu_crossover_points", "must be >= 0 or 'auto'")
     c = r.camera
     if c.near >= c.far:
         raise ConfigError("render.camera.near", f"must be less than camera.far ({c.far}), got {c.near}")
-    for key in ("position", "target", "up"):
-        v = getattr(c, key)
-        if v is not None and len(v) != 3:
-            raise ConfigError(f"render.camera.{key}", f"must be [x, y, z], got {v!r}")
     if c.mode == "fixed" and (c.position is None or c.target is None):
         raise ConfigError("render.camera.position", "camera.mode fixed needs position and target")
     if not cfg.sources:
@@ -283,6 +282,7 @@ def load_config(data: dict | str | os.PathLike, *, base_dir: str | None = None) 
     if not isinstance(data, dict):
         raise ConfigError("", f"top level must be a mapping, got {type(data).__name__}")
     data = dict(data)
+    check_keys(data, ["source"] + [f.name for f in dataclasses.fields(PipelineConfig) if not f.metadata.get("internal")], "")
     if "source" in data:
         if "sources" in data:
             raise ConfigError("source", "give either 'source' or 'sources', not both")

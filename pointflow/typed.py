@@ -8,9 +8,11 @@ imports run one way (config → transports → typed).
 from __future__ import annotations
 
 import dataclasses
+import difflib
+import re
 import types
 import typing
-from typing import Any, Literal, Union
+from typing import Any, Literal, Optional, Union
 
 
 class ConfigError(ValueError):
@@ -21,32 +23,144 @@ class ConfigError(ValueError):
         self.path = path
 
 
-def positive(v, path):
-    if v <= 0:
-        raise ConfigError(path, f"must be > 0, got {v!r}")
+class Constraint:
+    """A bound on one option, declared once: called as ``fn(value, path)`` at load time it
+    raises :class:`ConfigError`; :meth:`schema` gives the same bound as JSON-Schema keywords,
+    so ``pointflow schema`` and ``pointflow validate`` cannot disagree. JSON-Schema bounds
+    apply only to their own type (``minimum`` to numbers, ``minItems`` to arrays), so they sit
+    beside an ``anyOf`` of an Optional or Union field without touching its other branches."""
+
+    def __call__(self, v: Any, path: str) -> None:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def schema(self) -> dict:  # pragma: no cover - abstract
+        raise NotImplementedError
 
 
-def non_negative(v, path):
-    if v < 0:
-        raise ConfigError(path, f"must be >= 0, got {v!r}")
+class Bound(Constraint):
+    """A number in a range; ``lo_open``/``hi_open`` exclude the end."""
+
+    def __init__(self, lo: Optional[float] = None, hi: Optional[float] = None, *,
+                 lo_open: bool = False, hi_open: bool = False, note: str = ""):
+        self.lo, self.hi, self.lo_open, self.hi_open, self.note = lo, hi, lo_open, hi_open, note
+
+    def ok(self, v) -> bool:
+        if self.lo is not None and (v <= self.lo if self.lo_open else v < self.lo):
+            return False
+        if self.hi is not None and (v >= self.hi if self.hi_open else v > self.hi):
+            return False
+        return True
+
+    def describe(self) -> str:
+        lo, hi = self.lo, self.hi
+        if lo is not None and hi is not None:
+            if self.lo_open or self.hi_open:
+                return f"must be in {'(' if self.lo_open else '['}{lo}, {hi}{')' if self.hi_open else ']'}"
+            return f"must be in {lo}..{hi}"
+        if lo is not None:
+            return f"must be {'>' if self.lo_open else '>='} {lo}"
+        return f"must be {'<' if self.hi_open else '<='} {hi}"
+
+    def __call__(self, v, path):
+        if isinstance(v, (int, float)) and not isinstance(v, bool) and not self.ok(v):
+            raise ConfigError(path, f"{self.describe()}{f' ({self.note})' if self.note else ''}, got {v!r}")
+
+    def schema(self) -> dict:
+        s: dict = {}
+        if self.lo is not None:
+            s["exclusiveMinimum" if self.lo_open else "minimum"] = self.lo
+        if self.hi is not None:
+            s["exclusiveMaximum" if self.hi_open else "maximum"] = self.hi
+        return s
 
 
-def at_least_one(v, path):
-    if v < 1:
-        raise ConfigError(path, f"must be >= 1, got {v!r}")
+class Length(Constraint):
+    """A list of ``lo``..``hi`` items."""
+
+    def __init__(self, lo: int, hi: Optional[int] = None):
+        self.lo, self.hi = lo, lo if hi is None else hi
+
+    def __call__(self, v, path):
+        if isinstance(v, list) and not self.lo <= len(v) <= self.hi:
+            want = str(self.lo) if self.lo == self.hi else f"{self.lo} to {self.hi}"
+            raise ConfigError(path, f"must have {want} items, got {len(v)}: {v!r}")
+
+    def schema(self) -> dict:
+        return {"minItems": self.lo, "maxItems": self.hi}
 
 
-def endpoint(v, path):
-    if v is None:
-        return
-    if not any(v.startswith(p) for p in ("ipc://", "tcp://", "inproc://")):
-        raise ConfigError(path, f"must be a ZeroMQ endpoint (ipc://, tcp://), got {v!r}")
+class Each(Constraint):
+    """Every item of a list meets ``inner``."""
+
+    def __init__(self, inner: Constraint):
+        self.inner = inner
+
+    def __call__(self, v, path):
+        if isinstance(v, list):
+            for i, item in enumerate(v):
+                self.inner(item, f"{path}[{i}]")
+
+    def schema(self) -> dict:
+        return {"items": self.inner.schema()}
 
 
-def check(fn):
-    """Field metadata: a validator called with (value, path)."""
-    return {"check": fn}
+class Prefix(Constraint):
+    """A string that starts with one of ``prefixes`` (a URL scheme)."""
 
+    def __init__(self, prefixes: tuple[str, ...], what: str):
+        self.prefixes, self.what = tuple(prefixes), what
+
+    def __call__(self, v, path):
+        if isinstance(v, str) and not v.startswith(self.prefixes):
+            raise ConfigError(path, f"must be {self.what}, got {v!r}")
+
+    def schema(self) -> dict:
+        return {"pattern": "^(" + "|".join(re.escape(p) for p in self.prefixes) + ")"}
+
+
+class AllOf(Constraint):
+    """Several constraints on one option; ``message`` (when given) replaces their own, so a
+    field keeps one sentence such as "must be [width, height] with each in 1..16384"."""
+
+    def __init__(self, parts: tuple[Constraint, ...], message: str = ""):
+        self.parts, self.message = tuple(parts), message
+
+    def __call__(self, v, path):
+        for c in self.parts:
+            try:
+                c(v, path)
+            except ConfigError:
+                if not self.message:
+                    raise
+                raise ConfigError(path, f"{self.message}, got {v!r}") from None
+
+    def schema(self) -> dict:
+        out: dict = {}
+        for c in self.parts:
+            out.update(c.schema())
+        return out
+
+
+#: The shared bounds: use them as ``field(default=..., metadata=check(positive))``.
+positive = Bound(0, lo_open=True)
+non_negative = Bound(0)
+at_least_one = Bound(1)
+endpoint = Prefix(("ipc://", "tcp://", "inproc://"), "a ZeroMQ endpoint (ipc://, tcp://)")
+
+
+def check(*constraints: Any, message: str = "") -> dict:
+    """Field metadata: the option's bounds, checked at load (not for null) and written into
+    the JSON Schema. Give :class:`Constraint` objects (``positive``, ``Bound(1, 16384)``,
+    ``Length(2)``...); a plain ``fn(value, path)`` still validates but cannot reach the
+    schema, and tests/spine/test_schema_bounds.py fails on one in the pipeline config."""
+    if len(constraints) == 1 and not message:
+        return {"check": constraints[0]}
+    return {"check": AllOf(constraints, message)}
+
+
+def constraint_schema(fn: Any) -> dict:
+    """The JSON-Schema keywords of a field's ``check`` ({} for a plain function)."""
+    return fn.schema() if isinstance(fn, Constraint) else {}
 
 
 # --------------------------------------------------------------------------- loader
@@ -71,12 +185,20 @@ def convert(value: Any, tp: Any, path: str) -> Any:
     if tp is Any:
         return value
     if origin in (Union, types.UnionType):
+        alts = typing.get_args(tp)
         errors = []
-        for alt in typing.get_args(tp):
+        for alt in alts:
             try:
                 return convert(value, alt, path)
             except ConfigError as exc:
                 errors.append(exc)
+        # The value was clearly meant for one alternative (a mapping for the only dataclass,
+        # anything but null for the only non-null type): its own error names the key inside.
+        meant = [i for i, a in enumerate(alts) if dataclasses.is_dataclass(a)] if isinstance(value, dict) else []
+        if len(meant) != 1 and value is not None:
+            meant = [i for i, a in enumerate(alts) if a is not type(None)]
+        if len(meant) == 1:
+            raise errors[meant[0]]
         raise ConfigError(path, f"expected {type_name(tp)}, got {value!r}")
     if origin is Literal:
         choices = typing.get_args(tp)
@@ -125,10 +247,7 @@ def load_dataclass(cls, data: Any, path: str):
         raise ConfigError(path, f"expected a mapping, got {type(data).__name__} {data!r}")
     hints = typing.get_type_hints(cls)
     fields = {f.name: f for f in dataclasses.fields(cls) if not f.metadata.get("internal")}
-    unknown = [k for k in data if k not in fields]
-    if unknown:
-        key = unknown[0]
-        raise ConfigError(join_path(path, str(key)), f"unknown key; expected one of {', '.join(fields)}")
+    check_keys(data, list(fields), path)
     kwargs = {}
     for name, f in fields.items():
         p = join_path(path, name)
@@ -140,6 +259,16 @@ def load_dataclass(cls, data: Any, path: str):
         elif f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
             raise ConfigError(p, "required key is missing")
     return cls(**kwargs)
+
+
+def check_keys(data: dict, valid: list[str], path: str) -> None:
+    """Refuse the first key not in ``valid``, naming it, the closest valid key and all of them."""
+    unknown = [k for k in data if k not in valid]
+    if unknown:
+        key = str(unknown[0])
+        near = difflib.get_close_matches(key, valid, n=1, cutoff=0.75)
+        hint = f" (did you mean {near[0]!r}?)" if near else ""
+        raise ConfigError(join_path(path, key), f"unknown key {key!r}{hint}; expected one of {', '.join(valid)}")
 
 
 def join_path(path: str, key: str) -> str:
@@ -174,6 +303,7 @@ def dataclass_schema(cls) -> dict:
         if f.metadata.get("internal"):
             continue
         s = schema_of(hints[f.name])
+        s.update(constraint_schema(f.metadata.get("check")))
         if f.default is not dataclasses.MISSING:
             s["default"] = f.default
         elif f.default_factory is not dataclasses.MISSING:
@@ -183,6 +313,7 @@ def dataclass_schema(cls) -> dict:
             required.append(f.name)
         props[f.name] = s
     out = {"type": "object", "additionalProperties": False, "properties": props}
+    out.update(getattr(cls, "json_schema_extra", {}))  # what relates two options, said in JSON Schema
     if cls.__doc__ and not cls.__doc__.startswith(cls.__name__ + "("):
         out["description"] = " ".join(cls.__doc__.split())
     if required:

@@ -346,9 +346,10 @@ def read_npz(path: str) -> tuple[np.ndarray, dict]:
 
 
 def read_kitti(path: str) -> tuple[np.ndarray, dict]:
+    size = os.path.getsize(path)  # np.fromfile drops a partial float: check the bytes on disk
+    if size % 16:
+        raise FormatError(path, f"KITTI .bin size {size} bytes is not a multiple of 16 (x, y, z, reflectance)")
     raw = np.fromfile(path, dtype="<f4")
-    if raw.size % 4:
-        raise FormatError(path, f"KITTI .bin size {raw.size * 4} bytes is not a multiple of 16 (x, y, z, reflectance)")
     a = raw.reshape(-1, 4)
     return np.ascontiguousarray(a[:, :3]), {"intensity": np.ascontiguousarray(a[:, 3])}
 

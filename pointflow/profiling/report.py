@@ -56,6 +56,26 @@ class _Traces:
         self.names = t.event_names
         self.start = self.T0.min(axis=1) if ne else np.zeros(0, np.int64)
 
+    def kept(self, skip: int) -> tuple[np.ndarray, int]:
+        """The chunks the statistics use (the table and latency.png alike): all but the first
+        and last ``skip`` by start time, when there are more than ``4 * skip``."""
+        keep = np.ones(self.ids.size, bool)
+        if self.ids.size > 4 * skip and skip > 0:
+            by_start = np.argsort(self.start, kind="stable")
+            keep[by_start[:skip]] = False
+            keep[by_start[-skip:]] = False
+            return keep, 2 * skip
+        return keep, 0
+
+    def stage_latencies(self):
+        """(event index, name, seen, latency ns) in pipeline order; latency = this event's end
+        minus the end of the previous event the chunk passed (first event: its own duration)."""
+        prev = np.full(self.ids.size, _NONE, np.int64)
+        for j in self.order:
+            seen = self.T1[:, j] != _NONE
+            yield j, self.names[j], seen, np.where(prev != _NONE, self.T1[:, j] - prev, self.T1[:, j] - self.T0[:, j])
+            prev = np.where(seen, self.T1[:, j], prev)
+
 
 def build_profile(collector: SpanCollector | SpanTable | None, stats: Optional[dict] = None, *,
                   skip: int = DEFAULT_SKIP) -> dict[str, Any]:
@@ -73,21 +93,11 @@ def build_profile(collector: SpanCollector | SpanTable | None, stats: Optional[d
     if table is not None and len(table):
         tr = _Traces(table)
         ntr = tr.ids.size
-        by_start = np.argsort(tr.start, kind="stable")
-        keep = np.ones(ntr, bool)
-        skipped = 0
-        if ntr > 4 * skip and skip > 0:
-            keep[by_start[:skip]] = False
-            keep[by_start[-skip:]] = False
-            skipped = 2 * skip
+        keep, skipped = tr.kept(skip)
         t_lo, t_hi = int(table.t0_ns.min()), int(table.t1_ns.max())
         out["window"] = {"t0_ns": t_lo, "t1_ns": t_hi, "duration_s": round((t_hi - t_lo) / 1e9, 4)}
         out["traces"] = {"total": int(ntr), "skipped_warmup_cooldown": skipped, "kept": int(keep.sum())}
-        prev = np.full(ntr, _NONE, np.int64)
-        for j in tr.order:
-            name = tr.names[j]
-            seen = tr.T1[:, j] != _NONE
-            lat = np.where(prev != _NONE, tr.T1[:, j] - prev, tr.T1[:, j] - tr.T0[:, j])
+        for j, name, seen, lat in tr.stage_latencies():
             dur = tr.T1[:, j] - tr.T0[:, j]
             m = seen & keep
             ms = lat[m] / 1e6
@@ -101,7 +111,6 @@ def build_profile(collector: SpanCollector | SpanTable | None, stats: Optional[d
                 "points_per_s": round(float(tr.N[m, j].sum()) / span_s, 1) if span_s > 0 else None,
                 "recorded_by": recorders,
             }
-            prev = np.where(seen, tr.T1[:, j], prev)
         if "frame_done" in tr.names:
             fd = tr.names.index("frame_done")
             m = (tr.T1[:, fd] != _NONE) & keep
@@ -159,30 +168,34 @@ def chrome_trace(table: SpanTable, processes: Optional[dict[int, str]] = None,
 
 
 # --------------------------------------------------------------------------- latency.png
-def plot_latency(table: SpanTable, profile: dict[str, Any], path: str) -> None:
-    """Per-stage latency distributions (box: p50 + IQR, whiskers p1–p99) and a timeline."""
+def plot_latency(table: SpanTable, profile: dict[str, Any], path: str, *,
+                 skip: int = DEFAULT_SKIP) -> dict[str, np.ndarray]:
+    """Per-stage latency distributions (box: p50 + IQR, whiskers p1–p99) and a timeline, of
+    the same chunks as the printed table (warm-up/cool-down left out alike); returns the
+    plotted latencies (ms) by row."""
     import matplotlib  # noqa: PLC0415
 
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt  # noqa: PLC0415
 
     fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(11, 8.5), dpi=100)
-    fig.suptitle("pointflow stage latency" + (f" — {profile['traces']['kept']} chunks"
-                                              if profile.get("traces") else ""))
+    trc = profile.get("traces") or {}
+    fig.suptitle("pointflow stage latency" + (
+        f" — {trc['kept']} chunks ({trc.get('skipped_warmup_cooldown', 0)} warm-up/cool-down left out, "
+        f"{trc.get('complete', 0)} reached frame_done)" if trc else ""))
+    data, labels, series = [], [], []
     if len(table):
         tr = _Traces(table)
-        data, labels, series = [], [], []
-        prev = np.full(tr.ids.size, _NONE, np.int64)
-        for j in tr.order:
-            seen = tr.T1[:, j] != _NONE
-            lat = np.where(prev != _NONE, tr.T1[:, j] - prev, tr.T1[:, j] - tr.T0[:, j]) / 1e6
-            data.append(lat[seen])
-            labels.append(tr.names[j])
-            series.append(((tr.T1[seen, j] - tr.start.min()) / 1e9, lat[seen]))
-            prev = np.where(seen, tr.T1[:, j], prev)
+        keep, _ = tr.kept(skip)
+        for j, name, seen, lat_ns in tr.stage_latencies():
+            m = seen & keep
+            lat = lat_ns[m] / 1e6
+            data.append(lat)
+            labels.append(name)
+            series.append(((tr.T1[m, j] - tr.start.min()) / 1e9, lat))
         if "frame_done" in tr.names:
             fd = tr.names.index("frame_done")
-            m = tr.T1[:, fd] != _NONE
+            m = (tr.T1[:, fd] != _NONE) & keep
             e2e = (tr.T1[m, fd] - tr.start[m]) / 1e6
             data.append(e2e)
             labels.append("end_to_end")
@@ -221,6 +234,7 @@ def plot_latency(table: SpanTable, profile: dict[str, Any], path: str) -> None:
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
+    return dict(zip(labels, data))
 
 
 # --------------------------------------------------------------------------- outputs
@@ -242,7 +256,7 @@ def write_profile(out_dir: str, collector: SpanCollector | SpanTable | None, sta
     profile["files"] = files
     with open(files["trace"], "w") as f:
         json.dump(chrome_trace(table, procs), f, separators=(",", ":"))
-    plot_latency(table, profile, files["plot"])
+    plot_latency(table, profile, files["plot"], skip=skip)
     with open(files["profile"], "w") as f:
         json.dump(profile, f, indent=1, default=_json_default)
     return profile
@@ -332,9 +346,11 @@ def live_summary(stats: dict) -> str:
                      + (f" p99jit={j:.2f}ms" if j is not None else "") + (f" skip={skipped}" if skipped else ""))
     parts.append(f"drops={_n(drops)}")
     acc = stats.get("accounting") or {}
+    refused = sum(s.get("transport_refused_handshakes", 0) or 0 for s in st.values())
     if "lost_in_transit" in acc:  # a link from `pointflow send` (docs/remote.md)
-        refused = sum(s.get("transport_refused_handshakes", 0) or 0 for s in st.values())
         parts.append(f"link_lost={_n(acc['lost_in_transit'])}" + (f" refused={refused}" if refused else ""))
+    elif refused:  # nothing came over the link: a refused handshake is the likely reason
+        parts.append(f"link refused={refused}")
     cpu = " ".join(f"{n[:3]}:{s.get('cpu_percent', 0) or 0:.0f}%" for n, s in st.items())
     if cpu:
         parts.append(f"cpu[{cpu}]")

@@ -11,9 +11,10 @@ from __future__ import annotations
 import dataclasses
 import ipaddress
 import os
+from dataclasses import field
 from typing import Literal
 
-from ..typed import ConfigError
+from ..typed import Bound, ConfigError, at_least_one, check, endpoint, non_negative, positive
 from .keys import KeyFileError, authorized_keys, load_public, load_secret
 
 HOW_TO_KEYS = ("create keys with `pointflow keys NAME --dir keys` on each host, then set curve_secret_key "
@@ -37,28 +38,28 @@ class LinkOptions:
     insecure: bool = False
     #: ZeroMQ heartbeats: PING every interval; a peer silent for timeout is dropped; ttl
     #: tells the peer to drop us after that long. 0 = off.
-    heartbeat_ivl_s: float = 1.0
-    heartbeat_timeout_s: float = 3.0
-    heartbeat_ttl_s: float = 3.0
+    heartbeat_ivl_s: float = field(default=1.0, metadata=check(non_negative))
+    heartbeat_timeout_s: float = field(default=3.0, metadata=check(non_negative))
+    heartbeat_ttl_s: float = field(default=3.0, metadata=check(Bound(0, 6553, note="ZeroMQ's limit")))
 
 
 @dataclasses.dataclass
 class SendConfig(LinkOptions):
     """``send:`` section: where ``pointflow send`` publishes the sources' chunks."""
 
-    endpoint: str = "tcp://127.0.0.1:5556"
+    endpoint: str = field(default="tcp://127.0.0.1:5556", metadata=check(endpoint))
     #: pub: every connected viewer gets every chunk (fan-out); push: one receiver per chunk.
     socket: Literal["pub", "push"] = "pub"
     bind: bool = True
     #: ZeroMQ send high-water mark (messages per peer). PUB drops for a peer at this mark.
-    send_hwm: int = 16
+    send_hwm: int = field(default=16, metadata=check(at_least_one))
     #: Kernel send buffer of the link socket (KiB; 0 = the OS default, often megabytes).
     #: Small keeps a thin link's backlog in the sender's queue, where the oldest is dropped,
     #: instead of seconds of stale data in the kernel.
-    send_buffer_kb: int = 256
+    send_buffer_kb: int = field(default=256, metadata=check(non_negative))
     #: The sender's own queue (chunks); when the link is slower than the sensor the oldest
     #: chunk is dropped (``link_queue_full``) so the sensor never waits.
-    queue_chunks: int = 64
+    queue_chunks: int = field(default=64, metadata=check(at_least_one))
     #: true: with the queue full, stop taking chunks from the sources instead (replays then
     #: wait; live sources drop at their own send queue, counted as ``hwm``).
     backpressure: bool = False
@@ -68,14 +69,14 @@ class SendConfig(LinkOptions):
     #: Byte-shuffle frames before compressing (better ratios on numbers).
     shuffle: bool = True
     #: Quantise positions to this resolution (metres, e.g. 0.001); 0 = send floats.
-    quantise: float = 0.0
+    quantise: float = field(default=0.0, metadata=check(non_negative))
     #: Send a sync (per-source totals) this often, so receivers see losses at the tail.
-    sync_every_s: float = 0.5
+    sync_every_s: float = field(default=0.5, metadata=check(positive))
     #: Before sending, wait for this many subscribers (pub) for at most wait_s.
-    wait_subscribers: int = 0
-    wait_s: float = 10.0
-    reconnect_initial_s: float = 0.1
-    reconnect_max_s: float = 5.0
+    wait_subscribers: int = field(default=0, metadata=check(non_negative))
+    wait_s: float = field(default=10.0, metadata=check(non_negative))
+    reconnect_initial_s: float = field(default=0.1, metadata=check(non_negative))
+    reconnect_max_s: float = field(default=5.0, metadata=check(non_negative))
 
 
 def is_loopback_endpoint(endpoint: str) -> bool:
@@ -104,11 +105,6 @@ def check_link_options(o: LinkOptions, path: str, endpoint: str, bind: bool, bas
     o.curve_secret_key = _abs(o.curve_secret_key, base_dir)
     o.curve_server_key = _abs(o.curve_server_key, base_dir)
     o.curve_authorized_keys = _abs(o.curve_authorized_keys, base_dir)
-    for key in ("heartbeat_ivl_s", "heartbeat_timeout_s", "heartbeat_ttl_s"):
-        if getattr(o, key) < 0:
-            raise ConfigError(f"{path}.{key}", f"must be >= 0, got {getattr(o, key)!r}")
-    if o.heartbeat_ttl_s > 6553:
-        raise ConfigError(f"{path}.heartbeat_ttl_s", "must be at most 6553 s (ZeroMQ's limit)")
     if o.curve_secret_key:
         try:
             load_secret(o.curve_secret_key)
@@ -145,16 +141,7 @@ def check_link_options(o: LinkOptions, path: str, endpoint: str, bind: bool, bas
 
 def check_send(s: SendConfig, path: str, base_dir: str) -> None:
     """Semantic checks of a ``send:`` section (errors name the key)."""
-    if not s.endpoint.startswith(("tcp://", "ipc://", "inproc://")):
-        raise ConfigError(f"{path}.endpoint", f"must be a ZeroMQ endpoint (tcp://host:port, ipc://path), got {s.endpoint!r}")
-    for key in ("send_hwm", "queue_chunks"):
-        if getattr(s, key) < 1:
-            raise ConfigError(f"{path}.{key}", f"must be >= 1, got {getattr(s, key)!r}")
-    for key in ("send_buffer_kb", "quantise", "sync_every_s", "wait_s", "reconnect_initial_s", "reconnect_max_s"):
-        if getattr(s, key) < 0:
-            raise ConfigError(f"{path}.{key}", f"must be >= 0, got {getattr(s, key)!r}")
-    if s.sync_every_s == 0:
-        raise ConfigError(f"{path}.sync_every_s", "must be > 0")
+    # bounds of single options are declared on the fields (check(...)), so the JSON Schema has them
     if s.wait_subscribers and s.socket != "pub":
         raise ConfigError(f"{path}.wait_subscribers", "only a pub socket has subscribers to wait for")
     if s.compression != "none":

@@ -6,11 +6,19 @@ in a thread of the same process, as ZAP requires). It accepts a client key only 
 ``.key`` file in the authorized folder holds it; the folder is read again on every
 handshake, so adding or removing a key file takes effect for the next connection. A
 refused client gets nothing; the refusal is logged and counted (``refused_handshakes``).
+
+The connecting end sees the same refusal in its own monitor (``HANDSHAKE_FAILED_AUTH``: the
+server's ZAP handler said no, ZMTP's ERROR command) and says so: that the server refused
+this end's key, and what to do (``refused_by_server``; ZeroMQ does not reconnect after
+such a refusal); a handshake that fails otherwise
+(``HANDSHAKE_FAILED_PROTOCOL``/``NO_DETAIL``: most often a ``curve_server_key`` that is not
+the server's) is logged with that hint. Repeats are logged at most every 5 s, all counted.
 """
 from __future__ import annotations
 
 import logging
 import threading
+import time
 from typing import Any
 
 import zmq
@@ -67,7 +75,19 @@ class LinkSecurity:
         self._sock: Any = None
         self.counters: dict[str, int] = {"connects": 0, "reconnects": 0, "disconnects": 0, "handshakes": 0,
                                          "refused_handshakes": 0, "peers": 0}
+        if not bind:
+            self.counters["refused_by_server"] = 0
         self._warned_plain = False
+        #: endpoints whose last handshake failed: their disconnect is that failure, not a peer leaving
+        self._failed: dict[str, int] = {}
+        self._last_log: dict[str, float] = {}
+
+    def _warn_every(self, what: str, msg: str, *args) -> None:
+        """Log ``msg`` at most every 5 s per ``what`` (a refused client retries many times a second)."""
+        now = time.monotonic()
+        if now - self._last_log.get(what, -1e9) >= 5.0:
+            self._last_log[what] = now
+            self.log.warning(msg, *args)
 
     @property
     def curve(self) -> bool:
@@ -107,6 +127,7 @@ class LinkSecurity:
             except zmq.Again:
                 break
             e = ev["event"]
+            where = ev.get("endpoint", b"").decode(errors="replace")
             if e in (zmq.EVENT_CONNECTED, zmq.EVENT_ACCEPTED):
                 if c["connects"]:
                     c["reconnects"] += 1
@@ -116,15 +137,30 @@ class LinkSecurity:
                 c["peers"] += 1
             elif e == zmq.EVENT_DISCONNECTED:
                 c["disconnects"] += 1
+                if self._failed.get(where):  # the end of a refused handshake: already said
+                    self._failed[where] -= 1
+                    continue
                 c["peers"] = max(0, c["peers"] - 1)
-                self.log.warning("link peer went away on %s; ZeroMQ reconnects", ev.get("endpoint", b"").decode(errors="replace"))
+                self.log.warning("link peer went away on %s; ZeroMQ reconnects", where)
             elif e in (zmq.EVENT_HANDSHAKE_FAILED_AUTH, zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL,
                        zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL):
                 c["refused_handshakes"] += 1
-                kind = {zmq.EVENT_HANDSHAKE_FAILED_AUTH: "authentication refused",
-                        zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL: "protocol or key error"}.get(e, "failed")
-                self.log.warning("link handshake %s (%s, code %s)", kind,
-                                 ev.get("endpoint", b"").decode(errors="replace"), ev.get("value"))
+                self._failed[where] = self._failed.get(where, 0) + 1
+                if self.bind:
+                    kind = {zmq.EVENT_HANDSHAKE_FAILED_AUTH: "authentication refused",
+                            zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL: "protocol or key error"}.get(e, "failed")
+                    self._warn_every(f"srv{e}", "link handshake %s (%s, code %s; %d refused so far)", kind, where,
+                                     ev.get("value"), c["refused_handshakes"])
+                elif e == zmq.EVENT_HANDSHAKE_FAILED_AUTH:
+                    c["refused_by_server"] += 1
+                    self._warn_every("auth", "the server at %s refused this end's CURVE handshake (status %s; %d "
+                                     "refused so far): its curve_authorized_keys folder does not hold this end's "
+                                     "public key (the NAME.key of curve_secret_key %s); ZeroMQ does not retry a "
+                                     "refused handshake: add the key there, then restart this end", where, ev.get("value"), c["refused_handshakes"], self.o.curve_secret_key)
+                else:
+                    self._warn_every(f"cli{e}", "CURVE handshake with the server at %s failed (code %s; %d so far): "
+                                     "is curve_server_key (%s) the binding end's public key? ZeroMQ retries",
+                                     where, ev.get("value"), c["refused_handshakes"], self.o.curve_server_key or "unset")
         if self._keys is not None:
             c["refused_keys"] = self._keys.refused_keys
 

@@ -42,10 +42,12 @@ def check_shm_space(layout: RingLayout, shm_dir: str = SHM_DIR) -> int:
     except OSError as exc:
         raise RingSpaceError(f"cannot check free space in {shm_dir}: {exc.strerror or exc}", need, 0) from None
     if need > free:
-        per_point = max(1, (need - shm_bytes(RingLayout(1, layout.channels))) // max(1, layout.capacity - 1))
-        fits = max(0, (free - shm_bytes(RingLayout(1, layout.channels))) // per_point)
+        one = shm_bytes(RingLayout(1, layout.channels))
+        # bytes per point in all three segments together (need ~= one + per_point * (capacity - 1))
+        per_point = max(1, -(-(need - one) // max(1, layout.capacity - 1)))
+        fits = max(0, (free - one) // per_point + 1) if free >= one else 0
         raise RingSpaceError(
-            f"{layout.capacity} points need {need:,} bytes of shared memory (the ring and two slabs of "
-            f"{data_size(layout):,} bytes each, {3 * per_point} bytes per point), but {shm_dir} has {free:,} "
+            f"{layout.capacity:,} points need {need:,} bytes of shared memory (the ring and two slabs of "
+            f"{data_size(layout):,} bytes each: {per_point} bytes per point in all), but {shm_dir} has {free:,} "
             f"bytes free; lower ring.max_points (about {fits:,} fit) or enlarge {shm_dir}", need, free)
     return need

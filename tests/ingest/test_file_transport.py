@@ -151,3 +151,13 @@ def test_progress_bar_when_asked(tmp_path, capsys):
     assert "100.0%" in err and f"{N:,}/{N:,} points" in err
     _replay(tmp_path / "a.npy", progress="auto")  # stderr is not a terminal here: silent
     assert capsys.readouterr().err == ""
+
+
+@pytest.mark.parametrize("size", [10, 4, 17, 31])
+def test_a_short_kitti_file_is_reported_with_its_real_size(tmp_path, size):
+    from pointflow.ingest.formats import FormatError, read_kitti
+
+    p = tmp_path / "short.bin"
+    p.write_bytes(bytes(range(size)))
+    with pytest.raises(FormatError, match=rf"size {size} bytes is not a multiple of 16"):
+        read_kitti(str(p))

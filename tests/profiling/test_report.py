@@ -193,3 +193,22 @@ def test_format_table_and_live_summary():
     for part in ("t=  10.0s", "in=100.0k", "ring=50.0k/100.0k", "frames=600", "frame=9.5ms",
                  "cadence=60.0Hz", "p99jit=0.40ms", "skip=2", "drops=1.0k", "ren:80%"):
         assert part in s, (part, s)
+
+
+def test_latency_png_plots_the_chunks_the_table_counts(tmp_path):
+    """One chunk set for the chart and the table (issue 22, item 6): warm-up chunks with huge
+    latencies are left out of both, so counts and p99 agree row by row."""
+    from pointflow.profiling.report import plot_latency
+
+    coll, _ = synthetic(100, drop_last_frame=True)
+    table = coll.table()
+    slow = table.trace_id <= 3  # the first chunks (warm-up) 10 s late at ingest
+    table.t1_ns[slow & (np.array(table.event_names)[table.event] != "transport_receive")] += 10_000 * MS
+    prof = build_profile(table, STATS, skip=10)
+    plotted = plot_latency(table, prof, str(tmp_path / "latency.png"), skip=10)
+    assert (tmp_path / "latency.png").stat().st_size > 0
+    for name, st in prof["stages"].items():
+        assert plotted[name].size == st["count"], name
+        assert np.percentile(plotted[name], 99) == pytest.approx(st["p99"], abs=1e-3), name
+        assert plotted[name].max() < 1000  # the late warm-up chunks are not in the chart
+    assert plotted["end_to_end"].size == prof["end_to_end"]["count"] == prof["traces"]["complete"]
