@@ -77,6 +77,9 @@ def convert(value: Any, tp: Any, path: str) -> Any:
                 return convert(value, alt, path)
             except ConfigError as exc:
                 errors.append(exc)
+        structs = [a for a in typing.get_args(tp) if dataclasses.is_dataclass(a)]
+        if isinstance(value, dict) and len(structs) == 1:
+            load_dataclass(structs[0], value, path)  # a mapping: the mapping's own error names its key
         raise ConfigError(path, f"expected {type_name(tp)}, got {value!r}")
     if origin is Literal:
         choices = typing.get_args(tp)
