@@ -103,7 +103,7 @@ class Framer:
 
     def _hold(self, st: _Source, chunk, pos, chans) -> list[Ready]:
         n = int(pos.shape[0])
-        st.queue.append(_Held(chunk, pos, chans, (chunk.t_recv_ns or self.clock()) + self.wait_ns, n))
+        st.queue.append(_Held(chunk, pos, chans, self.clock() + self.wait_ns, n))
         self.waiting_points += n
         out: list[Ready] = []
         while self.waiting_points > self.cfg.max_wait_points:
