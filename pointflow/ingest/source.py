@@ -53,6 +53,7 @@ def main(ctx) -> None:
     if fcfg.fixed and fcfg.deskew != "off":  # per-point times survive the channel filter
         extra = (fcfg.deskew.field,) if not isinstance(fcfg.deskew, str) else TIME_FIELDS
         transport.keep_fields = tuple(transport.keep_fields) + extra
+    transport.wants_transforms = bool(fcfg.fixed)
     frame_id = scfg.frame_id or ""
     tf_sent = 0
     sock = ctx.zmq.socket(zmq.PUSH)
@@ -81,8 +82,11 @@ def main(ctx) -> None:
             if chunk is None:
                 continue
             if isinstance(chunk, tfmsg.Transforms):  # on the same socket, in order with the clouds
-                if chunk.transforms and _send(ctx, sock, tfmsg.encode(chunk, source_id), lossless):
-                    tf_sent += len(chunk.transforms)
+                if chunk.transforms:
+                    if _send(ctx, sock, tfmsg.encode(chunk, source_id), lossless):
+                        tf_sent += len(chunk.transforms)
+                    else:  # a live source behind ingest: counted like dropped chunks
+                        ctx.counters.extra["transforms_dropped"] = ctx.counters.extra.get("transforms_dropped", 0) + len(chunk.transforms)
                 continue
             if frame_id and not chunk.frame_id:
                 chunk.frame_id = frame_id

@@ -36,6 +36,9 @@ class Transport(ABC):
     #: (docs/frames.md). A transport may also yield
     #: :class:`pointflow.frames.message.Transforms` between chunks (docs/plugins.md).
     keep_fields: tuple[str, ...] = ()
+    #: True when ingest places points in a fixed frame (``frames.fixed``): a transport that
+    #: can subscribe to transforms (rosbridge's /tf) does so only then. Set before ``open()``.
+    wants_transforms: bool = False
 
     def __init__(self, options: dict[str, Any], source_id: str):
         self.options = options
