@@ -50,10 +50,19 @@ class _Source:
     time_key: Any = None
 
 
+#: Up to this many points the rigid transform is one BLAS call (OpenBLAS keeps such small
+#: products on one thread); above it, elementwise column passes (bench/bench_frames.py).
+BLAS_MAX_POINTS = 16_384
+
+
 def rigid(pos: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """``pos @ R.T + t`` in float64, column by column: elementwise passes instead of a BLAS
-    call, whose threads cost more than the (N, 3) x (3, 3) product on a busy machine
-    (bench/bench_frames.py measured both)."""
+    """``pos @ R.T + t`` in float64. Large clouds go column by column: elementwise passes
+    instead of a BLAS call whose threads cost far more than the (N, 3) x (3, 3) product on a
+    busy machine (5-10x slower measured on the shared 2-core VM)."""
+    if pos.shape[0] <= BLAS_MAX_POINTS:
+        out = np.matmul(pos.astype(np.float64, copy=False), R.T)
+        out += t
+        return out
     out = np.empty((pos.shape[0], 3), np.float64)
     x, y, z = pos[:, 0], pos[:, 1], pos[:, 2]
     for r in range(3):
@@ -85,7 +94,7 @@ class Framer:
         self.waiting_points = 0
         self.transform_ns = 0
         self._logged: dict[tuple[str, str], float] = {}
-        self._version_tried = -1
+        self._static_cache: dict[str, tuple[int, Any]] = {}
 
     # ------------------------------------------------------------------ transforms
     def add_transforms(self, batch: Transforms) -> list[Ready]:
@@ -175,19 +184,37 @@ class Framer:
         else:
             tf = self._time_field(st, chunk)
             stamp = int(chunk.stamp_ns)
-            if tf is not None and stamp:
+            static = self._static_chain(frame)
+            if static is not None:  # a chain of static edges only: one cached transform
+                out = rigid(pos, *static)
+                if st.chain.startswith("("):
+                    st.chain = self.buffer.chain_text(self.fixed, frame)
+            elif tf is not None and stamp:
                 out = self._deskew(chunk, pos, tf, frame, stamp)
             else:
                 R, t = self.buffer.lookup(self.fixed, frame, stamp)
                 out = rigid(pos, R, t)
-            newest = self.buffer.newest_of_chain(self.fixed, frame)
-            st.latency_ms = round((newest - stamp) / 1e6, 3) if newest is not None and stamp else None
-            st.chain = self.buffer.chain_text(self.fixed, frame)
+            if static is None or st.latency_ms is not None:
+                newest = self.buffer.newest_of_chain(self.fixed, frame)
+                st.latency_ms = round((newest - stamp) / 1e6, 3) if newest is not None and stamp else None
+                st.chain = self.buffer.chain_text(self.fixed, frame)
         t1 = time.monotonic_ns()
         self.transform_ns += t1 - t0
         if self.spans is not None and chunk.trace_id:
             self.spans.record(chunk.trace_id, "transform", chunk.t_recv_ns or t0, t1, int(pos.shape[0]))
         return out
+
+    def _static_chain(self, frame: str):
+        """(R, t) of fixed <- frame when every edge of the chain is static (cached until the
+        buffer changes); None for a chain with a dynamic edge. Raises NoTransform."""
+        hit = self._static_cache.get(frame)
+        if hit is not None and hit[0] == self.buffer.version:
+            return hit[1]
+        value = None
+        if not self.buffer.dynamic_edges(self.fixed, frame):
+            value = self.buffer.lookup(self.fixed, frame, 0)
+        self._static_cache[frame] = (self.buffer.version, value)
+        return value
 
     def _deskew(self, chunk, pos: np.ndarray, tf: dk.TimeField, frame: str, stamp: int) -> np.ndarray:
         off = tf.offsets_ns(chunk.channels[tf.field], stamp)
