@@ -182,10 +182,10 @@ class Framer:
                 self._warn(chunk.source_id, "no_frame", f"source {chunk.source_id!r} sends clouds without a frame id; "
                            f"they are taken as already in {self.fixed!r} (set sources[].frame_id)", level=logging.INFO)
         else:
-            tf = self._time_field(st, chunk)
             stamp = int(chunk.stamp_ns)
             static = self._static_chain(frame)
-            if static is not None:  # a chain of static edges only: one cached transform
+            tf = self._time_field(st, chunk) if static is None else None
+            if static is not None:  # a chain of static edges only: one cached transform, nothing to deskew
                 out = rigid(pos, *static)
                 if st.chain.startswith("("):
                     st.chain = self.buffer.chain_text(self.fixed, frame)
@@ -235,6 +235,8 @@ class Framer:
         return dk.apply_nodes(pos, off, (times - stamp).astype(np.float64), R, t)
 
     def _time_field(self, st: _Source, chunk) -> Optional[dk.TimeField]:
+        if self.cfg.deskew == "off":
+            return None
         ch = chunk.channels
         key = tuple((k, v.dtype.str) for k, v in ch.items())
         if key != st.time_key:
