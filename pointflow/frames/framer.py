@@ -119,8 +119,8 @@ class Framer:
             return self._hold(st, chunk, pos, chans) + self.poll()
         try:
             return [(chunk, self._place(st, chunk, pos), chans)]
-        except NoTransform as exc:
-            if exc.retry and self.wait_ns > 0:
+        except FrameError as exc:
+            if getattr(exc, "retry", False) and self.wait_ns > 0:
                 return self._hold(st, chunk, pos, chans)
             self._drop(st, chunk, exc)
             return []
@@ -137,7 +137,7 @@ class Framer:
             self.waiting_points -= h.n
             try:
                 out.append((h.chunk, self._place(victim, h.chunk, h.pos), h.chans))
-            except NoTransform as exc:
+            except FrameError as exc:
                 self._drop(victim, h.chunk, exc, why=f"the wait buffer is full ({self.cfg.max_wait_points:,} points)")
         return out
 
@@ -153,8 +153,8 @@ class Framer:
                 h = st.queue[0]
                 try:
                     pos = self._place(st, h.chunk, h.pos)
-                except NoTransform as exc:
-                    if exc.retry and not final and now < h.deadline_ns:
+                except FrameError as exc:
+                    if getattr(exc, "retry", False) and not final and now < h.deadline_ns:
                         break
                     st.queue.popleft()
                     self.waiting_points -= h.n
@@ -171,6 +171,15 @@ class Framer:
 
     # ------------------------------------------------------------------ placing
     def _place(self, st: _Source, chunk, pos: np.ndarray) -> np.ndarray:
+        """Positions in the fixed frame; FrameError (NoTransform when waiting may help)."""
+        try:
+            return self._place_unchecked(st, chunk, pos)
+        except FrameError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - a bad time field or a bug: drop the cloud (counted), keep going
+            raise FrameError("transform_error", f"placing the cloud failed: {type(exc).__name__}: {exc}") from None
+
+    def _place_unchecked(self, st: _Source, chunk, pos: np.ndarray) -> np.ndarray:
         t0 = time.monotonic_ns()
         frame = chunk.frame_id or ""
         if frame != st.frame or not st.chain:
@@ -250,14 +259,15 @@ class Framer:
         return st.time_field
 
     # ------------------------------------------------------------------ dropping
-    def _drop(self, st: _Source, chunk, exc: NoTransform, why: str = "") -> None:
+    def _drop(self, st: _Source, chunk, exc: FrameError, why: str = "") -> None:
         n = int(chunk.n)
-        st.no_transform += n
-        reason = "tf_wait_overflow" if why.startswith("the wait buffer") else "no_transform"
+        reason = "tf_wait_overflow" if why.startswith("the wait buffer") else exc.reason
+        if reason == "no_transform":
+            st.no_transform += n
         self.drop(reason, n)
         self._warn(chunk.source_id, reason,
                    f"dropped cloud of {n} points from {chunk.source_id!r} [{reason}]: frame {chunk.frame_id!r} "
-                   f"at {chunk.stamp_ns / 1e9:.6f} s has no transform to {self.fixed!r}"
+                   f"at {chunk.stamp_ns / 1e9:.6f} s not placed in {self.fixed!r}"
                    f"{' ' + why if why else ''}: {exc}")
 
     def _warn(self, source: str, reason: str, message: str, level: int = logging.WARNING) -> None:

@@ -240,3 +240,13 @@ def test_deskew_explicit_config_overrides_auto(ring):
     truth = T.to_fixed(robot, EXT, pts.astype(np.float64), stamp + us * 1000)
     assert np.linalg.norm(ring.snapshot().positions - truth, axis=1).max() <= 1e-3
     assert "from config" in ing.framer.stats()["sources"]["s"]["deskew"]
+
+
+def test_a_cloud_that_cannot_be_placed_is_dropped_and_counted_not_raised(ring):
+    robot = T.Robot()
+    ing = _ing(ring, deskew=DeskewConfig(field="when"))
+    ing.framer.add_transforms(_tf_batch(robot, range(len(robot.stamps))))
+    bad = _cloud(10, robot.stamps[5], when=np.zeros((10, 3), np.uint32))  # a time field of three per point
+    assert ing.add_chunk(bad) and ing.add_chunk(_cloud(20, robot.stamps[5]))
+    ing.flush()
+    assert ing.counters.drops == {"transform_error": 10} and ing.counters.points_out == 20 and _balanced(ing)
