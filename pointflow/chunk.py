@@ -39,7 +39,9 @@ class PointChunk:
     name to an (N,) or (N, k) array (``rgb`` is (N, 3) uint8 or uint16).
     Times are ``time.monotonic_ns()`` values, comparable across processes on one machine;
     ``stamp_ns`` is the data's own capture time when the source has one (a ROS
-    ``header.stamp``, ns since the epoch; 0 = unknown), carried unchanged.
+    ``header.stamp``, ns since the epoch; 0 = unknown), carried unchanged. ``frame_id`` names
+    the coordinate frame the positions are in (a ROS ``header.frame_id``; "" = none given),
+    used by ingest's frames step (docs/frames.md).
     """
 
     positions: np.ndarray
@@ -50,6 +52,7 @@ class PointChunk:
     t_sent_ns: int = 0
     t_recv_ns: int = 0
     stamp_ns: int = 0
+    frame_id: str = ""
 
     def __len__(self) -> int:
         return int(self.positions.shape[0])

@@ -17,6 +17,7 @@ from typing import Any, ClassVar, Literal, Optional, Union
 
 import yaml
 
+from .frames.config import FramesConfig, check_frames
 from .ingest.transports import resolve_transport
 from .remote.options import SendConfig, check_send, is_loopback_endpoint
 from .typed import Bound, ConfigError, Each, Length, check, check_keys, dataclass_schema, load_dataclass
@@ -37,6 +38,8 @@ class SourceConfig:
     #: True when the source runs elsewhere (another program or machine sending the wire
     #: format to ``endpoints.ingest``); the supervisor does not start it.
     external: bool = False
+    #: The coordinate frame of this source's clouds when its data carry none (docs/frames.md).
+    frame_id: Optional[str] = None
 
 
 @dataclass
@@ -195,6 +198,8 @@ class PipelineConfig:
     supervisor: SupervisorConfig = field(default_factory=SupervisorConfig)
     #: Where ``pointflow send`` publishes the sources (docs/remote.md); unused by ``run``.
     send: Optional[SendConfig] = None
+    #: Put every point in one fixed frame at ingest (docs/frames.md); absent = points as sent.
+    frames: FramesConfig = field(default_factory=FramesConfig)
     #: Where the YAML came from (for relative paths in options); not a YAML key.
     base_dir: str = field(default=".", metadata={"internal": True})
 
@@ -261,6 +266,10 @@ def _check_semantics(cfg: PipelineConfig) -> None:
         s.options = tcls.validate_options(s.options, f"{p}.options", base_dir=cfg.base_dir)
     if cfg.send is not None:
         check_send(cfg.send, "send", cfg.base_dir)
+    check_frames(cfg.frames, "frames")
+    for i, s in enumerate(cfg.sources):
+        if s.frame_id is not None and not s.frame_id.strip():
+            raise ConfigError(f"sources[{i}].frame_id", "must be a frame name or null")
     e = cfg.endpoints
     for key in ("ingest", "frames", "release", "control", "trace", "render_commands"):
         ep = getattr(e, key)

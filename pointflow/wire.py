@@ -76,7 +76,9 @@ def encode(chunk: PointChunk, *, link: dict | None = None, compressor: Any = Non
     }
     if chunk.stamp_ns:  # optional: only sources with a capture time (ROS header.stamp) send it
         header["stamp_ns"] = int(chunk.stamp_ns)
-    frames[0] = _header_json(header)
+    if chunk.frame_id:  # optional: the coordinate frame (docs/frames.md)
+        header["frame"] = chunk.frame_id
+    frames[0] = _header_json(header) if "frame" not in header else json.dumps(header, separators=(",", ":")).encode()
     return [f if isinstance(f, bytes) else (memoryview(f).cast("B") if f.nbytes >= ZERO_COPY_MIN_BYTES else f.tobytes()) for f in frames]
 
 
@@ -125,6 +127,8 @@ def _encode_link(chunk: PointChunk, link: dict | None, compressor: Any, resoluti
     }
     if chunk.stamp_ns:
         header["stamp_ns"] = int(chunk.stamp_ns)
+    if chunk.frame_id:
+        header["frame"] = chunk.frame_id
     if link is not None:
         header["link"] = link
     frames: list[Any] = [json.dumps(header, separators=(",", ":")).encode()]
@@ -249,9 +253,15 @@ def decode_message(frames: Sequence[Any], max_points: int | None = None) -> tupl
         t_sent_ns=_header_int(header, "t_sent_ns"),
         t_recv_ns=time.monotonic_ns(),
         stamp_ns=_header_int(header, "stamp_ns"),
+        frame_id=_header_frame(header),
     ), header
 
 
 def _header_int(header: dict, key: str) -> int:
     v = header.get(key, 0)
     return v if isinstance(v, int) and not isinstance(v, bool) else 0
+
+
+def _header_frame(header: dict) -> str:
+    f = header.get("frame", "")
+    return f if isinstance(f, str) else ""

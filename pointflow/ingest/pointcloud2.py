@@ -13,6 +13,7 @@ in native byte order. No Python runs per point.
   them and counts them as ``non_finite`` like every other non-finite point.
 * packed ``rgb`` / ``rgba`` (float32 or uint32 holding 0x00RRGGBB, PCL style) -> ``rgb``
   (N, 3) uint8; separate ``r``/``g``/``b`` (or ``red``/``green``/``blue``) fields too.
+* ``header.frame_id`` -> ``PointChunk.frame_id`` (leading ``/`` dropped), for the frames step.
 * any other field -> a channel of the same name and dtype ((N, count) when ``count > 1``),
   then ``rename`` and the ``channels`` filter of the transport apply (e.g. Ouster
   ``reflectivity`` -> ``intensity``). Fields the filter drops are never copied.
@@ -88,6 +89,15 @@ def _as_bytes(data: Any) -> memoryview:
     raise ChunkError("bad_data", f"field 'data' must be bytes, got {type(data).__name__}")
 
 
+def frame_id(msg: Any) -> str:
+    """``header.frame_id`` without a leading ``/`` (ROS 1 style), "" when absent."""
+    try:
+        f = _get(_get(msg, "header"), "frame_id")
+    except ChunkError:
+        return ""
+    return f.lstrip("/") if isinstance(f, str) else ""
+
+
 def stamp_ns(msg: Any) -> int:
     """``header.stamp`` in ns (ROS 2 sec/nanosec or ROS 1 secs/nsecs); 0 when absent."""
     try:
@@ -111,7 +121,7 @@ class FieldPlan:
     same-layout messages reuses it (see :class:`PointCloud2Decoder`)."""
 
     def __init__(self, fields: Sequence[tuple[str, int, int, int]], point_step: int, big: bool,
-                 rename: Mapping[str, str], keep: Optional[Sequence[str]]):
+                 rename: Mapping[str, str], keep: Optional[Sequence[str]], always: Sequence[str] = ()):
         end = ">" if big else "<"
         names, formats, offsets = [], [], []
         seen: set[str] = set()
@@ -179,6 +189,8 @@ class FieldPlan:
             out = rename.get(name, name)
             if want is None or out in want:
                 self.channels.append((name, out))
+            elif name in always:  # per-point times for deskew (docs/frames.md): kept under their own name
+                self.channels.append((name, name))
 
 
 def _native(a: np.ndarray) -> np.ndarray:
@@ -192,9 +204,12 @@ def _native(a: np.ndarray) -> np.ndarray:
 class PointCloud2Decoder:
     """Decodes PointCloud2 messages of one stream (the layout plan is cached)."""
 
-    def __init__(self, rename: Optional[Mapping[str, str]] = None, channels: Optional[Sequence[str]] = None):
+    def __init__(self, rename: Optional[Mapping[str, str]] = None, channels: Optional[Sequence[str]] = None,
+                 always: Sequence[str] = ()):
         self.rename = dict(rename or {})
         self.keep = list(channels) if channels is not None else None
+        #: Fields kept whatever ``channels`` says (the per-point time fields when deskew is on).
+        self.always = tuple(always)
         self._plan_key: Any = None
         self._plan: Optional[FieldPlan] = None
 
@@ -210,7 +225,7 @@ class PointCloud2Decoder:
                            _int(f, "count", f"field {name!r} count")))
         key = (tuple(fields), point_step, big)
         if key != self._plan_key:
-            self._plan = FieldPlan(fields, point_step, big, self.rename, self.keep)
+            self._plan = FieldPlan(fields, point_step, big, self.rename, self.keep, self.always)
             self._plan_key = key
         assert self._plan is not None
         return self._plan
@@ -236,13 +251,14 @@ class PointCloud2Decoder:
             raise ChunkError("truncated", f"field 'data' has {buf.nbytes} bytes; {height} x {width} points at "
                              f"point_step {point_step}, row_step {row_step} need {need}")
         stamp = stamp_ns(msg)
+        frame = frame_id(msg)
         if n == 0:
             pos = np.zeros((0, 3), np.float32 if plan.pos_kind == "f4" else np.float64)
             chans = {c: np.zeros((0,) + plan.dtype[f].shape, plan.dtype[f].base.newbyteorder("="))
                      for f, c in plan.channels}
             if plan.rgb:
                 chans[plan.rgb_name] = np.zeros((0, 3), np.uint8)
-            return PointChunk(positions=pos, channels=chans, source_id=source_id, stamp_ns=stamp)
+            return PointChunk(positions=pos, channels=chans, source_id=source_id, stamp_ns=stamp, frame_id=frame)
 
         def view(dt: np.dtype) -> np.ndarray:
             return np.ndarray((height, width), dtype=dt, buffer=buf, offset=0, strides=(row_step, point_step))
@@ -273,7 +289,7 @@ class PointCloud2Decoder:
                     chans[plan.rgb_name] = np.clip(np.rint(np.nan_to_num(arr) * scale), 0, 255).astype(np.uint8)
                 else:
                     chans[plan.rgb_name] = np.column_stack(cols).astype(kind)
-        return PointChunk(positions=pos, channels=chans, source_id=source_id, stamp_ns=stamp)
+        return PointChunk(positions=pos, channels=chans, source_id=source_id, stamp_ns=stamp, frame_id=frame)
 
 
 def decode(msg: Any, rename: Optional[Mapping[str, str]] = None, channels: Optional[Sequence[str]] = None,

@@ -9,8 +9,11 @@ and push the batches into the ring. Nothing a sender does can crash it: every de
 
 Accounting (exact, see docs/ingest.md)::
 
-    messages_in = chunks_accepted + sum(rejected[reason])          (messages)
+    messages_in = chunks_accepted + transform_messages + sum(rejected[reason])   (messages)
     points_in   = points_out + sum(drops[reason])                  (points of accepted chunks)
+
+(the second once quiet: points still queued, or waiting for transforms in the frames step,
+are in neither term yet; the frames step drops with ``no_transform``, see docs/frames.md)
 
 where ``points_out`` is what the ring stored and ``drops`` holds ``non_finite``,
 ``out_of_range`` (finite, but too far from the ring's origin to be stored as a float32
@@ -23,6 +26,7 @@ the ring's own ``dropped_points`` equals ``ring_evicted + drops["ring_full"]`` a
 from __future__ import annotations
 
 import collections
+import json
 import logging
 import time
 from dataclasses import dataclass, field
@@ -33,6 +37,7 @@ import zmq
 
 from .. import wire
 from ..chunk import ChunkError, PointChunk
+from ..frames import message as transforms
 from .jsonchunk import parse_json_chunk
 
 #: Per-reason log lines at most this often (seconds).
@@ -87,7 +92,7 @@ class Ingestor:
     def __init__(self, ring, *, max_chunk_points: int = 5_000_000, coalesce_points: int = 20_000,
                  queue_max_batches: int = 64, adaptive_thinning: bool = False,
                  importance_field: str | None = None, counters=None, spans=None,
-                 log: logging.Logger | None = None):
+                 log: logging.Logger | None = None, frames=None):
         from ..runtime.stage import StageCounters
 
         self.ring = ring
@@ -113,6 +118,12 @@ class Ingestor:
         self.pushes = 0
         self._fill = 0.0
         self._fill_checked = 0.0
+        #: The frames step (docs/frames.md): None = points as sent (``frames.fixed`` null).
+        self.framer = None
+        self.transform_messages = 0
+        if frames is not None and frames.fixed:
+            from ..frames.framer import Framer
+            self.framer = Framer(frames, self.counters.drop, self.log, spans)
 
     # ------------------------------------------------------------------ receive
     def receive(self, frames: Sequence[Any]) -> bool:
@@ -122,7 +133,10 @@ class Ingestor:
         try:
             if len(frames) == 1:
                 buf = frames[0].buffer if hasattr(frames[0], "buffer") else frames[0]
-                chunk = parse_json_chunk(buf, self.max_chunk_points)
+                raw = bytes(buf)
+                if transforms.SCHEMA_BYTES in raw:  # maybe pointflow.transforms/1 (docs/frames.md)
+                    return self.add_json(raw, t0)
+                chunk = parse_json_chunk(raw, self.max_chunk_points)
                 return self.add_chunk(chunk, t0)
             # wire.decode already checks counts, shapes, dtypes and the size limit
             chunk = wire.decode(frames, self.max_chunk_points)
@@ -152,6 +166,40 @@ class Ingestor:
         self.chunks_accepted += 1
         n = chunk.n
         self.counters.points_in += n
+        if self.framer is not None:  # into the fixed frame; may wait for transforms (docs/frames.md)
+            for c, p, ch in self.framer.submit(chunk, pos, chans):
+                self._admit(c, p, ch, t0)
+            return True
+        return self._admit(chunk, pos, chans, t0)
+
+    def add_json(self, raw: bytes, t0: int) -> bool:
+        """A one-frame JSON message that may be a transforms message or a JSON chunk."""
+        try:
+            obj = json.loads(raw)
+        except ValueError:
+            obj = None
+        if transforms.is_transforms(obj):
+            return self.add_transforms(obj)
+        return self.add_chunk(parse_json_chunk(obj if isinstance(obj, dict) else raw, self.max_chunk_points), t0)
+
+    def add_transforms(self, obj: dict) -> bool:
+        """A ``pointflow.transforms/1`` message: into the frames step (ignored, but counted,
+        when ``frames.fixed`` is null). False when it was malformed (rejected, counted)."""
+        try:
+            batch = transforms.decode(obj)
+        except transforms.TransformMessageError as exc:
+            self.reject(exc.reason, f"transforms message: {exc}")
+            return False
+        self.transform_messages += 1
+        if self.framer is not None:
+            for c, p, ch in self.framer.add_transforms(batch):
+                self._admit(c, p, ch)
+        return True
+
+    def _admit(self, chunk: PointChunk, pos: np.ndarray, chans: dict[str, np.ndarray], t0: int | None = None) -> bool:
+        """Non-finite points, thinning, then the push queue (positions in their final frame)."""
+        t0 = t0 or time.monotonic_ns()
+        n = pos.shape[0]
         # fast path: the min and max of all values (NaN or inf there iff some value is not
         # finite; the per-row test is ~10x slower and only needed then). The ring reuses them
         # for its range rule instead of scanning the points again.
@@ -250,6 +298,9 @@ class Ingestor:
     # ------------------------------------------------------------------ push
     def flush(self, max_batches: int | None = None) -> int:
         """Push queued batches into the ring (all, or at most ``max_batches``)."""
+        if self.framer is not None and self.framer.waiting:  # waits over, transforms arrived
+            for c, p, ch in self.framer.poll():
+                self._admit(c, p, ch)
         done = 0
         while self.queue and (max_batches is None or done < max_batches):
             b = self.queue.popleft()
@@ -273,6 +324,13 @@ class Ingestor:
             done += 1
         return done
 
+    def finish_frames(self) -> None:
+        """Stopping: clouds still waiting for transforms are placed if they can be, else
+        dropped (``no_transform``), so the balance closes."""
+        if self.framer is not None:
+            for c, p, ch in self.framer.poll(final=True):
+                self._admit(c, p, ch)
+
     @property
     def queued_points(self) -> int:
         return sum(b.n for b in self.queue)
@@ -287,6 +345,8 @@ class Ingestor:
             "ring_pushes": self.pushes,
             "queue_batches": len(self.queue),
             "queued_points": self.queued_points,
+            "transform_messages": self.transform_messages,
+            **({"frames": self.framer.stats()} if self.framer is not None else {}),
         }
 
 
@@ -321,7 +381,7 @@ def main(ctx) -> None:
     ing = Ingestor(ring, max_chunk_points=icfg.max_chunk_points, coalesce_points=icfg.coalesce_points,
                    queue_max_batches=icfg.queue_max_batches, adaptive_thinning=icfg.adaptive_thinning,
                    importance_field=ctx.cfg.ring.importance_field, counters=ctx.counters,
-                   spans=ctx.spans, log=ctx.log)
+                   spans=ctx.spans, log=ctx.log, frames=ctx.cfg.frames)
     ctx.on_beat.append(lambda: ctx.counters.extra.update(ing.stats_extra()))
     poller = zmq.Poller()
     poller.register(sock, zmq.POLLIN)
@@ -358,6 +418,7 @@ def main(ctx) -> None:
                 ing.receive(frames)
             ing.flush()
             ctx.beat()
+        ing.finish_frames()
         ing.flush()
     finally:
         ctx.counters.extra.update(ing.stats_extra())

@@ -15,6 +15,8 @@ import zmq
 
 from .. import wire
 from ..chunk import new_trace_id
+from ..frames import message as tfmsg
+from ..frames.deskew import TIME_FIELDS
 from .transports import resolve_transport
 
 #: How long a live source waits for room in the send queue before dropping a chunk.
@@ -47,6 +49,13 @@ def main(ctx) -> None:
     source_id = scfg.name or f"source{idx}"
     transport = cls(dict(scfg.options), source_id)
     lossless = bool(getattr(transport, "lossless", False))
+    fcfg = ctx.cfg.frames
+    if fcfg.fixed and fcfg.deskew != "off":  # per-point times survive the channel filter
+        extra = (fcfg.deskew.field,) if not isinstance(fcfg.deskew, str) else TIME_FIELDS
+        transport.keep_fields = tuple(transport.keep_fields) + extra
+    transport.wants_transforms = bool(fcfg.fixed)
+    frame_id = scfg.frame_id or ""
+    tf_sent = 0
     sock = ctx.zmq.socket(zmq.PUSH)
     sock.setsockopt(zmq.SNDHWM, SEND_HWM)
     sock.setsockopt(zmq.LINGER, 2000)  # let the last chunks of a finished replay go out
@@ -55,6 +64,8 @@ def main(ctx) -> None:
     def _stats() -> None:
         ctx.counters.extra.update({f"transport_{k}": v for k, v in transport.counters.items()})
         ctx.counters.extra["chunks_sent"] = seq
+        if tf_sent:
+            ctx.counters.extra["transforms_sent"] = tf_sent
 
     ctx.on_beat.append(_stats)
     seq = 0
@@ -70,6 +81,15 @@ def main(ctx) -> None:
             ctx.beat()
             if chunk is None:
                 continue
+            if isinstance(chunk, tfmsg.Transforms):  # on the same socket, in order with the clouds
+                if chunk.transforms:
+                    if _send(ctx, sock, tfmsg.encode(chunk, source_id), lossless):
+                        tf_sent += len(chunk.transforms)
+                    else:  # a live source behind ingest: counted like dropped chunks
+                        ctx.counters.extra["transforms_dropped"] = ctx.counters.extra.get("transforms_dropped", 0) + len(chunk.transforms)
+                continue
+            if frame_id and not chunk.frame_id:
+                chunk.frame_id = frame_id
             t1 = time.monotonic_ns()
             n = len(chunk)
             chunk.source_id = chunk.source_id or source_id

@@ -24,6 +24,7 @@ import zmq
 #: The events a chunk passes through, in order.
 EVENTS = (
     "transport_receive",  # source: chunk produced by the transport
+    "transform",          # ingest: placed in the fixed frame (docs/frames.md; waiting for transforms included)
     "ingest_packed",      # ingest: validated and packed into SoA
     "ring_committed",     # ingest: written into the ring
     "cadence_snapshot",   # cadence: first snapshot that contains it

@@ -88,6 +88,7 @@ def _describe_exit(code: Optional[int]) -> str:
 #: Stage stats that are running totals (carried over a restart); everything else is a
 #: gauge and shows the current incarnation's value.
 COUNTERS = ("points_in", "points_out", "frames", "pngs", "uploaded_bytes", "messages_in", "chunks_accepted",
+            "transform_messages",
             "rejected_messages", "ring_evicted", "ring_pushes", "published", "chunks_out", "reconnects",
             # a link source (docs/remote.md): its ledger starts again in a restarted process
             "transport_link_sent", "transport_link_received", "transport_lost_in_transit",

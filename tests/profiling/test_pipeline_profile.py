@@ -25,6 +25,8 @@ def test_profile_of_a_real_pipeline(tmp_path):
     assert not stats.get("failure"), stats.get("failure")
     # every stage of the chunk's path was traced, and whole chunks made it to a frame
     for ev in EVENTS:
+        if ev == "transform":  # only with frames.fixed set (tests/frames)
+            continue
         assert prof["stages"][ev]["count"] > 0, ev
     assert prof["end_to_end"]["count"] > 0 and prof["end_to_end"]["p50"] > 0
     assert set(prof["processes"]) >= {"source", "ingest", "cadence", "render"}

@@ -11,7 +11,7 @@ from pointflow.profiling.spans import EVENTS
 
 MS = 1_000_000
 PIDS = {"source": 101, "ingest": 102, "cadence": 103, "render": 104}
-STAGE_OF = {"transport_receive": "source", "ingest_packed": "ingest", "ring_committed": "ingest",
+STAGE_OF = {"transport_receive": "source", "transform": "ingest", "ingest_packed": "ingest", "ring_committed": "ingest",
             "cadence_snapshot": "cadence", "render_upload": "render", "frame_done": "render"}
 
 

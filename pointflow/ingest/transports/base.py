@@ -31,6 +31,14 @@ class Transport(ABC):
     #: True for replays (files, as-fast-as-possible generators): when ingest is behind the
     #: source waits instead of dropping chunks. Live transports leave it False.
     lossless: bool = False
+    #: Field names a decoding transport keeps whatever its channel filter says: the source
+    #: stage sets the per-point time fields here before ``open()`` when deskew is on
+    #: (docs/frames.md). A transport may also yield
+    #: :class:`pointflow.frames.message.Transforms` between chunks (docs/plugins.md).
+    keep_fields: tuple[str, ...] = ()
+    #: True when ingest places points in a fixed frame (``frames.fixed``): a transport that
+    #: can subscribe to transforms (rosbridge's /tf) does so only then. Set before ``open()``.
+    wants_transforms: bool = False
 
     def __init__(self, options: dict[str, Any], source_id: str):
         self.options = options

@@ -4,7 +4,9 @@ Reads ROS 1 ``.bag`` files (a glob reads split bags together), ROS 2 bag folders
 ``metadata.yaml``) and bare ``.mcap`` / ``.db3`` files through the pure-Python ``rosbags``
 package (``pip install 'pointflow[ros]'``). Each message becomes one chunk, decoded by
 :mod:`pointflow.ingest.pointcloud2` and stamped with its ``header.stamp``
-(``PointChunk.stamp_ns``); each topic is its own source id (``<source>:<topic>``).
+(``PointChunk.stamp_ns``) and ``header.frame_id``; each topic is its own source id
+(``<source>:<topic>``). ``/tf`` and ``/tf_static`` (``tf2_msgs/TFMessage``) of the same
+recording are replayed in recorded order with the clouds, for the frames step (docs/frames.md).
 
 Timing: messages are released at their recorded (bag) times divided by ``rate`` (2 = twice
 as fast); ``rate: 0`` sends as fast as ingest accepts. Like the file transport a replay is
@@ -25,8 +27,10 @@ from pathlib import Path
 from typing import Any, Iterator, Literal, Optional
 
 from ...chunk import PointChunk
+from ...frames.message import Transforms
 from ...typed import ConfigError
 from ..pointcloud2 import MSGTYPES, PointCloud2Decoder
+from ..rostf import TF_MSGTYPES, decode_tf
 from .base import Transport
 
 
@@ -50,6 +54,10 @@ class RosbagOptions:
     channels: Optional[list[str]] = None
     #: Progress bar on stderr: auto = when stderr is a terminal.
     progress: Literal["auto", "on", "off"] = "auto"
+    #: tf2_msgs/TFMessage topics replayed with the clouds, in recorded order, for the frames
+    #: step (docs/frames.md); topics the recording lacks are skipped; [] = none. A topic whose
+    #: name ends in ``_static`` is static (ROS 1's latched /tf_static is read whatever the window).
+    tf_topics: list[str] = dataclasses.field(default_factory=lambda: ["/tf", "/tf_static"])
 
 
 def _anyreader():
@@ -170,6 +178,10 @@ class RosbagTransport(Transport):
             raise RuntimeError(f"rosbag transport: {self.o.path}: topic(s) {', '.join(missing) or '(none)'} "
                                f"not PointCloud2 topics of the recording; {_describe(have)}")
         self.connections = [c for c in self.reader.connections if c.topic in wanted and c.msgtype in MSGTYPES]
+        self.tf_connections = [c for c in self.reader.connections
+                               if c.topic in self.o.tf_topics and c.msgtype in TF_MSGTYPES]
+        self.connections += self.tf_connections
+        self.decoder = PointCloud2Decoder(self.o.rename, self.o.channels, always=self.keep_fields)
         self.t0 = self.reader.start_time
         self.start_ns = self.t0 + int(self.o.start * 1e9)
         self.stop_ns = self.t0 + int(self.o.end * 1e9) if self.o.end is not None else None
@@ -213,8 +225,25 @@ class RosbagTransport(Transport):
             self.counters["deserialize_s"] += t1 - t0
             self.counters["decode_s"] += time.perf_counter() - t1
 
+    def _tf(self, item: tuple[Any, bytes]) -> Transforms:
+        conn, raw = item
+        msg = self.reader.deserialize(raw, conn.msgtype)
+        return decode_tf(msg, conn.topic.endswith("_static"), f"{self.source_id}:{conn.topic}")
+
+    def _static_first(self) -> Iterator[Transforms]:
+        """Static transforms recorded before the window (ROS 1 latches /tf_static once, at the start)."""
+        static = [c for c in self.tf_connections if c.topic.endswith("_static")]
+        if not static or self.o.start <= 0:
+            return
+        for conn, _, raw in self.reader.messages(connections=static, stop=self.start_ns):
+            batch = self.accept(self._tf, (conn, raw))
+            if batch is not None:
+                self.counters["transforms"] = self.counters.get("transforms", 0) + len(batch)
+                yield batch
+
     def chunks(self) -> Iterator[Optional[PointChunk]]:
         o = self.o
+        yield from self._static_first()
         while True:
             wall0 = time.monotonic()
             first_t = last_t = None
@@ -223,6 +252,12 @@ class RosbagTransport(Transport):
                                                         stop=self.stop_ns):
                 if o.rate > 0:
                     yield from self._wait(wall0 + (t_ns - self.start_ns) / 1e9 / o.rate)
+                if conn.msgtype in TF_MSGTYPES:
+                    batch = self.accept(self._tf, (conn, raw))
+                    if batch is not None:
+                        self.counters["transforms"] = self.counters.get("transforms", 0) + len(batch)
+                    yield batch
+                    continue
                 first_t = t_ns if first_t is None else first_t
                 last_t = t_ns
                 count += 1

@@ -12,7 +12,9 @@ the subscribed topic become chunks (decoded by :mod:`pointflow.ingest.pointcloud
 with ``header.stamp``); ``status`` messages are logged and counted (``status``,
 ``status_<level>``); anything else is rejected with a reason and counted (``bad_json``,
 ``bad_cbor``, ``bad_shape``, ``unexpected_op``, ``wrong_topic`` and the decoder's reasons).
-On stop it sends ``unsubscribe``. Needs ``websockets`` and, for CBOR, ``cbor2``
+With ``frames.fixed`` set it also subscribes to ``tf_topics`` (``/tf``, ``/tf_static``) and
+yields their ``tf2_msgs/TFMessage`` as transforms, in arrival order with the clouds
+(docs/frames.md). On stop it sends ``unsubscribe``. Needs ``websockets`` and, for CBOR, ``cbor2``
 (``pip install 'pointflow[network,ros]'``).
 """
 from __future__ import annotations
@@ -26,7 +28,9 @@ from typing import Any, Literal, Optional
 
 from ...chunk import ChunkError, PointChunk
 from ...typed import ConfigError
+from ...frames.message import Transforms
 from ..pointcloud2 import MSGTYPES, PointCloud2Decoder
+from ..rostf import decode_tf
 from ._backoff import Backoff, NetworkOptions
 from .base import Transport
 from .websocket import WebSocketTransport
@@ -53,6 +57,9 @@ class RosbridgeOptions(NetworkOptions):
     rename: dict[str, str] = dataclasses.field(default_factory=dict)
     #: Keep only these channels (after renaming); null = every field.
     channels: Optional[list[str]] = None
+    #: tf2_msgs/TFMessage topics subscribed to when ``frames.fixed`` is set (docs/frames.md);
+    #: a topic ending in ``_static`` holds static transforms.
+    tf_topics: list[str] = dataclasses.field(default_factory=lambda: ["/tf", "/tf_static"])
 
 
 class RosbridgeTransport(WebSocketTransport):
@@ -99,9 +106,21 @@ class RosbridgeTransport(WebSocketTransport):
         return {"op": "subscribe", "id": self.sub_id, "topic": o.topic, "type": o.type,
                 "throttle_rate": o.throttle_rate, "queue_length": o.queue_length, "compression": o.compression}
 
+    def tf_subscribe_messages(self) -> list[dict[str, Any]]:
+        """Subscriptions to the transform topics (only when the frames step is on)."""
+        if not self.wants_transforms:
+            return []
+        typ = "tf2_msgs/msg/TFMessage" if "/msg/" in self.o.type else "tf2_msgs/TFMessage"
+        return [{"op": "subscribe", "id": f"{self.sub_id}_tf{i}", "topic": t, "type": typ,
+                 "queue_length": 100, "compression": self.o.compression} for i, t in enumerate(self.o.tf_topics)]
+
     def on_connect(self) -> None:
+        if self.decoder.always != tuple(self.keep_fields):  # set by the source stage after __init__
+            self.decoder = PointCloud2Decoder(self.o.rename, self.o.channels, always=self.keep_fields)
         try:
             self._ws.send(json.dumps(self.subscribe_message()))
+            for m in self.tf_subscribe_messages():
+                self._ws.send(json.dumps(m))
         except Exception as exc:  # noqa: BLE001 - the next recv notices the dead link and reconnects
             log.warning("%s: subscribe to %s failed: %s", self.source_id, self.o.topic, exc)
 
@@ -138,6 +157,14 @@ class RosbridgeTransport(WebSocketTransport):
             return None
         if op != "publish":
             raise ChunkError("unexpected_op", f"op {op!r} (only 'publish' and 'status' are expected)")
+        if self.wants_transforms and obj.get("topic") in self.o.tf_topics:
+            body = obj.get("msg")
+            if not isinstance(body, dict):
+                raise ChunkError("bad_shape", f"publish 'msg' must be an object, got {type(body).__name__}")
+            topic = obj["topic"]
+            batch = decode_tf(body, topic.endswith("_static"), f"{self.source_id}:{topic}")
+            self.counters["transforms"] = self.counters.get("transforms", 0) + len(batch)
+            return batch  # type: ignore[return-value]
         if obj.get("topic") != self.o.topic:
             raise ChunkError("wrong_topic", f"publish for topic {obj.get('topic')!r}, subscribed to {self.o.topic!r}")
         body = obj.get("msg")
@@ -152,6 +179,8 @@ class RosbridgeTransport(WebSocketTransport):
         if self._ws is not None:
             try:
                 self._ws.send(json.dumps({"op": "unsubscribe", "id": self.sub_id, "topic": self.o.topic}))
+                for m in self.tf_subscribe_messages():
+                    self._ws.send(json.dumps({"op": "unsubscribe", "id": m["id"], "topic": m["topic"]}))
                 self.counters["unsubscribed"] = 1
             except Exception:  # noqa: BLE001 - the link is gone: nothing to unsubscribe from
                 pass

@@ -24,11 +24,12 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from typing import Any, Iterator, Optional
+from typing import Any, Iterator, Literal, Optional
 
 import numpy as np
 
 from ...chunk import PointChunk
+from ...frames.message import Transform, Transforms
 from ...typed import ConfigError
 from .base import Transport
 
@@ -73,6 +74,11 @@ class SyntheticOptions:
     cache_scans: int = 0
     #: dtype of the positions sent: float64 keeps large ``origin`` offsets exact.
     positions_dtype: str = "float64"
+    #: ``world``: points in world coordinates. ``moving``: points in the sensor's own frame
+    #: (``lidar``, stamped), plus the transforms that place it: ``odom -> base_link`` at 20 Hz
+    #: (the drive, with a gentle yaw sway) and a static ``base_link -> lidar``; with
+    #: ``frames.fixed: odom`` ingest puts them back in place (docs/frames.md).
+    mode: Literal["world", "moving"] = "world"
 
 
 @dataclasses.dataclass
@@ -213,6 +219,8 @@ class SyntheticTransport(Transport):
         bad = [c for c in o.channels if c not in CHANNELS]
         if bad:
             raise ConfigError(f"{path}.channels", f"unknown channel {bad[0]!r}; expected any of {', '.join(CHANNELS)}")
+        if o.mode == "moving" and o.cache_scans:
+            raise ConfigError(f"{path}.cache_scans", "must be 0 with mode: moving (a cached scan would be sent with a later pose)")
         if o.positions_dtype not in ("float32", "float64"):
             raise ConfigError(f"{path}.positions_dtype", f"must be float32 or float64, got {o.positions_dtype!r}")
         if o.chunks_per_scan > o.points_per_scan:
@@ -464,10 +472,52 @@ class SyntheticTransport(Transport):
                               seq=scan * o.chunks_per_scan + k)
         return self._make_chunk(scan, k)
 
+    # ------------------------------------------------------------------ moving mode
+    EPOCH_NS = 1_700_000_000 * 1_000_000_000  # stamps: this + scene time
+    TF_PERIOD_NS = 50_000_000
+
+    def base_pose(self, t: float) -> tuple[np.ndarray, float]:
+        """odom <- base_link at scene time ``t``: (translation, yaw)."""
+        s = self.sensor_at(t)
+        return np.array([s[0], s[1], 0.0]) + self.origin, 0.15 * math.sin(0.8 * t)
+
+    def transforms_until(self, t: float) -> Optional[Transforms]:
+        """The 20 Hz ``odom -> base_link`` samples not yet sent up to one period past ``t``
+        (so the cloud at ``t`` is bracketed), the static mount first."""
+        out = []
+        if getattr(self, "_tf_next", None) is None:
+            self._tf_next = 0
+            out.append(Transform("base_link", "lidar", 0, (0.0, 0.0, self.o.sensor_height), (0.0, 0.0, 0.0, 1.0), True))
+        end = int(t * 1e9) + self.TF_PERIOD_NS
+        while self._tf_next <= end:
+            ts = self._tf_next
+            tr, yaw = self.base_pose(ts / 1e9)
+            out.append(Transform("odom", "base_link", self.EPOCH_NS + ts, tuple(tr),
+                                 (0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2))))
+            self._tf_next += self.TF_PERIOD_NS
+        return Transforms(out, self.source_id) if out else None
+
+    def _to_sensor(self, pos: np.ndarray, t: float) -> np.ndarray:
+        tr, yaw = self.base_pose(t)
+        c, s_ = math.cos(yaw), math.sin(yaw)
+        rel = pos + self.origin - tr
+        out = np.empty_like(rel)
+        out[:, 0] = c * rel[:, 0] + s_ * rel[:, 1]  # Rz(yaw)^T
+        out[:, 1] = -s_ * rel[:, 0] + c * rel[:, 1]
+        out[:, 2] = rel[:, 2] - self.o.sensor_height
+        return out
+
     def _make_chunk(self, scan: int, k: int) -> PointChunk:
         o = self.o
         t = (scan + (k + 1) / o.chunks_per_scan) / o.scan_hz
         sec = self.sector(scan, k, t)
+        if o.mode == "moving":
+            pos = self._to_sensor(sec["positions"], t)
+            if o.positions_dtype == "float32":
+                pos = pos.astype(np.float32)
+            return PointChunk(positions=pos, channels={c: sec[c] for c in o.channels}, source_id=self.source_id,
+                              seq=scan * o.chunks_per_scan + k, stamp_ns=self.EPOCH_NS + int(round(t * 1e9)),
+                              frame_id="lidar")
         pos = sec["positions"] + self.origin
         if o.positions_dtype == "float32":
             pos = pos.astype(np.float32)
@@ -490,6 +540,10 @@ class SyntheticTransport(Transport):
                         time.sleep(min(left, 0.05))
                         if left > 0.05:
                             yield None
+                if o.mode == "moving":
+                    tfs = self.transforms_until((scan + (k + 1) / o.chunks_per_scan) / o.scan_hz)
+                    if tfs is not None:
+                        yield tfs
                 yield self.make_chunk(scan, k)
             scan += 1
             self.counters["scans"] = scan

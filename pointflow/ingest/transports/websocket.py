@@ -133,7 +133,7 @@ class WebSocketTransport(Transport):
             if chunk is None:
                 continue
             yield chunk
-            if self.quota_reached():
+            if isinstance(chunk, PointChunk) and self.quota_reached():  # transforms do not count
                 return
 
     def close(self) -> None:

@@ -1,0 +1,358 @@
+"""Frames at ingest: cost of placing a cloud in the fixed frame, of deskew, and what each buys.
+
+Three measurements, each against a baseline taken in the same run (interleaved, medians):
+
+* ``transform``: the frames step (``Framer.submit``: chain lookup at the cloud's stamp, lerp +
+  slerp of the dynamic edge, composition, then the points) on a 131,072-point float64 cloud,
+  against the floor ``points @ R.T + t`` in bare numpy on the same array. Target >= 0.7
+  (floor time / our time).
+* ``deskew``: the same cloud with Ouster per-point times (``t`` uint32, 1024 column times):
+  each point with the pose at its own time. Target >= 0.3 of the same floor.
+* ``pipeline``: the real ingest stage in its own process fed by a producer process over
+  ZeroMQ (10,000- and 1,000-point chunks) with ``frames.fixed`` set (static chain, every
+  chunk transformed) against the same without ``frames``. Target >= 0.85.
+
+And the error-versus-cost chart: a real Ouster OS-1-128 scan (``../shared/data``, when
+present; else a synthetic sweep) taken by a lidar on a robot driving an arc (10 m/s, 0.6
+rad/s, roll/pitch wobble; /tf at 20 Hz), placed as sent, with one transform per cloud (at
+the header stamp, the start of the sweep), and deskewed; error = distance to where each point
+truly was (the continuous motion, not the 20 Hz samples), median and max, next to the cost
+per cloud.
+
+    .venv/bin/python bench/bench_frames.py [--reps 31] [--pipeline-points 3000000] [--rounds 3]
+
+Writes ``bench/results/frames.json`` and ``bench/results/frames.png``.
+"""
+from __future__ import annotations
+
+import argparse
+import glob
+import json
+import math
+import multiprocessing as mp
+import os
+import platform
+import shutil
+import statistics
+import sys
+import time
+
+import numpy as np
+import zmq
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, ROOT)
+#: ../shared/data of a clone next to the shared folder (a worktree one level deeper looks further up)
+DATA = next((d for d in (os.path.join(ROOT, "..", "shared", "data", "ouster_os1_128"),
+                         os.path.join(ROOT, "..", "..", "shared", "data", "ouster_os1_128")) if os.path.isdir(d)),
+            os.path.join(ROOT, "..", "shared", "data", "ouster_os1_128"))
+N = 131_072
+SEC = 1_000_000_000
+T0 = 1_700_000_000 * SEC
+
+
+# ----------------------------------------------------------------------------- motion
+def _rz(a):
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+
+
+def _rx(a):
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[1.0, 0, 0], [0, c, -s], [0, s, c]])
+
+
+def pose(t_ns: float):
+    """odom <- base_link of a robot driving an arc, starting at odom's origin at T0."""
+    s = (t_ns - T0) / SEC
+    speed, yaw_rate = 10.0, 0.6
+    yaw = yaw_rate * s
+    r = speed / yaw_rate
+    p = np.array([r * math.sin(yaw), r * (1 - math.cos(yaw)), 0.05 * math.sin(3 * s)])
+    return _rz(yaw) @ _rx(0.03 * math.sin(5 * s)), p
+
+
+def _quat(R):
+    from pointflow.frames.rotation import from_matrix
+
+    return tuple(from_matrix(R))
+
+
+def framer(deskew="auto"):
+    from pointflow.frames.config import FramesConfig
+    from pointflow.frames.framer import Framer
+    from pointflow.frames.message import Transform, Transforms
+
+    fr = Framer(FramesConfig(fixed="odom", deskew=deskew), lambda r, n: None)
+    tfs = [Transform("base_link", "lidar", 0, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0), True)]
+    for k in range(-10, 40):  # /tf at 20 Hz around the sweep
+        st = T0 + k * SEC // 20
+        R, p = pose(st)
+        tfs.append(Transform("odom", "base_link", st, tuple(p), _quat(R)))
+    fr.add_transforms(Transforms(tfs, "bench"))
+    return fr
+
+
+def ouster_scan():
+    """(xyz float32 (N,3) sensor frame, per-point t uint32 ns after the first column, label)."""
+    files = sorted(glob.glob(os.path.join(DATA, "*.npz")))
+    if files:
+        with np.load(files[0]) as z:
+            xyz = z["xyz"].astype(np.float32)
+            ts = z["timestamps_ns"].astype(np.int64)
+        # the columns sweep the azimuth once: a point's column (so its time) from its azimuth
+        az = np.mod(-np.arctan2(xyz[:, 1], xyz[:, 0]) + math.atan2(xyz[0, 1], xyz[0, 0]), 2 * np.pi)
+        col = np.minimum((az / (2 * np.pi) * ts.size).astype(np.intp), ts.size - 1)
+        return xyz, (ts[col] - ts[0]).astype(np.uint32), f"Ouster OS-1-128 scan ({xyz.shape[0]:,} points, {os.path.basename(files[0])})"
+    rng = np.random.default_rng(0)
+    az = rng.uniform(0, 2 * np.pi, 107_000)
+    r = rng.uniform(2, 80, az.size)
+    xyz = np.column_stack([r * np.cos(az), r * np.sin(az), rng.uniform(-2, 8, az.size)]).astype(np.float32)
+    col = (az / (2 * np.pi) * 1024).astype(np.int64)
+    return xyz, (col * 97_656).astype(np.uint32), "synthetic sweep (no ../shared/data)"
+
+
+def chunk(pos, t=None, stamp=T0 + 3 * SEC // 100):
+    from pointflow.chunk import PointChunk
+
+    return PointChunk(positions=pos, channels={} if t is None else {"t": t}, source_id="bench", stamp_ns=stamp,
+                      frame_id="lidar", trace_id=0)
+
+
+# ----------------------------------------------------------------------------- micro
+def micro(reps: int) -> dict:
+    xyz, t, label = ouster_scan()
+    idx = np.resize(np.arange(xyz.shape[0]), N)  # 131,072 points: the scan, repeated
+    pts = np.ascontiguousarray(xyz[idx].astype(np.float64))
+    tt = np.ascontiguousarray(t[idx])
+    fr_rigid, fr_desk = framer("off"), framer("auto")
+    c_rigid, c_desk = chunk(pts), chunk(pts, tt)
+    R, tr = fr_rigid.buffer.lookup("odom", "lidar", c_rigid.stamp_ns)
+    times = {"floor": [], "transform": [], "deskew": []}
+    for _ in range(3):  # warm-up
+        _ = pts @ R.T + tr
+        fr_rigid.submit(c_rigid, pts, {})
+        fr_desk.submit(c_desk, pts, {})
+    for _ in range(reps):
+        a = time.perf_counter(); _ = pts @ R.T + tr; b = time.perf_counter()
+        out_r = fr_rigid.submit(c_rigid, pts, {}); c = time.perf_counter()
+        out_d = fr_desk.submit(c_desk, pts, {}); d = time.perf_counter()
+        times["floor"].append(b - a)
+        times["transform"].append(c - b)
+        times["deskew"].append(d - c)
+    assert np.allclose(out_r[0][1], pts @ R.T + tr)
+    med = {k: statistics.median(v) for k, v in times.items()}
+    return {"points": N, "data": label, "reps": reps,
+            "median_ms": {k: round(v * 1e3, 3) for k, v in med.items()},
+            "transform_vs_floor": round(med["floor"] / med["transform"], 3),
+            "deskew_vs_floor": round(med["floor"] / med["deskew"], 3),
+            "targets": {"transform_vs_floor": 0.7, "deskew_vs_floor": 0.3}}
+
+
+# ----------------------------------------------------------------------------- error vs cost
+def error_vs_cost(reps: int) -> dict:
+    xyz, t, label = ouster_scan()
+    pts = xyz.astype(np.float64)
+    stamp = T0 + 3 * SEC // 100  # header stamp = first column, between two /tf samples
+    times = stamp + t.astype(np.int64)
+    truth = np.empty_like(pts)
+    for tv in np.unique(times):  # where each point truly was: the continuous motion
+        m = times == tv
+        Rm, pm = pose(float(tv))
+        truth[m] = pts[m] @ Rm.T + pm
+    fr_rigid, fr_desk = framer("off"), framer("auto")
+    out = {"as sent": (pts, [0.0]), "per-cloud transform": None, "deskew": None}
+    cost = {"per-cloud transform": [], "deskew": []}
+    for _ in range(reps):
+        a = time.perf_counter(); r = fr_rigid.submit(chunk(xyz, stamp=stamp), xyz, {}); b = time.perf_counter()
+        d = fr_desk.submit(chunk(xyz, t, stamp=stamp), xyz, {}); c = time.perf_counter()
+        cost["per-cloud transform"].append(b - a)
+        cost["deskew"].append(c - b)
+    out["per-cloud transform"] = (r[0][1], cost["per-cloud transform"])
+    out["deskew"] = (d[0][1], cost["deskew"])
+    # tf2's own answer per point (exact lerp + slerp at each point's time): what deskew approximates
+    Rp, tp = fr_desk.buffer.lookup_many("odom", "lidar", times)
+    exact_tf2 = np.einsum("nij,nj->ni", Rp, pts) + tp
+    desk_vs_tf2 = np.linalg.norm(out["deskew"][0] - exact_tf2, axis=1)
+    res = {"data": label, "points": int(pts.shape[0]), "motion": "arc 10 m/s, 0.6 rad/s yaw, roll wobble; /tf 20 Hz",
+           "deskew_vs_exact_tf2_per_point_m": {"median": float(np.median(desk_vs_tf2)), "max": float(desk_vs_tf2.max())},
+           "sweep_ms": round(float(t.max()) / 1e6, 2), "modes": {}}
+    for k, (p, c) in out.items():
+        e = np.linalg.norm(p - truth, axis=1)
+        res["modes"][k] = {"error_median_m": float(np.median(e)), "error_max_m": float(e.max()),
+                           "cost_ms_per_cloud": round(statistics.median(c) * 1e3, 3)}
+    return res
+
+
+# ----------------------------------------------------------------------------- pipeline
+def _producer(endpoint: str, n: int, count: int, go, ready) -> None:
+    from pointflow import wire
+    from pointflow.chunk import PointChunk
+
+    rng = np.random.default_rng(1)
+    pos = rng.uniform(-100, 100, (n, 3)).astype(np.float32)
+    inten = rng.uniform(0, 255, n).astype(np.float32)
+    ctx = zmq.Context()
+    s = ctx.socket(zmq.PUSH)
+    s.setsockopt(zmq.SNDHWM, 64)
+    s.connect(endpoint)
+    ready.set()
+    go.wait()
+    for i in range(count):
+        wire.send(s, PointChunk(positions=pos, channels={"intensity": inten}, source_id="bench", seq=i, trace_id=0,
+                                stamp_ns=T0 + i * 1000, frame_id="lidar"))
+    s.close(linger=-1)
+    ctx.term()
+
+
+class IngestRun:
+    """The real ingest stage (stage_main) in its own process, with or without frames."""
+
+    def __init__(self, cap: int, frames: dict | None):
+        from pointflow.config import load_config, new_run_dir
+        from pointflow.ring import PointRing
+        from pointflow.runtime.stage import RunInfo, stage_main
+
+        self.cfg = {"source": {"transport": "synthetic"}, "ring": {"max_points": cap},
+                    "render": {"color_by": "intensity", "output": {"dir": None}},
+                    "tracing": {"enabled": False}, "supervisor": {"heartbeat_ms": 20}}
+        if frames:
+            self.cfg["frames"] = frames
+        cfg = load_config(self.cfg)
+        self.ring = PointRing(cap, channels=cfg.ring_channels())
+        self.run_dir = new_run_dir()
+        self.ep = cfg.resolved_endpoints(self.run_dir)
+        self.zctx = zmq.Context()
+        self.control = self.zctx.socket(zmq.PULL)
+        self.control.bind(self.ep.control)
+        self.trace = self.zctx.socket(zmq.PULL)
+        self.trace.bind(self.ep.trace)
+        info = RunInfo(run_dir=self.run_dir, endpoints=self.ep, ring_name=self.ring.name, slab_names=("", ""),
+                       out_dir=None, supervisor_pid=os.getpid(), log_level=40)
+        self.proc = mp.get_context("spawn").Process(target=stage_main, args=("ingest", "ingest", self.cfg, ROOT, info))
+        self.proc.start()
+        self.last: dict = {}
+
+    def stats(self, timeout_ms=100) -> dict:
+        if self.control.poll(timeout_ms):
+            while True:
+                try:
+                    m = json.loads(self.control.recv(zmq.NOBLOCK))
+                except zmq.Again:
+                    break
+                if m.get("type") == "heartbeat":
+                    self.last = m["stats"]
+        return self.last
+
+    def measure(self, n: int, count: int) -> float:
+        ctx = mp.get_context("spawn")
+        go, ready = ctx.Event(), ctx.Event()
+        while not self.last:
+            self.stats(200)
+        before = self.last.get("points_out", 0) + sum(self.last.get("drops", {}).values())
+        prod = ctx.Process(target=_producer, args=(self.ep.ingest, n, count, go, ready))
+        prod.start()
+        ready.wait(60)
+        time.sleep(0.1)
+        go.set()
+        t0 = time.perf_counter()
+        target = before + n * count
+        while True:
+            s = self.stats(5)
+            if s.get("points_out", 0) + sum(s.get("drops", {}).values()) >= target:
+                break
+        dt = time.perf_counter() - t0
+        prod.join()
+        return n * count / dt
+
+    def close(self) -> dict:
+        self.proc.terminate()
+        self.proc.join(10)
+        final = self.stats(300)
+        for s in (self.control, self.trace):
+            s.close(linger=0)
+        self.zctx.term()
+        self.ring.close()
+        shutil.rmtree(self.run_dir, ignore_errors=True)
+        return final
+
+
+FRAMES_ON = {"fixed": "odom", "static": [{"parent": "odom", "child": "lidar", "translation": [3.0, -2.0, 1.7],
+                                          "rpy_deg": [1.0, 2.0, 30.0]}]}
+
+
+def pipeline(points: int, rounds: int) -> dict:
+    out = {}
+    for n in (10_000, 1_000):
+        count = max(1, points // n)
+        rates = {"off": [], "on": []}
+        runs = {"off": IngestRun(2_000_000, None), "on": IngestRun(2_000_000, FRAMES_ON)}
+        try:
+            for _ in range(rounds):  # interleaved
+                for k in ("off", "on"):
+                    rates[k].append(runs[k].measure(n, count))
+        finally:
+            finals = {k: r.close() for k, r in runs.items()}
+        assert finals["on"].get("frames", {}).get("sources", {}).get("bench", {}).get("chain") == "odom <- lidar"
+        med = {k: statistics.median(v) for k, v in rates.items()}
+        out[f"{n}_points_per_chunk"] = {"points_per_s_median": {k: round(v) for k, v in med.items()},
+                                         "rounds": {k: [round(x) for x in v] for k, v in rates.items()},
+                                         "on_vs_off": round(med["on"] / med["off"], 3), "target": 0.85}
+    return out
+
+
+# ----------------------------------------------------------------------------- chart
+def chart(res: dict, path: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    ev = res["error_vs_cost"]
+    fig, ax = plt.subplots(figsize=(7.5, 4.6))
+    colors = {"as sent": "#999999", "per-cloud transform": "#1f77b4", "deskew": "#d62728"}
+    for k, m in ev["modes"].items():
+        x = max(m["cost_ms_per_cloud"], 0.05)
+        ax.errorbar([x], [m["error_median_m"]], yerr=[[0], [m["error_max_m"] - m["error_median_m"]]], fmt="o",
+                    color=colors[k], capsize=5, ms=8, label=f"{k}: median {m['error_median_m'] * 1000:.3g} mm, "
+                    f"max {m['error_max_m'] * 1000:.3g} mm, {m['cost_ms_per_cloud']:.2f} ms")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.axhline(1e-3, color="k", lw=0.6, ls=":")
+    ax.text(0.06, 1.15e-3, "1 mm", fontsize=8)
+    ax.set_xlabel("cost per cloud at ingest, ms (as sent: none, drawn at 0.05)")
+    ax.set_ylabel("distance to true position, m (dot: median, bar: max)")
+    ax.set_title(f"Sweep error vs cost: {ev['data'][:48]}\n{ev['motion']}", fontsize=9)
+    ax.legend(fontsize=7.5, loc="lower left")
+    ax.grid(True, which="both", alpha=0.3)
+    fig.text(0.99, 0.01, res["machine"], ha="right", fontsize=6.5, color="#555")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--reps", type=int, default=31)
+    ap.add_argument("--pipeline-points", type=int, default=3_000_000)
+    ap.add_argument("--rounds", type=int, default=3)
+    ap.add_argument("--skip-pipeline", action="store_true")
+    ap.add_argument("--out", default=os.path.join(ROOT, "bench", "results", "frames.json"))
+    a = ap.parse_args()
+    res = {"machine": f"{platform.node()[:20]}, {os.cpu_count()} cores, numpy {np.__version__}",
+           "command": "python bench/bench_frames.py " + " ".join(sys.argv[1:])}
+    res["micro"] = micro(a.reps)
+    print(json.dumps(res["micro"], indent=1))
+    res["error_vs_cost"] = error_vs_cost(max(5, a.reps // 3))
+    print(json.dumps(res["error_vs_cost"], indent=1))
+    if not a.skip_pipeline:
+        res["pipeline"] = pipeline(a.pipeline_points, a.rounds)
+        print(json.dumps(res["pipeline"], indent=1))
+    os.makedirs(os.path.dirname(a.out), exist_ok=True)
+    with open(a.out, "w") as f:
+        json.dump(res, f, indent=1)
+    chart(res, os.path.splitext(a.out)[0] + ".png")
+    print("wrote", a.out)
+
+
+if __name__ == "__main__":
+    main()
