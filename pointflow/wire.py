@@ -195,8 +195,9 @@ def _array(frame, dtype_name: Any, shape: Sequence[int], what: str, codec: Any =
 def decode(frames: Sequence[Any], max_points: int | None = None) -> PointChunk:
     """Parse a multipart message; raises :class:`ChunkError` with a reason on any defect.
 
-    The arrays returned are read-only views on the received frames (no copy), except
-    for compressed or quantised chunks, which are decoded into new arrays."""
+    The arrays returned are views on the received frames (no copy; read-only for bytes,
+    writable for a ``zmq.Frame``, whose memory belongs to the receiver), except for
+    compressed or quantised chunks, which are decoded into new arrays."""
     chunk = _decode_fast(frames, max_points)
     if chunk is not None:
         return chunk
@@ -258,9 +259,7 @@ def _decode_fast(frames: Sequence[Any], max_points: int | None) -> PointChunk | 
         t = type(f)
         if (t is not bytes and t is not _Frame) or len(f) != nbytes:  # len: bytes of either
             return None
-        a = np.frombuffer(f, dtype=dt)  # a Frame exports its buffer (no memoryview needed)
-        a.flags.writeable = False
-        arrays.append(a.reshape(shape))
+        arrays.append(np.ndarray(shape, dt, f))  # a Frame exports its buffer: no memoryview needed
     return PointChunk(
         positions=arrays[0],
         channels={s[0]: a for s, a in zip(specs[1:], arrays[1:])},

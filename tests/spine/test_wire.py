@@ -198,7 +198,7 @@ def test_fast_decode_equals_the_full_parse_on_good_and_bad_headers(pair):
                 msg = pair[1].recv_multipart(copy=False)
             fast = wire._decode_fast(msg, max_points)
             taken += fast is not None
-            if fast is not None:
-                assert not fast.positions.flags.writeable
+            if fast is not None and not as_frames:
+                assert not fast.positions.flags.writeable  # views on bytes stay read-only
             assert _outcome(wire.decode, msg, max_points) == _outcome(lambda f, m: wire.decode_message(f, m)[0], msg, max_points), (i, frames[0])
     assert taken > 100  # undamaged, small enough, plain source name: the fast path
