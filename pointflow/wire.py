@@ -218,6 +218,7 @@ _INT_RE = re.compile(_INT)
 #: and each channel), or None when it is anything but a plain chunk (slow path).
 _PLANS: dict[bytes, Any] = {}
 _PLANS_MAX = 256
+_TAIL_MAX = 4096
 _PLAIN_KEYS = frozenset(("n", "positions", "channels"))
 
 
@@ -245,6 +246,8 @@ def _decode_fast(frames: Sequence[Any], max_points: int | None) -> PointChunk | 
             stamp, tail = s.group(), tail[:k]
     plan = _PLANS.get(tail, _PLANS)
     if plan is _PLANS:
+        if len(tail) > _TAIL_MAX:
+            return None  # not cached: the cache holds at most _PLANS_MAX x _TAIL_MAX bytes
         plan = _plan(tail)
         if len(_PLANS) >= _PLANS_MAX:
             _PLANS.clear()
