@@ -12,10 +12,12 @@ arrays are not copied by the sender. Any language that can write JSON and bytes 
 from __future__ import annotations
 
 import json
+import re
 import time
 from typing import Any, Sequence
 
 import numpy as np
+from zmq import Frame as _Frame
 
 from .chunk import SUPPORTED_DTYPES, ChunkError, PointChunk
 
@@ -160,7 +162,9 @@ _BIG_DIM = 2**40
 _I64_WRAP, _I64_HALF = 1 << 64, 1 << 63
 
 
-def _array(frame, dtype_name: Any, shape: Sequence[int], what: str, codec: Any = None, shuffled: bool = False) -> np.ndarray:
+def _frame_spec(dtype_name: Any, shape: Sequence[int], what: str) -> tuple[np.dtype, tuple[int, ...], int]:
+    """(dtype, shape, bytes) a data frame must have; ChunkError when the header's dtype or
+    shape is not acceptable."""
     dt = _DTYPE_BY_NAME.get(dtype_name) if isinstance(dtype_name, str) else None
     if dt is None:
         raise ChunkError("bad_dtype", f"{what}: unsupported dtype {dtype_name!r}")
@@ -173,7 +177,11 @@ def _array(frame, dtype_name: Any, shape: Sequence[int], what: str, codec: Any =
         count *= s
     if count >= _I64_HALF:  # the product as int64 (wrapping), as np.prod(shape, dtype=int64) gave
         count = (count + _I64_HALF) % _I64_WRAP - _I64_HALF
-    expected = count * dt.itemsize
+    return dt, tuple(shape), count * dt.itemsize
+
+
+def _array(frame, dtype_name: Any, shape: Sequence[int], what: str, codec: Any = None, shuffled: bool = False) -> np.ndarray:
+    dt, _, expected = _frame_spec(dtype_name, shape, what)
     if codec is not None:
         from .remote.codec import decompress
 
@@ -191,9 +199,112 @@ def _array(frame, dtype_name: Any, shape: Sequence[int], what: str, codec: Any =
 def decode(frames: Sequence[Any], max_points: int | None = None) -> PointChunk:
     """Parse a multipart message; raises :class:`ChunkError` with a reason on any defect.
 
-    The arrays returned are read-only views on the received frames (no copy), except
-    for compressed or quantised chunks, which are decoded into new arrays."""
+    The arrays returned are views on the received frames (no copy; read-only for bytes,
+    writable for a ``zmq.Frame``, whose memory belongs to the receiver), except for
+    compressed or quantised chunks, which are decoded into new arrays."""
+    chunk = _decode_fast(frames, max_points)
+    if chunk is not None:
+        return chunk
     return decode_message(frames, max_points)[0]
+
+
+_INT = rb"(-?(?:0|[1-9][0-9]*))"  # a JSON integer, as json.loads accepts it
+#: The start of a header as :func:`encode` writes it: the fields that change with every chunk
+#: (seq, trace, send time; the capture stamp comes last) around a part that stays the same for
+#: a stream (count, dtypes, shapes, channel names), parsed and checked once (:data:`_PLANS`).
+_HEADER_RE = re.compile(
+    rb'\{"schema":"pointflow\.chunk/1","source":"([ !#-\[\]-~]*)","seq":' + _INT + rb',"trace":' + _INT
+    + rb',"t_sent_ns":' + _INT + rb',(?="n":)')
+_STAMP_KEY = b',"stamp_ns":'
+_INT_RE = re.compile(_INT)
+#: The per-chunk-constant part of recent headers -> what decode_message would make of it
+#: when every frame has the promised size: (n, (name, dtype, shape, bytes) for positions
+#: and each channel), or None when it is anything but a plain chunk (slow path).
+_PLANS: dict[bytes, Any] = {}
+_PLANS_MAX = 256
+_TAIL_MAX = 4096
+_PLAIN_KEYS = frozenset(("n", "positions", "channels"))
+
+
+def _decode_fast(frames: Sequence[Any], max_points: int | None) -> PointChunk | None:
+    """:func:`decode` for a well-formed plain chunk whose header has the layout :func:`encode`
+    writes (any sender's may, byte for byte), without parsing the JSON or re-checking the
+    metadata of a stream's every chunk. Returns None for anything else, or on any defect, and
+    decode_message then parses, checks and reports as usual: same result, same errors."""
+    if len(frames) < 2:
+        return None
+    h = frames[0]
+    hb = h if type(h) is bytes else getattr(h, "bytes", None)  # zmq.Frame: .bytes is cheap
+    if type(hb) is not bytes or len(hb) > MAX_HEADER_BYTES:
+        return None
+    m = _HEADER_RE.match(hb)
+    if m is None or hb[-1] != 0x7D:  # "}"
+        return None
+    src, seq, trace, t_sent = m.groups()
+    tail = hb[m.end():-1]
+    stamp = None
+    k = tail.rfind(_STAMP_KEY)
+    if k >= 0:  # the optional capture stamp is the last member
+        s = _INT_RE.fullmatch(tail, k + len(_STAMP_KEY))
+        if s is not None:
+            stamp, tail = s.group(), tail[:k]
+    plan = _PLANS.get(tail, _PLANS)
+    if plan is _PLANS:
+        if len(tail) > _TAIL_MAX:
+            return None  # not cached: the cache holds at most _PLANS_MAX x _TAIL_MAX bytes
+        plan = _plan(tail)
+        if len(_PLANS) >= _PLANS_MAX:
+            _PLANS.clear()
+        _PLANS[tail] = plan
+    if plan is None:
+        return None
+    n, specs = plan
+    if (max_points is not None and n > max_points) or len(frames) != 1 + len(specs):
+        return None
+    arrays = []
+    for f, (name, dt, shape, nbytes) in zip(frames[1:], specs):
+        t = type(f)
+        if (t is not bytes and t is not _Frame) or len(f) != nbytes:  # len: bytes of either
+            return None
+        arrays.append(np.ndarray(shape, dt, f))  # a Frame exports its buffer: no memoryview needed
+    return PointChunk(
+        positions=arrays[0],
+        channels={s[0]: a for s, a in zip(specs[1:], arrays[1:])},
+        source_id=src.decode("ascii"),
+        seq=int(seq), trace_id=int(trace), t_sent_ns=int(t_sent),
+        t_recv_ns=time.monotonic_ns(),
+        stamp_ns=int(stamp) if stamp is not None else 0,
+    )
+
+
+def _plan(tail: bytes) -> Any:
+    """What the header part ``tail`` (``"n":...`` up to the channel list) promises, checked
+    as decode_message checks it; None unless it is a plain chunk that passes every check."""
+    try:
+        h = json.loads(b"{" + tail + b"}")
+    except Exception:  # noqa: BLE001 - not JSON, too deeply nested, ...: the slow path reports it
+        return None
+    if not isinstance(h, dict) or not h.keys() <= _PLAIN_KEYS:
+        return None  # codec, link, repeated keys, ...: the slow path decides
+    n = h.get("n")
+    chans = h.get("channels", [])
+    pos_meta = h.get("positions")
+    if (not isinstance(n, int) or isinstance(n, bool) or n < 0 or not isinstance(chans, list)
+            or not isinstance(pos_meta, dict) or pos_meta.get("shape") != [n, 3]
+            or pos_meta.get("dtype") not in ("float32", "float64")):
+        return None
+    try:
+        specs = [("", *_frame_spec(pos_meta["dtype"], [n, 3], "positions"))]
+        for i, meta in enumerate(chans):
+            if not isinstance(meta, dict) or not isinstance(meta.get("name"), str):
+                return None
+            shape = meta.get("shape")
+            if not isinstance(shape, list) or not shape or shape[0] != n:
+                return None
+            specs.append((meta["name"], *_frame_spec(meta.get("dtype"), shape, "")))
+    except ChunkError:
+        return None
+    return n, tuple(specs)
 
 
 def decode_message(frames: Sequence[Any], max_points: int | None = None) -> tuple[PointChunk, dict]:

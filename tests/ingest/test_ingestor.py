@@ -67,3 +67,24 @@ def test_wrong_channel_width_is_rejected_not_crashing(ring):
     ing = Ingestor(ring)
     assert not ing.add_chunk(PointChunk(positions=np.zeros((3, 3)), channels={"rgb": np.zeros(3, np.uint8)}))
     assert ing.rejected["bad_channel_shape"] == 1 and ing.counters.points_in == 0
+
+
+def test_small_chunks_with_non_finite_points_are_counted_per_batch(ring):
+    """Small chunks are checked for non-finite points once per coalesced batch (in flush):
+    the counts stay exact and the finite points of every chunk are stored in order."""
+    ing = Ingestor(ring, coalesce_points=100)
+    kept = []
+    for i in range(12):  # 12 chunks of 10 points: batches of 100 and 20
+        pos = np.full((10, 3), float(i))
+        if i % 3 == 0:
+            pos[i % 10, i % 3] = (np.nan, np.inf, -np.inf)[i % 3]
+        kept += [float(i)] * int(np.isfinite(pos).all(axis=1).sum())
+        assert ing.add_chunk(PointChunk(positions=pos, channels={"intensity": np.full(10, float(i), np.float32)}))
+    all_bad = np.full((10, 3), np.nan)
+    assert ing.add_chunk(PointChunk(positions=all_bad, channels={"intensity": np.zeros(10, np.float32)}))
+    ing.flush()
+    c = ing.counters
+    assert c.drops == {"non_finite": 4 + 10}
+    assert c.points_in == 130 and c.points_out == len(kept) == 116
+    assert ring.snapshot().channels["intensity"].tolist() == kept
+    assert ring.stats().total_written == c.points_out

@@ -145,3 +145,60 @@ def test_frame_size_product_wraps_like_int64(shape):
         with pytest.raises(ChunkError) as ei:
             wire._array(frame, "uint8", shape, "c")
         assert ei.value.reason == ("truncated" if exp > 8 else "size_mismatch")
+
+
+def _outcome(fn, frames, max_points):
+    try:
+        c = fn(frames, max_points)
+    except ChunkError as exc:
+        return ("error", exc.reason, str(exc))
+    return ("ok", c.source_id, c.seq, c.trace_id, c.t_sent_ns, c.stamp_ns, c.positions.dtype.str,
+            c.positions.tobytes(), [(k, v.dtype.str, v.shape, v.tobytes()) for k, v in c.channels.items()])
+
+
+def test_fast_decode_equals_the_full_parse_on_good_and_bad_headers(pair):
+    """decode() skips the JSON parse for headers laid out as encode() writes them; for every
+    message, good or damaged, bytes or zmq.Frame, it must give what decode_message gives
+    (same chunk, or the same reason and message)."""
+    rng = np.random.default_rng(7)
+    taken = 0
+    for i in range(600):
+        n = int(rng.integers(0, 40))
+        chans = {}
+        for name in rng.choice(["intensity", "rgb", "t", "ring"], size=int(rng.integers(0, 3)), replace=False):
+            shape = (n, 3) if name == "rgb" else (n,)
+            chans[str(name)] = rng.integers(0, 255, shape).astype(rng.choice(["uint8", "uint16", "float32", "float64"]))
+        chunk = PointChunk(positions=rng.normal(size=(n, 3)).astype(rng.choice(["float32", "float64"])), channels=chans,
+                           source_id=str(rng.choice(["lidar", "", 'a"b', "l\u00e4", "x\\y"])), seq=int(rng.integers(0, 2**40)),
+                           trace_id=int(rng.integers(0, 2**63)), stamp_ns=int(rng.choice([0, int(rng.integers(1, 2**62))])))
+        frames = [bytes(f) for f in wire.encode(chunk)]
+        kind = i % 10
+        if kind == 1:  # random byte flips anywhere
+            j = int(rng.integers(len(frames)))
+            b = bytearray(frames[j])
+            for _ in range(3):
+                if b:
+                    b[int(rng.integers(len(b)))] = int(rng.integers(256))
+            frames[j] = bytes(b)
+        elif kind == 2:
+            frames = frames[:-1]
+        elif kind == 3:
+            frames[1] = frames[1][:-4]
+        elif kind == 4:  # a repeated key after the fixed ones: json.loads keeps the last
+            frames[0] = frames[0].replace(b'"n":', b'"seq":5,"source":"other","n":')
+        elif kind == 5:  # an extra key after the capture stamp
+            frames[0] = frames[0][:-1] + b',"stamp_ns":12,"extra":1}'
+        elif kind == 6:
+            frames[0] = frames[0].replace(b'"seq":', b'"seq":0', 1)  # leading zero: not JSON
+        max_points = [None, 10, 100][i % 3]
+        for as_frames in (False, True):
+            msg = frames
+            if as_frames:
+                pair[0].send_multipart(frames)
+                msg = pair[1].recv_multipart(copy=False)
+            fast = wire._decode_fast(msg, max_points)
+            taken += fast is not None
+            if fast is not None and not as_frames:
+                assert not fast.positions.flags.writeable  # views on bytes stay read-only
+            assert _outcome(wire.decode, msg, max_points) == _outcome(lambda f, m: wire.decode_message(f, m)[0], msg, max_points), (i, frames[0])
+    assert taken > 100  # undamaged, small enough, plain source name: the fast path
