@@ -18,6 +18,7 @@ from typing import Any, Literal, Optional, Union
 import yaml
 
 from .ingest.transports import resolve_transport
+from .record.config import RecordConfig, check_record
 from .remote.options import SendConfig, check_send, is_loopback_endpoint
 from .typed import ConfigError, check, dataclass_schema, load_dataclass
 from .typed import at_least_one, endpoint, non_negative, positive
@@ -146,6 +147,8 @@ class EndpointsConfig:
     trace: Optional[str] = field(default=None, metadata=check(endpoint))
     #: Requests to the render stage (pick, save a frame); REP bound by render.
     render_commands: Optional[str] = field(default=None, metadata=check(endpoint))
+    #: Ingest -> recorder (only with ``record:``); PULL bound by the recorder.
+    record: Optional[str] = field(default=None, metadata=check(endpoint))
     #: Allow these (unencrypted) endpoints on a non-loopback tcp:// address.
     insecure: bool = False
 
@@ -186,6 +189,8 @@ class PipelineConfig:
     supervisor: SupervisorConfig = field(default_factory=SupervisorConfig)
     #: Where ``pointflow send`` publishes the sources (docs/remote.md); unused by ``run``.
     send: Optional[SendConfig] = None
+    #: Record what ingest accepted to MCAP (docs/record.md); also ``pointflow run --record PATH``.
+    record: Optional[RecordConfig] = None
     #: Where the YAML came from (for relative paths in options); not a YAML key.
     base_dir: str = field(default=".", metadata={"internal": True})
 
@@ -204,6 +209,9 @@ class PipelineConfig:
         for c in self.ring.extra_channels:
             if c not in names:
                 names.append(c)
+        for c in (self.record.channels or []) if self.record is not None else []:
+            if c not in names:
+                names.append(c)
         return names
 
     def resolved_endpoints(self, run_dir: str) -> EndpointsConfig:
@@ -213,6 +221,7 @@ class PipelineConfig:
             ingest=e.ingest or d("ingest"), frames=e.frames or d("frames"),
             release=e.release or d("release"), control=e.control or d("control"),
             trace=e.trace or d("trace"), render_commands=e.render_commands or d("render-commands"),
+            record=e.record or d("record"),
         )
 
     def to_dict(self) -> dict:
@@ -262,8 +271,10 @@ def _check_semantics(cfg: PipelineConfig) -> None:
         s.options = tcls.validate_options(s.options, f"{p}.options", base_dir=cfg.base_dir)
     if cfg.send is not None:
         check_send(cfg.send, "send", cfg.base_dir)
+    if cfg.record is not None:
+        check_record(cfg.record, "record")
     e = cfg.endpoints
-    for key in ("ingest", "frames", "release", "control", "trace", "render_commands"):
+    for key in ("ingest", "frames", "release", "control", "trace", "render_commands", "record"):
         ep = getattr(e, key)
         if ep and not e.insecure and not is_loopback_endpoint(ep):
             raise ConfigError(f"endpoints.{key}", f"{ep} is reachable from other hosts and the links between "

@@ -77,6 +77,9 @@ def convert(value: Any, tp: Any, path: str) -> Any:
                 return convert(value, alt, path)
             except ConfigError as exc:
                 errors.append(exc)
+        alts = [e for a, e in zip(typing.get_args(tp), errors) if a is not type(None)]
+        if value is not None and len(alts) == 1:  # Optional[X]: X's own error names the key inside
+            raise alts[0]
         raise ConfigError(path, f"expected {type_name(tp)}, got {value!r}")
     if origin is Literal:
         choices = typing.get_args(tp)

@@ -23,6 +23,7 @@ the ring's own ``dropped_points`` equals ``ring_evicted + drops["ring_full"]`` a
 from __future__ import annotations
 
 import collections
+import dataclasses
 import logging
 import time
 from dataclasses import dataclass, field
@@ -58,6 +59,8 @@ class _Batch:
     hi: float = float("-inf")
     #: Holds one big chunk: pushed as is, nothing added to it.
     solo: bool = False
+    #: With a recording: each chunk's points and metadata, offered to the recorder once pushed.
+    records: list[PointChunk] = field(default_factory=list)
 
 
 class RateLimitedLog:
@@ -87,7 +90,7 @@ class Ingestor:
     def __init__(self, ring, *, max_chunk_points: int = 5_000_000, coalesce_points: int = 20_000,
                  queue_max_batches: int = 64, adaptive_thinning: bool = False,
                  importance_field: str | None = None, counters=None, spans=None,
-                 log: logging.Logger | None = None):
+                 log: logging.Logger | None = None, record=None):
         from ..runtime.stage import StageCounters
 
         self.ring = ring
@@ -111,6 +114,8 @@ class Ingestor:
         self.chunks_accepted = 0
         self.ring_evicted = 0
         self.pushes = 0
+        #: A :class:`pointflow.record.tap.RecordTap` when the pipeline records (docs/record.md).
+        self.record = record
         self._fill = 0.0
         self._fill_checked = 0.0
 
@@ -175,7 +180,11 @@ class Ingestor:
         if self.spans is not None:
             self.spans.record(chunk.trace_id, "ingest_packed", chunk.t_recv_ns or t0, time.monotonic_ns(), pos.shape[0])
         if pos.shape[0]:
-            self._enqueue(pos, chans, chunk.trace_id, lo, hi)  # thinning keeps a subset: still bounds
+            rec = None
+            if self.record is not None:  # what goes into the ring, with the chunk's metadata
+                rec = dataclasses.replace(chunk, positions=pos, channels=self.record.chans(chans),
+                                          stamp_ns=chunk.stamp_ns or time.time_ns())
+            self._enqueue(pos, chans, chunk.trace_id, lo, hi, rec)  # thinning keeps a subset: still bounds
         return True
 
     def _convert(self, chunk: PointChunk) -> tuple[np.ndarray, dict[str, np.ndarray]]:
@@ -227,7 +236,8 @@ class Ingestor:
                 return k
         return 1
 
-    def _enqueue(self, pos: np.ndarray, chans: dict[str, np.ndarray], trace: int, lo: float, hi: float) -> None:
+    def _enqueue(self, pos: np.ndarray, chans: dict[str, np.ndarray], trace: int, lo: float, hi: float,
+                 rec: PointChunk | None = None) -> None:
         n = pos.shape[0]
         last = self.queue[-1] if self.queue else None
         # Only small chunks are coalesced: for big ones the copy costs more than the push saved.
@@ -243,6 +253,8 @@ class Ingestor:
         last.positions.append(pos)
         last.channels.append(chans)
         last.traces.append(trace)
+        if rec is not None:
+            last.records.append(rec)
         last.n += n
         last.lo = min(last.lo, lo)
         last.hi = max(last.hi, hi)
@@ -270,6 +282,8 @@ class Ingestor:
             if self.spans is not None:
                 for t in b.traces:
                     self.spans.record(t, "ring_committed", t0, t1, b.n)
+            for r in b.records:
+                self.record.offer(r)
             done += 1
         return done
 
@@ -279,6 +293,7 @@ class Ingestor:
 
     def stats_extra(self) -> dict[str, Any]:
         return {
+            **(self.record.stats() if self.record is not None else {}),
             "messages_in": self.messages_in,
             "chunks_accepted": self.chunks_accepted,
             "rejected": dict(self.rejected),
@@ -318,10 +333,18 @@ def main(ctx) -> None:
     sock.setsockopt(zmq.RCVHWM, icfg.receive_hwm)
     sock.setsockopt(zmq.LINGER, 0)
     sock.bind(ctx.endpoints.ingest)
+    tap = None
+    if ctx.cfg.record is not None:
+        from ..record.tap import RecordTap
+
+        # the ring-internal importance values are not a channel of the data
+        internal = () if any(c.name == "importance" for c in ring.channels) else ("importance",)
+        tap = RecordTap(ctx.zmq, ctx.endpoints.record, ctx.cfg.record.queue_messages, ctx.cfg.record.channels,
+                        exclude=internal)
     ing = Ingestor(ring, max_chunk_points=icfg.max_chunk_points, coalesce_points=icfg.coalesce_points,
                    queue_max_batches=icfg.queue_max_batches, adaptive_thinning=icfg.adaptive_thinning,
                    importance_field=ctx.cfg.ring.importance_field, counters=ctx.counters,
-                   spans=ctx.spans, log=ctx.log)
+                   spans=ctx.spans, log=ctx.log, record=tap)
     ctx.on_beat.append(lambda: ctx.counters.extra.update(ing.stats_extra()))
     poller = zmq.Poller()
     poller.register(sock, zmq.POLLIN)
@@ -362,4 +385,6 @@ def main(ctx) -> None:
     finally:
         ctx.counters.extra.update(ing.stats_extra())
         sock.close()
+        if tap is not None:
+            tap.close()
         ring.close()
