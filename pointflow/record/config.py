@@ -51,9 +51,11 @@ _TOPIC_BAD = re.compile(r"[^A-Za-z0-9_/]+")
 
 
 def topic_for(prefix: str, source_id: str) -> str:
-    """A valid ROS 2 topic name for a source: ``/pointflow/lidar``."""
-    name = _TOPIC_BAD.sub("_", source_id or "source").strip("_/") or "source"
-    name = re.sub(r"/+", "/", name)
+    """A valid ROS 2 topic name for a source: ``/pointflow/lidar``; ``rosbag:/os/points``
+    (a replayed topic) gives ``/pointflow/rosbag/os/points``."""
+    # a replayed topic's source id is "<source>:<topic>": the colon becomes a level
+    name = _TOPIC_BAD.sub("_", (source_id or "source").replace(":", "/"))
+    name = re.sub(r"/+", "/", name).strip("_/") or "source"
     if name[0].isdigit():
         name = "_" + name
     base = "/" + prefix.strip("/") if prefix.strip("/") else ""
