@@ -335,6 +335,12 @@ def live_summary(stats: dict) -> str:
     if "lost_in_transit" in acc:  # a link from `pointflow send` (docs/remote.md)
         refused = sum(s.get("transport_refused_handshakes", 0) or 0 for s in st.values())
         parts.append(f"link_lost={_n(acc['lost_in_transit'])}" + (f" refused={refused}" if refused else ""))
+    rec = st.get("recorder")
+    if rec:  # the recording (docs/record.md): bytes written, what it missed, a stop
+        missed = (acc.get("record_dropped", 0) or 0) + (acc.get("recorder_dropped", 0) or 0)
+        parts.append(f"rec={(rec.get('record_bytes', 0) or 0) / 1e6:.1f}MB/{rec.get('record_messages', 0) or 0}msg"
+                     + (f" missed={_n(missed)}" if missed else "")
+                     + (f" STOPPED:{rec['record_error']}" if rec.get("record_error") else ""))
     cpu = " ".join(f"{n[:3]}:{s.get('cpu_percent', 0) or 0:.0f}%" for n, s in st.items())
     if cpu:
         parts.append(f"cpu[{cpu}]")

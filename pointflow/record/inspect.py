@@ -29,6 +29,9 @@ def scan(path: str) -> dict[str, Any]:
     from mcap.exceptions import McapError
     from mcap.reader import NonSeekingReader, make_reader
 
+    with open(path, "rb") as f:
+        if f.read(8) != b"\x89MCAP0\r\n":
+            raise ValueError("not an MCAP file (no MCAP magic at its start)")
     out: dict[str, Any] = {"path": path, "bytes": os.path.getsize(path), "topics": {}, "messages": 0, "points": 0,
                            "start_ns": None, "end_ns": None, "summary_intact": False, "complete": True, "error": ""}
     try:
