@@ -158,10 +158,26 @@ class Layout:
                 buf[:, off:off + dt.itemsize * width].view(dt)[...] = a.reshape(n, width)
 
 
+class Scratch:
+    """A reusable output buffer: a fresh 1 MB array per message costs page faults (the kernel
+    zeroing new pages) that, next to file writes, took longer than the packing itself. The
+    ``mcap`` writer copies a message into its chunk before ``add_message`` returns, so the
+    buffer can be reused for the next one."""
+
+    def __init__(self) -> None:
+        self.buf = np.empty(0, np.uint8)
+
+    def get(self, n: int) -> np.ndarray:
+        if self.buf.size < n:
+            self.buf = np.empty(max(n, int(self.buf.size * 1.25)), np.uint8)
+        return self.buf[:n]
+
+
 def encode_pointcloud2(layout: Layout, positions: np.ndarray, channels: dict[str, np.ndarray],
-                       stamp_ns: int, frame_id: str) -> memoryview:
+                       stamp_ns: int, frame_id: str, scratch: Scratch | None = None) -> memoryview:
     """The CDR bytes of one message: the header fields, then the points packed straight
-    into the same buffer (one copy of the point data)."""
+    into the same buffer (one copy of the point data). With ``scratch`` the bytes live in its
+    buffer and are valid until the next call."""
     n = positions.shape[0]
     nbytes = layout.point_step * n
     w = _Cdr()
@@ -177,7 +193,8 @@ def encode_pointcloud2(layout: Layout, positions: np.ndarray, channels: dict[str
     w.u32(nbytes)  # row_step
     w.u32(nbytes)  # data: uint8[] length, then the bytes (no alignment)
     head = b"".join(w.parts)
-    out = np.empty(len(head) + nbytes + 1, np.uint8)
+    size = len(head) + nbytes + 1
+    out = scratch.get(size) if scratch is not None else np.empty(size, np.uint8)
     out[:len(head)] = np.frombuffer(head, np.uint8)
     if n:
         layout.pack(out[len(head):len(head) + nbytes].reshape(n, layout.point_step), positions, channels)

@@ -23,7 +23,7 @@ import zmq
 
 from .. import wire
 from ..chunk import ChunkError
-from .encode import Layout, encode_pointcloud2, layout_key
+from .encode import Layout, Scratch, encode_pointcloud2, layout_key
 from .files import RecordingFiles
 
 #: On stop, take what ingest sent until the socket is quiet this long (at most STOP_GRACE_S).
@@ -41,6 +41,7 @@ class Recorder:
         self.log = log
         self.files = RecordingFiles(rc, fresh=fresh, log=log)
         self.layouts: dict[tuple, Layout] = {}
+        self.scratch = Scratch()
         self.failed: str | None = None
         self.last_log_ns = 0
         self.keep = set(rc.channels) if rc.channels is not None else None
@@ -70,7 +71,7 @@ class Recorder:
         self.last_log_ns = now
         stamp = chunk.stamp_ns or now
         frame_id = getattr(chunk, "frame_id", "") or self.rc.frame_id
-        data = encode_pointcloud2(lay, chunk.positions, chans, stamp, frame_id)
+        data = encode_pointcloud2(lay, chunk.positions, chans, stamp, frame_id, self.scratch)
         try:
             self.files.write(chunk.source_id, data, now, stamp, chunk.seq)
         except OSError as exc:
