@@ -210,7 +210,9 @@ def plot(res: dict, path: str) -> None:
     ax[2].set_ylabel("bytes per point in the file")
     ax[2].legend(fontsize=8)
     ax[2].set_title("bytes per point")
-    fig.suptitle(f"{res['machine']['label']}; {res['command']}", fontsize=9)
+    cmd = res["command"] + (f" (pipeline: {res['pipeline_command']})" if res.get("pipeline_command", res["command"])
+                            != res["command"] else "")
+    fig.suptitle(f"{res['machine']['label']}; {cmd}", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
 
@@ -220,6 +222,8 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--seconds", type=float, default=8.0)
     ap.add_argument("--skip-fast", action="store_true", help="skip the as-fast-as-possible A/B")
+    ap.add_argument("--skip-pipeline", action="store_true", help="only the recorder and bytes-per-point parts "
+                    "(keeps the pipeline figures of the last full run in record.json)")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
     os.environ.setdefault("XDG_RUNTIME_DIR", tempfile.gettempdir())
@@ -237,6 +241,12 @@ def main() -> None:
         npz = demo_npz(os.path.join(tmp, "demo.npz"))
         res["pipeline"] = {}
         modes = [("realtime", True)] + ([] if args.skip_fast else [("as_fast_as_possible", False)])
+        if args.skip_pipeline:
+            modes = []
+            with open(os.path.join(ROOT, "bench", "results", "record.json")) as f:
+                old = json.load(f)
+            res["pipeline"] = old["pipeline"]
+            res["pipeline_command"] = old.get("pipeline_command", old["command"])
         for mode, realtime in modes:
             runs = {"without": [], "with": []}
             for i in range(args.repeats):  # interleaved
@@ -244,6 +254,7 @@ def main() -> None:
                 runs["with"].append(pipeline_rate(os.path.join(tmp, f"p{i}.mcap"), realtime, args.seconds, npz))
             wo = statistics.median(r["ingest_points_per_s"] for r in runs["without"])
             wi = statistics.median(r["ingest_points_per_s"] for r in runs["with"])
+            res["pipeline_command"] = res["command"]
             res["pipeline"][mode] = {"runs": runs, "without_median": wo, "with_median": wi, "ratio": wi / wo,
                                      "cost": 1 - wi / wo}
             missed = [r["record_dropped"] + r["recorder_dropped"] for r in runs["with"]]

@@ -10,7 +10,8 @@ chunk's capture time, or ingest's wall-clock time when the source has none.
 
 A write error (disk full, file system gone) is logged once as one line; the stage stays up,
 takes the chunks and counts them as dropped (``drops[disk_full]`` or ``drops[write_error]``),
-so the pipeline runs on without the recording. Accounting::
+so the pipeline runs on without the recording. A chunk that cannot be encoded is counted as
+``drops[encode_error]`` (logged, rate-limited) and the recording goes on. Accounting::
 
     points_in (received from ingest) = points_out (written) + sum(drops)
 """
@@ -45,6 +46,9 @@ class Recorder:
         self.failed: str | None = None
         self.last_log_ns = 0
         self.keep = set(rc.channels) if rc.channels is not None else None
+        from ..ingest.process import RateLimitedLog
+
+        self._warn = RateLimitedLog(log)
 
     def add_frames(self, frames) -> None:
         try:
@@ -71,11 +75,16 @@ class Recorder:
         self.last_log_ns = now
         stamp = chunk.stamp_ns or now
         frame_id = getattr(chunk, "frame_id", "") or self.rc.frame_id
-        data = encode_pointcloud2(lay, chunk.positions, chans, stamp, frame_id, self.scratch)
         try:
+            data = encode_pointcloud2(lay, chunk.positions, chans, stamp, frame_id, self.scratch)
             self.files.write(chunk.source_id, data, now, stamp, chunk.seq)
         except OSError as exc:
             self._fail(exc, n)
+            return
+        except Exception as exc:  # noqa: BLE001 - one bad chunk must not stop the recording
+            self.counters.drop("encode_error", n)
+            self._warn("encode_error", f"chunk {chunk.seq} of {chunk.source_id!r} not recorded: "
+                                       f"{type(exc).__name__}: {exc}")
             return
         self.counters.points_out += n
 

@@ -91,3 +91,13 @@ def test_progress_line_shows_the_recording():
              "accounting": {"record_dropped": 5, "recorder_dropped": 1000}}
     line = live_summary(stats)
     assert "rec=12.3MB/40msg" in line and "missed=1.0k" in line and "STOPPED:disk_full" in line
+
+
+def test_a_chunk_the_encoder_cannot_take_is_counted_and_the_recording_goes_on(tmp_path):
+    counters = StageCounters()
+    rec = Recorder(RecordConfig(path=str(tmp_path / "e.mcap")), counters, __import__("logging").getLogger("t"))
+    rec.add(PointChunk(positions=np.zeros((3, 3)), channels={"bad": np.zeros((3, 2, 2))}, seq=0))  # 3-D channel
+    rec.add(_c(4, 1))
+    rec.close()
+    assert counters.points_in == 7 and counters.points_out == 4 and counters.drops == {"encode_error": 3}
+    assert [m.sequence for m in read_recording(str(tmp_path / "e.mcap"))] == [1]
