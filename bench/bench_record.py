@@ -163,8 +163,10 @@ def bytes_per_point(chunks: list, tmp: str) -> dict:
     from pointflow.record.process import Recorder
     from pointflow.runtime.stage import StageCounters
 
-    out = {}
+    out: dict = {}
+    speed: dict = {}
     for label, f32 in (("float64 xyz + intensity (demo)", False), ("float32 xyz + intensity", True)):
+        speed[label] = {}
         cs = chunks
         if f32:
             for c in cs:
@@ -173,13 +175,15 @@ def bytes_per_point(chunks: list, tmp: str) -> dict:
         out[label] = {}
         for comp in ("none", "lz4", "zstd"):
             rc = RecordConfig(path=os.path.join(tmp, f"bpp-{comp}.mcap"), compression=comp)
+            t0 = time.perf_counter()
             rec = Recorder(rc, StageCounters(), logging.getLogger("bench"))
             for c in cs:
                 rec.add(c)
             rec.close()
+            speed[label][comp] = n / (time.perf_counter() - t0)
             out[label][comp] = os.path.getsize(rc.path) / n
             os.unlink(rc.path)
-    return out
+    return out, speed
 
 
 def plot(res: dict, path: str) -> None:
@@ -208,7 +212,8 @@ def plot(res: dict, path: str) -> None:
         ax[2].bar(x + i * 0.38, [b[lab][c] for c in ("none", "lz4", "zstd")], 0.38, label=lab)
     ax[2].set_xticks(x + 0.19, ["none", "lz4", "zstd"])
     ax[2].set_ylabel("bytes per point in the file")
-    ax[2].legend(fontsize=8)
+    ax[2].set_ylim(0, 38)
+    ax[2].legend(fontsize=8, loc="upper center")
     ax[2].set_title("bytes per point")
     cmd = res["command"] + (f" (pipeline: {res['pipeline_command']})" if res.get("pipeline_command", res["command"])
                             != res["command"] else "")
@@ -235,9 +240,10 @@ def main() -> None:
         res["recorder"] = recorder_vs_floor(chunks, max(3, args.repeats + 2), tmp)
         print(f"recorder {res['recorder']['recorder_MB_per_s']:.1f} MB/s vs mcap writer alone "
               f"{res['recorder']['floor_MB_per_s']:.1f} MB/s: ratio {res['recorder']['ratio']:.2f} (target >= 0.5)")
-        res["bytes_per_point"] = bytes_per_point(demo_chunks(40), tmp)
+        res["bytes_per_point"], res["recorder_points_per_s_by_compression"] = bytes_per_point(demo_chunks(40), tmp)
         for lab, d in res["bytes_per_point"].items():
-            print(f"bytes/point {lab}: " + ", ".join(f"{k} {v:.2f}" for k, v in d.items()))
+            sp = res["recorder_points_per_s_by_compression"][lab]
+            print(f"bytes/point {lab}: " + ", ".join(f"{k} {v:.2f} ({sp[k] / 1e6:.2f} M points/s)" for k, v in d.items()))
         npz = demo_npz(os.path.join(tmp, "demo.npz"))
         res["pipeline"] = {}
         modes = [("realtime", True)] + ([] if args.skip_fast else [("as_fast_as_possible", False)])
