@@ -604,7 +604,8 @@ class Supervisor:
         }
         # what ingest offered is what it handed the ring: written, or refused by the ring
         acc["record_covers_ring"] = acc["record_offered"] == (
-            ing.get("points_out", 0) + drops.get("out_of_range", 0) + drops.get("ring_full", 0))
+            ing.get("points_out", 0) + drops.get("out_of_range", 0) + drops.get("ring_full", 0)) \
+            if not ing.get("restarts") else None  # a killed ingest's points_out is taken from the ring
         acc["record_tap_balanced"] = acc["record_offered"] == acc["record_sent"] + acc["record_dropped"]
         acc["recorder_balanced"] = acc["recorder_received"] == acc["recorder_written"] + acc["recorder_dropped"]
         acc["lost_before_recorder"] = acc["record_sent"] - acc["recorder_received"] \
