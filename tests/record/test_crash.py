@@ -21,7 +21,7 @@ def _cfg(rec: str, **record) -> dict:
                                                              "chunks_per_scan": 10}},
             "ring": {"max_points": 100_000},
             "render": {"backend": "cpu", "size": [64, 48], "output": {"every_n_frames": 1000}},
-            "supervisor": {"max_restarts": 2, "restart_backoff_ms": 100},
+            "supervisor": {"max_restarts": 2, "restart_backoff_ms": 100, "hung_after_ms": 10_000},
             "record": {"path": rec, "chunk_size": 20_000, "flush_s": 0.2, **record}}
 
 

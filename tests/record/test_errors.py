@@ -19,7 +19,8 @@ def _yaml(tmp_path, **over) -> str:
     cfg = {"source": {"transport": "synthetic", "options": {"scan_hz": 10, "points_per_scan": 50000}},
            "ring": {"max_points": 200_000},
            "render": {"backend": "cpu", "size": [64, 48], "output": {"every_n_frames": 1000}},
-           "supervisor": {"max_restarts": 0}, **over}
+           # a stage starved for a while on a loaded machine is not hung (kills are found by exit code)
+           "supervisor": {"max_restarts": 0, "hung_after_ms": 10_000}, **over}
     p = tmp_path / "p.yaml"
     p.write_text(yaml.safe_dump(cfg))
     return str(p)

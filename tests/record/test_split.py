@@ -15,7 +15,7 @@ def _record(tmp_path, realtime: bool, **record) -> tuple[list, dict]:
                                                             "chunks_per_scan": 10, "scans": 10, "realtime": realtime}},
            "ring": {"max_points": 100_000},
            "render": {"backend": "cpu", "size": [64, 48], "output": {"every_n_frames": 1000}},
-           "supervisor": {"max_restarts": 0},
+           "supervisor": {"max_restarts": 0, "hung_after_ms": 10_000},
            "record": {"path": str(rec), "chunk_size": 30_000, **record}}
     with Pipeline.from_dict(cfg, out_dir=str(tmp_path / "out")) as pipe:
         st = lambda: pipe.stats()["stages"]
