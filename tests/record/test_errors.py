@@ -2,15 +2,14 @@
 when the disk fills, the pipeline runs on without the recording and counts what it missed."""
 from __future__ import annotations
 
-import json
-import os
 import subprocess
-import sys
 
 import pytest
 import yaml
 
 from pointflow import cli
+from pointflow.record.inspect import record_summary
+from pointflow.runtime.pipeline import Pipeline
 
 from .helpers import read_recording, require_root
 
@@ -38,22 +37,28 @@ def small_disk(tmp_path):
         subprocess.run(["umount", "-l", str(d)], check=False, timeout=30)
 
 
-def test_disk_full_stops_only_the_recording(tmp_path, small_disk):
+def test_disk_full_stops_only_the_recording(tmp_path, small_disk, capfd):
     rec = small_disk / "rec.mcap"
-    out = tmp_path / "out"
-    p = subprocess.run([sys.executable, "-m", "pointflow.cli", "run", _yaml(tmp_path), "--duration", "6", "-q",
-                        "--out", str(out), "--record", str(rec)], capture_output=True, text=True, timeout=120)
-    assert p.returncode == 0, p.stderr[-3000:]
-    assert "Traceback" not in p.stderr
-    lines = [ln for ln in p.stderr.splitlines() if "recording stopped" in ln]
-    assert len(lines) == 1 and "No space left on device" in lines[0] and str(rec) in lines[0], p.stderr[-3000:]
-    st = json.loads((out / "stats.json").read_text())
+    cfg = yaml.safe_load(open(_yaml(tmp_path, record={"path": str(rec)})))
+    with Pipeline.from_dict(cfg, out_dir=str(tmp_path / "out")) as pipe:
+        recorder = lambda: pipe.stats()["stages"]["recorder"]
+        written = lambda: pipe.stats()["stages"]["ingest"]["points_out"]
+        pipe.wait(120, until=lambda: recorder().get("record_error") == "disk_full")
+        assert recorder().get("record_error") == "disk_full"
+        n = written()
+        pipe.wait(60, until=lambda: written() > n + 200_000)
+        assert written() > n + 200_000, "ingest runs on after the disk filled"
+        st = pipe.stop()
+    err = capfd.readouterr().err  # the stage processes' stderr
+    assert "Traceback" not in err
+    lines = [ln for ln in err.splitlines() if "recording stopped" in ln]
+    assert len(lines) == 1 and "No space left on device" in lines[0] and str(rec) in lines[0], err[-3000:]
     r, ing, acc = st["stages"]["recorder"], st["stages"]["ingest"], st["accounting"]
-    assert r["restarts"] == 0 and r["record_error"] == "disk_full"
+    assert r["restarts"] == 0 and r["alive"] is False and r["record_error"] == "disk_full"
     assert r["drops"]["disk_full"] > 0
-    assert ing["points_out"] > r["points_out"] > 0, "ingest ran on after the disk filled"
+    assert ing["points_out"] > r["points_out"] > 0
     assert acc["recorder_balanced"] and acc["record_tap_balanced"] and acc["ingest_balanced"]
-    assert "recording stopped: disk_full" in p.stdout
+    assert "recording stopped: disk_full" in record_summary(st)
     msgs = read_recording(str(rec), tolerant=True)  # what fitted is readable
     assert msgs and [m.sequence for m in msgs] == list(range(len(msgs)))
 

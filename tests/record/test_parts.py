@@ -101,3 +101,22 @@ def test_a_chunk_the_encoder_cannot_take_is_counted_and_the_recording_goes_on(tm
     rec.close()
     assert counters.points_in == 7 and counters.points_out == 4 and counters.drops == {"encode_error": 3}
     assert [m.sequence for m in read_recording(str(tmp_path / "e.mcap"))] == [1]
+
+
+def test_run_with_record_flag_starts_the_recorder(tmp_path, capsys):
+    import json
+
+    import yaml
+
+    cfg = tmp_path / "p.yaml"
+    cfg.write_text(yaml.safe_dump({"source": {"transport": "synthetic", "options": {"points_per_scan": 5000}},
+                                   "ring": {"max_points": 50_000}, "render": {"backend": "cpu", "size": [64, 48]},
+                                   "supervisor": {"hung_after_ms": 10_000}}))
+    rec = tmp_path / "r" / "x.mcap"
+    assert cli.main(["run", str(cfg), "--duration", "3", "-q", "--out", str(tmp_path / "out"),
+                     "--record", str(rec)]) == 0
+    out = capsys.readouterr().out
+    assert "recorded " in out and str(rec) in out or "to -" in out
+    st = json.loads((tmp_path / "out" / "stats.json").read_text())
+    assert st["stages"]["recorder"]["kind"] == "recorder" and "recorder_balanced" in st["accounting"]
+    assert rec.parent.is_dir(), "--record made the folder before anything started"

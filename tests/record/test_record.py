@@ -36,6 +36,7 @@ def test_recording_holds_every_accepted_point(tmp_path):
         "ring": {"max_points": 200_000},
         "render": {"backend": "cpu", "size": [64, 48], "output": {"every_n_frames": 1000}},
         "record": {"path": str(rec), "channels": ["intensity", "rgb", "classification"], "chunk_size": 100_000},
+        "supervisor": {"max_restarts": 0, "hung_after_ms": 10_000},  # starved on a loaded machine is not hung
     }
     rng = np.random.default_rng(7)
     sent: dict[str, list[PointChunk]] = {"lidar_a": [], "lidar/b": []}
