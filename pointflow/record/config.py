@@ -81,6 +81,11 @@ def prepare_record_path(rc: RecordConfig) -> str:
     d = os.path.dirname(p)
     if os.path.isdir(p):
         raise ConfigError("record.path", f"{rc.path} is a directory; name an .mcap file")
+    up = d
+    while up and not os.path.exists(up):
+        up = os.path.dirname(up) if os.path.dirname(up) != up else ""
+    if up and not os.path.isdir(up):
+        raise ConfigError("record.path", f"cannot write {rc.path}: {up} is a file, not a folder")
     try:
         os.makedirs(d, exist_ok=True)
     except OSError as exc:
