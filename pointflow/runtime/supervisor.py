@@ -608,8 +608,9 @@ class Supervisor:
             if not ing.get("restarts") else None  # a killed ingest's points_out is taken from the ring
         acc["record_tap_balanced"] = acc["record_offered"] == acc["record_sent"] + acc["record_dropped"]
         acc["recorder_balanced"] = acc["recorder_received"] == acc["recorder_written"] + acc["recorder_dropped"]
+        # a killed ingest's or recorder's counts since its last heartbeat died with it
         acc["lost_before_recorder"] = acc["record_sent"] - acc["recorder_received"] \
-            if not ing.get("restarts") else None  # a killed ingest's last counts died with it
+            if not (ing.get("restarts") or rec.get("restarts")) else None
         return acc
 
     def _send_accounting(self, stages: dict) -> dict[str, Any]:

@@ -51,6 +51,7 @@ def test_sigkill_of_the_recorder_continues_in_a_new_file(tmp_path):
     assert b[0].sequence >= len(a), "nothing recorded twice"
     acc = st["accounting"]
     assert acc["record_tap_balanced"] and acc["recorder_balanced"] and acc["record_covers_ring"]
+    assert acc["lost_before_recorder"] is None, "unknown once the recorder was killed"
     assert st["stages"]["recorder"]["record_files"] == 2
 
 
