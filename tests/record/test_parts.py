@@ -120,3 +120,15 @@ def test_run_with_record_flag_starts_the_recorder(tmp_path, capsys):
     st = json.loads((tmp_path / "out" / "stats.json").read_text())
     assert st["stages"]["recorder"]["kind"] == "recorder" and "recorder_balanced" in st["accounting"]
     assert rec.parent.is_dir(), "--record made the folder before anything started"
+
+
+def test_frame_id_is_the_chunks_own_else_the_default(tmp_path):
+    """Issue 20 gives chunks a frame: the recorder takes ``chunk.frame_id`` when there is one."""
+    rc = RecordConfig(path=str(tmp_path / "f.mcap"), frame_id="odom")
+    rec = Recorder(rc, StageCounters(), __import__("logging").getLogger("t"))
+    a, b = _c(3, 0), _c(3, 1)
+    b.frame_id = "map"  # what ingest will set once it transforms into the fixed frame
+    rec.add(a)
+    rec.add(b)
+    rec.close()
+    assert [m.frame_id for m in read_recording(rc.path)] == ["odom", "map"]
