@@ -22,7 +22,8 @@ def _cfg(rec: str, **record) -> dict:
             "ring": {"max_points": 100_000},
             "render": {"backend": "cpu", "size": [64, 48], "output": {"every_n_frames": 1000}},
             "supervisor": {"max_restarts": 2, "restart_backoff_ms": 100, "hung_after_ms": 10_000},
-            "record": {"path": rec, "chunk_size": 20_000, "flush_s": 0.2, **record}}
+            # a deep queue: ingest drops no copy while a recorder (re)starts slowly on a loaded machine
+            "record": {"path": rec, "chunk_size": 20_000, "flush_s": 0.2, "queue_messages": 1024, **record}}
 
 
 def _seqs(msgs) -> list[int]:
@@ -47,9 +48,11 @@ def test_sigkill_of_the_recorder_continues_in_a_new_file(tmp_path):
     assert _seqs(a) == list(range(len(a))), "nothing missing before the cut"
     assert summary_intact(second)
     b = read_recording(second)
-    assert b and _seqs(b) == list(range(b[0].sequence, b[0].sequence + len(b)))
-    assert b[0].sequence >= len(a), "nothing recorded twice"
     acc = st["accounting"]
+    assert b and _seqs(b) == sorted(set(_seqs(b))), "in order, nothing twice"
+    if _seqs(b) != list(range(b[0].sequence, b[0].sequence + len(b))):
+        assert acc["record_dropped"] > 0, "a gap in the new file is a copy ingest dropped, and counted"
+    assert b[0].sequence >= len(a), "nothing recorded twice"
     assert acc["record_tap_balanced"] and acc["recorder_balanced"] and acc["record_covers_ring"]
     assert acc["lost_before_recorder"] is None, "unknown once the recorder was killed"
     assert st["stages"]["recorder"]["record_files"] == 2

@@ -20,7 +20,7 @@ def _pipeline(source: dict, rec: str, **over) -> dict:
     return {"source": source, "ring": {"max_points": 100_000},
             "render": {"backend": "cpu", "size": [64, 48], "output": {"every_n_frames": 1000}},
             "supervisor": {"max_restarts": 0, "hung_after_ms": 10_000},
-            "record": {"path": rec, "channels": CHANNELS, "chunk_size": 50_000}, **over}
+            "record": {"path": rec, "channels": CHANNELS, "chunk_size": 50_000, "queue_messages": 1024}, **over}
 
 
 def _run_to_end(cfg: dict, out) -> dict:

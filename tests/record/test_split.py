@@ -16,7 +16,7 @@ def _record(tmp_path, realtime: bool, **record) -> tuple[list, dict]:
            "ring": {"max_points": 100_000},
            "render": {"backend": "cpu", "size": [64, 48], "output": {"every_n_frames": 1000}},
            "supervisor": {"max_restarts": 0, "hung_after_ms": 10_000},
-           "record": {"path": str(rec), "chunk_size": 30_000, **record}}
+           "record": {"path": str(rec), "chunk_size": 30_000, "queue_messages": 1024, **record}}
     with Pipeline.from_dict(cfg, out_dir=str(tmp_path / "out")) as pipe:
         st = lambda: pipe.stats()["stages"]
         pipe.wait(90, until=lambda: st()["source"]["finished"] and st()["ingest"]["points_in"] >= st()["source"]["points_out"] > 0)
