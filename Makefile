@@ -22,7 +22,7 @@ $(XDG_RUNTIME_DIR):
 	@mkdir -p -m 700 $@
 
 run: $(STAMP) system-deps | $(XDG_RUNTIME_DIR)
-	$(BIN)/pointflow run configs/demo.yaml --duration $(DURATION) --out out
+	$(BIN)/pointflow run configs/demo.yaml --duration $(DURATION) --out out --record out/demo.mcap
 
 test: $(STAMP) system-deps | $(XDG_RUNTIME_DIR)
 	$(BIN)/python -m pytest -q

@@ -68,6 +68,10 @@ def _run(args, profile: bool = False) -> int:
     from .runtime.supervisor import PipelineFailed
 
     cfg = load_config(args.file)
+    if getattr(args, "record", None):
+        from .record.config import with_record_path
+
+        cfg = with_record_path(cfg, args.record)
     out_dir = _out_dir(args.out or cfg.render.output.dir or "out")
     if args.backend:
         os.environ["POINTFLOW_BACKEND"] = args.backend
@@ -101,6 +105,10 @@ def _run(args, profile: bool = False) -> int:
         log.info("stopped by %s", signal.Signals(stop.signal).name)
     print(summary_line(stats))
     print(f"frames and stats.json in {os.path.abspath(out_dir)}")
+    if cfg.record is not None:
+        from .record.inspect import record_summary
+
+        print(record_summary(stats))
     if profile:
         from .profiling.report import format_table, write_profile
 
@@ -274,6 +282,8 @@ def build_parser() -> argparse.ArgumentParser:
         r.add_argument("--out", default=None, help="output directory (default: render.output.dir)")
         r.add_argument("--backend", choices=["auto", "wgpu", "gl", "cpu"], default=None, help="override render.backend")
         r.add_argument("-q", "--quiet", action="store_true", help="no live progress line")
+        r.add_argument("--record", metavar="FILE.mcap", default=None,
+                       help="record what ingest accepts to this MCAP file (docs/record.md)")
     v = sub.add_parser("validate", help="check a pipeline YAML without running it")
     v.add_argument("file")
     v.add_argument("--verbose", action="store_true", help="print the resolved config")
@@ -284,6 +294,10 @@ def build_parser() -> argparse.ArgumentParser:
     snd.add_argument("--duration", type=float, default=None, help=DURATION_HELP + "; default: until the sources end or Ctrl-C")
     snd.add_argument("--out", default=None, help="write stats.json here")
     snd.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
+    ins = sub.add_parser("inspect", help="topics, messages, points and time range of an MCAP recording")
+    ins.add_argument("file", help="an .mcap file")
+    ins.add_argument("--recover", metavar="OUT.mcap", default=None,
+                     help="rewrite a file cut short by a crash, with its summary, to OUT.mcap")
     k = sub.add_parser("keys", help="write a CURVE key pair NAME.key (public) and NAME.key_secret")
     k.add_argument("name")
     k.add_argument("--dir", default="keys", help="folder to write into (default: keys)")
@@ -310,6 +324,10 @@ def main(argv: Optional[list[str]] = None) -> int:
             return _send(args)
         if args.cmd == "keys":
             return _keys(args)
+        if args.cmd == "inspect":
+            from .record.inspect import inspect_main
+
+            return inspect_main(args.file, args.recover)
         if args.cmd == "schema":
             from .config import json_schema
 

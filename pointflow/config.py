@@ -19,6 +19,7 @@ import yaml
 
 from .frames.config import FramesConfig, check_frames
 from .ingest.transports import resolve_transport
+from .record.config import RecordConfig, check_record
 from .remote.options import SendConfig, check_send, is_loopback_endpoint
 from .typed import Bound, ConfigError, Each, Length, check, check_keys, dataclass_schema, load_dataclass
 from .typed import at_least_one, endpoint, non_negative, positive
@@ -158,6 +159,8 @@ class EndpointsConfig:
     trace: Optional[str] = field(default=None, metadata=check(endpoint))
     #: Requests to the render stage (pick, save a frame); REP bound by render.
     render_commands: Optional[str] = field(default=None, metadata=check(endpoint))
+    #: Ingest -> recorder (only with ``record:``); PULL bound by the recorder.
+    record: Optional[str] = field(default=None, metadata=check(endpoint))
     #: Allow these (unencrypted) endpoints on a non-loopback tcp:// address.
     insecure: bool = False
 
@@ -200,6 +203,8 @@ class PipelineConfig:
     send: Optional[SendConfig] = None
     #: Put every point in one fixed frame at ingest (docs/frames.md); absent = points as sent.
     frames: FramesConfig = field(default_factory=FramesConfig)
+    #: Record what ingest accepted to MCAP (docs/record.md); also ``pointflow run --record PATH``.
+    record: Optional[RecordConfig] = None
     #: Where the YAML came from (for relative paths in options); not a YAML key.
     base_dir: str = field(default=".", metadata={"internal": True})
 
@@ -218,6 +223,9 @@ class PipelineConfig:
         for c in self.ring.extra_channels:
             if c not in names:
                 names.append(c)
+        for c in (self.record.channels or []) if self.record is not None else []:
+            if c not in names:
+                names.append(c)
         return names
 
     def resolved_endpoints(self, run_dir: str) -> EndpointsConfig:
@@ -227,6 +235,7 @@ class PipelineConfig:
             ingest=e.ingest or d("ingest"), frames=e.frames or d("frames"),
             release=e.release or d("release"), control=e.control or d("control"),
             trace=e.trace or d("trace"), render_commands=e.render_commands or d("render-commands"),
+            record=e.record or d("record"),
         )
 
     def to_dict(self) -> dict:
@@ -270,8 +279,10 @@ def _check_semantics(cfg: PipelineConfig) -> None:
     for i, s in enumerate(cfg.sources):
         if s.frame_id is not None and not s.frame_id.strip():
             raise ConfigError(f"sources[{i}].frame_id", "must be a frame name or null")
+    if cfg.record is not None:
+        check_record(cfg.record, "record")
     e = cfg.endpoints
-    for key in ("ingest", "frames", "release", "control", "trace", "render_commands"):
+    for key in ("ingest", "frames", "release", "control", "trace", "render_commands", "record"):
         ep = getattr(e, key)
         if ep and not e.insecure and not is_loopback_endpoint(ep):
             raise ConfigError(f"endpoints.{key}", f"{ep} is reachable from other hosts and the links between "

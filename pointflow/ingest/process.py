@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import collections
 import json
+import dataclasses
 import logging
 import time
 from dataclasses import dataclass, field
@@ -67,6 +68,8 @@ class _Batch:
     checked: bool = True
     #: Holds one big chunk: pushed as is, nothing added to it.
     solo: bool = False
+    #: With a recording: each chunk's points and metadata, offered to the recorder once pushed.
+    records: list[PointChunk] = field(default_factory=list)
 
 
 class RateLimitedLog:
@@ -96,7 +99,7 @@ class Ingestor:
     def __init__(self, ring, *, max_chunk_points: int = 5_000_000, coalesce_points: int = 20_000,
                  queue_max_batches: int = 64, adaptive_thinning: bool = False,
                  importance_field: str | None = None, counters=None, spans=None,
-                 log: logging.Logger | None = None, frames=None):
+                 log: logging.Logger | None = None, frames=None, record=None):
         from ..runtime.stage import StageCounters
 
         self.ring = ring
@@ -120,6 +123,8 @@ class Ingestor:
         self.chunks_accepted = 0
         self.ring_evicted = 0
         self.pushes = 0
+        #: A :class:`pointflow.record.tap.RecordTap` when the pipeline records (docs/record.md).
+        self.record = record
         self._fill = 0.0
         self._fill_checked = 0.0
         #: The frames step (docs/frames.md): None = points as sent (``frames.fixed`` null).
@@ -204,9 +209,10 @@ class Ingestor:
         """Non-finite points, thinning, then the push queue (positions in their final frame)."""
         t0 = t0 or time.monotonic_ns()
         n = pos.shape[0]
-        if n and 2 * n < self.coalesce_points and not self.adaptive_thinning:
+        if n and 2 * n < self.coalesce_points and not self.adaptive_thinning and self.record is None:
             # a small chunk goes into a coalesced batch: flush() finds its non-finite points
-            # with one min/max over the whole batch instead of two reductions per chunk
+            # with one min/max over the whole batch instead of two reductions per chunk (not when
+            # recording: the recorder's copy is taken at enqueue and must hold only finite points)
             if self.spans is not None:
                 self.spans.record(chunk.trace_id, "ingest_packed", chunk.t_recv_ns or t0, time.monotonic_ns(), n)
             self._enqueue(pos, chans, chunk.trace_id, None, None)
@@ -222,7 +228,11 @@ class Ingestor:
         if self.spans is not None:
             self.spans.record(chunk.trace_id, "ingest_packed", chunk.t_recv_ns or t0, time.monotonic_ns(), pos.shape[0])
         if pos.shape[0]:
-            self._enqueue(pos, chans, chunk.trace_id, lo, hi)  # thinning keeps a subset: still bounds
+            rec = None
+            if self.record is not None:  # what goes into the ring, with the chunk's metadata
+                rec = dataclasses.replace(chunk, positions=pos, channels=self.record.chans(chans),
+                                          stamp_ns=chunk.stamp_ns or time.time_ns())
+            self._enqueue(pos, chans, chunk.trace_id, lo, hi, rec)  # thinning keeps a subset: still bounds
         return True
 
     def _finite(self, pos: np.ndarray, chans: dict[str, np.ndarray]) -> tuple[np.ndarray, dict[str, np.ndarray], float, float]:
@@ -296,7 +306,7 @@ class Ingestor:
         return 1
 
     def _enqueue(self, pos: np.ndarray, chans: dict[str, np.ndarray], trace: int, lo: float | None,
-                 hi: float | None) -> None:
+                 hi: float | None, rec: PointChunk | None = None) -> None:
         n = pos.shape[0]
         last = self.queue[-1] if self.queue else None
         # Only small chunks are coalesced: for big ones the copy costs more than the push saved.
@@ -312,6 +322,8 @@ class Ingestor:
         last.positions.append(pos)
         last.channels.append(chans)
         last.traces.append(trace)
+        if rec is not None:
+            last.records.append(rec)
         last.n += n
         if lo is None:
             last.checked = False
@@ -352,6 +364,8 @@ class Ingestor:
             if self.spans is not None:
                 for t in b.traces:
                     self.spans.record(t, "ring_committed", t0, t1, n)
+            for r in b.records:
+                self.record.offer(r)
             done += 1
         return done
 
@@ -368,6 +382,7 @@ class Ingestor:
 
     def stats_extra(self) -> dict[str, Any]:
         return {
+            **(self.record.stats() if self.record is not None else {}),
             "messages_in": self.messages_in,
             "chunks_accepted": self.chunks_accepted,
             "rejected": dict(self.rejected),
@@ -425,10 +440,18 @@ def main(ctx) -> None:
     sock.setsockopt(zmq.RCVHWM, icfg.receive_hwm)
     sock.setsockopt(zmq.LINGER, 0)
     sock.bind(ctx.endpoints.ingest)
+    tap = None
+    if ctx.cfg.record is not None:
+        from ..record.tap import RecordTap
+
+        # the ring-internal importance values are not a channel of the data
+        internal = () if any(c.name == "importance" for c in ring.channels) else ("importance",)
+        tap = RecordTap(ctx.zmq, ctx.endpoints.record, ctx.cfg.record.queue_messages, ctx.cfg.record.channels,
+                        exclude=internal)
     ing = Ingestor(ring, max_chunk_points=icfg.max_chunk_points, coalesce_points=icfg.coalesce_points,
                    queue_max_batches=icfg.queue_max_batches, adaptive_thinning=icfg.adaptive_thinning,
                    importance_field=ctx.cfg.ring.importance_field, counters=ctx.counters,
-                   spans=ctx.spans, log=ctx.log, frames=ctx.cfg.frames)
+                   spans=ctx.spans, log=ctx.log, frames=ctx.cfg.frames, record=tap)
     ctx.on_beat.append(lambda: ctx.counters.extra.update(ing.stats_extra()))
     poller = zmq.Poller()
     poller.register(sock, zmq.POLLIN)
@@ -465,4 +488,6 @@ def main(ctx) -> None:
     finally:
         ctx.counters.extra.update(ing.stats_extra())
         sock.close()
+        if tap is not None:
+            tap.close()
         ring.close()

@@ -351,6 +351,12 @@ def live_summary(stats: dict) -> str:
         parts.append(f"link_lost={_n(acc['lost_in_transit'])}" + (f" refused={refused}" if refused else ""))
     elif refused:  # nothing came over the link: a refused handshake is the likely reason
         parts.append(f"link refused={refused}")
+    rec = st.get("recorder")
+    if rec:  # the recording (docs/record.md): bytes written, what it missed, a stop
+        missed = (acc.get("record_dropped", 0) or 0) + (acc.get("recorder_dropped", 0) or 0)
+        parts.append(f"rec={(rec.get('record_bytes', 0) or 0) / 1e6:.1f}MB/{rec.get('record_messages', 0) or 0}msg"
+                     + (f" missed={_n(missed)}" if missed else "")
+                     + (f" STOPPED:{rec['record_error']}" if rec.get("record_error") else ""))
     cpu = " ".join(f"{n[:3]}:{s.get('cpu_percent', 0) or 0:.0f}%" for n, s in st.items())
     if cpu:
         parts.append(f"cpu[{cpu}]")

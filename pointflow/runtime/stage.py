@@ -40,6 +40,7 @@ STAGE_MAINS: dict[str, str] = {
     "cadence": "pointflow.cadence.process:main",
     "render": "pointflow.render.process:main",
     "sender": "pointflow.remote.sender:main",
+    "recorder": "pointflow.record.process:main",
 }
 
 

@@ -92,7 +92,10 @@ COUNTERS = ("points_in", "points_out", "frames", "pngs", "uploaded_bytes", "mess
             "rejected_messages", "ring_evicted", "ring_pushes", "published", "chunks_out", "reconnects",
             # a link source (docs/remote.md): its ledger starts again in a restarted process
             "transport_link_sent", "transport_link_received", "transport_lost_in_transit",
-            "transport_lost_chunks", "transport_joined_after")
+            "transport_lost_chunks", "transport_joined_after",
+            # the recording (docs/record.md): ingest's copies for it, the recorder's files
+            "record_offered", "record_sent", "record_dropped", "record_messages_sent", "record_bytes",
+            "record_messages", "record_files")
 COUNTER_MAPS = ("drops", "rejected", "skipped")
 
 
@@ -154,6 +157,10 @@ class Supervisor:
                         len(stale), ", ".join(stale))
         for d in sweep_run_dirs():
             log.warning("removed %s, the socket directory of a pipeline that was killed", d)
+        if cfg.record is not None and self.role != "send":  # an unwritable path: nothing started yet
+            from ..record.config import prepare_record_path
+
+            prepare_record_path(cfg.record)
         layout = RingLayout(cfg.ring.max_points, as_channel_specs(cfg.ring_channels()))
         try:  # before anything is created: nothing to clean up when it does not fit
             check_shm_space(layout)
@@ -221,6 +228,8 @@ class Supervisor:
         log.info("ring %s: %d points, channels %s, eviction %s; slabs %s", self.ring.name, cfg.ring.max_points,
                  cfg.ring_channels() or "[]", cfg.ring.eviction, " ".join(self.slabs.names))
         order = [("render", "render", -1), ("cadence", "cadence", -1), ("ingest", "ingest", -1)]
+        if cfg.record is not None:  # binds the socket ingest sends its copies to: before ingest
+            order.insert(2, ("recorder", "recorder", -1))
         order += [(s.name, "source", i) for i, s in enumerate(cfg.sources) if not s.external]
         for name, kind, idx in order:
             self.stages[name] = StageProc(name=name, kind=kind, source_index=idx)
@@ -416,7 +425,7 @@ class Supervisor:
         self.started = False
         sources = [st for st in self.stages.values() if st.kind == "source"]
         waves = [sources, [self.stages[n] for n in ("ingest", "sender") if n in self.stages],
-                 [self.stages[n] for n in ("cadence", "render") if n in self.stages]]
+                 [self.stages[n] for n in ("cadence", "render", "recorder") if n in self.stages]]
         for wave in waves:
             for st in wave:
                 p = st.process
@@ -566,6 +575,8 @@ class Supervisor:
                 acc["lost_before_ingest"] = None
             else:
                 acc["lost_before_ingest"] = acc["sources_sent"] - acc["ingest_received"]
+        if "recorder" in stages:
+            acc.update(self._record_accounting(ing, stages["recorder"]))
         link = [v for v in sources if "transport_link_sent" in v]
         if link:
             # zmq sources fed by `pointflow send` (docs/remote.md): what the senders sent
@@ -576,6 +587,31 @@ class Supervisor:
             acc["lost_in_transit_by_source"] = {k.split(":", 1)[1]: n for v in link for k, n in v.items()
                                                 if k.startswith("transport_lost_in_transit:")}
             acc["link_balanced"] = acc["link_sent"] == acc["link_received"] + acc["lost_in_transit"]
+        return acc
+
+    def _record_accounting(self, ing: dict, rec: dict) -> dict[str, Any]:
+        """The recording (docs/record.md): ingest offers the recorder each chunk it pushes to
+        the ring, sends it or drops it (never waits); the recorder writes what it received or
+        drops it (disk full); what was sent but never received died in a killed recorder's
+        socket (``lost_before_recorder``, 0 on a clean stop)."""
+        drops = ing.get("drops", {})
+        acc: dict[str, Any] = {
+            "record_offered": ing.get("record_offered", 0),
+            "record_sent": ing.get("record_sent", 0),
+            "record_dropped": ing.get("record_dropped", 0),
+            "recorder_received": rec.get("points_in", 0),
+            "recorder_written": rec.get("points_out", 0),
+            "recorder_dropped": sum(rec.get("drops", {}).values()),
+        }
+        # what ingest offered is what it handed the ring: written, or refused by the ring
+        acc["record_covers_ring"] = acc["record_offered"] == (
+            ing.get("points_out", 0) + drops.get("out_of_range", 0) + drops.get("ring_full", 0)) \
+            if not ing.get("restarts") else None  # a killed ingest's points_out is taken from the ring
+        acc["record_tap_balanced"] = acc["record_offered"] == acc["record_sent"] + acc["record_dropped"]
+        acc["recorder_balanced"] = acc["recorder_received"] == acc["recorder_written"] + acc["recorder_dropped"]
+        # a killed ingest's or recorder's counts since its last heartbeat died with it
+        acc["lost_before_recorder"] = acc["record_sent"] - acc["recorder_received"] \
+            if not (ing.get("restarts") or rec.get("restarts")) else None
         return acc
 
     def _send_accounting(self, stages: dict) -> dict[str, Any]:

@@ -37,7 +37,7 @@ from .base import Transport
 @dataclasses.dataclass
 class RosbagOptions:
     #: A ROS 1 .bag, a ROS 2 bag folder (metadata.yaml + .db3/.mcap), or a bare .mcap/.db3 file;
-    #: a glob (run_*.bag) reads split ROS 1 bags together, in time order.
+    #: a glob (run_*.bag, or demo*.mcap for a split pointflow recording) reads the files together, in time order.
     path: str
     #: PointCloud2 topics to replay; null = every PointCloud2 topic of the recording.
     topics: Optional[list[str]] = None
@@ -119,9 +119,10 @@ class RosbagTransport(Transport):
         files = _expand(p)
         if not files or not all(os.path.exists(f) for f in files):
             raise ConfigError(f"{path}.path", f"no such file or folder: {o.path!r} (resolved to {p!r})")
-        if len(files) > 1 and not all(f.endswith(".bag") for f in files):
+        if len(files) > 1 and not (all(f.endswith(".bag") for f in files) or all(f.endswith(".mcap") for f in files)):
             raise ConfigError(f"{path}.path", f"{o.path!r} matches {len(files)} paths; only split ROS 1 .bag files "
-                              f"can be read together (a ROS 2 bag is one folder): {', '.join(files[:5])}")
+                              f"or bare .mcap files (a split pointflow recording) can be read together "
+                              f"(a ROS 2 bag is one folder): {', '.join(files[:5])}")
         if o.rate < 0:
             raise ConfigError(f"{path}.rate", f"must be >= 0 (0 = as fast as possible), got {o.rate!r}")
         if o.start < 0:

@@ -1,0 +1,50 @@
+"""Ingest's side of the recording: hand each chunk ingest pushes into the ring to the
+recorder stage without ever waiting (a PUSH socket with a bounded high-water mark, sent
+with ``NOBLOCK``; a copy that would block is dropped and counted as ``record_dropped``).
+
+Counters (in ingest's stats)::
+
+    record_offered = record_sent + record_dropped          (points)
+"""
+from __future__ import annotations
+
+import zmq
+
+from .. import wire
+
+
+class RecordTap:
+    def __init__(self, zctx: zmq.Context, endpoint: str, hwm: int, channels=None, exclude=()):
+        self.sock = zctx.socket(zmq.PUSH)
+        self.sock.setsockopt(zmq.SNDHWM, hwm)
+        self.sock.setsockopt(zmq.LINGER, 2000)  # on stop, what is queued still reaches the recorder
+        self.sock.connect(endpoint)
+        self.keep = set(channels) if channels is not None else None
+        self.exclude = set(exclude)
+        self.offered = self.sent = self.dropped = 0
+        self.messages_sent = 0
+
+    def chans(self, chans: dict) -> dict:
+        """The channels of a chunk that go into the recording."""
+        if self.keep is None and not self.exclude:
+            return chans
+        return {k: v for k, v in chans.items()
+                if k not in self.exclude and (self.keep is None or k in self.keep)}
+
+    def offer(self, chunk) -> None:
+        n = chunk.n
+        self.offered += n
+        try:
+            self.sock.send_multipart(wire.encode(chunk), zmq.NOBLOCK, copy=False)
+        except zmq.Again:
+            self.dropped += n
+            return
+        self.sent += n
+        self.messages_sent += 1
+
+    def stats(self) -> dict:
+        return {"record_offered": self.offered, "record_sent": self.sent, "record_dropped": self.dropped,
+                "record_messages_sent": self.messages_sent}
+
+    def close(self) -> None:
+        self.sock.close()
