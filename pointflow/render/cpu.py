@@ -9,6 +9,8 @@ Per frame (all vectorised numpy, no Python loops over points):
    :mod:`pointflow.render.base`; nearer depth wins, ties go to the lower logical index.
    Points are ranked once by (depth, logical index); every pixel keeps its lowest rank.
 4. Colours through :func:`point_colors` (``colormap.lut`` + ``lut_index``).
+5. Eye-dome lighting when ``render.edl.enabled`` (:func:`pointflow.render.rules.edl_shade`
+   over the winners' log2 view depth, float64).
 
 Same input → same image, bit for bit (no threads, no float reassociation).
 """
@@ -24,6 +26,7 @@ from ..config import RenderConfig
 from . import colormap
 from .base import FrameInput, FrameStats, Renderer
 from .camera import Camera
+from .rules import apply_shade, edl_offsets, edl_shade
 
 __all__ = ["CpuRenderer", "Selection", "pcg_hash", "select_points", "point_colors", "point_sizes_px",
            "rgba_u8", "keep_probability", "MAX_POINT_PX", "seed_hash", "budget_seed", "uniform01",
@@ -351,6 +354,7 @@ class CpuRenderer(Renderer):
         self._image[:] = self._bg
         self._slot_at = np.full(h * w, -1, np.int64)      # ring slot drawn at each pixel
         self._last: dict[str, np.ndarray] = {}  # drawn points' attributes, for pick strategies
+        self._edl = edl_offsets(cfg.edl.radius_px) if cfg.edl.enabled else None
         self.nonfinite_total = 0
         self.frames = 0
 
@@ -379,6 +383,11 @@ class CpuRenderer(Renderer):
         img[hit] = colors[order][winner[hit]]
         self._slot_at[:] = -1
         self._slot_at[hit] = sel.slots[order][winner[hit]]
+        if self._edl is not None:  # eye-dome lighting over the winners' log2 linear depth (= clip w)
+            logz = np.zeros(W * H, np.float64)
+            logz[hit] = np.log2(w[order][winner[hit]])
+            shade = edl_shade(logz.reshape(H, W), hit.reshape(H, W), self._edl, self.cfg.edl.strength)
+            self._image[:] = apply_shade(self._image, shade)
         self._last = drawn_attributes(frame, sel.slots) if self.cfg.pick_strategy != "nearest" else {}
         t4 = time.perf_counter()
         self.nonfinite_total += sel.counts["nonfinite"]
