@@ -96,6 +96,10 @@ class Worker:
 
 
 def main(argv=None) -> int:
+    args = sys.argv[1:] if argv is None else argv
+    if args[:1] == ["--worker"]:
+        worker(args[1])
+        return 0
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("a", help="checkout A (the baseline), a directory holding pointflow/")
     ap.add_argument("b", help="checkout B")
@@ -103,11 +107,7 @@ def main(argv=None) -> int:
     ap.add_argument("--rounds", type=int, default=8, help="ABBA rounds per size and method")
     ap.add_argument("--frames", type=int, default=3, help="frames per batch")
     ap.add_argument("--out", default=None)
-    ap.add_argument("--worker", default=None, help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
-    if a.worker:
-        worker(a.worker)
-        return 0
     ws = {"A": Worker(a.a), "B": Worker(a.b)}
     rows = []
     try:

@@ -15,8 +15,8 @@ from pointflow.config import ConfigError, EdlConfig, load_config
 from pointflow.render.cpu import CpuRenderer
 from pointflow.render.rules import apply_shade, edl_offsets, edl_shade
 
-#: Tiers with EDL. The wgpu tiers join with issue 17's wgpu EDL: ``EDL_TIERS = TIERS``.
-EDL_TIERS = [t for t in TIERS if not t.startswith("wgpu-")]
+#: Tiers with EDL: every tier (cpu, gl, both wgpu raster methods).
+EDL_TIERS = TIERS
 EDL_ON = EdlConfig(enabled=True)
 
 
@@ -141,7 +141,9 @@ def test_picking_is_unaffected_by_edl(make, tier):
 
 
 @pytest.mark.parametrize("scene", [*SCENES, "walls"])
-@pytest.mark.parametrize("tier", [t for t in EDL_TIERS if t != "cpu"])
+# wgpu-quads: tests/render_wgpu/test_edl_wgpu.py (its rasteriser's footprint edges differ
+# from the cpu rule in ~0.1% of pixels before EDL; compared there outside those)
+@pytest.mark.parametrize("tier", [t for t in EDL_TIERS if t not in ("cpu", "wgpu-quads")])
 def test_edl_matches_the_cpu_reference(make, tier, scene):
     """Same EDL image as the cpu tier's float64 one: at most 0.1% of pixels differ by more
     than one 8-bit step (the GPU computes the shade in float32, so a colour may round the

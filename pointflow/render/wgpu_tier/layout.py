@@ -23,6 +23,7 @@ _TYPES = {
     "vec4<u32>": ((4,), "<u4", 16),
     "mat4x4<f32>": ((16,), "<f4", 16),  # column-major, 16 floats
     "array<vec4<f32>, 6>": ((6, 4), "<f4", 16),
+    "array<vec4<i32>, 4>": ((4, 4), "<i4", 16),
 }
 
 #: the per-frame parameters of every wgpu pass (shaders: ``P``)
@@ -42,6 +43,14 @@ CPARAMS = (
     ("background", "u32"), ("groups_x", "u32"), ("budget_on", "u32"), ("first_group", "u32"),
     ("pick_x0", "u32"), ("pick_y0", "u32"), ("pick_w", "u32"), ("pick_h", "u32"),
 )
+
+#: eye-dome lighting (shaders: ``E``): the 8 neighbour offsets of rules.edl_offsets as
+#: (dx0, dy0, dx1, dy1), ... (dy counts rows downward), ``k = 300 * strength / 8``, the
+#: output image's row pitch in pixels and its size
+EDL = (
+    ("offsets", "array<vec4<i32>, 4>"), ("k", "f32"), ("row_pitch", "u32"), ("width", "u32"), ("height", "u32"),
+)
+
 
 def _align(x: int, a: int) -> int:
     return (x + a - 1) // a * a
@@ -94,6 +103,7 @@ NO_BUDGET = 0xFFFFFFFF
 
 PARAMS_DTYPE = dtype(PARAMS)
 CPARAMS_DTYPE = dtype(CPARAMS)
+EDL_DTYPE = dtype(EDL)
 
 
 def wgsl_constants() -> str:
@@ -106,4 +116,5 @@ def wgsl_constants() -> str:
 
 def wgsl_header() -> str:
     """Structs + constants every shader starts with."""
-    return wgsl_struct("Params", PARAMS) + wgsl_struct("CParams", CPARAMS) + wgsl_constants()
+    return (wgsl_struct("Params", PARAMS) + wgsl_struct("CParams", CPARAMS) + wgsl_struct("EdlParams", EDL)
+            + wgsl_constants())

@@ -39,6 +39,7 @@ from typing import Any, Optional
 
 import numpy as np
 
+from .. import edl
 from ..layout import CPARAMS_DTYPE, Flag
 from .base import FramePlan, Gpu, RasterMethod, destroy_all
 
@@ -74,7 +75,12 @@ class ComputeRaster(RasterMethod):
         self.pick_buf: Optional[Any] = None
         head = ["uniform", "uniform", "read", "read", "read", "read"]
         self.bgl_raster = g.layout(head + ["rw"] * 6, SS.COMPUTE)
-        self.bgl_resolve = g.layout(head + ["read"] * 4 + ["rw"], SS.COMPUTE)
+        self.bgl_resolve = g.layout(head + ["read"] * 4 + ["rw", "uniform"], SS.COMPUTE)
+        # eye-dome lighting in the resolve pass, from the key buffer's depths (EDL constant)
+        self.edl_on = bool(g.cfg.edl.enabled)
+        E = edl.params(g.cfg.edl, g.width, g.height, g.row_bytes // 4)
+        self.edl = g.buffer(E.nbytes, BU.UNIFORM | BU.COPY_DST, "edl-params")
+        g.queue.write_buffer(self.edl, 0, E.tobytes())
         kf = "key64" if self.key64 else "key32"
         self.raster_files = ("common.wgsl", "scan.wgsl", f"raster_{kf}.wgsl", "raster.wgsl")
         self.resolve_files = ("common.wgsl", "lut_colour.wgsl", f"resolve_{kf}.wgsl", "resolve_head.wgsl")
@@ -117,8 +123,8 @@ class ComputeRaster(RasterMethod):
         key = ("resolve", cmode, range_auto)
         p = self.pipes.get(key)
         if p is None:
-            p = self.gpu.compute_pipeline(self.bgl_resolve, self.resolve_files + ("resolve.wgsl",), "main",
-                                          "resolve", CMODE=cmode, RANGE_AUTO=range_auto)
+            p = self.gpu.compute_pipeline(self.bgl_resolve, self.resolve_files + ("edl.wgsl", "resolve.wgsl"), "main",
+                                          "resolve", CMODE=cmode, RANGE_AUTO=range_auto, EDL=self.edl_on)
             self.pipes[key] = p
         return p
 
@@ -131,7 +137,7 @@ class ComputeRaster(RasterMethod):
         if bg is None:
             g = self.gpu
             bg = {"raster": g.bind(self.bgl_raster, self._head(s) + [g.state, g.rng, self.wgc, self.dbg]),
-                  "resolve": g.bind(self.bgl_resolve, self._head(s) + [g.lut, g.rng, self.img])}
+                  "resolve": g.bind(self.bgl_resolve, self._head(s) + [g.lut, g.rng, self.img, self.edl])}
             self.bg_cache[s] = bg
         return bg
 
@@ -188,7 +194,7 @@ class ComputeRaster(RasterMethod):
             self.pipes["pick"] = g.compute_pipeline(self.bgl_resolve, self.resolve_files + ("pick.wgsl",), "main",
                                                     "pick")
         self.write_cparams(0, False, (x0, y0, bw, bh))
-        bg = g.bind(self.bgl_resolve, self._head(plan.set) + [g.lut, g.rng, self.pick_buf])
+        bg = g.bind(self.bgl_resolve, self._head(plan.set) + [g.lut, g.rng, self.pick_buf, self.edl])
         enc = g.device.create_command_encoder()
         cp = enc.begin_compute_pass()
         cp.set_pipeline(self.pipes["pick"])
@@ -236,5 +242,5 @@ class ComputeRaster(RasterMethod):
         return "64-bit atomicMax" if self.key64 else "2x32-bit (depth pass, then index pass)"
 
     def close(self) -> None:
-        destroy_all([self.keys, self.ikeys, self.wgc, self.dbg, self.cparams, self.pick_buf, self.img])
+        destroy_all([self.keys, self.ikeys, self.wgc, self.dbg, self.cparams, self.pick_buf, self.img, self.edl])
         self.bg_cache.clear()

@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from .. import edl
 from ..layout import Flag
 from .base import FramePlan, RasterMethod, destroy_all
 
@@ -56,18 +57,21 @@ class QuadsRaster(RasterMethod):
         self.p.update({e: g.compute_pipeline(self.bgl_thin, _THIN, e) for e in ("thin", "thin_scan", "thin_emit")})
         self.pl_draw = g.device.create_pipeline_layout(bind_group_layouts=[self.bgl_draw])
         self.shape = "round" if g.cfg.point_shape == "round" else "square"
+        self.edl_on = bool(g.cfg.edl.enabled)
         self.world = g.cfg.point_size_space == "world"
         self.draw_mod = g.device.create_shader_module(code=self._source(), label="draw")
         self.draw_cache: dict[bool, Any] = {}
         self.draw_pipeline(False)
         w, h = g.width, g.height
         TF = wgpu.TextureFormat
+        sampled = TU.TEXTURE_BINDING if self.edl_on else 0
         self.color_tex = g.device.create_texture(size=(w, h, 1), format=TF.rgba8unorm,
-                                                 usage=TU.RENDER_ATTACHMENT | TU.COPY_SRC, label="colour")
+                                                 usage=TU.RENDER_ATTACHMENT | TU.COPY_SRC | sampled, label="colour")
         self.color_view = self.color_tex.create_view()
         self.depth_tex = g.device.create_texture(size=(w, h, 1), format=TF.depth32float,
                                                  usage=TU.RENDER_ATTACHMENT, label="depth")
         self.depth_view = self.depth_tex.create_view()
+        self.edl = self._create_edl() if self.edl_on else None
         self.pick_tex: dict[str, Any] = {}
         self.p_pick = None
         self.bg_cache: dict[Any, dict[str, Any]] = {}
@@ -76,6 +80,29 @@ class QuadsRaster(RasterMethod):
     def _source() -> str:
         from .. import sources
         return sources.source(*_DRAW)
+
+    def _create_edl(self) -> dict[str, Any]:
+        """Eye-dome lighting: a linear-depth target beside the colour, and the post pass
+        (``wgsl/edl_post.wgsl``) writing the shaded image into a buffer at the readback pitch."""
+        g = self.gpu
+        wgpu, dev = g.wgpu, g.device
+        TU, TF, SS, BU = wgpu.TextureUsage, wgpu.TextureFormat, wgpu.ShaderStage, wgpu.BufferUsage
+        lin = dev.create_texture(size=(g.width, g.height, 1), format=TF.r32float,
+                                 usage=TU.RENDER_ATTACHMENT | TU.TEXTURE_BINDING, label="linear-depth")
+        tex = {"sample_type": wgpu.TextureSampleType.unfilterable_float, "view_dimension": "2d"}
+        bgl = dev.create_bind_group_layout(entries=[
+            {"binding": 0, "visibility": SS.COMPUTE, "texture": tex},
+            {"binding": 1, "visibility": SS.COMPUTE, "texture": tex},
+            {"binding": 2, "visibility": SS.COMPUTE, "buffer": {"type": wgpu.BufferBindingType.storage}},
+            {"binding": 3, "visibility": SS.COMPUTE, "buffer": {"type": wgpu.BufferBindingType.uniform}}])
+        E = edl.params(g.cfg.edl, g.width, g.height, g.row_bytes // 4)
+        ubo = g.buffer(E.nbytes, BU.UNIFORM | BU.COPY_DST, "edl-params")
+        g.queue.write_buffer(ubo, 0, E.tobytes())
+        img = g.buffer(g.row_bytes * g.height, BU.STORAGE | BU.COPY_SRC, "edl-image")
+        lin_view = lin.create_view()
+        bg = g.bind(bgl, [self.color_view, lin_view, img, ubo])
+        return {"tex": lin, "view": lin_view, "ubo": ubo, "img": img, "bg": bg,
+                "pipe": g.compute_pipeline(bgl, ("edl.wgsl", "edl_post.wgsl"), "main", "edl")}
 
     # ------------------------------------------------------------------ pipelines
     def _render_pipeline(self, vs: str, fs: str, targets: list[str], colour_in_vs: bool) -> Any:
@@ -97,8 +124,12 @@ class QuadsRaster(RasterMethod):
         """The draw pipeline (colour from the cull, or computed per vertex)."""
         p = self.draw_cache.get(colour_in_vs)
         if p is None:
-            p = self._render_pipeline(f"vs_{self.shape}", f"fs_{self.shape}",
-                                      [self.gpu.wgpu.TextureFormat.rgba8unorm], colour_in_vs)
+            TF = self.gpu.wgpu.TextureFormat
+            if self.edl_on:
+                p = self._render_pipeline(f"vs_{self.shape}_edl", f"fs_{self.shape}_edl",
+                                          [TF.rgba8unorm, TF.r32float], colour_in_vs)
+            else:
+                p = self._render_pipeline(f"vs_{self.shape}", f"fs_{self.shape}", [TF.rgba8unorm], colour_in_vs)
             self.draw_cache[colour_in_vs] = p
         return p
 
@@ -150,10 +181,13 @@ class QuadsRaster(RasterMethod):
             cp.dispatch_workgroups(1, 1, 1)
         cp.end()
         b = g.cfg.background
+        targets = [{"view": self.color_view, "load_op": wgpu.LoadOp.clear, "store_op": wgpu.StoreOp.store,
+                    "clear_value": (float(b[0]), float(b[1]), float(b[2]), 1.0)}]
+        if self.edl is not None:  # linear depth, 0 = background
+            targets.append({"view": self.edl["view"], "load_op": wgpu.LoadOp.clear, "store_op": wgpu.StoreOp.store,
+                            "clear_value": (0.0, 0.0, 0.0, 0.0)})
         rp = enc.begin_render_pass(
-            color_attachments=[{"view": self.color_view, "load_op": wgpu.LoadOp.clear,
-                                "store_op": wgpu.StoreOp.store,
-                                "clear_value": (float(b[0]), float(b[1]), float(b[2]), 1.0)}],
+            color_attachments=targets,
             depth_stencil_attachment={"view": self.depth_view, "depth_clear_value": 1.0,
                                       "depth_load_op": wgpu.LoadOp.clear, "depth_store_op": wgpu.StoreOp.store},
             **g.ts_writes(2))
@@ -161,9 +195,18 @@ class QuadsRaster(RasterMethod):
         rp.set_bind_group(0, bg["draw"])
         rp.draw_indirect(g.state, 0)
         rp.end()
+        if self.edl is not None:
+            cp = enc.begin_compute_pass()
+            cp.set_pipeline(self.edl["pipe"])
+            cp.set_bind_group(0, self.edl["bg"])
+            cp.dispatch_workgroups(math.ceil(g.width / 256), g.height, 1)
+            cp.end()
 
     def copy_image(self, enc: Any, dst: Any) -> None:
         g = self.gpu
+        if self.edl is not None:  # the EDL pass wrote the image with the readback's pitch
+            enc.copy_buffer_to_buffer(self.edl["img"], 0, dst, 0, dst.size)
+            return
         enc.copy_texture_to_buffer({"texture": self.color_tex, "mip_level": 0, "origin": (0, 0, 0)},
                                    {"buffer": dst, "offset": 0, "bytes_per_row": g.row_bytes,
                                     "rows_per_image": g.height}, (g.width, g.height, 1))
@@ -235,8 +278,8 @@ class QuadsRaster(RasterMethod):
         return np.sort(idx.astype(np.int64))
 
     def close(self) -> None:
-        T = self.pick_tex
-        destroy_all([self.idx1, self.idx2, self.clip1, self.clip2, self.flags, self.wgc, self.color_tex,
+        T, E = self.pick_tex, self.edl or {}
+        destroy_all([E.get("tex"), E.get("ubo"), E.get("img"), self.idx1, self.idx2, self.clip1, self.clip2, self.flags, self.wgc, self.color_tex,
                      self.depth_tex, T.get("ids"), T.get("attrs"), T.get("depth")])
         self.pick_tex = {}
         self.bg_cache.clear()

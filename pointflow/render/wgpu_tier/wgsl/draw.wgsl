@@ -160,3 +160,56 @@ fn fs_pick_round(in: VPickRound) -> PickOut {
   if (outside(in.position, in.centre)) { discard; }
   return pick_out(in.slot, in.position.z);
 }
+
+// eye-dome lighting (render.edl): the colour pass also writes the point's linear view depth
+// (clip w, > 0) into an r32float target cleared to 0 (background); edl_post.wgsl shades
+struct VSquareEdl {
+  @builtin(position) position: vec4<f32>,
+  @location(0) @interpolate(flat) color: u32,
+  @location(3) @interpolate(flat) w: f32,
+};
+
+struct EdlOut {
+  @location(0) color: vec4<f32>,
+  @location(1) w: f32,
+};
+
+@vertex
+fn vs_square_edl(@builtin(vertex_index) vi: u32, @builtin(instance_index) ii: u32) -> VSquareEdl {
+  let clip = clipb[ii];
+  var o: VSquareEdl;
+  o.position = corner(vi, clip, 0.5 * size_px(clip));
+  o.color = colour_of(ii);
+  o.w = clip.w;
+  return o;
+}
+
+@fragment
+fn fs_square_edl(in: VSquareEdl) -> EdlOut {
+  return EdlOut(unpack4x8unorm(in.color), in.w);
+}
+
+struct VRoundEdl {
+  @builtin(position) position: vec4<f32>,
+  @location(0) @interpolate(flat) color: u32,
+  @location(1) @interpolate(flat) centre: vec3<f32>,
+  @location(3) @interpolate(flat) w: f32,
+};
+
+@vertex
+fn vs_round_edl(@builtin(vertex_index) vi: u32, @builtin(instance_index) ii: u32) -> VRoundEdl {
+  let clip = clipb[ii];
+  let s = size_px(clip);
+  var o: VRoundEdl;
+  o.position = corner(vi, clip, 0.5 * s + 1.0);
+  o.color = colour_of(ii);
+  o.centre = centre_of(clip, s);
+  o.w = clip.w;
+  return o;
+}
+
+@fragment
+fn fs_round_edl(in: VRoundEdl) -> EdlOut {
+  if (outside(in.position, in.centre)) { discard; }
+  return EdlOut(unpack4x8unorm(in.color), in.w);
+}
