@@ -390,6 +390,7 @@ def edl_cost(n: int, reps: int) -> dict[str, Any]:
     rs = {k: WgpuRenderer(replace(cfg, raster=k[0], edl=EdlConfig(enabled=k[1])), n, ["intensity"],
                           adapter=adapter) for k in keys}
     ts: dict[Any, list[float]] = {k: [] for k in keys}
+    cpu: dict[Any, list[float]] = {k: [] for k in keys}  # process CPU time: lavapipe's threads are ours
     step, head = max(n // 100, 1), 0
     try:
         for k in keys:  # warm-up (pipelines compiled, buffers uploaded)
@@ -403,10 +404,11 @@ def edl_cost(n: int, reps: int) -> dict[str, Any]:
                 order = order[::-1]
             for k in order:
                 f.dirty = [(a, b)]
-                t0 = time.perf_counter()
+                t0, c0 = time.perf_counter(), time.process_time()
                 rs[k].render(f, cam)
                 rs[k].read_image()
                 ts[k].append((time.perf_counter() - t0) * 1e3)
+                cpu[k].append((time.process_time() - c0) * 1e3)
     finally:
         for r in rs.values():
             r.close()
@@ -420,9 +422,13 @@ def edl_cost(n: int, reps: int) -> dict[str, Any]:
                   "on_over_off": float(np.median(on) / np.median(off)),
                   "on_over_off_per_frame_median": float(np.median(on / off)),
                   "off_all_ms": off.tolist(), "on_all_ms": on.tolist()}
+        coff, con = np.asarray(cpu[(m, False)]), np.asarray(cpu[(m, True)])
+        out[m].update({"off_cpu_ms": float(np.median(coff)), "on_cpu_ms": float(np.median(con)),
+                       "cpu_on_over_off": float(np.median(con) / np.median(coff)),
+                       "off_all_cpu_ms": coff.tolist(), "on_all_cpu_ms": con.tolist()})
         print(f"  {n:,} points, {m:8s}: EDL off {out[m]['off_ms']:8.1f} ms  on {out[m]['on_ms']:8.1f} ms  "
-              f"on/off x{out[m]['on_over_off']:.3f} (per-frame median x{out[m]['on_over_off_per_frame_median']:.3f})",
-              flush=True)
+              f"on/off x{out[m]['on_over_off']:.3f} (per-frame median x{out[m]['on_over_off_per_frame_median']:.3f}); "
+              f"CPU time on/off x{out[m]['cpu_on_over_off']:.3f}", flush=True)
     return out
 
 
