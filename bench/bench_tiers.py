@@ -36,7 +36,8 @@ os.makedirs(os.environ["XDG_RUNTIME_DIR"], exist_ok=True)
 from pointflow.config import RenderConfig  # noqa: E402
 from pointflow.render.base import FrameInput, Renderer  # noqa: E402
 from pointflow.render.camera import Camera  # noqa: E402
-from pointflow.render.cpu import CpuRenderer, importance_range_for_budget  # noqa: E402
+from pointflow.render.cpu import CpuRenderer  # noqa: E402
+from pointflow.render.rules import importance_range_for_budget  # noqa: E402
 
 RESULTS = ROOT / "bench" / "results"
 DATA = ROOT.parent / "shared" / "data"
