@@ -293,12 +293,6 @@ class GlRenderer(Renderer):
         img = np.frombuffer(raw, np.uint8).reshape(self.height, self.width, 4)
         return img[::-1].copy()  # GL rows start at the bottom
 
-    def read_ids(self) -> np.ndarray:
-        """(h, w) int64 slot per pixel (-1 = background), top row first."""
-        raw = self.fbo.read(components=4, attachment=1, alignment=1)
-        ids = np.frombuffer(raw, "<u4").reshape(self.height, self.width)[::-1]
-        return ids.astype(np.int64) - 1
-
     def pick(self, x: float, y: float, pixel_ratio: float = 1.0) -> Optional[int]:
         win = pick_window(self.width, self.height, x, y, pixel_ratio, self.cfg.pick_radius)
         if win is None:
