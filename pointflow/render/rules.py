@@ -398,7 +398,9 @@ def edl_shade(log_depth: np.ndarray, covered: np.ndarray, offsets: np.ndarray, s
     exp(-300 * strength * response)``. Background pixels get 1 (no halo)."""
     covered = np.asarray(covered, bool)
     h, w = covered.shape
-    d = np.where(covered, np.asarray(log_depth, np.float64), 0.0)
+    # background depth +inf: max(0, d - inf) = 0 for a covered pixel's background neighbour;
+    # background pixels themselves get response 0 below, whatever their sum
+    d = np.where(covered, np.asarray(log_depth, np.float64), np.inf)
     resp = np.zeros((h, w), np.float64)
     for dx, dy in np.asarray(offsets, np.int64).reshape(-1, 2):
         dx, dy = int(dx), int(dy)
@@ -409,12 +411,11 @@ def edl_shade(log_depth: np.ndarray, covered: np.ndarray, offsets: np.ndarray, s
         px = slice(max(0, -dx), w - max(0, dx))
         qy = slice(max(0, dy), h - max(0, -dy))
         qx = slice(max(0, dx), w - max(0, -dx))
-        both = covered[py, px] & covered[qy, qx]
-        resp[py, px] += np.where(both, np.maximum(0.0, d[py, px] - d[qy, qx]), 0.0)
+        with np.errstate(invalid="ignore"):  # inf - inf on the background: discarded below
+            resp[py, px] += np.maximum(0.0, d[py, px] - d[qy, qx])
+    resp[~covered] = 0.0  # background: shade exp(0) = 1, no halo
     resp /= EDL_NEIGHBOURS
-    shade = np.exp(-EDL_SCALE * float(strength) * resp)
-    shade[~covered] = 1.0
-    return shade
+    return np.exp(-EDL_SCALE * float(strength) * resp)
 
 
 def apply_shade(image: np.ndarray, shade: np.ndarray) -> np.ndarray:
