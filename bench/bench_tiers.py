@@ -11,9 +11,13 @@ below which the cpu tier is faster (written to ``bench/results/crossover.json`` 
 
     .venv/bin/python bench/bench_tiers.py            # ~2-4 min on 2 cores
     .venv/bin/python bench/bench_tiers.py --quick    # fewer scenes/sizes
+    .venv/bin/python bench/bench_tiers.py --chart-only   # redraw tiers.png from tiers.json
+
+The autzen and Ouster scenes come from ``../shared/data`` beside the checkout (env
+``POINTFLOW_DATA`` overrides; skipped when absent).
 
 Output: a table on stdout, ``bench/results/tiers.json``, ``bench/results/tiers.png``
-(frame time vs error, one curve per method, Pareto front marked), ``crossover.json``.
+(frame time vs error, one point per run, the Pareto front numbered), ``crossover.json``.
 """
 from __future__ import annotations
 
@@ -40,7 +44,7 @@ from pointflow.render.cpu import CpuRenderer  # noqa: E402
 from pointflow.render.rules import importance_range_for_budget  # noqa: E402
 
 RESULTS = ROOT / "bench" / "results"
-DATA = ROOT.parent / "shared" / "data"
+DATA = Path(os.environ.get("POINTFLOW_DATA", ROOT.parent / "shared" / "data"))  # the real recordings
 
 
 # ----------------------------------------------------------------------------- scenes
