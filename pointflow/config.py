@@ -108,7 +108,7 @@ class OutputConfig:
 @dataclass
 class EdlConfig:
     """Eye-dome lighting: darkens a pixel by how far its 8 neighbours lie in front of it in
-    log2 depth (Potree's EDL; docs/render-tiers.md#eye-dome-lighting). Same formula in every tier."""
+    log2 depth (Potree's EDL; docs/render-tiers.md, "Eye-dome lighting"). Same formula in every tier."""
 
     enabled: bool = False
     #: Multiplies the 300 of ``shade = exp(-300 * strength * response)``; 0 = no darkening.

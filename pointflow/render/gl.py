@@ -1,7 +1,7 @@
 """The OpenGL render tier (moderngl, EGL headless): for machines without a WebGPU adapter.
 
 Culling, time window, LOD, importance sampling and budget run on the CPU with the same
-vectorised code as the cpu tier (:func:`pointflow.render.cpu.select_points`), colours are
+vectorised rules as the cpu tier (:func:`pointflow.render.rules.select_points`), colours are
 looked up there too (so they match bit for bit); then one instanced draw of the
 survivors: 6 vertices per point expanded from ``gl_VertexID`` (no 64 px point-sprite cap),
 projected on the GPU with the float32 cast of the float64 origin-relative matrix.
@@ -35,9 +35,8 @@ import numpy as np
 from ..config import RenderConfig
 from .base import FrameInput, FrameStats, Renderer, RenderError
 from .camera import Camera
-from .cpu import (MAX_POINT_PX, drawn_attributes, in_pick_circle, pick_window, point_colors, resolve_pick, rgba_u8,
-                  select_points)
-from .rules import EDL_NEIGHBOURS, EDL_SCALE, edl_offsets
+from .rules import (EDL_NEIGHBOURS, EDL_SCALE, MAX_POINT_PX, drawn_attributes, edl_offsets, in_pick_circle,
+                    pick_window, point_colors, resolve_pick, rgba_u8, select_points)
 
 __all__ = ["GlRenderer", "GL_DEPTH_FIX"]
 
@@ -293,12 +292,6 @@ class GlRenderer(Renderer):
             raw = self.fbo.read(components=4, attachment=0, alignment=1)
         img = np.frombuffer(raw, np.uint8).reshape(self.height, self.width, 4)
         return img[::-1].copy()  # GL rows start at the bottom
-
-    def read_ids(self) -> np.ndarray:
-        """(h, w) int64 slot per pixel (-1 = background), top row first."""
-        raw = self.fbo.read(components=4, attachment=1, alignment=1)
-        ids = np.frombuffer(raw, "<u4").reshape(self.height, self.width)[::-1]
-        return ids.astype(np.int64) - 1
 
     def pick(self, x: float, y: float, pixel_ratio: float = 1.0) -> Optional[int]:
         win = pick_window(self.width, self.height, x, y, pixel_ratio, self.cfg.pick_radius)

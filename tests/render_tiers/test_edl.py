@@ -1,5 +1,5 @@
 """Eye-dome lighting (render.edl): the float64 rule in rules.py, the cpu reference, and every
-tier that implements it agreeing with the cpu image (docs/render-tiers.md#eye-dome-lighting)."""
+tier that implements it agreeing with the cpu image (docs/render-tiers.md#eye-dome-lighting-renderedl)."""
 from __future__ import annotations
 
 import dataclasses
