@@ -49,7 +49,10 @@ from pointflow.render.camera import Camera  # noqa: E402
 from pointflow.render.wgpu_tier import WgpuRenderer, select_adapter  # noqa: E402
 
 RESULTS = ROOT / "bench" / "results"
-DATA = ROOT.parent / "shared" / "data"
+#: ../shared/data beside the checkout (or beside the worktrees' parent); $POINTFLOW_DATA overrides
+DATA = Path(os.environ["POINTFLOW_DATA"]) if os.environ.get("POINTFLOW_DATA") else next(
+    (p for p in (ROOT.parent / "shared" / "data", ROOT.parents[1] / "shared" / "data") if p.is_dir()),
+    ROOT.parent / "shared" / "data")
 W, H = 1280, 720
 
 

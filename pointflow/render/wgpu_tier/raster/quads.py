@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from .. import edl
+from .. import edl, sources
 from ..layout import Flag
 from .base import FramePlan, RasterMethod, destroy_all
 
@@ -59,7 +59,7 @@ class QuadsRaster(RasterMethod):
         self.shape = "round" if g.cfg.point_shape == "round" else "square"
         self.edl_on = bool(g.cfg.edl.enabled)
         self.world = g.cfg.point_size_space == "world"
-        self.draw_mod = g.device.create_shader_module(code=self._source(), label="draw")
+        self.draw_mod = g.device.create_shader_module(code=sources.source(*_DRAW), label="draw")
         self.draw_cache: dict[bool, Any] = {}
         self.draw_pipeline(False)
         w, h = g.width, g.height
@@ -75,11 +75,6 @@ class QuadsRaster(RasterMethod):
         self.pick_tex: dict[str, Any] = {}
         self.p_pick = None
         self.bg_cache: dict[Any, dict[str, Any]] = {}
-
-    @staticmethod
-    def _source() -> str:
-        from .. import sources
-        return sources.source(*_DRAW)
 
     def _create_edl(self) -> dict[str, Any]:
         """Eye-dome lighting: a linear-depth target beside the colour, and the post pass
@@ -107,17 +102,16 @@ class QuadsRaster(RasterMethod):
     # ------------------------------------------------------------------ pipelines
     def _render_pipeline(self, vs: str, fs: str, targets: list[str], colour_in_vs: bool) -> Any:
         wgpu, dev = self.gpu.wgpu, self.gpu.device
-        consts = {"WORLD": self.world, "COLOUR_IN_VS": colour_in_vs}
-        from ..sources import constants
+        consts = sources.constants(WORLD=self.world, COLOUR_IN_VS=colour_in_vs)
         return dev.create_render_pipeline(
             layout=self.pl_draw,
-            vertex={"module": self.draw_mod, "entry_point": vs, "buffers": [], "constants": constants(**consts)},
+            vertex={"module": self.draw_mod, "entry_point": vs, "buffers": [], "constants": consts},
             primitive={"topology": wgpu.PrimitiveTopology.triangle_list, "cull_mode": wgpu.CullMode.none},
             depth_stencil={"format": wgpu.TextureFormat.depth32float, "depth_write_enabled": True,
                            "depth_compare": wgpu.CompareFunction.less},
             multisample={"count": 1},
             fragment={"module": self.draw_mod, "entry_point": fs, "targets": [{"format": t} for t in targets],
-                      "constants": constants(**consts)},
+                      "constants": consts},
         )
 
     def draw_pipeline(self, colour_in_vs: bool) -> Any:

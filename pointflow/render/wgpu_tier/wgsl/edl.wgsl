@@ -10,16 +10,19 @@ fn edl_offset(k: u32) -> vec2<i32> {
   return v.zw;
 }
 
+// sum_k max(0, log2 z - log2 z_k) = log2(prod over nearer neighbours of z / z_k): one log2
+// per pixel instead of nine (the product can only overflow when the shade is 0 anyway;
+// clamped so that strength 0 still gives exactly 1)
 fn edl_shade(x: u32, y: u32, z: f32) -> f32 {
-  let d = log2(z);
-  var sum = 0.0;
+  var prod = 1.0;
   for (var k = 0u; k < 8u; k = k + 1u) {
     let q = vec2<i32>(i32(x), i32(y)) + edl_offset(k);
     if (q.x < 0 || q.y < 0 || q.x >= i32(E.width) || q.y >= i32(E.height)) { continue; }
     var zq = 0.0;
-    if (linear_depth(u32(q.x), u32(q.y), &zq)) { sum = sum + max(0.0, d - log2(zq)); }
+    if (linear_depth(u32(q.x), u32(q.y), &zq) && zq < z) { prod = prod * (z / zq); }
   }
-  return exp(-E.k * sum);
+  if (prod == 1.0) { return 1.0; }
+  return exp(-E.k * log2(min(prod, 3.0e38)));
 }
 
 // RGB bytes times the shade, rounded to nearest as a unorm8 target stores them; alpha kept
