@@ -78,6 +78,7 @@ class CpuRenderer(Renderer):
         img[hit] = colors[order][winner[hit]]
         self._slot_at[:] = -1
         self._slot_at[hit] = sel.slots[order][winner[hit]]
+        t_edl = time.perf_counter()
         if self._edl is not None:  # eye-dome lighting over the winners' log2 linear depth (= clip w)
             logz = np.zeros(W * H, np.float64)
             logz[hit] = np.log2(w[order][winner[hit]])
@@ -91,7 +92,8 @@ class CpuRenderer(Renderer):
         return FrameStats(
             drawn=sel.n,
             timings_ms={"select": ms(t0, t1), "project": ms(t1, t2), "splat": ms(t2, t3),
-                        "resolve": ms(t3, t4), "total": ms(t0, t4)},
+                        "resolve": ms(t3, t4), "total": ms(t0, t4),
+                        **({"edl": ms(t_edl, t4)} if self._edl is not None else {})},
             extra={**{f"removed_{k}": v for k, v in sel.counts.items() if k not in ("occupied", "drawn")},
                    "nonfinite_total": self.nonfinite_total},
         )
