@@ -15,8 +15,9 @@ frame in one process, of:
 Also: each method's image error against the cpu tier (fraction of pixels that differ), bytes
 and time of incremental vs full upload when 1% of the ring changes per tick, and the cost of
 a pick with each method. ``--raster-crossover`` measures compute vs quads over point sizes
-(what ``render.raster: auto`` reads from ``bench/results/raster_crossover.json``). Scene: ``../shared/data/autzen_trim.laz`` tiled to N points when
-present (georeferenced: x ~ 6.4e5 ft), else a synthetic terrain.
+(with ``--install`` written to the user cache that ``render.raster: auto`` reads; see
+:mod:`pointflow.render.calibration`); ``--edl`` measures eye-dome lighting on vs off.
+Scene: ``../shared/data/autzen_trim.laz`` tiled to N points when present (georeferenced: x ~ 6.4e5 ft), else a synthetic terrain.
 
     .venv/bin/python bench/bench_render.py            # ~3-4 min on 2 cores (lavapipe)
     .venv/bin/python bench/bench_render.py --quick    # 10k/100k/1M, fewer repeats
@@ -48,7 +49,10 @@ from pointflow.render.camera import Camera  # noqa: E402
 from pointflow.render.wgpu_tier import WgpuRenderer, select_adapter  # noqa: E402
 
 RESULTS = ROOT / "bench" / "results"
-DATA = ROOT.parent / "shared" / "data"
+#: ../shared/data beside the checkout (or beside the worktrees' parent); $POINTFLOW_DATA overrides
+DATA = Path(os.environ["POINTFLOW_DATA"]) if os.environ.get("POINTFLOW_DATA") else next(
+    (p for p in (ROOT.parent / "shared" / "data", ROOT.parents[1] / "shared" / "data") if p.is_dir()),
+    ROOT.parent / "shared" / "data")
 W, H = 1280, 720
 
 
@@ -373,6 +377,64 @@ def raster_crossover(n: int, sizes_px: list[float], counts: list[int], reps: int
             "platform": platform.platform(), "cpu_count": os.cpu_count()}
 
 
+def edl_cost(n: int, reps: int) -> dict[str, Any]:
+    """Frame time with eye-dome lighting on vs off for both methods at n points (same scene
+    and frame as the main benchmark: 1% of the ring rewritten per frame, output =
+    read_image), the four renderers interleaved frame by frame in rotating order."""
+    from pointflow.config import EdlConfig
+    adapter, why = select_adapter()
+    base, inten0, scene = base_cloud()
+    world, inten = tiled(base, inten0, n)
+    f = make_frame(world, inten)
+    cam = camera_for(world)
+    del world
+    cfg = RenderConfig(size=[W, H], color_by="intensity", colormap="turbo", point_size=2.0, gpu_timestamps=False)
+    keys = [(m, e) for m in METHODS for e in (False, True)]
+    rs = {k: WgpuRenderer(replace(cfg, raster=k[0], edl=EdlConfig(enabled=k[1])), n, ["intensity"],
+                          adapter=adapter) for k in keys}
+    ts: dict[Any, list[float]] = {k: [] for k in keys}
+    cpu: dict[Any, list[float]] = {k: [] for k in keys}  # process CPU time: lavapipe's threads are ours
+    step, head = max(n // 100, 1), 0
+    try:
+        for k in keys:  # warm-up (pipelines compiled, buffers uploaded)
+            rs[k].render(f, cam)
+            rs[k].read_image()
+        for i in range(reps):
+            a, b = head, min(head + step, n)
+            head = b % n
+            order = keys[i % len(keys):] + keys[:i % len(keys)]
+            if i % 2:
+                order = order[::-1]
+            for k in order:
+                f.dirty = [(a, b)]
+                t0, c0 = time.perf_counter(), time.process_time()
+                rs[k].render(f, cam)
+                rs[k].read_image()
+                ts[k].append((time.perf_counter() - t0) * 1e3)
+                cpu[k].append((time.process_time() - c0) * 1e3)
+    finally:
+        for r in rs.values():
+            r.close()
+    out: dict[str, Any] = {"points": n, "size": [W, H], "repeats": reps, "adapter": adapter.summary, "scene": scene,
+                           "edl": {"strength": 1.0, "radius_px": 1.4}, "measured_at": time.strftime(
+                               "%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "platform": platform.platform(),
+                           "cpu_count": os.cpu_count()}
+    for m in METHODS:
+        off, on = np.asarray(ts[(m, False)]), np.asarray(ts[(m, True)])
+        out[m] = {"off_ms": float(np.median(off)), "on_ms": float(np.median(on)),
+                  "on_over_off": float(np.median(on) / np.median(off)),
+                  "on_over_off_per_frame_median": float(np.median(on / off)),
+                  "off_all_ms": off.tolist(), "on_all_ms": on.tolist()}
+        coff, con = np.asarray(cpu[(m, False)]), np.asarray(cpu[(m, True)])
+        out[m].update({"off_cpu_ms": float(np.median(coff)), "on_cpu_ms": float(np.median(con)),
+                       "cpu_on_over_off": float(np.median(con) / np.median(coff)),
+                       "off_all_cpu_ms": coff.tolist(), "on_all_cpu_ms": con.tolist()})
+        print(f"  {n:,} points, {m:8s}: EDL off {out[m]['off_ms']:8.1f} ms  on {out[m]['on_ms']:8.1f} ms  "
+              f"on/off x{out[m]['on_over_off']:.3f} (per-frame median x{out[m]['on_over_off_per_frame_median']:.3f}); "
+              f"CPU time on/off x{out[m]['cpu_on_over_off']:.3f}", flush=True)
+    return out
+
+
 def table(res: dict[str, Any]) -> str:
     out = [f"render benchmark — {res['adapter']} — {res['scene']} — {W}x{H}, 2 px squares, turbo by intensity",
            f"{'points':>10} {'floor ms':>9} {'quads ms':>9} {'compute ms':>10} {'floor/comp':>10} "
@@ -426,13 +488,29 @@ def main(argv: Optional[list[str]] = None) -> int:
     ap.add_argument("--out", default=str(RESULTS / "render.json"))
     ap.add_argument("--raster-crossover", action="store_true",
                     help="only measure compute vs quads over point sizes at 1M points and write "
-                         "bench/results/raster_crossover.json (read by render.raster: auto)")
+                         "bench/results/raster_crossover.json (--install: also the user cache that "
+                         "render.raster: auto reads)")
+    ap.add_argument("--edl", action="store_true",
+                    help="only measure eye-dome lighting on vs off for both methods at 1M points "
+                         "(writes bench/results/edl.json)")
+    ap.add_argument("--install", action="store_true",
+                    help="with --raster-crossover: also write the result to the user cache that "
+                         "render.raster: auto reads (pointflow.render.calibration)")
     a = ap.parse_args(argv)
+    if a.edl:
+        res = edl_cost(1_000_000, 15 if not a.quick else 6)
+        path = RESULTS / "edl.json"
+        path.write_text(json.dumps(res, indent=2))
+        print(f"wrote {path}")
+        return 0
     if a.raster_crossover:
         res = raster_crossover(1_000_000, [1, 2, 3, 4, 6, 8, 12, 16, 24, 32],
                                [1_000, 3_000, 10_000, 30_000, 100_000, 300_000], 5)
         path = RESULTS / "raster_crossover.json"
         path.write_text(json.dumps(res, indent=2))
+        if a.install:
+            from pointflow.render import calibration
+            print(f"installed {calibration.install('raster_crossover.json', res)}")
         print(f"max_compute_point_px = {res['max_compute_point_px']:g}, min_compute_points = "
               f"{res['min_compute_points']:,} ({res['min_compute_points_per_pixel']:g} per pixel); wrote {path}")
         return 0

@@ -11,9 +11,13 @@ below which the cpu tier is faster (written to ``bench/results/crossover.json`` 
 
     .venv/bin/python bench/bench_tiers.py            # ~2-4 min on 2 cores
     .venv/bin/python bench/bench_tiers.py --quick    # fewer scenes/sizes
+    .venv/bin/python bench/bench_tiers.py --chart-only   # redraw tiers.png from tiers.json
+
+The autzen and Ouster scenes come from ``../shared/data`` beside the checkout (env
+``POINTFLOW_DATA`` overrides; skipped when absent).
 
 Output: a table on stdout, ``bench/results/tiers.json``, ``bench/results/tiers.png``
-(frame time vs error, one curve per method, Pareto front marked), ``crossover.json``.
+(frame time vs error, one point per run, the Pareto front numbered), ``crossover.json``.
 """
 from __future__ import annotations
 
@@ -36,10 +40,11 @@ os.makedirs(os.environ["XDG_RUNTIME_DIR"], exist_ok=True)
 from pointflow.config import RenderConfig  # noqa: E402
 from pointflow.render.base import FrameInput, Renderer  # noqa: E402
 from pointflow.render.camera import Camera  # noqa: E402
-from pointflow.render.cpu import CpuRenderer, importance_range_for_budget  # noqa: E402
+from pointflow.render.cpu import CpuRenderer  # noqa: E402
+from pointflow.render.rules import importance_range_for_budget  # noqa: E402
 
 RESULTS = ROOT / "bench" / "results"
-DATA = ROOT.parent / "shared" / "data"
+DATA = Path(os.environ.get("POINTFLOW_DATA", ROOT.parent / "shared" / "data"))  # the real recordings
 
 
 # ----------------------------------------------------------------------------- scenes
@@ -292,48 +297,84 @@ def crossover_from(res: dict[str, dict[int, float]], sizes: list[int]) -> tuple[
     return xo, verdict, cpu_from
 
 
+#: floor for the log error axis: the reference itself has error 0 (drawn on this line, "exact")
+_EXACT = 3e-6
+_TIER_COLOURS = {"cpu": "tab:blue", "gl": "tab:orange", "wgpu": "tab:green", "wgpu-quads": "tab:green",
+                 "wgpu-compute": "tab:red"}
+_FAMILY_MARKERS = {"full": "*", "lod": "s", "importance": "o", "time window": "^"}
+
+
 def chart(rows: list[dict], path: Path) -> None:
+    """One panel per scene: every (tier, method) run as a point (colour = tier, marker =
+    method family), no connecting lines; the Pareto front (nothing else is both faster and
+    closer to the reference) as a step line with its points ringed and labelled; legends
+    outside the panels."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    import matplotlib.ticker  # noqa: F401
+    import matplotlib.ticker
+    from matplotlib.lines import Line2D
 
     scenes = list(dict.fromkeys(r["scene"] for r in rows))
     cols = 2 if len(scenes) > 1 else 1
     nrows = (len(scenes) + cols - 1) // cols
-    fig, axs = plt.subplots(nrows, cols, figsize=(7.0 * cols, 4.6 * nrows), squeeze=False)
-    axes = [list(axs.ravel())]
-    colours = {"lod": "tab:blue", "importance": "tab:orange", "time window": "tab:green", "full": "black"}
-    markers = {"cpu": "o", "gl": "s", "wgpu": "^", "wgpu-quads": "^", "wgpu-compute": "D"}
-    styles = {"cpu": "-", "gl": "--", "wgpu": ":", "wgpu-quads": ":", "wgpu-compute": "-."}
-    for ax, sc in zip(axes[0], scenes):
+    fig, axs = plt.subplots(nrows, cols, figsize=(6.4 * cols + 2.6, 4.6 * nrows), squeeze=False)
+    tiers = list(dict.fromkeys(r["tier"] for r in rows))
+    for ax, sc in zip(axs.ravel(), scenes):
         rs = [r for r in rows if r["scene"] == sc]
-        for tier in dict.fromkeys(r["tier"] for r in rs):
-            full = [r for r in rs if r["tier"] == tier and r["family"] == "full"]
-            for fam in ("lod", "importance", "time window"):
-                pts = [r for r in rs if r["tier"] == tier and r["family"] == fam]
-                pts = sorted(full + pts, key=lambda r: r["frame_ms"])
-                ax.plot([r["frame_ms"] for r in pts], [max(r["diff_fraction"], 1e-5) for r in pts],
-                        styles[tier], marker=markers[tier], color=colours[fam], ms=4, lw=1,
-                        label=f"{tier} {fam}")
-        pts = [(r["frame_ms"], max(r["diff_fraction"], 1e-5)) for r in rs]
+        pts = [(r["frame_ms"], max(r["diff_fraction"], _EXACT)) for r in rs]
         front = pareto(pts)
-        ax.plot([pts[i][0] for i in front], [pts[i][1] for i in front], color="red", lw=2.5, alpha=0.35,
-                drawstyle="steps-post", label="Pareto front")
-        for i in front:
-            ax.annotate(f"{rs[i]['tier']} {rs[i]['method']}", pts[i], fontsize=6, alpha=0.8)
+        on_front = set(front)
+        for i, r in enumerate(rs):
+            big = 1.8 if r["family"] == "full" else 1.0  # a star reads smaller than a disc
+            ax.scatter(*pts[i], marker=_FAMILY_MARKERS.get(r["family"], "x"), s=(75 if i in on_front else 30) * big,
+                       color=_TIER_COLOURS.get(r["tier"], "grey"), alpha=1.0 if i in on_front else 0.35,
+                       edgecolors="black" if i in on_front else "none", linewidths=0.9, zorder=3 if i in on_front else 2)
+        fx = [pts[i][0] for i in front]
+        fy = [pts[i][1] for i in front]
+        ax.step(fx, fy, where="post", color="black", lw=1.2, alpha=0.6, zorder=1)
+        placed: list[int] = []
+        for k, i in enumerate(front):  # numbers on the front; nearby ones stack upwards
+            j = sum(1 for q in placed if 1 / 1.5 < pts[q][0] / pts[i][0] < 1.5 and 1 / 2.5 < pts[q][1] / pts[i][1] < 2.5)
+            placed.append(i)
+            ax.annotate(str(k + 1), pts[i], xytext=(5 + 7 * j, 5 + 9 * j), textcoords="offset points",
+                        fontsize=8, fontweight="bold", zorder=4)
+        key = [f"{k + 1}  {rs[i]['tier']} {rs[i]['method']}: {rs[i]['frame_ms']:.0f} ms, "
+               f"{100 * rs[i]['diff_fraction']:.2g}%" for k, i in enumerate(front)]
+        half = (len(key) + 1) // 2
+        for col, lines in ((0.015, key[:half]), (0.515, key[half:])):
+            ax.text(col, 0.975, "\n".join(lines), transform=ax.transAxes, va="top", ha="left", fontsize=7.5,
+                    bbox=dict(boxstyle="round,pad=0.3", fc="white", ec="lightgrey", alpha=0.9) if lines else None)
         ax.set_xscale("log")
         ax.set_yscale("log")
+        ax.set_ylim(_EXACT / 2, 100.0)  # the band above 1 holds the key to the numbered front
+        ax.set_yticks([10.0 ** e for e in range(-5, 1)])
+        ax.axhline(_EXACT, color="grey", lw=0.6, ls=":")
+        ax.text(0.01, _EXACT * 1.25, "exact (the reference)", transform=ax.get_yaxis_transform(), ha="left",
+                fontsize=7, color="grey")
+        ax.xaxis.set_major_locator(matplotlib.ticker.LogLocator(subs=(1.0, 2.0, 5.0)))
+        ax.xaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
         ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
         ax.set_xlabel("frame time, ms (log)")
-        ax.set_ylabel("pixels differing from the float64 reference (log)")
-        ax.set_title(rs[0]["scene_desc"], fontsize=9)
-        ax.grid(True, which="both", alpha=0.25)
-    h, l = axes[0][0].get_legend_handles_labels()
-    fig.legend(h, l, loc="lower center", ncol=min(len(l), 5), fontsize=7)
-    for ax in axes[0][len(scenes):]:
+        ax.set_ylabel("fraction of pixels differing\nfrom the float64 reference (log)")
+        ax.set_title(rs[0]["scene_desc"], fontsize=9.5)
+        ax.grid(True, which="major", alpha=0.3)
+    for ax in axs.ravel()[len(scenes):]:
         ax.set_visible(False)
-    fig.tight_layout(rect=(0, 0.07, 1, 1))
+    tier_h = [Line2D([], [], ls="", marker="o", color=_TIER_COLOURS.get(t, "grey"), label=t) for t in tiers]
+    fam_h = [Line2D([], [], ls="", marker=m, color="dimgrey", label=f) for f, m in _FAMILY_MARKERS.items()]
+    front_h = [Line2D([], [], color="black", alpha=0.6, marker="o", mfc="white", mec="black",
+                      label="Pareto front (ringed,\nnumbered, key on top:\nframe ms, pixels differing)")]
+    fig.tight_layout(rect=(0, 0, (6.4 * cols) / (6.4 * cols + 2.6), 1))
+    x0 = (6.4 * cols) / (6.4 * cols + 2.6) + 0.01
+    leg = fig.legend(handles=tier_h, title="tier (colour)", loc="upper left", bbox_to_anchor=(x0, 0.95), fontsize=8.5)
+    fig.add_artist(leg)
+    leg2 = fig.legend(handles=fam_h, title="method (marker)", loc="upper left", bbox_to_anchor=(x0, 0.70),
+                      fontsize=8.5)
+    fig.add_artist(leg2)
+    fig.legend(handles=front_h, loc="upper left", bbox_to_anchor=(x0, 0.45), fontsize=8.5)
+    fig.text(x0, 0.30, "faded: not on the front\n(something else is both\nfaster and closer to\nthe reference)",
+             fontsize=8, color="dimgrey", va="top")
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
@@ -347,8 +388,14 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--install", action="store_true",
                     help="also write the crossover to the user cache that select_renderer reads")
-    ap.add_argument("--skip-crossover", action="store_true")
+    ap.add_argument("--skip-crossover", action="store_true",
+                    help="keep the crossover figures of the existing tiers.json (and crossover.json)")
+    ap.add_argument("--chart-only", action="store_true", help="redraw tiers.png from tiers.json, run nothing")
     a = ap.parse_args(argv)
+    if a.chart_only:
+        chart(json.loads((RESULTS / "tiers.json").read_text())["rows"], RESULTS / "tiers.png")
+        print(f"wrote {RESULTS / 'tiers.png'}")
+        return 0
     size = tuple(int(v) for v in a.size.split("x"))
     tiers = [t for t in a.tiers.split(",") if t]
     aspect = size[0] / size[1]
@@ -365,6 +412,10 @@ def main(argv=None) -> int:
                        "numpy": np.__version__},
            "size": list(size), "repeats": a.repeats, "reference": "cpu tier, every point, float64 projection",
            "rows": rows}
+    if a.skip_crossover and (RESULTS / "tiers.json").exists():
+        old = json.loads((RESULTS / "tiers.json").read_text())
+        if "crossover" in old:
+            out["crossover"] = old["crossover"]
     if not a.skip_crossover:
         sizes = [1_000, 10_000, 30_000, 100_000, 300_000] if a.quick else [1_000, 3_000, 10_000, 30_000, 100_000, 300_000, 1_000_000]
         xo = crossover_runs(tiers, (1280, 720), sizes, a.repeats)

@@ -114,6 +114,18 @@ class OutputConfig:
 
 
 @dataclass
+class EdlConfig:
+    """Eye-dome lighting: darkens a pixel by how far its 8 neighbours lie in front of it in
+    log2 depth (Potree's EDL; docs/render-tiers.md, "Eye-dome lighting"). Same formula in every tier."""
+
+    enabled: bool = False
+    #: Multiplies the 300 of ``shade = exp(-300 * strength * response)``; 0 = no darkening.
+    strength: float = field(default=1.0, metadata=check(non_negative))
+    #: Distance of the 8 neighbours in pixels (rounded per direction to whole pixels).
+    radius_px: float = field(default=1.4, metadata=check(at_least_one))
+
+
+@dataclass
 class RenderConfig:
     backend: Literal["auto", "wgpu", "gl", "cpu"] = "auto"
     size: list[int] = field(default_factory=lambda: [1280, 720], metadata=check(
@@ -146,6 +158,8 @@ class RenderConfig:
     #: wgpu tier: ``compute`` (atomic per-pixel keys), ``quads`` (instanced-quad draw) or
     #: ``auto`` (compute where it measured faster; see docs/render-wgpu.md).
     raster: Literal["auto", "compute", "quads"] = "auto"
+    #: Eye-dome lighting (depth cue for clouds without normals); off by default.
+    edl: EdlConfig = field(default_factory=EdlConfig)
 
 
 @dataclass

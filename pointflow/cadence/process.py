@@ -79,7 +79,6 @@ class Cadence:
         self.points_out = 0
         self.skipped: collections.Counter[str] = collections.Counter()
         self.hellos = 0
-        self.frames_reported = 0
         self.bad_messages = 0
         self.latest_only = latest_only
         self.last_pub_seq = 0       # newest handoff sent
@@ -126,7 +125,6 @@ class Cadence:
             if msg.gpu:
                 self.on_gpu_info(msg.gpu)
         elif isinstance(msg, FrameTime):
-            self.frames_reported += 1
             self._done(msg.seq)
             self.on_frame_time(msg.frame_ms)
 

@@ -69,9 +69,6 @@ class Ticker:
         self._k = 1
         self._interval = float(interval_s)
 
-    def remaining(self) -> float:
-        return self.next_deadline - self.clock()
-
     def poll(self) -> Optional[Tick]:
         """Serve the due tick if its deadline has passed (no waiting), else ``None``."""
         now = self.clock()

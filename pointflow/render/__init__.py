@@ -13,7 +13,7 @@ _LAZY = {
     "CpuRenderer": "pointflow.render.cpu",
     "GlRenderer": "pointflow.render.gl",
     "WgpuRenderer": "pointflow.render.wgpu_tier",
-    "pcg_hash": "pointflow.render.cpu",
+    "pcg_hash": "pointflow.render.rules",
 }
 
 

@@ -11,7 +11,7 @@ keeps logical indices divisible by it. Importance sampling keeps a point when
 ``pcg_hash(slot, seed) / 2**32 <= p`` with p the importance normalised over its range
 (p = 1 for a degenerate range); a budget b below the survivors n thins them by
 ``max(b - 3*sqrt(b), b/2) / n`` and then keeps at most b. The auto colour range is taken
-over occupied slots with finite positions. Reference implementation: ``cpu.py``.
+over occupied slots with finite positions. Reference implementation: ``rules.py``.
 """
 from __future__ import annotations
 

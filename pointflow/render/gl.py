@@ -1,7 +1,7 @@
 """The OpenGL render tier (moderngl, EGL headless): for machines without a WebGPU adapter.
 
 Culling, time window, LOD, importance sampling and budget run on the CPU with the same
-vectorised code as the cpu tier (:func:`pointflow.render.cpu.select_points`), colours are
+vectorised rules as the cpu tier (:func:`pointflow.render.rules.select_points`), colours are
 looked up there too (so they match bit for bit); then one instanced draw of the
 survivors: 6 vertices per point expanded from ``gl_VertexID`` (no 64 px point-sprite cap),
 projected on the GPU with the float32 cast of the float64 origin-relative matrix.
@@ -18,6 +18,12 @@ matrix is premultiplied by ``GL_DEPTH_FIX`` (``z' = 2z - w``); window depth then
 the WebGPU NDC depth again (glDepthRange 0..1).
 
 Picking draws ``slot + 1`` into a second RGBA8 attachment (4 bytes) in the same pass.
+
+Eye-dome lighting (``render.edl.enabled``): the draw also writes (log2 clip w, 1) of the
+winning point into an RG32F attachment (cleared to 0 = background); a post pass over a
+full-screen triangle applies :func:`pointflow.render.rules.edl_shade` with the offsets
+from :func:`~pointflow.render.rules.edl_offsets` as uniforms, into a separate RGBA8 target
+that :meth:`GlRenderer.read_image` reads. With EDL off none of this exists.
 """
 from __future__ import annotations
 
@@ -29,8 +35,8 @@ import numpy as np
 from ..config import RenderConfig
 from .base import FrameInput, FrameStats, Renderer, RenderError
 from .camera import Camera
-from .cpu import (MAX_POINT_PX, drawn_attributes, in_pick_circle, pick_window, point_colors, resolve_pick, rgba_u8,
-                  select_points)
+from .rules import (EDL_NEIGHBOURS, EDL_SCALE, MAX_POINT_PX, drawn_attributes, edl_offsets, in_pick_circle,
+                    pick_window, point_colors, resolve_pick, rgba_u8, select_points)
 
 __all__ = ["GlRenderer", "GL_DEPTH_FIX"]
 
@@ -49,6 +55,9 @@ in uint in_slot;
 flat out vec4 v_color;
 flat out vec3 v_centre;     // (px, py) top-left origin, half size
 flat out uint v_id;
+#ifdef EDL
+flat out float v_logz;      // log2 of the positive linear view depth (clip w)
+#endif
 const vec2 CORNERS[6] = vec2[](vec2(-1, -1), vec2(1, -1), vec2(1, 1), vec2(-1, -1), vec2(1, 1), vec2(-1, 1));
 void main() {
     vec4 clip = u_vp * vec4(in_pos, 1.0);
@@ -60,6 +69,9 @@ void main() {
     gl_Position = vec4((ndc + off) * clip.w, clip.z, clip.w);
     v_color = in_color;
     v_id = in_slot + 1u;
+#ifdef EDL
+    v_logz = log2(clip.w);
+#endif
 }
 """
 
@@ -72,6 +84,10 @@ flat in vec3 v_centre;
 flat in uint v_id;
 layout(location = 0) out vec4 f_color;
 layout(location = 1) out vec4 f_id;  // slot + 1, little-endian bytes (exact in RGBA8)
+#ifdef EDL
+flat in float v_logz;
+layout(location = 2) out vec2 f_logz;  // (log2 depth, 1 = covered)
+#endif
 void main() {
     vec2 c = vec2(gl_FragCoord.x, u_height - gl_FragCoord.y);  // pixel centre, top-left origin
     vec2 d = c - v_centre.xy;
@@ -83,6 +99,42 @@ void main() {
     }
     f_color = v_color;
     f_id = vec4(uvec4(v_id, v_id >> 8u, v_id >> 16u, v_id >> 24u) & 255u) / 255.0;
+#ifdef EDL
+    f_logz = vec2(v_logz, 1.0);
+#endif
+}
+"""
+
+_EDL_VERT = """
+#version 330
+void main() {  // one triangle covering the viewport
+    vec2 p = vec2(float((gl_VertexID << 1) & 2), float(gl_VertexID & 2));
+    gl_Position = vec4(p * 2.0 - 1.0, 0.0, 1.0);
+}
+"""
+
+#: rules.edl_shade on the GPU: offsets arrive as integers (dy counts rows downward).
+_EDL_FRAG = """
+#version 330
+uniform sampler2D u_color;
+uniform sampler2D u_logz;          // (log2 depth, covered)
+uniform ivec2 u_offsets[NEIGHBOURS];
+uniform float u_k;                 // EDL_SCALE * strength / NEIGHBOURS
+out vec4 f_color;
+void main() {
+    ivec2 p = ivec2(gl_FragCoord.xy);
+    vec4 c = texelFetch(u_color, p, 0);
+    vec2 d = texelFetch(u_logz, p, 0).xy;
+    if (d.y == 0.0) { f_color = c; return; }  // background: unchanged, no halo
+    ivec2 size = textureSize(u_logz, 0);
+    float sum = 0.0;
+    for (int k = 0; k < NEIGHBOURS; k++) {
+        ivec2 q = p + ivec2(u_offsets[k].x, -u_offsets[k].y);  // GL rows go up
+        if (any(lessThan(q, ivec2(0))) || any(greaterThanEqual(q, size))) continue;
+        vec2 n = texelFetch(u_logz, q, 0).xy;
+        if (n.y != 0.0) sum += max(0.0, d.x - n.x);
+    }
+    f_color = vec4(c.rgb * exp(-u_k * sum), c.a);
 }
 """
 
@@ -111,13 +163,19 @@ class GlRenderer(Renderer):
             mx = ctx.info.get("GL_MAX_RENDERBUFFER_SIZE", 16384)
             if W > mx or H > mx:
                 raise RenderError(f"viewport {W}x{H} exceeds GL_MAX_RENDERBUFFER_SIZE {mx}")
-            self._color = ctx.renderbuffer((W, H), 4)
+            edl = cfg.edl.enabled
+            self._color = ctx.texture((W, H), 4) if edl else ctx.renderbuffer((W, H), 4)
             self._ids = ctx.renderbuffer((W, H), 4)  # slot + 1 as 4 little-endian bytes
             self._depth = ctx.depth_renderbuffer((W, H))
-            self.fbo = ctx.framebuffer(color_attachments=[self._color, self._ids], depth_attachment=self._depth)
+            extra = [ctx.texture((W, H), 2, dtype="f4")] if edl else []
+            self.fbo = ctx.framebuffer(color_attachments=[self._color, self._ids, *extra],
+                                       depth_attachment=self._depth)
             self._ids_fbo = ctx.framebuffer(color_attachments=[self._ids])
-            self.prog = ctx.program(vertex_shader=_VERT.replace("MAX_PX", f"{MAX_POINT_PX:.1f}"),
-                                    fragment_shader=_FRAG)
+            define = "#version 330\n#define EDL 1\n" if edl else "#version 330\n"
+            self.prog = ctx.program(
+                vertex_shader=_VERT.replace("MAX_PX", f"{MAX_POINT_PX:.1f}").replace("#version 330\n", define),
+                fragment_shader=_FRAG.replace("#version 330\n", define))
+            self._edl = self._edl_pass(extra[0]) if edl else None
         except RenderError:
             self.ctx.release()
             raise
@@ -132,6 +190,20 @@ class GlRenderer(Renderer):
         self.nonfinite_total = 0
         self.frames = 0
         self._clear()
+
+    def _edl_pass(self, logz) -> dict[str, Any]:
+        """The EDL post pass: program, empty vertex array, output target."""
+        ctx = self.ctx
+        prog = ctx.program(vertex_shader=_EDL_VERT,
+                           fragment_shader=_EDL_FRAG.replace("NEIGHBOURS", str(EDL_NEIGHBOURS)))
+        prog["u_offsets"].write(edl_offsets(self.cfg.edl.radius_px).astype("<i4").tobytes())
+        prog["u_k"].value = EDL_SCALE * float(self.cfg.edl.strength) / EDL_NEIGHBOURS
+        prog["u_color"].value = 0
+        prog["u_logz"].value = 1
+        out = ctx.renderbuffer((self.width, self.height), 4)
+        return {"prog": prog, "vao": ctx.vertex_array(prog, []), "logz": logz,
+                "logz_fbo": ctx.framebuffer(color_attachments=[logz]), "out": out,
+                "fbo": ctx.framebuffer(color_attachments=[out])}
 
     def _ensure_buffer(self, n: int) -> None:
         if self._buf is not None and n <= self._buf_points:
@@ -150,6 +222,8 @@ class GlRenderer(Renderer):
         colour attachments with one value, so the ids are cleared through their own fbo."""
         self.fbo.clear(*(self._bg.astype(np.float64) / 255.0), depth=1.0)
         self._ids_fbo.clear(0.0, 0.0, 0.0, 0.0)
+        if self._edl is not None:
+            self._edl["logz_fbo"].clear(0.0, 0.0, 0.0, 0.0)
         self.fbo.use()
 
     def render(self, frame: FrameInput, camera: Camera) -> FrameStats:
@@ -184,6 +258,13 @@ class GlRenderer(Renderer):
             ctx.depth_func = "<="
             if n:
                 self._vao.render(self._mgl.TRIANGLES, vertices=6, instances=n)
+            if self._edl is not None:
+                e = self._edl
+                e["fbo"].use()
+                ctx.enable_only(self._mgl.NOTHING)
+                self._color.use(location=0)
+                e["logz"].use(location=1)
+                e["vao"].render(self._mgl.TRIANGLES, vertices=3)
             ctx.finish()
             err = ctx.error
             if err != "GL_NO_ERROR":
@@ -205,15 +286,12 @@ class GlRenderer(Renderer):
         )
 
     def read_image(self) -> np.ndarray:
-        raw = self.fbo.read(components=4, attachment=0, alignment=1)
+        if self._edl is not None:
+            raw = self._edl["fbo"].read(components=4, attachment=0, alignment=1)
+        else:
+            raw = self.fbo.read(components=4, attachment=0, alignment=1)
         img = np.frombuffer(raw, np.uint8).reshape(self.height, self.width, 4)
         return img[::-1].copy()  # GL rows start at the bottom
-
-    def read_ids(self) -> np.ndarray:
-        """(h, w) int64 slot per pixel (-1 = background), top row first."""
-        raw = self.fbo.read(components=4, attachment=1, alignment=1)
-        ids = np.frombuffer(raw, "<u4").reshape(self.height, self.width)[::-1]
-        return ids.astype(np.int64) - 1
 
     def pick(self, x: float, y: float, pixel_ratio: float = 1.0) -> Optional[int]:
         win = pick_window(self.width, self.height, x, y, pixel_ratio, self.cfg.pick_radius)

@@ -152,47 +152,45 @@ def main(ctx: StageContext) -> None:
             if got is None:
                 continue
             h, view = got
-            t0 = time.monotonic_ns()
-            frame = frame_from_slab(h, view, t0, capacity)
-            camera = cam.update(frame)
-            if camera is None:  # nothing to frame yet
-                reader.release(h.slab)
-                continue
-            try:
-                if want_window and window is None:
-                    from .window import PointWindow
+            try:  # the slab is read only inside this block and goes back in its finally, the one place
+                t0 = time.monotonic_ns()
+                frame = frame_from_slab(h, view, t0, capacity)
+                camera = cam.update(frame)
+                if camera is None:  # nothing to frame yet
+                    continue
+                try:
+                    if want_window and window is None:
+                        from .window import PointWindow
 
-                    window = PointWindow(renderer, camera, title=f"pointflow: {cfg.name}",
-                                         on_pick=lambda slot, x, y: _print_pick(ring, slot, x, y))
-                    c.extra["window"] = True
-                    ctx.log.info("window open on display %s", os.environ.get("DISPLAY"))
-                if window is not None:
-                    if not window.step(frame):
-                        reader.release(h.slab)
-                        ctx.request_stop("window closed")
-                        break
-                    fs = window.last_stats
-                else:
-                    fs = renderer.render(frame, camera)
-            except ValueError as exc:  # a malformed frame (tiers check their input): skip it, counted
-                reader.release(h.slab)
-                ctx.log.error("frame %d rejected by the %s tier: %s", h.seq, renderer.tier, exc)
-                c.drop("bad_frame", 1)
-                continue
-            except RenderError as exc:
-                reader.release(h.slab)
-                from .select import fallback_after
+                        window = PointWindow(renderer, camera, title=f"pointflow: {cfg.name}",
+                                             on_pick=lambda slot, x, y: _print_pick(ring, slot, x, y))
+                        c.extra["window"] = True
+                        ctx.log.info("window open on display %s", os.environ.get("DISPLAY"))
+                    if window is not None:
+                        if not window.step(frame):
+                            ctx.request_stop("window closed")
+                            break
+                        fs = window.last_stats
+                    else:
+                        fs = renderer.render(frame, camera)
+                except ValueError as exc:  # a malformed frame (tiers check their input): skip it, counted
+                    ctx.log.error("frame %d rejected by the %s tier: %s", h.seq, renderer.tier, exc)
+                    c.drop("bad_frame", 1)
+                    continue
+                except RenderError as exc:
+                    from .select import fallback_after
 
-                ctx.log.error("%s tier failed (%s); falling back", renderer.tier, exc)
-                renderer = fallback_after(renderer, exc, cfg.render, capacity, channels)
-                if window is not None:
-                    window.renderer = renderer
-                c.extra["tier"] = renderer.tier
-                c.extra["tier_info"] = renderer.info()
-                c.drop("render_error", 1)
-                continue
+                    ctx.log.error("%s tier failed (%s); falling back", renderer.tier, exc)
+                    renderer = fallback_after(renderer, exc, cfg.render, capacity, channels)
+                    if window is not None:
+                        window.renderer = renderer
+                    c.extra["tier"] = renderer.tier
+                    c.extra["tier_info"] = renderer.info()
+                    c.drop("render_error", 1)
+                    continue
+            finally:
+                reader.release(h.slab)
             t_up = time.monotonic_ns()
-            reader.release(h.slab)
             if tracing and h.trace_ids and hasattr(renderer, "finish"):
                 renderer.finish()  # frame_done means the GPU work is complete
             frames += 1

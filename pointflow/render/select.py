@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Callable, Optional
 
 from ..config import RenderConfig
+from . import calibration
 from .base import Renderer, RenderError
 
 log = logging.getLogger("pointflow.render.select")
@@ -35,11 +36,13 @@ TIERS = {
 }
 ENV_BACKEND = "POINTFLOW_BACKEND"
 ENV_CROSSOVER = "POINTFLOW_CROSSOVER"
-#: Used when nothing was measured on this machine. ``bench/bench_tiers.py`` measured 0 on the
+#: Used when no calibration file is readable (the package ships one, see
+#: :mod:`pointflow.render.calibration`). ``bench/bench_tiers.py`` measured 0 on the
 #: development machine (2 cores, lavapipe/llvmpipe): the GPU tiers beat the numpy tier even
 #: at 1,000 points there (its fixed per-frame cost is ~12 ms at 1280x720), so size alone
 #: never sends a scene to the cpu tier unless a measurement says so.
 DEFAULT_CROSSOVER = 0
+CROSSOVER_FILE = "crossover.json"
 
 
 def _load_class(tier: str) -> type[Renderer]:
@@ -49,12 +52,7 @@ def _load_class(tier: str) -> type[Renderer]:
 
 def cache_path() -> Path:
     """The per-user file the benchmark writes the measured crossover to."""
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return Path(base) / "pointflow" / "crossover.json"
-
-
-def _repo_result() -> Path:
-    return Path(__file__).resolve().parents[2] / "bench" / "results" / "crossover.json"
+    return calibration.cache_path(CROSSOVER_FILE)
 
 
 def _read_crossover_file(path: Path) -> Optional[int]:
@@ -68,8 +66,8 @@ def _read_crossover_file(path: Path) -> Optional[int]:
 def crossover_points(cfg: Optional[RenderConfig] = None) -> tuple[int, str]:
     """(points, where it came from). First match wins: ``render.cpu_crossover_points``
     (an int), env ``POINTFLOW_CROSSOVER`` (an int or a JSON file path), the user cache
-    file (:func:`cache_path`), the checkout's ``bench/results/crossover.json``, then
-    :data:`DEFAULT_CROSSOVER`."""
+    file (:func:`cache_path`), the default shipped in the package (see
+    :mod:`pointflow.render.calibration`), then :data:`DEFAULT_CROSSOVER`."""
     if cfg is not None and isinstance(cfg.cpu_crossover_points, int):
         return cfg.cpu_crossover_points, "render.cpu_crossover_points"
     env = os.environ.get(ENV_CROSSOVER, "").strip()
@@ -80,11 +78,11 @@ def crossover_points(cfg: Optional[RenderConfig] = None) -> tuple[int, str]:
         if v is not None:
             return v, f"${ENV_CROSSOVER} ({env})"
         log.warning("%s=%r is neither an integer nor a readable crossover JSON; ignored", ENV_CROSSOVER, env)
-    for p in (cache_path(), _repo_result()):
-        v = _read_crossover_file(p)
-        if v is not None:
-            return v, str(p)
-    return DEFAULT_CROSSOVER, "built-in default"
+    data, where = calibration.load(CROSSOVER_FILE, ("crossover_points",))
+    try:
+        return int(data["crossover_points"]), where  # type: ignore[index]
+    except (TypeError, ValueError):
+        return DEFAULT_CROSSOVER, "built-in default"
 
 
 def _candidates(cfg: RenderConfig, expected_points: Optional[int], capacity: int, lines: list[str]) -> list[str]:

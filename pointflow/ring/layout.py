@@ -103,12 +103,6 @@ class RingLayout:
     def from_dict(cls, d: dict) -> "RingLayout":
         return cls(int(d["capacity"]), tuple(ChannelSpec(**c) for c in d.get("channels", ())), int(d.get("flags", 0)))
 
-    def channel(self, name: str) -> ChannelSpec | None:
-        for c in self.channels:
-            if c.name == name:
-                return c
-        return None
-
     def fingerprint(self) -> int:
         """A stable 63-bit hash of the layout (stored in segment headers)."""
         blob = json.dumps(self.to_dict(), sort_keys=True).encode()

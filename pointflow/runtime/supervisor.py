@@ -477,8 +477,6 @@ class Supervisor:
             except Exception:  # noqa: BLE001
                 log.exception("unlinking shared memory")
         self.slabs = None
-        if self.ring is not None:
-            self._ring_stats = None
         self.ring = None
         if self.collector is not None:
             self.collector.close()

@@ -77,3 +77,61 @@ def grid_plane(step: float = 0.05, half: float = 2.0, z: float = 0.0) -> np.ndar
     g = np.arange(-half, half + step / 2, step)
     x, y = np.meshgrid(g, g)
     return np.column_stack([x.ravel(), y.ravel(), np.full(x.size, z)])
+
+
+# --------------------------------------------------------------------------- agreement scenes
+#: The tier-agreement scenes (test_agreement.py, test_edl.py): name -> () -> (frame, camera,
+#: render config overrides). Together they cover every colour mode and a georeferenced origin.
+GEO = np.array([6.4e5, 4.9e6, 120.0])
+
+
+def _terrain():
+    w = terrain(20_000)
+    f = make_frame(w, capacity=24_000, head=20_000, intensity=((w[:, 2] + 3) / 14).astype(np.float32))
+    return f, terrain_camera(), dict(point_size=2)
+
+
+def _sphere():
+    w = sphere_shell(15_000)
+    f = make_frame(w, intensity=np.linspace(0, 1, len(w), dtype=np.float32))
+    cam = Camera(eye=[30, -25, 12], target=[0, 0, 0], near=5, far=80)
+    return f, cam, dict(point_size=5, point_shape="round", colormap="viridis")
+
+
+def _geo_height():
+    w = terrain(15_000) + GEO
+    f = make_frame(w, origin=GEO)
+    cam = terrain_camera().translated(GEO)
+    return f, cam, dict(point_size=3, color_by="z", color_range="auto", colormap="grayscale")
+
+
+def _world_rgb_filters():
+    w = terrain(20_000, seed=7)
+    rgb = (np.abs(w) * 9 % 255).astype(np.uint8)
+    t = np.linspace(0, 1000, len(w))
+    imp = np.abs(np.sin(w[:, 0])).astype(np.float32)
+    f = make_frame(w, capacity=22_000, head=15_000, rgb=rgb, t_ms=t, importance=imp, now_ms=1000.0, seed=11)
+    return f, terrain_camera(), dict(point_size=0.4, point_size_space="world", color_by="rgb",
+                                     time_window_ms=700.0, importance_sampling=True)
+
+
+SCENES = {"terrain": _terrain, "sphere": _sphere, "georeferenced": _geo_height, "world_rgb_filters": _world_rgb_filters}
+
+
+# --------------------------------------------------------------------------- eye-dome lighting
+WALL_FRONT_RGB = (200, 60, 60)
+WALL_BACK_RGB = (60, 200, 60)
+
+
+def walls(step: float = 0.1):
+    """A wall in front of a wall, both facing the camera (constant depth each, so EDL
+    darkens only where the near wall's outline meets the far one): back wall at y = 20,
+    front wall at y = 10 over the left-centre. Returns (frame, camera, config overrides)."""
+    def plane(x0, x1, z0, z1, y):
+        x, z = np.meshgrid(np.arange(x0, x1, step), np.arange(z0, z1, step))
+        return np.column_stack([x.ravel(), np.full(x.size, y), z.ravel()])
+    back, front = plane(-16, 16, -12, 12, 20.0), plane(-8, 0, -3, 3, 10.0)
+    rgb = np.vstack([np.tile(WALL_BACK_RGB, (len(back), 1)), np.tile(WALL_FRONT_RGB, (len(front), 1))])
+    f = make_frame(np.vstack([back, front]), rgb=rgb.astype(np.uint8))
+    cam = Camera(eye=[0, 0, 0], target=[0, 1, 0], near=1, far=100)
+    return f, cam, dict(point_size=2, color_by="rgb", background=[0.0, 0.0, 0.0])

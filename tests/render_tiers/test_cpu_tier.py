@@ -6,7 +6,8 @@ import numpy as np
 from scenes import make_frame, render_cfg, terrain, terrain_camera
 
 from pointflow.render.camera import Camera
-from pointflow.render.cpu import CpuRenderer, pcg_hash, select_points, uniform01, seed_hash
+from pointflow.render.cpu import CpuRenderer
+from pointflow.render.rules import pcg_hash, seed_hash, select_points, uniform01
 
 CAM = Camera(eye=[0, 0, 10], target=[0, 0, 0], up=[0, 1, 0], fov_deg=60, near=1, far=100)
 
@@ -85,7 +86,7 @@ def test_selection_matches_wgpu_reference_rules():
 
 
 def test_importance_range_for_budget_hits_the_budget_in_expectation():
-    from pointflow.render.cpu import importance_range_for_budget, keep_probability
+    from pointflow.render.rules import importance_range_for_budget, keep_probability
     rng = np.random.default_rng(0)
     imp = rng.uniform(0, 1, 100_000).astype(np.float32) ** 3  # mean p = 0.25
     for budget in (5_000, 50_000, 90_000):

@@ -9,7 +9,7 @@ from scenes import make_frame, render_cfg
 
 from pointflow.render import colormap
 from pointflow.render.camera import Camera
-from pointflow.render.cpu import rgba_u8
+from pointflow.render.rules import rgba_u8
 
 # Camera on +z looking at the origin: the origin projects to the viewport centre exactly.
 CAM = Camera(eye=[0, 0, 10], target=[0, 0, 0], up=[0, 1, 0], fov_deg=60, near=1, far=100)

@@ -9,7 +9,8 @@ from scenes import grid_plane, make_frame, render_cfg, sphere_shell
 
 from pointflow.config import ConfigError, load_config
 from pointflow.render.camera import Camera
-from pointflow.render.cpu import CpuRenderer, rgba_u8
+from pointflow.render.cpu import CpuRenderer
+from pointflow.render.rules import rgba_u8
 
 GEO = np.array([6.4e5, 4.9e6, 0.0])
 CAM = Camera(eye=[0, 0, 10], target=[0, 0, 0], up=[0, 1, 0], fov_deg=60, near=1, far=100)

@@ -92,3 +92,15 @@ def test_transports_do_not_import_config():
 
 def test_typed_loader_is_the_bottom_layer():
     assert not _graph()["pointflow.typed"], "pointflow.typed must import nothing of pointflow"
+
+
+def test_no_render_tier_imports_another_tier():
+    """The shared draw rules live in render/rules.py; a tier never borrows them from another."""
+    tiers = {"cpu": "pointflow.render.cpu", "gl": "pointflow.render.gl", "wgpu": "pointflow.render.wgpu_tier"}
+    g = _graph()
+    offenders = {(m, d) for m, deps in g.items() for d in deps
+                 for t, root in tiers.items() for u, other in tiers.items()
+                 if t != u and (m == root or m.startswith(root + ".")) and (d == other or d.startswith(other + "."))}
+    assert not offenders, sorted(offenders)
+    assert "pointflow.render.rules" in g["pointflow.render.cpu"] and "pointflow.render.rules" in g["pointflow.render.gl"]
+    assert "pointflow.render.rules" in g["pointflow.render.wgpu_tier.reference"]

@@ -1,7 +1,8 @@
-"""float64/numpy reference of the wgpu tier's per-point rules (tests and other tiers use it).
+"""The wgpu tier's per-point rules in per-slot form (float64/numpy), for its tests.
 
-Every rule here is what ``shaders.CULL`` computes on the GPU, so another tier can select
-exactly the same points:
+The rules themselves (hash, draws, keep probability, budget fraction) are
+:mod:`pointflow.render.rules`, shared by every tier; here they are applied slot by slot, the
+way ``shaders.CULL`` computes them on the GPU:
 
 * occupancy: slot ``s`` is occupied iff ``(s - head) % capacity < size``; its logical
   index is ``(s - head) % capacity`` (0 = oldest).
@@ -27,42 +28,20 @@ from typing import Optional
 
 import numpy as np
 
-_M32 = np.uint64(0xFFFFFFFF)
+from ..rules import budget_fraction, budget_seed, keep_probability, pcg, seed_hash, uniform01
 
+#: The WGSL ``pcg(v)`` (tests and callers of this module know it by this name).
+pcg_hash = pcg
 
-def pcg_hash(v) -> np.ndarray:
-    """PCG RXS-M-XS 32-bit hash (Jarzynski & Olano 2020), vectorised, uint32 in/out."""
-    x = np.asarray(v).astype(np.uint64) & _M32
-    state = (x * np.uint64(747796405) + np.uint64(2891336453)) & _M32
-    word = (((state >> ((state >> np.uint64(28)) + np.uint64(4))) ^ state) * np.uint64(277803737)) & _M32
-    return ((word >> np.uint64(22)) ^ word).astype(np.uint32)
-
-
-def seed_hash(frame_seed: int) -> int:
-    """Per-frame seed for importance sampling."""
-    return int(pcg_hash(np.uint64(int(frame_seed) & 0xFFFFFFFF)))
-
-
-def budget_seed(frame_seed: int) -> int:
-    """Per-frame seed for budget thinning (independent of the importance draw)."""
-    return int(pcg_hash(np.uint64(seed_hash(frame_seed) ^ 0x9E3779B9)))
-
-
-def uniform01(slots: np.ndarray, seed: int) -> np.ndarray:
-    """The GPU's uniform draw in [0, 1): top 24 bits of the hash, exact in float32."""
-    h = pcg_hash(np.asarray(slots, np.uint64) ^ np.uint64(seed))
-    return (h >> np.uint32(8)).astype(np.float32) * np.float32(2.0 ** -24)
+__all__ = ["pcg_hash", "seed_hash", "budget_seed", "uniform01", "budget_fraction", "normalised_importance",
+           "keep_mask", "plane_margin"]
 
 
 def normalised_importance(imp: np.ndarray, rng: Optional[tuple[float, float]]) -> np.ndarray:
-    imp = np.asarray(imp, np.float32)
-    if rng is None or not float(rng[1]) > float(rng[0]):
-        return np.ones(imp.shape, np.float32)
-    lo, hi = float(rng[0]), float(rng[1])
-    n = (imp - np.float32(lo)) * np.float32(1.0 / (hi - lo))
-    n = np.clip(n, 0.0, 1.0).astype(np.float32)
-    n[~np.isfinite(n)] = 0.0
-    return n
+    """rules.keep_probability over ``rng`` (1.0 everywhere without a range)."""
+    if rng is None:
+        return np.ones(np.shape(imp), np.float32)
+    return keep_probability(imp, float(rng[0]), float(rng[1]))
 
 
 def keep_mask(positions: np.ndarray, head: int, size: int, capacity: int, planes: np.ndarray, *,
@@ -88,14 +67,6 @@ def keep_mask(positions: np.ndarray, head: int, size: int, capacity: int, planes
         u = uniform01(slots, seed_hash(frame_seed))
         keep &= u <= normalised_importance(importance, importance_range)
     return keep
-
-
-def budget_fraction(budget: int, survivors: int) -> float:
-    """Keep probability of a survivor under the budget (float32, as on the GPU)."""
-    if survivors <= budget:
-        return 2.0
-    b = np.float32(budget)
-    return float(np.float32(max(b - np.float32(3.0) * np.sqrt(b), np.float32(0.5) * b)) / np.float32(survivors))
 
 
 def plane_margin(positions: np.ndarray, planes: np.ndarray) -> np.ndarray:

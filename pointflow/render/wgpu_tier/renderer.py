@@ -1,19 +1,16 @@
-"""The wgpu render tier: incremental upload, compute cull + compaction, indirect draw, picking.
+"""The wgpu render tier's core: device, incremental upload, Params, counters, timing, picking.
 
-Frame path (no Python loop over points, no readback):
+The raster method (``render.raster``) is a strategy (:mod:`.raster`): the core owns what
+every method shares and hands it over as a :class:`.raster.Gpu`; the method records its
+passes for each frame's :class:`.raster.FramePlan`. Frame path (no Python loop over points,
+no readback on the frame path):
 
 1. upload the dirty slot ranges into the GPU buffer set ``k % 2`` (the other set may still
    be read by the previous frame; each set catches up on the ranges it missed);
-2. compute ``cull`` (one thread per logical index, workgroup 256): occupancy, finite,
-   time window, 6 frustum planes, LOD stride, importance sampling -> a keep flag and a
-   count per workgroup; ``scan`` (one workgroup) turns the counts into offsets; ``emit``
-   writes survivors in logical order as (slot, RGBA8 colour) + clip position, so the
-   projection and colour are computed once per point, not once per quad vertex, and
-   equal-depth ties resolve to the lower logical index; ``finalize`` writes the count
-   into the ``drawIndirect`` arguments (with a budget, ``thin``/``thin_scan``/``thin_emit``
-   + ``finalize_budget`` thin the survivors to the budget the same way);
-3. ``draw_indirect`` of instanced quads (6 vertices per point) into an RGBA8 target, with
-   a vertex/fragment variant specialised for the shape, size space and colour source.
+2. write the frame's ``Params`` (:mod:`.frame_params`) and reset the counters;
+3. the method's passes (quads: cull + compaction + indirect draw; compute: fused tests +
+   atomic depth keys + per-pixel resolve);
+4. copy the counters into a fence buffer and submit.
 
 At most two frames are in flight: before reusing buffer set ``s`` we wait for the frame
 that last read it, which also bounds latency when the GPU is slower than the cadence.
@@ -24,7 +21,6 @@ The wait maps a 64-byte fence into which that frame copied its counters, so the
 from __future__ import annotations
 
 import logging
-import math
 import time
 from typing import Any, Optional
 
@@ -34,26 +30,14 @@ from ...config import RenderConfig
 from .. import colormap
 from ..base import FrameInput, FrameStats, Renderer, RenderError
 from ..camera import Camera
-from . import shaders
-from .compute_raster import KEY64_FEATURES, ComputeRaster, choose_raster
+from . import frame_params
 from .device import adapter_summary, request_device, select_adapter
-from .reference import budget_seed, seed_hash
+from .layout import PARAMS_DTYPE, ColourMode
+from .pick import pick_block, resolve_pick
+from .raster import METHODS, FramePlan, Gpu, RasterMethod, choose_raster
 
 log = logging.getLogger("pointflow.render.wgpu")
 
-# word offsets in the Params uniform (see shaders.PARAMS)
-_P_VP, _P_MODEL, _P_PLANES, _P_COLOR = 0, 16, 32, 56
-(_P_VW, _P_VH, _P_PSIZE, _P_SSCALE, _P_NOW_HI, _P_NOW_LO, _P_WINDOW, _P_IMP_LO, _P_IMP_SCALE,
- _P_RANGE_LO, _P_RANGE_SCALE, _P_RANGE_HI) = range(60, 72)
-(_P_HEAD, _P_SIZE, _P_CAP, _P_LOD, _P_SEED, _P_FLAGS, _P_BUDGET, _P_CMODE, _P_BSEED, _P_GX,
- _P_NSLOTS, _P_GTOTAL) = range(72, 84)
-_P_WORDS = 84
-
-F_WINDOW, F_IMPORTANCE, F_IMP_DEGENERATE = 1, 2, 4
-F_WORLD_SIZE, F_ROUND, F_RANGE_AUTO, F_RANGE_DEGENERATE, F_COLOUR_IN_VS = 16, 32, 64, 128, 256
-C_FIXED, C_RGB, C_SCALAR, C_Z, C_TIME = range(5)
-NO_BUDGET = 0xFFFFFFFF
-_EMIT_K = 8  # logical indices per thread in the emit pass (shaders.EMIT_K)
 _MAX_GROUPS = 65535
 
 #: test-only switch: draw with an absolute float32 model matrix instead of the float64
@@ -61,6 +45,8 @@ _MAX_GROUPS = 65535
 NAIVE_FLOAT32 = False
 
 Range = tuple[int, int]
+
+__all__ = ["WgpuRenderer", "merge_ranges", "resolve_pick"]
 
 
 def merge_ranges(ranges: list[Range], capacity: int) -> list[Range]:
@@ -80,11 +66,6 @@ def merge_ranges(ranges: list[Range], capacity: int) -> list[Range]:
         else:
             merged.append((a, b))
     return merged
-
-
-def _mat_cols(m: np.ndarray) -> np.ndarray:
-    """float64 row-major 4x4 -> float32 column-major (WGSL mat4x4 layout)."""
-    return np.ascontiguousarray(np.asarray(m, np.float64).T, dtype=np.float32).ravel()
 
 
 class WgpuRenderer(Renderer):
@@ -114,10 +95,10 @@ class WgpuRenderer(Renderer):
                 int(capacity))
         except ValueError as e:
             raise RenderError(str(e)) from e
-        # key64=False (tests) forces the two-pass 32-bit variant where 64-bit atomics exist
-        want64 = KEY64_FEATURES if self.raster == "compute" and key64 is not False else ()
+        self._method_cls: type[RasterMethod] = METHODS[self.raster]
         try:
-            self.device, dinfo = request_device(adapter, bool(cfg.gpu_timestamps), want64)
+            self.device, dinfo = request_device(adapter, bool(cfg.gpu_timestamps),
+                                                self._method_cls.wanted_features(cfg, key64))
         except Exception as e:
             raise RenderError(f"wgpu device request failed on {adapter.summary}: {e}") from e
         self.adapter = adapter
@@ -127,12 +108,12 @@ class WgpuRenderer(Renderer):
         self._limits = dinfo["limits"]
         self._key64 = bool(dinfo["features"])
         self._max_groups = int(max_groups or self._limits.get("max-compute-workgroups-per-dimension", _MAX_GROUPS))
-        self._compute: Optional[ComputeRaster] = None
         self._caps: list[str] = []
         self.render_capacity = self._cap_capacity(int(capacity))
         self._setup_colour(channels)
-        self._need_t = cfg.time_window_ms > 0 or self._cmode == C_TIME or cfg.pick_strategy == "recent_first"
+        self._need_t = cfg.time_window_ms > 0 or self._cmode == ColourMode.TIME or cfg.pick_strategy == "recent_first"
         self._need_imp = bool(cfg.importance_sampling) or cfg.pick_strategy == "highest_importance"
+        self._method: Optional[RasterMethod] = None
         try:
             self._create_resources()
         except Exception as e:
@@ -143,16 +124,15 @@ class WgpuRenderer(Renderer):
         self.nonfinite_total = 0
         self._ts_used = [False, False]
         self._frame_no = 0
-        self._last: Optional[dict[str, Any]] = None
+        self._last: Optional[FramePlan] = None
         self._origin: Optional[np.ndarray] = None
         self._gpu_ms: dict[str, float] = {}
-        self._warned: set[str] = set()
         self._closed = False
         log.info("wgpu tier on %s (%s); capacity %d%s; timestamps %s", adapter.summary, why,
                  self.render_capacity, f" (capped: {'; '.join(self._caps)})" if self._caps else "",
                  "on" if self._ts else "off")
         log.info("wgpu tier raster method: %s (%s)%s", self.raster, self._raster_why,
-                 f"; keys: {self.key_variant}" if self._compute else "")
+                 "".join(f"; {k}: {v}" for k, v in self._method.info().items()))
 
     # ------------------------------------------------------------------ setup
     def _cap_capacity(self, capacity: int) -> int:
@@ -165,8 +145,8 @@ class WgpuRenderer(Renderer):
             self._caps.append(f"ring capacity {cap} > {max_pos} points: positions would need {cap * 12} bytes, "
                               f"device allows {min(per_binding, per_buffer)} per storage buffer")
             cap = max_pos
-        per_group = 256 * 16 if self.raster == "compute" else 256
-        max_dispatch = int(lim.get("max-compute-workgroups-per-dimension", _MAX_GROUPS)) ** 2 * per_group
+        max_dispatch = int(lim.get("max-compute-workgroups-per-dimension", _MAX_GROUPS)) ** 2 \
+            * self._method_cls.points_per_group
         if cap > max_dispatch:
             self._caps.append(f"capped to {max_dispatch} points by the compute dispatch limit")
             cap = max_dispatch
@@ -178,19 +158,19 @@ class WgpuRenderer(Renderer):
         cb = self.cfg.color_by
         self._cchan: Optional[str] = None
         if cb is None or cb == "none":
-            self._cmode = C_FIXED
+            self._cmode = ColourMode.FIXED
         elif cb == "rgb":
-            self._cmode, self._cchan = C_RGB, "rgb"
+            self._cmode, self._cchan = ColourMode.RGB, "rgb"
         elif cb in ("z", "height"):
-            self._cmode = C_Z
+            self._cmode = ColourMode.Z
         elif cb == "ingest_time":
-            self._cmode = C_TIME
+            self._cmode = ColourMode.TIME
         else:
-            self._cmode, self._cchan = C_SCALAR, cb
+            self._cmode, self._cchan = ColourMode.SCALAR, cb
         if self._cchan is not None and self._cchan not in channels:
             log.warning("wgpu tier: colour channel %r is not stored in the ring (channels %s); "
                         "drawing the single colour", self._cchan, channels)
-            self._cmode, self._cchan = C_FIXED, None
+            self._cmode, self._cchan = ColourMode.FIXED, None
 
     def _buf(self, size: int, usage: int, label: str) -> Any:
         return self.device.create_buffer(size=max(int(size), 16), usage=usage, label=label)
@@ -200,138 +180,33 @@ class WgpuRenderer(Renderer):
         BU = wgpu.BufferUsage
         cap = self.render_capacity
         sto = BU.STORAGE | BU.COPY_DST
-        self._sets = []
-        for s in range(2):
-            self._sets.append({
-                "pos": self._buf(cap * 12, sto, f"pos{s}"),
-                "tms": self._buf(cap * 8 if self._need_t else 16, sto, f"tms{s}"),
-                "imp": self._buf(cap * 4 if self._need_imp else 16, sto, f"imp{s}"),
-                "col": self._buf(cap * 4 if self._cmode in (C_RGB, C_SCALAR) else 16, sto, f"col{s}"),
-            })
-        self._idx1 = self._clip1 = self._flags = self._wgc = None
-        if self.raster == "quads":
-            # compacted survivors: (slot, packed RGBA8 colour) pairs
-            self._idx1 = self._buf(cap * 8, BU.STORAGE | BU.COPY_SRC, "idx1")
-            self._clip1 = self._buf(cap * 16, BU.STORAGE, "clip1")  # survivors' clip positions
-            groups = (cap + 255) // 256
-            self._flags = self._buf(groups * 256 * 4, BU.STORAGE, "keep-flags")   # per logical index
-            self._wgc = self._buf((groups + _EMIT_K) * 4, BU.STORAGE, "workgroup-counts")  # -> offsets (scan)
-        self._idx2: Optional[Any] = None
-        self._clip2: Optional[Any] = None
+        colour_words = self._cmode in (ColourMode.RGB, ColourMode.SCALAR)
+        self._sets = [{"pos": self._buf(cap * 12, sto, f"pos{s}"),
+                       "tms": self._buf(cap * 8 if self._need_t else 16, sto, f"tms{s}"),
+                       "imp": self._buf(cap * 4 if self._need_imp else 16, sto, f"imp{s}"),
+                       "col": self._buf(cap * 4 if colour_words else 16, sto, f"col{s}")} for s in range(2)]
         self._state = self._buf(64, BU.STORAGE | BU.INDIRECT | BU.COPY_DST | BU.COPY_SRC, "state")
         self._rng = self._buf(8, BU.STORAGE | BU.COPY_DST, "range")
         self._dargs = self._buf(16, BU.STORAGE | BU.INDIRECT | BU.COPY_DST, "dispatch-args")
-        self._params = self._buf(_P_WORDS * 4, BU.UNIFORM | BU.COPY_DST, "params")
+        self._params = self._buf(PARAMS_DTYPE.itemsize, BU.UNIFORM | BU.COPY_DST, "params")
         self._lut = self._buf(1024, sto, "lut")
         self.queue.write_buffer(self._lut, 0, np.ascontiguousarray(colormap.lut(self.cfg.colormap)).view(np.uint32))
         self._state_reset = np.array([6, 0, 0, 0, 0, 1, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0], np.uint32)
         self._rng_reset = np.array([0xFFFFFFFF, 0], np.uint32)
-
-        self._round = self.cfg.point_shape == "round"
-        self._world = self.cfg.point_size_space == "world"
-        self._p_pick = None
-        w, h = self.width, self.height
-        self._color_tex = self._depth_tex = None
-        self._row_bytes = (w * 4 + 255) // 256 * 256
-        self._readback = self._buf(self._row_bytes * h, BU.MAP_READ | BU.COPY_DST, "readback")
-        self._pick_tex: Optional[dict[str, Any]] = None
+        self._row_bytes = (self.width * 4 + 255) // 256 * 256
+        self._readback = self._buf(self._row_bytes * self.height, BU.MAP_READ | BU.COPY_DST, "readback")
         self._fence = [self._buf(64, BU.MAP_READ | BU.COPY_DST, f"fence{s}") for s in range(2)]
+        qs = None
         if self._ts:
-            self._qs = dev.create_query_set(type=wgpu.QueryType.timestamp, count=4)
+            qs = dev.create_query_set(type=wgpu.QueryType.timestamp, count=4)
             self._ts_resolve = self._buf(32, BU.QUERY_RESOLVE | BU.COPY_SRC, "ts-resolve")
             self._ts_read = [self._buf(32, BU.MAP_READ | BU.COPY_DST, f"ts-read{s}") for s in range(2)]
-        self._bg_cache: dict[Any, Any] = {}
-        if self.raster == "compute":
-            self._compute = ComputeRaster(self, self._key64, self._max_groups)
-            return
-        self._create_quads()
-
-    def _create_quads(self) -> None:
-        """Pipelines and targets of the quads method (cull + compaction + indirect draw)."""
-        wgpu, dev = self._wgpu, self.device
-        TU = wgpu.TextureUsage
-        w, h = self.width, self.height
-        SS = wgpu.ShaderStage
-        ro = {"type": wgpu.BufferBindingType.read_only_storage}
-        rw = {"type": wgpu.BufferBindingType.storage}
-        uni = {"type": wgpu.BufferBindingType.uniform}
-
-        def bgl(kinds, vis, vis_of=None):
-            vis_of = vis_of or {}
-            return dev.create_bind_group_layout(entries=[
-                {"binding": i, "visibility": vis_of.get(i, vis), "buffer": k} for i, k in enumerate(kinds)])
-
-        self._bgl_cull = bgl([uni, ro, ro, ro, ro, rw, rw, rw, rw, ro, rw, rw, rw], SS.COMPUTE)
-        self._bgl_thin = bgl([uni, ro, rw, rw, ro, rw, rw, rw], SS.COMPUTE)
-        # only the pick fragment shader reads storage (t_ingest, importance)
-        self._bgl_draw = bgl([uni, ro, ro, ro, ro, ro, ro, ro, ro], SS.VERTEX,
-                             {2: SS.VERTEX | SS.FRAGMENT, 3: SS.VERTEX | SS.FRAGMENT})
-        cull_mod = dev.create_shader_module(code=shaders.cull_source(self.naive_float32), label="cull")
-        thin_mod = dev.create_shader_module(code=shaders.THIN, label="thin")
-        pl_cull = dev.create_pipeline_layout(bind_group_layouts=[self._bgl_cull])
-        pl_thin = dev.create_pipeline_layout(bind_group_layouts=[self._bgl_thin])
-        self._pl_draw = dev.create_pipeline_layout(bind_group_layouts=[self._bgl_draw])
-        self._p_cull = dev.create_compute_pipeline(layout=pl_cull, compute={"module": cull_mod, "entry_point": "cull"})
-        cpipe = lambda layout, mod, entry: dev.create_compute_pipeline(  # noqa: E731
-            layout=layout, compute={"module": mod, "entry_point": entry})
-        self._p_scan = cpipe(pl_cull, cull_mod, "scan")
-        self._p_emit = cpipe(pl_cull, cull_mod, "emit")
-        self._p_final = cpipe(pl_cull, cull_mod, "finalize")
-        self._p_final_b = cpipe(pl_cull, cull_mod, "finalize_budget")
-        self._p_thin = cpipe(pl_thin, thin_mod, "thin")
-        self._p_thin_scan = cpipe(pl_thin, thin_mod, "thin_scan")
-        self._p_thin_emit = cpipe(pl_thin, thin_mod, "thin_emit")
-        self._p_draw_cache: dict[bool, Any] = {}
-        self._draw_pipeline(False)
-        self._color_tex = dev.create_texture(size=(w, h, 1), format=wgpu.TextureFormat.rgba8unorm,
-                                             usage=TU.RENDER_ATTACHMENT | TU.COPY_SRC, label="colour")
-        self._color_view = self._color_tex.create_view()
-        self._depth_tex = dev.create_texture(size=(w, h, 1), format=wgpu.TextureFormat.depth32float,
-                                             usage=TU.RENDER_ATTACHMENT, label="depth")
-        self._depth_view = self._depth_tex.create_view()
-
-    def _draw_pipeline(self, colour_in_vs: bool) -> Any:
-        """The draw pipeline variant (colour from the cull, or computed per vertex)."""
-        p = self._p_draw_cache.get(colour_in_vs)
-        if p is None:
-            wgpu = self._wgpu
-            code = shaders.draw_source(self._round, world_size=self._world, colour_in_vs=colour_in_vs)
-            mod = self.device.create_shader_module(code=code, label="draw")
-            p = self.device.create_render_pipeline(
-                layout=self._pl_draw,
-                vertex={"module": mod, "entry_point": "vs", "buffers": []},
-                primitive={"topology": wgpu.PrimitiveTopology.triangle_list, "cull_mode": wgpu.CullMode.none},
-                depth_stencil={"format": wgpu.TextureFormat.depth32float, "depth_write_enabled": True,
-                               "depth_compare": wgpu.CompareFunction.less},
-                multisample={"count": 1},
-                fragment={"module": mod, "entry_point": "fs", "targets": [{"format": wgpu.TextureFormat.rgba8unorm}]},
-            )
-            self._p_draw_cache[colour_in_vs] = p
-        return p
-
-    def _bind(self, layout, bufs: list[Any]) -> Any:
-        return self.device.create_bind_group(layout=layout, entries=[
-            {"binding": i, "resource": {"buffer": b, "offset": 0, "size": b.size}} for i, b in enumerate(bufs)])
-
-    def _groups(self, s: int, budget: bool) -> dict[str, Any]:
-        key = (s, budget)
-        g = self._bg_cache.get(key)
-        if g is None:
-            S = self._sets[s]
-            data = [S["pos"], S["tms"], S["imp"], S["col"]]
-            g = {"cull": self._bind(self._bgl_cull, [self._params, *data, self._idx1, self._state, self._rng,
-                                                     self._dargs, self._lut, self._clip1, self._flags, self._wgc])}
-            drawn_idx, drawn_clip = self._idx1, self._clip1
-            if budget:
-                if self._idx2 is None:
-                    self._idx2 = self._buf(self.render_capacity * 8, self._wgpu.BufferUsage.STORAGE | self._wgpu.BufferUsage.COPY_SRC, "idx2")
-                    self._clip2 = self._buf(self.render_capacity * 16, self._wgpu.BufferUsage.STORAGE, "clip2")
-                g["thin"] = self._bind(self._bgl_thin, [self._params, self._idx1, self._idx2, self._state,
-                                                        self._clip1, self._clip2, self._flags, self._wgc])
-                drawn_idx, drawn_clip = self._idx2, self._clip2
-            g["draw"] = self._bind(self._bgl_draw, [self._params, *data, drawn_idx, self._lut, self._rng, drawn_clip])
-            self._bg_cache[key] = g
-        return g
+        self._qs = qs
+        gpu = Gpu(wgpu=wgpu, device=dev, cfg=self.cfg, width=self.width, height=self.height,
+                  capacity=cap, cmode=int(self._cmode), naive_float32=self.naive_float32, key64=self._key64,
+                  max_groups=self._max_groups, row_bytes=self._row_bytes, sets=self._sets, params=self._params,
+                  state=self._state, rng=self._rng, dargs=self._dargs, lut=self._lut, timestamps=qs)
+        self._method = self._method_cls(gpu)
 
     # ------------------------------------------------------------------ upload
     def _upload(self, frame: FrameInput, s: int) -> int:
@@ -355,12 +230,12 @@ class WgpuRenderer(Renderer):
                 imp = np.ascontiguousarray(frame.importance[a:b], dtype=np.float32)
                 q.write_buffer(S["imp"], a * 4, imp)
                 total += imp.nbytes
-            if self._cmode == C_RGB:
+            if self._cmode == ColourMode.RGB:
                 rgb = np.asarray(frame.channels["rgb"][a:b], dtype=np.uint32)
                 packed = rgb[:, 0] | (rgb[:, 1] << 8) | (rgb[:, 2] << 16) | np.uint32(0xFF000000)
                 q.write_buffer(S["col"], a * 4, packed)
                 total += packed.nbytes
-            elif self._cmode == C_SCALAR:
+            elif self._cmode == ColourMode.SCALAR:
                 v = np.ascontiguousarray(frame.channels[self._cchan][a:b], dtype=np.float32)
                 q.write_buffer(S["col"], a * 4, v)
                 total += v.nbytes
@@ -370,7 +245,7 @@ class WgpuRenderer(Renderer):
         cap = min(self.render_capacity, frame.capacity)
         origin = np.asarray(frame.origin, np.float64)
         full = frame.dirty is None or self._origin is None or not np.array_equal(origin, self._origin) \
-            or self._last is None or self._last["capacity"] != frame.capacity
+            or self._last is None or self._last.capacity != frame.capacity
         d = [(0, cap)] if full else list(frame.dirty or [])
         for s in range(2):
             self._pending[s].extend(d)
@@ -379,88 +254,6 @@ class WgpuRenderer(Renderer):
         self._origin = origin.copy()
 
     # ------------------------------------------------------------------ frame
-    def _colour_range(self, frame: FrameInput) -> tuple[int, float, float, float]:
-        """(flags, lo, hi, scale) for LUT colouring."""
-        if self._cmode not in (C_SCALAR, C_Z, C_TIME):
-            return 0, 0.0, 0.0, 0.0
-        cr = self.cfg.color_range
-        if isinstance(cr, (list, tuple)):
-            lo, hi = float(cr[0]), float(cr[1])
-            if self._cmode == C_Z:  # fixed range is in world z; positions are origin-relative
-                lo, hi = lo - float(frame.origin[2]), hi - float(frame.origin[2])
-        elif self._cmode == C_SCALAR and self._cchan in frame.channel_ranges:
-            lo, hi = (float(v) for v in frame.channel_ranges[self._cchan])
-        else:
-            return F_RANGE_AUTO, 0.0, 0.0, 0.0
-        if not hi > lo:
-            return F_RANGE_DEGENERATE, lo, hi, 0.0
-        return 0, lo, hi, float(np.float32(1.0 / (hi - lo)))
-
-    @staticmethod
-    def _importance_range(frame: FrameInput) -> tuple[float, float]:
-        """Finite min/max over the occupied slots (the cadence normally sends this range)."""
-        cap, size = int(frame.capacity), min(int(frame.size), int(frame.capacity))
-        imp = frame.importance[:cap] if size == cap else frame.importance[frame.occupied_slots()]
-        imp = imp[np.isfinite(imp)]
-        return (float(imp.min()), float(imp.max())) if imp.size else (0.0, 0.0)
-
-    def _params_for(self, frame: FrameInput, camera: Camera, n_slots: int, gx: int, groups: int) -> np.ndarray:
-        cfg, w, h = self.cfg, self.width, self.height
-        P = np.zeros(_P_WORDS, np.float32)
-        U = P.view(np.uint32)
-        origin = np.asarray(frame.origin, np.float64)
-        if self.naive_float32:
-            vp = camera.view_proj(w, h, None).astype(np.float32).astype(np.float64)
-            model = np.eye(4)
-            model[:3, 3] = origin.astype(np.float32)
-            P[_P_VP:_P_VP + 16] = _mat_cols(vp)
-            P[_P_MODEL:_P_MODEL + 16] = _mat_cols(model)
-        else:
-            P[_P_VP:_P_VP + 16] = _mat_cols(camera.view_proj(w, h, origin))
-            P[_P_MODEL:_P_MODEL + 16] = _mat_cols(np.eye(4))
-        P[_P_PLANES:_P_PLANES + 24] = camera.frustum_planes(w, h, origin).astype(np.float32).ravel()
-        c = list(cfg.color) + [1.0] * (4 - len(cfg.color))
-        P[_P_COLOR:_P_COLOR + 4] = np.round(np.clip(np.asarray(c[:4], np.float64), 0, 1) * 255.0) / 255.0
-        P[_P_VW], P[_P_VH], P[_P_PSIZE] = w, h, cfg.point_size
-        P[_P_SSCALE] = camera.proj(w, h)[1, 1] * h / 2.0
-        now = float(frame.now_ms)
-        P[_P_NOW_HI] = now
-        P[_P_NOW_LO] = now - float(np.float32(now))
-        P[_P_WINDOW] = cfg.time_window_ms
-        flags = 0
-        if cfg.time_window_ms > 0:
-            flags |= F_WINDOW
-        if cfg.importance_sampling:
-            flags |= F_IMPORTANCE
-            r = frame.channel_ranges.get("importance") or self._importance_range(frame)
-            if not float(r[1]) > float(r[0]):
-                flags |= F_IMP_DEGENERATE
-            else:
-                P[_P_IMP_LO] = float(r[0])
-                P[_P_IMP_SCALE] = np.float32(1.0 / (float(r[1]) - float(r[0])))
-        if cfg.point_size_space == "world":
-            flags |= F_WORLD_SIZE
-        if cfg.point_shape == "round":
-            flags |= F_ROUND
-        rflags, lo, hi, scale = self._colour_range(frame)
-        flags |= rflags
-        if rflags & F_RANGE_AUTO:  # the range is reduced during the cull: colour in the draw
-            flags |= F_COLOUR_IN_VS
-        P[_P_RANGE_LO], P[_P_RANGE_HI], P[_P_RANGE_SCALE] = lo, hi, scale
-        U[_P_HEAD] = int(frame.head) % max(frame.capacity, 1)
-        U[_P_SIZE] = min(int(frame.size), int(frame.capacity))
-        U[_P_CAP] = int(frame.capacity)
-        U[_P_LOD] = max(int(cfg.lod_stride), 1)
-        U[_P_SEED] = seed_hash(frame.frame_seed)
-        U[_P_BSEED] = budget_seed(frame.frame_seed)
-        U[_P_FLAGS] = flags
-        U[_P_BUDGET] = NO_BUDGET if frame.budget is None else max(0, min(int(frame.budget), NO_BUDGET - 1))
-        U[_P_CMODE] = self._cmode
-        U[_P_GX] = gx
-        U[_P_NSLOTS] = n_slots
-        U[_P_GTOTAL] = groups
-        return P
-
     def _wait_set(self, s: int) -> None:
         """Wait for the frame that last used set ``s`` (two frames ago); collect its GPU times."""
         if self._done[s]:
@@ -532,32 +325,19 @@ class WgpuRenderer(Renderer):
         n_slots = min(self.render_capacity, int(frame.capacity))
         # one thread per logical index (oldest first); a capped ring renders its oldest slots
         n_threads = min(int(frame.size), int(frame.capacity), self.render_capacity)
-        if self._compute is not None:
-            groups = self._compute.groups_for(n_threads)
-            gx, gy = self._compute.grid(groups)
-            # a budget at or above the occupied slots can never bite: no budget passes
-            budget = frame.budget is not None and int(frame.budget) < n_threads
-        else:
-            groups = max(1, math.ceil(n_threads / 256))
-            gx = min(groups, self._max_groups)
-            gy = math.ceil(groups / gx)
-            budget = frame.budget is not None
-        P = self._params_for(frame, camera, n_slots, gx, groups)
+        groups, gx, gy, budget_on = self._method.plan(n_threads, frame.budget)
+        P = frame_params.build(self.cfg, frame, camera, self.width, self.height, self._cmode, self._cchan,
+                               self.naive_float32, n_slots, gx, groups)
         q = self.queue
-        q.write_buffer(self._params, 0, P)
+        q.write_buffer(self._params, 0, P.tobytes())
         q.write_buffer(self._state, 0, self._state_reset)
         q.write_buffer(self._rng, 0, self._rng_reset)
         t_up = time.perf_counter()
-
+        plan = FramePlan(set=s, n_threads=n_threads, groups=groups, gx=gx, gy=gy, budget_on=budget_on,
+                         budget_n=frame.budget, head=int(frame.head) % max(int(frame.capacity), 1),
+                         capacity=int(frame.capacity), params=P)
         enc = self.device.create_command_encoder()
-        if self._compute is not None:
-            fl = int(P.view(np.uint32)[_P_FLAGS])
-            self._compute.set_variant(bool(fl & F_WINDOW), int(P.view(np.uint32)[_P_LOD]) > 1,
-                                      bool(fl & F_IMPORTANCE), bool(fl & F_RANGE_AUTO))
-            self._compute.encode(enc, s, groups, budget, {"qs": self._qs} if self._ts else None,
-                                 bool(int(P.view(np.uint32)[_P_FLAGS]) & F_RANGE_AUTO))
-        else:
-            self._encode_quads(enc, s, budget, gx, gy, groups, P)
+        self._method.encode(enc, plan)
         if self._ts:
             enc.resolve_query_set(self._qs, 0, 4, self._ts_resolve, 0)
             enc.copy_buffer_to_buffer(self._ts_resolve, 0, self._ts_read[s], 0, 32)
@@ -567,9 +347,7 @@ class WgpuRenderer(Renderer):
         q.submit([enc.finish()])
         self._done[s] = True
         t_sub = time.perf_counter()
-        self._last = {"set": s, "budget": budget, "capacity": int(frame.capacity), "groups": groups,
-                      "size": n_threads, "budget_n": frame.budget,
-                      "head": int(frame.head) % max(int(frame.capacity), 1)}
+        self._last = plan
         self._frame_no += 1
         timings = {"wait": (t_wait - t0) * 1e3, "upload": (t_up - t_wait) * 1e3,
                    "encode_submit": (t_sub - t_up) * 1e3, "cpu_total": (t_sub - t0) * 1e3}
@@ -578,70 +356,18 @@ class WgpuRenderer(Renderer):
                            extra={"buffer_set": s, "render_capacity": self.render_capacity, "raster": self.raster,
                                   "gpu_timings_lag_frames": 2 if self._ts else None})
         self._stats[s] = stats  # drawn/removed_nonfinite filled in once the GPU is done
-        self._last["stats"] = stats
+        self._last_stats = stats
         return stats
-
-    def _encode_quads(self, enc: Any, s: int, budget: bool, gx: int, gy: int, groups: int, P: np.ndarray) -> None:
-        """Record the quads method: cull + compaction (+ budget thinning), indirect draw."""
-        wgpu = self._wgpu
-        g = self._groups(s, budget)
-        cpass_kw, rpass_kw = {}, {}
-        if self._ts:
-            cpass_kw["timestamp_writes"] = {"query_set": self._qs, "beginning_of_pass_write_index": 0,
-                                            "end_of_pass_write_index": 1}
-            rpass_kw["timestamp_writes"] = {"query_set": self._qs, "beginning_of_pass_write_index": 2,
-                                            "end_of_pass_write_index": 3}
-        cp = enc.begin_compute_pass(**cpass_kw)
-        cp.set_bind_group(0, g["cull"])
-        cp.set_pipeline(self._p_cull)
-        cp.dispatch_workgroups(gx, gy, 1)
-        cp.set_pipeline(self._p_scan)
-        cp.dispatch_workgroups(1, 1, 1)
-        cp.set_pipeline(self._p_emit)
-        cp.dispatch_workgroups(math.ceil(groups / _EMIT_K), 1, 1)
-        cp.set_pipeline(self._p_final)
-        cp.dispatch_workgroups(1, 1, 1)
-        if budget:
-            cp.set_bind_group(0, g["thin"])
-            cp.set_pipeline(self._p_thin)
-            cp.dispatch_workgroups_indirect(self._dargs, 0)
-            cp.set_pipeline(self._p_thin_scan)
-            cp.dispatch_workgroups(1, 1, 1)
-            cp.set_pipeline(self._p_thin_emit)
-            cp.dispatch_workgroups_indirect(self._dargs, 0)
-            cp.set_pipeline(self._p_final_b)
-            cp.set_bind_group(0, g["cull"])
-            cp.dispatch_workgroups(1, 1, 1)
-        cp.end()
-        bg = self.cfg.background
-        rp = enc.begin_render_pass(
-            color_attachments=[{"view": self._color_view, "load_op": wgpu.LoadOp.clear,
-                                "store_op": wgpu.StoreOp.store,
-                                "clear_value": (float(bg[0]), float(bg[1]), float(bg[2]), 1.0)}],
-            depth_stencil_attachment={"view": self._depth_view, "depth_clear_value": 1.0,
-                                      "depth_load_op": wgpu.LoadOp.clear, "depth_store_op": wgpu.StoreOp.store},
-            **rpass_kw)
-        rp.set_pipeline(self._draw_pipeline(bool(int(P.view(np.uint32)[_P_FLAGS]) & F_COLOUR_IN_VS)))
-        rp.set_bind_group(0, g["draw"])
-        rp.draw_indirect(self._state, 0)
-        rp.end()
 
     # ------------------------------------------------------------------ output
     def read_image(self) -> np.ndarray:
         """(h, w, 4) uint8 of the last frame (waits for the GPU)."""
-        wgpu = self._wgpu
         enc = self.device.create_command_encoder()
-        if self._compute is not None:  # the resolve pass wrote the image with the readback's pitch
-            enc.copy_buffer_to_buffer(self._compute.img, 0, self._readback, 0, self._readback.size)
-        else:
-            enc.copy_texture_to_buffer({"texture": self._color_tex, "mip_level": 0, "origin": (0, 0, 0)},
-                                       {"buffer": self._readback, "offset": 0, "bytes_per_row": self._row_bytes,
-                                        "rows_per_image": self.height},
-                                       (self.width, self.height, 1))
+        self._method.copy_image(enc, self._readback)
         self.queue.submit([enc.finish()])
-        self._readback.map_sync(wgpu.MapMode.READ)
-        if self._last is not None and self._done[self._last["set"]]:
-            self._collect(self._last["set"])  # the GPU is done with the last frame: free counters
+        self._readback.map_sync(self._wgpu.MapMode.READ)
+        if self._last is not None and self._done[self._last.set]:
+            self._collect(self._last.set)  # the GPU is done with the last frame: free counters
         try:
             raw = np.frombuffer(self._readback.read_mapped(), np.uint8)
             img = raw.reshape(self.height, self._row_bytes)[:, :self.width * 4].reshape(self.height, self.width, 4).copy()
@@ -654,10 +380,9 @@ class WgpuRenderer(Renderer):
         counters filled in (for a true ``frame_done`` time; not needed on the frame path)."""
         if self._last is None:
             return None
-        s = self._last["set"]
-        if self._done[s]:
-            self._collect(s)
-        return self._last.get("stats")
+        if self._done[self._last.set]:
+            self._collect(self._last.set)
+        return self._last_stats
 
     def debug_counts(self) -> dict[str, int]:
         """Tests only (syncs the GPU): survivors of the cull, after the budget, and the draw count
@@ -668,108 +393,27 @@ class WgpuRenderer(Renderer):
 
     def debug_survivors(self) -> np.ndarray:
         """Tests only (syncs the GPU): sorted slots the last frame draws."""
-        if self._compute is not None:
-            L = self._last
-            if L is None:
-                return np.zeros(0, np.int64)
-            logical = self._compute.debug_keep(L["set"], L["groups"], L["size"], L["budget"])
-            if L["budget"]:
-                logical = logical[:max(int(L["budget_n"]), 0)]
-            return np.sort((L["head"] + logical.astype(np.int64)) % max(L["capacity"], 1))
-        c = self.debug_counts()
-        buf = self._idx2 if self._last and self._last["budget"] else self._idx1
-        n = c["instance_count"]
-        if n == 0:
+        if self._last is None:
             return np.zeros(0, np.int64)
-        idx = np.frombuffer(self.queue.read_buffer(buf, 0, n * 8), np.uint32)[0::2]
-        return np.sort(idx.astype(np.int64))
+        return self._method.survivors(self._last)
 
     # ------------------------------------------------------------------ picking
-    def _ensure_pick(self) -> None:
-        if self._pick_tex is not None:
-            return
-        wgpu, dev = self._wgpu, self.device
-        TU, TF = wgpu.TextureUsage, wgpu.TextureFormat
-        w, h = self.width, self.height
-        pick_mod = dev.create_shader_module(code=shaders.draw_source(self._round, pick=True, world_size=self._world),
-                                            label="pick")
-        self._p_pick = dev.create_render_pipeline(
-            layout=self._pl_draw,
-            vertex={"module": pick_mod, "entry_point": "vs", "buffers": []},
-            primitive={"topology": wgpu.PrimitiveTopology.triangle_list, "cull_mode": wgpu.CullMode.none},
-            depth_stencil={"format": TF.depth32float, "depth_write_enabled": True,
-                           "depth_compare": wgpu.CompareFunction.less},
-            multisample={"count": 1},
-            fragment={"module": pick_mod, "entry_point": "fs_pick",
-                      "targets": [{"format": TF.r32uint}, {"format": TF.rgba32float}]},
-        )
-        ids = dev.create_texture(size=(w, h, 1), format=TF.r32uint, usage=TU.RENDER_ATTACHMENT | TU.COPY_SRC)
-        attrs = dev.create_texture(size=(w, h, 1), format=TF.rgba32float, usage=TU.RENDER_ATTACHMENT | TU.COPY_SRC)
-        depth = dev.create_texture(size=(w, h, 1), format=TF.depth32float, usage=TU.RENDER_ATTACHMENT)
-        self._pick_tex = {"ids": ids, "attrs": attrs, "depth": depth, "ids_view": ids.create_view(),
-                          "attrs_view": attrs.create_view(), "depth_view": depth.create_view()}
-
     def pick(self, x: float, y: float, pixel_ratio: float = 1.0) -> Optional[int]:
         """Slot of the point under window pixel (x, y) (logical px; ``pixel_ratio`` scales to
-        the target's physical px), or None. Runs a pick pass over the last frame's compacted
-        points restricted by a scissor to the (2r+1)^2 block, r = pick_radius * pixel_ratio."""
+        the target's physical px), or None. The method reads the front-most point of each
+        texel of the (2r+1)^2 block, r = pick_radius * pixel_ratio, in the last frame."""
         if self._last is None or self._closed:
             return None
         try:
-            return self._pick(float(x), float(y), float(pixel_ratio))
+            px, py = float(x) * pixel_ratio, float(y) * pixel_ratio
+            r = float(self.cfg.pick_radius) * pixel_ratio
+            block = pick_block(px, py, r, self.width, self.height)
+            if block is None:
+                return None
+            ids, attrs = self._method.pick_block(self._last, *block)
+            return resolve_pick(ids, attrs, block[0], block[1], px, py, r, self.cfg.pick_strategy)
         except Exception as e:
             raise RenderError(f"wgpu pick failed: {type(e).__name__}: {e}") from e
-
-    def _pick(self, x: float, y: float, pixel_ratio: float) -> Optional[int]:
-        wgpu = self._wgpu
-        px, py = x * pixel_ratio, y * pixel_ratio
-        r = float(self.cfg.pick_radius) * pixel_ratio
-        ri = int(math.ceil(r))
-        x0, x1 = max(int(math.floor(px)) - ri, 0), min(int(math.floor(px)) + ri + 1, self.width)
-        y0, y1 = max(int(math.floor(py)) - ri, 0), min(int(math.floor(py)) + ri + 1, self.height)
-        if x1 <= x0 or y1 <= y0:
-            return None
-        bw, bh = x1 - x0, y1 - y0
-        if self._compute is not None:
-            ids, attrs = self._compute.pick_block(self._last["set"], x0, y0, bw, bh)
-            return resolve_pick(ids, attrs, x0, y0, px, py, r, self.cfg.pick_strategy)
-        self._ensure_pick()
-        T = self._pick_tex
-        g = self._groups(self._last["set"], self._last["budget"])
-        enc = self.device.create_command_encoder()
-        rp = enc.begin_render_pass(
-            color_attachments=[
-                {"view": T["ids_view"], "load_op": wgpu.LoadOp.clear, "store_op": wgpu.StoreOp.store,
-                 "clear_value": (0, 0, 0, 0)},
-                {"view": T["attrs_view"], "load_op": wgpu.LoadOp.clear, "store_op": wgpu.StoreOp.store,
-                 "clear_value": (1.0, 0.0, 0.0, 0.0)}],
-            depth_stencil_attachment={"view": T["depth_view"], "depth_clear_value": 1.0,
-                                      "depth_load_op": wgpu.LoadOp.clear, "depth_store_op": wgpu.StoreOp.store})
-        rp.set_scissor_rect(x0, y0, bw, bh)
-        rp.set_pipeline(self._p_pick)
-        rp.set_bind_group(0, g["draw"])
-        rp.draw_indirect(self._state, 0)
-        rp.end()
-        row_ids = (bw * 4 + 255) // 256 * 256
-        row_attr = (bw * 16 + 255) // 256 * 256
-        BU = wgpu.BufferUsage
-        b_ids = self._buf(row_ids * bh, BU.MAP_READ | BU.COPY_DST, "pick-ids")
-        b_attr = self._buf(row_attr * bh, BU.MAP_READ | BU.COPY_DST, "pick-attrs")
-        for tex, buf, row in ((T["ids"], b_ids, row_ids), (T["attrs"], b_attr, row_attr)):
-            enc.copy_texture_to_buffer({"texture": tex, "mip_level": 0, "origin": (x0, y0, 0)},
-                                       {"buffer": buf, "offset": 0, "bytes_per_row": row, "rows_per_image": bh},
-                                       (bw, bh, 1))
-        self.queue.submit([enc.finish()])
-        b_ids.map_sync(wgpu.MapMode.READ)
-        ids = np.frombuffer(b_ids.read_mapped(), np.uint32).reshape(bh, row_ids // 4)[:, :bw].copy()
-        b_ids.unmap()
-        b_attr.map_sync(wgpu.MapMode.READ)
-        attrs = np.frombuffer(b_attr.read_mapped(), np.float32).reshape(bh, row_attr // 4)[:, :bw * 4]
-        attrs = attrs.reshape(bh, bw, 4).copy()
-        b_attr.unmap()
-        b_ids.destroy()
-        b_attr.destroy()
-        return resolve_pick(ids, attrs, x0, y0, px, py, r, self.cfg.pick_strategy)
 
     # ------------------------------------------------------------------ misc
     def info(self) -> dict[str, Any]:
@@ -778,12 +422,7 @@ class WgpuRenderer(Renderer):
                 "ring_capacity": self.capacity, "render_capacity": self.render_capacity,
                 "caps": list(self._caps), "timestamps": self._ts, "naive_float32": self.naive_float32,
                 "size": [self.width, self.height], "raster": self.raster, "raster_choice": self._raster_why,
-                "compute_keys": self.key_variant if self._compute else None}
-
-    @property
-    def key_variant(self) -> str:
-        """The compute method's depth-key variant (deterministic either way)."""
-        return "64-bit atomicMax" if self._key64 else "2x32-bit (depth pass, then index pass)"
+                "compute_keys": None, **self._method.info()}
 
     def close(self) -> None:
         if self._closed:
@@ -793,9 +432,11 @@ class WgpuRenderer(Renderer):
             self.queue.on_submitted_work_done_sync()
         except Exception:
             pass
+        if self._method is not None:
+            self._method.close()
         bufs = [b for S in getattr(self, "_sets", []) for b in S.values()]
-        bufs += [getattr(self, n, None) for n in ("_idx1", "_idx2", "_clip1", "_clip2", "_flags", "_wgc", "_state", "_rng", "_dargs", "_params",
-                                                   "_lut", "_readback", "_ts_resolve")]
+        bufs += [getattr(self, n, None) for n in ("_state", "_rng", "_dargs", "_params", "_lut", "_readback",
+                                                   "_ts_resolve")]
         bufs += list(getattr(self, "_ts_read", [])) + list(getattr(self, "_fence", []))
         for b in bufs:
             if b is not None:
@@ -803,53 +444,7 @@ class WgpuRenderer(Renderer):
                     b.destroy()
                 except Exception:
                     pass
-        texs = [getattr(self, "_color_tex", None), getattr(self, "_depth_tex", None)]
-        if self._pick_tex:
-            texs += [self._pick_tex["ids"], self._pick_tex["attrs"], self._pick_tex["depth"]]
-        for t in texs:
-            if t is not None:
-                try:
-                    t.destroy()
-                except Exception:
-                    pass
-        self._bg_cache.clear()
-        if self._compute is not None:
-            self._compute.close()
-        self._pick_tex = None
         try:
             self.device.destroy()
         except Exception:
             pass
-
-
-def resolve_pick(ids: np.ndarray, attrs: np.ndarray, x0: int, y0: int, px: float, py: float,
-                 radius: float, strategy: str) -> Optional[int]:
-    """Choose one slot from a block of pick texels (ids = slot+1, attrs = depth, importance,
-    t_hi, t_lo). Only texels whose centre is within ``radius`` of (px, py) count.
-
-    Orders (first key wins, later keys break ties): nearest = (screen distance, depth, slot);
-    highest_importance = (-importance, distance, depth, slot); recent_first = (-t_ingest,
-    distance, depth, slot). Each texel holds the front-most point there, so a point hidden
-    behind another is never picked.
-    """
-    bh, bw = ids.shape
-    yy, xx = np.mgrid[0:bh, 0:bw]
-    d2 = (xx + x0 + 0.5 - px) ** 2 + (yy + y0 + 0.5 - py) ** 2
-    if radius < 0.5:  # radius 0: only the texel under the cursor
-        m = (ids > 0) & (xx + x0 == int(np.floor(px))) & (yy + y0 == int(np.floor(py)))
-    else:
-        m = (ids > 0) & (d2 <= radius * radius + 1e-9)
-    if not m.any():
-        return None
-    slot = ids[m].astype(np.int64) - 1
-    depth = attrs[..., 0][m].astype(np.float64)
-    dist = d2[m]
-    if strategy == "highest_importance":
-        keys = (slot, depth, dist, -attrs[..., 1][m].astype(np.float64))
-    elif strategy == "recent_first":
-        t = attrs[..., 2][m].astype(np.float64) + attrs[..., 3][m].astype(np.float64)
-        keys = (slot, depth, dist, -t)
-    else:
-        keys = (slot, depth, dist)
-    order = np.lexsort(keys)  # last key is primary
-    return int(slot[order[0]])
