@@ -105,3 +105,44 @@ def test_split_recording_replays_as_one(tmp_path):
     assert len(got) == len(whole) == 24
     for c, m in zip(got, whole):
         np.testing.assert_array_equal(c.positions, m.positions)
+
+
+def test_the_documented_record_then_replay_flow(tmp_path):
+    """docs/record.md's first block, as a user runs it from a fresh clone: record the demo to
+    out/demo.mcap, inspect it, replay it with configs/rosbag.yaml unchanged (its path is
+    relative to the config file, so the copy keeps the clone's layout)."""
+    import shutil
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    import yaml
+
+    root = Path(__file__).resolve().parents[2]
+    (tmp_path / "configs").mkdir()
+    shutil.copy(root / "configs" / "rosbag.yaml", tmp_path / "configs" / "rosbag.yaml")
+    demo = yaml.safe_load((root / "configs" / "demo.yaml").read_text())
+    demo["render"] = {"backend": "cpu", "size": [64, 48], "output": {"every_n_frames": 1000}}
+    demo["supervisor"] = {"hung_after_ms": 10_000}
+    demo["record"] = {"path": str(tmp_path / "out" / "demo.mcap")}
+    with Pipeline.from_dict(demo, out_dir=str(tmp_path / "o1")) as pipe:
+        pipe.wait(60, until=lambda: (pipe.stats().get("stages", {}).get("recorder") or {}).get("record_messages", 0) >= 3)
+        assert pipe.stats()["stages"]["recorder"]["record_messages"] >= 3
+    mcap = tmp_path / "out" / "demo.mcap"
+    recorded = read_recording(str(mcap))
+    assert recorded
+
+    exe = [sys.executable, "-c", "import sys; from pointflow.cli import main; sys.exit(main())"]
+    ins = subprocess.run(exe + ["inspect", str(mcap)], capture_output=True, text=True, timeout=120)
+    assert ins.returncode == 0, ins.stderr
+    assert "summary: intact" in ins.stdout and f"{len(recorded)} messages" in ins.stdout
+
+    cfg = yaml.safe_load((tmp_path / "configs" / "rosbag.yaml").read_text())
+    cfg["source"]["options"].update(rate=0, loop=False)
+    cfg["render"] = {"backend": "cpu", "size": [64, 48], "output": {"every_n_frames": 1000}}
+    cfg["supervisor"] = {"max_restarts": 0, "hung_after_ms": 10_000}
+    (tmp_path / "configs" / "replay.yaml").write_text(yaml.safe_dump(cfg))
+    with Pipeline.from_yaml(str(tmp_path / "configs" / "replay.yaml"), out_dir=str(tmp_path / "o2")) as pipe:
+        total = sum(m.n for m in recorded)
+        pipe.wait(60, until=lambda: pipe.stats()["ring"]["total_written"] >= total)
+        assert pipe.stats()["ring"]["total_written"] == total
