@@ -16,6 +16,7 @@ import zmq
 from .. import wire
 from ..chunk import new_trace_id
 from .transports import resolve_transport
+from .transports.base import InputUnreadable
 
 #: How long a live source waits for room in the send queue before dropping a chunk.
 LIVE_SEND_WAIT_MS = 100
@@ -93,6 +94,8 @@ def main(ctx) -> None:
                 seq += 1
             else:
                 ctx.counters.drop("hwm", n)
+    except InputUnreadable as exc:  # restarting cannot help: the run fails, naming the inputs
+        ctx.fail_run(str(exc))
     finally:
         try:
             transport.close()

@@ -365,6 +365,13 @@ class Supervisor:
         st.last_progress_ns = now
         if kind == "heartbeat":
             st.stats = msg.get("stats", {})
+        elif kind == "fatal":  # restarting cannot help: the run fails
+            st.last_error = str(msg.get("message", ""))
+            st.failed = True
+            self.failure = f"stage {st.name}: {st.last_error}"
+            log.error("%s", self.failure)
+            self.events.append({"stage": st.name, "pid": st.pid, "reason": st.last_error, "action": "stop",
+                                "t": round(time.monotonic() - self._t_start, 3)})
         elif kind == "error":
             st.last_error = msg.get("message", "")
             log.error("%s reported: %s", st.name, st.last_error.strip().splitlines()[-1] if st.last_error.strip() else "")
@@ -597,6 +604,7 @@ class Supervisor:
             d.setdefault("drops", {})
             d.update(pid=st.pid, kind=st.kind, cpu_percent=round(st.cpu_percent, 1), rss_bytes=st.rss_bytes,
                      restarts=st.restarts, alive=bool(st.process is not None and st.process.exitcode is None),
+                     ready=st.ready,  # this incarnation has reported in
                      finished=st.finished)
             if st.last_error:
                 d["last_error"] = st.last_error[-2000:]
