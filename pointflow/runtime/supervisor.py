@@ -66,6 +66,8 @@ class StageProc:
     #: Its death was recorded: late messages of that incarnation are ignored (their
     #: counts are in ``carried`` already).
     dead: bool = False
+    #: Deaths in a row of incarnations that did not live HEALTHY_S: the backoff's exponent.
+    streak: int = 0
 
 
 def _describe_exit(code: Optional[int]) -> str:
@@ -107,6 +109,11 @@ def _merge_counts(a: dict, b: dict) -> dict:
             out[k] = m
     return out
 
+
+#: A stage that ran this long before dying restarts with the first backoff again (a crash
+#: an hour is not a crash loop), and no backoff is longer than BACKOFF_MAX_MS.
+HEALTHY_S = 10.0
+BACKOFF_MAX_MS = 10_000.0
 
 #: sizeof(sockaddr_un.sun_path) - 1 on Linux: the longest ipc:// path ZeroMQ can bind.
 IPC_PATH_MAX = 107
@@ -443,11 +450,14 @@ class Supervisor:
             self.events.append(ev)
             return
         st.restarts += 1
-        backoff = sup.restart_backoff_ms * (2 ** (st.restarts - 1))
+        lived_s = (time.monotonic_ns() - st.started_ns) / 1e9
+        st.streak = 1 if (st.ready and lived_s >= HEALTHY_S) else st.streak + 1
+        backoff = min(BACKOFF_MAX_MS, sup.restart_backoff_ms * (2 ** min(st.streak - 1, 30)))
         log.error("stage %s (pid %d) %s%s; restarting in %.0f ms", st.name, st.pid, reason, detail, backoff)
         st.restart_at_ns = time.monotonic_ns() + int(backoff * 1e6)
         st.last_error = None
         ev["action"] = "restart"
+        ev["backoff_ms"] = backoff
         self.events.append(ev)
 
     def _reconcile_ingest(self, st: StageProc) -> None:

@@ -194,3 +194,23 @@ def test_points_a_source_drops_at_its_send_queue_are_in_the_identities(tmp_path)
     assert acc["sources_received"] == acc["sources_forwarded"] + acc["sources_dropped"]
     assert acc["lost_before_ingest"] == 0 and acc["sources_forwarded"] == acc["ingest_received"], acc
     assert acc["ingest_balanced"] and acc["ring_agrees"], acc
+
+
+def test_backoff_starts_again_after_a_healthy_run(tmp_path, monkeypatch):
+    """A stage that ran a while before it died restarts after the first backoff again:
+    over a long run (the chaos soak kills a stage every 30 s) the backoff must not double
+    with every restart of its lifetime; a crash loop still backs off."""
+    from pointflow.runtime import supervisor
+
+    monkeypatch.setattr(supervisor, "HEALTHY_S", 1.0)
+    cfg = small_config(supervisor={"max_restarts": 10, "restart_backoff_ms": 50})
+    with Pipeline.from_dict(cfg, out_dir=str(tmp_path)) as pipe:
+        for _ in range(3):
+            st = pipe.stats()["stages"]["ingest"]
+            pipe.wait(30, until=lambda: pipe.stats()["stages"]["ingest"]["ready"])
+            time.sleep(1.5)  # healthy for longer than HEALTHY_S
+            pid = pipe.stats()["stages"]["ingest"]["pid"]
+            os.kill(pid, signal.SIGKILL)
+            pipe.wait(30, until=lambda: pipe.stats()["stages"]["ingest"]["pid"] != pid)
+        events = [e for e in pipe.stats()["events"] if e["stage"] == "ingest"]
+    assert [e["backoff_ms"] for e in events] == [50, 50, 50], events
