@@ -409,6 +409,10 @@ class Supervisor:
                 self._drain_control(0.02)
             limit_ms = sup.hung_after_ms if st.ready else sup.startup_timeout_ms
             silent = (now - st.last_seen_ns) > limit_ms * 1e6
+            if silent and st.ready and not self._silent_alone(st, limit_ms):
+                # every stage went quiet together: the machine (or this process) stalled, not
+                # the stage; only a much longer silence counts then
+                silent = (now - st.last_seen_ns) > max(limit_ms, sup.stall_after_ms) * 1e6
             stalled = st.ready and (now - st.last_progress_ns) > sup.stall_after_ms * 1e6
             hung = code is None and (silent or stalled)
             if code is None and not hung:
@@ -429,6 +433,18 @@ class Supervisor:
             else:
                 reason = _describe_exit(code)
             self._stage_died(st, reason)
+
+    def _silent_alone(self, st: StageProc, limit_ms: float) -> bool:
+        """True when another live stage was heard from ``limit_ms`` after ``st`` last was:
+        the rest of the pipeline kept running while ``st`` did not (a frozen or hung
+        process). When all stages went silent at once (a loaded machine descheduled them,
+        or this process was not scheduled to read them: seen at load 15-20 on 2 cores,
+        1-2 s pauses), killing them all would only make it worse."""
+        others = [o.last_seen_ns for o in self.stages.values()
+                  if o is not st and o.ready and not o.dead and o.process is not None and o.process.exitcode is None]
+        if not others:
+            return True
+        return max(others) - st.last_seen_ns > limit_ms * 1e6
 
     def _stage_died(self, st: StageProc, reason: str) -> None:
         sup = self.cfg.supervisor

@@ -214,3 +214,27 @@ def test_backoff_starts_again_after_a_healthy_run(tmp_path, monkeypatch):
             pipe.wait(30, until=lambda: pipe.stats()["stages"]["ingest"]["pid"] != pid)
         events = [e for e in pipe.stats()["events"] if e["stage"] == "ingest"]
     assert [e["backoff_ms"] for e in events] == [50, 50, 50], events
+
+
+def test_a_machine_wide_stall_is_not_a_hang(tmp_path):
+    """Every stage silent at once (a loaded machine descheduled them all; seen in the chaos
+    soak at load 15-20: four healthy stages killed as "hung" within a second) is not a
+    reason to kill them; a single frozen stage among talking ones still is
+    (tests/spine/test_recovery.py::test_a_frozen_stage_is_detected_and_restarted)."""
+    cfg = small_config(supervisor={"max_restarts": 3, "hung_after_ms": 800})
+    with Pipeline.from_dict(cfg, out_dir=str(tmp_path)) as pipe:
+        pipe.wait(60, until=lambda: pipe.stats()["frames"] >= 2)
+        pids = [v["pid"] for v in pipe.stats()["stages"].values()]
+        for pid in pids:
+            os.kill(pid, signal.SIGSTOP)
+        try:
+            pipe.wait(2.5)  # three times hung_after_ms
+        finally:
+            for pid in pids:
+                os.kill(pid, signal.SIGCONT)
+        frames = pipe.stats()["frames"]
+        pipe.wait(30, until=lambda: pipe.stats()["frames"] > frames)
+        st = pipe.stats()
+    assert st["events"] == [], st["events"]
+    assert [v["pid"] for v in st["stages"].values()] == pids
+    assert st["frames"] > frames
