@@ -114,6 +114,9 @@ def _merge_counts(a: dict, b: dict) -> dict:
 #: an hour is not a crash loop), and no backoff is longer than BACKOFF_MAX_MS.
 HEALTHY_S = 10.0
 BACKOFF_MAX_MS = 10_000.0
+#: When several stages are silent at once, one counts as hung only after this many
+#: times ``supervisor.hung_after_ms`` (at most ``stall_after_ms``).
+STALLED_HUNG_FACTOR = 5
 
 #: sizeof(sockaddr_un.sun_path) - 1 on Linux: the longest ipc:// path ZeroMQ can bind.
 IPC_PATH_MAX = 107
@@ -410,9 +413,9 @@ class Supervisor:
             limit_ms = sup.hung_after_ms if st.ready else sup.startup_timeout_ms
             silent = (now - st.last_seen_ns) > limit_ms * 1e6
             if silent and st.ready and not self._silent_alone(st, limit_ms):
-                # every stage went quiet together: the machine (or this process) stalled, not
-                # the stage; only a much longer silence counts then
-                silent = (now - st.last_seen_ns) > max(limit_ms, sup.stall_after_ms) * 1e6
+                # others went quiet too: the machine (or this process) stalled, not the
+                # stage; only a longer silence counts then
+                silent = (now - st.last_seen_ns) > max(limit_ms, min(sup.stall_after_ms, STALLED_HUNG_FACTOR * limit_ms)) * 1e6
             stalled = st.ready and (now - st.last_progress_ns) > sup.stall_after_ms * 1e6
             hung = code is None and (silent or stalled)
             if code is None and not hung:
@@ -435,16 +438,16 @@ class Supervisor:
             self._stage_died(st, reason)
 
     def _silent_alone(self, st: StageProc, limit_ms: float) -> bool:
-        """True when another live stage was heard from ``limit_ms`` after ``st`` last was:
-        the rest of the pipeline kept running while ``st`` did not (a frozen or hung
-        process). When all stages went silent at once (a loaded machine descheduled them,
-        or this process was not scheduled to read them: seen at load 15-20 on 2 cores,
-        1-2 s pauses), killing them all would only make it worse."""
+        """True when every other live stage was heard from within the last half
+        ``limit_ms``: the rest of the pipeline is running while ``st`` is not (a frozen or
+        hung process). When several stages went silent together, the machine (or this
+        process) stalled: at load 15-20 on 2 cores three healthy stages went quiet for
+        0.9-1.9 s at once while the fourth still talked, and killing them only made it
+        worse."""
+        now = time.monotonic_ns()
         others = [o.last_seen_ns for o in self.stages.values()
                   if o is not st and o.ready and not o.dead and o.process is not None and o.process.exitcode is None]
-        if not others:
-            return True
-        return max(others) - st.last_seen_ns > limit_ms * 1e6
+        return all(now - t <= limit_ms * 1e6 / 2 for t in others)
 
     def _stage_died(self, st: StageProc, reason: str) -> None:
         sup = self.cfg.supervisor
