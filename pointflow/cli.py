@@ -308,6 +308,11 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Optional[list[str]] = None) -> int:
     global _T0
     _T0 = time.monotonic()
+    # before any graphics library loads: without a valid XDG_RUNTIME_DIR (ssh, cron,
+    # containers) each adapter probe prints "error: XDG_RUNTIME_DIR is invalid or not set"
+    from .runtime.rundir import ensure_runtime_dir
+
+    ensure_runtime_dir()
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose and args.cmd != "validate" else logging.INFO,
                         format="%(asctime)s %(name)s %(levelname)s %(message)s", stream=sys.stderr)

@@ -18,6 +18,7 @@ from ..chunk import new_trace_id
 from ..frames import message as tfmsg
 from ..frames.deskew import TIME_FIELDS
 from .transports import resolve_transport
+from .transports.base import InputUnreadable
 
 #: How long a live source waits for room in the send queue before dropping a chunk.
 LIVE_SEND_WAIT_MS = 100
@@ -96,19 +97,25 @@ def main(ctx) -> None:
             chunk.seq = seq
             chunk.trace_id = new_trace_id()
             chunk.t_sent_ns = time.monotonic_ns()
-            ctx.counters.points_in += n
             ctx.spans.record(chunk.trace_id, "transport_receive", t0, t1, n)
             try:
                 frames = wire.encode(chunk)
             except Exception as exc:  # noqa: BLE001 - a bad chunk from a plugin is dropped, not fatal
+                ctx.counters.points_in += n
                 ctx.counters.drop("encode_error", n)
                 ctx.log.warning("transport %s produced an unencodable chunk: %s", scfg.transport, exc)
                 continue
-            if _send(ctx, sock, frames, lossless):
+            # counted in and out together (no heartbeat in between), so every report
+            # balances: points_in = points_out + drops
+            sent = _send(ctx, sock, frames, lossless)
+            ctx.counters.points_in += n
+            if sent:
                 ctx.counters.points_out += n
                 seq += 1
             else:
                 ctx.counters.drop("hwm", n)
+    except InputUnreadable as exc:  # restarting cannot help: the run fails, naming the inputs
+        ctx.fail_run(str(exc))
     finally:
         try:
             transport.close()

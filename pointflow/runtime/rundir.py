@@ -12,6 +12,7 @@ from __future__ import annotations
 import os
 import re
 import shutil
+import stat
 import tempfile
 
 from ..ring.sweep import pid_alive
@@ -66,3 +67,44 @@ def remove_orphaned_run_dir(run_dir: str, supervisor_pid: int) -> bool:
         return False
     shutil.rmtree(run_dir, ignore_errors=True)
     return not os.path.exists(run_dir)
+
+
+def _usable_runtime_dir(path: str | None) -> bool:
+    """What the graphics stack (libwayland, Mesa's EGL/Vulkan WSI) accepts as
+    ``XDG_RUNTIME_DIR``: an existing directory of ours that only we can enter."""
+    if not path or not os.path.isabs(path):
+        return False
+    try:
+        st = os.stat(path)
+    except OSError:
+        return False
+    return stat.S_ISDIR(st.st_mode) and st.st_uid == os.getuid() and not (st.st_mode & 0o077)
+
+
+def ensure_runtime_dir() -> str | None:
+    """Give this process (and the stages it starts) a valid ``XDG_RUNTIME_DIR``.
+
+    A shell without one (ssh, containers, cron) makes the graphics libraries print
+    ``error: XDG_RUNTIME_DIR is invalid or not set in the environment.`` once per probe;
+    with an unset or unusable value, use a private ``/tmp/pointflow-xdg-<uid>`` (mode 0700,
+    ours, not a symlink) instead. Must run before any graphics library is imported.
+    Returns the directory set here, or None when the environment's was kept."""
+    if _usable_runtime_dir(os.environ.get("XDG_RUNTIME_DIR")):
+        return None
+    path = os.path.join(tempfile.gettempdir(), f"pointflow-xdg-{os.getuid()}")
+    try:
+        os.mkdir(path, 0o700)
+    except FileExistsError:
+        pass
+    except OSError:
+        return None
+    try:
+        st = os.lstat(path)
+    except OSError:
+        return None
+    if not stat.S_ISDIR(st.st_mode) or st.st_uid != os.getuid():
+        return None  # someone else's (or a symlink): leave the environment as it was
+    if st.st_mode & 0o077:
+        os.chmod(path, 0o700)
+    os.environ["XDG_RUNTIME_DIR"] = path
+    return path

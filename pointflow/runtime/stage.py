@@ -10,7 +10,9 @@ Control messages (stage PUSH → supervisor PULL on ``endpoints.control``), JSON
 ``{"type": "pulse", "stage", "pid", "loop_age_ms"}`` from a side thread (liveness),
 ``{"type": "error", "stage", "pid", "message"}`` and ``{"type": "done", "stage", "pid"}``
 (the stage ended on its own, e.g. a file source reached its end; with ``"stop_pipeline":
-true`` and a ``reason`` it asks the supervisor to stop the whole run, e.g. the window closed).
+true`` and a ``reason`` it asks the supervisor to stop the whole run, e.g. the window closed),
+``{"type": "fatal", "stage", "pid", "message"}`` (restarting cannot help, e.g. no input of a
+file source can be read: the run fails with that message).
 """
 from __future__ import annotations
 
@@ -153,6 +155,13 @@ class StageContext:
     def request_stop(self, reason: str) -> None:
         """Ask the supervisor to stop the whole pipeline (e.g. the user closed the window)."""
         self._send({"type": "done", "stop_pipeline": True, "reason": reason})
+        self._running = False
+
+    def fail_run(self, message: str) -> None:
+        """End this stage and fail the whole run (exit 2) with ``message``: for defects a
+        restart cannot cure (no input can be read)."""
+        self.log.error("%s", message)
+        self._send({"type": "fatal", "message": message[-4000:]})
         self._running = False
 
     def report_error(self, message: str) -> None:

@@ -2,21 +2,27 @@
 
 Start order is downstream first (render, cadence, ingest, then sources) so every
 socket a stage connects to is already bound. Stop order is upstream first. Every stage
-is a ``spawn``-ed OS process; the supervisor learns about them from heartbeats on the
-control endpoint and from their exit codes, restarts a dead or hung stage with backoff
-(up to ``supervisor.max_restarts``), and past that limit stops the whole pipeline.
+is its own OS process, a fresh interpreter started by :mod:`pointflow.runtime.launch`
+(never a re-import of the caller's ``__main__``); the supervisor learns about them from
+heartbeats on the control endpoint and from their exit codes, restarts a dead or hung
+stage with backoff (up to ``supervisor.max_restarts``), and past that limit stops the
+whole pipeline.
+
+All of that runs in a background thread of the owning process (``pointflow-supervisor``),
+started by :meth:`Supervisor.start`: restarts, heartbeats and :meth:`Supervisor.stats`
+never wait for the caller to call ``poll()``/``wait()`` (a program with its own event loop,
+or one that only sleeps, is supervised the same). The thread also starts and stops the
+stages, because ``PR_SET_PDEATHSIG`` ties a stage to the *thread* that started it.
 """
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import json
 import logging
-import multiprocessing as mp
 import os
 import shutil
 import signal
-import sys
+import threading
 import time
 from dataclasses import dataclass, field
 from typing import Any, Optional
@@ -25,25 +31,10 @@ import psutil
 import zmq
 
 from ..config import ConfigError, PipelineConfig, new_run_dir
-from .stage import RunInfo, stage_main
+from .launch import StageProcess, spawn_stage
+from .stage import RunInfo
 
 log = logging.getLogger("pointflow.supervisor")
-
-
-@contextlib.contextmanager
-def _main_module_importable():
-    """``spawn`` re-runs the parent's ``__main__`` file in each child; when that is not a
-    real file (``python -`` or an embedded interpreter) hide it so children start anyway."""
-    main = sys.modules.get("__main__")
-    path = getattr(main, "__file__", None)
-    hide = path is not None and not os.path.exists(path)
-    if hide:
-        del main.__file__
-    try:
-        yield
-    finally:
-        if hide:
-            main.__file__ = path
 
 
 class PipelineFailed(RuntimeError):
@@ -55,7 +46,7 @@ class StageProc:
     name: str
     kind: str
     source_index: int = -1
-    process: Optional[mp.process.BaseProcess] = None
+    process: Optional[StageProcess] = None
     pid: int = 0
     started_ns: int = 0
     last_seen_ns: int = 0      # any message (heartbeat or pulse)
@@ -72,6 +63,11 @@ class StageProc:
     rss_bytes: int = 0
     #: Counters of earlier incarnations, so totals survive a restart.
     carried: dict[str, Any] = field(default_factory=dict)
+    #: Its death was recorded: late messages of that incarnation are ignored (their
+    #: counts are in ``carried`` already).
+    dead: bool = False
+    #: Deaths in a row of incarnations that did not live HEALTHY_S: the backoff's exponent.
+    streak: int = 0
 
 
 def _describe_exit(code: Optional[int]) -> str:
@@ -95,7 +91,10 @@ COUNTERS = ("points_in", "points_out", "frames", "pngs", "uploaded_bytes", "mess
             "transport_lost_chunks", "transport_joined_after",
             # the recording (docs/record.md): ingest's copies for it, the recorder's files
             "record_offered", "record_sent", "record_dropped", "record_messages_sent", "record_bytes",
-            "record_messages", "record_files")
+            "record_messages", "record_files",
+            # points a killed ingest wrote into the ring but never reported (reconciled from
+            # the ring's own counter, see Supervisor._reconcile_ingest)
+            "unreported_written")
 COUNTER_MAPS = ("drops", "rejected", "skipped")
 
 
@@ -114,6 +113,14 @@ def _merge_counts(a: dict, b: dict) -> dict:
             out[k] = m
     return out
 
+
+#: A stage that ran this long before dying restarts with the first backoff again (a crash
+#: an hour is not a crash loop), and no backoff is longer than BACKOFF_MAX_MS.
+HEALTHY_S = 10.0
+BACKOFF_MAX_MS = 10_000.0
+#: When several stages are silent at once, one counts as hung only after this many
+#: times ``supervisor.hung_after_ms`` (at most ``stall_after_ms``).
+STALLED_HUNG_FACTOR = 5
 
 #: sizeof(sockaddr_un.sun_path) - 1 on Linux: the longest ipc:// path ZeroMQ can bind.
 IPC_PATH_MAX = 107
@@ -138,9 +145,16 @@ class Supervisor:
         self.events: list[dict] = []   # restarts, failures, for stats
         self._zctx: Optional[zmq.Context] = None
         self._control: Optional[zmq.Socket] = None
-        self._mp = mp.get_context("spawn")
         self._t_start = 0.0
         self._last_ps = 0.0
+        #: Guards the stage table against the supervision thread (stats() from the caller).
+        self._lock = threading.RLock()
+        self._thread: Optional[threading.Thread] = None
+        self._halt = threading.Event()      # set by stop(): the thread stops the stages and exits
+        self._up = threading.Event()        # the thread started the stages (or failed to)
+        self._start_exc: Optional[BaseException] = None
+        self._stop_timeout = 5.0
+        self._shut = False
 
     # ------------------------------------------------------------------ start
     def start(self) -> None:
@@ -197,18 +211,7 @@ class Supervisor:
             for i, s in enumerate(cfg.sources):
                 if not s.external:
                     self.stages[s.name] = StageProc(name=s.name, kind="source", source_index=i)
-            self._t_start = time.monotonic()
-            self.started = True
-            # the sender binds the socket the sources push to: start it first and wait for
-            # its first heartbeat, so a short replay is not over before anyone listens
-            snd = self.stages["sender"]
-            self._spawn(snd)
-            end = time.monotonic() + cfg.supervisor.startup_timeout_ms / 1000
-            while not snd.ready and time.monotonic() < end and snd.process.exitcode is None:
-                self.poll(0.05)
-            for st in self.stages.values():
-                if st is not snd:
-                    self._spawn(st)
+            self._go()
             return
         imp = "importance" if (cfg.ring.importance_field or cfg.ring.eviction == "importance") else None
         try:
@@ -233,8 +236,60 @@ class Supervisor:
         order += [(s.name, "source", i) for i, s in enumerate(cfg.sources) if not s.external]
         for name, kind, idx in order:
             self.stages[name] = StageProc(name=name, kind=kind, source_index=idx)
+        self._go()
+
+    def _go(self) -> None:
+        """Start the supervision thread; it starts the stages. Returns once every stage has
+        reported in (a busy machine can take seconds to start a few interpreters), a stage
+        failed past its restart limit, or ``supervisor.startup_timeout_ms`` passed; so
+        ``wait(5)`` afterwards is five seconds of a running pipeline. Raises what starting
+        the stages raised."""
         self._t_start = time.monotonic()
         self.started = True
+        self._thread = threading.Thread(target=self._supervise, name="pointflow-supervisor", daemon=True)
+        self._thread.start()
+        self._up.wait()
+        if self._start_exc is not None:
+            raise self._start_exc
+        end = time.monotonic() + self.cfg.supervisor.startup_timeout_ms / 1000
+        while time.monotonic() < end and self.failure is None and self._thread.is_alive():
+            with self._lock:
+                if all(st.ready or st.failed or st.finished for st in self.stages.values()):
+                    break
+            time.sleep(0.02)
+
+    def _supervise(self) -> None:
+        """The supervision thread: start the stages, watch them until stop(), stop them."""
+        try:
+            self._spawn_all()
+        except BaseException as exc:  # noqa: BLE001 - handed to start()'s caller
+            self._start_exc = exc
+            self._up.set()
+            self._shutdown(self._stop_timeout)
+            return
+        self._up.set()
+        while not self._halt.is_set():
+            try:
+                self._poll_once(0.05)
+            except Exception:  # noqa: BLE001 - supervision must go on
+                log.exception("supervisor loop")
+                self._halt.wait(0.05)
+        self._shutdown(self._stop_timeout)
+
+    def _spawn_all(self) -> None:
+        if self.role == "send":
+            # the sender binds the socket the sources push to: start it first and wait for
+            # its first heartbeat, so a short replay is not over before anyone listens
+            snd = self.stages["sender"]
+            self._spawn(snd)
+            end = time.monotonic() + self.cfg.supervisor.startup_timeout_ms / 1000
+            while (not snd.ready and time.monotonic() < end and snd.process.exitcode is None
+                   and not self._halt.is_set()):
+                self._poll_once(0.05)
+            for st in self.stages.values():
+                if st is not snd:
+                    self._spawn(st)
+            return
         for st in self.stages.values():
             self._spawn(st)
 
@@ -248,11 +303,9 @@ class Supervisor:
             # a restarted renderer numbers its frames on from where the last one stopped
             extra={"frames_base": int((st.carried or {}).get("frames", 0))},
         )
-        p = self._mp.Process(target=stage_main, name=f"pointflow-{st.name}",
-                             args=(st.name, st.kind, self.cfg.to_dict(), self.cfg.base_dir, info), daemon=True)
-        with _main_module_importable():
-            p.start()
+        p = spawn_stage(st.name, st.kind, self.cfg.to_dict(), self.cfg.base_dir, info)
         st.process, st.pid = p, p.pid
+        st.dead = False
         st.started_ns = st.last_seen_ns = st.last_progress_ns = time.monotonic_ns()
         st.restart_at_ns = 0
         st.ready = False
@@ -265,19 +318,29 @@ class Supervisor:
 
     # ------------------------------------------------------------------ watch
     def poll(self, timeout_s: float = 0.05) -> None:
-        """Handle control messages and stage exits; call in a loop."""
+        """Wait up to ``timeout_s``. Supervision runs in its own thread; this only does the
+        work itself when called from that thread (or when there is none)."""
         if not self.started:
             return
+        t = self._thread
+        if t is not None and t.is_alive() and t is not threading.current_thread():
+            self._halt.wait(timeout_s)
+            return
+        self._poll_once(timeout_s)
+
+    def _poll_once(self, timeout_s: float) -> None:
+        """Handle control messages and stage exits (the supervision thread's loop body)."""
         deadline = time.monotonic() + timeout_s
         while True:
             left = max(0.0, deadline - time.monotonic())
             if self._control.poll(int(left * 1000)):
-                while True:
-                    try:
-                        raw = self._control.recv(zmq.NOBLOCK)
-                    except zmq.Again:
-                        break
-                    self._on_message(raw)
+                with self._lock:
+                    while True:
+                        try:
+                            raw = self._control.recv(zmq.NOBLOCK)
+                        except zmq.Again:
+                            break
+                        self._on_message(raw)
             if self.collector is not None:
                 self.collector.poll(0)
             else:
@@ -288,11 +351,12 @@ class Supervisor:
                     pass
             if time.monotonic() >= deadline:
                 break
-        self._check_stages()
+        with self._lock:
+            self._check_stages()
         now = time.monotonic()
         if now - self._last_ps >= 1.0:
             self._last_ps = now
-            for st in self.stages.values():
+            for st in list(self.stages.values()):
                 if st.psproc is not None:
                     try:
                         st.cpu_percent = st.psproc.cpu_percent(None)
@@ -307,7 +371,7 @@ class Supervisor:
         except (ValueError, AttributeError):
             log.warning("ignoring malformed control message")
             return
-        if st is None or msg.get("pid") != st.pid:
+        if st is None or msg.get("pid") != st.pid or st.dead:
             return  # from an earlier incarnation
         now = time.monotonic_ns()
         st.last_seen_ns = now
@@ -321,6 +385,13 @@ class Supervisor:
         st.last_progress_ns = now
         if kind == "heartbeat":
             st.stats = msg.get("stats", {})
+        elif kind == "fatal":  # restarting cannot help: the run fails
+            st.last_error = str(msg.get("message", ""))
+            st.failed = True
+            self.failure = f"stage {st.name}: {st.last_error}"
+            log.error("%s", self.failure)
+            self.events.append({"stage": st.name, "pid": st.pid, "reason": st.last_error, "action": "stop",
+                                "t": round(time.monotonic() - self._t_start, 3)})
         elif kind == "error":
             st.last_error = msg.get("message", "")
             log.error("%s reported: %s", st.name, st.last_error.strip().splitlines()[-1] if st.last_error.strip() else "")
@@ -345,8 +416,16 @@ class Supervisor:
                     self._notify_restart(st)
                 continue
             code = st.process.exitcode
+            if code is not None:
+                # take what it sent just before it ended (a source's "done", the last
+                # heartbeat) before judging its exit
+                self._drain_control(0.02)
             limit_ms = sup.hung_after_ms if st.ready else sup.startup_timeout_ms
             silent = (now - st.last_seen_ns) > limit_ms * 1e6
+            if silent and st.ready and not self._silent_alone(st, limit_ms):
+                # others went quiet too: the machine (or this process) stalled, not the
+                # stage; only a longer silence counts then
+                silent = (now - st.last_seen_ns) > max(limit_ms, min(sup.stall_after_ms, STALLED_HUNG_FACTOR * limit_ms)) * 1e6
             stalled = st.ready and (now - st.last_progress_ns) > sup.stall_after_ms * 1e6
             hung = code is None and (silent or stalled)
             if code is None and not hung:
@@ -368,6 +447,18 @@ class Supervisor:
                 reason = _describe_exit(code)
             self._stage_died(st, reason)
 
+    def _silent_alone(self, st: StageProc, limit_ms: float) -> bool:
+        """True when every other live stage was heard from within the last half
+        ``limit_ms``: the rest of the pipeline is running while ``st`` is not (a frozen or
+        hung process). When several stages went silent together, the machine (or this
+        process) stalled: at load 15-20 on 2 cores three healthy stages went quiet for
+        0.9-1.9 s at once while the fourth still talked, and killing them only made it
+        worse."""
+        now = time.monotonic_ns()
+        others = [o.last_seen_ns for o in self.stages.values()
+                  if o is not st and o.ready and not o.dead and o.process is not None and o.process.exitcode is None]
+        return all(now - t <= limit_ms * 1e6 / 2 for t in others)
+
     def _stage_died(self, st: StageProc, reason: str) -> None:
         sup = self.cfg.supervisor
         last = (st.last_error or "").strip().splitlines()
@@ -376,6 +467,7 @@ class Supervisor:
             self._reconcile_ingest(st)
         st.carried = _merge_counts(st.carried, st.stats)
         st.stats = {}
+        st.dead = True
         ev = {"stage": st.name, "pid": st.pid, "reason": reason, "last_error": st.last_error,
               "t": round(time.monotonic() - self._t_start, 3)}
         if st.restarts >= sup.max_restarts:
@@ -387,17 +479,22 @@ class Supervisor:
             self.events.append(ev)
             return
         st.restarts += 1
-        backoff = sup.restart_backoff_ms * (2 ** (st.restarts - 1))
+        lived_s = (time.monotonic_ns() - st.started_ns) / 1e9
+        st.streak = 1 if (st.ready and lived_s >= HEALTHY_S) else st.streak + 1
+        backoff = min(BACKOFF_MAX_MS, sup.restart_backoff_ms * (2 ** min(st.streak - 1, 30)))
         log.error("stage %s (pid %d) %s%s; restarting in %.0f ms", st.name, st.pid, reason, detail, backoff)
         st.restart_at_ns = time.monotonic_ns() + int(backoff * 1e6)
         st.last_error = None
         ev["action"] = "restart"
+        ev["backoff_ms"] = backoff
         self.events.append(ev)
 
     def _reconcile_ingest(self, st: StageProc) -> None:
-        """Points a killed ingest wrote after its last heartbeat are in the ring but not in
-        its counters; the ring's write count is authoritative, so add them (they were
-        received and written)."""
+        """Points an ingest wrote after its last heartbeat (killed, or its last report lost)
+        are in the ring but not in its counters. The ring's own write count (in shared
+        memory, updated under the ring's lock in the same step as the write) is the truth:
+        add the difference to the counts (received and written) and report it as
+        ``unreported_written``. Runs when ingest dies and once more after the stop."""
         if self.ring is None:
             return
         try:
@@ -407,9 +504,9 @@ class Supervisor:
         reported = int(st.carried.get("points_out", 0)) + int(st.stats.get("points_out", 0))
         if written > reported:
             st.stats = dict(st.stats)
-            for k in ("points_in", "points_out"):
+            for k in ("points_in", "points_out", "unreported_written"):
                 st.stats[k] = int(st.stats.get(k, 0)) + (written - reported)
-            log.info("ingest: %d points written after its last heartbeat added to its counts", written - reported)
+            log.info("ingest: %d points written after its last report added to its counts", written - reported)
 
     def _notify_restart(self, st: StageProc) -> None:
         """A new renderer holds no slab: the cadence must consider both free."""
@@ -419,9 +516,22 @@ class Supervisor:
     # ------------------------------------------------------------------ stop
     def stop(self, timeout_s: float = 5.0) -> None:
         """Stop upstream first: sources, then (once they are gone, so their last chunks are
-        in ingest's socket) ingest, which drains before it exits, then cadence and render."""
+        in ingest's socket) ingest, which drains before it exits, then cadence and render.
+        The supervision thread does it (it started the stages) and exits; this waits."""
         if not self.started:
             return
+        t = self._thread
+        if t is not None and t.is_alive() and t is not threading.current_thread():
+            self._stop_timeout = timeout_s
+            self._halt.set()
+            t.join()
+        if not self._shut:  # no thread, or it died
+            self._shutdown(timeout_s)
+
+    def _shutdown(self, timeout_s: float) -> None:
+        if self._shut:
+            return
+        self._shut = True
         self.started = False
         sources = [st for st in self.stages.values() if st.kind == "source"]
         waves = [sources, [self.stages[n] for n in ("ingest", "sender") if n in self.stages],
@@ -446,18 +556,24 @@ class Supervisor:
                     p.kill()
                     p.join(2)
         self._drain_control(0.1)
+        with self._lock:
+            ing = self.stages.get("ingest")
+            if ing is not None:
+                self._reconcile_ingest(ing)
         self.final_stats = self.stats()
-        self._release()
+        with self._lock:
+            self._release()
 
     def _drain_control(self, timeout_s: float) -> None:
         if self._control is None:
             return
         if self._control.poll(int(timeout_s * 1000)):
-            while True:
-                try:
-                    self._on_message(self._control.recv(zmq.NOBLOCK))
-                except zmq.Again:
-                    break
+            with self._lock:
+                while True:
+                    try:
+                        self._on_message(self._control.recv(zmq.NOBLOCK))
+                    except zmq.Again:
+                        break
         if self.collector is not None:
             self.collector.poll(0)
 
@@ -513,6 +629,10 @@ class Supervisor:
     def stats(self) -> dict[str, Any]:
         if not self.started and getattr(self, "final_stats", None):
             return self.final_stats
+        with self._lock:
+            return self._stats_locked()
+
+    def _stats_locked(self) -> dict[str, Any]:
         stages = {}
         for st in self.stages.values():
             d = _merge_counts(st.carried, st.stats) if st.carried else dict(st.stats)
@@ -521,6 +641,7 @@ class Supervisor:
             d.setdefault("drops", {})
             d.update(pid=st.pid, kind=st.kind, cpu_percent=round(st.cpu_percent, 1), rss_bytes=st.rss_bytes,
                      restarts=st.restarts, alive=bool(st.process is not None and st.process.exitcode is None),
+                     ready=st.ready,  # this incarnation has reported in
                      finished=st.finished)
             if st.last_error:
                 d["last_error"] = st.last_error[-2000:]
@@ -562,10 +683,13 @@ class Supervisor:
             if isinstance(rejected, dict) else 0,
         }
         acc["ingest_balanced"] = acc["ingest_received"] == acc["ingest_written"] + acc["ingest_dropped"]
+        # written by an ingest that died before reporting them, read back from the ring
+        acc["ingest_unreported_written"] = ing.get("unreported_written", 0)
         if ring:
             acc["ring_written"] = ring.get("total_written")
             acc["ring_agrees"] = ring.get("total_written") == acc["ingest_written"]
         sources = [v for v in stages.values() if v.get("kind") == "source"]
+        acc.update(_source_balance(sources))
         if not any(s.external for s in self.cfg.sources):
             acc["sources_sent"] = sum(v.get("points_out", 0) for v in sources)
             if any(v.get("restarts") for v in sources):
@@ -617,6 +741,7 @@ class Supervisor:
         snd = stages.get("sender", {})
         sources = [v for v in stages.values() if v.get("kind") == "source"]
         acc: dict[str, Any] = {
+            **_source_balance(sources),
             "sources_sent": sum(v.get("points_out", 0) for v in sources),
             "sender_received": snd.get("points_in", 0),
             "link_sent": snd.get("points_out", 0),
@@ -627,3 +752,21 @@ class Supervisor:
         if not any(v.get("restarts") for v in sources):
             acc["lost_before_sender"] = acc["sources_sent"] - acc["sender_received"]
         return acc
+
+
+def _source_balance(sources: list[dict]) -> dict[str, Any]:
+    """The sources' own balance: points their transports produced = sent on to ingest (or
+    the sender) + dropped there by reason (``hwm``: the send queue stayed full, e.g. a link
+    delivering faster than ingest takes; ``encode_error``)."""
+    by_reason: dict[str, int] = {}
+    for v in sources:
+        for r, n in (v.get("drops") or {}).items():
+            by_reason[r] = by_reason.get(r, 0) + n
+    out: dict[str, Any] = {
+        "sources_received": sum(v.get("points_in", 0) for v in sources),
+        "sources_forwarded": sum(v.get("points_out", 0) for v in sources),
+        "sources_dropped": sum(by_reason.values()),
+        "sources_dropped_by_reason": by_reason,
+    }
+    out["sources_balanced"] = out["sources_received"] == out["sources_forwarded"] + out["sources_dropped"]
+    return out

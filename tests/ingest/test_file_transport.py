@@ -6,6 +6,7 @@ import pytest
 
 from pointflow.ingest import formats
 from pointflow.ingest.transports import resolve_transport
+from pointflow.ingest.transports.base import InputUnreadable
 
 N = 1234
 
@@ -134,13 +135,19 @@ def test_bad_files_give_clear_errors(tmp_path):
                                      b"property float y\nproperty float z\nend_header\n" + b"\0" * 12)
     with pytest.raises(formats.FormatError, match="promises 100 vertices"):
         formats.read_points(str(tmp_path / "t.ply"))
-    # the transport skips a bad file (logged, counted) instead of ending its stage
-    for name in ("x.bin", "t.ply"):
-        chunks, t = _replay(tmp_path / name)
-        assert chunks == [] and t.counters["bad_files"] == 1 and t.counters["files"] == 0
-    # looping over files that are all bad ends instead of spinning forever
-    chunks, t = _replay(tmp_path / "x.bin", loop=True)
-    assert chunks == [] and t.counters["bad_files"] == 1 and t.counters["loops"] == 0
+    # a source none of whose files can be read fails, naming them and why (it used to
+    # replay nothing and look like a success); looping over them too, instead of spinning
+    for name, why, loop in (("x.bin", "multiple of 16", False), ("t.ply", "promises 100 vertices", False),
+                            ("x.bin", "multiple of 16", True)):
+        with pytest.raises(InputUnreadable, match=rf"none of its 1 file\(s\) can be read: .*{name}.*{why}"):
+            _replay(tmp_path / name, loop=loop)
+    # one bad file among good ones is skipped (logged, counted), the others replayed
+    d = tmp_path / "mixed"
+    d.mkdir()
+    np.save(d / "a_good.npy", np.zeros((5, 3), np.float32))
+    (d / "b_bad.npy").write_bytes(b"not numpy")
+    chunks, t = _replay(d, rate=1000)
+    assert [c.n for c in chunks] == [5] and t.counters["bad_files"] == 1 and t.counters["files"] == 1
 
 
 def test_progress_bar_when_asked(tmp_path, capsys):

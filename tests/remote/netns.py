@@ -15,6 +15,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -91,10 +92,35 @@ def sweep_leftovers() -> list[str]:
     return gone
 
 
+#: Nets not closed yet: what a SIGTERM of the test run must remove.
+_OPEN: "set[Net]" = set()
+
+
+def _on_sigterm(signum, frame) -> None:
+    """The test run got SIGTERM (a CI timeout, ``kill``): Python's default would end it at
+    once, leaving namespaces and the ``pointflow`` processes in them (their own sessions,
+    so nothing else reaches them). Remove them first, then end the run as Ctrl-C does."""
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)  # a second SIGTERM must not cut the cleanup short
+    for n in list(_OPEN):
+        try:
+            n.close()
+        except Exception:  # noqa: BLE001 - clean up the others anyway
+            pass
+    pytest.exit("stopped by SIGTERM; namespaces and link processes removed", returncode=128 + signal.SIGTERM)
+
+
+def _install_sigterm_handler() -> None:
+    if threading.current_thread() is threading.main_thread() and signal.getsignal(signal.SIGTERM) is not _on_sigterm:
+        signal.signal(signal.SIGTERM, _on_sigterm)
+
+
 class Net:
-    """Namespaces, links and processes of one test; :meth:`close` removes them all."""
+    """Namespaces, links and processes of one test; :meth:`close` removes them all (also
+    when the test run is stopped with SIGTERM)."""
 
     def __init__(self, workdir: Path):
+        _install_sigterm_handler()
+        _OPEN.add(self)
         self.tag = secrets.token_hex(3)
         self.workdir = workdir
         self.namespaces: list[str] = []
@@ -166,6 +192,7 @@ class Net:
             return ""
 
     def close(self) -> None:
+        _OPEN.discard(self)
         for p in self.procs:
             if p.poll() is None:
                 try:

@@ -122,3 +122,20 @@ def test_out_that_is_a_file_is_a_config_error(tmp_path, capsys, cmd):
     err = capsys.readouterr().err
     assert "Traceback" not in err and err.endswith("\n")
     assert f"output directory {out}: exists and is not a directory" in err
+
+
+def test_run_whose_only_file_cannot_be_read_fails_naming_it(tmp_path):
+    """Issue 19.4: a file source none of whose files can be read fails the run (exit 2),
+    naming the file and why, instead of drawing an empty scene and exiting 0."""
+    bad = tmp_path / "scan.npy"
+    bad.write_bytes(b"\x93NUMPY but not really")
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(f"source: {{transport: file, options: {{path: {bad}}}}}\n"
+                   "render: {backend: cpu, size: [64, 48]}\nsupervisor: {max_restarts: 3}\n")
+    proc = subprocess.run([sys.executable, "-m", "pointflow.cli", "run", str(cfg), "--duration", "60", "-q",
+                           "--out", str(tmp_path / "out")], cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    fail = [ln for ln in proc.stderr.splitlines() if "none of its 1 file(s) can be read" in ln]
+    assert fail and str(bad) in fail[-1], proc.stderr[-2000:]
+    assert "Traceback" not in proc.stderr
+    assert "restarting" not in proc.stderr  # a restart cannot help: none was tried

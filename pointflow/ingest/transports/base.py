@@ -18,6 +18,12 @@ from ...chunk import ChunkError, PointChunk
 from ...typed import ConfigError, load_dataclass
 
 
+class InputUnreadable(Exception):
+    """None of a transport's input can be read (every file of a replay is unreadable):
+    restarting cannot help, so the source stage reports it and the run fails (exit 2),
+    with this message naming the inputs and why."""
+
+
 @dataclasses.dataclass
 class NoOptions:
     """For transports that take no options."""

@@ -15,7 +15,8 @@ Coordinates stay float64 (georeferenced LAS) and the format's channels come alon
 ``reflectivity`` -> ``intensity``). A progress bar goes to stderr when it is a terminal.
 A file that cannot be read (a :class:`~pointflow.ingest.formats.FormatError`, or anything a
 reader raises) is logged with the reason, counted (``transport_bad_files``) and skipped: what
-was read before the defect is kept, and the other files go on; the stage never fails on one.
+was read before the defect is kept, and the other files go on. When *none* of the source's
+files can be read, :class:`~.base.InputUnreadable` names them and why, and the run fails.
 """
 from __future__ import annotations
 
@@ -32,7 +33,7 @@ import numpy as np
 from ...chunk import PointChunk
 from ...typed import ConfigError
 from .. import formats
-from .base import Transport
+from .base import InputUnreadable, Transport
 
 log = logging.getLogger("pointflow.transport.file")
 
@@ -99,6 +100,8 @@ class FileTransport(Transport):
         self.o = FileOptions(**options)
         self.files = _expand(self.o.path)
         self.counters = {"files": 0, "points": 0, "loops": 0, "bad_files": 0}
+        #: "file: why" of each file that could not be read (for the error when none can).
+        self.bad_reasons: list[str] = []
         self._bar_last = 0.0
         self._show_bar = self.o.progress == "on" or (self.o.progress == "auto" and sys.stderr.isatty())
 
@@ -146,6 +149,10 @@ class FileTransport(Transport):
         """Count and log a file that cannot be read (the rest of it and the next files go on)."""
         self.counters["bad_files"] = self.counters.get("bad_files", 0) + 1
         msg = str(exc) if isinstance(exc, formats.FormatError) else f"{f}: {type(exc).__name__}: {exc}"
+        if f not in msg:
+            msg = f"{f}: {msg}"
+        if len(self.bad_reasons) < 20:
+            self.bad_reasons.append(msg)
         log.warning("%s: skipped a file that cannot be read: %s", self.source_id, msg)
 
     def _progress(self, done: int, total: int | None, final: bool = False) -> None:
@@ -199,10 +206,10 @@ class FileTransport(Transport):
                     yield None  # the stage beats between files, however many are bad
                     continue
                 self.counters["files"] += 1
+            if not self.counters["files"]:  # none can be read: an empty replay would look like success
+                raise InputUnreadable(f"source {self.source_id!r}: none of its {len(self.files)} file(s) can be read: "
+                                      + "; ".join(self.bad_reasons))
             if not o.loop:
-                break
-            if not self.counters["files"]:  # looping over files none of which can be read
-                log.error("%s: none of the %d file(s) can be read; not looping", self.source_id, len(self.files))
                 break
             self.counters["loops"] += 1
         if self.mode == "stream":  # the last chunk's time has to pass, as on a live stream

@@ -1,0 +1,92 @@
+"""Start a stage as its own interpreter: ``python -m pointflow.runtime.launch``.
+
+``multiprocessing``'s ``spawn`` re-imports the caller's ``__main__`` in every child, so a
+script without an ``if __name__ == "__main__":`` guard (the README's example saved as a
+file), ``python -c``, a notebook or a frozen main either fails or re-runs the caller's
+code in each stage. Here a stage is a plain ``subprocess`` running this module; what
+:func:`pointflow.runtime.stage.stage_main` needs (stage name and kind, the config as a
+dict, base dir, :class:`~pointflow.runtime.stage.RunInfo`) arrives pickled on its stdin,
+so nothing of the caller's ``__main__`` is ever imported. The stage still arms
+``PR_SET_PDEATHSIG`` first thing, so it cannot outlive the supervisor.
+"""
+from __future__ import annotations
+
+import os
+import pickle
+import subprocess
+import sys
+from typing import Optional
+
+import pointflow
+
+#: The directory that holds the ``pointflow`` package, put first on the stage's
+#: ``PYTHONPATH`` so a checkout used without installing is found by the child too.
+_PKG_PARENT = os.path.dirname(os.path.dirname(os.path.abspath(pointflow.__file__)))
+
+
+class StageProcess:
+    """A stage's OS process, with the small part of ``multiprocessing.Process``'s interface
+    the supervisor uses (``pid``, ``exitcode``, ``terminate``, ``kill``, ``join``)."""
+
+    def __init__(self, popen: subprocess.Popen):
+        self._p = popen
+        self.pid = popen.pid
+
+    @property
+    def exitcode(self) -> Optional[int]:
+        return self._p.poll()
+
+    def is_alive(self) -> bool:
+        return self._p.poll() is None
+
+    def terminate(self) -> None:
+        if self._p.poll() is None:
+            self._p.terminate()
+
+    def kill(self) -> None:
+        if self._p.poll() is None:
+            self._p.kill()
+
+    def join(self, timeout: Optional[float] = None) -> None:
+        try:
+            self._p.wait(timeout)
+        except subprocess.TimeoutExpired:
+            pass
+
+
+def spawn_stage(name: str, kind: str, cfg_dict: dict, base_dir: str, info) -> StageProcess:
+    """Start ``stage_main(name, kind, cfg_dict, base_dir, info)`` in a new interpreter."""
+    payload = pickle.dumps((name, kind, cfg_dict, base_dir, info), protocol=pickle.HIGHEST_PROTOCOL)
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (_PKG_PARENT, env.get("PYTHONPATH", "")) if p)
+    p = subprocess.Popen([sys.executable, "-m", "pointflow.runtime.launch", name], stdin=subprocess.PIPE,
+                         env=env, close_fds=True)
+    try:
+        p.stdin.write(payload)
+        p.stdin.close()
+    except OSError:  # it died before reading: its exit code says why
+        pass
+    return StageProcess(p)
+
+
+def _main() -> None:
+    # before anything slow: a supervisor killed from here on still takes the stage with it
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, 15)  # PR_SET_PDEATHSIG, SIGTERM
+    except OSError:
+        pass
+    from .rundir import ensure_runtime_dir
+
+    ensure_runtime_dir()
+    name, kind, cfg_dict, base_dir, info = pickle.loads(sys.stdin.buffer.read())
+    if os.getppid() != info.supervisor_pid:  # it died before PDEATHSIG was armed
+        sys.exit(1)
+    from .stage import stage_main
+
+    stage_main(name, kind, cfg_dict, base_dir, info)
+
+
+if __name__ == "__main__":
+    _main()

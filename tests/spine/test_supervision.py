@@ -1,0 +1,240 @@
+"""Supervision that needs no caller (issue 19): stages start without re-importing the
+caller's ``__main__`` (the README's example as a script, ``python -c``, stdin), restarts
+and stats run in the background while the caller only sleeps, and the accounting stays
+exact when ingest is SIGKILLed, even right before the stop."""
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from pointflow import Pipeline
+
+from .helpers import assert_gone, assert_segments_gone, small_config
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _readme_python_example() -> str:
+    """The README's "From Python" block, verbatim."""
+    text = (ROOT / "README.md").read_text()
+    blocks = re.findall(r"```python\n(.*?)```", text, re.S)
+    ex = next(b for b in blocks if "Pipeline.from_yaml" in b)
+    assert "__main__" not in ex  # what a new user copies has no guard
+    return ex
+
+
+def _demo_dir(tmp_path: Path) -> Path:
+    """A working directory with a small, fast ``configs/demo.yaml`` (cpu tier)."""
+    (tmp_path / "configs").mkdir()
+    cfg = small_config(supervisor={"max_restarts": 3})
+    (tmp_path / "configs" / "demo.yaml").write_text(yaml.safe_dump(cfg))
+    return tmp_path
+
+
+def _check_output(proc: subprocess.CompletedProcess) -> None:
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "bootstrapping phase" not in proc.stderr
+    assert "restarting" not in proc.stderr, proc.stderr[-3000:]
+    points_in, frames = (int(x) for x in proc.stdout.split()[-2:])
+    assert points_in > 0, f"no points reached ingest: {proc.stdout!r}\n{proc.stderr[-3000:]}"
+
+
+def test_readme_example_runs_as_a_script_without_main_guard(tmp_path):
+    cwd = _demo_dir(tmp_path)
+    script = cwd / "example.py"
+    script.write_text(_readme_python_example())
+    proc = subprocess.run([sys.executable, str(script)], cwd=cwd, capture_output=True, text=True, timeout=120)
+    _check_output(proc)
+
+
+def test_readme_example_runs_from_python_c_and_stdin(tmp_path):
+    cwd = _demo_dir(tmp_path)
+    code = _readme_python_example()
+    proc = subprocess.run([sys.executable, "-c", code], cwd=cwd, capture_output=True, text=True, timeout=120)
+    _check_output(proc)
+    # a main with no file at all (an interactive session, a notebook kernel's cell)
+    proc = subprocess.run([sys.executable, "-"], input=code, cwd=cwd, capture_output=True, text=True, timeout=120)
+    _check_output(proc)
+
+
+def _sleep_until(pred, timeout: float) -> bool:
+    """Wait the way a program with its own loop does: sleeping, never calling poll()/wait()."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if pred():
+            return True
+        time.sleep(0.1)
+    return bool(pred())
+
+
+def test_supervision_runs_while_the_caller_only_sleeps(tmp_path):
+    cfg = small_config(supervisor={"max_restarts": 3, "restart_backoff_ms": 50})
+    pipe = Pipeline.from_dict(cfg, out_dir=str(tmp_path))
+    pids = set()
+    pipe.start()
+    try:
+        assert _sleep_until(lambda: pipe.stats()["frames"] >= 2, 60), "stats() never moved while the caller slept"
+        for stage in ("ingest", "render"):
+            st = pipe.stats()
+            old = st["stages"][stage]["pid"]
+            pids.update(s["pid"] for s in st["stages"].values())
+            frames, points = st["frames"], st["stages"]["ingest"]["points_in"]
+            os.kill(old, signal.SIGKILL)
+            assert _sleep_until(lambda: pipe.stats()["stages"][stage]["pid"] != old
+                                and pipe.stats()["stages"][stage]["alive"], 30), f"{stage} was not restarted"
+            assert _sleep_until(lambda: pipe.stats()["frames"] >= frames + 2
+                                and pipe.stats()["stages"]["ingest"]["points_in"] > points, 60), \
+                "stats() did not advance after the restart"
+            assert pipe.stats()["stages"][stage]["restarts"] == 1
+        pids.update(s["pid"] for s in pipe.stats()["stages"].values())
+    finally:
+        final = pipe.stop()
+    assert [e["stage"] for e in final["events"]] == ["ingest", "render"]
+    assert_gone(pids)
+    assert_segments_gone(final)
+
+
+def test_ingest_killed_repeatedly_during_a_replay_accounting_exact(tmp_path):
+    """The ring's write counter is the truth: points a killed ingest wrote but never
+    reported are reconciled from shared memory (``unreported_written``), including an
+    ingest killed just before the stop, which no restart path sees."""
+    rng = np.random.default_rng(3)
+    data = np.column_stack([rng.uniform(-20, 20, (400_000, 3)), rng.uniform(0, 1, 400_000)]).astype(np.float32)
+    np.save(tmp_path / "cloud.npy", data)
+    cfg = small_config(source={"transport": "file", "options": {
+                           "path": str(tmp_path / "cloud.npy"), "chunk_points": 5000, "realtime": False,
+                           "loop": True}},
+                       supervisor={"max_restarts": 10, "restart_backoff_ms": 50, "heartbeat_ms": 1000})
+    pipe = Pipeline.from_dict(cfg, out_dir=str(tmp_path / "out"))
+    pids = set()
+    with pipe:
+        for i in range(4):
+            written = pipe.stats().get("ring", {}).get("total_written", 0)
+            # the (new) ingest has started (a fresh interpreter: seconds on a busy machine) and writes
+            pipe.wait(60, until=lambda: pipe.stats()["stages"]["ingest"].get("ready", True)
+                      and pipe.stats()["ring"]["total_written"] > written)
+            pipe.wait(0.7)  # writing all the time, reporting every 0.5 s
+            pid = pipe.stats()["stages"]["ingest"]["pid"]
+            pids.add(pid)
+            os.kill(pid, signal.SIGKILL)
+            if i < 3:
+                pipe.wait(30, until=lambda: pipe.stats()["stages"]["ingest"]["pid"] != pid)
+        pids.update(s["pid"] for s in pipe.stats()["stages"].values())
+        # the last kill is followed at once by the stop
+    final = pipe.stats()
+    acc = final["accounting"]
+    ing = final["stages"]["ingest"]
+    assert acc["ring_written"] == acc["ingest_written"], acc
+    assert acc["ring_agrees"] and acc["ingest_balanced"], acc
+    assert ing["restarts"] >= 3
+    assert ing.get("unreported_written", 0) > 0, "no kill landed between a write and its report?"
+    assert acc["ingest_unreported_written"] == ing["unreported_written"]
+    assert_gone(pids)
+    assert_segments_gone(final)
+
+
+def test_points_a_source_drops_at_its_send_queue_are_in_the_identities(tmp_path):
+    """Issue 19.5: a zmq source receiving faster than ingest takes (ingest frozen) drops
+    chunks at its send queue's high-water mark; those points have a named counter and
+    the identities hold: received by the sources = forwarded + dropped, forwarded =
+    received by ingest."""
+    import zmq
+
+    from pointflow import wire
+    from pointflow.chunk import PointChunk
+
+    from .helpers import free_tcp_port
+
+    port = free_tcp_port()
+    cfg = small_config(source={"transport": "zmq", "options": {"endpoint": f"tcp://127.0.0.1:{port}",
+                                                               "socket": "pull", "bind": True}},
+                       ingest={"receive_hwm": 2},
+                       supervisor={"hung_after_ms": 30000, "max_restarts": 0})
+    pipe = Pipeline.from_dict(cfg, out_dir=str(tmp_path))
+    zctx = zmq.Context()
+    push = zctx.socket(zmq.PUSH)
+    push.setsockopt(zmq.LINGER, 0)
+    push.connect(f"tcp://127.0.0.1:{port}")
+    rng = np.random.default_rng(5)
+    frames = wire.encode(PointChunk(positions=rng.uniform(-5, 5, (5000, 3)).astype(np.float32),
+                                    channels={"intensity": rng.uniform(0, 1, 5000).astype(np.float32)}))
+    sent = 0
+    try:
+        with pipe:
+            ingest_pid = pipe.stats()["stages"]["ingest"]["pid"]
+            os.kill(ingest_pid, signal.SIGSTOP)  # ingest stops taking: the source's queue fills
+            try:
+                end = time.monotonic() + 3.0
+                while time.monotonic() < end:
+                    if push.poll(50, zmq.POLLOUT):
+                        push.send_multipart(frames, copy=False)
+                        sent += 1
+            finally:
+                os.kill(ingest_pid, signal.SIGCONT)
+            # everything the source still holds reaches ingest, then the counts settle
+            last = -1
+            while pipe.stats()["stages"]["ingest"]["points_in"] != last:
+                last = pipe.stats()["stages"]["ingest"]["points_in"]
+                pipe.wait(1.5)
+    finally:
+        push.close()
+        zctx.term()
+    acc = pipe.stats()["accounting"]
+    assert acc["sources_dropped_by_reason"].get("hwm", 0) > 0, acc  # the load did overflow the queue
+    assert acc["sources_received"] == sent * 5000, acc
+    assert acc["sources_balanced"], acc
+    assert acc["sources_received"] == acc["sources_forwarded"] + acc["sources_dropped"]
+    assert acc["lost_before_ingest"] == 0 and acc["sources_forwarded"] == acc["ingest_received"], acc
+    assert acc["ingest_balanced"] and acc["ring_agrees"], acc
+
+
+def test_backoff_starts_again_after_a_healthy_run(tmp_path, monkeypatch):
+    """A stage that ran a while before it died restarts after the first backoff again:
+    over a long run (the chaos soak kills a stage every 30 s) the backoff must not double
+    with every restart of its lifetime; a crash loop still backs off."""
+    from pointflow.runtime import supervisor
+
+    monkeypatch.setattr(supervisor, "HEALTHY_S", 1.0)
+    cfg = small_config(supervisor={"max_restarts": 10, "restart_backoff_ms": 50})
+    with Pipeline.from_dict(cfg, out_dir=str(tmp_path)) as pipe:
+        for _ in range(3):
+            st = pipe.stats()["stages"]["ingest"]
+            pipe.wait(30, until=lambda: pipe.stats()["stages"]["ingest"]["ready"])
+            time.sleep(1.5)  # healthy for longer than HEALTHY_S
+            pid = pipe.stats()["stages"]["ingest"]["pid"]
+            os.kill(pid, signal.SIGKILL)
+            pipe.wait(30, until=lambda: pipe.stats()["stages"]["ingest"]["pid"] != pid)
+        events = [e for e in pipe.stats()["events"] if e["stage"] == "ingest"]
+    assert [e["backoff_ms"] for e in events] == [50, 50, 50], events
+
+
+def test_a_machine_wide_stall_is_not_a_hang(tmp_path):
+    """Every stage silent at once (a loaded machine descheduled them all; seen in the chaos
+    soak at load 15-20: four healthy stages killed as "hung" within a second) is not a
+    reason to kill them; a single frozen stage among talking ones still is
+    (tests/spine/test_recovery.py::test_a_frozen_stage_is_detected_and_restarted)."""
+    cfg = small_config(supervisor={"max_restarts": 3, "hung_after_ms": 800})
+    with Pipeline.from_dict(cfg, out_dir=str(tmp_path)) as pipe:
+        pipe.wait(60, until=lambda: pipe.stats()["frames"] >= 2)
+        pids = [v["pid"] for v in pipe.stats()["stages"].values()]
+        for pid in pids:
+            os.kill(pid, signal.SIGSTOP)
+        try:
+            pipe.wait(2.5)  # three times hung_after_ms
+        finally:
+            for pid in pids:
+                os.kill(pid, signal.SIGCONT)
+        frames = pipe.stats()["frames"]
+        pipe.wait(30, until=lambda: pipe.stats()["frames"] > frames)
+        st = pipe.stats()
+    assert st["events"] == [], st["events"]
+    assert [v["pid"] for v in st["stages"].values()] == pids
+    assert st["frames"] > frames
