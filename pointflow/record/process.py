@@ -14,17 +14,25 @@ so the pipeline runs on without the recording. A chunk that cannot be encoded is
 ``drops[encode_error]`` (logged, rate-limited) and the recording goes on. Accounting::
 
     points_in (received from ingest) = points_out (written) + sum(drops)
+
+With ``frames.fixed`` set, ingest also forwards each transforms message it accepts (the
+``pointflow.transforms/1`` JSON, as on the ingest socket) on the same socket; they are
+written as ``tf2_msgs/msg/TFMessage`` on ``/tf`` (dynamic, as they arrive) and ``/tf_static``
+(every static transform known, ``frames.static`` included: at the start of each file and again
+whenever one changes), so viewers show the frame tree and each split file stands alone.
 """
 from __future__ import annotations
 
 import errno
+import json
 import time
 
 import zmq
 
 from .. import wire
 from ..chunk import ChunkError
-from .encode import Layout, Scratch, encode_pointcloud2, layout_key
+from ..frames import message as transforms
+from .encode import Layout, Scratch, encode_pointcloud2, encode_tf, layout_key
 from .files import RecordingFiles
 
 #: On stop, take what ingest sent until the socket is quiet this long (at most STOP_GRACE_S).
@@ -36,7 +44,7 @@ class Recorder:
     """Decode, encode and write, with exact counters (no process of its own, so the tests
     and the benchmark can drive it directly)."""
 
-    def __init__(self, rc, counters, log, fresh: bool = True):
+    def __init__(self, rc, counters, log, fresh: bool = True, frames=None):
         self.rc = rc
         self.counters = counters
         self.log = log
@@ -49,8 +57,27 @@ class Recorder:
         from ..ingest.process import RateLimitedLog
 
         self._warn = RateLimitedLog(log)
+        #: (parent, child) -> the newest static transform (``frames.static`` first)
+        self.static: dict[tuple[str, str], transforms.Transform] = {}
+        self.transforms_written = 0
+        if frames is not None and frames.fixed and frames.static:
+            from ..frames.config import static_rotation
+
+            self.add_transforms(transforms.Transforms([
+                transforms.Transform(s.parent, s.child, 0, tuple(s.translation), tuple(static_rotation(s)), True)
+                for s in frames.static]))
 
     def add_frames(self, frames) -> None:
+        raw = memoryview(getattr(frames[0], "buffer", frames[0])) if len(frames) == 1 else None
+        if raw is not None and transforms.SCHEMA_BYTES in bytes(raw[:64]):
+            try:
+                batch = transforms.decode(json.loads(bytes(raw)))
+            except (ValueError, transforms.TransformMessageError) as exc:
+                self.counters.extra["rejected_messages"] = self.counters.extra.get("rejected_messages", 0) + 1
+                self.log.warning("dropped a malformed transforms message on the record socket: %s", exc)
+                return
+            self.add_transforms(batch)
+            return
         try:
             chunk = wire.decode(frames)
         except ChunkError as exc:  # not from our ingest: count it, go on
@@ -71,8 +98,7 @@ class Recorder:
         if lay is None:
             lay = self.layouts[key] = Layout(chunk.positions.dtype, [(k, v.dtype, 1 if v.ndim == 1 else v.shape[1])
                                                                      for k, v in chans.items()])
-        now = max(time.time_ns(), self.last_log_ns)  # log times never go back within a recording
-        self.last_log_ns = now
+        now = self._now()
         stamp = chunk.stamp_ns or now
         frame_id = getattr(chunk, "frame_id", "") or self.rc.frame_id
         try:
@@ -87,6 +113,35 @@ class Recorder:
                                        f"{type(exc).__name__}: {exc}")
             return
         self.counters.points_out += n
+
+    def add_transforms(self, batch: transforms.Transforms) -> None:
+        """Dynamic transforms to /tf now; static ones to /tf_static when one is new or changed."""
+        if self.failed:
+            return
+        dynamic = [t for t in batch.transforms if not t.static]
+        changed = False
+        for t in batch.transforms:
+            if t.static and self.static.get((t.parent, t.child)) != t:
+                self.static[(t.parent, t.child)] = t
+                changed = True
+        f = self.files
+        try:
+            if changed:
+                f.static_tf = encode_tf(self.static.values())
+                if f.writer is not None and f.file_first_ns:  # else the next file starts with it
+                    now = self._now()
+                    f.write_tf(True, f.static_tf, now, now)
+            if dynamic:
+                now = self._now()
+                f.write_tf(False, encode_tf(dynamic), now, max(t.stamp_ns for t in dynamic) or now)
+                self.transforms_written += len(dynamic)
+        except OSError as exc:
+            self._fail(exc, 0)
+
+    def _now(self) -> int:
+        now = max(time.time_ns(), self.last_log_ns)  # log times never go back within a recording
+        self.last_log_ns = now
+        return now
 
     def _fail(self, exc: OSError, n: int) -> None:
         self.failed = "disk_full" if exc.errno in (errno.ENOSPC, errno.EDQUOT) else "write_error"
@@ -115,7 +170,8 @@ class Recorder:
     def stats(self) -> dict:
         f = self.files
         return {"record_file": f.current or "", "record_files": len(f.files), "record_bytes": f.bytes_written,
-                "record_messages": f.messages, "record_error": self.failed or ""}
+                "record_messages": f.messages, "record_error": self.failed or "",
+                **({"record_transforms": self.transforms_written} if self.transforms_written else {})}
 
 
 def main(ctx) -> None:
@@ -125,7 +181,7 @@ def main(ctx) -> None:
     sock.setsockopt(zmq.RCVHWM, rc.queue_messages)
     sock.setsockopt(zmq.LINGER, 0)
     sock.bind(ctx.endpoints.record)
-    rec = Recorder(rc, ctx.counters, ctx.log, fresh=ctx.info.restart_count == 0)
+    rec = Recorder(rc, ctx.counters, ctx.log, fresh=ctx.info.restart_count == 0, frames=ctx.cfg.frames)
     # counters of files written by earlier incarnations are carried by the supervisor
     ctx.on_beat.append(lambda: ctx.counters.extra.update(rec.stats()))
 

@@ -95,7 +95,8 @@ COUNTERS = ("points_in", "points_out", "frames", "pngs", "uploaded_bytes", "mess
             "transport_lost_chunks", "transport_joined_after",
             # the recording (docs/record.md): ingest's copies for it, the recorder's files
             "record_offered", "record_sent", "record_dropped", "record_messages_sent", "record_bytes",
-            "record_messages", "record_files")
+            "record_messages", "record_files",
+            "record_transforms_sent", "record_transforms_dropped", "record_transforms")
 COUNTER_MAPS = ("drops", "rejected", "skipped")
 
 
