@@ -66,6 +66,13 @@ class Recorder:
             self.add_transforms(transforms.Transforms([
                 transforms.Transform(s.parent, s.child, 0, tuple(s.translation), tuple(static_rotation(s)), True)
                 for s in frames.static]))
+        if not fresh and frames is not None and frames.fixed:
+            # a restarted recorder: its new file starts with the statics received before
+            try:
+                self.add_transforms(transforms.Transforms(recorded_static(self.files.path)))
+            except Exception as exc:  # noqa: BLE001 - the recording goes on without them
+                log.warning("the static transforms of the earlier file could not be read (%s: %s); "
+                            "the new file gets them when they change", type(exc).__name__, exc)
 
     def add_frames(self, frames) -> None:
         raw = memoryview(getattr(frames[0], "buffer", frames[0])) if len(frames) == 1 else None
@@ -172,6 +179,46 @@ class Recorder:
         return {"record_file": f.current or "", "record_files": len(f.files), "record_bytes": f.bytes_written,
                 "record_messages": f.messages, "record_error": self.failed or "",
                 **({"record_transforms": self.transforms_written} if self.transforms_written else {})}
+
+
+#: A restarted recorder reads at most this far into a file for its last /tf_static.
+STATIC_SCAN_BYTES = 64 << 20
+
+
+def recorded_static(path: str) -> list[transforms.Transform]:
+    """The newest /tf_static the recording's files hold (read up to a crash's cut; in a big
+    file, the last one in its first ``STATIC_SCAN_BYTES``), so that a restarted recorder's
+    file carries the static transforms ingest sent only once."""
+    import struct
+
+    from mcap.exceptions import McapError
+    from mcap.reader import NonSeekingReader
+    from mcap_ros2.decoder import DecoderFactory
+
+    from .files import TF_STATIC_TOPIC, existing_parts
+
+    for _, p in reversed(existing_parts(path)):
+        last = None
+        try:
+            with open(p, "rb") as f:
+                for schema, channel, msg in NonSeekingReader(f).iter_messages(log_time_order=False):
+                    if channel.topic == TF_STATIC_TOPIC:
+                        last = (schema, channel, msg)
+                    elif last is not None and f.tell() > STATIC_SCAN_BYTES:
+                        break
+        except (McapError, OSError, ValueError, EOFError, struct.error):
+            pass  # cut short: what was read before counts
+        if last is not None:
+            schema, channel, msg = last
+            m = DecoderFactory().decoder_for(channel.message_encoding, schema)(msg.data)
+            return [transforms.Transform(t.header.frame_id, t.child_frame_id,
+                                         t.header.stamp.sec * 1_000_000_000 + t.header.stamp.nanosec,
+                                         (t.transform.translation.x, t.transform.translation.y,
+                                          t.transform.translation.z),
+                                         (t.transform.rotation.x, t.transform.rotation.y, t.transform.rotation.z,
+                                          t.transform.rotation.w), True)
+                    for t in m.transforms]
+    return []
 
 
 def main(ctx) -> None:

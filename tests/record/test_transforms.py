@@ -120,3 +120,29 @@ def test_no_transforms_without_frames(tmp_path):
 
 if __name__ == "__main__":  # pragma: no cover
     pytest.main([__file__, "-q"])
+
+
+def test_restarted_recorder_file_starts_with_the_static_transforms(tmp_path):
+    """ingest sends the static mount once; a recorder killed and restarted still starts its
+    new file with it (read from the file before)."""
+    import os
+    import signal
+
+    rec = tmp_path / "k.mcap"
+    cfg = _moving(str(rec), flush_s=0.2)
+    cfg["source"]["options"].update(scans=0, realtime=True)
+    cfg["supervisor"] = {"max_restarts": 2, "restart_backoff_ms": 100, "hung_after_ms": 10_000}
+    with Pipeline.from_dict(cfg, out_dir=str(tmp_path / "out")) as pipe:
+        recorder = lambda: pipe.stats()["stages"]["recorder"]
+        pipe.wait(60, until=lambda: recorder().get("record_messages", 0) >= 20)
+        before = recorder()["record_messages"]
+        os.kill(recorder()["pid"], signal.SIGKILL)
+        pipe.wait(60, until=lambda: recorder()["restarts"] == 1 and recorder().get("record_messages", 0) >= before + 10)
+        assert recorder()["restarts"] == 1
+    msgs = _read(tmp_path / "k.0001.mcap")
+    topic, _, first = msgs[0]
+    assert topic == "/tf_static"
+    assert [(t.header.frame_id, t.child_frame_id, t.transform.translation.z) for t in first.transforms] == \
+        [("base_link", "lidar", HEIGHT)]
+    assert any(t == "/tf" for t, _, _ in msgs[1:])
+    assert {m.header.frame_id for _, s, m in msgs if s.endswith("PointCloud2")} == {FIXED}
