@@ -146,3 +146,54 @@ def test_restarted_recorder_file_starts_with_the_static_transforms(tmp_path):
         [("base_link", "lidar", HEIGHT)]
     assert any(t == "/tf" for t, _, _ in msgs[1:])
     assert {m.header.frame_id for _, s, m in msgs if s.endswith("PointCloud2")} == {FIXED}
+
+
+def _tf(parent, child, stamp, z, static):
+    from pointflow.frames.message import Transform
+
+    return Transform(parent, child, stamp, (0.0, 0.0, z), (0.0, 0.0, 0.0, 1.0), static)
+
+
+def test_static_set_rewritten_when_it_changes_and_tap_never_waits(tmp_path):
+    """Recorder: an unchanged static is not written again, a changed one rewrites the whole
+    set; the tap drops transforms it cannot send at once and counts them apart from points."""
+    import logging
+
+    import numpy as np
+    import zmq
+
+    from pointflow.chunk import PointChunk
+    from pointflow.frames.message import Transforms
+    from pointflow.record.config import RecordConfig
+    from pointflow.record.process import Recorder
+    from pointflow.record.tap import RecordTap
+    from pointflow.runtime.stage import StageCounters
+
+    path = tmp_path / "u.mcap"
+    rec = Recorder(RecordConfig(path=str(path)), StageCounters(), logging.getLogger("t"))
+    rec.add_transforms(Transforms([_tf("base_link", "lidar", 0, 1.0, True)]))
+    rec.add(PointChunk(positions=np.zeros((10, 3), np.float32), seq=0, source_id="s", frame_id=FIXED))
+    rec.add_transforms(Transforms([_tf("base_link", "lidar", 0, 1.0, True), _tf(FIXED, "base_link", 5, 0.0, False)]))
+    rec.add_transforms(Transforms([_tf("base_link", "imu", 0, 2.0, True)]))
+    rec.close()
+    msgs = _read(path)
+    assert [t for t, _, _ in msgs] == ["/tf_static", "/pointflow/s", "/tf", "/tf_static"]
+    assert [(t.child_frame_id, t.transform.translation.z) for t in msgs[-1][2].transforms] == \
+        [("lidar", 1.0), ("imu", 2.0)], "the whole static set, with the new one"
+
+    zctx = zmq.Context()
+    pull = zctx.socket(zmq.PULL)
+    pull.setsockopt(zmq.RCVHWM, 1)
+    pull.bind(f"ipc://{tmp_path}/tf.sock")
+    tap = RecordTap(zctx, f"ipc://{tmp_path}/tf.sock", hwm=1)
+    try:
+        for i in range(200):
+            tap.offer_transforms(Transforms([_tf(FIXED, "base_link", i, 0.0, False)] * 3))
+        s = tap.stats()
+        assert s["record_transforms_sent"] + s["record_transforms_dropped"] == 600
+        assert s["record_transforms_dropped"] > 0 and s["record_dropped"] == 0 == s["record_offered"]
+    finally:
+        tap.sock.setsockopt(zmq.LINGER, 0)
+        tap.close()
+        pull.close(0)
+        zctx.term()
