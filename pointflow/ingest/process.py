@@ -201,6 +201,8 @@ class Ingestor:
             return False
         self.transform_messages += 1
         if self.framer is not None:
+            if self.record is not None:  # /tf and /tf_static in the recording (docs/record.md)
+                self.record.offer_transforms(batch)
             for c, p, ch in self.framer.add_transforms(batch):
                 self._admit(c, p, ch)
         return True
@@ -231,7 +233,8 @@ class Ingestor:
             rec = None
             if self.record is not None:  # what goes into the ring, with the chunk's metadata
                 rec = dataclasses.replace(chunk, positions=pos, channels=self.record.chans(chans),
-                                          stamp_ns=chunk.stamp_ns or time.time_ns())
+                                          stamp_ns=chunk.stamp_ns or time.time_ns(),
+                                          frame_id=self.framer.fixed if self.framer is not None else chunk.frame_id)
             self._enqueue(pos, chans, chunk.trace_id, lo, hi, rec)  # thinning keeps a subset: still bounds
         return True
 

@@ -205,3 +205,62 @@ def encode_pointcloud2(layout: Layout, positions: np.ndarray, channels: dict[str
 def layout_key(positions: np.ndarray, channels: dict[str, np.ndarray]) -> tuple:
     return (positions.dtype.str,) + tuple((k, v.dtype.str, 1 if v.ndim == 1 else v.shape[1])
                                           for k, v in channels.items())
+
+
+#: ``/tf`` and ``/tf_static`` (docs/record.md): the transforms ingest received, as the ROS 2
+#: ``tf2_msgs/msg/TFMessage`` so Foxglove, Rerun and RViz show the frame tree. The text is the
+#: ROS 2 ``.msg`` files with their dependencies, as ``ros2 bag`` stores it.
+TF_SCHEMA_NAME = "tf2_msgs/msg/TFMessage"
+TF_SCHEMA_TEXT = """\
+geometry_msgs/TransformStamped[] transforms
+================================================================================
+MSG: geometry_msgs/TransformStamped
+std_msgs/Header header
+string child_frame_id
+Transform transform
+================================================================================
+MSG: std_msgs/Header
+builtin_interfaces/Time stamp
+string frame_id
+================================================================================
+MSG: builtin_interfaces/Time
+int32 sec
+uint32 nanosec
+================================================================================
+MSG: geometry_msgs/Transform
+Vector3 translation
+Quaternion rotation
+================================================================================
+MSG: geometry_msgs/Vector3
+float64 x
+float64 y
+float64 z
+================================================================================
+MSG: geometry_msgs/Quaternion
+float64 x 0
+float64 y 0
+float64 z 0
+float64 w 1
+"""
+_tf_encoder = None
+
+
+def encode_tf(transforms) -> bytes:
+    """The CDR bytes of one ``TFMessage`` holding ``transforms``
+    (:class:`pointflow.frames.message.Transform`), encoded by ``mcap-ros2-support`` from the
+    schema text above (a few messages a second: no need for a hand-written encoder)."""
+    global _tf_encoder
+    if _tf_encoder is None:
+        from mcap_ros2._dynamic import serialize_dynamic
+
+        _tf_encoder = serialize_dynamic(TF_SCHEMA_NAME, TF_SCHEMA_TEXT)[TF_SCHEMA_NAME]
+    items = []
+    for t in transforms:
+        sec, nsec = divmod(int(t.stamp_ns), 1_000_000_000)
+        tx, ty, tz = (float(v) for v in t.translation)
+        rx, ry, rz, rw = (float(v) for v in t.rotation)
+        items.append({"header": {"stamp": {"sec": sec, "nanosec": nsec}, "frame_id": t.parent},
+                      "child_frame_id": t.child,
+                      "transform": {"translation": {"x": tx, "y": ty, "z": tz},
+                                    "rotation": {"x": rx, "y": ry, "z": rz, "w": rw}}})
+    return _tf_encoder({"transforms": items})

@@ -21,9 +21,30 @@ import time
 from typing import Any, Optional
 
 from .config import RecordConfig, topic_for
-from .encode import SCHEMA_NAME, SCHEMA_TEXT
+from .encode import SCHEMA_NAME, SCHEMA_TEXT, TF_SCHEMA_NAME, TF_SCHEMA_TEXT
 
 PROFILE = "ros2"
+#: The transform topics (docs/record.md), named as ROS 2 names them whatever ``record.topic`` is.
+TF_TOPIC, TF_STATIC_TOPIC = "/tf", "/tf_static"
+#: ``ros2 bag``'s channel metadata for /tf_static: reliable, transient local (latched), so
+#: ``ros2 bag play`` republishes it the way tf2's static broadcaster does.
+STATIC_QOS = """\
+- history: 3
+  depth: 0
+  reliability: 1
+  durability: 1
+  deadline:
+    sec: 2147483647
+    nsec: 4294967295
+  lifespan:
+    sec: 2147483647
+    nsec: 4294967295
+  liveliness: 1
+  liveliness_lease_duration:
+    sec: 2147483647
+    nsec: 4294967295
+  avoid_ros_namespace_conventions: false
+"""
 
 
 class RawOut:
@@ -105,6 +126,10 @@ class RecordingFiles:
         self.files: list[str] = []
         self.channels: dict[str, int] = {}
         self.schema_id = 0
+        self.tf_schema_id = 0
+        #: The encoded TFMessage of every static transform known (set by the recorder): written
+        #: to /tf_static first in every file, so each split or restart file is self-contained.
+        self.static_tf: Optional[bytes] = None
         self.file_first_ns = 0
         self.bytes_done = 0  # bytes of closed files
         self.messages = 0
@@ -124,6 +149,7 @@ class RecordingFiles:
         self.writer.start(profile=PROFILE, library="pointflow")
         self.schema_id = self.writer.register_schema(SCHEMA_NAME, "ros2msg", SCHEMA_TEXT.encode())
         self.channels = {}
+        self.tf_schema_id = 0
         self.file_first_ns = 0
         self.file_messages = 0
         self.log.info("recording to %s", path)
@@ -150,15 +176,41 @@ class RecordingFiles:
 
     # ------------------------------------------------------------------ write
     def write(self, source_id: str, data, log_ns: int, publish_ns: int, seq: int) -> None:
-        if self.writer is None:
-            self._open()
+        self._begin(log_ns)
         topic = topic_for(self.rc.topic, source_id)
         cid = self.channels.get(topic)
         if cid is None:
             cid = self.channels[topic] = self.writer.register_channel(
                 topic, "cdr", self.schema_id, {"pointflow.source": source_id})
+        self._add(cid, log_ns, data, publish_ns, seq)
+
+    def write_tf(self, static: bool, data: bytes, log_ns: int, publish_ns: int) -> None:
+        """One TFMessage on /tf (or /tf_static)."""
+        self._begin(log_ns)
+        self._add(self._tf_channel(static), log_ns, data, publish_ns, 0)
+
+    def _tf_channel(self, static: bool) -> int:
+        topic = TF_STATIC_TOPIC if static else TF_TOPIC
+        cid = self.channels.get(topic)
+        if cid is None:
+            if not self.tf_schema_id:
+                self.tf_schema_id = self.writer.register_schema(TF_SCHEMA_NAME, "ros2msg", TF_SCHEMA_TEXT.encode())
+            meta = {"offered_qos_profiles": STATIC_QOS} if static else {}
+            cid = self.channels[topic] = self.writer.register_channel(topic, "cdr", self.tf_schema_id, meta)
+        return cid
+
+    def _begin(self, log_ns: int) -> None:
+        """Open a file when none is open; a new file starts with the static transforms."""
+        if self.writer is None:
+            self._open()
         if not self.file_first_ns:
             self.file_first_ns = log_ns
+            if self.static_tf is not None:
+                self.writer.add_message(self._tf_channel(True), log_ns, self.static_tf, log_ns, 0)
+                self.messages += 1
+                self.file_messages += 1
+
+    def _add(self, cid: int, log_ns: int, data, publish_ns: int, seq: int) -> None:
         self.writer.add_message(cid, log_ns, data, publish_ns, seq & 0xFFFFFFFF)
         self.messages += 1
         self.file_messages += 1

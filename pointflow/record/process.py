@@ -14,17 +14,25 @@ so the pipeline runs on without the recording. A chunk that cannot be encoded is
 ``drops[encode_error]`` (logged, rate-limited) and the recording goes on. Accounting::
 
     points_in (received from ingest) = points_out (written) + sum(drops)
+
+With ``frames.fixed`` set, ingest also forwards each transforms message it accepts (the
+``pointflow.transforms/1`` JSON, as on the ingest socket) on the same socket; they are
+written as ``tf2_msgs/msg/TFMessage`` on ``/tf`` (dynamic, as they arrive) and ``/tf_static``
+(every static transform known, ``frames.static`` included: at the start of each file and again
+whenever one changes), so viewers show the frame tree and each split file stands alone.
 """
 from __future__ import annotations
 
 import errno
+import json
 import time
 
 import zmq
 
 from .. import wire
 from ..chunk import ChunkError
-from .encode import Layout, Scratch, encode_pointcloud2, layout_key
+from ..frames import message as transforms
+from .encode import Layout, Scratch, encode_pointcloud2, encode_tf, layout_key
 from .files import RecordingFiles
 
 #: On stop, take what ingest sent until the socket is quiet this long (at most STOP_GRACE_S).
@@ -36,7 +44,7 @@ class Recorder:
     """Decode, encode and write, with exact counters (no process of its own, so the tests
     and the benchmark can drive it directly)."""
 
-    def __init__(self, rc, counters, log, fresh: bool = True):
+    def __init__(self, rc, counters, log, fresh: bool = True, frames=None):
         self.rc = rc
         self.counters = counters
         self.log = log
@@ -49,8 +57,34 @@ class Recorder:
         from ..ingest.process import RateLimitedLog
 
         self._warn = RateLimitedLog(log)
+        #: (parent, child) -> the newest static transform (``frames.static`` first)
+        self.static: dict[tuple[str, str], transforms.Transform] = {}
+        self.transforms_written = 0
+        if frames is not None and frames.fixed and frames.static:
+            from ..frames.config import static_rotation
+
+            self.add_transforms(transforms.Transforms([
+                transforms.Transform(s.parent, s.child, 0, tuple(s.translation), tuple(static_rotation(s)), True)
+                for s in frames.static]))
+        if not fresh and frames is not None and frames.fixed:
+            # a restarted recorder: its new file starts with the statics received before
+            try:
+                self.add_transforms(transforms.Transforms(recorded_static(self.files.path)))
+            except Exception as exc:  # noqa: BLE001 - the recording goes on without them
+                log.warning("the static transforms of the earlier file could not be read (%s: %s); "
+                            "the new file gets them when they change", type(exc).__name__, exc)
 
     def add_frames(self, frames) -> None:
+        raw = memoryview(getattr(frames[0], "buffer", frames[0])) if len(frames) == 1 else None
+        if raw is not None and transforms.SCHEMA_BYTES in bytes(raw[:64]):
+            try:
+                batch = transforms.decode(json.loads(bytes(raw)))
+            except (ValueError, transforms.TransformMessageError) as exc:
+                self.counters.extra["rejected_messages"] = self.counters.extra.get("rejected_messages", 0) + 1
+                self.log.warning("dropped a malformed transforms message on the record socket: %s", exc)
+                return
+            self.add_transforms(batch)
+            return
         try:
             chunk = wire.decode(frames)
         except ChunkError as exc:  # not from our ingest: count it, go on
@@ -71,8 +105,7 @@ class Recorder:
         if lay is None:
             lay = self.layouts[key] = Layout(chunk.positions.dtype, [(k, v.dtype, 1 if v.ndim == 1 else v.shape[1])
                                                                      for k, v in chans.items()])
-        now = max(time.time_ns(), self.last_log_ns)  # log times never go back within a recording
-        self.last_log_ns = now
+        now = self._now()
         stamp = chunk.stamp_ns or now
         frame_id = getattr(chunk, "frame_id", "") or self.rc.frame_id
         try:
@@ -87,6 +120,35 @@ class Recorder:
                                        f"{type(exc).__name__}: {exc}")
             return
         self.counters.points_out += n
+
+    def add_transforms(self, batch: transforms.Transforms) -> None:
+        """Dynamic transforms to /tf now; static ones to /tf_static when one is new or changed."""
+        if self.failed:
+            return
+        dynamic = [t for t in batch.transforms if not t.static]
+        changed = False
+        for t in batch.transforms:
+            if t.static and self.static.get((t.parent, t.child)) != t:
+                self.static[(t.parent, t.child)] = t
+                changed = True
+        f = self.files
+        try:
+            if changed:
+                f.static_tf = encode_tf(self.static.values())
+                if f.writer is not None and f.file_first_ns:  # else the next file starts with it
+                    now = self._now()
+                    f.write_tf(True, f.static_tf, now, now)
+            if dynamic:
+                now = self._now()
+                f.write_tf(False, encode_tf(dynamic), now, max(t.stamp_ns for t in dynamic) or now)
+                self.transforms_written += len(dynamic)
+        except OSError as exc:
+            self._fail(exc, 0)
+
+    def _now(self) -> int:
+        now = max(time.time_ns(), self.last_log_ns)  # log times never go back within a recording
+        self.last_log_ns = now
+        return now
 
     def _fail(self, exc: OSError, n: int) -> None:
         self.failed = "disk_full" if exc.errno in (errno.ENOSPC, errno.EDQUOT) else "write_error"
@@ -115,7 +177,48 @@ class Recorder:
     def stats(self) -> dict:
         f = self.files
         return {"record_file": f.current or "", "record_files": len(f.files), "record_bytes": f.bytes_written,
-                "record_messages": f.messages, "record_error": self.failed or ""}
+                "record_messages": f.messages, "record_error": self.failed or "",
+                **({"record_transforms": self.transforms_written} if self.transforms_written else {})}
+
+
+#: A restarted recorder reads at most this far into a file for its last /tf_static.
+STATIC_SCAN_BYTES = 64 << 20
+
+
+def recorded_static(path: str) -> list[transforms.Transform]:
+    """The newest /tf_static the recording's files hold (read up to a crash's cut; in a big
+    file, the last one in its first ``STATIC_SCAN_BYTES``), so that a restarted recorder's
+    file carries the static transforms ingest sent only once."""
+    import struct
+
+    from mcap.exceptions import McapError
+    from mcap.reader import NonSeekingReader
+    from mcap_ros2.decoder import DecoderFactory
+
+    from .files import TF_STATIC_TOPIC, existing_parts
+
+    for _, p in reversed(existing_parts(path)):
+        last = None
+        try:
+            with open(p, "rb") as f:
+                for schema, channel, msg in NonSeekingReader(f).iter_messages(log_time_order=False):
+                    if channel.topic == TF_STATIC_TOPIC:
+                        last = (schema, channel, msg)
+                    elif last is not None and f.tell() > STATIC_SCAN_BYTES:
+                        break
+        except (McapError, OSError, ValueError, EOFError, struct.error):
+            pass  # cut short: what was read before counts
+        if last is not None:
+            schema, channel, msg = last
+            m = DecoderFactory().decoder_for(channel.message_encoding, schema)(msg.data)
+            return [transforms.Transform(t.header.frame_id, t.child_frame_id,
+                                         t.header.stamp.sec * 1_000_000_000 + t.header.stamp.nanosec,
+                                         (t.transform.translation.x, t.transform.translation.y,
+                                          t.transform.translation.z),
+                                         (t.transform.rotation.x, t.transform.rotation.y, t.transform.rotation.z,
+                                          t.transform.rotation.w), True)
+                    for t in m.transforms]
+    return []
 
 
 def main(ctx) -> None:
@@ -125,7 +228,7 @@ def main(ctx) -> None:
     sock.setsockopt(zmq.RCVHWM, rc.queue_messages)
     sock.setsockopt(zmq.LINGER, 0)
     sock.bind(ctx.endpoints.record)
-    rec = Recorder(rc, ctx.counters, ctx.log, fresh=ctx.info.restart_count == 0)
+    rec = Recorder(rc, ctx.counters, ctx.log, fresh=ctx.info.restart_count == 0, frames=ctx.cfg.frames)
     # counters of files written by earlier incarnations are carried by the supervisor
     ctx.on_beat.append(lambda: ctx.counters.extra.update(rec.stats()))
 

@@ -5,12 +5,18 @@ with ``NOBLOCK``; a copy that would block is dropped and counted as ``record_dro
 Counters (in ingest's stats)::
 
     record_offered = record_sent + record_dropped          (points)
+
+With ``frames.fixed`` set, ingest also offers each transforms message it accepts
+(:meth:`RecordTap.offer_transforms`: the ``pointflow.transforms/1`` JSON, one frame, on the
+same socket, in order with the chunks); one that would block is dropped and counted as
+``record_transforms_dropped`` (transforms, not points, so the balance above stays exact).
 """
 from __future__ import annotations
 
 import zmq
 
 from .. import wire
+from ..frames import message as transforms
 
 
 class RecordTap:
@@ -23,6 +29,7 @@ class RecordTap:
         self.exclude = set(exclude)
         self.offered = self.sent = self.dropped = 0
         self.messages_sent = 0
+        self.tf_sent = self.tf_dropped = 0
 
     def chans(self, chans: dict) -> dict:
         """The channels of a chunk that go into the recording."""
@@ -42,9 +49,22 @@ class RecordTap:
         self.sent += n
         self.messages_sent += 1
 
+    def offer_transforms(self, batch: transforms.Transforms) -> None:
+        """A transforms batch ingest accepted, for /tf and /tf_static in the recording."""
+        n = len(batch)
+        try:
+            self.sock.send_multipart(transforms.encode(batch), zmq.NOBLOCK)
+        except zmq.Again:
+            self.tf_dropped += n
+            return
+        self.tf_sent += n
+
     def stats(self) -> dict:
-        return {"record_offered": self.offered, "record_sent": self.sent, "record_dropped": self.dropped,
-                "record_messages_sent": self.messages_sent}
+        out = {"record_offered": self.offered, "record_sent": self.sent, "record_dropped": self.dropped,
+               "record_messages_sent": self.messages_sent}
+        if self.tf_sent or self.tf_dropped:
+            out.update(record_transforms_sent=self.tf_sent, record_transforms_dropped=self.tf_dropped)
+        return out
 
     def close(self) -> None:
         self.sock.close()

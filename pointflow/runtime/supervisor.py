@@ -92,6 +92,7 @@ COUNTERS = ("points_in", "points_out", "frames", "pngs", "uploaded_bytes", "mess
             # the recording (docs/record.md): ingest's copies for it, the recorder's files
             "record_offered", "record_sent", "record_dropped", "record_messages_sent", "record_bytes",
             "record_messages", "record_files",
+            "record_transforms_sent", "record_transforms_dropped", "record_transforms",
             # points a killed ingest wrote into the ring but never reported (reconciled from
             # the ring's own counter, see Supervisor._reconcile_ingest)
             "unreported_written")

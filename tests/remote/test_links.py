@@ -238,7 +238,9 @@ def test_fan_out_a_slow_viewer_loses_only_its_own_chunks(net):
     sensor, fast, slow = net.host("sensor"), net.host("fast"), net.host("slow")
     s_fast, _ = net.link(sensor, fast)
     s_slow, _ = net.link(sensor, slow)
-    hb = {"heartbeat_timeout_s": 3.0, "heartbeat_ttl_s": 3.0}
+    # heartbeats queue behind the throttled data: a timeout longer than the 3 s throttle keeps
+    # the slow viewer from dropping the link and missing the final sync while it reconnects
+    hb = {"heartbeat_timeout_s": 8.0, "heartbeat_ttl_s": 8.0}
     r1 = start_receiver(net, fast, receiver_cfg(f"tcp://{s_fast}:{PORT}", socket="sub", bind=False, insecure=True, **hb),
                         name="r1")
     r2 = start_receiver(net, slow, receiver_cfg(f"tcp://{s_slow}:{PORT}", socket="sub", bind=False, insecure=True, **hb),
