@@ -245,7 +245,9 @@ def test_fan_out_a_slow_viewer_loses_only_its_own_chunks(net):
                         name="r1")
     r2 = start_receiver(net, slow, receiver_cfg(f"tcp://{s_slow}:{PORT}", socket="sub", bind=False, insecure=True, **hb),
                         name="r2")
-    send = start_sender(net, sensor, sender_cfg(synthetic_source(scans=50, points=8000, hz=10), socket="pub", bind=True,
+    # 10 s of sensor data: the link runs on for seconds after the throttle, so a viewer whose
+    # TCP connection broke under it reconnects in time for the final sync
+    send = start_sender(net, sensor, sender_cfg(synthetic_source(scans=100, points=8000, hz=10), socket="pub", bind=True,
                                                 endpoint=f"tcp://0.0.0.0:{PORT}", insecure=True, wait_subscribers=2,
                                                 wait_s=60, send_hwm=8, send_buffer_kb=64, **hb))
     wait_for(lambda: "subscriber(s) joined" in net.log("send.log"), 60, "both viewers", lambda: net.log("send.log"))
