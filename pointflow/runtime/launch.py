@@ -24,6 +24,10 @@ import pointflow
 _PKG_PARENT = os.path.dirname(os.path.dirname(os.path.abspath(pointflow.__file__)))
 
 
+#: Thread-pool sizes of the BLAS / OpenMP libraries numpy may use, set to 1 in stages.
+_ONE_THREAD = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+
+
 class StageProcess:
     """A stage's OS process, with the small part of ``multiprocessing.Process``'s interface
     the supervisor uses (``pid``, ``exitcode``, ``terminate``, ``kill``, ``join``)."""
@@ -59,6 +63,12 @@ def spawn_stage(name: str, kind: str, cfg_dict: dict, base_dir: str, info) -> St
     payload = pickle.dumps((name, kind, cfg_dict, base_dir, info), protocol=pickle.HIGHEST_PROTOCOL)
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join(p for p in (_PKG_PARENT, env.get("PYTHONPATH", "")) if p)
+    # A stage is one process doing one thing; BLAS thread pools in every stage fight each
+    # other and lavapipe's threads. The frames step's (N, 3) @ (3, 3) ran 2.4x slower with
+    # OpenBLAS's default threads than with one, on an idle 2-core machine (bench_frames.py).
+    # A value the user set is kept.
+    for var in _ONE_THREAD:
+        env.setdefault(var, "1")
     p = subprocess.Popen([sys.executable, "-m", "pointflow.runtime.launch", name], stdin=subprocess.PIPE,
                          env=env, close_fds=True)
     try:
