@@ -32,7 +32,6 @@ import math
 import multiprocessing as mp
 import os
 import platform
-import shutil
 import statistics
 import sys
 import time
@@ -42,6 +41,8 @@ import zmq
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
+sys.path.insert(0, os.path.join(ROOT, "bench"))
+from bench_ingest import _IngestRun  # noqa: E402  (the shared ingest-stage harness)
 #: ../shared/data of a clone next to the shared folder (a worktree one level deeper looks further up)
 DATA = next((d for d in (os.path.join(ROOT, "..", "shared", "data", "ouster_os1_128"),
                          os.path.join(ROOT, "..", "..", "shared", "data", "ouster_os1_128")) if os.path.isdir(d)),
@@ -205,44 +206,9 @@ def _producer(endpoint: str, n: int, count: int, go, ready) -> None:
     ctx.term()
 
 
-class IngestRun:
-    """The real ingest stage (stage_main) in its own process, with or without frames."""
-
-    def __init__(self, cap: int, frames: dict | None):
-        from pointflow.config import load_config, new_run_dir
-        from pointflow.ring import PointRing
-        from pointflow.runtime.stage import RunInfo, stage_main
-
-        self.cfg = {"source": {"transport": "synthetic"}, "ring": {"max_points": cap},
-                    "render": {"color_by": "intensity", "output": {"dir": None}},
-                    "tracing": {"enabled": False}, "supervisor": {"heartbeat_ms": 20}}
-        if frames:
-            self.cfg["frames"] = frames
-        cfg = load_config(self.cfg)
-        self.ring = PointRing(cap, channels=cfg.ring_channels())
-        self.run_dir = new_run_dir()
-        self.ep = cfg.resolved_endpoints(self.run_dir)
-        self.zctx = zmq.Context()
-        self.control = self.zctx.socket(zmq.PULL)
-        self.control.bind(self.ep.control)
-        self.trace = self.zctx.socket(zmq.PULL)
-        self.trace.bind(self.ep.trace)
-        info = RunInfo(run_dir=self.run_dir, endpoints=self.ep, ring_name=self.ring.name, slab_names=("", ""),
-                       out_dir=None, supervisor_pid=os.getpid(), log_level=40)
-        self.proc = mp.get_context("spawn").Process(target=stage_main, args=("ingest", "ingest", self.cfg, ROOT, info))
-        self.proc.start()
-        self.last: dict = {}
-
-    def stats(self, timeout_ms=100) -> dict:
-        if self.control.poll(timeout_ms):
-            while True:
-                try:
-                    m = json.loads(self.control.recv(zmq.NOBLOCK))
-                except zmq.Again:
-                    break
-                if m.get("type") == "heartbeat":
-                    self.last = m["stats"]
-        return self.last
+class IngestRun(_IngestRun):
+    """bench_ingest.py's real ingest stage (stage_main in its own process), with or without
+    frames, fed chunks that carry a frame id."""
 
     def measure(self, n: int, count: int) -> float:
         ctx = mp.get_context("spawn")
@@ -264,17 +230,6 @@ class IngestRun:
         dt = time.perf_counter() - t0
         prod.join()
         return n * count / dt
-
-    def close(self) -> dict:
-        self.proc.terminate()
-        self.proc.join(10)
-        final = self.stats(300)
-        for s in (self.control, self.trace):
-            s.close(linger=0)
-        self.zctx.term()
-        self.ring.close()
-        shutil.rmtree(self.run_dir, ignore_errors=True)
-        return final
 
 
 FRAMES_ON = {"fixed": "odom", "static": [{"parent": "odom", "child": "lidar", "translation": [3.0, -2.0, 1.7],

@@ -178,9 +178,10 @@ def _rates(points: int, t_go: float, t_first: float, t_end: float) -> tuple[floa
 
 
 class _IngestRun:
-    """The real ingest stage in its own process, fed by a producer process."""
+    """The real ingest stage in its own process, fed by a producer process (bench_frames.py
+    runs it with a ``frames:`` block too)."""
 
-    def __init__(self, cap: int):
+    def __init__(self, cap: int, frames: dict | None = None):
         from pointflow.config import load_config, new_run_dir
         from pointflow.ring import PointRing
         from pointflow.runtime.stage import RunInfo, stage_main
@@ -188,6 +189,8 @@ class _IngestRun:
         self.cfg_dict = {"source": {"transport": "synthetic"}, "ring": {"max_points": cap},
                          "render": {"color_by": "intensity", "output": {"dir": None}},
                          "tracing": {"enabled": False}, "supervisor": {"heartbeat_ms": 20}}
+        if frames:
+            self.cfg_dict["frames"] = frames
         cfg = load_config(self.cfg_dict)
         self.ring = PointRing(cap, channels=cfg.ring_channels())
         self.run_dir = new_run_dir()
