@@ -19,6 +19,17 @@ import numpy as np
 
 #: The message definition stored in the file's schema record (ros2msg encoding, the form
 #: ``ros2 bag`` and Foxglove write: the type, then each dependency after a ``=`` line).
+#: The std_msgs/Header dependency (and its Time) both schemas below carry.
+_HEADER_DEFS = """\
+================================================================================
+MSG: std_msgs/Header
+builtin_interfaces/Time stamp
+string frame_id
+================================================================================
+MSG: builtin_interfaces/Time
+int32 sec
+uint32 nanosec
+"""
 SCHEMA_NAME = "sensor_msgs/msg/PointCloud2"
 SCHEMA_TEXT = """\
 std_msgs/Header header
@@ -30,14 +41,7 @@ uint32 point_step
 uint32 row_step
 uint8[] data
 bool is_dense
-================================================================================
-MSG: std_msgs/Header
-builtin_interfaces/Time stamp
-string frame_id
-================================================================================
-MSG: builtin_interfaces/Time
-int32 sec
-uint32 nanosec
+""" + _HEADER_DEFS + """\
 ================================================================================
 MSG: sensor_msgs/PointField
 uint8 INT8    = 1
@@ -218,14 +222,7 @@ MSG: geometry_msgs/TransformStamped
 std_msgs/Header header
 string child_frame_id
 Transform transform
-================================================================================
-MSG: std_msgs/Header
-builtin_interfaces/Time stamp
-string frame_id
-================================================================================
-MSG: builtin_interfaces/Time
-int32 sec
-uint32 nanosec
+""" + _HEADER_DEFS + """\
 ================================================================================
 MSG: geometry_msgs/Transform
 Vector3 translation
