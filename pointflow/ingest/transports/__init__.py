@@ -17,6 +17,7 @@ BUILTINS: dict[str, str] = {
     "file": "pointflow.ingest.transports.file:FileTransport",
     "rosbag": "pointflow.ingest.transports.rosbag:RosbagTransport",
     "rosbridge": "pointflow.ingest.transports.rosbridge:RosbridgeTransport",
+    "ros2_zenoh": "pointflow.ingest.transports.ros2_zenoh:Ros2ZenohTransport",
 }
 
 ENTRY_POINT_GROUP = "pointflow.transports"

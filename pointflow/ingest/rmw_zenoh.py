@@ -1,0 +1,237 @@
+"""The wire conventions of ROS 2's ``rmw_zenoh`` (ros2/rmw_zenoh, ``rmw_zenoh_cpp``), written
+from its released sources, so the ``ros2_zenoh`` transport can talk to ROS 2 nodes without ROS.
+
+* **Topic key expression** (``liveliness::TopicInfo``): ``<domain_id>/<topic>/<type>/<type hash>``,
+  the topic without its leading and trailing ``/`` (``0/ouster/points/...``), the type in its
+  DDS spelling (``sensor_msgs::msg::dds_::PointCloud2_``) and the type hash as
+  ``RIHS01_<64 hex>`` (Iron and later) or ``TypeHashNotSupported`` (Humble). Subscriptions
+  here put ``*`` in the hash chunk, so both match.
+* **Payload**: the message in CDR with its 4-byte encapsulation header (``00 01 00 00`` for
+  little-endian CDR), exactly what rosbags' ``deserialize_cdr`` reads.
+* **Attachment** of every sample (``attachment_helpers.cpp``), in Zenoh's own serialisation
+  (``zenoh::ext::Serializer``): int64 sequence number (1, 2, 3... per publisher), int64 source
+  timestamp (ns since the epoch), then the publisher GID as a sequence of bytes (LEB128 length
+  16, then 16 bytes). Earlier development builds wrote the same values each after a string
+  key (``"sequence_number"``...); both are read.
+* **Liveliness tokens** (``liveliness_utils.cpp``), one per node and endpoint, the ROS graph:
+  ``@ros2_lv/<domain>/<zid>/<node id>/<entity id>/<kind>/<enclave>/<namespace>/<node name>``
+  and for publishers (``MP``) and subscriptions (``MS``) also
+  ``/<topic>/<type>/<type hash>/<qos>``; ``/`` inside a name is written ``%`` (so the root
+  namespace is ``%`` and ``/ouster/points`` is ``%ouster%points``). The QoS chunk is
+  ``reliability:durability:history,depth:deadline s,ns:lifespan s,ns:liveliness,lease s,ns``,
+  each value left empty when it is rmw_zenoh's default (reliable, volatile, keep last, 42).
+
+No zenoh import here (the parts are plain strings and bytes), except where an attachment is
+read or written with Zenoh's serialiser.
+"""
+from __future__ import annotations
+
+import dataclasses
+import re
+from typing import Any, Optional
+
+#: Prefix of every rmw_zenoh liveliness token.
+ADMIN_SPACE = "@ros2_lv"
+#: The type-hash chunk Humble's rmw_zenoh writes.
+HUMBLE_HASH = "TypeHashNotSupported"
+KINDS = {"NN": "node", "MP": "publisher", "MS": "subscription", "SS": "service", "SC": "client"}
+
+#: rmw QoS enum values (rmw/types.h)
+RELIABLE, BEST_EFFORT = 1, 2
+TRANSIENT_LOCAL, VOLATILE = 1, 2
+KEEP_LAST = 1
+_DEFAULT = {"reliability": RELIABLE, "durability": VOLATILE, "history": KEEP_LAST, "depth": 42}
+
+_ROS_TYPE = re.compile(r"^([A-Za-z0-9_]+)/(msg|srv|action)/([A-Za-z0-9_]+)$")
+_DDS_TYPE = re.compile(r"^([A-Za-z0-9_]+)::(msg|srv|action)::dds_::([A-Za-z0-9_]+)_$")
+
+
+def dds_type(ros_type: str) -> str:
+    """``sensor_msgs/msg/PointCloud2`` -> ``sensor_msgs::msg::dds_::PointCloud2_``."""
+    m = _ROS_TYPE.match(ros_type)
+    if not m:
+        raise ValueError(f"not a ROS 2 type name (pkg/msg/Name): {ros_type!r}")
+    return f"{m.group(1)}::{m.group(2)}::dds_::{m.group(3)}_"
+
+
+def ros_type(dds: str) -> str:
+    """The reverse of :func:`dds_type`; a name that is not in DDS spelling is returned as is."""
+    m = _DDS_TYPE.match(dds)
+    return f"{m.group(1)}/{m.group(2)}/{m.group(3)}" if m else dds
+
+
+def topic_key(domain_id: int, topic: str, ros_type_name: str, type_hash: str = "*") -> str:
+    """The key expression data of ``topic`` is put on (``type_hash='*'``: any distribution)."""
+    return f"{int(domain_id)}/{topic.strip('/')}/{dds_type(ros_type_name)}/{type_hash}"
+
+
+def mangle(name: str) -> str:
+    return name.replace("/", "%")
+
+
+def demangle(name: str) -> str:
+    return name.replace("%", "/")
+
+
+def qos_chunk(reliability: int = RELIABLE, durability: int = VOLATILE, depth: int = 42) -> str:
+    """The QoS part of a liveliness token, defaults left empty as rmw_zenoh writes them."""
+    def v(key: str, val: int) -> str:
+        return "" if val == _DEFAULT[key] else str(val)
+    return f"{v('reliability', reliability)}:{v('durability', durability)}:,{v('depth', depth)}:,:,:,,"
+
+
+@dataclasses.dataclass(frozen=True)
+class Entity:
+    """One liveliness token of the ROS graph."""
+
+    domain_id: int
+    zid: str
+    node_id: str
+    entity_id: str
+    kind: str                  # NN, MP, MS, SS, SC
+    enclave: str
+    namespace: str
+    node: str
+    topic: str = ""            # with its leading "/"
+    type: str = ""             # ROS spelling, sensor_msgs/msg/PointCloud2
+    type_hash: str = ""
+    qos: str = ""
+
+    @property
+    def durability(self) -> int:
+        parts = self.qos.split(":")
+        return int(parts[1]) if len(parts) > 1 and parts[1].isdigit() else VOLATILE
+
+    def key(self) -> str:
+        """The token's key expression (as rmw_zenoh's ``Entity`` builds it)."""
+        parts = [ADMIN_SPACE, str(self.domain_id), self.zid, self.node_id, self.entity_id, self.kind,
+                 mangle(self.enclave), mangle(self.namespace), mangle(self.node)]
+        if self.kind != "NN":
+            parts += [mangle(self.topic), mangle(dds_type(self.type)), mangle(self.type_hash), self.qos]
+        return "/".join(parts)
+
+
+def parse_token(key: str) -> Optional[Entity]:
+    """A liveliness key expression -> :class:`Entity`; None for anything that is not a
+    well-formed rmw_zenoh token (other tools share the admin space)."""
+    parts = str(key).split("/")
+    if len(parts) < 9 or parts[0] != ADMIN_SPACE or parts[5] not in KINDS or not all(parts[:9]):
+        return None
+    try:
+        domain = int(parts[1])
+    except ValueError:
+        return None
+    common = dict(domain_id=domain, zid=parts[2], node_id=parts[3], entity_id=parts[4], kind=parts[5],
+                  enclave=demangle(parts[6]), namespace=demangle(parts[7]), node=demangle(parts[8]))
+    if parts[5] == "NN":
+        return Entity(**common)
+    if len(parts) < 13 or not all(parts[9:12]):
+        return None
+    return Entity(**common, topic=demangle(parts[9]), type=ros_type(demangle(parts[10])),
+                  type_hash=demangle(parts[11]), qos=parts[12])
+
+
+def graph_key(domain_id: int) -> str:
+    """Every token of one domain (what rmw_zenoh's graph cache subscribes to)."""
+    return f"{ADMIN_SPACE}/{int(domain_id)}/**"
+
+
+# ----------------------------------------------------------------------------- attachment
+@dataclasses.dataclass(frozen=True)
+class Attachment:
+    sequence_number: int
+    source_timestamp_ns: int
+    gid: bytes
+
+    @property
+    def gid_hex(self) -> str:
+        return self.gid.hex()
+
+
+class AttachmentError(ValueError):
+    """A sample without a readable rmw_zenoh attachment."""
+
+
+def _zbytes(raw: Any):
+    import zenoh
+    return raw if isinstance(raw, zenoh.ZBytes) else zenoh.ZBytes(bytes(raw))
+
+
+def parse_attachment(raw: Any) -> Attachment:
+    """A sample's attachment (``zenoh.ZBytes`` or bytes) -> :class:`Attachment`; raises
+    :class:`AttachmentError`. Reads the released layout (int64, int64, byte sequence) and the
+    earlier keyed one (each value after its name)."""
+    from zenoh.ext import Int64, ZDeserializeError, z_deserialize
+
+    if raw is None:
+        raise AttachmentError("the sample has no attachment (not from rmw_zenoh?)")
+    zb = _zbytes(raw)
+    legacy = zb.to_bytes().startswith(b"\x0fsequence_number")
+    try:
+        if legacy:
+            k1, seq, k2, stamp, k3, gid = z_deserialize(tuple[str, Int64, str, Int64, str, bytes], zb)
+            if (k1, k2, k3) != ("sequence_number", "source_timestamp", "source_gid"):
+                raise AttachmentError(f"keyed attachment with unexpected keys {k1!r}, {k2!r}, {k3!r}")
+        else:
+            seq, stamp, gid = z_deserialize(tuple[Int64, Int64, bytes], zb)
+    except (ZDeserializeError, ValueError, TypeError, UnicodeDecodeError) as exc:
+        if isinstance(exc, AttachmentError):
+            raise
+        raise AttachmentError(f"attachment of {len(zb.to_bytes())} bytes is not rmw_zenoh's "
+                              "(int64 sequence number, int64 source time, GID bytes)") from None
+    if len(gid) not in (16, 24):
+        raise AttachmentError(f"publisher GID of {len(gid)} bytes (16 expected)")
+    return Attachment(int(seq), int(stamp), bytes(gid))
+
+
+def encode_attachment(sequence_number: int, source_timestamp_ns: int, gid: bytes):
+    """The released layout, as ``zenoh.ZBytes`` (what an rmw_zenoh publisher attaches)."""
+    from zenoh.ext import Int64, z_serialize
+
+    return z_serialize((Int64(sequence_number), Int64(source_timestamp_ns), bytes(gid)))
+
+
+# ----------------------------------------------------------------------------- loss accounting
+class SequenceLedger:
+    """Messages lost in transit per publisher, from the attachments' sequence numbers.
+
+    A publisher numbers its messages 1, 2, 3...; a gap between two that arrive is that many
+    messages lost on the way (or dropped by a congested Zenoh link, as rmw_zenoh's publishers
+    drop rather than block). What was sent before the first message seen here is not loss
+    (``joined_after``); a number at or below one already seen (a duplicate, or a reordered
+    message) is counted as ``out_of_order`` and still delivered."""
+
+    def __init__(self) -> None:
+        self.last: dict[tuple[str, str], int] = {}
+        self.lost: dict[tuple[str, str], int] = {}
+        self.received: dict[tuple[str, str], int] = {}
+        self.joined_after: dict[tuple[str, str], int] = {}
+        self.out_of_order = 0
+
+    def observe(self, topic: str, att: Attachment) -> int:
+        """Account one message; returns how many were lost just before it."""
+        k = (topic, att.gid_hex)
+        seq = att.sequence_number
+        self.received[k] = self.received.get(k, 0) + 1
+        last = self.last.get(k)
+        if last is None:
+            self.last[k] = seq
+            self.lost.setdefault(k, 0)
+            self.joined_after[k] = max(0, seq - 1)
+            return 0
+        if seq <= last:
+            self.out_of_order += 1
+            return 0
+        gap = seq - last - 1
+        self.lost[k] += gap
+        self.last[k] = seq
+        return gap
+
+    def counters(self) -> dict[str, int]:
+        """Flat numbers for stats: ``lost_in_transit_messages`` and, per publisher,
+        ``lost_in_transit_messages:<topic>@<gid hex>``."""
+        out = {"lost_in_transit_messages": sum(self.lost.values()), "publishers_seen": len(self.last),
+               "out_of_order": self.out_of_order, "joined_after_messages": sum(self.joined_after.values())}
+        for (topic, gid), n in sorted(self.lost.items()):
+            out[f"lost_in_transit_messages:{topic}@{gid}"] = n
+        return out
