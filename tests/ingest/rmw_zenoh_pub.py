@@ -1,0 +1,184 @@
+"""A ROS 2 publisher that behaves as rmw_zenoh's does on the wire, for the ``ros2_zenoh`` tests
+(there is no ROS 2 here). Written from ros2/rmw_zenoh's released sources with the
+``eclipse-zenoh`` package and rosbags' CDR serialiser:
+
+* a node token ``@ros2_lv/<domain>/<zid>/<nid>/<nid>/NN/%/%/<node>`` and, per topic, a publisher
+  token ``.../MP/%/%/<node>/<%topic>/<dds type>/<type hash>/<qos>``;
+* data on ``<domain>/<topic>/<dds type>/<type hash>``; the hash is ``RIHS01_<hex>`` (computed by
+  rosbags, as rosidl does) or ``TypeHashNotSupported`` in ``humble`` mode;
+* every sample carries the attachment (int64 sequence number from 1, int64 source time in ns,
+  16-byte GID) in Zenoh's serialisation; the GID here is a 128-bit hash of the publisher's
+  token (rmw_zenoh uses XXH3-128 of it; receivers treat it as opaque);
+* transient-local topics (``/tf_static``) go through an advanced publisher with a cache and
+  publisher detection, as rmw_zenoh's do, so a subscription that comes later gets them;
+* ``rolling`` mode (rmw_zenoh 0.10+, Lyrical/Rolling): no sample leaves before a subscription
+  token (``MS``) for the topic is in the graph; ``jazzy``/``humble`` publish when the test says
+  ``go`` on stdin.
+
+Run as ``python rmw_zenoh_pub.py SPEC.pickle`` (a publisher) or ``python rmw_zenoh_pub.py --router
+LOCATOR`` (a Zenoh router, as ``rmw_zenohd`` is). It prints ``READY`` once declared,
+``MATCHED <token>`` for each subscription token of its topics, ``SENT <topic> <n>`` when a topic's
+script is done, and exits when stdin closes.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import pickle
+import sys
+import threading
+import time
+
+import zenoh
+import zenoh.ext
+
+sys.path.insert(0, str(__import__("pathlib").Path(__file__).resolve().parents[2]))
+from pointflow.ingest import rmw_zenoh as rz  # noqa: E402
+
+PC2 = "sensor_msgs/msg/PointCloud2"
+TFM = "tf2_msgs/msg/TFMessage"
+
+
+def _typestore():
+    from rosbags.typesys import Stores, get_typestore
+    return get_typestore(Stores.LATEST)
+
+
+def cdr_cloud(cloud) -> bytes:
+    """A ros_util.Cloud as rmw_zenoh puts it: encapsulation header + CDR (rosbags)."""
+    ts = _typestore()
+    return bytes(ts.serialize_cdr(cloud.ros_msg(ts), PC2))
+
+
+def cdr_tf(items) -> bytes:
+    """(parent, child, stamp_ns, translation, quaternion xyzw) items -> TFMessage CDR."""
+    ts = _typestore()
+    T = ts.types
+    out = []
+    for parent, child, st, tr, q in items:
+        hdr = T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=int(st) // 10**9, nanosec=int(st) % 10**9),
+                                       frame_id=parent)
+        tf = T["geometry_msgs/msg/Transform"](translation=T["geometry_msgs/msg/Vector3"](*map(float, tr)),
+                                             rotation=T["geometry_msgs/msg/Quaternion"](*map(float, q)))
+        out.append(T["geometry_msgs/msg/TransformStamped"](header=hdr, child_frame_id=child, transform=tf))
+    return bytes(ts.serialize_cdr(T[TFM](transforms=out), TFM))
+
+
+def router(locator: str) -> None:
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"router"')
+    conf.insert_json5("listen/endpoints", json.dumps([locator]))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    with zenoh.open(conf):
+        print("READY", flush=True)
+        sys.stdin.read()
+
+
+class Endpoint:
+    """One publisher: its token, its Zenoh publisher, its sequence numbers."""
+
+    def __init__(self, session, domain, node, eid, topic, typ, type_hash):
+        static = topic.endswith("_static")
+        qos = rz.qos_chunk(rz.RELIABLE, rz.TRANSIENT_LOCAL, 1) if static else rz.qos_chunk(rz.BEST_EFFORT, rz.VOLATILE, 5)
+        self.entity = rz.Entity(domain, str(session.zid()), "0", str(eid), "MP", "/", "/", node, topic, typ, type_hash, qos)
+        self.gid = hashlib.blake2b(self.entity.key().encode(), digest_size=16).digest()
+        key = rz.topic_key(domain, topic, typ, type_hash)
+        if static:
+            self.pub = zenoh.ext.declare_advanced_publisher(
+                session, key, cache=zenoh.ext.CacheConfig(1), publisher_detection=True,
+                reliability=zenoh.Reliability.RELIABLE)
+        else:
+            self.pub = session.declare_publisher(key, reliability=zenoh.Reliability.BEST_EFFORT,
+                                                 congestion_control=zenoh.CongestionControl.BLOCK)
+        self.token = session.liveliness().declare_token(self.entity.key())
+        self.seq = 0
+        self.matched = threading.Event()
+
+    def wait_matched(self, timeout: float) -> bool:
+        """The token is in the graph and Zenoh routes to its subscriber (the token can arrive
+        a moment before the subscriber's declaration)."""
+        end = time.monotonic() + timeout
+        if not self.matched.wait(timeout):
+            return False
+        while hasattr(self.pub, "matching_status") and not self.pub.matching_status.matching:
+            if time.monotonic() > end:
+                return False
+            time.sleep(0.01)
+        return True
+
+    def put(self, payload: bytes) -> None:
+        self.seq += 1
+        self.pub.put(payload, attachment=rz.encode_attachment(self.seq, time.time_ns(), self.gid))
+
+    def skip(self) -> None:
+        """A sample lost on the way: its number is used, nothing arrives."""
+        self.seq += 1
+
+
+def publish(spec: dict) -> None:
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"peer"')
+    conf.insert_json5("connect/endpoints", json.dumps([spec["connect"]]))
+    conf.insert_json5("listen/endpoints", json.dumps(["tcp/127.0.0.1:0"]))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("timestamping/enabled", "true")  # as rmw_zenoh's session config: caches need it
+    mode = spec.get("mode", "jazzy")
+    domain = int(spec.get("domain", 0))
+    node = spec.get("node", "lidar_driver")
+    ts = _typestore()
+    session = zenoh.open(conf)
+    live = session.liveliness()
+    node_tok = live.declare_token(f"{rz.ADMIN_SPACE}/{domain}/{session.zid()}/0/0/NN/%/%/{node}")
+    eps: dict[str, Endpoint] = {}
+    for i, (topic, typ) in enumerate(spec["advertise"], start=1):
+        h = rz.HUMBLE_HASH if mode == "humble" else ts.hash_rihs01(typ)
+        eps[topic] = Endpoint(session, domain, node, i, topic, typ, h)
+    lock = threading.Lock()
+
+    def on_token(sample):
+        if sample.kind != zenoh.SampleKind.PUT:
+            return
+        ent = rz.parse_token(str(sample.key_expr))
+        if ent is None or ent.kind != "MS" or ent.topic not in eps or ent.type != eps[ent.topic].entity.type:
+            return
+        with lock:
+            print("MATCHED", str(sample.key_expr), flush=True)
+        eps[ent.topic].matched.set()
+
+    watch = live.declare_subscriber(rz.graph_key(domain), on_token, history=True)
+    print("READY", flush=True)
+    # transient-local topics publish at once (a static_transform_publisher does): a later
+    # subscription fetches them from the publisher's cache
+    for topic, payload in spec.get("at_start", []):
+        eps[topic].put(payload)
+    if mode != "rolling":
+        line = sys.stdin.readline()
+        if line.strip() != "go":
+            return
+    sent: dict[str, int] = {}
+    for step in spec["script"]:
+        topic = step[1]
+        ep = eps[topic]
+        if mode == "rolling" and not ep.wait_matched(60):
+            print("NO_SUBSCRIBER", topic, flush=True)
+            return
+        if step[0] == "skip":
+            ep.skip()
+        else:
+            ep.put(step[2])
+            sent[topic] = sent.get(topic, 0) + 1
+        time.sleep(spec.get("period_s", 0.005))
+    for topic, n in sent.items():
+        print("SENT", topic, n, flush=True)
+    sys.stdin.read()  # stay in the graph (and keep the caches) until the test is done
+    watch.undeclare()
+    node_tok.undeclare()
+    session.close()
+
+
+if __name__ == "__main__":
+    if sys.argv[1] == "--router":
+        router(sys.argv[2])
+    else:
+        with open(sys.argv[1], "rb") as f:
+            publish(pickle.load(f))
