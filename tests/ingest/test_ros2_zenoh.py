@@ -201,6 +201,31 @@ def test_clouds_arrive_exactly_and_skipped_sequence_numbers_count_as_lost(tmp_pa
     assert src["transport_graph_publishers"] == 2
 
 
+def test_a_humble_publisher_that_starts_later_is_matched_and_read(tmp_path, router):
+    """No publisher at start: the source waits (our subscription token carries the RIHS01 hash
+    of the type); when a Humble publisher appears it adds a token with Humble's hash chunk."""
+    clouds = [ru.cloud_padded(k, n=50) for k in range(3)]
+    st = ru.SourceIngest(source_cfg(router, discovery_timeout_s=0.5))
+    pub = None
+    try:
+        st.wait_stats(lambda s: "transport_graph_publishers" in st.stage_stats.get("source", {}))
+        pub = start_publisher(tmp_path, {"connect": router, "mode": "humble", "advertise": [(TOPIC, P.PC2)],
+                                         "script": [("put", TOPIC, P.cdr_cloud(c)) for c in clouds]})
+        hashes = set()
+        while rz.HUMBLE_HASH not in hashes:
+            hashes.add(rz.parse_token(pub.wait_line("MATCHED").split()[1]).type_hash)
+        pub.send("go\n")
+        stats = st.wait_ingest(lambda s: s.get("points_out") == 150)
+        snap = st.ring.snapshot()
+    finally:
+        st.close()
+        if pub is not None:
+            pub.close()
+    assert hashes == {rz.HUMBLE_HASH, "RIHS01_9198cabf7da3796ae6fe19c4cb3bdd3525492988c70522628af5daa124bae2b5"}
+    assert stats["drops"] == {}
+    assert np.array_equal(snap.positions, np.concatenate([c.expected()[0] for c in clouds]).astype(np.float64))
+
+
 def _run(tmp_path: Path, cfg: dict, duration: str = "30") -> subprocess.CompletedProcess:
     import yaml
 

@@ -271,8 +271,15 @@ class Ros2ZenohTransport(Transport):
     def _log_waiting(self) -> None:
         if not self._waiting_logged:
             self._waiting_logged = True
-            log.warning("%s: no publisher of %s seen yet on domain %d (%s); waiting for one",
-                        self.source_id, self.o.topic, self.o.domain_id, self._describe_pc2(self.publishers()))
+            try:
+                routers = len(list(self._session.info.routers_zid()))
+            except Exception:  # noqa: BLE001 - only for the message
+                routers = -1
+            self.counters["routers"] = routers
+            hint = (f"; no Zenoh router reached at {', '.join(self.o.zenoh.connect) or 'the configured endpoints'} "
+                    f"(is `ros2 run rmw_zenoh_cpp rmw_zenohd` running?)" if routers == 0 and self.o.zenoh.mode != "router" else "")
+            log.warning("%s: no publisher of %s seen yet on domain %d (%s)%s; waiting for one",
+                        self.source_id, self.o.topic, self.o.domain_id, self._describe_pc2(self.publishers()), hint)
 
     def _parse_cloud(self, payload: bytes) -> PointChunk:
         t0 = time.perf_counter()
