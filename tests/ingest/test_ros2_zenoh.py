@@ -226,6 +226,49 @@ def test_a_humble_publisher_that_starts_later_is_matched_and_read(tmp_path, rout
     assert np.array_equal(snap.positions, np.concatenate([c.expected()[0] for c in clouds]).astype(np.float64))
 
 
+def test_a_slow_reader_drops_its_oldest_clouds_counted_never_transforms_and_no_loss(tmp_path, router):
+    """The transport in this process, not read while a real publisher sends: its queue keeps
+    the newest ``queue_messages`` clouds, counts the rest, keeps every transform, and the
+    sequence ledger (taken on arrival) sees no loss on the way."""
+    from pointflow.frames.message import Transforms
+    from pointflow.ingest.transports import resolve_transport
+
+    clouds = [ru.cloud_padded(k, n=30) for k in range(6)]
+    script = []
+    for k, c in enumerate(clouds):
+        script += [("put", "/tf", P.cdr_tf([("odom", "base_link", c.stamp_ns, (k, 0, 0), (0, 0, 0, 1))])),
+                   ("put", TOPIC, P.cdr_cloud(c))]
+    pub = start_publisher(tmp_path, {"connect": router, "mode": "jazzy", "script": script,
+                                     "advertise": [(TOPIC, P.PC2), ("/tf", P.TFM)]})
+    cls = resolve_transport("ros2_zenoh")
+    t = cls(cls.validate_options({"topic": TOPIC, "zenoh": {"connect": [router]}, "queue_messages": 2,
+                                  "tf_topics": ["/tf"]}, "options"), "src")
+    t.wants_transforms = True
+    try:
+        t.open()
+        assert {rz.parse_token(pub.wait_line("MATCHED").split()[1]).topic for _ in range(2)} == {TOPIC, "/tf"}
+        pub.send("go\n")
+        pub.wait_line("SENT")
+        end = time.monotonic() + 20
+        while t.counters["dropped_queue_full"] < 4 and time.monotonic() < end:
+            time.sleep(0.05)
+        got, it = [], t.chunks()
+        while True:
+            item = next(it)
+            if item is None:
+                break
+            got.append(item)
+    finally:
+        t.close()
+        pub.close()
+    tfs = [g for g in got if isinstance(g, Transforms)]
+    kept = [g for g in got if not isinstance(g, Transforms)]
+    assert t.counters["dropped_queue_full"] == 4
+    assert [c.stamp_ns for c in kept] == [c.stamp_ns for c in clouds[-2:]]          # the newest two
+    assert [b.transforms[0].translation[0] for b in tfs] == [float(k) for k in range(6)]  # every transform
+    assert t.counters["lost_in_transit_messages"] == 0 and t.counters["publishers_seen"] == 2
+
+
 def _run(tmp_path: Path, cfg: dict, duration: str = "30") -> subprocess.CompletedProcess:
     import yaml
 
