@@ -36,6 +36,16 @@ sys.path.insert(0, str(__import__("pathlib").Path(__file__).resolve().parents[2]
 from pointflow.ingest import rmw_zenoh as rz  # noqa: E402
 
 PC2 = "sensor_msgs/msg/PointCloud2"
+_OUT = threading.Lock()
+
+
+def say(*words) -> None:
+    """One whole line (Zenoh calls back on its own threads, beside the main one)."""
+    with _OUT:
+        sys.stdout.write(" ".join(map(str, words)) + "\n")
+        sys.stdout.flush()
+
+
 TFM = "tf2_msgs/msg/TFMessage"
 
 
@@ -70,7 +80,7 @@ def router(locator: str) -> None:
     conf.insert_json5("listen/endpoints", json.dumps([locator]))
     conf.insert_json5("scouting/multicast/enabled", "false")
     with zenoh.open(conf):
-        print("READY", flush=True)
+        say("READY")
         sys.stdin.read()
 
 
@@ -127,13 +137,15 @@ def publish(spec: dict) -> None:
     node = spec.get("node", "lidar_driver")
     ts = _typestore()
     session = zenoh.open(conf)
+    end = time.monotonic() + 30
+    while not list(session.info.routers_zid()) and time.monotonic() < end:  # the graph comes through it
+        time.sleep(0.02)
     live = session.liveliness()
     node_tok = live.declare_token(f"{rz.ADMIN_SPACE}/{domain}/{session.zid()}/0/0/NN/%/%/{node}")
     eps: dict[str, Endpoint] = {}
     for i, (topic, typ) in enumerate(spec["advertise"], start=1):
         h = rz.HUMBLE_HASH if mode == "humble" else ts.hash_rihs01(typ)
         eps[topic] = Endpoint(session, domain, node, i, topic, typ, h)
-    lock = threading.Lock()
 
     def on_token(sample):
         if sample.kind != zenoh.SampleKind.PUT:
@@ -141,12 +153,11 @@ def publish(spec: dict) -> None:
         ent = rz.parse_token(str(sample.key_expr))
         if ent is None or ent.kind != "MS" or ent.topic not in eps or ent.type != eps[ent.topic].entity.type:
             return
-        with lock:
-            print("MATCHED", str(sample.key_expr), flush=True)
+        say("MATCHED", sample.key_expr)
         eps[ent.topic].matched.set()
 
     watch = live.declare_subscriber(rz.graph_key(domain), on_token, history=True)
-    print("READY", flush=True)
+    say("READY")
     # transient-local topics publish at once (a static_transform_publisher does): a later
     # subscription fetches them from the publisher's cache
     for topic, payload in spec.get("at_start", []):
@@ -160,7 +171,7 @@ def publish(spec: dict) -> None:
         topic = step[1]
         ep = eps[topic]
         if mode == "rolling" and not ep.wait_matched(60):
-            print("NO_SUBSCRIBER", topic, flush=True)
+            say("NO_SUBSCRIBER", topic)
             return
         if step[0] == "skip":
             ep.skip()
@@ -169,7 +180,7 @@ def publish(spec: dict) -> None:
             sent[topic] = sent.get(topic, 0) + 1
         time.sleep(spec.get("period_s", 0.005))
     for topic, n in sent.items():
-        print("SENT", topic, n, flush=True)
+        say("SENT", topic, n)
     sys.stdin.read()  # stay in the graph (and keep the caches) until the test is done
     watch.undeclare()
     node_tok.undeclare()

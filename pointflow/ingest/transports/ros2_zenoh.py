@@ -241,6 +241,11 @@ class Ros2ZenohTransport(Transport):
         except ZenohOpenError as exc:
             raise RuntimeError(str(exc)) from None
         s = self._session
+        deadline = time.monotonic() + self.o.discovery_timeout_s
+        if self.o.zenoh.connect and self.o.zenoh.mode != "router":
+            # the graph is read through the router: give the connection its moment first
+            while not list(s.info.routers_zid()) and not list(s.info.peers_zid()) and time.monotonic() < deadline:
+                time.sleep(0.02)
         live = s.liveliness()
         self._undeclare.append(live.declare_subscriber(rz.graph_key(self.o.domain_id), self._on_token, history=True))
         self._undeclare.append(live.declare_token(self._entity("NN").key()))
@@ -254,7 +259,6 @@ class Ros2ZenohTransport(Transport):
             else:
                 sub = s.declare_subscriber(key, cb)
             self._undeclare.append(sub)
-        deadline = time.monotonic() + self.o.discovery_timeout_s
         with self._lock:
             while time.monotonic() < deadline and not self._check_topic(final=False):
                 self._lock.wait(min(0.05, max(0.0, deadline - time.monotonic())))
