@@ -87,9 +87,10 @@ def router(locator: str) -> None:
 class Endpoint:
     """One publisher: its token, its Zenoh publisher, its sequence numbers."""
 
-    def __init__(self, session, domain, node, eid, topic, typ, type_hash):
+    def __init__(self, session, domain, node, eid, topic, typ, type_hash, reliable=False):
         static = topic.endswith("_static")
-        qos = rz.qos_chunk(rz.RELIABLE, rz.TRANSIENT_LOCAL, 1) if static else rz.qos_chunk(rz.BEST_EFFORT, rz.VOLATILE, 5)
+        qos = (rz.qos_chunk(rz.RELIABLE, rz.TRANSIENT_LOCAL, 1) if static else
+               rz.qos_chunk(rz.RELIABLE if reliable else rz.BEST_EFFORT, rz.VOLATILE, 5))
         self.entity = rz.Entity(domain, str(session.zid()), "0", str(eid), "MP", "/", "/", node, topic, typ, type_hash, qos)
         self.gid = hashlib.blake2b(self.entity.key().encode(), digest_size=16).digest()
         key = rz.topic_key(domain, topic, typ, type_hash)
@@ -98,7 +99,8 @@ class Endpoint:
                 session, key, cache=zenoh.ext.CacheConfig(1), publisher_detection=True,
                 reliability=zenoh.Reliability.RELIABLE)
         else:
-            self.pub = session.declare_publisher(key, reliability=zenoh.Reliability.BEST_EFFORT,
+            self.pub = session.declare_publisher(key, reliability=zenoh.Reliability.RELIABLE if reliable
+                                                 else zenoh.Reliability.BEST_EFFORT,
                                                  congestion_control=zenoh.CongestionControl.BLOCK)
         self.token = session.liveliness().declare_token(self.entity.key())
         self.seq = 0
@@ -145,7 +147,7 @@ def publish(spec: dict) -> None:
     eps: dict[str, Endpoint] = {}
     for i, (topic, typ) in enumerate(spec["advertise"], start=1):
         h = rz.HUMBLE_HASH if mode == "humble" else ts.hash_rihs01(typ)
-        eps[topic] = Endpoint(session, domain, node, i, topic, typ, h)
+        eps[topic] = Endpoint(session, domain, node, i, topic, typ, h, spec.get("reliable", False))
 
     def on_token(sample):
         if sample.kind != zenoh.SampleKind.PUT:
