@@ -209,7 +209,7 @@ class Ros2ZenohTransport(Transport):
             att: Any = rz.parse_attachment(sample.attachment)
         except rz.AttachmentError as exc:
             att = exc
-        payload = sample.payload.to_bytes()
+        payload = sample.payload  # copied out on the source loop's thread, not on Zenoh's
         is_cloud = topic == self.o.topic
         with self._lock:
             if isinstance(att, rz.Attachment):
@@ -322,7 +322,8 @@ class Ros2ZenohTransport(Transport):
             if item is None:
                 yield None
                 continue
-            topic, payload, att = item
+            topic, zpayload, att = item
+            payload = zpayload.to_bytes()
             if isinstance(att, rz.AttachmentError):  # still decodable: counted, not dropped
                 self.counters["no_attachment"] = self.counters.get("no_attachment", 0) + 1
             if topic != self.o.topic:
