@@ -15,9 +15,9 @@ Rate = (messages received - 1) / (time from the first arrival to the last one ha
 ratio transport / engine is the figure; messages lost on the way (best effort drops whole
 fragmented samples under pressure) are reported, for the transport from its own ledger.
 
-    .venv/bin/python bench/bench_ros2_zenoh.py [--repeats 3] [--messages 30] [--reliable]
+    .venv/bin/python bench/bench_ros2_zenoh.py [--repeats 3] [--messages 30] [--reliable] [--out FILE]
 
-Writes ``bench/results/ros2_zenoh.json``.
+Writes ``bench/results/ros2_zenoh.json`` (or ``--out``).
 """
 from __future__ import annotations
 
@@ -144,6 +144,7 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--messages", type=int, default=30)
     ap.add_argument("--reliable", action="store_true", help="a reliable publisher (default: best effort, as sensor QoS)")
+    ap.add_argument("--out", default=os.path.join(ROOT, "bench", "results", "ros2_zenoh.json"))
     a = ap.parse_args()
     payload = ouster_payload()
     loc = f"tcp/127.0.0.1:{free_port()}"
@@ -171,8 +172,8 @@ def main() -> None:
     res = {"machine": "2-core shared VM (load average during the run in 'load')", "load": os.getloadavg(),
            "payload_bytes": len(payload), "points": N_POINTS, "messages": a.messages, "reliable": a.reliable,
            "median_msgs_per_s": med, "ratio_transport_vs_engine": med["transport"] / med["engine"], "runs": rows}
-    os.makedirs(os.path.join(ROOT, "bench", "results"), exist_ok=True)
-    with open(os.path.join(ROOT, "bench", "results", "ros2_zenoh.json"), "w") as f:
+    os.makedirs(os.path.dirname(os.path.abspath(a.out)), exist_ok=True)
+    with open(a.out, "w") as f:
         json.dump(res, f, indent=1)
     print(f"engine {med['engine']:.1f} msg/s, transport {med['transport']:.1f} msg/s "
           f"({med['transport'] * N_POINTS / 1e6:.1f} Mpoints/s), ratio {res['ratio_transport_vs_engine']:.2f}")
