@@ -335,6 +335,8 @@ def test_tf_and_cached_tf_static_place_the_clouds_in_the_fixed_frame(tmp_path, r
         pub.send("go\n")
         stats = wait_ingest(st, lambda s: s["points_out"] == 160, timeout=120)
         snap = st.ring.snapshot()
+        # 81 /tf samples and the cached /tf_static one, on the source's next report
+        st.wait_stats(lambda s: st.stage_stats["source"].get("transport_transforms") == 82)
         src = st.stage_stats["source"]
     finally:
         if st is not None:
@@ -348,7 +350,7 @@ def test_tf_and_cached_tf_static_place_the_clouds_in_the_fixed_frame(tmp_path, r
     exp = np.concatenate([want[c.stamp_ns] for c in order])
     assert np.abs(snap.positions - exp).max() < 5e-5, np.abs(snap.positions - exp).max()
     assert stats["drops"] == {} and stats["frames"]["sources"]["source:" + TOPIC]["deskew"].startswith("Ouster t")
-    assert src["transport_transforms"] == 82  # 81 /tf samples and the cached /tf_static one
+    assert src["transport_transforms"] == 82 and src.get("transforms_dropped", 0) == 0
 
 
 def test_options_are_validated_naming_the_key():
