@@ -70,8 +70,6 @@ class ZenohLinkSender(LinkSender):
             t.undeclare()
         for p in self.publishers.values():
             p.undeclare()
-        self.tokens.clear()
-        self.publishers.clear()
 
     def stats(self) -> dict:
         return {**super().stats(), "link_publishers": len(self.publishers)}
