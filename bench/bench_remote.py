@@ -32,8 +32,9 @@ IP packets, so every mode crosses the same two links:
 
 * ``plain``: the ZeroMQ link as above (the baseline of this pass);
 * ``zenoh``: :class:`pointflow.remote.zenoh_sender.ZenohLinkSender` (peer, congestion control
-  block so the receiver sets the pace, as TCP backpressure does for ZeroMQ) to the ``zenoh``
-  transport (peer), the packets forwarded by the middle namespace's kernel;
+  block) to the ``zenoh`` transport (peer, ``backpressure: true``), so the slowest part sets
+  the pace without loss, as TCP backpressure does for ZeroMQ's PUSH/PULL; the packets
+  forwarded by the middle namespace's kernel;
 * ``zenoh+router``: both ends clients of a Zenoh router (a Python ``zenoh`` session in router
   mode) in the middle namespace.
 
@@ -328,7 +329,9 @@ def zenoh_or_fanout_recv(args) -> None:
         client = "router" in args.mode or "fanout" in args.mode
         z = {"mode": "client" if client else "peer", "insecure": True, "config_file": args.zconf,
              **({"connect": [args.endpoint]} if client else {"listen": [args.endpoint]})}
-        opts = {"key": "bench/**", "zenoh": z, "queue_chunks": 64}
+        # backpressure: Zenoh's receiving thread waits for the decoder, as ZeroMQ's PULL
+        # socket does, so every mode here is lossless and paced by its slowest part
+        opts = {"key": "bench/**", "zenoh": z, "queue_chunks": 64, "backpressure": True}
     t = T(T.validate_options(opts, "bench", "."), "bench")
     t.open()
     print("ready", flush=True)

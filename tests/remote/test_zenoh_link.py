@@ -203,23 +203,33 @@ def test_two_senders_on_a_wildcard(loop):
     assert "publishing source 'left' on zenoh key pftest/site1/left" in loop.log("a.log")
 
 
-def test_a_slow_receiver_counts_its_own_drops(loop):
-    """A receiver that takes nothing for a while: its bounded queue keeps the newest samples,
-    Zenoh's thread never waits, and every dropped chunk's points are counted per source as
-    receive_queue_full, so sent = received + lost_in_transit + receive_queue_full."""
+@pytest.mark.parametrize("backpressure", [False, True], ids=["live-drops-counted", "replay-backpressure"])
+def test_a_slow_receiver(loop, backpressure):
+    """A receiver that takes nothing for a while. Live (default): its bounded queue keeps the
+    newest samples, Zenoh's thread never waits, and every dropped chunk's points are counted
+    per source as receive_queue_full, so sent = received + lost_in_transit +
+    receive_queue_full. With backpressure on both ends (a replay) nothing is dropped: the
+    sender waits."""
     port = _port()
-    probe = _probe(loop, {"key": "pftest/**", "queue_chunks": 3, "zenoh": {"connect": [f"tcp/127.0.0.1:{port}"]}},
-                   hold=6.0)
-    send = start_send(loop, zsend_cfg(synthetic_source(scans=10, hz=20), port))
+    probe = _probe(loop, {"key": "pftest/**", "queue_chunks": 3, "backpressure": backpressure,
+                          "zenoh": {"connect": [f"tcp/127.0.0.1:{port}"]}}, hold=6.0)
+    if backpressure:
+        _, src = _file_source(loop.workdir)
+        send = start_send(loop, zsend_cfg(src, port, backpressure=True, queue_chunks=2))
+    else:
+        send = start_send(loop, zsend_cfg(synthetic_source(scans=10, hz=20), port))
     assert send.wait(90) == 0, loop.log("send.log")
     assert probe.wait(90) == 0, loop.log("probe.log")
     c = json.loads((loop.workdir / "probe.json").read_text())
     snd = stats(loop, "send")
     sent = snd["accounting"]["link_sent"]
-    assert c["ended"] == ["lidar"]
-    assert c["receive_queue_full"] > 0 and c["receive_queue_full_chunks"] > 0, c
+    assert c["ended"] == ["replay" if backpressure else "lidar"]
     assert c["link_sent"] == sent == c["link_received"] + c["lost_in_transit"] + c["receive_queue_full"], (c, sent)
     assert len(np.load(loop.workdir / "probe.npy")) == c["link_received"]
+    if backpressure:
+        assert c["receive_queue_full"] == 0 and c["lost_in_transit"] == 0 and c["link_received"] == sent == 40_000
+    else:
+        assert c["receive_queue_full"] > 0 and c["receive_queue_full_chunks"] > 0, c
 
 
 def test_a_killed_sender_is_noticed(loop):

@@ -11,7 +11,8 @@ Zenoh delivers samples on its own threads. The callback never blocks and never d
 it appends the sample to a bounded queue (``queue_chunks``); when the source loop is
 behind, the oldest sample is dropped and its header kept, so its points are counted per
 source as ``receive_queue_full`` (``link_sent = link_received + lost_in_transit +
-receive_queue_full``).
+receive_queue_full``). ``backpressure: true`` (lossless replays) makes the callback wait
+for room instead.
 
 Dead senders: each sender holds a liveliness token on its source's key. When a token goes
 away without the source's final sync (a sender killed, a network gone), the source logs
@@ -55,6 +56,10 @@ class ZenohSourceOptions(NetworkOptions):
     zenoh: ZenohOptions = field(default_factory=ZenohOptions)
     #: Samples held between Zenoh and the source loop; beyond, the oldest is dropped (counted).
     queue_chunks: int = field(default=64, metadata=check(at_least_one))
+    #: true: with the queue full, Zenoh's receiving thread waits instead (nothing dropped
+    #: here; the network and, with ``send.backpressure``, the sender wait too). For lossless
+    #: replays one-to-one: it stalls this whole session, and through a router every viewer.
+    backpressure: bool = False
 
 
 class ZenohTransport(Transport):
@@ -80,7 +85,8 @@ class ZenohTransport(Transport):
         self.counters = {"messages": 0, "rejected": 0, "receive_queue_full": 0, "receive_queue_full_chunks": 0,
                          "senders_alive": 0, "senders_lost": 0}
         self.ledger = TransitLedger()
-        self._lock = threading.Lock()
+        self._lock = threading.Condition()  # the queues; notified when the source loop took a sample
+        self._closing = False
         self._queue: collections.deque = collections.deque()
         #: Headers (bytes) of samples dropped from the queue, oldest first; all older than the queue's.
         self._dropped: collections.deque = collections.deque()
@@ -97,6 +103,8 @@ class ZenohTransport(Transport):
         """Zenoh's thread: queue, drop the oldest beyond the bound; nothing else."""
         item = (sample.payload, sample.attachment)
         with self._lock:
+            while self.o.backpressure and len(self._queue) >= self.o.queue_chunks and not self._closing:
+                self._lock.wait(0.1)
             self._queue.append(item)
             if len(self._queue) > self.o.queue_chunks:
                 _, att = self._queue.popleft()
@@ -158,7 +166,9 @@ class ZenohTransport(Transport):
             if self._dropped:
                 return True, self._dropped.popleft()
             if self._queue:
-                return False, self._queue.popleft()
+                item = self._queue.popleft()
+                self._lock.notify()
+                return False, item
             self._wake.clear()
             return None, None
 
@@ -224,6 +234,9 @@ class ZenohTransport(Transport):
                 yield None
 
     def close(self) -> None:
+        with self._lock:
+            self._closing = True
+            self._lock.notify_all()
         for s in self._subs:
             try:
                 s.undeclare()
