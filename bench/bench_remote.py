@@ -245,15 +245,14 @@ def zenoh_send(args, chunks) -> None:
     import logging
 
     from pointflow.remote.options import SendConfig, check_send
-    from pointflow.remote.zenoh_options import open_session
-    from pointflow.remote.zenoh_sender import CLOSE_SETTLE_S, SENDER_DEFAULTS, ZenohLinkSender, _matching
+    from pointflow.remote.zenoh_sender import CLOSE_SETTLE_S, ZenohLinkSender, _matching, open_sender_session
     from pointflow.runtime.stage import StageCounters
 
     client = "router" in args.mode or "fanout" in args.mode
     z = _zopts(args, mode="client" if client else "peer", connect=[args.endpoint])
     s = SendConfig(engine="zenoh", key="bench", backpressure=True, queue_chunks=4, zenoh=z)
     check_send(s, "send", ".")
-    session = open_session(s.zenoh, SENDER_DEFAULTS)
+    session = open_sender_session(s.zenoh)
     counters = StageCounters()
     snd = ZenohLinkSender(session, s, counters, logging.getLogger("bench"))
     pub = snd._publisher(chunks[0].source_id)
