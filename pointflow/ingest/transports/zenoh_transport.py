@@ -82,6 +82,8 @@ class ZenohTransport(Transport):
     def __init__(self, options: dict[str, Any], source_id: str):
         super().__init__(options, source_id)
         self.o: ZenohSourceOptions = load_dataclass(ZenohSourceOptions, options, "options")
+        #: with backpressure the source stage also waits for ingest instead of dropping (hwm)
+        self.lossless = self.o.backpressure
         self.counters = {"messages": 0, "rejected": 0, "receive_queue_full": 0, "receive_queue_full_chunks": 0,
                          "senders_alive": 0, "senders_lost": 0}
         self.ledger = TransitLedger()
