@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import importlib.util
 import json
 import logging
 import threading
@@ -73,11 +74,8 @@ class ZenohTransport(Transport):
             raise ConfigError(f"{path}.zenoh.mode", "a receiving source is a peer or a client; run routers with "
                               "`pointflow router`")
         check_zenoh(o.zenoh, f"{path}.zenoh", base_dir, connect_default=(DEFAULT_CONNECT,))
-        try:
-            import zenoh  # noqa: F401
-        except ImportError:
-            raise ConfigError(f"{path}", "the zenoh transport needs eclipse-zenoh: pip install 'pointflow[remote]'") \
-                from None
+        if importlib.util.find_spec("zenoh") is None:  # every stage loads the config: no engine import here
+            raise ConfigError(f"{path}", "the zenoh transport needs eclipse-zenoh: pip install 'pointflow[remote]'")
 
     def __init__(self, options: dict[str, Any], source_id: str):
         super().__init__(options, source_id)
