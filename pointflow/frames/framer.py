@@ -21,6 +21,7 @@ import numpy as np
 from . import deskew as dk
 from .buffer import FrameError, NoTransform, TransformBuffer
 from .config import FramesConfig, static_rotation
+from .kernels import Scratch, rigid
 from .message import Transforms
 
 #: Per-(source, reason) log lines at most this often (seconds).
@@ -50,30 +51,6 @@ class _Source:
     time_key: Any = None
 
 
-#: Up to this many points the rigid transform is one BLAS call (OpenBLAS keeps such small
-#: products on one thread); above it, elementwise column passes (bench/bench_frames.py).
-BLAS_MAX_POINTS = 16_384
-
-
-def rigid(pos: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """``pos @ R.T + t`` in float64. Large clouds go column by column: elementwise passes
-    instead of a BLAS call whose threads cost far more than the (N, 3) x (3, 3) product on a
-    busy machine (5-10x slower measured on the shared 2-core VM)."""
-    if pos.shape[0] <= BLAS_MAX_POINTS:
-        out = np.matmul(pos.astype(np.float64, copy=False), R.T)
-        out += t
-        return out
-    out = np.empty((pos.shape[0], 3), np.float64)
-    x, y, z = pos[:, 0], pos[:, 1], pos[:, 2]
-    for r in range(3):
-        col = out[:, r]
-        np.multiply(x, R[r, 0], out=col)
-        col += y * R[r, 1]
-        col += z * R[r, 2]
-        col += t[r]
-    return out
-
-
 class Framer:
     def __init__(self, cfg: FramesConfig, drop: Callable[[str, int], None], log: Optional[logging.Logger] = None,
                  spans=None, clock: Callable[[], int] = time.monotonic_ns):
@@ -95,6 +72,8 @@ class Framer:
         self.transform_ns = 0
         self._logged: dict[tuple[str, str], float] = {}
         self._static_cache: dict[str, tuple[int, Any]] = {}
+        #: intermediates of the point loops, kept between clouds (kernels.py)
+        self.scratch = Scratch()
 
     # ------------------------------------------------------------------ transforms
     def add_transforms(self, batch: Transforms) -> list[Ready]:
@@ -195,14 +174,14 @@ class Framer:
             static = self._static_chain(frame)
             tf = self._time_field(st, chunk) if static is None else None
             if static is not None:  # a chain of static edges only: one cached transform, nothing to deskew
-                out = rigid(pos, *static)
+                out = rigid(pos, *static, self.scratch)
                 if st.chain.startswith("("):
                     st.chain = self.buffer.chain_text(self.fixed, frame)
             elif tf is not None and stamp:
                 out = self._deskew(chunk, pos, tf, frame, stamp)
             else:
                 R, t = self.buffer.lookup(self.fixed, frame, stamp)
-                out = rigid(pos, R, t)
+                out = rigid(pos, R, t, self.scratch)
             if static is None or st.latency_ms is not None:
                 newest = self.buffer.newest_of_chain(self.fixed, frame)
                 st.latency_ms = round((newest - stamp) / 1e6, 3) if newest is not None and stamp else None
@@ -229,7 +208,7 @@ class Framer:
         off = tf.offsets_ns(chunk.channels[tf.field], stamp)
         if off.shape[0] == 0:
             R, t = self.buffer.lookup(self.fixed, frame, stamp)
-            return rigid(pos, R, t)
+            return rigid(pos, R, t, self.scratch)
         lo, hi = float(off.min()), float(off.max())
         if not (np.isfinite(lo) and np.isfinite(hi)):
             off = np.nan_to_num(off, nan=0.0, posinf=0.0, neginf=0.0)
