@@ -206,6 +206,8 @@ class Framer:
 
     def _deskew(self, chunk, pos: np.ndarray, tf: dk.TimeField, frame: str, stamp: int) -> np.ndarray:
         off = tf.offsets_ns(chunk.channels[tf.field], stamp)
+        if off.shape[0] != pos.shape[0]:
+            raise ValueError(f"time field {tf.field!r} has {off.shape[0]} values for {pos.shape[0]} points")
         if off.shape[0] == 0:
             R, t = self.buffer.lookup(self.fixed, frame, stamp)
             return rigid(pos, R, t, self.scratch)
@@ -213,6 +215,11 @@ class Framer:
         if not (np.isfinite(lo) and np.isfinite(hi)):
             off = np.nan_to_num(off, nan=0.0, posinf=0.0, neginf=0.0)
             lo, hi = float(off.min()), float(off.max())
+        d = dk.distinct(off, lo, hi, self.scratch)
+        if d is not None:  # few distinct times (a column per time): one exact pose each
+            values, idx = d
+            R, t = self.buffer.lookup_many(self.fixed, frame, stamp + np.rint(values).astype(np.int64))
+            return dk.apply_table(pos, idx, R, t, self.scratch)
         ends = np.array([stamp + int(np.floor(lo)), stamp + int(np.ceil(hi))], dtype=np.int64)
         Re, _ = self.buffer.lookup_many(self.fixed, frame, ends)
         c = (np.trace(Re[0].T @ Re[1]) - 1.0) / 2.0
@@ -220,7 +227,7 @@ class Framer:
         nodes = dk.node_times(lo, hi, angle)
         times = stamp + np.rint(nodes).astype(np.int64)
         R, t = self.buffer.lookup_many(self.fixed, frame, times)
-        return dk.apply_nodes(pos, off, (times - stamp).astype(np.float64), R, t)
+        return dk.apply_nodes(pos, off, (times - stamp).astype(np.float64), R, t, self.scratch)
 
     def _time_field(self, st: _Source, chunk) -> Optional[dk.TimeField]:
         if self.cfg.deskew == "off":
