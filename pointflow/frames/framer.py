@@ -2,7 +2,9 @@
 
 Ingest calls :meth:`Framer.submit` once per accepted chunk and :meth:`Framer.add_transforms`
 per transforms message; both return the clouds that may go on to the ring, in order, with
-their positions in the fixed frame (float64). A cloud whose transform is not known yet
+their positions in the fixed frame (float64; with :attr:`Framer.lazy` a cloud that needs one
+rigid transform comes as a :class:`~pointflow.frames.kernels.Placed`, its transform applied
+by the ring as it writes the points). A cloud whose transform is not known yet
 waits (per source, in order, at most ``tf_wait_ms`` and ``max_wait_points`` points in all);
 :meth:`Framer.poll` releases or drops waiting clouds as time passes. A cloud that cannot be
 placed is dropped with reason ``no_transform`` through the ``drop`` callback (ingest's
@@ -21,12 +23,12 @@ import numpy as np
 from . import deskew as dk
 from .buffer import FrameError, NoTransform, TransformBuffer
 from .config import FramesConfig, static_rotation
-from .kernels import Scratch, rigid
+from .kernels import Placed, RigidTransform, Scratch, rigid
 from .message import Transforms
 
 #: Per-(source, reason) log lines at most this often (seconds).
 LOG_EVERY_S = 5.0
-Ready = tuple[Any, np.ndarray, dict]
+Ready = tuple[Any, Any, dict]  # (chunk, float64 positions or Placed, channels)
 
 
 @dataclass
@@ -74,6 +76,10 @@ class Framer:
         self._static_cache: dict[str, tuple[int, Any]] = {}
         #: intermediates of the point loops, kept between clouds (kernels.py)
         self.scratch = Scratch()
+        #: True: a cloud that needs one rigid transform comes back as a :class:`Placed` (its
+        #: positions as sent and the transform), which the ring applies as it writes them
+        #: (ingest sets this unless it needs the placed positions itself: recording, thinning)
+        self.lazy = False
 
     # ------------------------------------------------------------------ transforms
     def add_transforms(self, batch: Transforms) -> list[Ready]:
@@ -174,14 +180,14 @@ class Framer:
             static = self._static_chain(frame)
             tf = self._time_field(st, chunk) if static is None else None
             if static is not None:  # a chain of static edges only: one cached transform, nothing to deskew
-                out = rigid(pos, *static, self.scratch)
+                out = Placed(pos, static, True) if self.lazy else static.world(pos)
                 if st.chain.startswith("("):
                     st.chain = self.buffer.chain_text(self.fixed, frame)
             elif tf is not None and stamp:
                 out = self._deskew(chunk, pos, tf, frame, stamp)
             else:
                 R, t = self.buffer.lookup(self.fixed, frame, stamp)
-                out = rigid(pos, R, t, self.scratch)
+                out = Placed(pos, RigidTransform(R, t, self.scratch), False) if self.lazy else rigid(pos, R, t, self.scratch)
             if static is None or st.latency_ms is not None:
                 newest = self.buffer.newest_of_chain(self.fixed, frame)
                 st.latency_ms = round((newest - stamp) / 1e6, 3) if newest is not None and stamp else None
@@ -192,15 +198,16 @@ class Framer:
             self.spans.record(chunk.trace_id, "transform", chunk.t_recv_ns or t0, t1, int(pos.shape[0]))
         return out
 
-    def _static_chain(self, frame: str):
-        """(R, t) of fixed <- frame when every edge of the chain is static (cached until the
-        buffer changes); None for a chain with a dynamic edge. Raises NoTransform."""
+    def _static_chain(self, frame: str) -> Optional[RigidTransform]:
+        """fixed <- frame when every edge of the chain is static (cached until the buffer
+        changes: the same object for every cloud); None for a chain with a dynamic edge.
+        Raises NoTransform."""
         hit = self._static_cache.get(frame)
         if hit is not None and hit[0] == self.buffer.version:
             return hit[1]
         value = None
         if not self.buffer.dynamic_edges(self.fixed, frame):
-            value = self.buffer.lookup(self.fixed, frame, 0)
+            value = RigidTransform(*self.buffer.lookup(self.fixed, frame, 0), self.scratch)
         self._static_cache[frame] = (self.buffer.version, value)
         return value
 

@@ -13,7 +13,7 @@ Why this shape (measured with bench/bench_frames.py on the shared 2-core VM):
 """
 from __future__ import annotations
 
-from typing import Optional
+from typing import NamedTuple, Optional
 
 import numpy as np
 
@@ -32,7 +32,9 @@ class Scratch:
 
     def get(self, name: str, shape: tuple[int, ...], dtype=np.float64) -> np.ndarray:
         """An uninitialised array of ``shape`` (a view on a kept buffer)."""
-        size = int(np.prod(shape))
+        size = 1
+        for d in shape:  # not np.prod: ~3 us a call, more than a 1,000-point transform's matmul
+            size *= d
         b = self._bufs.get(name)
         if b is None or b.size < size or b.dtype != dtype:
             b = self._bufs[name] = np.empty(max(size, 1024), dtype)
@@ -78,3 +80,51 @@ def rigid(pos: np.ndarray, R: np.ndarray, t: np.ndarray, scratch: Optional[Scrat
         else:
             np.add(dst.reshape(-1), tile[:3 * k], out=out[a:b].reshape(-1), casting="unsafe")
     return out
+
+
+class RigidTransform:
+    """One rigid transform, applied where the points are written: the ring's push calls
+    :meth:`apply` per segment and writes ``R p + (t - origin)`` (float64, rounded once to
+    float32) straight into its slots, so a transformed cloud is read once and never stored in
+    float64 (``PointRing.push(..., transform=)``)."""
+
+    __slots__ = ("R", "t", "scratch", "_rows")
+
+    def __init__(self, R: np.ndarray, t: np.ndarray, scratch: Optional[Scratch] = None):
+        self.R = np.asarray(R, np.float64)
+        self.t = np.asarray(t, np.float64)
+        self.scratch = scratch if scratch is not None else Scratch()
+        #: per output axis (t_r, sum_j R_rj, sum_j |R_rj|) as floats, made by the first bounds()
+        self._rows: Optional[tuple] = None
+
+    def world(self, pos: np.ndarray) -> np.ndarray:
+        """The transformed positions, float64 (N, 3)."""
+        return rigid(pos, self.R, self.t, self.scratch)
+
+    def apply(self, pos: np.ndarray, origin: np.ndarray, out: np.ndarray) -> None:
+        """Write the offsets of the transformed ``pos`` from ``origin`` into ``out`` (flat, any
+        float dtype, 3 * N values)."""
+        rigid(pos, self.R, self.t - origin, self.scratch, out=out.reshape(-1, 3))
+
+    def bounds(self, lo: float, hi: float) -> tuple[float, float]:
+        """(min, max) over every coordinate of the transformed points, given that every
+        coordinate of the points lies in [lo, hi] (interval arithmetic; conservative, widened
+        by a relative 1e-9 for the rounding of the product)."""
+        if self._rows is None:
+            self._rows = tuple((float(self.t[r]), float(self.R[r].sum()), float(np.abs(self.R[r]).sum())) for r in range(3))
+        c, h = (lo + hi) / 2.0, (hi - lo) / 2.0
+        wlo, whi = float("inf"), float("-inf")
+        for t, rs, ra in self._rows:  # plain floats: a handful of numpy calls cost ~20 us here
+            m, r = t + rs * c, ra * h
+            wlo, whi = min(wlo, m - r), max(whi, m + r)
+        return wlo - 1e-9 * (1.0 + abs(wlo)), whi + 1e-9 * (1.0 + abs(whi))
+
+
+class Placed(NamedTuple):
+    """A cloud placed lazily: its positions as sent and the transform the ring applies.
+    ``shared``: the same transform object comes with the next clouds too (a static chain),
+    so small clouds may still be pushed together."""
+
+    src: np.ndarray
+    xf: RigidTransform
+    shared: bool

@@ -305,3 +305,36 @@ def test_deskew_equals_tf2_per_point_on_both_paths(ring, kind):
     assert np.linalg.norm(out - truth, axis=1).max() <= 1e-3
     # exact per distinct time; node interpolation: chord of <= 1 mrad turns, < 20 um at 80 m
     assert err.max() <= (1e-9 if kind == "columns" else 2e-5), err.max()
+
+
+def test_rigid_transforms_left_to_the_ring_place_points_as_before(ring):
+    """Ingest hands one rigid transform per cloud to the ring (applied as it writes): small
+    clouds of a static chain still go in one push, big clouds of a dynamic chain too; small
+    clouds of a dynamic chain are placed first. Points and counts as if placed in the frames
+    step; non-finite points dropped and counted."""
+    st = [StaticTransformConfig("odom", "cam", [3.0, -2.0, 1.7], rpy_deg=[1.0, 2.0, 30.0])]
+    robot = T.Robot()
+    ing = _ing(ring, static=st)
+    assert ing.framer.lazy
+    ing.framer.add_transforms(_tf_batch(robot, range(len(robot.stamps))))
+    Rs = T.extrinsic([3.0, -2.0, 1.7], [1.0, 2.0, 30.0])
+    want = []
+    for k in range(6):  # small clouds, static chain: coalesced into one push
+        c = _cloud(500, 0, frame="cam", seed=k, src="cam")
+        if k == 2:
+            c.positions[7] = np.nan
+        assert ing.add_chunk(c)
+        p = c.positions.astype(np.float64)
+        want.append(np.delete(p, 7, axis=0) @ Rs[0].T + Rs[1] if k == 2 else p @ Rs[0].T + Rs[1])
+    pushes = ing.pushes
+    ing.flush()
+    assert ing.pushes == pushes + 1
+    for k, n in enumerate((600, 15_000)):  # dynamic chain: a small cloud, a big one
+        stamp = robot.stamps[12 + 5 * k] + 31_000_000
+        c = _cloud(n, stamp, seed=10 + k)
+        assert ing.add_chunk(c)
+        want.append(T.to_fixed(robot, EXT, c.positions.astype(np.float64), stamp))
+    ing.flush()
+    got = ring.snapshot().positions
+    assert np.abs(got - np.concatenate(want)).max() < 2e-5
+    assert ing.counters.drops == {"non_finite": 1} and _balanced(ing) and ing.counters.points_out == 3000 - 1 + 15_600
