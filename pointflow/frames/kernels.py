@@ -74,11 +74,10 @@ def rigid(pos: np.ndarray, R: np.ndarray, t: np.ndarray, scratch: Optional[Scrat
             src = conv[:k]
         dst = out[a:b] if direct else tmp[:k]
         np.matmul(src, RT, out=dst)
-        if direct:
-            flat = dst.reshape(-1)
-            flat += tile[:3 * k]
-        else:
-            np.add(dst.reshape(-1), tile[:3 * k], out=out[a:b].reshape(-1), casting="unsafe")
+        flat = dst.reshape(-1)
+        flat += tile[:3 * k]
+        if not direct:  # add in float64, then one rounding copy (faster than a casting add)
+            np.copyto(out[a:b].reshape(-1), flat, casting="unsafe")
     return out
 
 
