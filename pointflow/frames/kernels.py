@@ -19,6 +19,9 @@ import numpy as np
 
 #: Rows per BLAS call (OpenBLAS keeps products this small on one thread).
 BLOCK = 16_384
+#: Scratch arrays above this many elements are not kept (a rare huge cloud must not leave
+#: hundreds of MB behind); 2**20 covers a 262,144-point sweep's per-point index arrays.
+KEEP_MAX = 1 << 20
 
 
 class Scratch:
@@ -35,6 +38,8 @@ class Scratch:
         size = 1
         for d in shape:  # not np.prod: ~3 us a call, more than a 1,000-point transform's matmul
             size *= d
+        if size > KEEP_MAX:
+            return np.empty(shape, dtype)
         b = self._bufs.get(name)
         if b is None or b.size < size or b.dtype != dtype:
             b = self._bufs[name] = np.empty(max(size, 1024), dtype)

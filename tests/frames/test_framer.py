@@ -338,3 +338,13 @@ def test_rigid_transforms_left_to_the_ring_place_points_as_before(ring):
     got = ring.snapshot().positions
     assert np.abs(got - np.concatenate(want)).max() < 2e-5
     assert ing.counters.drops == {"non_finite": 1} and _balanced(ing) and ing.counters.points_out == 3000 - 1 + 15_600
+
+
+def test_scratch_keeps_small_buffers_and_drops_huge_ones():
+    from pointflow.frames.kernels import KEEP_MAX, Scratch
+
+    s = Scratch()
+    a = s.get("x", (1000, 3))
+    assert np.shares_memory(a, s.get("x", (500, 3)))  # kept and reused
+    big = s.get("y", (KEEP_MAX + 1,))
+    assert big.shape == (KEEP_MAX + 1,) and not np.shares_memory(big, s.get("y", (KEEP_MAX + 1,)))
