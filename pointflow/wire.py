@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import re
+import struct
 import time
 from typing import Any, Sequence
 
@@ -80,7 +81,7 @@ def encode(chunk: PointChunk, *, link: dict | None = None, compressor: Any = Non
         header["stamp_ns"] = int(chunk.stamp_ns)
     if chunk.frame_id:  # optional: the coordinate frame (docs/frames.md)
         header["frame"] = chunk.frame_id
-    frames[0] = _header_json(header) if "frame" not in header else json.dumps(header, separators=(",", ":")).encode()
+    frames[0] = _header_json(header)
     return [f if isinstance(f, bytes) else (memoryview(f).cast("B") if f.nbytes >= ZERO_COPY_MIN_BYTES else f.tobytes()) for f in frames]
 
 
@@ -93,7 +94,7 @@ def _header_json(h: dict) -> bytes:
     through json.dumps."""
     src = h["source"]
     chans = h["channels"]
-    if type(src) is not str or not all(type(c["name"]) is str for c in chans):
+    if type(src) is not str or not all(type(c["name"]) is str for c in chans) or type(h.get("frame", "")) is not str:
         return json.dumps(h, separators=(",", ":")).encode()
     parts = [f'{{"schema":{_json_str(h["schema"])},"source":{_json_str(src)},"seq":{h["seq"]!r},'
              f'"trace":{h["trace"]!r},"t_sent_ns":{h["t_sent_ns"]!r},"n":{h["n"]!r},'
@@ -101,7 +102,8 @@ def _header_json(h: dict) -> bytes:
     for i, c in enumerate(chans):
         shape = ",".join([repr(int(x)) for x in c["shape"]])
         parts.append(f'{"," if i else ""}{{"name":{_json_str(c["name"])},"dtype":{_json_str(c["dtype"])},"shape":[{shape}]}}')
-    parts.append(f'],"stamp_ns":{h["stamp_ns"]!r}}}' if "stamp_ns" in h else "]}")
+    parts.append(f'],"stamp_ns":{h["stamp_ns"]!r}' if "stamp_ns" in h else "]")
+    parts.append(f',"frame":{_json_str(h["frame"])}}}' if "frame" in h else "}")
     return "".join(parts).encode()
 
 
@@ -144,6 +146,37 @@ def _encode_link(chunk: PointChunk, link: dict | None, compressor: Any, resoluti
             if a.dtype.byteorder == ">":
                 a = a.astype(a.dtype.newbyteorder("<"))
             frames.append(memoryview(a).cast("B") if a.nbytes >= ZERO_COPY_MIN_BYTES else a.tobytes())
+    return frames
+
+
+def to_single(frames: Sequence[Any]) -> tuple[bytes, bytes]:
+    """One message of :func:`encode` as ``(header, body)`` for engines that carry one payload
+    and an attachment per message (Zenoh links, docs/wire-format.md "Single-buffer framing"):
+    the header frame as it is, and the data frames back to back after their count (u32) and
+    byte lengths (u64 each), little-endian. The data frames are copied once, into the body."""
+    data = frames[1:]
+    lens = [f.nbytes if isinstance(f, memoryview) else len(f) for f in data]
+    return bytes(frames[0]), b"".join([struct.pack(f"<I{len(lens)}Q", len(lens), *lens), *data])
+
+
+def from_single(header: Any, body: Any) -> list[Any]:
+    """The frames of a :func:`to_single` message (views on ``body``, no copy), for
+    :func:`decode_message`; :class:`ChunkError` when the framing does not add up."""
+    mv = memoryview(body).cast("B")
+    if mv.nbytes < 4:
+        raise ChunkError("bad_frame_count", f"single-buffer body of {mv.nbytes} bytes has no frame count")
+    (k,) = struct.unpack_from("<I", mv, 0)
+    start = 4 + 8 * k
+    if k > 4096 or start > mv.nbytes:
+        raise ChunkError("bad_frame_count", f"single-buffer body declares {k} frames in {mv.nbytes} bytes")
+    lens = struct.unpack_from(f"<{k}Q", mv, 4)
+    if start + sum(lens) != mv.nbytes:
+        raise ChunkError("truncated" if start + sum(lens) > mv.nbytes else "size_mismatch",
+                         f"single-buffer body: frames of {sum(lens)} bytes declared, {mv.nbytes - start} present")
+    frames: list[Any] = [header]
+    for n in lens:
+        frames.append(mv[start:start + n])
+        start += n
     return frames
 
 
@@ -216,6 +249,10 @@ _HEADER_RE = re.compile(
     rb'\{"schema":"pointflow\.chunk/1","source":"([ !#-\[\]-~]*)","seq":' + _INT + rb',"trace":' + _INT
     + rb',"t_sent_ns":' + _INT + rb',(?="n":)')
 _STAMP_KEY = b',"stamp_ns":'
+_FRAME_KEY = b',"frame":"'
+#: A frame id the fast path takes as is: printable ASCII without quote or backslash (anything
+#: else, escapes included, goes through decode_message).
+_FRAME_RE = re.compile(rb'[ !#-\[\]-~]*')
 _INT_RE = re.compile(_INT)
 #: The per-chunk-constant part of recent headers -> what decode_message would make of it
 #: when every frame has the promised size: (n, (name, dtype, shape, bytes) for positions
@@ -242,6 +279,15 @@ def _decode_fast(frames: Sequence[Any], max_points: int | None) -> PointChunk | 
         return None
     src, seq, trace, t_sent = m.groups()
     tail = hb[m.end():-1]
+    frame_id = ""
+    if tail[-1:] == b'"':  # the optional frame id is the last member (after the stamp)
+        k = tail.rfind(_FRAME_KEY)
+        if k < 0:
+            return None
+        f = _FRAME_RE.fullmatch(tail, k + len(_FRAME_KEY), len(tail) - 1)
+        if f is None:
+            return None
+        frame_id, tail = f.group().decode("ascii"), tail[:k]
     stamp = None
     k = tail.rfind(_STAMP_KEY)
     if k >= 0:  # the optional capture stamp is the last member
@@ -274,6 +320,7 @@ def _decode_fast(frames: Sequence[Any], max_points: int | None) -> PointChunk | 
         seq=int(seq), trace_id=int(trace), t_sent_ns=int(t_sent),
         t_recv_ns=time.monotonic_ns(),
         stamp_ns=int(stamp) if stamp is not None else 0,
+        frame_id=frame_id,
     )
 
 

@@ -2,7 +2,9 @@
 
 Ingest calls :meth:`Framer.submit` once per accepted chunk and :meth:`Framer.add_transforms`
 per transforms message; both return the clouds that may go on to the ring, in order, with
-their positions in the fixed frame (float64). A cloud whose transform is not known yet
+their positions in the fixed frame (float64; with :attr:`Framer.lazy` a cloud that needs one
+rigid transform comes as a :class:`~pointflow.frames.kernels.Placed`, its transform applied
+by the ring as it writes the points). A cloud whose transform is not known yet
 waits (per source, in order, at most ``tf_wait_ms`` and ``max_wait_points`` points in all);
 :meth:`Framer.poll` releases or drops waiting clouds as time passes. A cloud that cannot be
 placed is dropped with reason ``no_transform`` through the ``drop`` callback (ingest's
@@ -21,11 +23,12 @@ import numpy as np
 from . import deskew as dk
 from .buffer import FrameError, NoTransform, TransformBuffer
 from .config import FramesConfig, static_rotation
+from .kernels import Placed, RigidTransform, Scratch, rigid
 from .message import Transforms
 
 #: Per-(source, reason) log lines at most this often (seconds).
 LOG_EVERY_S = 5.0
-Ready = tuple[Any, np.ndarray, dict]
+Ready = tuple[Any, Any, dict]  # (chunk, float64 positions or Placed, channels)
 
 
 @dataclass
@@ -50,30 +53,6 @@ class _Source:
     time_key: Any = None
 
 
-#: Up to this many points the rigid transform is one BLAS call (OpenBLAS keeps such small
-#: products on one thread); above it, elementwise column passes (bench/bench_frames.py).
-BLAS_MAX_POINTS = 16_384
-
-
-def rigid(pos: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """``pos @ R.T + t`` in float64. Large clouds go column by column: elementwise passes
-    instead of a BLAS call whose threads cost far more than the (N, 3) x (3, 3) product on a
-    busy machine (5-10x slower measured on the shared 2-core VM)."""
-    if pos.shape[0] <= BLAS_MAX_POINTS:
-        out = np.matmul(pos.astype(np.float64, copy=False), R.T)
-        out += t
-        return out
-    out = np.empty((pos.shape[0], 3), np.float64)
-    x, y, z = pos[:, 0], pos[:, 1], pos[:, 2]
-    for r in range(3):
-        col = out[:, r]
-        np.multiply(x, R[r, 0], out=col)
-        col += y * R[r, 1]
-        col += z * R[r, 2]
-        col += t[r]
-    return out
-
-
 class Framer:
     def __init__(self, cfg: FramesConfig, drop: Callable[[str, int], None], log: Optional[logging.Logger] = None,
                  spans=None, clock: Callable[[], int] = time.monotonic_ns):
@@ -95,6 +74,12 @@ class Framer:
         self.transform_ns = 0
         self._logged: dict[tuple[str, str], float] = {}
         self._static_cache: dict[str, tuple[int, Any]] = {}
+        #: intermediates of the point loops, kept between clouds (kernels.py)
+        self.scratch = Scratch()
+        #: True: a cloud that needs one rigid transform comes back as a :class:`Placed` (its
+        #: positions as sent and the transform), which the ring applies as it writes them
+        #: (ingest sets this unless it needs the placed positions itself: recording, thinning)
+        self.lazy = False
 
     # ------------------------------------------------------------------ transforms
     def add_transforms(self, batch: Transforms) -> list[Ready]:
@@ -195,14 +180,14 @@ class Framer:
             static = self._static_chain(frame)
             tf = self._time_field(st, chunk) if static is None else None
             if static is not None:  # a chain of static edges only: one cached transform, nothing to deskew
-                out = rigid(pos, *static)
+                out = Placed(pos, static, True) if self.lazy else static.world(pos)
                 if st.chain.startswith("("):
                     st.chain = self.buffer.chain_text(self.fixed, frame)
             elif tf is not None and stamp:
                 out = self._deskew(chunk, pos, tf, frame, stamp)
             else:
                 R, t = self.buffer.lookup(self.fixed, frame, stamp)
-                out = rigid(pos, R, t)
+                out = Placed(pos, RigidTransform(R, t, self.scratch), False) if self.lazy else rigid(pos, R, t, self.scratch)
             if static is None or st.latency_ms is not None:
                 newest = self.buffer.newest_of_chain(self.fixed, frame)
                 st.latency_ms = round((newest - stamp) / 1e6, 3) if newest is not None and stamp else None
@@ -213,27 +198,35 @@ class Framer:
             self.spans.record(chunk.trace_id, "transform", chunk.t_recv_ns or t0, t1, int(pos.shape[0]))
         return out
 
-    def _static_chain(self, frame: str):
-        """(R, t) of fixed <- frame when every edge of the chain is static (cached until the
-        buffer changes); None for a chain with a dynamic edge. Raises NoTransform."""
+    def _static_chain(self, frame: str) -> Optional[RigidTransform]:
+        """fixed <- frame when every edge of the chain is static (cached until the buffer
+        changes: the same object for every cloud); None for a chain with a dynamic edge.
+        Raises NoTransform."""
         hit = self._static_cache.get(frame)
         if hit is not None and hit[0] == self.buffer.version:
             return hit[1]
         value = None
         if not self.buffer.dynamic_edges(self.fixed, frame):
-            value = self.buffer.lookup(self.fixed, frame, 0)
+            value = RigidTransform(*self.buffer.lookup(self.fixed, frame, 0), self.scratch)
         self._static_cache[frame] = (self.buffer.version, value)
         return value
 
     def _deskew(self, chunk, pos: np.ndarray, tf: dk.TimeField, frame: str, stamp: int) -> np.ndarray:
         off = tf.offsets_ns(chunk.channels[tf.field], stamp)
+        if off.shape[0] != pos.shape[0]:
+            raise ValueError(f"time field {tf.field!r} has {off.shape[0]} values for {pos.shape[0]} points")
         if off.shape[0] == 0:
             R, t = self.buffer.lookup(self.fixed, frame, stamp)
-            return rigid(pos, R, t)
+            return rigid(pos, R, t, self.scratch)
         lo, hi = float(off.min()), float(off.max())
         if not (np.isfinite(lo) and np.isfinite(hi)):
             off = np.nan_to_num(off, nan=0.0, posinf=0.0, neginf=0.0)
             lo, hi = float(off.min()), float(off.max())
+        d = dk.distinct(off, lo, hi, self.scratch)
+        if d is not None:  # few distinct times (a column per time): one exact pose each
+            values, idx = d
+            R, t = self.buffer.lookup_many(self.fixed, frame, stamp + np.rint(values).astype(np.int64))
+            return dk.apply_table(pos, idx, R, t, self.scratch)
         ends = np.array([stamp + int(np.floor(lo)), stamp + int(np.ceil(hi))], dtype=np.int64)
         Re, _ = self.buffer.lookup_many(self.fixed, frame, ends)
         c = (np.trace(Re[0].T @ Re[1]) - 1.0) / 2.0
@@ -241,7 +234,7 @@ class Framer:
         nodes = dk.node_times(lo, hi, angle)
         times = stamp + np.rint(nodes).astype(np.int64)
         R, t = self.buffer.lookup_many(self.fixed, frame, times)
-        return dk.apply_nodes(pos, off, (times - stamp).astype(np.float64), R, t)
+        return dk.apply_nodes(pos, off, (times - stamp).astype(np.float64), R, t, self.scratch)
 
     def _time_field(self, st: _Source, chunk) -> Optional[dk.TimeField]:
         if self.cfg.deskew == "off":

@@ -39,6 +39,7 @@ import zmq
 from .. import wire
 from ..chunk import ChunkError, PointChunk
 from ..frames import message as transforms
+from ..frames.kernels import Placed
 from .jsonchunk import parse_json_chunk
 
 #: Per-reason log lines at most this often (seconds).
@@ -70,6 +71,10 @@ class _Batch:
     solo: bool = False
     #: With a recording: each chunk's points and metadata, offered to the recorder once pushed.
     records: list[PointChunk] = field(default_factory=list)
+    #: The rigid transform the ring applies to every point of the batch as it writes them
+    #: (frames step, static chain or a big cloud; positions are then as sent and lo/hi bound
+    #: the placed coordinates), or None: positions already placed.
+    xf: Any = None
 
 
 class RateLimitedLog:
@@ -133,6 +138,9 @@ class Ingestor:
         if frames is not None and frames.fixed:
             from ..frames.framer import Framer
             self.framer = Framer(frames, self.counters.drop, self.log, spans)
+            # rigid transforms applied by the ring as it writes (one pass over the points, no
+            # float64 copy), unless the placed positions are needed here first
+            self.framer.lazy = record is None and not adaptive_thinning
 
     # ------------------------------------------------------------------ receive
     def receive(self, frames: Sequence[Any]) -> bool:
@@ -210,6 +218,12 @@ class Ingestor:
     def _admit(self, chunk: PointChunk, pos: np.ndarray, chans: dict[str, np.ndarray], t0: int | None = None) -> bool:
         """Non-finite points, thinning, then the push queue (positions in their final frame)."""
         t0 = t0 or time.monotonic_ns()
+        xf = None
+        if type(pos) is Placed:  # the frames step left the rigid transform to the ring
+            if pos.shared or 2 * pos.src.shape[0] >= self.coalesce_points:
+                pos, xf = pos.src, pos.xf
+            else:  # a small cloud with a transform of its own: placed now, so it coalesces
+                pos = pos.xf.world(pos.src)
         n = pos.shape[0]
         if n and 2 * n < self.coalesce_points and not self.adaptive_thinning and self.record is None:
             # a small chunk goes into a coalesced batch: flush() finds its non-finite points
@@ -217,9 +231,13 @@ class Ingestor:
             # recording: the recorder's copy is taken at enqueue and must hold only finite points)
             if self.spans is not None:
                 self.spans.record(chunk.trace_id, "ingest_packed", chunk.t_recv_ns or t0, time.monotonic_ns(), n)
-            self._enqueue(pos, chans, chunk.trace_id, None, None)
+            self._enqueue(pos, chans, chunk.trace_id, None, None, xf=xf)
             return True
         pos, chans, lo, hi = self._finite(pos, chans)
+        if xf is not None and pos.shape[0]:
+            # bounds of the placed coordinates; a finite point stays finite when placed (only a
+            # coordinate near 1e308 could overflow, and the ring's range rule refuses that one)
+            lo, hi = xf.bounds(lo, hi)
         if self.adaptive_thinning and pos.shape[0]:
             k = self._thin_step()
             if k > 1:
@@ -235,7 +253,7 @@ class Ingestor:
                 rec = dataclasses.replace(chunk, positions=pos, channels=self.record.chans(chans),
                                           stamp_ns=chunk.stamp_ns or time.time_ns(),
                                           frame_id=self.framer.fixed if self.framer is not None else chunk.frame_id)
-            self._enqueue(pos, chans, chunk.trace_id, lo, hi, rec)  # thinning keeps a subset: still bounds
+            self._enqueue(pos, chans, chunk.trace_id, lo, hi, rec, xf)  # thinning keeps a subset: still bounds
         return True
 
     def _finite(self, pos: np.ndarray, chans: dict[str, np.ndarray]) -> tuple[np.ndarray, dict[str, np.ndarray], float, float]:
@@ -309,15 +327,15 @@ class Ingestor:
         return 1
 
     def _enqueue(self, pos: np.ndarray, chans: dict[str, np.ndarray], trace: int, lo: float | None,
-                 hi: float | None, rec: PointChunk | None = None) -> None:
+                 hi: float | None, rec: PointChunk | None = None, xf: Any = None) -> None:
         n = pos.shape[0]
         last = self.queue[-1] if self.queue else None
         # Only small chunks are coalesced: for big ones the copy costs more than the push saved.
         big = 2 * n >= self.coalesce_points
         if (big or last is None or last.solo or last.n + n > self.coalesce_points
                 or last.channels and last.channels[-1].keys() != chans.keys()
-                or last.positions[-1].dtype != pos.dtype):
-            last = _Batch(solo=big)
+                or last.positions[-1].dtype != pos.dtype or last.xf is not xf):
+            last = _Batch(solo=big, xf=xf)
             self.queue.append(last)
             while len(self.queue) > self.queue_max_batches:
                 old = self.queue.popleft()
@@ -355,8 +373,13 @@ class Ingestor:
                 if not n:
                     done += 1
                     continue
+                if b.xf is not None:
+                    lo, hi = b.xf.bounds(lo, hi)
             t0 = time.monotonic_ns()
-            res = self.ring.push(pos, trace_id=b.traces, value_range=(lo, hi), **chans)
+            if b.xf is None:
+                res = self.ring.push(pos, trace_id=b.traces, value_range=(lo, hi), **chans)
+            else:
+                res = self.ring.push(pos, trace_id=b.traces, value_range=(lo, hi), transform=b.xf, **chans)
             t1 = time.monotonic_ns()
             self.pushes += 1
             refused = n - res.written - res.rejected

@@ -428,12 +428,17 @@ class PointRing:
             return True
         return bool(imp.min() >= 0 and imp.max() < np.inf)
 
-    def _write(self, slot: int, pos: np.ndarray, a: int, b: int, t_ms: float, g: int, prepared, imp) -> None:
-        """Write incoming points [a, b) to slots slot.. (mod capacity); b - a <= capacity."""
+    def _write(self, slot: int, pos: np.ndarray, a: int, b: int, t_ms: float, g: int, prepared, imp,
+               xf=None) -> None:
+        """Write incoming points [a, b) to slots slot.. (mod capacity); b - a <= capacity.
+        ``xf``: a transform that places the points as they are written (see push)."""
         cap = self.capacity
         n = b - a
         pflat = pos.reshape(-1)
-        otile = self._origin_tile(n, pflat.dtype.char == "f")
+        if xf is None:
+            otile = self._origin_tile(n, pflat.dtype.char == "f")
+        else:
+            origin = self._fst[0:3].copy()
         dflat = self._pflat
         if slot + n <= cap:
             segs = ((slot, slot + n, a, b),)  # the common case: no wrap, one numpy call per array
@@ -441,7 +446,10 @@ class PointRing:
             segs = ((slot, cap, a, a + cap - slot), (0, slot + n - cap, a + cap - slot, b))
         for s0, s1, c0, c1 in segs:
             # offsets computed in float64, stored as float32 (flat: avoids numpy's slow 3-wide broadcast)
-            np.subtract(pflat[3 * c0:3 * c1], otile[:3 * (c1 - c0)], out=dflat[3 * s0:3 * s1], casting="unsafe")
+            if xf is None:
+                np.subtract(pflat[3 * c0:3 * c1], otile[:3 * (c1 - c0)], out=dflat[3 * s0:3 * s1], casting="unsafe")
+            else:
+                xf.apply(pos[c0:c1], origin, dflat[3 * s0:3 * s1])
             self._t[s0:s1] = t_ms
             self._gen[s0:s1] = g
             if imp is None:
@@ -521,14 +529,22 @@ class PointRing:
 
     # ------------------------------------------------------------------ push
     def push(self, positions, *, trace_id: "int | Sequence[int]" = 0,
-             value_range: "tuple[float, float] | None" = None, **channels) -> PushResult:
+             value_range: "tuple[float, float] | None" = None, transform=None, **channels) -> PushResult:
         """Store points (world coordinates, (N,3) float64/float32) with optional channels.
 
         ``trace_id`` may be a sequence when one push carries several coalesced chunks; each
         id goes into the commit log, so the cadence sees every chunk become visible.
         ``value_range`` is (min, max) over every coordinate when the caller already has it
         (ingest computes it to find non-finite points); it saves the ring those two passes and
-        must hold every coordinate, or an out-of-range point could be stored."""
+        must hold every coordinate, or an out-of-range point could be stored.
+
+        ``transform``: the positions are not yet in the ring's frame; the object places them
+        as they are written (:class:`pointflow.frames.kernels.RigidTransform`: ``apply(pos,
+        origin, out)`` writes the offsets of the placed ``pos`` from ``origin`` into the flat
+        float32 ``out``, ``world(pos)`` returns the placed positions in float64). Then
+        ``value_range`` bounds the placed coordinates; without it, or when a point may be out
+        of range, or to choose the origin, the ring places the points first and goes on as
+        without a transform."""
         pos = np.asarray(positions)
         if pos.dtype != np.float64 and pos.dtype != np.float32:
             pos = pos.astype(np.float64)
@@ -542,6 +558,8 @@ class PointRing:
         if n == 0:
             return PushResult(0, 0)
         prepared, imp = self._prepare(n, channels)
+        if transform is not None and (value_range is None or self.eviction not in ("drop_oldest", "drop_newest")):
+            pos, transform = transform.world(pos), None
         # the range of all coordinates (NaN when any is NaN): when it lies within MAX_OFFSET of
         # every origin axis, no point needs the exact per-axis test (two passes; the only cost
         # the range rule adds to an ordinary push)
@@ -561,15 +579,19 @@ class PointRing:
             try:
                 st = self._st
                 if not st[I_ORIGIN_SET]:
+                    if transform is not None:
+                        pos, transform = transform.world(pos), None
                     self._choose_origin(pos)
                 gen, blo, bhi = self._bounds
                 if gen != st[I_ORIGIN_GEN] or not st[I_ORIGIN_SET]:
                     gen, blo, bhi = self._origin_bounds()
                 if not (lo > blo and hi < bhi):  # some point may be out of range: the exact test
+                    if transform is not None:
+                        pos, transform = transform.world(pos), None
                     pos, prepared, imp, rejected = self._drop_out_of_range(pos, prepared, imp)
                     st[I_REJECTED] += rejected
                 if pos.shape[0]:
-                    written, dropped = self._push_locked(pos, pos.shape[0], trace_id, prepared, imp)
+                    written, dropped = self._push_locked(pos, pos.shape[0], trace_id, prepared, imp, transform)
                 else:
                     written, dropped = 0, 0
             finally:
@@ -624,7 +646,7 @@ class PointRing:
             imp = imp[keep]
         return pos, prepared, imp, n - k
 
-    def _push_locked(self, pos, n, trace_id, prepared, imp) -> tuple[int, int]:
+    def _push_locked(self, pos, n, trace_id, prepared, imp, xf=None) -> tuple[int, int]:
         cap = self.capacity
         st = self._st
         g = int(st[I_GEN]) + 1
@@ -638,20 +660,20 @@ class PointRing:
         if ev == "drop_newest":
             acc = min(n, free)
             if acc:
-                self._write(tail, pos, 0, acc, t_ms, g, prepared, imp)
+                self._write(tail, pos, 0, acc, t_ms, g, prepared, imp, xf)
                 self._mark(tail, acc)
                 st[I_SIZE] = size + acc
             written, dropped = acc, n - acc
         elif ev == "drop_oldest" or n <= free:
             if n >= cap:
                 a = n - cap
-                self._write(tail, pos, a, n, t_ms, g, prepared, imp)
+                self._write(tail, pos, a, n, t_ms, g, prepared, imp, xf)
                 st[I_HEAD] = tail
                 st[I_SIZE] = cap
                 st[I_DIRTY_FULL] = 1
                 written, dropped = cap, size + a
             else:
-                self._write(tail, pos, 0, n, t_ms, g, prepared, imp)
+                self._write(tail, pos, 0, n, t_ms, g, prepared, imp, xf)
                 self._mark(tail, n)
                 over = n - free if n > free else 0
                 st[I_HEAD] = (head + over) % cap
