@@ -22,7 +22,7 @@ import numpy as np
 import zmq
 
 from ..config import PipelineConfig
-from .messages import ControlMessageError, FrameTime, Hello, decode_control
+from .messages import ControlMessageError, FrameTime, Hello, Idle, decode_control
 from .policy import HardwareInfo, PolicyDecision, detect_hardware, resolve_policy, tick_interval_ms
 from .ticker import Clock, Sleep, Tick, Ticker
 
@@ -79,6 +79,7 @@ class Cadence:
         self.points_out = 0
         self.skipped: collections.Counter[str] = collections.Counter()
         self.hellos = 0
+        self.resyncs = 0        # idle messages that freed a slab the renderer no longer held
         self.bad_messages = 0
         self.latest_only = latest_only
         self.last_pub_seq = 0       # newest handoff sent
@@ -127,6 +128,13 @@ class Cadence:
         elif isinstance(msg, FrameTime):
             self._done(msg.seq)
             self.on_frame_time(msg.frame_ms)
+        elif isinstance(msg, Idle):
+            self._done(msg.last_seq)
+            freed = self.writer.resync(msg.last_seq)
+            if freed:
+                self.resyncs += 1
+                self.log.warning("renderer idle for %.0f ms holding no slab (newest handoff it got: %d): "
+                                 "freed %d slab(s) whose release was lost", msg.idle_ms, msg.last_seq, freed)
 
     @property
     def stall_s(self) -> float:
@@ -253,6 +261,7 @@ class Cadence:
             "full_copies": w["full_copies"],
             "copied_slots": w["copied_slots"],
             "renderer_hellos": self.hellos,
+            "renderer_resyncs": self.resyncs,
             "bad_messages": self.bad_messages,
         }
 

@@ -142,6 +142,8 @@ def main(ctx: StageContext) -> None:
     c = ctx.counters
     c.extra.update(frames=0, tier=renderer.tier, pngs=0, frame_ms_ema=0.0, tier_info=renderer.info())
     tracing = cfg.tracing.enabled
+    t_free = t_idle = time.monotonic_ns()  # when the last frame ended / the last idle message went
+    tick_s = 0.0  # the cadence's interval, from its handoffs
     try:
         while ctx.running:
             ctx.beat()
@@ -150,8 +152,10 @@ def main(ctx: StageContext) -> None:
                 window.process_events()
             got = reader.recv(timeout_ms=20 if window is not None else 50)
             if got is None:
+                t_idle = _resync_if_idle(release, reader, t_free, t_idle, tick_s)
                 continue
             h, view = got
+            tick_s = float(h.extra.get("interval_ms") or 0.0) / 1000.0
             try:  # the slab is read only inside this block and goes back in its finally, the one place
                 t0 = time.monotonic_ns()
                 frame = frame_from_slab(h, view, t0, capacity)
@@ -190,6 +194,7 @@ def main(ctx: StageContext) -> None:
                     continue
             finally:
                 reader.release(h.slab)
+                t_free = time.monotonic_ns()
             t_up = time.monotonic_ns()
             if tracing and h.trace_ids and hasattr(renderer, "finish"):
                 renderer.finish()  # frame_done means the GPU work is complete
@@ -308,6 +313,29 @@ def _announce(sock, ctx, renderer: Renderer) -> None:
         sock.send_multipart(encode_hello(os.getpid(), ctx.info.restart_count, gpu=gpu), zmq.NOBLOCK)
     except zmq.Again:
         pass
+
+
+#: A renderer that holds no slab and got no handoff for this long (or 4 cadence ticks, if
+#: longer) tells the cadence so; a healthy cadence hands the next snapshot over within a tick.
+IDLE_RESYNC_S = 0.5
+
+
+def _resync_if_idle(sock, reader: SlabReader, t_free: int, t_idle: int, tick_s: float) -> int:
+    """Send ``idle`` (pointflow.cadence.messages) when no handoff came for a while: a
+    cadence that froze and was replaced never read the releases queued to it and would
+    otherwise wait for them forever. Returns when an idle message last went."""
+    now = time.monotonic_ns()
+    since = max(t_free, reader.t_last_ns, t_idle)
+    limit = max(IDLE_RESYNC_S, 4 * tick_s)
+    if reader.held is not None or (now - since) / 1e9 < limit:
+        return t_idle
+    from ..cadence.messages import encode_idle
+
+    try:
+        sock.send_multipart(encode_idle(reader.last_seq, (now - max(t_free, reader.t_last_ns)) / 1e6), zmq.NOBLOCK)
+    except zmq.Again:
+        pass
+    return now
 
 
 def _feedback(sock, frame_ms: float, seq: int) -> None:

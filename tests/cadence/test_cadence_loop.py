@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import zmq
 
-from pointflow.cadence.messages import CONTROL_TAG, encode_frame_time, encode_hello
+from pointflow.cadence.messages import CONTROL_TAG, encode_frame_time, encode_hello, encode_idle
 from pointflow.cadence.policy import resolve_policy
 from pointflow.cadence.process import Cadence
 from pointflow.config import load_config
@@ -206,6 +206,42 @@ def _hello(rig):
     h = rig.tick()
     assert h and h.dirty is None  # full copy for the new renderer
     assert rig.cad.stats()["renderer_hellos"] == 1
+
+
+def test_idle_renderer_frees_slabs_whose_release_was_lost(tmp_path):
+    """A renderer that holds nothing and got no handoff for a while says so (``idle`` with
+    the newest seq it received): the cadence frees the slabs it has seen, keeps the one in
+    flight, and a restarted cadence frees what its predecessor handed out (the releases
+    queued to a frozen cadence die with it; the soak's renderer starved for 75 s)."""
+    rig = Rig(tmp_path, latest_only=False)
+    try:
+        rig.push(10, 1)
+        h1 = rig.tick()
+        got, _ = rig.recv()                  # the renderer draws A ...
+        rig.reader._held = None              # ... and its release is lost
+        h2 = rig.tick()                      # B goes out while the renderer is busy: in flight
+        assert rig.tick() is False and rig.cad.stats()["skipped"] == {"renderer_busy": 1}
+        rig.send(encode_idle(h1.seq, 600.0))
+        assert rig.cad.writer.held == (h2.slab == 0, h2.slab == 1)  # A freed, B still out
+        assert rig.cad.stats()["renderer_resyncs"] == 1
+        h3 = rig.tick()
+        assert h3 and h3.slab == h1.slab
+        # the cadence dies with both slabs out (their releases lost); a new one starts from
+        # the slab headers and would wait for the renderer forever
+        rig.cad.close()
+        rig.cad = Cadence(rig.ring, rig.slabs, rig.ready, rig.rel, rig.z, rig.cfg, rig.decision,
+                          clock=rig.clk, sleep=rig.clk.sleep, latest_only=False)
+        assert rig.cad.writer.held == (True, True)
+        assert rig.tick() is False and rig.cad.stats()["skipped"] == {"renderer_busy": 1}
+        rig.send(encode_idle(h1.seq, 600.0))  # it never saw h2, h3 (lost with the old cadence)
+        assert rig.cad.writer.held == (False, False)
+        h4 = rig.tick()
+        assert h4 and h4.seq == h3.seq + 1 and h4.dirty is None  # full: nothing is known of the renderer
+        # idle with nothing to free changes nothing and is not counted
+        rig.send(encode_idle(h3.seq, 600.0))
+        assert rig.cad.writer.held[h4.slab] and rig.cad.stats()["renderer_resyncs"] == 1
+    finally:
+        rig.close()
 
 
 def test_adaptive_interval_follows_frame_time_ema(tmp_path):
