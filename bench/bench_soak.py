@@ -155,6 +155,7 @@ def chaos(args) -> None:
             st = pipe.stats()
             stages = st["stages"]
             pids_seen.update(v["pid"] for v in stages.values() if v.get("pid"))
+            pids_seen.update(v["standby_pid"] for v in stages.values() if v.get("standby_pid"))
             samples.append({"t": round(t, 2), "frames": st["frames"],
                             "rss_mb": {n: round(v.get("rss_bytes", 0) / 2**20, 1) for n, v in stages.items()},
                             "pid": {n: v["pid"] for n, v in stages.items()},
@@ -172,7 +173,8 @@ def chaos(args) -> None:
                     name = rng.choice(live)
                     pid = stages[name]["pid"]
                     os.kill(pid, signal.SIGKILL)
-                    kills.append({"t": round(t, 2), "stage": name, "pid": pid, "frames": st["frames"]})
+                    kills.append({"t": round(t, 2), "stage": name, "pid": pid, "frames": st["frames"],
+                                  "standby": stages[name].get("standby_pid")})
                     print(f"{t:7.1f} s  SIGKILL {name} (pid {pid})", flush=True)
             if t >= next_freeze and frozen is None:
                 next_freeze += args.freeze_every
@@ -194,6 +196,7 @@ def chaos(args) -> None:
         segments = list(sup.segments)
         final = pipe.stop()
     pids_seen.update(v["pid"] for v in final["stages"].values() if v.get("pid"))
+    pids_seen.update(v["standby_pid"] for v in final["stages"].values() if v.get("standby_pid"))
     time.sleep(1.0)
     _chaos_report(args, cfg, samples, kills, freezes, final, segments, run_dir, pids_seen, warm)
 
@@ -246,9 +249,11 @@ def _chaos_report(args, cfg, samples, kills, freezes, final, segments, run_dir, 
     leftover_shm = [s for s in segments if os.path.exists(os.path.join("/dev/shm", s))]
     leftover_procs = sorted(p for p in pids_seen if _alive(p))
     resumes = [k["frames_resumed_after_back_s"] for k in kills]
+    from_kill = [k["frames_resumed_after_kill_s"] for k in kills]
     checks = {
         "every_kill_restarted": all(k["restart_event"] and k["back_after_s"] is not None for k in kills),
         "frames_resume_within_2s_of_restart": all(r is not None and r <= RESUME_LIMIT_S for r in resumes),
+        "frames_resume_within_2s_of_kill": all(r is not None and r <= RESUME_LIMIT_S for r in from_kill),
         "rss_flat_within_5pct": all(g is None or g <= RSS_LIMIT for g in growth.values()),
         "accounting_exact": exact,
         "nothing_left_in_dev_shm": not leftover_shm,
@@ -270,6 +275,11 @@ def _chaos_report(args, cfg, samples, kills, freezes, final, segments, run_dir, 
         "max_frames_resumed_after_restart_s": max((r for r in resumes if r is not None), default=None),
         "median_frames_resumed_after_restart_s": float(np.median([r for r in resumes if r is not None])) if any(
             r is not None for r in resumes) else None,
+        "frames_resumed_within_2s_of_restart": sum(1 for r in resumes if r is not None and r <= RESUME_LIMIT_S),
+        "frames_resumed_within_2s_of_kill": sum(1 for r in from_kill if r is not None and r <= RESUME_LIMIT_S),
+        "median_frames_resumed_after_kill_s": float(np.median([r for r in from_kill if r is not None])) if any(
+            r is not None for r in from_kill) else None,
+        "max_frames_resumed_after_kill_s": max((r for r in from_kill if r is not None), default=None),
         "max_steady_frame_gap_s": round(steady_gap, 2),
         "rss_mb_early_median": early, "rss_mb_late_median": late, "rss_growth_ratio_late_vs_early": growth,
         "accounting": acc, "leftover_shm": leftover_shm, "leftover_pids": leftover_procs,
@@ -287,6 +297,13 @@ def _chaos_report(args, cfg, samples, kills, freezes, final, segments, run_dir, 
     print(f"frames resumed after a restart: median {out['median_frames_resumed_after_restart_s']} s, "
           f"max {out['max_frames_resumed_after_restart_s']} s (limit {RESUME_LIMIT_S}); "
           f"longest steady gap {out['max_steady_frame_gap_s']} s")
+    print(f"{'t s':>7s} {'stage':8s} {'standby':>7s} {'back s':>7s} {'frame after back s':>19s} {'frame after kill s':>19s}")
+    for k in kills:
+        print(f"{k['t']:7.1f} {k['stage']:8s} {'yes' if k.get('standby') else 'no':>7s} {k['back_after_s']!s:>7s} "
+              f"{k['frames_resumed_after_back_s']!s:>19s} {k['frames_resumed_after_kill_s']!s:>19s}")
+    print(f"frames resumed within {RESUME_LIMIT_S:g} s: {out['frames_resumed_within_2s_of_restart']} of {len(kills)} "
+          f"after the restarted stage reported in, {out['frames_resumed_within_2s_of_kill']} of {len(kills)} after the kill "
+          f"(median {out['median_frames_resumed_after_kill_s']} s, max {out['max_frames_resumed_after_kill_s']} s)")
     print("RSS late/early:", ", ".join(f"{n} {g}" for n, g in growth.items()))
     for k, v in checks.items():
         print(f"  {'ok  ' if v else 'FAIL'} {k}")
