@@ -199,9 +199,9 @@ class SupervisorConfig:
     startup_timeout_ms: float = field(default=30000.0, metadata=check(positive))
     max_restarts: int = field(default=3, metadata=check(non_negative))
     restart_backoff_ms: float = field(default=200.0, metadata=check(non_negative))
-    #: Keep a prepared standby process for the render and cadence stages (the two whose
-    #: restart stops the frames): interpreter started, modules imported, the renderer's
-    #: device created and warmed up, so a restart only hands it its run info.
+    #: Keep a prepared standby process for each render, cadence, ingest and source stage:
+    #: interpreter started, modules imported, the renderer's device created and warmed up,
+    #: so a restart only hands it its run info.
     standby: bool = True
 
 

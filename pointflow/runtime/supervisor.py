@@ -132,10 +132,16 @@ BACKOFF_MAX_MS = 10_000.0
 #: times ``supervisor.hung_after_ms`` (at most ``stall_after_ms``).
 STALLED_HUNG_FACTOR = 5
 
-#: Stage kinds that get a standby (their restart stops the frames), and how many standbys
-#: in a row may die before it is given up.
-STANDBY_KINDS = ("render", "cadence")
+#: Stage kinds that get a standby, and how many standbys in a row may die before it is
+#: given up. A render or cadence restart stops the frames until the new one draws; a fresh
+#: source or ingest interpreter importing its modules slows the renderer of a 2-core
+#: machine for seconds (the soak saw 2.1-2.7 s without a frame).
+STANDBY_KINDS = ("render", "cadence", "ingest", "source")
 STANDBY_MAX_FAILURES = 3
+#: A standby is prepared only this long after the last stage reported in: preparing one
+#: (the renderer's device and warm-up frame: 2-3 s of CPU on lavapipe) slows the frames of
+#: a 2-core machine, and must not do so while frames resume after a restart.
+STANDBY_DELAY_S = 5.0
 
 #: sizeof(sockaddr_un.sun_path) - 1 on Linux: the longest ipc:// path ZeroMQ can bind.
 IPC_PATH_MAX = 107
@@ -406,6 +412,8 @@ class Supervisor:
                 age = msg.get("loop_age_ms", 0)
                 st.last_progress_ns = now - int(age * 1e6) if isinstance(age, (int, float)) else st.last_progress_ns
             return
+        if not st.ready:
+            self._t_last_ready = time.monotonic()
         st.ready = True
         st.last_progress_ns = now
         if kind == "heartbeat":
@@ -430,10 +438,12 @@ class Supervisor:
 
     def _keep_standbys(self) -> None:
         """Start a standby for each render/cadence stage that has none, once every stage is
-        running (so it never competes with a starting stage for the CPU)."""
+        running and STANDBY_DELAY_S after the last one reported in."""
         if not self.cfg.supervisor.standby or self.role == "send" or self._halt.is_set():
             return
         if not all(st.ready or st.failed or st.finished for st in self.stages.values()):
+            return
+        if time.monotonic() - getattr(self, "_t_last_ready", 0.0) < STANDBY_DELAY_S:
             return
         for st in self.stages.values():
             if st.kind not in STANDBY_KINDS or st.failed or st.process is None:

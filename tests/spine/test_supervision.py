@@ -256,9 +256,9 @@ def test_stages_run_numpy_with_one_blas_thread_unless_the_user_set_one(tmp_path,
 
 
 def test_a_killed_renderer_is_replaced_by_its_prepared_standby(tmp_path):
-    """``supervisor.standby``: the render and cadence stages each have a spare process that
-    has imported its stage (the renderer: created its device, drawn a warm-up frame); a
-    restart activates it, and a new spare is prepared. Nothing of them is left after the stop."""
+    """``supervisor.standby``: each stage has a spare process that has imported its stage
+    (the renderer: created its device, drawn a warm-up frame); a restart activates it, and
+    a new spare is prepared. Nothing of them is left after the stop."""
     cfg = small_config(supervisor={"max_restarts": 3, "restart_backoff_ms": 50})
     seen = set()
     with Pipeline.from_dict(cfg, out_dir=str(tmp_path)) as pipe:
@@ -279,7 +279,9 @@ def test_a_killed_renderer_is_replaced_by_its_prepared_standby(tmp_path):
             seen.add(nxt)
         st = pipe.stats()
         assert {e["stage"] for e in st["events"]} == {"render", "cadence"}
-        assert st["stages"]["ingest"].get("standby_pid") is None  # only the stages whose restart stops frames
+        assert _wait(lambda: pipe.stats()["stages"]["ingest"].get("standby_pid"), 60)
+        assert _wait(lambda: pipe.stats()["stages"]["source"].get("standby_pid"), 60)
+        seen.update(v["standby_pid"] for v in pipe.stats()["stages"].values() if v.get("standby_pid"))
     st = pipe.stats()
     assert_segments_gone(st)
     assert_gone(seen)
