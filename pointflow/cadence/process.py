@@ -29,9 +29,16 @@ from .ticker import Clock, Sleep, Tick, Ticker
 #: Smoothing factor of the renderer frame-time EMA (adaptive mode).
 FRAME_EMA_ALPHA = 0.15
 #: latest_only: publish anyway when the renderer has shown no progress for this long, or
-#: for 3 frame times if that is longer (a renderer that keeps its slab must not starve).
+#: for 3 of its slowest recent frames if that is longer (a renderer that keeps its slab
+#: must not starve), or FIRST_FRAME_STALL_S before any frame time is known. It was 3 frame
+#: *EMAs*: on a loaded machine one frame in a few took 2-3x the EMA, the cadence handed out
+#: its second slab mid-frame, and that snapshot waited a whole frame in the queue: chunks
+#: reached the screen after up to 3 frames (send -> frame p99 2.4x frame p99). A renderer
+#: whose releases are lost says so itself (``idle``, within 0.5 s), so waiting is safe.
 STALL_S = 0.25
 STALL_FRAMES = 3.0
+FIRST_FRAME_STALL_S = 5.0
+RECENT_FRAMES = 32
 _RELEASE_TAG = b"pf.ring.release/1"  # pointflow.ring.handoff.RELEASE_TAG: [tag, int64 (slab, seq)]
 _WINDOW = 1024  # ticks kept for the jitter / rate statistics
 
@@ -71,6 +78,7 @@ class Cadence:
         self._fwd_push.connect(addr)
         self.writer = SlabWriter(ring, slabs, ready_sock, self._fwd_pull)
         self.frame_ema_ms: Optional[float] = None
+        self._recent_frames_ms: collections.deque = collections.deque(maxlen=RECENT_FRAMES)
         self.interval_ms = tick_interval_ms(cfg, decision, None)
         self.ticker = Ticker(self.interval_ms / 1000.0, clock=clock, sleep=sleep)
         self.t_start = clock()
@@ -122,6 +130,7 @@ class Cadence:
             self._fwd_pull_drain()
             self.writer.reset_reader()
             self.frame_ema_ms = None
+            self._recent_frames_ms.clear()
             self.done_seq = self.last_pub_seq
             if msg.gpu:
                 self.on_gpu_info(msg.gpu)
@@ -138,8 +147,10 @@ class Cadence:
 
     @property
     def stall_s(self) -> float:
-        ema = self.frame_ema_ms or 0.0
-        return max(STALL_S, STALL_FRAMES * ema / 1000.0)
+        if self.frame_ema_ms is None:
+            return max(STALL_S, FIRST_FRAME_STALL_S)
+        slowest = max(self._recent_frames_ms, default=0.0)
+        return max(STALL_S, STALL_FRAMES * max(self.frame_ema_ms, slowest) / 1000.0)
 
     def _done(self, seq: int) -> None:
         if seq > self.done_seq:
@@ -178,6 +189,7 @@ class Cadence:
         """Update the frame-time EMA (alpha 0.15) and, in adaptive mode, the tick interval."""
         ema = self.frame_ema_ms
         self.frame_ema_ms = frame_ms if ema is None else ema + FRAME_EMA_ALPHA * (frame_ms - ema)
+        self._recent_frames_ms.append(frame_ms)
         if self.cfg.cadence.adaptive:
             ms = tick_interval_ms(self.cfg, self.decision, self.frame_ema_ms)
             if abs(ms - self.interval_ms) > 1e-6:

@@ -306,3 +306,25 @@ def test_hello_gpu_info_detects_tier(tmp_path):
         assert cpu_only in ("L", "M", "H")
     finally:
         r.close()
+
+
+def test_latest_only_waits_out_a_slow_frame(rig):
+    """On a loaded machine one frame in a few took 2-3x the frame-time EMA; the cadence used
+    to hand out its second slab mid-frame (3 EMAs without progress), and that snapshot then
+    waited a whole frame in the queue. It now waits 3 of the slowest recent frames, and
+    before any frame time is known FIRST_FRAME_STALL_S."""
+    from pointflow.cadence.process import FIRST_FRAME_STALL_S
+
+    assert rig.cad.stall_s == FIRST_FRAME_STALL_S
+    for ms in (100.0, 100.0, 100.0, 280.0, 100.0):
+        rig.cad.on_frame_time(ms)
+    assert rig.cad.frame_ema_ms < 150.0
+    assert rig.cad.stall_s == pytest.approx(3 * 0.280)
+    rig.push(10, 1)
+    h1 = rig.tick()
+    rig.recv()                                  # the renderer starts a (slow) frame
+    rig.push(10, 2)
+    assert rig.tick(advance=0.6) is False       # 600 ms > 3 EMAs (~0.4 s), < 3 x 280 ms: still waiting
+    assert rig.tick(advance=0.3)                # 900 ms: the renderer is taken to be stuck
+    assert rig.cad.stats()["skipped"]["renderer_pending"] == 1
+    assert h1.seq < rig.cad.last_pub_seq
