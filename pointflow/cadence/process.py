@@ -87,6 +87,7 @@ class Cadence:
         self.points_out = 0
         self.skipped: collections.Counter[str] = collections.Counter()
         self.hellos = 0
+        self._frame_reports = 0  # frame messages from the current renderer
         self.resyncs = 0        # idle messages that freed a slab the renderer no longer held
         self.bad_messages = 0
         self.latest_only = latest_only
@@ -120,7 +121,11 @@ class Cadence:
                 self.log.warning("release socket: %s (message dropped, %d so far)", exc, self.bad_messages)
             return
         if msg is None:  # a slab release (or junk the writer ignores)
-            if len(frames) == 2 and bytes(frames[0]) == _RELEASE_TAG and len(frames[1]) == 16:
+            if (not self._frame_reports and len(frames) == 2 and bytes(frames[0]) == _RELEASE_TAG
+                    and len(frames[1]) == 16):
+                # a renderer that reports its frames is done when it says so: it gives its
+                # slab back as soon as its frame no longer reads it, which on lavapipe is
+                # ~1 s before the GPU work ends, and a snapshot taken then waited that long
                 self._done(int(np.frombuffer(bytes(frames[1]), dtype="<i8")[1]))
             self._fwd_push.send_multipart(frames)
         elif isinstance(msg, Hello):
@@ -131,12 +136,15 @@ class Cadence:
             self.writer.reset_reader()
             self.frame_ema_ms = None
             self._recent_frames_ms.clear()
+            self._frame_reports = 0
             self.done_seq = self.last_pub_seq
             if msg.gpu:
                 self.on_gpu_info(msg.gpu)
         elif isinstance(msg, FrameTime):
+            self._frame_reports += 1
             self._done(msg.seq)
-            self.on_frame_time(msg.frame_ms)
+            if msg.drawn:
+                self.on_frame_time(msg.frame_ms)
         elif isinstance(msg, Idle):
             self._done(msg.last_seq)
             freed = self.writer.resync(msg.last_seq)

@@ -159,6 +159,7 @@ def main(ctx: StageContext) -> None:
                 continue
             h, view = got
             tick_s = float(h.extra.get("interval_ms") or 0.0) / 1000.0
+            drew = False
             try:  # the slab is read only inside this block and goes back in its finally, the one place
                 t0 = time.monotonic_ns()
                 frame = frame_from_slab(h, view, t0, capacity)
@@ -180,6 +181,7 @@ def main(ctx: StageContext) -> None:
                         fs = window.last_stats
                     else:
                         fs = renderer.render(frame, camera)
+                    drew = True
                 except ValueError as exc:  # a malformed frame (tiers check their input): skip it, counted
                     ctx.log.error("frame %d rejected by the %s tier: %s", h.seq, renderer.tier, exc)
                     c.drop("bad_frame", 1)
@@ -198,6 +200,8 @@ def main(ctx: StageContext) -> None:
             finally:
                 reader.release(h.slab)
                 t_free = time.monotonic_ns()
+                if not drew:  # ready for the next handoff at once
+                    _feedback(release, 0.0, h.seq, drawn=False)
             t_up = time.monotonic_ns()
             if tracing and h.trace_ids and hasattr(renderer, "finish"):
                 renderer.finish()  # frame_done means the GPU work is complete
@@ -383,11 +387,12 @@ def _resync_if_idle(sock, reader: SlabReader, t_free: int, t_idle: int, tick_s: 
     return now
 
 
-def _feedback(sock, frame_ms: float, seq: int) -> None:
-    """Frame time for the cadence's adaptive interval."""
+def _feedback(sock, frame_ms: float, seq: int, drawn: bool = True) -> None:
+    """Frame done (the cadence hands over the next snapshot now) and its time (the
+    adaptive interval)."""
     try:
         from ..cadence.messages import encode_frame_time
 
-        sock.send_multipart(encode_frame_time(frame_ms, seq), zmq.NOBLOCK)
+        sock.send_multipart(encode_frame_time(frame_ms, seq, drawn), zmq.NOBLOCK)
     except (ImportError, zmq.Again):
         pass

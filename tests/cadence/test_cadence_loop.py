@@ -328,3 +328,33 @@ def test_latest_only_waits_out_a_slow_frame(rig):
     assert rig.tick(advance=0.3)                # 900 ms: the renderer is taken to be stuck
     assert rig.cad.stats()["skipped"]["renderer_pending"] == 1
     assert h1.seq < rig.cad.last_pub_seq
+
+
+def test_a_renderer_that_reports_frames_is_done_when_it_says_so(rig):
+    """The renderer gives its slab back as soon as its frame no longer reads it; on lavapipe
+    the GPU work then goes on for ~1 s, and a snapshot taken at the release waited that long
+    before it was drawn. Once a renderer reports its frames, only the report (or an
+    ``idle``) lets the next snapshot go; ``drawn: false`` (nothing to frame) does at once
+    and leaves the frame-time EMA alone."""
+    rig.push(10, 1)
+    h1 = rig.tick()
+    rig.recv()
+    rig.release()                               # no frame reports yet: the release is progress
+    rig.send(encode_frame_time(40.0, h1.seq))
+    h2 = rig.tick()
+    assert h2
+    rig.recv()
+    rig.reader.release()                        # the frame's data is uploaded; GPU still busy
+    time.sleep(0.05)
+    rig.cad.drain(0.2)
+    rig.push(10, 2)
+    assert rig.tick() is False                  # not done yet: no snapshot that would wait
+    assert rig.cad.stats()["skipped"]["renderer_pending"] >= 1
+    rig.send(encode_frame_time(900.0, h2.seq))  # the frame is complete
+    h3 = rig.tick()
+    assert h3 and h3.trace_ids == [2]
+    rig.recv()
+    ema = rig.cad.frame_ema_ms
+    rig.send(encode_frame_time(0.0, h3.seq, drawn=False))
+    assert rig.cad.frame_ema_ms == ema
+    assert rig.tick()

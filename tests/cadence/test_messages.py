@@ -20,6 +20,7 @@ def test_round_trip():
     assert decode_control(encode_hello(1234, 2)) == Hello(pid=1234, restart_count=2)
     assert decode_control(encode_frame_time(16.5, seq=9)) == FrameTime(frame_ms=16.5, seq=9)
     assert decode_control(encode_idle(41, 512.5)) == Idle(last_seq=41, idle_ms=512.5)
+    assert decode_control(encode_frame_time(0.0, seq=3, drawn=False)) == FrameTime(frame_ms=0.0, seq=3, drawn=False)
     gpu = {"name": "x", "type": "DiscreteGPU", "max_storage_binding": 1 << 30, "max_buffer_size": 1 << 31}
     assert decode_control(encode_hello(1, 0, gpu=gpu)).gpu == gpu
 
