@@ -59,12 +59,15 @@ def throughput_config(tracing: bool) -> dict:
     }
 
 
-def run_latency(seconds: float, backend: str, size: list[int], ring: int, out_dir: str, raster: str = "auto") -> dict:
+def run_latency(seconds: float, backend: str, size: list[int], ring: int, out_dir: str, raster: str = "auto",
+                skip_s: float = 1.0) -> dict:
     pipe = Pipeline.from_dict(latency_config(backend, size, ring, raster), out_dir=out_dir)
     stats = pipe.run(seconds)
     if stats.get("failure"):
         raise SystemExit(f"latency pipeline failed: {stats['failure']}")
-    prof = build_profile(pipe.collector, stats, skip=100)  # ~1 s of chunks at each end
+    # 100 chunks/s: skip_s seconds of chunks at each end (the renderer's first frames on a
+    # busy machine are the start-up, not the steady state)
+    prof = build_profile(pipe.collector, stats, skip=int(100 * skip_s))
     print(format_table(prof))
     s2f = prof.get("send_to_frame") or {}
     frame = prof["stages"].get("frame_done", {}).get("duration", {})
@@ -75,7 +78,7 @@ def run_latency(seconds: float, backend: str, size: list[int], ring: int, out_di
     bound19 = 2 * (frame.get("p99") or 0.0) + tick_ms
     render = stats["stages"].get("render", {})
     return {
-        "seconds": seconds, "backend": render.get("tier") or render.get("backend") or backend, "size": size,
+        "seconds": seconds, "skip_s_each_end": skip_s, "backend": render.get("tier") or render.get("backend") or backend, "size": size,
         "raster": raster, "raster_used": (render.get("tier_info") or {}).get("raster"),
         "ring_points": ring,
         "send_to_frame_ms": s2f, "end_to_end_ms": prof["end_to_end"],
@@ -200,12 +203,14 @@ def main() -> None:
     ap.add_argument("--ring", type=int, default=1_000_000, help="ring capacity (points kept on screen)")
     ap.add_argument("--raster", default="auto", help="render.raster of the wgpu tier (auto, compute, quads)")
     ap.add_argument("--latency-only", action="store_true", help="skip the tracing-overhead parts")
+    ap.add_argument("--skip-s", type=float, default=1.0,
+                    help="seconds of chunks left out of the latency figures at each end (start-up)")
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "latency.json"))
     args = ap.parse_args()
     size = [int(v) for v in args.size.split("x")]
     out_dir = tempfile.mkdtemp(prefix="pf-bench-lat-")
     print("== end-to-end latency (100k-point scans at 10 Hz, cadence 60 Hz)")
-    lat = run_latency(args.seconds, args.backend, size, args.ring, out_dir, args.raster)
+    lat = run_latency(args.seconds, args.backend, size, args.ring, out_dir, args.raster, args.skip_s)
     if args.latency_only:
         s = lat["send_to_frame_ms"]
         print(f"raster {args.raster} ({lat['raster_used']}): send -> frame p50 {s.get('p50')} ms, p99 {s.get('p99')} ms; "

@@ -29,15 +29,16 @@ from .ticker import Clock, Sleep, Tick, Ticker
 #: Smoothing factor of the renderer frame-time EMA (adaptive mode).
 FRAME_EMA_ALPHA = 0.15
 #: latest_only: publish anyway when the renderer has shown no progress for this long, or
-#: for 3 of its slowest recent frames if that is longer (a renderer that keeps its slab
-#: must not starve), or FIRST_FRAME_STALL_S before any frame time is known. It was 3 frame
-#: *EMAs*: on a loaded machine one frame in a few took 2-3x the EMA, the cadence handed out
-#: its second slab mid-frame, and that snapshot waited a whole frame in the queue: chunks
-#: reached the screen after up to 3 frames (send -> frame p99 2.4x frame p99). A renderer
-#: whose releases are lost says so itself (``idle``, within 0.5 s), so waiting is safe.
-STALL_S = 0.25
-STALL_FRAMES = 3.0
-FIRST_FRAME_STALL_S = 5.0
+#: for 10 of its slowest recent frames if that is longer (a renderer that keeps its slab
+#: must not starve). It was 250 ms or 3 frame *EMAs*: on a loaded machine one frame in a few
+#: took 2-3x the EMA (and a restarted renderer's first, full frame several seconds), the
+#: cadence handed out its second slab mid-frame, and that snapshot waited in the queue
+#: until the frame ended: chunks reached the screen after up to 3 frames (send -> frame p99
+#: 2.4x frame p99). Nothing needs the early publish now: a renderer whose releases and frame
+#: reports were lost says so itself (``idle``, within 0.5 s), and one stuck mid-frame is
+#: restarted by the supervisor (``hello``).
+STALL_S = 5.0
+STALL_FRAMES = 10.0
 RECENT_FRAMES = 32
 _RELEASE_TAG = b"pf.ring.release/1"  # pointflow.ring.handoff.RELEASE_TAG: [tag, int64 (slab, seq)]
 _WINDOW = 1024  # ticks kept for the jitter / rate statistics
@@ -155,10 +156,8 @@ class Cadence:
 
     @property
     def stall_s(self) -> float:
-        if self.frame_ema_ms is None:
-            return max(STALL_S, FIRST_FRAME_STALL_S)
         slowest = max(self._recent_frames_ms, default=0.0)
-        return max(STALL_S, STALL_FRAMES * max(self.frame_ema_ms, slowest) / 1000.0)
+        return max(STALL_S, STALL_FRAMES * max(self.frame_ema_ms or 0.0, slowest) / 1000.0)
 
     def _done(self, seq: int) -> None:
         if seq > self.done_seq:

@@ -226,6 +226,7 @@ def main(ctx: StageContext) -> None:
                            uploaded_bytes=c.extra.get("uploaded_bytes", 0) + fs.uploaded_bytes,
                            **{f"tier_{k}_ms": round(v, 3) for k, v in fs.timings_ms.items()})
             _feedback(release, ms, h.seq)
+            t_free = time.monotonic_ns()
             for tid in h.trace_ids:
                 ctx.spans.record(tid, "render_upload", t0, t_up, 0)
                 ctx.spans.record(tid, "frame_done", t0, t1, 0)

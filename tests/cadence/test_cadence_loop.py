@@ -167,17 +167,17 @@ def test_latest_only_waits_for_the_renderer_then_sends_fresh_data(rig):
 
     rig.push(10, 4)
     assert rig.tick() is False
-    assert rig.cad.stall_s == STALL_S                    # 3 x 30 ms frames < 250 ms
+    assert rig.cad.stall_s == STALL_S                    # 10 x 30 ms frames < STALL_S
     h3 = rig.tick(advance=STALL_S + 0.01)
     assert h3 and h3.trace_ids == [4]
-    # a slow renderer (frames of 400 ms) is given 3 frame times before the cadence gives up
+    # a slow renderer (frames of 800 ms) is given 10 frame times before the cadence gives up
     rig.recv()                      # takes h3, releasing h2's slab
     assert rig.cad.drain(timeout_s=5.0) >= 1  # that release reached the cadence (ipc is asynchronous)
-    rig.cad.frame_ema_ms = 400.0
-    assert rig.cad.stall_s == pytest.approx(1.2)
+    rig.cad.frame_ema_ms = 800.0
+    assert rig.cad.stall_s == pytest.approx(8.0)
     rig.push(10, 5)
-    assert rig.tick(advance=0.5) is False
-    assert rig.tick(advance=1.25)   # 1.75 s after the last progress (the release of h2) > 1.2 s
+    assert rig.tick(advance=5.5) is False
+    assert rig.tick(advance=2.6)    # 8.1 s after the last progress (the publish of h3) > 8 s
 
 
 def test_late_ticks_skipped_and_counted(rig):
@@ -310,23 +310,24 @@ def test_hello_gpu_info_detects_tier(tmp_path):
 
 def test_latest_only_waits_out_a_slow_frame(rig):
     """On a loaded machine one frame in a few took 2-3x the frame-time EMA; the cadence used
-    to hand out its second slab mid-frame (3 EMAs without progress), and that snapshot then
-    waited a whole frame in the queue. It now waits 3 of the slowest recent frames, and
-    before any frame time is known FIRST_FRAME_STALL_S."""
-    from pointflow.cadence.process import FIRST_FRAME_STALL_S
+    to hand out its second slab mid-frame (after 3 EMAs without progress), and that snapshot
+    then waited in the queue until the frame ended. It now waits 10 of the slowest recent
+    frames (at least STALL_S): a renderer whose messages were lost says so itself (idle)."""
+    from pointflow.cadence.process import STALL_S
 
-    assert rig.cad.stall_s == FIRST_FRAME_STALL_S
-    for ms in (100.0, 100.0, 100.0, 280.0, 100.0):
+    assert rig.cad.stall_s == STALL_S
+    for ms in (400.0, 400.0, 400.0, 1100.0, 400.0):
         rig.cad.on_frame_time(ms)
-    assert rig.cad.frame_ema_ms < 150.0
-    assert rig.cad.stall_s == pytest.approx(3 * 0.280)
+    assert rig.cad.frame_ema_ms < 600.0
+    assert rig.cad.stall_s == pytest.approx(10 * 1.1)
     rig.push(10, 1)
     h1 = rig.tick()
     rig.recv()                                  # the renderer starts a (slow) frame
     rig.push(10, 2)
-    assert rig.tick(advance=0.6) is False       # 600 ms > 3 EMAs (~0.4 s), < 3 x 280 ms: still waiting
-    assert rig.tick(advance=0.3)                # 900 ms: the renderer is taken to be stuck
-    assert rig.cad.stats()["skipped"]["renderer_pending"] == 1
+    assert rig.tick(advance=3.0) is False       # 3 s: 3 EMAs (the old rule) passed; still waiting
+    assert rig.tick(advance=7.5) is False       # 10.5 s < 11 s
+    assert rig.tick(advance=0.6)                # 11.1 s: the renderer is taken to be stuck
+    assert rig.cad.stats()["skipped"]["renderer_pending"] == 2
     assert h1.seq < rig.cad.last_pub_seq
 
 
