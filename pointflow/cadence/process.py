@@ -60,7 +60,8 @@ class Cadence:
     def __init__(self, ring, slabs, ready_sock: zmq.Socket, release_sock: zmq.Socket, zctx: zmq.Context,
                  cfg: PipelineConfig, decision: PolicyDecision, *, spans: Any = None,
                  clock: Clock = time.monotonic, sleep: Sleep = time.sleep,
-                 log: Optional[logging.Logger] = None, latest_only: bool = True):
+                 log: Optional[logging.Logger] = None, latest_only: bool = True,
+                 wait_for_renderer: bool = False):
         from ..ring.handoff import SlabWriter  # noqa: PLC0415 - keep module import light
 
         self.cfg = cfg
@@ -92,6 +93,10 @@ class Cadence:
         self.resyncs = 0        # idle messages that freed a slab the renderer no longer held
         self.bad_messages = 0
         self.latest_only = latest_only
+        #: Publish nothing until the renderer has said something (hello, a frame report, a
+        #: release, idle): at a pipeline's start its socket is bound seconds before it can
+        #: draw (device, warm-up), and a snapshot sent then was stale when it was drawn.
+        self.renderer_heard = not wait_for_renderer
         self.last_pub_seq = 0       # newest handoff sent
         self.done_seq = 0           # newest handoff the renderer released or reported a frame for
         self._t_progress = clock()
@@ -114,6 +119,7 @@ class Cadence:
             self.handle(frames)
 
     def handle(self, frames: list[bytes]) -> None:
+        self.renderer_heard = True
         try:
             msg = decode_control(frames)
         except ControlMessageError as exc:
@@ -221,6 +227,9 @@ class Cadence:
         if tick.missed:
             self.skipped["late"] += tick.missed
         self.drain(0)
+        if not self.renderer_heard:
+            self.skipped["no_reader"] += 1
+            return False
         if (self.latest_only and self.last_pub_seq > self.done_seq
                 and self.clock() - self._t_progress < self.stall_s):
             self.skipped["renderer_pending"] += 1
@@ -307,8 +316,10 @@ def main(ctx) -> None:
     # No GPU probe here: the renderer owns the adapter and reports its limits in its hello.
     decision = resolve_policy(cfg, probe_gpu=False)
     latest_only = cfg.cadence.latest_only
+    # a restarted cadence serves the renderer that is already drawing at once (the renderer
+    # says idle within 0.5 s anyway); the first one waits for the renderer's hello
     cad = Cadence(ring, slabs, ready, release, ctx.zmq, cfg, decision, spans=ctx.spans, log=ctx.log,
-                  latest_only=latest_only)
+                  latest_only=latest_only, wait_for_renderer=not ctx.info.restart_count)
     if ctx.info.restart_count:
         ctx.log.info("cadence restarted (%d): resuming from the slab headers", ctx.info.restart_count)
 

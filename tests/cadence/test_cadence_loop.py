@@ -359,3 +359,20 @@ def test_a_renderer_that_reports_frames_is_done_when_it_says_so(rig):
     rig.send(encode_frame_time(0.0, h3.seq, drawn=False))
     assert rig.cad.frame_ema_ms == ema
     assert rig.tick()
+
+
+def test_a_first_cadence_waits_for_the_renderer_to_speak(tmp_path):
+    """At a pipeline's start the renderer binds its socket seconds before it can draw
+    (device, warm-up frame); a snapshot sent then was stale when drawn, and the stall rule
+    added a second. The first cadence publishes once the renderer has said anything."""
+    rig = Rig(tmp_path)
+    try:
+        rig.cad.renderer_heard = False
+        rig.push(10, 1)
+        assert rig.tick() is False and rig.tick() is False
+        assert rig.cad.stats()["skipped"] == {"no_reader": 2}
+        rig.send(encode_hello(os.getpid(), 0))
+        h = rig.tick()
+        assert h and h.dirty is None and h.trace_ids == [1]
+    finally:
+        rig.close()
