@@ -15,10 +15,13 @@ auto, 1280x720; no PNGs) with a random stage SIGKILLed every ``--kill-every`` s 
 random stage frozen with SIGSTOP for ``--freeze-s`` (3 s, past ``hung_after_ms``) every
 ``--freeze-every`` s (150). The caller only samples ``stats()`` (supervision is the
 background thread's). Checks: every kill restarted; frames resume within 2 s of each
-restarted stage reporting in; each stage's RSS late vs early within 5% (medians of the
-last and first thirds after the warm-up); the accounting identities exact at the end;
-nothing left in /dev/shm, the run directory or the process table. Writes
-bench/results/soak_chaos_<M>min.json and .png (RSS and frames over time).
+restarted stage reporting in; frames never stop for more than 2 s after a kill (the
+longest gap without a new frame from the kill until frames flow again); each stage's RSS
+late vs early within 5% (medians of the last and first thirds after the warm-up); the
+accounting identities exact at the end; nothing left in /dev/shm, the run directory or the
+process table (standby processes included). Prints per kill: whether a standby was ready,
+report-in time, time to the next frame from report-in and from the kill, longest gap.
+Writes bench/results/soak_chaos_<M>min.json and .png (RSS and frames over time).
 
     .venv/bin/python bench/bench_soak.py --minutes 10
 """
