@@ -85,7 +85,7 @@ def last_heartbeat(w, timeout=5.0):
             m = json.loads(w.control.recv())
             if m["type"] == "heartbeat" and m["stats"].get("ticks"):
                 hb = m
-                if hb["stats"]["ticks"] > 20:
+                if hb["stats"]["ticks"] > 20 and hb["stats"].get("published", 0) >= 5:
                     return hb
         elif hb:
             return hb
