@@ -15,10 +15,13 @@ auto, 1280x720; no PNGs) with a random stage SIGKILLed every ``--kill-every`` s 
 random stage frozen with SIGSTOP for ``--freeze-s`` (3 s, past ``hung_after_ms``) every
 ``--freeze-every`` s (150). The caller only samples ``stats()`` (supervision is the
 background thread's). Checks: every kill restarted; frames resume within 2 s of each
-restarted stage reporting in; each stage's RSS late vs early within 5% (medians of the
-last and first thirds after the warm-up); the accounting identities exact at the end;
-nothing left in /dev/shm, the run directory or the process table. Writes
-bench/results/soak_chaos_<M>min.json and .png (RSS and frames over time).
+restarted stage reporting in; frames never stop for more than 2 s after a kill (the
+longest gap without a new frame from the kill until frames flow again); each stage's RSS
+late vs early within 5% (medians of the last and first thirds after the warm-up); the
+accounting identities exact at the end; nothing left in /dev/shm, the run directory or the
+process table (standby processes included). Prints per kill: whether a standby was ready,
+report-in time, time to the next frame from report-in and from the kill, longest gap.
+Writes bench/results/soak_chaos_<M>min.json and .png (RSS and frames over time).
 
     .venv/bin/python bench/bench_soak.py --minutes 10
 """
@@ -155,6 +158,7 @@ def chaos(args) -> None:
             st = pipe.stats()
             stages = st["stages"]
             pids_seen.update(v["pid"] for v in stages.values() if v.get("pid"))
+            pids_seen.update(v["standby_pid"] for v in stages.values() if v.get("standby_pid"))
             samples.append({"t": round(t, 2), "frames": st["frames"],
                             "rss_mb": {n: round(v.get("rss_bytes", 0) / 2**20, 1) for n, v in stages.items()},
                             "pid": {n: v["pid"] for n, v in stages.items()},
@@ -172,7 +176,8 @@ def chaos(args) -> None:
                     name = rng.choice(live)
                     pid = stages[name]["pid"]
                     os.kill(pid, signal.SIGKILL)
-                    kills.append({"t": round(t, 2), "stage": name, "pid": pid, "frames": st["frames"]})
+                    kills.append({"t": round(t, 2), "stage": name, "pid": pid, "frames": st["frames"],
+                                  "standby": stages[name].get("standby_pid")})
                     print(f"{t:7.1f} s  SIGKILL {name} (pid {pid})", flush=True)
             if t >= next_freeze and frozen is None:
                 next_freeze += args.freeze_every
@@ -194,6 +199,7 @@ def chaos(args) -> None:
         segments = list(sup.segments)
         final = pipe.stop()
     pids_seen.update(v["pid"] for v in final["stages"].values() if v.get("pid"))
+    pids_seen.update(v["standby_pid"] for v in final["stages"].values() if v.get("standby_pid"))
     time.sleep(1.0)
     _chaos_report(args, cfg, samples, kills, freezes, final, segments, run_dir, pids_seen, warm)
 
@@ -217,6 +223,22 @@ def _chaos_report(args, cfg, samples, kills, freezes, final, segments, run_dir, 
             k["frames_resumed_after_kill_s"] = round(resumed["t"] - k["t"], 2) if resumed else None
         else:
             k["frames_resumed_after_back_s"] = k["frames_resumed_after_kill_s"] = None
+    # the longest time without a new frame from the kill until frames flow again after the
+    # restart (a source or ingest kill need not stop the frames at all; a render or cadence
+    # kill does until the new one draws)
+    for k in kills:
+        end = k["t"] + (k["frames_resumed_after_kill_s"] if k["frames_resumed_after_kill_s"] is not None else 60.0)
+        last_t, last_f, gap = k["t"], None, 0.0
+        for s in samples:
+            if s["t"] < k["t"]:
+                continue
+            if last_f is None:
+                last_f = s["frames"]
+            elif s["frames"] > last_f:
+                gap, last_t, last_f = max(gap, s["t"] - last_t), s["t"], s["frames"]
+            if s["t"] > end:
+                break
+        k["longest_frame_gap_s"] = round(gap, 2)
     for f in freezes:
         f["replaced_as_hung"] = any(e["stage"] == f["stage"] and e["pid"] == f["pid"] for e in events)
     # the longest stretch without a new frame, outside [kill or freeze, back + 2 s]
@@ -246,9 +268,12 @@ def _chaos_report(args, cfg, samples, kills, freezes, final, segments, run_dir, 
     leftover_shm = [s for s in segments if os.path.exists(os.path.join("/dev/shm", s))]
     leftover_procs = sorted(p for p in pids_seen if _alive(p))
     resumes = [k["frames_resumed_after_back_s"] for k in kills]
+    from_kill = [k["frames_resumed_after_kill_s"] for k in kills]
     checks = {
         "every_kill_restarted": all(k["restart_event"] and k["back_after_s"] is not None for k in kills),
         "frames_resume_within_2s_of_restart": all(r is not None and r <= RESUME_LIMIT_S for r in resumes),
+        "frames_never_stop_over_2s_after_a_kill": all(k["longest_frame_gap_s"] <= RESUME_LIMIT_S
+                                                      and k["frames_resumed_after_kill_s"] is not None for k in kills),
         "rss_flat_within_5pct": all(g is None or g <= RSS_LIMIT for g in growth.values()),
         "accounting_exact": exact,
         "nothing_left_in_dev_shm": not leftover_shm,
@@ -270,6 +295,13 @@ def _chaos_report(args, cfg, samples, kills, freezes, final, segments, run_dir, 
         "max_frames_resumed_after_restart_s": max((r for r in resumes if r is not None), default=None),
         "median_frames_resumed_after_restart_s": float(np.median([r for r in resumes if r is not None])) if any(
             r is not None for r in resumes) else None,
+        "frames_resumed_within_2s_of_restart": sum(1 for r in resumes if r is not None and r <= RESUME_LIMIT_S),
+        "frames_resumed_within_2s_of_kill": sum(1 for r in from_kill if r is not None and r <= RESUME_LIMIT_S),
+        "median_frames_resumed_after_kill_s": float(np.median([r for r in from_kill if r is not None])) if any(
+            r is not None for r in from_kill) else None,
+        "max_frames_resumed_after_kill_s": max((r for r in from_kill if r is not None), default=None),
+        "frames_never_stopped_over_2s": sum(1 for k in kills if k["longest_frame_gap_s"] <= RESUME_LIMIT_S),
+        "max_frame_gap_after_kill_s": max((k["longest_frame_gap_s"] for k in kills), default=None),
         "max_steady_frame_gap_s": round(steady_gap, 2),
         "rss_mb_early_median": early, "rss_mb_late_median": late, "rss_growth_ratio_late_vs_early": growth,
         "accounting": acc, "leftover_shm": leftover_shm, "leftover_pids": leftover_procs,
@@ -287,6 +319,17 @@ def _chaos_report(args, cfg, samples, kills, freezes, final, segments, run_dir, 
     print(f"frames resumed after a restart: median {out['median_frames_resumed_after_restart_s']} s, "
           f"max {out['max_frames_resumed_after_restart_s']} s (limit {RESUME_LIMIT_S}); "
           f"longest steady gap {out['max_steady_frame_gap_s']} s")
+    print(f"{'t s':>7s} {'stage':8s} {'standby':>7s} {'back s':>7s} {'frame after back s':>19s} {'frame after kill s':>19s}"
+          f" {'longest gap s':>14s}")
+    for k in kills:
+        print(f"{k['t']:7.1f} {k['stage']:8s} {'yes' if k.get('standby') else 'no':>7s} {k['back_after_s']!s:>7s} "
+              f"{k['frames_resumed_after_back_s']!s:>19s} {k['frames_resumed_after_kill_s']!s:>19s} "
+              f"{k['longest_frame_gap_s']!s:>14s}")
+    print(f"frames never stopped for more than {RESUME_LIMIT_S:g} s after {out['frames_never_stopped_over_2s']} of "
+          f"{len(kills)} kills (longest gap {out['max_frame_gap_after_kill_s']} s)")
+    print(f"frames resumed within {RESUME_LIMIT_S:g} s: {out['frames_resumed_within_2s_of_restart']} of {len(kills)} "
+          f"after the restarted stage reported in, {out['frames_resumed_within_2s_of_kill']} of {len(kills)} after the kill "
+          f"(median {out['median_frames_resumed_after_kill_s']} s, max {out['max_frames_resumed_after_kill_s']} s)")
     print("RSS late/early:", ", ".join(f"{n} {g}" for n, g in growth.items()))
     for k, v in checks.items():
         print(f"  {'ok  ' if v else 'FAIL'} {k}")

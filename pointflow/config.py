@@ -190,7 +190,10 @@ class TracingConfig:
 @dataclass
 class SupervisorConfig:
     heartbeat_ms: float = field(default=200.0, metadata=check(positive))
-    #: A stage process silent for this long (no heartbeat or pulse) is considered hung.
+    #: A stage process silent for this long (no heartbeat or pulse) is considered hung if
+    #: the kernel says it is not running either: stopped (SIGSTOP), or asleep without using
+    #: CPU. A silent stage that wants the CPU or uses it is starved, not hung, on a loaded
+    #: machine, and is kept up to stall_after_ms (docs/reliability.md).
     hung_after_ms: float = field(default=800.0, metadata=check(positive))
     #: A stage whose main loop has not come round for this long is considered stuck
     #: (generous: one frame of a software rasteriser can take a second or more).
@@ -199,6 +202,10 @@ class SupervisorConfig:
     startup_timeout_ms: float = field(default=30000.0, metadata=check(positive))
     max_restarts: int = field(default=3, metadata=check(non_negative))
     restart_backoff_ms: float = field(default=200.0, metadata=check(non_negative))
+    #: Keep a prepared standby process for each render, cadence, ingest and source stage:
+    #: interpreter started, modules imported, the renderer's device created and warmed up,
+    #: so a restart only hands it its run info.
+    standby: bool = True
 
 
 @dataclass

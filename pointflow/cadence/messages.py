@@ -9,9 +9,17 @@ ordered with them. Format: two frames ``[CONTROL_TAG, json]`` where json is one 
   :func:`pointflow.cadence.policy.gpu_info_from_adapter`) = ``{"name", "type" (wgpu
   adapter_type), "max_storage_binding", "max_buffer_size"}`` of the adapter the renderer uses:
   the policy engine re-resolves the tier and the GPU storage cap from it.
-* ``{"type": "frame", "frame_ms": float, "seq": int}`` — the renderer finished the frame for
-  handoff ``seq`` in ``frame_ms`` (wall time of the frame, GPU work included); feeds the
-  adaptive cadence's frame-time EMA.
+* ``{"type": "frame", "frame_ms": float, "seq": int, "drawn": bool}`` — the renderer finished
+  the frame for handoff ``seq`` in ``frame_ms`` (wall time of the frame, GPU work included)
+  and is ready for the next; feeds the adaptive cadence's frame-time EMA. ``drawn: false``
+  (optional, default true): it took the handoff but drew nothing (nothing to frame yet, a
+  rejected frame), so ``frame_ms`` says nothing about its speed.
+* ``{"type": "idle", "last_seq": int, "idle_ms": float}`` — the renderer holds no slab and
+  has had no handoff for ``idle_ms``; ``last_seq`` is the newest handoff it received. The
+  cadence frees every slab it believes handed out that the renderer has seen (seq <=
+  ``last_seq``) or that an earlier cadence handed out: releases sent to a cadence that
+  froze and was replaced died with it, and without this the new cadence waited for them
+  forever (``renderer_busy``).
 
 The render side calls ``sock.send_multipart(encode_hello(...), zmq.NOBLOCK)`` etc.
 """
@@ -37,10 +45,18 @@ class Hello:
 class FrameTime:
     frame_ms: float
     seq: int = 0
+    drawn: bool = True
     type: Literal["frame"] = "frame"
 
 
-ControlMessage = Union[Hello, FrameTime]
+@dataclass(frozen=True)
+class Idle:
+    last_seq: int
+    idle_ms: float = 0.0
+    type: Literal["idle"] = "idle"
+
+
+ControlMessage = Union[Hello, FrameTime, Idle]
 
 
 class ControlMessageError(ValueError):
@@ -52,8 +68,13 @@ def encode_hello(pid: int, restart_count: int = 0, gpu: Optional[dict] = None) -
     return [CONTROL_TAG, json.dumps(body).encode()]
 
 
-def encode_frame_time(frame_ms: float, seq: int = 0) -> list[bytes]:
-    return [CONTROL_TAG, json.dumps({"type": "frame", "frame_ms": float(frame_ms), "seq": int(seq)}).encode()]
+def encode_frame_time(frame_ms: float, seq: int = 0, drawn: bool = True) -> list[bytes]:
+    body = {"type": "frame", "frame_ms": float(frame_ms), "seq": int(seq), "drawn": bool(drawn)}
+    return [CONTROL_TAG, json.dumps(body).encode()]
+
+
+def encode_idle(last_seq: int, idle_ms: float) -> list[bytes]:
+    return [CONTROL_TAG, json.dumps({"type": "idle", "last_seq": int(last_seq), "idle_ms": float(idle_ms)}).encode()]
 
 
 def is_control(frames: Sequence[bytes]) -> bool:
@@ -85,7 +106,9 @@ def decode_control(frames: Sequence[bytes]) -> Optional[ControlMessage]:
             ms = float(d["frame_ms"])
             if not math.isfinite(ms) or ms < 0:
                 raise ControlMessageError(f"cadence control message: frame_ms must be finite and >= 0, got {ms!r}")
-            return FrameTime(frame_ms=ms, seq=int(d.get("seq", 0)))
+            return FrameTime(frame_ms=ms, seq=int(d.get("seq", 0)), drawn=bool(d.get("drawn", True)))
+        if kind == "idle":
+            return Idle(last_seq=int(d["last_seq"]), idle_ms=float(d.get("idle_ms", 0.0)))
     except (KeyError, TypeError, ValueError) as exc:
         if isinstance(exc, ControlMessageError):
             raise

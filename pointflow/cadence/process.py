@@ -22,16 +22,24 @@ import numpy as np
 import zmq
 
 from ..config import PipelineConfig
-from .messages import ControlMessageError, FrameTime, Hello, decode_control
+from .messages import ControlMessageError, FrameTime, Hello, Idle, decode_control
 from .policy import HardwareInfo, PolicyDecision, detect_hardware, resolve_policy, tick_interval_ms
 from .ticker import Clock, Sleep, Tick, Ticker
 
 #: Smoothing factor of the renderer frame-time EMA (adaptive mode).
 FRAME_EMA_ALPHA = 0.15
 #: latest_only: publish anyway when the renderer has shown no progress for this long, or
-#: for 3 frame times if that is longer (a renderer that keeps its slab must not starve).
-STALL_S = 0.25
-STALL_FRAMES = 3.0
+#: for 10 of its slowest recent frames if that is longer (a renderer that keeps its slab
+#: must not starve). It was 250 ms or 3 frame *EMAs*: on a loaded machine one frame in a few
+#: took 2-3x the EMA (and a restarted renderer's first, full frame several seconds), the
+#: cadence handed out its second slab mid-frame, and that snapshot waited in the queue
+#: until the frame ended: chunks reached the screen after up to 3 frames (send -> frame p99
+#: 2.4x frame p99). Nothing needs the early publish now: a renderer whose releases and frame
+#: reports were lost says so itself (``idle``, within 0.5 s), and one stuck mid-frame is
+#: restarted by the supervisor (``hello``).
+STALL_S = 5.0
+STALL_FRAMES = 10.0
+RECENT_FRAMES = 32
 _RELEASE_TAG = b"pf.ring.release/1"  # pointflow.ring.handoff.RELEASE_TAG: [tag, int64 (slab, seq)]
 _WINDOW = 1024  # ticks kept for the jitter / rate statistics
 
@@ -52,7 +60,8 @@ class Cadence:
     def __init__(self, ring, slabs, ready_sock: zmq.Socket, release_sock: zmq.Socket, zctx: zmq.Context,
                  cfg: PipelineConfig, decision: PolicyDecision, *, spans: Any = None,
                  clock: Clock = time.monotonic, sleep: Sleep = time.sleep,
-                 log: Optional[logging.Logger] = None, latest_only: bool = True):
+                 log: Optional[logging.Logger] = None, latest_only: bool = True,
+                 wait_for_renderer: bool = False):
         from ..ring.handoff import SlabWriter  # noqa: PLC0415 - keep module import light
 
         self.cfg = cfg
@@ -71,6 +80,7 @@ class Cadence:
         self._fwd_push.connect(addr)
         self.writer = SlabWriter(ring, slabs, ready_sock, self._fwd_pull)
         self.frame_ema_ms: Optional[float] = None
+        self._recent_frames_ms: collections.deque = collections.deque(maxlen=RECENT_FRAMES)
         self.interval_ms = tick_interval_ms(cfg, decision, None)
         self.ticker = Ticker(self.interval_ms / 1000.0, clock=clock, sleep=sleep)
         self.t_start = clock()
@@ -79,8 +89,14 @@ class Cadence:
         self.points_out = 0
         self.skipped: collections.Counter[str] = collections.Counter()
         self.hellos = 0
+        self._frame_reports = 0  # frame messages from the current renderer
+        self.resyncs = 0        # idle messages that freed a slab the renderer no longer held
         self.bad_messages = 0
         self.latest_only = latest_only
+        #: Publish nothing until the renderer has said something (hello, a frame report, a
+        #: release, idle): at a pipeline's start its socket is bound seconds before it can
+        #: draw (device, warm-up), and a snapshot sent then was stale when it was drawn.
+        self.renderer_heard = not wait_for_renderer
         self.last_pub_seq = 0       # newest handoff sent
         self.done_seq = 0           # newest handoff the renderer released or reported a frame for
         self._t_progress = clock()
@@ -103,6 +119,7 @@ class Cadence:
             self.handle(frames)
 
     def handle(self, frames: list[bytes]) -> None:
+        self.renderer_heard = True
         try:
             msg = decode_control(frames)
         except ControlMessageError as exc:
@@ -111,7 +128,11 @@ class Cadence:
                 self.log.warning("release socket: %s (message dropped, %d so far)", exc, self.bad_messages)
             return
         if msg is None:  # a slab release (or junk the writer ignores)
-            if len(frames) == 2 and bytes(frames[0]) == _RELEASE_TAG and len(frames[1]) == 16:
+            if (not self._frame_reports and len(frames) == 2 and bytes(frames[0]) == _RELEASE_TAG
+                    and len(frames[1]) == 16):
+                # a renderer that reports its frames is done when it says so: it gives its
+                # slab back as soon as its frame no longer reads it, which on lavapipe is
+                # ~1 s before the GPU work ends, and a snapshot taken then waited that long
                 self._done(int(np.frombuffer(bytes(frames[1]), dtype="<i8")[1]))
             self._fwd_push.send_multipart(frames)
         elif isinstance(msg, Hello):
@@ -121,17 +142,28 @@ class Cadence:
             self._fwd_pull_drain()
             self.writer.reset_reader()
             self.frame_ema_ms = None
+            self._recent_frames_ms.clear()
+            self._frame_reports = 0
             self.done_seq = self.last_pub_seq
             if msg.gpu:
                 self.on_gpu_info(msg.gpu)
         elif isinstance(msg, FrameTime):
+            self._frame_reports += 1
             self._done(msg.seq)
-            self.on_frame_time(msg.frame_ms)
+            if msg.drawn:
+                self.on_frame_time(msg.frame_ms)
+        elif isinstance(msg, Idle):
+            self._done(msg.last_seq)
+            freed = self.writer.resync(msg.last_seq)
+            if freed:
+                self.resyncs += 1
+                self.log.warning("renderer idle for %.0f ms holding no slab (newest handoff it got: %d): "
+                                 "freed %d slab(s) whose release was lost", msg.idle_ms, msg.last_seq, freed)
 
     @property
     def stall_s(self) -> float:
-        ema = self.frame_ema_ms or 0.0
-        return max(STALL_S, STALL_FRAMES * ema / 1000.0)
+        slowest = max(self._recent_frames_ms, default=0.0)
+        return max(STALL_S, STALL_FRAMES * max(self.frame_ema_ms or 0.0, slowest) / 1000.0)
 
     def _done(self, seq: int) -> None:
         if seq > self.done_seq:
@@ -170,6 +202,7 @@ class Cadence:
         """Update the frame-time EMA (alpha 0.15) and, in adaptive mode, the tick interval."""
         ema = self.frame_ema_ms
         self.frame_ema_ms = frame_ms if ema is None else ema + FRAME_EMA_ALPHA * (frame_ms - ema)
+        self._recent_frames_ms.append(frame_ms)
         if self.cfg.cadence.adaptive:
             ms = tick_interval_ms(self.cfg, self.decision, self.frame_ema_ms)
             if abs(ms - self.interval_ms) > 1e-6:
@@ -194,6 +227,9 @@ class Cadence:
         if tick.missed:
             self.skipped["late"] += tick.missed
         self.drain(0)
+        if not self.renderer_heard:
+            self.skipped["no_reader"] += 1
+            return False
         if (self.latest_only and self.last_pub_seq > self.done_seq
                 and self.clock() - self._t_progress < self.stall_s):
             self.skipped["renderer_pending"] += 1
@@ -253,6 +289,7 @@ class Cadence:
             "full_copies": w["full_copies"],
             "copied_slots": w["copied_slots"],
             "renderer_hellos": self.hellos,
+            "renderer_resyncs": self.resyncs,
             "bad_messages": self.bad_messages,
         }
 
@@ -279,8 +316,10 @@ def main(ctx) -> None:
     # No GPU probe here: the renderer owns the adapter and reports its limits in its hello.
     decision = resolve_policy(cfg, probe_gpu=False)
     latest_only = cfg.cadence.latest_only
+    # a restarted cadence serves the renderer that is already drawing at once (the renderer
+    # says idle within 0.5 s anyway); the first one waits for the renderer's hello
     cad = Cadence(ring, slabs, ready, release, ctx.zmq, cfg, decision, spans=ctx.spans, log=ctx.log,
-                  latest_only=latest_only)
+                  latest_only=latest_only, wait_for_renderer=not ctx.info.restart_count)
     if ctx.info.restart_count:
         ctx.log.info("cadence restarted (%d): resuming from the slab headers", ctx.info.restart_count)
 

@@ -121,8 +121,11 @@ def main(ctx: StageContext) -> None:
     commands.setsockopt(zmq.LINGER, 0)
     commands.bind(ctx.endpoints.render_commands)
     reader = SlabReader(slabs, ready, release)
-    renderer = _select(cfg, capacity, channels, ctx.log)
-    ctx.log.info("render tier: %s", renderer.info())
+    renderer = ctx.prepared  # a standby's renderer: device created, pipelines warmed up
+    if renderer is None:
+        renderer = _select(cfg, capacity, channels, ctx.log)
+        ctx.log.info("render tier: %s", renderer.info())
+        _warm_up(renderer, slabs, capacity, ctx.log)
     _announce(release, ctx, renderer)
     cam = CameraController(cfg, *cfg.render.size)
     window = None
@@ -142,6 +145,8 @@ def main(ctx: StageContext) -> None:
     c = ctx.counters
     c.extra.update(frames=0, tier=renderer.tier, pngs=0, frame_ms_ema=0.0, tier_info=renderer.info())
     tracing = cfg.tracing.enabled
+    t_free = t_idle = time.monotonic_ns()  # when the last frame ended / the last idle message went
+    tick_s = 0.0  # the cadence's interval, from its handoffs
     try:
         while ctx.running:
             ctx.beat()
@@ -150,8 +155,11 @@ def main(ctx: StageContext) -> None:
                 window.process_events()
             got = reader.recv(timeout_ms=20 if window is not None else 50)
             if got is None:
+                t_idle = _resync_if_idle(release, reader, t_free, t_idle, tick_s)
                 continue
             h, view = got
+            tick_s = float(h.extra.get("interval_ms") or 0.0) / 1000.0
+            drew = False
             try:  # the slab is read only inside this block and goes back in its finally, the one place
                 t0 = time.monotonic_ns()
                 frame = frame_from_slab(h, view, t0, capacity)
@@ -173,6 +181,7 @@ def main(ctx: StageContext) -> None:
                         fs = window.last_stats
                     else:
                         fs = renderer.render(frame, camera)
+                    drew = True
                 except ValueError as exc:  # a malformed frame (tiers check their input): skip it, counted
                     ctx.log.error("frame %d rejected by the %s tier: %s", h.seq, renderer.tier, exc)
                     c.drop("bad_frame", 1)
@@ -190,6 +199,9 @@ def main(ctx: StageContext) -> None:
                     continue
             finally:
                 reader.release(h.slab)
+                t_free = time.monotonic_ns()
+                if not drew:  # ready for the next handoff at once
+                    _feedback(release, 0.0, h.seq, drawn=False)
             t_up = time.monotonic_ns()
             if tracing and h.trace_ids and hasattr(renderer, "finish"):
                 renderer.finish()  # frame_done means the GPU work is complete
@@ -214,6 +226,7 @@ def main(ctx: StageContext) -> None:
                            uploaded_bytes=c.extra.get("uploaded_bytes", 0) + fs.uploaded_bytes,
                            **{f"tier_{k}_ms": round(v, 3) for k, v in fs.timings_ms.items()})
             _feedback(release, ms, h.seq)
+            t_free = time.monotonic_ns()
             for tid in h.trace_ids:
                 ctx.spans.record(tid, "render_upload", t0, t_up, 0)
                 ctx.spans.record(tid, "frame_done", t0, t1, 0)
@@ -290,6 +303,48 @@ def _serve_commands(sock, renderer: Renderer, ring, ctx) -> None:
         sock.send_string(json.dumps(rep))
 
 
+def prepare(cfg, info, log) -> Optional[Renderer]:
+    """A standby renderer's head start (:data:`pointflow.runtime.stage.STAGE_PREPARE`):
+    create the device and draw the warm-up frame while the renderer it may replace still
+    runs. On an idle 2-core machine with lavapipe this is 1.2-1.4 s of device creation and
+    0.5-1.2 s of warm-up that a restart no longer waits for."""
+    ring = PointRing.attach(info.ring_name)
+    slabs = SlabPair.attach(info.slab_names)
+    try:
+        capacity = ring.layout.capacity
+        renderer = _select(cfg, capacity, [c.name for c in ring.layout.channels], log)
+        log.info("standby render tier: %s", renderer.info())
+        _warm_up(renderer, slabs, capacity, log)
+        return renderer
+    finally:
+        slabs.close()
+        ring.close()
+
+
+def _warm_up(renderer: Renderer, slabs: SlabPair, capacity: int, log) -> None:
+    """Draw one tiny frame of zeros before reporting in. A tier's first frame compiles its
+    pipelines (lavapipe: 0.5 s of 0.7 s on an idle 2-core machine, more under load); done
+    here, a restarted renderer's first real frame (a full upload after its hello) costs no
+    more than any full frame, so frames resume sooner after a render restart."""
+    t0 = time.monotonic()
+    try:
+        v = slabs.slab_view(0)
+        n = min(1024, capacity)
+        chans = {k: np.zeros_like(a) for k, a in v.channels.items()}
+        ranges = {k: (0.0, 1.0) for k, a in chans.items() if a.ndim == 1 and a.dtype.kind == "f"}
+        frame = FrameInput(positions=np.zeros_like(v.positions), importance=np.ones_like(v.importance),
+                           t_ingest_ms=np.zeros_like(v.t_ingest_ms), channels=chans, head=0, size=n,
+                           capacity=capacity, origin=np.zeros(3), now_ms=0.0, channel_ranges=ranges,
+                           dirty=[(0, n)], seq=0)
+        renderer.render(frame, Camera.fit(np.full(3, -1.0), np.ones(3), aspect=16 / 9))
+        if hasattr(renderer, "finish"):
+            renderer.finish()
+    except Exception as exc:  # noqa: BLE001 - only a head start; the real frames will tell
+        log.debug("warm-up frame failed (%s); the first frame compiles instead", exc)
+        return
+    log.info("warm-up frame drawn in %.0f ms", (time.monotonic() - t0) * 1000)
+
+
 def _announce(sock, ctx, renderer: Renderer) -> None:
     """Tell the cadence a (new) renderer holds no slab, and what GPU it drives (the policy
     engine caps the budget by the adapter's storage limits and detects the tier from it)."""
@@ -310,11 +365,35 @@ def _announce(sock, ctx, renderer: Renderer) -> None:
         pass
 
 
-def _feedback(sock, frame_ms: float, seq: int) -> None:
-    """Frame time for the cadence's adaptive interval."""
+#: A renderer that holds no slab and got no handoff for this long (or 4 cadence ticks, if
+#: longer) tells the cadence so; a healthy cadence hands the next snapshot over within a tick.
+IDLE_RESYNC_S = 0.5
+
+
+def _resync_if_idle(sock, reader: SlabReader, t_free: int, t_idle: int, tick_s: float) -> int:
+    """Send ``idle`` (pointflow.cadence.messages) when no handoff came for a while: a
+    cadence that froze and was replaced never read the releases queued to it and would
+    otherwise wait for them forever. Returns when an idle message last went."""
+    now = time.monotonic_ns()
+    since = max(t_free, reader.t_last_ns, t_idle)
+    limit = max(IDLE_RESYNC_S, 4 * tick_s)
+    if reader.held is not None or (now - since) / 1e9 < limit:
+        return t_idle
+    from ..cadence.messages import encode_idle
+
+    try:
+        sock.send_multipart(encode_idle(reader.last_seq, (now - max(t_free, reader.t_last_ns)) / 1e6), zmq.NOBLOCK)
+    except zmq.Again:
+        pass
+    return now
+
+
+def _feedback(sock, frame_ms: float, seq: int, drawn: bool = True) -> None:
+    """Frame done (the cadence hands over the next snapshot now) and its time (the
+    adaptive interval)."""
     try:
         from ..cadence.messages import encode_frame_time
 
-        sock.send_multipart(encode_frame_time(frame_ms, seq), zmq.NOBLOCK)
+        sock.send_multipart(encode_frame_time(frame_ms, seq, drawn), zmq.NOBLOCK)
     except (ImportError, zmq.Again):
         pass

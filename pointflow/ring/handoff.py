@@ -95,6 +95,8 @@ class SlabWriter:
         self.release_sock = release_sock
         self._held = [int(slabs.state(i)[S_HELD]) for i in (0, 1)]  # seq handed out and not released, 0 = free
         self._seq = max(int(slabs.state(i)[S_SEQ]) for i in (0, 1))
+        #: Handoffs up to this seq were made by an earlier writer (a cadence that died).
+        self.inherited_seq = self._seq
         self._pending: list = [None, None]  # ranges each slab lacks; None = needs a full copy
         self._carry: list | None = None  # dirty of handoffs that could not be sent
         self._force_full = True
@@ -128,6 +130,22 @@ class SlabWriter:
                 self._held[slab] = 0
                 self.slabs.state(slab)[S_HELD] = 0
                 n += 1
+
+    def resync(self, last_seq: int) -> int:
+        """The renderer holds no slab and the newest handoff it received is ``last_seq``:
+        free every slab handed out up to ``last_seq`` (it has seen them) or by an earlier
+        writer (their releases died with it: a frozen cadence replaced as hung never reads
+        the releases queued to it). A slab handed out later is in flight and stays held.
+        Returns how many slabs this freed."""
+        self.poll_releases()
+        n = 0
+        for i in (0, 1):
+            s = self._held[i]
+            if s and (s <= last_seq or s <= self.inherited_seq):
+                self._held[i] = 0
+                self.slabs.state(i)[S_HELD] = 0
+                n += 1
+        return n
 
     def reset_reader(self) -> None:
         """The renderer restarted: consider both slabs free and send a full handoff next."""
@@ -263,6 +281,9 @@ class SlabReader:
         self.ready = ready_sock
         self.release_sock = release_sock
         self._held: tuple[int, int] | None = None  # (slab, seq)
+        #: Newest handoff received, and when (monotonic ns): the renderer's resync says so.
+        self.last_seq = 0
+        self.t_last_ns = time.monotonic_ns()
 
     @property
     def held(self) -> int | None:
@@ -295,6 +316,8 @@ class SlabReader:
         if self._held is not None and self._held[0] != h.slab:
             self._send_release(*self._held)
         self._held = (h.slab, h.seq)
+        self.last_seq = max(self.last_seq, h.seq)
+        self.t_last_ns = time.monotonic_ns()
         return h, self.slabs.slab_view(h.slab)
 
     def release(self, slab_id: int | None = None) -> None:

@@ -30,11 +30,28 @@ _ONE_THREAD = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
 
 class StageProcess:
     """A stage's OS process, with the small part of ``multiprocessing.Process``'s interface
-    the supervisor uses (``pid``, ``exitcode``, ``terminate``, ``kill``, ``join``)."""
+    the supervisor uses (``pid``, ``exitcode``, ``terminate``, ``kill``, ``join``).
 
-    def __init__(self, popen: subprocess.Popen):
+    A *standby* (``spawn_stage(..., standby=True)``) has imported its stage and prepared
+    what does not depend on the incarnation (the renderer's device and pipelines) and waits
+    for :meth:`activate` to hand it its :class:`~pointflow.runtime.stage.RunInfo`."""
+
+    def __init__(self, popen: subprocess.Popen, standby: bool = False):
         self._p = popen
         self.pid = popen.pid
+        self.standby = standby
+
+    def activate(self, info) -> bool:
+        """Start a standby as the stage's new incarnation; False if it is gone."""
+        if not self.standby or self._p.poll() is not None:
+            return False
+        try:
+            self._p.stdin.write(pickle.dumps(info, protocol=pickle.HIGHEST_PROTOCOL))
+            self._p.stdin.close()
+        except (OSError, ValueError):
+            return False
+        self.standby = False
+        return True
 
     @property
     def exitcode(self) -> Optional[int]:
@@ -58,9 +75,10 @@ class StageProcess:
             pass
 
 
-def spawn_stage(name: str, kind: str, cfg_dict: dict, base_dir: str, info) -> StageProcess:
-    """Start ``stage_main(name, kind, cfg_dict, base_dir, info)`` in a new interpreter."""
-    payload = pickle.dumps((name, kind, cfg_dict, base_dir, info), protocol=pickle.HIGHEST_PROTOCOL)
+def spawn_stage(name: str, kind: str, cfg_dict: dict, base_dir: str, info, standby: bool = False) -> StageProcess:
+    """Start ``stage_main(name, kind, cfg_dict, base_dir, info)`` in a new interpreter; with
+    ``standby`` it prepares and then waits for :meth:`StageProcess.activate`."""
+    payload = pickle.dumps((name, kind, cfg_dict, base_dir, info, standby), protocol=pickle.HIGHEST_PROTOCOL)
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join(p for p in (_PKG_PARENT, env.get("PYTHONPATH", "")) if p)
     # A stage is one process doing one thing; BLAS thread pools in every stage fight each
@@ -73,10 +91,13 @@ def spawn_stage(name: str, kind: str, cfg_dict: dict, base_dir: str, info) -> St
                          env=env, close_fds=True)
     try:
         p.stdin.write(payload)
-        p.stdin.close()
+        if standby:
+            p.stdin.flush()
+        else:
+            p.stdin.close()
     except OSError:  # it died before reading: its exit code says why
         pass
-    return StageProcess(p)
+    return StageProcess(p, standby=standby)
 
 
 def _main() -> None:
@@ -90,12 +111,21 @@ def _main() -> None:
     from .rundir import ensure_runtime_dir
 
     ensure_runtime_dir()
-    name, kind, cfg_dict, base_dir, info = pickle.loads(sys.stdin.buffer.read())
+    name, kind, cfg_dict, base_dir, info, standby = pickle.load(sys.stdin.buffer)
     if os.getppid() != info.supervisor_pid:  # it died before PDEATHSIG was armed
         sys.exit(1)
-    from .stage import stage_main
+    from .stage import prepare_stage, stage_main
 
-    stage_main(name, kind, cfg_dict, base_dir, info)
+    prepared = None
+    if standby:
+        prepared = prepare_stage(name, kind, cfg_dict, base_dir, info)
+        try:  # wait until the supervisor needs this incarnation (or discards it: EOF)
+            info = pickle.load(sys.stdin.buffer)
+        except (EOFError, pickle.UnpicklingError, OSError):
+            sys.exit(0)
+        if os.getppid() != info.supervisor_pid:
+            sys.exit(1)
+    stage_main(name, kind, cfg_dict, base_dir, info, prepared=prepared)
 
 
 if __name__ == "__main__":

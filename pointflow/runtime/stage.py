@@ -35,6 +35,13 @@ import zmq
 from ..config import EndpointsConfig, PipelineConfig, load_config
 from ..profiling.spans import SpanEmitter
 
+#: kind -> "module:function" that a standby runs before it is needed (see
+#: :func:`prepare_stage`): ``fn(cfg, info, log) -> object`` handed to the stage as
+#: ``ctx.prepared``. Kinds not listed only import their module.
+STAGE_PREPARE: dict[str, str] = {
+    "render": "pointflow.render.process:prepare",
+}
+
 #: kind -> "module:function" of the stage loop.
 STAGE_MAINS: dict[str, str] = {
     "source": "pointflow.ingest.source:main",
@@ -100,6 +107,8 @@ class StageContext:
         self._control.connect(info.endpoints.control)
         self.spans = SpanEmitter(self.zmq, info.endpoints.trace, name, cfg.tracing.batch,
                                  cfg.tracing.flush_ms, cfg.tracing.enabled)
+        #: What a standby prepared before it was activated (:data:`STAGE_PREPARE`), or None.
+        self.prepared: Any = None
         #: Called with no arguments on each heartbeat; may add to ``counters.extra``.
         self.on_beat: list[Callable[[], None]] = []
         self._progress_ns = time.monotonic_ns()
@@ -218,16 +227,42 @@ def _die_with_parent() -> None:
         pass
 
 
-def stage_main(name: str, kind: str, cfg_dict: dict, base_dir: str, info: RunInfo) -> None:
-    """Process entry point (target of the supervisor's ``Process``)."""
-    _die_with_parent()
+def _setup_logging(name: str, info: RunInfo) -> None:
     logging.basicConfig(level=info.log_level, stream=sys.stderr,
                         format=f"%(asctime)s {name}[%(process)d] %(levelname)s %(message)s")
+
+
+def prepare_stage(name: str, kind: str, cfg_dict: dict, base_dir: str, info: RunInfo) -> Any:
+    """A standby's head start, before it is needed: import the stage's module and run its
+    :data:`STAGE_PREPARE` hook. Nothing here binds a socket or talks to the supervisor (the
+    incarnation it replaces may still be alive). Returns what the hook returned (None when
+    it failed: the stage then does the work itself)."""
+    _setup_logging(name, info)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    log = logging.getLogger(f"pointflow.{name}")
+    try:
+        importlib.import_module(STAGE_MAINS[kind].partition(":")[0])
+        hook = STAGE_PREPARE.get(kind)
+        if hook is None:
+            return None
+        mod_name, _, fn_name = hook.partition(":")
+        cfg = load_config(cfg_dict, base_dir=base_dir)
+        return getattr(importlib.import_module(mod_name), fn_name)(cfg, info, log)
+    except Exception as exc:  # noqa: BLE001 - the activated stage does it again and reports
+        log.warning("standby %s: preparing failed (%s); the stage will start from scratch", name, exc)
+        return None
+
+
+def stage_main(name: str, kind: str, cfg_dict: dict, base_dir: str, info: RunInfo, prepared: Any = None) -> None:
+    """Process entry point (target of the supervisor's ``Process``)."""
+    _die_with_parent()
+    _setup_logging(name, info)
     # Ctrl-C reaches the whole process group; only the supervisor reacts to it and then
     # stops the stages in order.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     cfg = load_config(cfg_dict, base_dir=base_dir)
     ctx = StageContext(name, kind, cfg, info)
+    ctx.prepared = prepared
     signal.signal(signal.SIGTERM, lambda *_: ctx.stop())
     mod_name, _, fn_name = STAGE_MAINS[kind].partition(":")
     code = 0

@@ -32,6 +32,7 @@ import zmq
 
 from ..config import ConfigError, PipelineConfig, new_run_dir
 from .launch import StageProcess, spawn_stage
+from .liveness import activity
 from .stage import RunInfo
 
 log = logging.getLogger("pointflow.supervisor")
@@ -68,6 +69,14 @@ class StageProc:
     dead: bool = False
     #: Deaths in a row of incarnations that did not live HEALTHY_S: the backoff's exponent.
     streak: int = 0
+    #: A prepared spare (``supervisor.standby``) that the next restart activates.
+    standby: Optional[StageProcess] = None
+    standby_failures: int = 0
+    #: (when, what the kernel said, counted as starved) since the current silence was
+    #: last found running (liveness.py).
+    silence_mark: Optional[tuple] = None
+    #: Silences past ``hung_after_ms`` that were starvation (the process ran or wanted to).
+    starved: int = 0
 
 
 def _describe_exit(code: Optional[int]) -> str:
@@ -124,6 +133,17 @@ BACKOFF_MAX_MS = 10_000.0
 #: When several stages are silent at once, one counts as hung only after this many
 #: times ``supervisor.hung_after_ms`` (at most ``stall_after_ms``).
 STALLED_HUNG_FACTOR = 5
+
+#: Stage kinds that get a standby, and how many standbys in a row may die before it is
+#: given up. A render or cadence restart stops the frames until the new one draws; a fresh
+#: source or ingest interpreter importing its modules slows the renderer of a 2-core
+#: machine for seconds (the soak saw 2.1-2.7 s without a frame).
+STANDBY_KINDS = ("render", "cadence", "ingest", "source")
+STANDBY_MAX_FAILURES = 3
+#: A standby is prepared only this long after the last stage reported in: preparing one
+#: (the renderer's device and warm-up frame: 2-3 s of CPU on lavapipe) slows the frames of
+#: a 2-core machine, and must not do so while frames resume after a restart.
+STANDBY_DELAY_S = 5.0
 
 #: sizeof(sockaddr_un.sun_path) - 1 on Linux: the longest ipc:// path ZeroMQ can bind.
 IPC_PATH_MAX = 107
@@ -306,7 +326,17 @@ class Supervisor:
             # a restarted renderer numbers its frames on from where the last one stopped
             extra={"frames_base": int((st.carried or {}).get("frames", 0))},
         )
-        p = spawn_stage(st.name, st.kind, self.cfg.to_dict(), self.cfg.base_dir, info)
+        p = None
+        if st.standby is not None:
+            sb, st.standby = st.standby, None
+            if sb.activate(info):
+                p = sb
+                log.info("%s: standby pid %d activated", st.name, p.pid)
+            else:
+                sb.kill()
+                sb.join(1)
+        if p is None:
+            p = spawn_stage(st.name, st.kind, self.cfg.to_dict(), self.cfg.base_dir, info)
         st.process, st.pid = p, p.pid
         st.dead = False
         st.started_ns = st.last_seen_ns = st.last_progress_ns = time.monotonic_ns()
@@ -384,6 +414,8 @@ class Supervisor:
                 age = msg.get("loop_age_ms", 0)
                 st.last_progress_ns = now - int(age * 1e6) if isinstance(age, (int, float)) else st.last_progress_ns
             return
+        if not st.ready:
+            self._t_last_ready = time.monotonic()
         st.ready = True
         st.last_progress_ns = now
         if kind == "heartbeat":
@@ -406,9 +438,45 @@ class Supervisor:
             else:
                 log.info("%s finished (its input ended)", st.name)
 
+    def _keep_standbys(self) -> None:
+        """Start a standby for each render/cadence stage that has none, once every stage is
+        running and STANDBY_DELAY_S after the last one reported in."""
+        if not self.cfg.supervisor.standby or self.role == "send" or self._halt.is_set():
+            return
+        if not all(st.ready or st.failed or st.finished for st in self.stages.values()):
+            return
+        if time.monotonic() - getattr(self, "_t_last_ready", 0.0) < STANDBY_DELAY_S:
+            return
+        for st in self.stages.values():
+            if st.kind not in STANDBY_KINDS or st.failed or st.process is None:
+                continue
+            if st.standby is not None:
+                if st.standby.exitcode is None:
+                    continue
+                st.standby_failures += 1
+                log.warning("%s: standby pid %d %s", st.name, st.standby.pid, _describe_exit(st.standby.exitcode))
+                st.standby = None
+            if st.standby_failures >= STANDBY_MAX_FAILURES:
+                continue
+            info = RunInfo(run_dir=self.run_dir, endpoints=self.endpoints, ring_name=self.ring.name,
+                           slab_names=tuple(self.slabs.names), out_dir=self.out_dir, supervisor_pid=os.getpid(),
+                           source_index=st.source_index, restart_count=st.restarts,
+                           log_level=logging.getLogger("pointflow").getEffectiveLevel() or logging.INFO)
+            st.standby = spawn_stage(st.name, st.kind, self.cfg.to_dict(), self.cfg.base_dir, info, standby=True)
+            log.debug("%s: standby pid %d started", st.name, st.standby.pid)
+            return  # one at a time
+
+    def _stop_standbys(self) -> None:
+        for st in self.stages.values():
+            sb, st.standby = st.standby, None
+            if sb is not None:
+                sb.kill()
+                sb.join(2)
+
     def _check_stages(self) -> None:
         now = time.monotonic_ns()
         sup = self.cfg.supervisor
+        self._keep_standbys()
         for st in self.stages.values():
             if st.failed or st.process is None:
                 continue
@@ -425,10 +493,8 @@ class Supervisor:
                 self._drain_control(0.02)
             limit_ms = sup.hung_after_ms if st.ready else sup.startup_timeout_ms
             silent = (now - st.last_seen_ns) > limit_ms * 1e6
-            if silent and st.ready and not self._silent_alone(st, limit_ms):
-                # others went quiet too: the machine (or this process) stalled, not the
-                # stage; only a longer silence counts then
-                silent = (now - st.last_seen_ns) > max(limit_ms, min(sup.stall_after_ms, STALLED_HUNG_FACTOR * limit_ms)) * 1e6
+            if silent and st.ready and code is None:
+                silent = self._silence_is_hang(st, now, limit_ms)
             stalled = st.ready and (now - st.last_progress_ns) > sup.stall_after_ms * 1e6
             hung = code is None and (silent or stalled)
             if code is None and not hung:
@@ -449,6 +515,41 @@ class Supervisor:
             else:
                 reason = _describe_exit(code)
             self._stage_died(st, reason)
+
+    def _silence_is_hang(self, st: StageProc, now: int, limit_ms: float) -> bool:
+        """A stage silent for ``limit_ms``: hung, or starved of CPU on a loaded machine?
+        The kernel says (:mod:`.liveness`). Starved (a thread waiting to run or for the
+        disk, or CPU time used since the silence began): not hung, however long, up to
+        ``stall_after_ms``. Frozen (SIGSTOP): hung now. Asleep without using any CPU for
+        half of ``limit_ms`` (at least 250 ms) of watching: hung (a deadlock). The last two
+        only when the other stages talk, or after a longer silence when they do not (the
+        machine, or this process, stalled)."""
+        sup = self.cfg.supervisor
+        quiet = now - st.last_seen_ns
+        if quiet > sup.stall_after_ms * 1e6:
+            return True
+        act = activity(st.pid)
+        if act is None:
+            return False  # it ended: its exit code tells why, next round
+        mark = st.silence_mark
+        if mark is None or mark[0] < st.last_seen_ns:  # this silence just began
+            st.silence_mark = (now, act, False)
+            if not act.stopped:
+                return False
+        else:
+            t0, before, counted = mark
+            if act.running_since(before, (now - t0) / 1e9):  # starved, not hung: watch afresh
+                if not counted:
+                    st.starved += 1
+                st.silence_mark = (now, act, True)
+                return False
+            if not act.stopped and now - t0 < max(limit_ms * 1e6 / 2, 250e6):
+                return False  # asleep, not watched long enough yet
+        if self._silent_alone(st, limit_ms):
+            return True
+        # others went quiet too: the machine (or this process) stalled; only a longer
+        # silence counts then
+        return quiet > max(limit_ms, min(sup.stall_after_ms, STALLED_HUNG_FACTOR * limit_ms)) * 1e6
 
     def _silent_alone(self, st: StageProc, limit_ms: float) -> bool:
         """True when every other live stage was heard from within the last half
@@ -536,6 +637,7 @@ class Supervisor:
             return
         self._shut = True
         self.started = False
+        self._stop_standbys()
         sources = [st for st in self.stages.values() if st.kind == "source"]
         waves = [sources, [self.stages[n] for n in ("ingest", "sender") if n in self.stages],
                  [self.stages[n] for n in ("cadence", "render", "recorder") if n in self.stages]]
@@ -645,6 +747,8 @@ class Supervisor:
             d.update(pid=st.pid, kind=st.kind, cpu_percent=round(st.cpu_percent, 1), rss_bytes=st.rss_bytes,
                      restarts=st.restarts, alive=bool(st.process is not None and st.process.exitcode is None),
                      ready=st.ready,  # this incarnation has reported in
+                     standby_pid=st.standby.pid if st.standby is not None else None,
+                     starved_silences=st.starved,  # silent past hung_after_ms, but running: kept
                      finished=st.finished)
             if st.last_error:
                 d["last_error"] = st.last_error[-2000:]

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import zmq
 
-from pointflow.cadence.messages import CONTROL_TAG, encode_frame_time, encode_hello
+from pointflow.cadence.messages import CONTROL_TAG, encode_frame_time, encode_hello, encode_idle
 from pointflow.cadence.policy import resolve_policy
 from pointflow.cadence.process import Cadence
 from pointflow.config import load_config
@@ -167,17 +167,17 @@ def test_latest_only_waits_for_the_renderer_then_sends_fresh_data(rig):
 
     rig.push(10, 4)
     assert rig.tick() is False
-    assert rig.cad.stall_s == STALL_S                    # 3 x 30 ms frames < 250 ms
+    assert rig.cad.stall_s == STALL_S                    # 10 x 30 ms frames < STALL_S
     h3 = rig.tick(advance=STALL_S + 0.01)
     assert h3 and h3.trace_ids == [4]
-    # a slow renderer (frames of 400 ms) is given 3 frame times before the cadence gives up
+    # a slow renderer (frames of 800 ms) is given 10 frame times before the cadence gives up
     rig.recv()                      # takes h3, releasing h2's slab
     assert rig.cad.drain(timeout_s=5.0) >= 1  # that release reached the cadence (ipc is asynchronous)
-    rig.cad.frame_ema_ms = 400.0
-    assert rig.cad.stall_s == pytest.approx(1.2)
+    rig.cad.frame_ema_ms = 800.0
+    assert rig.cad.stall_s == pytest.approx(8.0)
     rig.push(10, 5)
-    assert rig.tick(advance=0.5) is False
-    assert rig.tick(advance=1.25)   # 1.75 s after the last progress (the release of h2) > 1.2 s
+    assert rig.tick(advance=5.5) is False
+    assert rig.tick(advance=2.6)    # 8.1 s after the last progress (the publish of h3) > 8 s
 
 
 def test_late_ticks_skipped_and_counted(rig):
@@ -206,6 +206,42 @@ def _hello(rig):
     h = rig.tick()
     assert h and h.dirty is None  # full copy for the new renderer
     assert rig.cad.stats()["renderer_hellos"] == 1
+
+
+def test_idle_renderer_frees_slabs_whose_release_was_lost(tmp_path):
+    """A renderer that holds nothing and got no handoff for a while says so (``idle`` with
+    the newest seq it received): the cadence frees the slabs it has seen, keeps the one in
+    flight, and a restarted cadence frees what its predecessor handed out (the releases
+    queued to a frozen cadence die with it; the soak's renderer starved for 75 s)."""
+    rig = Rig(tmp_path, latest_only=False)
+    try:
+        rig.push(10, 1)
+        h1 = rig.tick()
+        got, _ = rig.recv()                  # the renderer draws A ...
+        rig.reader._held = None              # ... and its release is lost
+        h2 = rig.tick()                      # B goes out while the renderer is busy: in flight
+        assert rig.tick() is False and rig.cad.stats()["skipped"] == {"renderer_busy": 1}
+        rig.send(encode_idle(h1.seq, 600.0))
+        assert rig.cad.writer.held == (h2.slab == 0, h2.slab == 1)  # A freed, B still out
+        assert rig.cad.stats()["renderer_resyncs"] == 1
+        h3 = rig.tick()
+        assert h3 and h3.slab == h1.slab
+        # the cadence dies with both slabs out (their releases lost); a new one starts from
+        # the slab headers and would wait for the renderer forever
+        rig.cad.close()
+        rig.cad = Cadence(rig.ring, rig.slabs, rig.ready, rig.rel, rig.z, rig.cfg, rig.decision,
+                          clock=rig.clk, sleep=rig.clk.sleep, latest_only=False)
+        assert rig.cad.writer.held == (True, True)
+        assert rig.tick() is False and rig.cad.stats()["skipped"] == {"renderer_busy": 1}
+        rig.send(encode_idle(h1.seq, 600.0))  # it never saw h2, h3 (lost with the old cadence)
+        assert rig.cad.writer.held == (False, False)
+        h4 = rig.tick()
+        assert h4 and h4.seq == h3.seq + 1 and h4.dirty is None  # full: nothing is known of the renderer
+        # idle with nothing to free changes nothing and is not counted
+        rig.send(encode_idle(h3.seq, 600.0))
+        assert rig.cad.writer.held[h4.slab] and rig.cad.stats()["renderer_resyncs"] == 1
+    finally:
+        rig.close()
 
 
 def test_adaptive_interval_follows_frame_time_ema(tmp_path):
@@ -270,3 +306,73 @@ def test_hello_gpu_info_detects_tier(tmp_path):
         assert cpu_only in ("L", "M", "H")
     finally:
         r.close()
+
+
+def test_latest_only_waits_out_a_slow_frame(rig):
+    """On a loaded machine one frame in a few took 2-3x the frame-time EMA; the cadence used
+    to hand out its second slab mid-frame (after 3 EMAs without progress), and that snapshot
+    then waited in the queue until the frame ended. It now waits 10 of the slowest recent
+    frames (at least STALL_S): a renderer whose messages were lost says so itself (idle)."""
+    from pointflow.cadence.process import STALL_S
+
+    assert rig.cad.stall_s == STALL_S
+    for ms in (400.0, 400.0, 400.0, 1100.0, 400.0):
+        rig.cad.on_frame_time(ms)
+    assert rig.cad.frame_ema_ms < 600.0
+    assert rig.cad.stall_s == pytest.approx(10 * 1.1)
+    rig.push(10, 1)
+    h1 = rig.tick()
+    rig.recv()                                  # the renderer starts a (slow) frame
+    rig.push(10, 2)
+    assert rig.tick(advance=3.0) is False       # 3 s: 3 EMAs (the old rule) passed; still waiting
+    assert rig.tick(advance=7.5) is False       # 10.5 s < 11 s
+    assert rig.tick(advance=0.6)                # 11.1 s: the renderer is taken to be stuck
+    assert rig.cad.stats()["skipped"]["renderer_pending"] == 2
+    assert h1.seq < rig.cad.last_pub_seq
+
+
+def test_a_renderer_that_reports_frames_is_done_when_it_says_so(rig):
+    """The renderer gives its slab back as soon as its frame no longer reads it; on lavapipe
+    the GPU work then goes on for ~1 s, and a snapshot taken at the release waited that long
+    before it was drawn. Once a renderer reports its frames, only the report (or an
+    ``idle``) lets the next snapshot go; ``drawn: false`` (nothing to frame) does at once
+    and leaves the frame-time EMA alone."""
+    rig.push(10, 1)
+    h1 = rig.tick()
+    rig.recv()
+    rig.release()                               # no frame reports yet: the release is progress
+    rig.send(encode_frame_time(40.0, h1.seq))
+    h2 = rig.tick()
+    assert h2
+    rig.recv()
+    rig.reader.release()                        # the frame's data is uploaded; GPU still busy
+    time.sleep(0.05)
+    rig.cad.drain(0.2)
+    rig.push(10, 2)
+    assert rig.tick() is False                  # not done yet: no snapshot that would wait
+    assert rig.cad.stats()["skipped"]["renderer_pending"] >= 1
+    rig.send(encode_frame_time(900.0, h2.seq))  # the frame is complete
+    h3 = rig.tick()
+    assert h3 and h3.trace_ids == [2]
+    rig.recv()
+    ema = rig.cad.frame_ema_ms
+    rig.send(encode_frame_time(0.0, h3.seq, drawn=False))
+    assert rig.cad.frame_ema_ms == ema
+    assert rig.tick()
+
+
+def test_a_first_cadence_waits_for_the_renderer_to_speak(tmp_path):
+    """At a pipeline's start the renderer binds its socket seconds before it can draw
+    (device, warm-up frame); a snapshot sent then was stale when drawn, and the stall rule
+    added a second. The first cadence publishes once the renderer has said anything."""
+    rig = Rig(tmp_path)
+    try:
+        rig.cad.renderer_heard = False
+        rig.push(10, 1)
+        assert rig.tick() is False and rig.tick() is False
+        assert rig.cad.stats()["skipped"] == {"no_reader": 2}
+        rig.send(encode_hello(os.getpid(), 0))
+        h = rig.tick()
+        assert h and h.dirty is None and h.trace_ids == [1]
+    finally:
+        rig.close()

@@ -85,7 +85,7 @@ def last_heartbeat(w, timeout=5.0):
             m = json.loads(w.control.recv())
             if m["type"] == "heartbeat" and m["stats"].get("ticks"):
                 hb = m
-                if hb["stats"]["ticks"] > 20:
+                if hb["stats"]["ticks"] > 20 and hb["stats"].get("published", 0) >= 5:
                     return hb
         elif hb:
             return hb
@@ -96,6 +96,9 @@ def test_cadence_process_ticks_hands_off_traces_and_restarts(world):
     w = world
     p = w.start()
     w.ring.push(np.random.rand(500, 3).astype(np.float32), trace_id=0xABC)
+    time.sleep(1.0)
+    assert w.reader.recv(0) is None  # a first cadence waits for the renderer's hello
+    w.release.send_multipart(encode_hello(os.getpid(), 0))
     hs = recv_handoffs(w, 5)
     assert 0xABC in [t for h in hs for t in h.trace_ids]
     assert all(h.extra["budget"] == 80_000 for h in hs)       # L eco

@@ -8,15 +8,19 @@ from pointflow.cadence.messages import (
     ControlMessageError,
     FrameTime,
     Hello,
+    Idle,
     decode_control,
     encode_frame_time,
     encode_hello,
+    encode_idle,
 )
 
 
 def test_round_trip():
     assert decode_control(encode_hello(1234, 2)) == Hello(pid=1234, restart_count=2)
     assert decode_control(encode_frame_time(16.5, seq=9)) == FrameTime(frame_ms=16.5, seq=9)
+    assert decode_control(encode_idle(41, 512.5)) == Idle(last_seq=41, idle_ms=512.5)
+    assert decode_control(encode_frame_time(0.0, seq=3, drawn=False)) == FrameTime(frame_ms=0.0, seq=3, drawn=False)
     gpu = {"name": "x", "type": "DiscreteGPU", "max_storage_binding": 1 << 30, "max_buffer_size": 1 << 31}
     assert decode_control(encode_hello(1, 0, gpu=gpu)).gpu == gpu
 
@@ -35,6 +39,7 @@ def test_release_messages_are_not_control():
     ([CONTROL_TAG, json.dumps({"type": "hello", "pid": 1, "gpu": 5}).encode()], "gpu must be an object"),
     ([CONTROL_TAG, json.dumps({"type": "frame", "frame_ms": "x"}).encode()], "'frame': missing or bad"),
     ([CONTROL_TAG, json.dumps({"type": "frame", "frame_ms": -1}).encode()], "frame_ms must be finite"),
+    ([CONTROL_TAG, json.dumps({"type": "idle"}).encode()], "'idle': missing or bad"),
 ])
 def test_malformed(frames, match):
     with pytest.raises(ControlMessageError, match=match):

@@ -253,3 +253,45 @@ def test_stages_run_numpy_with_one_blas_thread_unless_the_user_set_one(tmp_path,
             env = dict(kv.split("=", 1) for kv in Path(f"/proc/{pid}/environ").read_text().split("\0") if "=" in kv)
             assert env.get("OPENBLAS_NUM_THREADS") == "1" and env.get("OMP_NUM_THREADS") == "1", name
             assert env.get("MKL_NUM_THREADS") == "3", name
+
+
+def test_a_killed_renderer_is_replaced_by_its_prepared_standby(tmp_path):
+    """``supervisor.standby``: each stage has a spare process that has imported its stage
+    (the renderer: created its device, drawn a warm-up frame); a restart activates it, and
+    a new spare is prepared. Nothing of them is left after the stop."""
+    cfg = small_config(supervisor={"max_restarts": 3, "restart_backoff_ms": 50})
+    seen = set()
+    with Pipeline.from_dict(cfg, out_dir=str(tmp_path)) as pipe:
+        def standby(name):
+            return pipe.stats()["stages"][name].get("standby_pid")
+
+        for name in ("render", "cadence"):
+            spare = _wait(lambda n=name: standby(n), 60)
+            assert spare, f"no standby for {name}"
+            old = pipe.stats()["stages"][name]["pid"]
+            seen.update((old, spare))
+            frames = pipe.stats()["frames"]
+            os.kill(old, signal.SIGKILL)
+            assert _wait(lambda n=name: pipe.stats()["stages"][n]["pid"] == spare and pipe.stats()["stages"][n]["ready"], 60)
+            assert _wait(lambda: pipe.stats()["frames"] > frames + 2, 60)
+            nxt = _wait(lambda n=name: standby(n), 60)
+            assert nxt and nxt != spare
+            seen.add(nxt)
+        st = pipe.stats()
+        assert {e["stage"] for e in st["events"]} == {"render", "cadence"}
+        assert _wait(lambda: pipe.stats()["stages"]["ingest"].get("standby_pid"), 60)
+        assert _wait(lambda: pipe.stats()["stages"]["source"].get("standby_pid"), 60)
+        seen.update(v["standby_pid"] for v in pipe.stats()["stages"].values() if v.get("standby_pid"))
+    st = pipe.stats()
+    assert_segments_gone(st)
+    assert_gone(seen)
+
+
+def _wait(pred, timeout):
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        v = pred()
+        if v:
+            return v
+        time.sleep(0.1)
+    return pred()
