@@ -43,6 +43,7 @@ STAGE_MAINS: dict[str, str] = {
     "render": "pointflow.render.process:main",
     "sender": "pointflow.remote.sender:main",
     "recorder": "pointflow.record.process:main",
+    "router": "pointflow.remote.router:main",
 }
 
 
