@@ -122,8 +122,9 @@ def main(ctx) -> None:
     if session is None:
         return
     table = SessionTable(ctx.log)
-    listeners = [session.info.declare_transport_events_listener(table.on_transport),
-                 session.info.declare_link_events_listener(table.on_link)]
+    # history: clients reconnecting to a restarted router may be in before the listeners
+    listeners = [session.info.declare_transport_events_listener(table.on_transport, history=True),
+                 session.info.declare_link_events_listener(table.on_link, history=True)]
     ctx.log.info("router %s listening on %s%s", session.info.zid(), ", ".join(r.listen),
                  f", connecting to {', '.join(r.connect)}" if r.connect else "")
     c = ctx.counters
