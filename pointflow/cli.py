@@ -251,9 +251,14 @@ def _validate(args) -> int:
         s = cfg.send
         extras = [x for x in (s.compression if s.compression != "none" else "",
                               f"quantise {s.quantise:g} m" if s.quantise else "",
+                              ("TLS" if s.zenoh.tls else "no TLS") if s.engine == "zenoh" else
                               "CURVE" if s.curve_secret_key else "no encryption") if x]
-        print(f"{args.file}: OK for `pointflow send` ({len(cfg.sources)} source(s), {s.socket} "
-              f"{'bound on' if s.bind else 'connecting to'} {s.endpoint}, {', '.join(extras)})")
+        if s.engine == "zenoh":  # docs/remote.md, "The Zenoh engine"
+            where = ", ".join([f"listening on {x}" for x in s.zenoh.listen] + [f"connecting to {x}" for x in s.zenoh.connect])
+            link = f"zenoh {s.zenoh.mode} publishing {s.key}/<source>, {where or 'no endpoints'}"
+        else:
+            link = f"{s.socket} {'bound on' if s.bind else 'connecting to'} {s.endpoint}"
+        print(f"{args.file}: OK for `pointflow send` ({len(cfg.sources)} source(s), {link}, {', '.join(extras)})")
     else:
         need = _check_ring_space(cfg)
         print(f"{args.file}: OK ({len(cfg.sources)} source(s), ring {cfg.ring.max_points:,} points "

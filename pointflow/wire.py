@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import re
+import struct
 import time
 from typing import Any, Sequence
 
@@ -144,6 +145,37 @@ def _encode_link(chunk: PointChunk, link: dict | None, compressor: Any, resoluti
             if a.dtype.byteorder == ">":
                 a = a.astype(a.dtype.newbyteorder("<"))
             frames.append(memoryview(a).cast("B") if a.nbytes >= ZERO_COPY_MIN_BYTES else a.tobytes())
+    return frames
+
+
+def to_single(frames: Sequence[Any]) -> tuple[bytes, bytes]:
+    """One message of :func:`encode` as ``(header, body)`` for engines that carry one payload
+    and an attachment per message (Zenoh links, docs/wire-format.md "Single-buffer framing"):
+    the header frame as it is, and the data frames back to back after their count (u32) and
+    byte lengths (u64 each), little-endian. The data frames are copied once, into the body."""
+    data = frames[1:]
+    lens = [f.nbytes if isinstance(f, memoryview) else len(f) for f in data]
+    return bytes(frames[0]), b"".join([struct.pack(f"<I{len(lens)}Q", len(lens), *lens), *data])
+
+
+def from_single(header: Any, body: Any) -> list[Any]:
+    """The frames of a :func:`to_single` message (views on ``body``, no copy), for
+    :func:`decode_message`; :class:`ChunkError` when the framing does not add up."""
+    mv = memoryview(body).cast("B")
+    if mv.nbytes < 4:
+        raise ChunkError("bad_frame_count", f"single-buffer body of {mv.nbytes} bytes has no frame count")
+    (k,) = struct.unpack_from("<I", mv, 0)
+    start = 4 + 8 * k
+    if k > 4096 or start > mv.nbytes:
+        raise ChunkError("bad_frame_count", f"single-buffer body declares {k} frames in {mv.nbytes} bytes")
+    lens = struct.unpack_from(f"<{k}Q", mv, 4)
+    if start + sum(lens) != mv.nbytes:
+        raise ChunkError("truncated" if start + sum(lens) > mv.nbytes else "size_mismatch",
+                         f"single-buffer body: frames of {sum(lens)} bytes declared, {mv.nbytes - start} present")
+    frames: list[Any] = [header]
+    for n in lens:
+        frames.append(mv[start:start + n])
+        start += n
     return frames
 
 

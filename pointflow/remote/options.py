@@ -12,10 +12,11 @@ import dataclasses
 import ipaddress
 import os
 from dataclasses import field
-from typing import Literal
+from typing import Literal, Optional
 
 from ..typed import Bound, ConfigError, at_least_one, check, endpoint, non_negative, positive
 from .keys import KeyFileError, authorized_keys, load_public, load_secret
+from .zenoh_options import ZenohOptions, check_zenoh
 
 HOW_TO_KEYS = ("create keys with `pointflow keys NAME --dir keys` on each host, then set curve_secret_key "
                "(this end's NAME.key_secret) and, on the connecting end, curve_server_key (the binding "
@@ -47,6 +48,9 @@ class LinkOptions:
 class SendConfig(LinkOptions):
     """``send:`` section: where ``pointflow send`` publishes the sources' chunks."""
 
+    #: zmq: a ZeroMQ socket (endpoint, socket, CURVE keys); zenoh: a Zenoh session publishing
+    #: each source on key ``<key>/<source>`` (zenoh block; docs/remote.md "The Zenoh engine").
+    engine: Literal["zmq", "zenoh"] = "zmq"
     endpoint: str = field(default="tcp://127.0.0.1:5556", metadata=check(endpoint))
     #: pub: every connected viewer gets every chunk (fan-out); push: one receiver per chunk.
     socket: Literal["pub", "push"] = "pub"
@@ -72,11 +76,46 @@ class SendConfig(LinkOptions):
     quantise: float = field(default=0.0, metadata=check(non_negative))
     #: Send a sync (per-source totals) this often, so receivers see losses at the tail.
     sync_every_s: float = field(default=0.5, metadata=check(positive))
-    #: Before sending, wait for this many subscribers (pub) for at most wait_s.
+    #: Before sending, wait for this many subscribers (pub) for at most wait_s. Zenoh engine:
+    #: any number > 0 waits until every configured source's key has a subscriber (Zenoh
+    #: tells whether one matches, not how many).
     wait_subscribers: int = field(default=0, metadata=check(non_negative))
     wait_s: float = field(default=10.0, metadata=check(non_negative))
     reconnect_initial_s: float = field(default=0.1, metadata=check(non_negative))
     reconnect_max_s: float = field(default=5.0, metadata=check(non_negative))
+    #: engine zenoh: the key prefix; source S is published on ``<key>/S``.
+    key: str = "pointflow"
+    #: engine zenoh: the session (mode, endpoints, TLS); listens on tcp/127.0.0.1:7448 by default.
+    zenoh: Optional[ZenohOptions] = None
+
+
+#: Keys of ``send:`` that only the ZeroMQ engine reads; the Zenoh engine's own.
+ZMQ_ONLY = ("endpoint", "socket", "bind", "send_hwm", "send_buffer_kb",
+            "curve_secret_key", "curve_server_key", "curve_authorized_keys", "insecure", "heartbeat_ivl_s",
+            "heartbeat_timeout_s", "heartbeat_ttl_s", "reconnect_initial_s", "reconnect_max_s")
+ZENOH_ONLY = ("key", "zenoh")
+#: Where a Zenoh sender listens unless its zenoh block says otherwise (a receiver's default connect).
+ZENOH_SEND_LISTEN = "tcp/127.0.0.1:7448"
+_BAD_KEY_CHARS = set("*$?#")
+
+
+def check_key_expr(key: str, path: str, wildcards: bool) -> None:
+    """A Zenoh key expression: chunks separated by ``/``, none empty; ``*``, ``**`` only where
+    ``wildcards``; never ``$``, ``?``, ``#``."""
+    chunks = key.split("/")
+    bad = next((c for c in chunks if not c or (set(c) & _BAD_KEY_CHARS and not (wildcards and c in ("*", "**")))), None)
+    if bad is not None:
+        what = "an empty chunk (a leading, trailing or double /)" if not bad else f"the chunk {bad!r}"
+        allowed = "chunks, * and **" if wildcards else "chunks without *, $, ?, #"
+        raise ConfigError(path, f"{key!r} is not a Zenoh key expression for this end: it has {what}; use {allowed} "
+                          "separated by / (e.g. pointflow/site1)")
+
+
+def source_key(prefix: str, source: str) -> str:
+    """The key a sender publishes source ``source`` on (characters a key cannot hold become _)."""
+    safe = "".join("_" if ch in _BAD_KEY_CHARS else ch for ch in source).strip("/") or "source"
+    safe = "/".join(c or "_" for c in safe.split("/"))
+    return f"{prefix}/{safe}"
 
 
 def is_loopback_endpoint(endpoint: str) -> bool:
@@ -142,12 +181,31 @@ def check_link_options(o: LinkOptions, path: str, endpoint: str, bind: bool, bas
 def check_send(s: SendConfig, path: str, base_dir: str) -> None:
     """Semantic checks of a ``send:`` section (errors name the key)."""
     # bounds of single options are declared on the fields (check(...)), so the JSON Schema has them
-    if s.wait_subscribers and s.socket != "pub":
-        raise ConfigError(f"{path}.wait_subscribers", "only a pub socket has subscribers to wait for")
+    defaults = SendConfig()
+    if s.engine == "zenoh":
+        for key in ZMQ_ONLY:
+            if getattr(s, key) != getattr(defaults, key):
+                raise ConfigError(f"{path}.{key}", f"{key} is an option of the zmq engine; with engine: zenoh the "
+                                  f"link is set in {path}.zenoh (mode, listen, connect, tls, insecure)")
+        check_key_expr(s.key, f"{path}.key", wildcards=False)
+        if s.zenoh is None:
+            s.zenoh = ZenohOptions()
+        if s.zenoh.mode == "router":
+            raise ConfigError(f"{path}.zenoh.mode", "a sender is a peer or a client; run routers with `pointflow router`")
+        check_zenoh(s.zenoh, f"{path}.zenoh", base_dir, listen_default=(ZENOH_SEND_LISTEN,))
+    else:
+        for key in ZENOH_ONLY:
+            if getattr(s, key) != getattr(defaults, key):
+                raise ConfigError(f"{path}.{key}", f"{key} is an option of the zenoh engine; set {path}.engine: zenoh "
+                                  "to publish over Zenoh")
     if s.compression != "none":
         try:
             __import__("lz4.frame" if s.compression == "lz4" else "zstandard")
         except ImportError:
             raise ConfigError(f"{path}.compression", f"{s.compression} needs its Python package: "
                               "pip install 'pointflow[remote]'") from None
+    if s.engine == "zenoh":
+        return
+    if s.wait_subscribers and s.socket != "pub":
+        raise ConfigError(f"{path}.wait_subscribers", "only a pub socket has subscribers to wait for")
     check_link_options(s, path, s.endpoint, s.bind, base_dir)

@@ -47,8 +47,8 @@ class LinkSender:
         self.log = log
         self.epoch = secrets.token_hex(6)
         self.streams: dict[str, list[int]] = {}  # source -> [next seq, points sent]
-        #: (frames, points) of data chunks, (frames, None) of syncs.
-        self.queue: collections.deque[tuple[list[Any], int | None]] = collections.deque()
+        #: (frames, points, source) of data chunks, (frames, None, source) of syncs.
+        self.queue: collections.deque[tuple[list[Any], int | None, str]] = collections.deque()
         self.compressor = Compressor(send_cfg.compression, send_cfg.compression_level, send_cfg.shuffle) \
             if send_cfg.compression != "none" else None
         self.resolution = send_cfg.quantise or None
@@ -70,39 +70,48 @@ class LinkSender:
             return
         st[0] += 1
         st[1] += n
-        self._enqueue(frames, n)
+        self._enqueue(frames, n, src)
 
     def sync(self, end: bool = False) -> None:
         """Queue one sync per source (its totals so far). Syncs still queued are dropped
         first: the new ones supersede them, so a stalled link never piles them up."""
-        if any(n is None for _, n in self.queue):
+        if any(e[1] is None for e in self.queue):
             self.queue = collections.deque(e for e in self.queue if e[1] is not None)
         for src, (seq, sent) in self.streams.items():
             link = {"epoch": self.epoch, "seq": seq, "sent": sent, "sync": True}
             if end:
                 link["end"] = True
-            self.queue.append((wire.encode(PointChunk(positions=self._empty, source_id=src), link=link), None))
+            self.queue.append((wire.encode(PointChunk(positions=self._empty, source_id=src), link=link), None, src))
 
-    def _enqueue(self, frames: list[Any], n: int) -> None:
+    def _enqueue(self, frames: list[Any], n: int, src: str) -> None:
         """Queue a data chunk; beyond ``queue_chunks`` data chunks the oldest is dropped
         (syncs do not count and are never dropped for data)."""
-        self.queue.append((frames, n))
-        data = sum(1 for _, m in self.queue if m is not None)
+        self.queue.append((frames, n, src))
+        data = sum(1 for e in self.queue if e[1] is not None)
         while data > self.s.queue_chunks:
-            for i, (_, m) in enumerate(self.queue):
+            for i, (_, m, _s) in enumerate(self.queue):
                 if m is not None:
                     del self.queue[i]
                     self.counters.drop("link_queue_full", m)
                     data -= 1
                     break
 
+    def put(self, frames: list[Any], source: str) -> int | None:
+        """Hand one message to the link without blocking: its bytes, or None if the link is
+        full (the ZeroMQ socket here; :class:`pointflow.remote.zenoh_sender.ZenohLinkSender`
+        publishes on Zenoh instead)."""
+        try:
+            self.sock.send_multipart(frames, zmq.NOBLOCK, copy=False)
+        except zmq.Again:
+            return None
+        return sum(len(f) if isinstance(f, bytes) else f.nbytes for f in frames)
+
     def pump(self) -> bool:
-        """Hand queued messages to the socket without blocking; False if the socket is full."""
+        """Hand queued messages to the link without blocking; False if the link is full."""
         while self.queue:
-            frames, n = self.queue[0]
-            try:
-                self.sock.send_multipart(frames, zmq.NOBLOCK, copy=False)
-            except zmq.Again:
+            frames, n, src = self.queue[0]
+            nbytes = self.put(frames, src)
+            if nbytes is None:
                 return False
             self.queue.popleft()
             self.messages_out += 1
@@ -110,16 +119,16 @@ class LinkSender:
                 self.syncs_out += 1
             else:
                 self.counters.points_out += n
-            self.bytes_out += sum(len(f) if isinstance(f, bytes) else f.nbytes for f in frames)
+            self.bytes_out += nbytes
         return True
 
     @property
     def queued_points(self) -> int:
-        return sum(n for _, n in self.queue if n is not None)
+        return sum(e[1] for e in self.queue if e[1] is not None)
 
     @property
     def queued_chunks(self) -> int:
-        return sum(1 for _, n in self.queue if n is not None)
+        return sum(1 for e in self.queue if e[1] is not None)
 
     def stats(self) -> dict[str, Any]:
         return {"link_bytes_out": self.bytes_out, "link_messages_out": self.messages_out,

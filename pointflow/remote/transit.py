@@ -13,6 +13,13 @@ holds at every sync. Messages arrive in order on one ZeroMQ connection; a gap in
 is a lost chunk and the gap in ``sent`` its points. A receiver that joins late (the first
 message it sees has ``seq`` > 0) counts what was sent before as ``joined_after``, not
 as lost.
+
+A receiver with its own bounded queue in front of the decoder (the ``zenoh`` transport)
+may drop a message that did arrive; it passes the dropped message's header to
+:meth:`TransitLedger.observe` with ``dropped=True`` and the points count as
+``receive_queue_full`` instead of received, so then
+
+    sent (since it joined) = received + lost_in_transit + receive_queue_full
 """
 from __future__ import annotations
 
@@ -31,6 +38,7 @@ class _Stream:
     received: int = 0
     lost_points: int = 0
     lost_chunks: int = 0
+    dropped: int = 0
 
 
 def _int(link: dict, key: str) -> int:
@@ -50,9 +58,11 @@ class TransitLedger:
         #: Totals of earlier epochs (a sender that restarted), per source.
         self._past: dict[str, dict[str, int]] = {}
 
-    def observe(self, source: str, link: Any, n: int) -> bool:
+    def observe(self, source: str, link: Any, n: int, dropped: bool = False) -> bool:
         """Account one message; True for a data chunk, False for a sync (deliver nothing).
-        Raises :class:`ChunkError` (``bad_link``, ``stale_link_seq``) for nonsense."""
+        ``dropped``: the receiver got this message but dropped it before decoding (its queue
+        was full): its points count as ``receive_queue_full``. Raises :class:`ChunkError`
+        (``bad_link``, ``stale_link_seq``) for nonsense."""
         if not isinstance(link, dict) or not isinstance(link.get("epoch"), str):
             raise ChunkError("bad_link", f"link must be an object with a string epoch, got {link!r}")
         seq, sent = _int(link, "seq"), _int(link, "sent")
@@ -85,13 +95,16 @@ class TransitLedger:
             return False
         self.ended.discard(source)
         st.next_seq = seq + 1
+        if dropped:
+            st.dropped += n
+            return False
         st.received += n
         return True
 
     @staticmethod
     def _stream_totals(st: _Stream) -> dict[str, int]:
         return {"sent": st.sent - st.joined_after, "received": st.received, "lost_points": st.lost_points,
-                "lost_chunks": st.lost_chunks, "joined_after": st.joined_after}
+                "lost_chunks": st.lost_chunks, "joined_after": st.joined_after, "dropped": st.dropped}
 
     def per_source(self) -> dict[str, dict[str, int]]:
         out: dict[str, dict[str, int]] = {}
@@ -115,4 +128,6 @@ class TransitLedger:
             out["joined_after"] += t.get("joined_after", 0)
             out[f"lost_in_transit:{src}"] = t.get("lost_points", 0)
             out[f"link_sent:{src}"] = t.get("sent", 0)
+            if t.get("dropped"):
+                out["receive_queue_full"] = out.get("receive_queue_full", 0) + t["dropped"]
         return out

@@ -41,7 +41,7 @@ STAGE_MAINS: dict[str, str] = {
     "ingest": "pointflow.ingest.process:main",
     "cadence": "pointflow.cadence.process:main",
     "render": "pointflow.render.process:main",
-    "sender": "pointflow.remote.sender:main",
+    "sender": "pointflow.remote.send_stage:main",
     "recorder": "pointflow.record.process:main",
     "router": "pointflow.remote.router:main",
 }

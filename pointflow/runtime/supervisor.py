@@ -89,6 +89,8 @@ COUNTERS = ("points_in", "points_out", "frames", "pngs", "uploaded_bytes", "mess
             # a link source (docs/remote.md): its ledger starts again in a restarted process
             "transport_link_sent", "transport_link_received", "transport_lost_in_transit",
             "transport_lost_chunks", "transport_joined_after",
+            # a zenoh link source: arrived but dropped by its own bounded queue, dead senders
+            "transport_receive_queue_full", "transport_receive_queue_full_chunks", "transport_senders_lost",
             # the recording (docs/record.md): ingest's copies for it, the recorder's files
             "record_offered", "record_sent", "record_dropped", "record_messages_sent", "record_bytes",
             "record_messages", "record_files",
@@ -718,7 +720,12 @@ class Supervisor:
             acc["lost_in_transit"] = sum(v.get("transport_lost_in_transit", 0) for v in link)
             acc["lost_in_transit_by_source"] = {k.split(":", 1)[1]: n for v in link for k, n in v.items()
                                                 if k.startswith("transport_lost_in_transit:")}
-            acc["link_balanced"] = acc["link_sent"] == acc["link_received"] + acc["lost_in_transit"]
+            # a zenoh source's own bounded queue (docs/remote.md, "The Zenoh engine")
+            dropped = [v["transport_receive_queue_full"] for v in link if "transport_receive_queue_full" in v]
+            if dropped:
+                acc["receive_queue_full"] = sum(dropped)
+            acc["link_balanced"] = acc["link_sent"] == acc["link_received"] + acc["lost_in_transit"] \
+                + acc.get("receive_queue_full", 0)
         return acc
 
     def _record_accounting(self, ing: dict, rec: dict) -> dict[str, Any]:

@@ -12,6 +12,7 @@ from .base import NoOptions, Transport
 BUILTINS: dict[str, str] = {
     "synthetic": "pointflow.ingest.transports.synthetic:SyntheticTransport",
     "zmq": "pointflow.ingest.transports.zmq_transport:ZmqTransport",
+    "zenoh": "pointflow.ingest.transports.zenoh_transport:ZenohTransport",
     "websocket": "pointflow.ingest.transports.websocket:WebSocketTransport",
     "sse": "pointflow.ingest.transports.sse:SseTransport",
     "file": "pointflow.ingest.transports.file:FileTransport",
