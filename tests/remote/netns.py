@@ -186,6 +186,11 @@ class Net:
                 pytest.skip(why + " (this kernel lacks sch_" + kind + ")")
             raise RuntimeError(why)
 
+    def qdisc_sent(self, ns: str, peer: str) -> int:
+        """Bytes the root qdisc on ``ns``'s end of the link to ``peer`` has sent."""
+        out = sh("ip", "netns", "exec", ns, "tc", "-s", "qdisc", "show", "dev", self.veths[(ns, peer)]).stdout
+        return int(out.split("Sent ", 1)[1].split(" ", 1)[0])
+
     def del_qdisc(self, ns: str, peer: str) -> None:
         sh("ip", "netns", "exec", ns, "tc", "qdisc", "del", "dev", self.veths[(ns, peer)], "root")
 
