@@ -41,7 +41,8 @@ class Routers:
 
     def start(self, router: dict, name: str = "router", *args: str) -> subprocess.Popen:
         cfg = self.tmp / f"{name}.yaml"
-        cfg.write_text(json.dumps({"router": {"stats_every_s": 0.5, **router}}))
+        # a router silent for a second on a machine at load 10+ is not taken for hung
+        cfg.write_text(json.dumps({"router": {"stats_every_s": 0.5, **router}, "supervisor": {"hung_after_ms": 10_000}}))
         log = open(self.tmp / f"{name}.log", "w")
         p = subprocess.Popen([sys.executable, "-m", "pointflow.cli", "router", str(cfg), "--out",
                               str(self.tmp / name), *args], stdout=log, stderr=subprocess.STDOUT,

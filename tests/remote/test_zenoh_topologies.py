@@ -60,8 +60,13 @@ def zenoh_client(net: Net, router_addr: str, tls: dict | None = None) -> dict:
             "config_file": net_config(net)}
 
 
+#: A stage that fails is not restarted (so nothing is hidden), and one that is silent for a
+#: second on a machine at load 10+ is not taken for hung.
+SUPERVISOR = {"max_restarts": 0, "hung_after_ms": 10_000}
+
+
 def send_cfg(source: dict, key: str, zenoh: dict, **send) -> dict:
-    return {"sources": [source], "supervisor": {"max_restarts": 0},
+    return {"sources": [source], "supervisor": SUPERVISOR,
             "send": {"engine": "zenoh", "key": key, "queue_chunks": 256, "wait_subscribers": 1, "wait_s": 60,
                      "zenoh": zenoh, **send}}
 
@@ -72,12 +77,13 @@ def view_cfg(zenoh: dict, **opts) -> dict:
             "cadence": {"target_hz": 10},
             "render": {"backend": "cpu", "size": [64, 48], "output": {"dir": None}},
             "tracing": {"enabled": False},
-            "supervisor": {"max_restarts": 0}}
+            "supervisor": SUPERVISOR}
 
 
 def start_router(net: Net, ns: str, listen: str, name: str = "router", **router):
     router.setdefault("config_file", net_config(net))
-    path = write_cfg(net.workdir / f"{name}.yaml", {"router": {"listen": [listen], "stats_every_s": 1.0, **router}})
+    path = write_cfg(net.workdir / f"{name}.yaml", {"router": {"listen": [listen], "stats_every_s": 1.0, **router},
+                                                    "supervisor": {"hung_after_ms": 10_000}})
     p = net.pointflow(ns, "router", path, "--out", str(net.workdir / name), log=f"{name}.log")
     wait_for(lambda: " listening on " in net.log(f"{name}.log"), 60, f"{name} to listen", lambda: net.log(f"{name}.log"))
     return p
