@@ -335,3 +335,46 @@ def test_the_router_config_of_the_repo_validates():
 
     cfg = load_config(Path(__file__).resolve().parents[2] / "configs" / "zenoh-router.yaml")
     assert cfg.router.mode == "router" and cfg.router.listen == ["tcp/127.0.0.1:7447"] and not cfg.sources
+
+
+def test_two_routers_meshed_carry_samples_between_their_clients(routers, sessions):
+    """A router that connects to another (`connect:`): a client of one reaches a client of
+    the other, as across two networks, and each lists the other as a router session."""
+    pa, pb = free_port(), free_port()
+    a = routers.start({"listen": [f"tcp/127.0.0.1:{pa}"]}, "a")
+    routers.wait_up("a")
+    b = routers.start({"listen": [f"tcp/127.0.0.1:{pb}"], "connect": [f"tcp/127.0.0.1:{pa}"]}, "b")
+    routers.wait_up("b")
+    wait_for(lambda: "(1 router)" in routers.log("a") and "(1 router)" in routers.log("b"), 30,
+             "the routers to see each other", lambda: routers.log("a") + routers.log("b"))
+    sensor, viewer = sessions(client(pa)), sessions(client(pb))
+    inbox = Inbox(viewer, "pf/**")
+    exchange(sensor, inbox, "pf/lidar", 50)
+    for p, name in ((a, "a"), (b, "b")):
+        p.send_signal(signal.SIGINT)
+        assert p.wait(30) == 0, routers.log(name)
+
+
+def test_engine_log_lines_are_parsed_counted_and_relogged(caplog):
+    """Lines as the engine writes them (captured from eclipse-zenoh 1.10 with its colours):
+    refused TLS handshakes are counted by reason, other warnings logged, nothing lost."""
+    import logging
+
+    from pointflow.remote.zenoh_log import EngineLog
+
+    log = logging.getLogger("pointflow.test.engine")
+    e = EngineLog(log)
+    with caplog.at_level(logging.INFO, logger="pointflow.test.engine"):
+        e.feed("\x1b[2m2026-11-23T22:55:53.410763Z\x1b[0m \x1b[33m WARN\x1b[0m acc-0 ThreadId(05) "
+               "\x1b[2mzenoh_link_tls::unicast\x1b[0m\x1b[2m:\x1b[0m invalid peer certificate: UnknownIssuer. "
+               "Hint: increase the system open file limit.\n")
+        e.feed("2026-11-23T23:04:01.1Z  WARN acc-0 ThreadId(07) zenoh_link_tls::unicast: peer sent no certificates\n")
+        e.feed("2026-11-23T22:55:53.411307Z  WARN ThreadId(01) zenoh::net::runtime::orchestrator: Unable to connect "
+               "to tls/127.0.0.1:17447! received fatal alert: UnknownCA at /root/.cargo/git/x/unicast.rs:226.\n")
+        e.feed("something the engine printed without a level\n")
+    assert e.counts() == {"invalid peer certificate: UnknownIssuer": 1, "peer sent no certificates": 1}
+    assert e.last_refusal == "peer sent no certificates"
+    text = caplog.text
+    assert text.count("refused a connection") == 2 and "Hint" not in text
+    assert "Unable to connect to tls/127.0.0.1:17447! received fatal alert: UnknownCA" in text and ".rs:" not in text
+    assert "something the engine printed" in text and e.lines == 4
