@@ -186,6 +186,11 @@ class Net:
                 pytest.skip(why + " (this kernel lacks sch_" + kind + ")")
             raise RuntimeError(why)
 
+    def tx_bytes(self, ns: str, peer: str) -> int:
+        """Bytes ``ns``'s end of the link to ``peer`` has sent (the kernel's counter)."""
+        out = sh("ip", "-n", ns, "-s", "-j", "link", "show", "dev", self.veths[(ns, peer)]).stdout
+        return int(json.loads(out)[0]["stats64"]["tx"]["bytes"])
+
     def qdisc_sent(self, ns: str, peer: str) -> int:
         """Bytes the root qdisc on ``ns``'s end of the link to ``peer`` has sent."""
         out = sh("ip", "netns", "exec", ns, "tc", "-s", "qdisc", "show", "dev", self.veths[(ns, peer)]).stdout

@@ -21,7 +21,6 @@ import json
 import os
 import signal
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -203,9 +202,9 @@ def test_a_viewer_that_joins_late(net):
     early = start_probe(net, v1, {"key": "pf/**", "backpressure": True, "zenoh": zenoh_client(net, r_v1)}, "early")
     send = start_send(net, s1, send_cfg(synthetic_source(scans=150, points=2000, hz=10), "pf", zenoh_client(net, r_s1),
                                         backpressure=True), "send")
-    # the late viewer joins once the sensor has streamed to the first one for a while (15 s in all)
-    wait_for(lambda: "is alive" in net.log("early.log"), 60, "the stream to start", lambda: net.log("send.log"))
-    time.sleep(2.0)
+    # the late viewer joins once 300 KB of the stream went to the first one (of ~4.5 MB)
+    wait_for(lambda: net.tx_bytes(rt, v1) > 300_000, 90, "the stream to reach the first viewer",
+             lambda: net.log("send.log"))
     late = start_probe(net, v2, {"key": "pf/**", "backpressure": True, "zenoh": zenoh_client(net, r_v2)}, "late")
     assert send.wait(120) == 0, net.log("send.log")
     assert early.wait(120) == 0 and late.wait(120) == 0, net.log("early.log") + net.log("late.log")
@@ -234,9 +233,8 @@ def test_router_killed_and_restarted(net):
     probe = start_probe(net, v1, {"key": "pf/**", "zenoh": zenoh_client(net, r_v1)}, "view")
     send = start_send(net, s1, send_cfg(synthetic_source(scans=1_000_000, points=2000, hz=10), "pf",
                                         zenoh_client(net, r_s1)), "send")
-    wait_for(lambda: "every source has a subscriber" in net.log("send.log"), 60, "the stream to start",
+    wait_for(lambda: net.tx_bytes(rt, v1) > 300_000, 90, "the stream to reach the viewer through the first router",
              lambda: net.log("send.log") + net.log("view.log"))
-    time.sleep(1.5)  # some scans through the first router
     os.killpg(router.pid, signal.SIGKILL)
     router.wait(10)
     wait_for(lambda: "is gone" in net.log("view.log"), 60, "the viewer to notice the sender is unreachable",
@@ -246,13 +244,16 @@ def test_router_killed_and_restarted(net):
              lambda: net.log("router2.log"))
     wait_for(lambda: net.log("view.log").count("is alive") >= 2, 60, "the sender seen alive again",
              lambda: net.log("view.log"))
-    time.sleep(1.5)  # some scans through the new router
+    before = net.tx_bytes(rt, v1)
+    wait_for(lambda: net.tx_bytes(rt, v1) > before + 300_000, 90, "the stream through the new router",
+             lambda: net.log("send.log") + net.log("view.log"))
     assert stop(send, 60) == 0, net.log("send.log")  # the final sync goes through the new router
     assert probe.wait(120) == 0, net.log("view.log")
     snd = read_stats(net.workdir / "send" / "stats.json")["accounting"]
     c = probe_counters(net, "view")
     assert c["ended"] == ["lidar"] and c["link_sent"] == snd["link_sent"], (c, snd)
     assert balanced(c), c
+    assert c["joined_after"] == 0, "the viewer got the stream from its start"
     assert c["lost_in_transit"] > 0, "points sent while no router ran must be counted lost"
     assert c["senders_lost"] >= 1 and c["link_received"] > 0
     st = end_router(net, router2, "router2")
