@@ -245,15 +245,14 @@ def zenoh_send(args, chunks) -> None:
     import logging
 
     from pointflow.remote.options import SendConfig, check_send
-    from pointflow.remote.zenoh_options import open_session
-    from pointflow.remote.zenoh_sender import CLOSE_SETTLE_S, SENDER_DEFAULTS, ZenohLinkSender, _matching
+    from pointflow.remote.zenoh_sender import CLOSE_SETTLE_S, ZenohLinkSender, _matching, open_sender_session
     from pointflow.runtime.stage import StageCounters
 
     client = "router" in args.mode or "fanout" in args.mode
     z = _zopts(args, mode="client" if client else "peer", connect=[args.endpoint])
     s = SendConfig(engine="zenoh", key="bench", backpressure=True, queue_chunks=4, zenoh=z)
     check_send(s, "send", ".")
-    session = open_session(s.zenoh, SENDER_DEFAULTS)
+    session = open_sender_session(s.zenoh)
     counters = StageCounters()
     snd = ZenohLinkSender(session, s, counters, logging.getLogger("bench"))
     pub = snd._publisher(chunks[0].source_id)
@@ -538,7 +537,8 @@ def zenoh_pass(args) -> int:
 
 
 def zenoh_chart(out: dict, path: str) -> None:
-    """Throughput per engine (beside the ZeroMQ baseline) and the fan-out's bytes on the sensor's link."""
+    """Paired ratios per round against the issue's targets, absolute medians beside the
+    ZeroMQ baseline, and the fan-out's bytes on the sensor's link."""
     try:
         import matplotlib
 
@@ -546,33 +546,42 @@ def zenoh_chart(out: dict, path: str) -> None:
         import matplotlib.pyplot as plt
     except ImportError:
         return
-    ds = list(out["summary"])
-    fig, axes = plt.subplots(1, len(ds) + 1, figsize=(4.4 * (len(ds) + 1), 4.2), squeeze=False)
-    for i, d in enumerate(ds):
-        ms = out["summary"][d]
-        names = list(ms)
-        ax = axes[0][i]
-        bars = ax.bar(names, [ms[m]["points_per_s_median"] / 1e6 for m in names],
-                      color=["tab:gray", "tab:blue", "tab:cyan"][:len(names)])
-        for b, m in zip(bars, names):
-            ax.annotate(f"{ms[m]['throughput_vs_plain_median']:.2f}x", (b.get_x() + b.get_width() / 2, b.get_height()),
-                        ha="center", va="bottom", fontsize=8)
-        ax.set_title(f"{d}: sensor -> (middle) -> viewer")
-        ax.set_ylabel("Mpoints/s delivered (median)")
-        ax.tick_params(axis="x", labelsize=8)
-    ax = axes[0][-1]
+    d = list(out["summary"])[-1]
+    runs = out["runs"][d]
+    fig, axes = plt.subplots(1, 3, figsize=(13, 4.2))
+    ax = axes[0]
+    pairs = [("Zenoh direct / ZeroMQ", "zenoh", "plain", 0.9), ("via router / direct", "zenoh+router", "zenoh", 0.7)]
+    for i, (label, a, b, target) in enumerate(pairs):
+        ratios = [x["points_per_s"] / y["points_per_s"] for x, y in zip(runs[a], runs[b])]
+        ax.bar(i, statistics.median(ratios), color=["tab:blue", "tab:cyan"][i], alpha=0.7)
+        ax.plot([i] * len(ratios), ratios, "k.", ms=6)
+        ax.hlines(target, i - 0.4, i + 0.4, colors="tab:red", linestyles="--")
+        ax.annotate(f"median {statistics.median(ratios):.2f}\ntarget {target}", (i, statistics.median(ratios)),
+                    ha="center", va="bottom", fontsize=8)
+    ax.set_xticks([0, 1], [p[0] for p in pairs], fontsize=8)
+    ax.set_ylabel("throughput ratio, same round (dots: rounds)")
+    ax.set_title(f"{d}: paired ratios")
+    ax = axes[1]
+    ms = out["summary"][d]
+    names = list(ms)
+    ax.bar(names, [ms[m]["points_per_s_median"] / 1e6 for m in names], color=["tab:gray", "tab:blue", "tab:cyan"])
+    ax.set_ylabel("Mpoints/s delivered (median)")
+    ax.set_title(f"{d}: sensor -> middle -> viewer, lossless")
+    ax.tick_params(axis="x", labelsize=8)
+    ax = axes[2]
     fan = out["fanout"]
-    names = list(fan)
-    ax.bar(["ZeroMQ PUB", "Zenoh via router"], [fan[m]["wire_bytes_over_payload_median"] for m in names],
+    ax.bar(["ZeroMQ PUB", "Zenoh via router"], [fan[m]["wire_bytes_over_payload_median"] for m in fan],
            color=["tab:gray", "tab:blue"])
     ax.axhline(1.0, color="k", lw=0.8, ls=":")
     ax.set_title("fan-out to 4 viewers")
     ax.set_ylabel("bytes on the sensor's veth / payload")
-    fig.suptitle(f"Zenoh engine vs ZeroMQ, {CHUNK // 1000}k-point chunks, three network namespaces "
-                 f"(shared 2-core VM, load {out['loadavg_before'][0]:.1f}-{out['loadavg_after'][0]:.1f})", fontsize=9)
+    fig.suptitle(f"Zenoh engine vs ZeroMQ, {CHUNK // 1000}k-point chunks, three network namespaces, {out['rounds']} "
+                 f"interleaved rounds (shared 2-core VM, load {out['loadavg_before'][0]:.1f}-{out['loadavg_after'][0]:.1f})",
+                 fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)
+
 
 # --------------------------------------------------------------------------- chart
 def chart(out: dict, path: str) -> None:
@@ -686,6 +695,10 @@ def main() -> int:
         return 0
     if args.role == "recv":
         role_recv(args)
+        return 0
+    if args.chart_only and args.zenoh:
+        with open(os.path.join(ROOT, "bench", "results", "remote_zenoh.json")) as f:
+            zenoh_chart(json.load(f), os.path.join(ROOT, "bench", "results", "remote_zenoh.png"))
         return 0
     if args.chart_only:
         with open(os.path.join(ROOT, "bench", "results", "remote.json")) as f:

@@ -263,6 +263,7 @@ def send_summary(stats: dict) -> str:
     drops = sum(st.get("drops", {}).values())
     b = st.get("link_bytes_out", 0)
     bpp = f"{b / pout:.2f} B/point" if pout else "-"
+    peers = (f"zenoh publishers {st['link_publishers']}" if "link_publishers" in st else
+             f"peers {st.get('link_peers', 0)}, refused {st.get('link_refused_handshakes', 0)}")
     return (f"sent {pout:,} of {pin:,} points ({drops:,} dropped), {b / 1e6:.1f} MB on the link ({bpp}), "
-            f"peers {st.get('link_peers', 0)}, refused {st.get('link_refused_handshakes', 0)}, "
-            f"{stats.get('elapsed_s', 0):.1f} s")
+            f"{peers}, {stats.get('elapsed_s', 0):.1f} s")

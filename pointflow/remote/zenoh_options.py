@@ -183,12 +183,12 @@ class ZenohOpenError(RuntimeError):
     """A session could not open; the message says which endpoint and why."""
 
 
-def open_session(o: ZenohOptions, defaults: Optional[dict[str, Any]] = None) -> "zenoh.Session":
+def open_session(o: ZenohOptions) -> "zenoh.Session":
     """Open a session for a checked block; an engine error becomes one readable line."""
     import zenoh
 
     try:
-        return zenoh.open(zenoh_config(o, defaults))
+        return zenoh.open(zenoh_config(o))
     except zenoh.ZError as exc:
         where = ", ".join([f"listen {x}" for x in o.listen] + [f"connect {x}" for x in o.connect]) or "no endpoints"
         why = re.sub(r"\s+at /\S+\.rs:\d+\.?", "", str(exc))  # the engine's source locations: no help here

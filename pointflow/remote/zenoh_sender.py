@@ -26,13 +26,24 @@ from .. import wire
 from ..chunk import ChunkError
 from .options import source_key
 from .sender import FLUSH_S, STOP_GRACE_S, STOP_QUIET_S, LinkSender
-from .zenoh_options import open_session
+from .zenoh_options import ZenohOpenError, zenoh_config
 
 #: A put to a full network queue waits this long (us) before Zenoh drops it (Zenoh's default
 #: is 1 ms): rides out a busy host's scheduling hiccups, still never stalls for long.
 SENDER_DEFAULTS = {"transport/link/tx/queue/congestion_control/drop/wait_before_drop": 10_000}
 #: After the last put, before closing the session: Zenoh sends its batches asynchronously.
 CLOSE_SETTLE_S = 0.3
+
+
+def open_sender_session(z):
+    """:func:`.zenoh_options.open_session` with :data:`SENDER_DEFAULTS`."""
+    import zenoh
+
+    try:
+        return zenoh.open(zenoh_config(z, SENDER_DEFAULTS))
+    except zenoh.ZError as exc:
+        where = ", ".join([f"listen {x}" for x in z.listen] + [f"connect {x}" for x in z.connect]) or "no endpoints"
+        raise ZenohOpenError(f"zenoh session ({z.mode}; {where}) did not open: {exc}") from None
 
 
 class ZenohLinkSender(LinkSender):
@@ -105,7 +116,7 @@ def main(ctx) -> None:
     pull.setsockopt(zmq.LINGER, 0)
     pull.bind(ctx.endpoints.ingest)
     try:
-        session = open_session(z, SENDER_DEFAULTS)
+        session = open_sender_session(z)
     except Exception as exc:  # noqa: BLE001 - ZenohOpenError or a missing package: one line
         pull.close()
         raise RuntimeError(f"send: {exc}") from None
@@ -137,8 +148,7 @@ def main(ctx) -> None:
                 continue
             ctx.counters.points_in += chunk.n
             snd.add(chunk)
-            if s.backpressure:  # hand it on before taking more (a put may wait for the network)
-                snd.pump()
+            snd.pump()  # at once: a put never waits long (drop), so the queue only holds what block holds back
         return got
 
     try:

@@ -293,3 +293,41 @@ def test_defaults_are_loopback_and_insecure_is_explicit():
     assert ok.sources[0].options["zenoh"]["connect"] == ["tcp/192.0.2.7:7448"]
     zmq = load_config({"source": {"transport": "synthetic"}, "send": {}})
     assert zmq.send.engine == "zmq" and zmq.send.zenoh is None
+
+
+def test_single_buffer_framing_round_trip_and_defects():
+    """wire.to_single / from_single carry every encoded form (plain, compressed, quantised,
+    with a link header) to the same chunk; a body that does not add up is rejected."""
+    from pointflow import wire
+    from pointflow.chunk import ChunkError, PointChunk
+    from pointflow.remote.codec import Compressor
+
+    rng = np.random.default_rng(3)
+    c = PointChunk(positions=rng.uniform(-50, 50, (5000, 3)), source_id="lidar",
+                   channels={"intensity": rng.random(5000).astype(np.float32)})
+    link = {"epoch": "e", "seq": 0, "sent": 5000}
+    for kw in ({}, {"link": link}, {"link": link, "compressor": Compressor("lz4")}, {"link": link, "resolution": 0.001}):
+        header, body = wire.to_single(wire.encode(c, **kw))
+        got, h = wire.decode_message(wire.from_single(header, body))
+        assert h.get("link") == kw.get("link") and got.source_id == "lidar"
+        tol = 0.0005 if "resolution" in kw else 0.0
+        assert np.abs(got.positions - c.positions).max() <= tol * (1 + 1e-6)
+        assert np.array_equal(got.channels["intensity"], c.channels["intensity"])
+    header, body = wire.to_single(wire.encode(c))
+    for bad, reason in ((body[:-1], "truncated"), (body + b"x", "size_mismatch"), (b"\x01", "bad_frame_count"),
+                        (b"\xff\xff\xff\x7f" + body[4:], "bad_frame_count")):
+        with pytest.raises(ChunkError) as e:
+            wire.from_single(header, bad)
+        assert e.value.reason == reason
+
+
+def test_ledger_counts_receiver_drops_apart_from_losses():
+    from pointflow.remote.transit import TransitLedger
+
+    t = TransitLedger()
+    assert t.observe("a", {"epoch": "e", "seq": 0, "sent": 10}, 10)
+    assert not t.observe("a", {"epoch": "e", "seq": 1, "sent": 30}, 20, dropped=True)  # arrived, dropped here
+    assert t.observe("a", {"epoch": "e", "seq": 3, "sent": 70}, 15)  # seq 2 (25 points) lost on the way
+    assert not t.observe("a", {"epoch": "e", "seq": 4, "sent": 70, "sync": True, "end": True}, 0)
+    c = t.counters()
+    assert (c["link_sent"], c["link_received"], c["lost_in_transit"], c["receive_queue_full"]) == (70, 25, 25, 20)

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import importlib.util
 import json
 import logging
 import threading
@@ -73,15 +74,14 @@ class ZenohTransport(Transport):
             raise ConfigError(f"{path}.zenoh.mode", "a receiving source is a peer or a client; run routers with "
                               "`pointflow router`")
         check_zenoh(o.zenoh, f"{path}.zenoh", base_dir, connect_default=(DEFAULT_CONNECT,))
-        try:
-            import zenoh  # noqa: F401
-        except ImportError:
-            raise ConfigError(f"{path}", "the zenoh transport needs eclipse-zenoh: pip install 'pointflow[remote]'") \
-                from None
+        if importlib.util.find_spec("zenoh") is None:  # every stage loads the config: no engine import here
+            raise ConfigError(f"{path}", "the zenoh transport needs eclipse-zenoh: pip install 'pointflow[remote]'")
 
     def __init__(self, options: dict[str, Any], source_id: str):
         super().__init__(options, source_id)
         self.o: ZenohSourceOptions = load_dataclass(ZenohSourceOptions, options, "options")
+        #: with backpressure the source stage also waits for ingest instead of dropping (hwm)
+        self.lossless = self.o.backpressure
         self.counters = {"messages": 0, "rejected": 0, "receive_queue_full": 0, "receive_queue_full_chunks": 0,
                          "senders_alive": 0, "senders_lost": 0}
         self.ledger = TransitLedger()
