@@ -303,10 +303,10 @@ def dataclass_schema(cls) -> dict:
         if f.metadata.get("internal"):
             continue
         s = schema_of(hints[f.name])
-        c = constraint_schema(f.metadata.get("check"))
-        if isinstance(c.get("items"), dict) and isinstance(s.get("items"), dict):  # Each(...): keep the item type
-            c = {**c, "items": {**s["items"], **c["items"]}}
-        s.update(c)
+        extra = constraint_schema(f.metadata.get("check"))
+        if isinstance(s.get("items"), dict) and isinstance(extra.get("items"), dict):  # Each(...): keep the item type
+            extra = {**extra, "items": {**s["items"], **extra["items"]}}
+        s.update(extra)
         if f.default is not dataclasses.MISSING:
             s["default"] = f.default
         elif f.default_factory is not dataclasses.MISSING:

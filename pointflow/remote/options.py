@@ -94,6 +94,17 @@ ZMQ_ONLY = ("endpoint", "socket", "bind", "send_hwm", "send_buffer_kb",
             "curve_secret_key", "curve_server_key", "curve_authorized_keys", "insecure", "heartbeat_ivl_s",
             "heartbeat_timeout_s", "heartbeat_ttl_s", "reconnect_initial_s", "reconnect_max_s")
 ZENOH_ONLY = ("key", "zenoh")
+
+
+def _engine_rule() -> dict:
+    """check_send's engine rule in JSON Schema: each engine's keys keep their defaults under the other."""
+    d = {f.name: f.default for f in dataclasses.fields(SendConfig)}
+    keep = lambda keys: {"properties": {k: {"const": d[k]} for k in keys}}  # noqa: E731
+    return {"if": {"properties": {"engine": {"const": "zenoh"}}, "required": ["engine"]},
+            "then": keep(ZMQ_ONLY), "else": keep(ZENOH_ONLY)}
+
+
+SendConfig.json_schema_extra = _engine_rule()
 #: Where a Zenoh sender listens unless its zenoh block says otherwise (a receiver's default connect).
 ZENOH_SEND_LISTEN = "tcp/127.0.0.1:7448"
 _BAD_KEY_CHARS = set("*$?#")
