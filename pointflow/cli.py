@@ -1,4 +1,4 @@
-"""``pointflow`` command line: run, profile, validate, info, schema, send, keys."""
+"""``pointflow`` command line: run, profile, validate, info, schema, send, router, keys."""
 from __future__ import annotations
 
 import argparse
@@ -68,6 +68,9 @@ def _run(args, profile: bool = False) -> int:
     from .runtime.supervisor import PipelineFailed
 
     cfg = load_config(args.file)
+    if not cfg.sources:  # a file with only a router: block
+        raise ConfigError("sources", f"{args.file} has no source, only a router: block; run it with "
+                          f"`pointflow router {args.file}`")
     if getattr(args, "record", None):
         from .record.config import with_record_path
 
@@ -166,8 +169,65 @@ def _send(args) -> int:
     return code
 
 
+def _router(args) -> int:
+    """``pointflow router``: run the config's Zenoh router (docs/remote.md) until
+    ``--duration``, Ctrl-C or SIGTERM, printing its sessions every ``stats_every_s``."""
+    from .remote.router import router_summary
+    from .runtime.pipeline import Pipeline
+    from .runtime.supervisor import PipelineFailed
+
+    cfg = load_config(args.file)
+    if cfg.router is None:
+        raise ConfigError("router", f"{args.file} has no 'router:' section (listen endpoints, tls; see "
+                          "docs/remote.md and configs/zenoh-router.yaml)")
+    pipe = Pipeline(cfg, out_dir=args.out, role="router")
+    stop = _Stop()
+    old = {s: signal.signal(s, stop) for s in (signal.SIGINT, signal.SIGTERM)}
+    code = 0
+    pipe.start()
+    t_end = None if args.duration is None else _T0 + args.duration
+    last_print = time.monotonic()
+    try:
+        while not stop.flag and (t_end is None or time.monotonic() < t_end):
+            pipe.poll(0.05)
+            if not args.quiet and time.monotonic() - last_print >= cfg.router.stats_every_s:
+                last_print = time.monotonic()
+                print(router_summary(pipe.stats()), file=sys.stderr, flush=True)
+    except PipelineFailed as exc:
+        log.error("%s", exc)
+        code = 2
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+        stats = pipe.stop()
+    if stop.signal is not None:
+        log.info("stopped by %s", signal.Signals(stop.signal).name)
+    print(router_summary(stats), flush=True)
+    if args.out:
+        print(f"stats.json in {os.path.abspath(args.out)}")
+    return code
+
+
 def _keys(args) -> int:
     from .remote.keys import KeyFileError, create_keypair
+
+    if args.tls:
+        from .remote.tls import TlsFileError, make_certificate
+
+        try:
+            made = make_certificate(args.name, args.dir, args.host, overwrite=args.force)
+        except TlsFileError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 1
+        print(("CA:          {ca} (new; give a copy to every host)" if made.ca_created else
+               "CA:          {ca} (reused; it signed this certificate)").format(ca=made.ca))
+        print(f"CA key:      {made.ca_key}  (signs certificates; keep it off the hosts, mode 0600)")
+        print(f"certificate: {made.certificate}  (names: {', '.join(made.names)})")
+        print(f"private key: {made.private_key}  (keep it on {args.name}; mode 0600)")
+        return 0
+    if args.host:
+        print("error: --host names the hosts of a TLS certificate; add --tls", file=sys.stderr)
+        return 1
 
     try:
         pub, sec = create_keypair(args.name, args.dir, overwrite=args.force)
@@ -182,7 +242,12 @@ def _keys(args) -> int:
 def _validate(args) -> int:
     """What ``run`` (or, for a config with ``send:``, ``send``) would refuse here, refused here too."""
     cfg = load_config(args.file)
-    if cfg.send is not None:  # a sensor host's file: `pointflow send` runs no ring, cadence or render
+    if not cfg.sources:  # only a router: block
+        r = cfg.router
+        print(f"{args.file}: OK for `pointflow router` (listen {', '.join(r.listen)}"
+              + (f", connect {', '.join(r.connect)}" if r.connect else "")
+              + (", TLS" + (" with mutual authentication" if r.tls.mutual else "") if r.tls else ", no TLS") + ")")
+    elif cfg.send is not None:  # a sensor host's file: `pointflow send` runs no ring, cadence or render
         s = cfg.send
         extras = [x for x in (s.compression if s.compression != "none" else "",
                               f"quantise {s.quantise:g} m" if s.quantise else "",
@@ -299,14 +364,25 @@ def build_parser() -> argparse.ArgumentParser:
     snd.add_argument("--duration", type=float, default=None, help=DURATION_HELP + "; default: until the sources end or Ctrl-C")
     snd.add_argument("--out", default=None, help="write stats.json here")
     snd.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
+    rt = sub.add_parser("router", help="run the Zenoh router of a config's router: section (docs/remote.md)")
+    rt.add_argument("file", help="YAML with a router: section")
+    rt.add_argument("--duration", type=float, default=None, help=DURATION_HELP + "; default: until Ctrl-C")
+    rt.add_argument("--out", default=None, help="write stats.json here")
+    rt.add_argument("-q", "--quiet", action="store_true", help="no periodic session lines")
     ins = sub.add_parser("inspect", help="topics, messages, points and time range of an MCAP recording")
     ins.add_argument("file", help="an .mcap file")
     ins.add_argument("--recover", metavar="OUT.mcap", default=None,
                      help="rewrite a file cut short by a crash, with its summary, to OUT.mcap")
-    k = sub.add_parser("keys", help="write a CURVE key pair NAME.key (public) and NAME.key_secret")
+    k = sub.add_parser("keys", help="write a CURVE key pair NAME.key (public) and NAME.key_secret; with --tls a "
+                                    "TLS certificate NAME.pem and key NAME-key.pem signed by DIR/ca.pem")
     k.add_argument("name")
     k.add_argument("--dir", default="keys", help="folder to write into (default: keys)")
     k.add_argument("--force", action="store_true", help="overwrite an existing pair")
+    k.add_argument("--tls", action="store_true", help="a TLS certificate for Zenoh links instead (makes the CA "
+                                                       "DIR/ca.pem the first time, reuses it after)")
+    k.add_argument("--host", action="append", default=[], metavar="NAME_OR_IP",
+                   help="with --tls: a host name or IP address the certificate is valid for (repeat; "
+                        "default: localhost and 127.0.0.1)")
     return p
 
 
@@ -332,6 +408,8 @@ def main(argv: Optional[list[str]] = None) -> int:
             return _info(args)
         if args.cmd == "send":
             return _send(args)
+        if args.cmd == "router":
+            return _router(args)
         if args.cmd == "keys":
             return _keys(args)
         if args.cmd == "inspect":

@@ -21,6 +21,7 @@ from .frames.config import FramesConfig, check_frames
 from .ingest.transports import resolve_transport
 from .record.config import RecordConfig, check_record
 from .remote.options import SendConfig, check_send, is_loopback_endpoint
+from .remote.router import RouterConfig, check_router
 from .typed import Bound, ConfigError, Each, Length, check, check_keys, dataclass_schema, load_dataclass
 from .typed import at_least_one, endpoint, non_negative, positive
 
@@ -226,6 +227,8 @@ class PipelineConfig:
     frames: FramesConfig = field(default_factory=FramesConfig)
     #: Record what ingest accepted to MCAP (docs/record.md); also ``pointflow run --record PATH``.
     record: Optional[RecordConfig] = None
+    #: The Zenoh router ``pointflow router`` runs (docs/remote.md); a file may hold only this.
+    router: Optional[RouterConfig] = None
     #: Where the YAML came from (for relative paths in options); not a YAML key.
     base_dir: str = field(default=".", metadata={"internal": True})
 
@@ -277,8 +280,10 @@ def _check_semantics(cfg: PipelineConfig) -> None:
         raise ConfigError("render.camera.near", f"must be less than camera.far ({c.far}), got {c.near}")
     if c.mode == "fixed" and (c.position is None or c.target is None):
         raise ConfigError("render.camera.position", "camera.mode fixed needs position and target")
-    if not cfg.sources:
+    if not cfg.sources and cfg.router is None:
         raise ConfigError("sources", "at least one source is required")
+    if cfg.router is not None:
+        check_router(cfg.router, "router", cfg.base_dir)
     if cfg.ring.eviction == "importance" and not cfg.ring.importance_field and not cfg.ring.classification_weights:
         cfg.ring.importance_field = "auto"
     seen = set()
@@ -328,6 +333,8 @@ def load_config(data: dict | str | os.PathLike, *, base_dir: str | None = None) 
         if "sources" in data:
             raise ConfigError("source", "give either 'source' or 'sources', not both")
         data["sources"] = [data.pop("source")]
+    if "sources" not in data and "router" in data:
+        data["sources"] = []  # a router's file (`pointflow router`) needs no source
     if "sources" not in data:
         raise ConfigError("sources", "required key is missing (a 'source:' mapping or a 'sources:' list)")
     cfg = load_dataclass(PipelineConfig, data, "")
@@ -396,5 +403,6 @@ def json_schema() -> dict:
     s["title"] = "pointflow pipeline"
     s["properties"]["source"] = s["properties"]["sources"]["items"]
     s.pop("required", None)
-    s["oneOf"] = [{"required": ["source"]}, {"required": ["sources"]}]
+    s["oneOf"] = [{"required": ["source"]}, {"required": ["sources"]},
+                  {"required": ["router"], "not": {"anyOf": [{"required": ["source"]}, {"required": ["sources"]}]}}]
     return s

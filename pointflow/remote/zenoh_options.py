@@ -17,6 +17,7 @@ import dataclasses
 import ipaddress
 import json
 import os
+import re
 from dataclasses import field
 from typing import TYPE_CHECKING, Any, Literal, Optional
 
@@ -190,4 +191,5 @@ def open_session(o: ZenohOptions) -> "zenoh.Session":
         return zenoh.open(zenoh_config(o))
     except zenoh.ZError as exc:
         where = ", ".join([f"listen {x}" for x in o.listen] + [f"connect {x}" for x in o.connect]) or "no endpoints"
-        raise ZenohOpenError(f"zenoh session ({o.mode}; {where}) did not open: {exc}") from None
+        why = re.sub(r"\s+at /\S+\.rs:\d+\.?", "", str(exc))  # the engine's source locations: no help here
+        raise ZenohOpenError(f"zenoh session ({o.mode}; {where}) did not open: {why}") from None

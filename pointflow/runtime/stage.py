@@ -50,6 +50,7 @@ STAGE_MAINS: dict[str, str] = {
     "render": "pointflow.render.process:main",
     "sender": "pointflow.remote.send_stage:main",
     "recorder": "pointflow.record.process:main",
+    "router": "pointflow.remote.router:main",
 }
 
 

@@ -104,6 +104,8 @@ COUNTERS = ("points_in", "points_out", "frames", "pngs", "uploaded_bytes", "mess
             "record_offered", "record_sent", "record_dropped", "record_messages_sent", "record_bytes",
             "record_messages", "record_files",
             "record_transforms_sent", "record_transforms_dropped", "record_transforms",
+            # `pointflow router` (docs/remote.md): connections over its restarts
+            "sessions_opened", "sessions_closed", "refused_connections",
             # points a killed ingest wrote into the ring but never reported (reconciled from
             # the ring's own counter, see Supervisor._reconcile_ingest)
             "unreported_written")
@@ -228,6 +230,11 @@ class Supervisor:
             self._trace_sink = self._zctx.socket(zmq.PULL)
             self._trace_sink.setsockopt(zmq.LINGER, 0)
             self._trace_sink.bind(self.endpoints.trace)
+        if self.role == "router":  # `pointflow router`: one Zenoh router stage, no ring
+            self.segments = []
+            self.stages["router"] = StageProc(name="router", kind="router")
+            self._go()
+            return
         if self.role == "send":
             self.segments = []
             self.stages["sender"] = StageProc(name="sender", kind="sender")
@@ -639,7 +646,7 @@ class Supervisor:
         self.started = False
         self._stop_standbys()
         sources = [st for st in self.stages.values() if st.kind == "source"]
-        waves = [sources, [self.stages[n] for n in ("ingest", "sender") if n in self.stages],
+        waves = [sources, [self.stages[n] for n in ("ingest", "sender", "router") if n in self.stages],
                  [self.stages[n] for n in ("cadence", "render", "recorder") if n in self.stages]]
         for wave in waves:
             for st in wave:
@@ -780,6 +787,8 @@ class Supervisor:
         while no source was killed, since a killed source's last counts die with it)."""
         if self.role == "send":
             return self._send_accounting(stages)
+        if self.role == "router":
+            return {}
         ing = stages.get("ingest", {})
         rejected = ing.get("rejected", {})
         acc: dict[str, Any] = {

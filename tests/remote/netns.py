@@ -82,11 +82,23 @@ def delete_namespace(ns: str) -> None:
     sh("ip", "netns", "del", ns, check=False)
 
 
+#: A namespace younger than this is never swept: another test run may have just made it
+#: (each Net also keeps a process in its namespaces, see Net.host).
+SWEEP_MIN_AGE_S = 120.0
+
+
+def _age_s(ns: str) -> float:
+    try:
+        return time.time() - os.stat(f"/run/netns/{ns}").st_mtime
+    except OSError:
+        return float("inf")
+
+
 def sweep_leftovers() -> list[str]:
     """Delete ``pf-*`` namespaces no process uses (left by a killed test run)."""
     gone = []
     for ns in list_namespaces():
-        if ns.startswith(PREFIX) and not _ns_pids(ns):
+        if ns.startswith(PREFIX) and _age_s(ns) > SWEEP_MIN_AGE_S and not _ns_pids(ns):
             sh("ip", "netns", "del", ns, check=False)
             gone.append(ns)
     return gone
@@ -133,6 +145,11 @@ class Net:
         sh("ip", "netns", "add", ns)
         self.namespaces.append(ns)
         sh("ip", "-n", ns, "link", "set", "lo", "up")
+        # a process in it from the start: another test run's sweep_leftovers (namespaces no
+        # process uses) must not take it before this test starts its own there
+        self.procs.append(subprocess.Popen(["ip", "netns", "exec", ns, "sleep", "infinity"],
+                                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                                           start_new_session=True))
         return ns
 
     def link(self, a: str, b: str) -> tuple[str, str]:
@@ -168,6 +185,16 @@ class Net:
             if "unknown" in p.stderr and os.environ.get("POINTFLOW_REQUIRE_NETEM") != "1":
                 pytest.skip(why + " (this kernel lacks sch_" + kind + ")")
             raise RuntimeError(why)
+
+    def tx_bytes(self, ns: str, peer: str) -> int:
+        """Bytes ``ns``'s end of the link to ``peer`` has sent (the kernel's counter)."""
+        out = sh("ip", "-n", ns, "-s", "-j", "link", "show", "dev", self.veths[(ns, peer)]).stdout
+        return int(json.loads(out)[0]["stats64"]["tx"]["bytes"])
+
+    def qdisc_sent(self, ns: str, peer: str) -> int:
+        """Bytes the root qdisc on ``ns``'s end of the link to ``peer`` has sent."""
+        out = sh("ip", "netns", "exec", ns, "tc", "-s", "qdisc", "show", "dev", self.veths[(ns, peer)]).stdout
+        return int(out.split("Sent ", 1)[1].split(" ", 1)[0])
 
     def del_qdisc(self, ns: str, peer: str) -> None:
         sh("ip", "netns", "exec", ns, "tc", "qdisc", "del", "dev", self.veths[(ns, peer)], "root")

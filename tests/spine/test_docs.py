@@ -117,7 +117,7 @@ def rewrite(line: str) -> tuple[list[str], Optional[str]]:
         else:
             argv.extend([opt, "{tmp}/" + default])
 
-    if sub in ("run", "profile", "send"):
+    if sub in ("run", "profile", "send", "router"):
         if "--duration" in argv:
             argv[argv.index("--duration") + 1] = DURATION
         else:
