@@ -153,6 +153,27 @@ def _wait_subscribers(ctx, sock, want: int, wait_s: float) -> int:
     return got
 
 
+def take_from_sources(ctx, pull, add, limit: int) -> int:
+    """Up to ``limit`` chunks the local sources sent, each handed to ``add``; a malformed one
+    is counted (``rejected_messages``) and logged. Both engines' senders take this way."""
+    got = 0
+    for _ in range(limit):
+        try:
+            frames = pull.recv_multipart(zmq.NOBLOCK, copy=False)
+        except zmq.Again:
+            break
+        got += 1
+        try:
+            chunk = wire.decode(frames)
+        except ChunkError as exc:  # a local source sent something broken: count it
+            ctx.counters.extra["rejected_messages"] = ctx.counters.extra.get("rejected_messages", 0) + 1
+            ctx.log.warning("dropped a malformed message from a source: %s", exc)
+            continue
+        ctx.counters.points_in += chunk.n
+        add(chunk)
+    return got
+
+
 def main(ctx) -> None:
     """Stage loop (``pointflow.runtime.stage.STAGE_MAINS['sender']``)."""
     s = ctx.cfg.send
@@ -193,22 +214,7 @@ def main(ctx) -> None:
     ctx.on_beat.append(_stats)
 
     def _take(limit: int) -> int:
-        got = 0
-        for _ in range(limit):
-            try:
-                frames = pull.recv_multipart(zmq.NOBLOCK, copy=False)
-            except zmq.Again:
-                break
-            got += 1
-            try:
-                chunk = wire.decode(frames)
-            except ChunkError as exc:  # a local source sent something broken: count it
-                ctx.counters.extra["rejected_messages"] = ctx.counters.extra.get("rejected_messages", 0) + 1
-                ctx.log.warning("dropped a malformed message from a source: %s", exc)
-                continue
-            ctx.counters.points_in += chunk.n
-            snd.add(chunk)
-        return got
+        return take_from_sources(ctx, pull, snd.add, limit)
 
     try:
         if pub and s.wait_subscribers:

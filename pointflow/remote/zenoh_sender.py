@@ -23,9 +23,8 @@ import time
 import zmq
 
 from .. import wire
-from ..chunk import ChunkError
 from .options import source_key
-from .sender import FLUSH_S, STOP_GRACE_S, STOP_QUIET_S, LinkSender
+from .sender import FLUSH_S, STOP_GRACE_S, STOP_QUIET_S, LinkSender, take_from_sources
 from .zenoh_options import ZenohOpenError, zenoh_config
 
 #: A put to a full network queue waits this long (us) before Zenoh drops it (Zenoh's default
@@ -132,24 +131,12 @@ def main(ctx) -> None:
 
     ctx.on_beat.append(_stats)
 
+    def _add(chunk) -> None:
+        snd.add(chunk)
+        snd.pump()  # at once: a put never waits long (drop), so the queue only holds what block holds back
+
     def _take(limit: int) -> int:
-        got = 0
-        for _ in range(limit):
-            try:
-                frames = pull.recv_multipart(zmq.NOBLOCK, copy=False)
-            except zmq.Again:
-                break
-            got += 1
-            try:
-                chunk = wire.decode(frames)
-            except ChunkError as exc:  # a local source sent something broken: count it
-                ctx.counters.extra["rejected_messages"] = ctx.counters.extra.get("rejected_messages", 0) + 1
-                ctx.log.warning("dropped a malformed message from a source: %s", exc)
-                continue
-            ctx.counters.points_in += chunk.n
-            snd.add(chunk)
-            snd.pump()  # at once: a put never waits long (drop), so the queue only holds what block holds back
-        return got
+        return take_from_sources(ctx, pull, _add, limit)
 
     try:
         if s.wait_subscribers:
