@@ -141,8 +141,12 @@ def check_zenoh(o: ZenohOptions, path: str, base_dir: str, *, listen_default: tu
 #: Zenoh settings every pointflow end uses unless its config_file sets them: Zenoh's own
 #: default queue (2 batches of 64 KiB per priority) drops bursts of point chunks on a busy
 #: host even on loopback (measured: 106 of 200 24-KB puts arrived at load 4); 16 batches
-#: (1 MiB) held all 200 in every try.
-LINK_DEFAULTS: dict[str, Any] = {"transport/link/tx/queue/size/data": 16}
+#: (1 MiB) held all 200 in every try. The receive buffer of each link is 1 MiB instead of
+#: one 64 KiB batch: a 130-KB chunk arrives in three batches, and the larger buffer cut the
+#: receiver's CPU time per chunk by about a tenth in bench/bench_remote.py --zenoh
+#: (docs/remote.md, "The Zenoh engine"); larger TCP socket buffers did not help.
+LINK_DEFAULTS: dict[str, Any] = {"transport/link/tx/queue/size/data": 16,
+                                 "transport/link/rx/buffer_size": 1 << 20}
 
 
 def zenoh_config(o: ZenohOptions, defaults: Optional[dict[str, Any]] = None) -> "zenoh.Config":
