@@ -17,8 +17,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-pytest.importorskip("zenoh")
-pytest.importorskip("rosbags")
+pytest.importorskip("zenoh", reason="eclipse-zenoh comes with the remote extra: pip install 'pointflow[remote]'")
+pytest.importorskip("rosbags", reason="rosbags comes with the ros extra: pip install 'pointflow[ros]'")
 
 from pointflow.config import ConfigError, load_config  # noqa: E402
 from pointflow.ingest import rmw_zenoh as rz  # noqa: E402

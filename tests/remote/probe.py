@@ -19,6 +19,13 @@ def main() -> int:
     t = ZmqTransport(ZmqTransport.validate_options(opts, "probe", "."), "probe")
     t.open()
     print("probe: listening", flush=True)
+    return drain(t, out, senders, timeout, after=lambda: t._poll_monitor())
+
+
+def drain(t, out: str, senders: int, timeout: float, after=None) -> int:
+    """Take chunks from an open transport until ``senders`` said they stopped (or the
+    timeout); write the positions to OUT.npy and the counters to OUT.json. Both probes
+    (ZeroMQ and Zenoh) end this way."""
     pos, end = [], time.monotonic() + timeout
     try:
         for chunk in t.chunks():
@@ -26,7 +33,8 @@ def main() -> int:
                 pos.append(np.asarray(chunk.positions, np.float64))
             if len(t.ledger.ended) >= senders or time.monotonic() > end:
                 break
-        t._poll_monitor()
+        if after is not None:
+            after()
     finally:
         t.close()
     np.save(out + ".npy", np.concatenate(pos) if pos else np.zeros((0, 3)))

@@ -21,7 +21,7 @@ from pointflow.typed import ConfigError
 
 from .helpers import assert_exact, synthetic_source, wait_for
 
-zenoh = pytest.importorskip("zenoh")
+zenoh = pytest.importorskip("zenoh", reason="eclipse-zenoh comes with the remote extra: pip install 'pointflow[remote]'")
 REPO = Path(__file__).resolve().parents[2]
 
 

@@ -15,7 +15,7 @@ from pathlib import Path
 import psutil
 import pytest
 
-zenoh = pytest.importorskip("zenoh")
+zenoh = pytest.importorskip("zenoh", reason="eclipse-zenoh comes with the remote extra: pip install 'pointflow[remote]'")
 
 from pointflow.cli import main as cli_main  # noqa: E402
 from pointflow.remote.tls import make_certificate  # noqa: E402

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-pytest.importorskip("zenoh")
+pytest.importorskip("zenoh", reason="eclipse-zenoh comes with the remote extra: pip install 'pointflow[remote]'")
 
 from pointflow.remote.tls import make_certificate  # noqa: E402
 

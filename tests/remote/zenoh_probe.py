@@ -9,12 +9,14 @@ transport's bounded queue overflows meanwhile).
 from __future__ import annotations
 
 import json
+import os
 import sys
 import time
 
-import numpy as np
-
 from pointflow.ingest.transports.zenoh_transport import ZenohTransport
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from probe import drain  # noqa: E402 - the ZeroMQ probe's ending, shared
 
 
 def main() -> int:
@@ -24,19 +26,7 @@ def main() -> int:
     t.open()
     print("probe: listening", flush=True)
     time.sleep(hold)
-    pos, end = [], time.monotonic() + timeout
-    try:
-        for chunk in t.chunks():
-            if chunk is not None:
-                pos.append(np.asarray(chunk.positions, np.float64))
-            if len(t.ledger.ended) >= senders or time.monotonic() > end:
-                break
-    finally:
-        t.close()
-    np.save(out + ".npy", np.concatenate(pos) if pos else np.zeros((0, 3)))
-    with open(out + ".json", "w") as f:
-        json.dump({**t.counters, "ended": sorted(t.ledger.ended)}, f)
-    return 0
+    return drain(t, out, senders, timeout)
 
 
 if __name__ == "__main__":
