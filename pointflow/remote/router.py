@@ -13,6 +13,7 @@ and refused; refused TLS handshakes are read from the engine's log
 from __future__ import annotations
 
 import dataclasses
+import threading
 import time
 from dataclasses import field
 from typing import Any, Literal
@@ -56,28 +57,46 @@ class SessionTable:
         self.opened = 0
         self.closed = 0
         self._kind: dict[str, str] = {}
+        # Zenoh reports a session's link and its transport through two listeners, in no fixed
+        # order: a link seen before its transport waits here so its line can name the kind.
+        self._pending: dict[str, list[tuple[str, str]]] = {}
+        self._lock = threading.Lock()
 
     def on_transport(self, ev) -> None:
         import zenoh
 
         t = ev.transport
         zid, kind = str(t.zid), str(t.whatami).rsplit(".", 1)[-1].lower()
-        if ev.kind == zenoh.SampleKind.PUT:
-            self.opened += 1
-            self._kind[zid] = kind
-        else:
-            self.closed += 1
-            self._kind.pop(zid, None)
-            self.log.info("session closed: %s %s", kind, zid)
+        with self._lock:
+            if ev.kind == zenoh.SampleKind.PUT:
+                self.opened += 1
+                self._kind[zid] = kind
+                for dst, cert in self._pending.pop(zid, []):
+                    self._log_opened(kind, zid, dst, cert)
+            else:
+                self.closed += 1
+                self._kind.pop(zid, None)
+                for dst, cert in self._pending.pop(zid, []):
+                    self._log_opened(kind, zid, dst, cert)
+                self.log.info("session closed: %s %s", kind, zid)
 
     def on_link(self, ev) -> None:
         import zenoh
 
-        if ev.kind == zenoh.SampleKind.PUT:
-            ln = ev.link
-            cert = f", certificate {ln.auth_identifier}" if ln.auth_identifier else ""
-            self.log.info("session opened: %s %s from %s%s", self._kind.get(str(ln.zid), "session"), ln.zid,
-                          ln.dst, cert)
+        if ev.kind != zenoh.SampleKind.PUT:
+            return
+        ln = ev.link
+        zid = str(ln.zid)
+        cert = f", certificate {ln.auth_identifier}" if ln.auth_identifier else ""
+        with self._lock:
+            kind = self._kind.get(zid)
+            if kind is None:
+                self._pending.setdefault(zid, []).append((str(ln.dst), cert))
+            else:
+                self._log_opened(kind, zid, str(ln.dst), cert)
+
+    def _log_opened(self, kind: str, zid: str, dst: str, cert: str) -> None:
+        self.log.info("session opened: %s %s from %s%s", kind, zid, dst, cert)
 
     @staticmethod
     def snapshot(session) -> dict[str, Any]:
