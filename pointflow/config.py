@@ -199,6 +199,10 @@ class SupervisorConfig:
     #: A stage whose main loop has not come round for this long is considered stuck
     #: (generous: one frame of a software rasteriser can take a second or more).
     stall_after_ms: float = field(default=30000.0, metadata=check(positive))
+    #: A silent stage whose main thread never slept and used this much CPU since it went
+    #: silent spins in a call that holds the GIL (its pulse thread cannot talk): hung.
+    #: CPU time, not wall time, so a loaded machine does not trigger it.
+    stuck_cpu_ms: float = field(default=3000.0, metadata=check(positive))
     #: Grace period before a new stage's first heartbeat (imports, GPU device creation).
     startup_timeout_ms: float = field(default=30000.0, metadata=check(positive))
     max_restarts: int = field(default=3, metadata=check(non_negative))

@@ -7,6 +7,12 @@ difference: a starved process has a thread waiting to run (state ``R``) or waiti
 the disk (``D``), or it used CPU time since it was last checked; a frozen one is stopped
 (``T``); a hung one sleeps (``S``) and uses no CPU time at all (a deadlock, a call that
 never returns while holding the GIL, so not even its pulse thread can talk).
+
+One case uses the CPU and is still hung: a main thread spinning in a C call that holds the
+GIL (a runaway regular expression, a C extension's busy loop). Its pulse thread cannot talk,
+and it looks starved. What gives it away is its main thread: never asleep during the
+silence and on the CPU for ``supervisor.stuck_cpu_ms`` of it. A healthy stage's main thread
+waits (for the GPU, a socket, the ring) and lets the pulse through long before that.
 """
 from __future__ import annotations
 
@@ -24,6 +30,8 @@ class Activity:
     stopped: bool    # SIGSTOP / job control / a tracer: every thread is in T or t
     runnable: bool   # some thread is running, waiting for a CPU (R) or for the disk (D)
     cpu_s: float     # user + system CPU time of all its threads so far
+    main_awake: bool = False  # its main thread is running or waiting for a CPU (R), not asleep
+    main_cpu_s: float = 0.0   # CPU time of its main thread so far
 
     def running_since(self, before: "Activity", elapsed_s: float) -> bool:
         """It wants the CPU now, or used at least 2% of one (1 ms at least) since ``before``.
@@ -45,21 +53,27 @@ def activity(pid: int) -> Optional[Activity]:
         with open(f"/proc/{pid}/stat") as f:
             state, cpu = _state_and_times(f.read())
         states, run_ns = [], 0
+        main_state, main_ns = state, 0
         for tid in os.listdir(f"/proc/{pid}/task"):
             try:
                 with open(f"/proc/{pid}/task/{tid}/stat") as f:
-                    states.append(_state_and_times(f.read())[0])
+                    tstate = _state_and_times(f.read())[0]
+                states.append(tstate)
             except (FileNotFoundError, ProcessLookupError):
                 continue  # the thread ended meanwhile
             try:  # nanoseconds on a CPU (the stat ticks are 10 ms: too coarse for a pulse)
                 with open(f"/proc/{pid}/task/{tid}/schedstat") as f:
-                    run_ns += int(f.read().split()[0])
+                    ns = int(f.read().split()[0])
+                run_ns += ns
             except (FileNotFoundError, ProcessLookupError):
-                pass  # a kernel without schedstat: the ticks it is
+                ns = 0  # a kernel without schedstat: the ticks it is
+            if tid == str(pid):
+                main_state, main_ns = tstate, ns
     except (FileNotFoundError, ProcessLookupError, PermissionError, ValueError, IndexError):
         return None
     if state in ("Z", "X"):
         return None
     states = states or [state]
     return Activity(stopped=all(s in ("T", "t") for s in states),
-                    runnable=any(s in ("R", "D") for s in states), cpu_s=max(cpu, run_ns / 1e9))
+                    runnable=any(s in ("R", "D") for s in states), cpu_s=max(cpu, run_ns / 1e9),
+                    main_awake=main_state == "R", main_cpu_s=main_ns / 1e9)

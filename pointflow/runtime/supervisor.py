@@ -77,6 +77,11 @@ class StageProc:
     silence_mark: Optional[tuple] = None
     #: Silences past ``hung_after_ms`` that were starvation (the process ran or wanted to).
     starved: int = 0
+    #: (start of the silence, main thread's CPU seconds when first watched, main thread
+    #: never seen asleep since): a spin in a call that holds the GIL (liveness.py).
+    busy_mark: Optional[tuple] = None
+    #: Why the last silence was judged a hang, beyond the silence itself.
+    hang_note: str = ""
 
 
 def _describe_exit(code: Optional[int]) -> str:
@@ -514,7 +519,7 @@ class Supervisor:
                 if not st.ready:
                     reason = f"did not start: no heartbeat within {limit_ms:.0f} ms"
                 elif silent:
-                    reason = f"hung: no heartbeat for {(now - st.last_seen_ns) / 1e6:.0f} ms"
+                    reason = f"hung: no heartbeat for {(now - st.last_seen_ns) / 1e6:.0f} ms{st.hang_note}"
                 else:
                     reason = f"stuck: its loop has not come round for {(now - st.last_progress_ns) / 1e6:.0f} ms"
                 st.process.kill()
@@ -538,6 +543,9 @@ class Supervisor:
         act = activity(st.pid)
         if act is None:
             return False  # it ended: its exit code tells why, next round
+        st.hang_note = ""
+        if self._spins_holding_the_gil(st, act):
+            return True
         mark = st.silence_mark
         if mark is None or mark[0] < st.last_seen_ns:  # this silence just began
             st.silence_mark = (now, act, False)
@@ -557,6 +565,25 @@ class Supervisor:
         # others went quiet too: the machine (or this process) stalled; only a longer
         # silence counts then
         return quiet > max(limit_ms, min(sup.stall_after_ms, STALLED_HUNG_FACTOR * limit_ms)) * 1e6
+
+    def _spins_holding_the_gil(self, st: StageProc, act) -> bool:
+        """Silent, yet its main thread has been on (or waiting for) a CPU at every look and
+        used ``stuck_cpu_ms`` of CPU: it spins in a call that holds the GIL, so its pulse
+        thread cannot talk. Counted in CPU time, not wall time, so load does not trigger it;
+        a starved stage's main thread gets little CPU, and a healthy one sleeps (and lets
+        the pulse through) long before."""
+        mark = st.busy_mark
+        if mark is None or mark[0] != st.last_seen_ns:
+            st.busy_mark = (st.last_seen_ns, act.main_cpu_s, act.main_awake)
+            return False
+        awake = mark[2] and act.main_awake
+        st.busy_mark = (mark[0], mark[1], awake)
+        used_s = act.main_cpu_s - mark[1]
+        if awake and used_s * 1000.0 >= self.cfg.supervisor.stuck_cpu_ms:
+            st.hang_note = (f"; its main thread ran {used_s:.1f} s of CPU and never slept: "
+                            "stuck in a call that holds the GIL")
+            return True
+        return False
 
     def _silent_alone(self, st: StageProc, limit_ms: float) -> bool:
         """True when every other live stage was heard from within the last half
