@@ -59,23 +59,64 @@ def throughput_config(tracing: bool) -> dict:
     }
 
 
+def steady_state(table, t_lo_ns: int, t_hi_ns: int):
+    """The spans of the chunks the source sent between ``t_lo_ns`` and ``t_hi_ns`` (and the
+    per-frame GPU rows of that window). ``build_profile``'s own ``skip`` counts chunks and is
+    ignored when it exceeds a quarter of them: with a 31-s start-up at load 17 nothing was
+    left out, and the chunks that waited in the ring for the renderer's first frame made the
+    tail (send -> frame p99 10.9 s against frames of at most 3.9 s)."""
+    import numpy as np
+
+    from pointflow.profiling.collector import SpanTable
+
+    if not len(table) or "transport_receive" not in table.event_names:
+        return table
+    tx = table.event_names.index("transport_receive")
+    sent = table.event == tx
+    inside = sent & (table.t1_ns >= t_lo_ns) & (table.t1_ns <= t_hi_ns)
+    keep_ids = np.union1d(table.trace_id[inside], np.setdiff1d(  # traces with no send: GPU rows of a frame
+        table.trace_id[(table.t0_ns >= t_lo_ns) & (table.t0_ns <= t_hi_ns)], table.trace_id[sent]))
+    m = np.isin(table.trace_id, keep_ids)
+    return SpanTable(trace_id=table.trace_id[m], event=table.event[m], stage=table.stage[m], pid=table.pid[m],
+                     t0_ns=table.t0_ns[m], t1_ns=table.t1_ns[m], n=table.n[m], event_names=list(table.event_names),
+                     stage_names=list(table.stage_names))
+
+
+def save_spans(path: str, table, stats: dict, window_ns: tuple[int, int]) -> None:
+    """Every span of the run (numpy columns), the steady-state window and the supervisor's
+    stats, for looking at the slow chunks one by one (``--spans-out``)."""
+    import numpy as np
+
+    t = table
+    np.savez_compressed(path, trace_id=t.trace_id, event=t.event, stage=t.stage, pid=t.pid, t0_ns=t.t0_ns,
+                        t1_ns=t.t1_ns, n=t.n, event_names=np.array(t.event_names), stage_names=np.array(t.stage_names),
+                        window_ns=np.array(window_ns), stats=np.array(json.dumps(stats, default=str)))
+
+
 def run_latency(seconds: float, backend: str, size: list[int], ring: int, out_dir: str, raster: str = "auto",
-                skip_s: float = 1.0) -> dict:
+                skip_s: float = 1.0, spans_out: str | None = None) -> dict:
     import time
 
     pipe = Pipeline.from_dict(latency_config(backend, size, ring, raster), out_dir=out_dir)
     t = time.monotonic()
     pipe.start()
-    startup_s = time.monotonic() - t  # the source sends while the rest start (14 s at load 24)
+    t_up = time.monotonic_ns()
+    startup_s = time.monotonic() - t  # the source sends while the rest start (31 s at load 17)
     try:
         pipe.wait(seconds)
     finally:
+        t_end = time.monotonic_ns()
         stats = pipe.stop()
     if stats.get("failure"):
         raise SystemExit(f"latency pipeline failed: {stats['failure']}")
-    # 100 chunks/s: leave out what was sent before the pipeline was up plus skip_s seconds,
-    # at each end (the start-up is not the steady state)
-    prof = build_profile(pipe.collector, stats, skip=int(100 * (startup_s + skip_s)))
+    # leave out the chunks sent before the pipeline was up plus skip_s seconds, and those of
+    # the last skip_s seconds (the start-up and the stop are not the steady state)
+    pipe.collector.poll(0)
+    table = pipe.collector.table()
+    window = (t_up + int(skip_s * 1e9), t_end - int(skip_s * 1e9))
+    if spans_out:
+        save_spans(spans_out, table, stats, window)
+    prof = build_profile(steady_state(table, *window), stats, skip=0)
     print(format_table(prof))
     s2f = prof.get("send_to_frame") or {}
     frame = prof["stages"].get("frame_done", {}).get("duration", {})
@@ -86,7 +127,9 @@ def run_latency(seconds: float, backend: str, size: list[int], ring: int, out_di
     bound19 = 2 * (frame.get("p99") or 0.0) + tick_ms
     render = stats["stages"].get("render", {})
     return {
-        "seconds": seconds, "startup_s": round(startup_s, 2), "skip_s_each_end": round(startup_s + skip_s, 2),
+        "seconds": seconds, "startup_s": round(startup_s, 2), "skip_s_each_end": skip_s,
+        "chunks_kept": (prof.get("traces") or {}).get("kept"), "chunks_sent": int(
+            (table.event == table.event_names.index("transport_receive")).sum()) if len(table) else 0,
         "backend": render.get("tier") or render.get("backend") or backend, "size": size,
         "raster": raster, "raster_used": (render.get("tier_info") or {}).get("raster"),
         "ring_points": ring,
@@ -213,13 +256,15 @@ def main() -> None:
     ap.add_argument("--raster", default="auto", help="render.raster of the wgpu tier (auto, compute, quads)")
     ap.add_argument("--latency-only", action="store_true", help="skip the tracing-overhead parts")
     ap.add_argument("--skip-s", type=float, default=1.0,
-                    help="seconds of chunks left out of the latency figures at each end (start-up)")
+                    help="chunks sent in the first SKIP_S seconds after the pipeline is up (start() returned) "
+                         "and in the last SKIP_S seconds are left out of the latency figures")
+    ap.add_argument("--spans-out", default=None, help="also save every span and the stats here (.npz)")
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "latency.json"))
     args = ap.parse_args()
     size = [int(v) for v in args.size.split("x")]
     out_dir = tempfile.mkdtemp(prefix="pf-bench-lat-")
     print("== end-to-end latency (100k-point scans at 10 Hz, cadence 60 Hz)")
-    lat = run_latency(args.seconds, args.backend, size, args.ring, out_dir, args.raster, args.skip_s)
+    lat = run_latency(args.seconds, args.backend, size, args.ring, out_dir, args.raster, args.skip_s, args.spans_out)
     if args.latency_only:
         s = lat["send_to_frame_ms"]
         print(f"raster {args.raster} ({lat['raster_used']}): send -> frame p50 {s.get('p50')} ms, p99 {s.get('p99')} ms; "

@@ -40,6 +40,10 @@ FRAME_EMA_ALPHA = 0.15
 STALL_S = 5.0
 STALL_FRAMES = 10.0
 RECENT_FRAMES = 32
+#: While the renderer draws (or before it can), bring the next slab up to date at most this
+#: often (:mod:`pointflow.cadence.prefill`), so the snapshot at the frame's end copies only
+#: the last few ticks' changes.
+PREFILL_S = 0.05
 _RELEASE_TAG = b"pf.ring.release/1"  # pointflow.ring.handoff.RELEASE_TAG: [tag, int64 (slab, seq)]
 _WINDOW = 1024  # ticks kept for the jitter / rate statistics
 
@@ -62,7 +66,7 @@ class Cadence:
                  clock: Clock = time.monotonic, sleep: Sleep = time.sleep,
                  log: Optional[logging.Logger] = None, latest_only: bool = True,
                  wait_for_renderer: bool = False):
-        from ..ring.handoff import SlabWriter  # noqa: PLC0415 - keep module import light
+        from .prefill import PrefillWriter  # noqa: PLC0415 - keep module import light
 
         self.cfg = cfg
         self.decision = decision
@@ -78,7 +82,8 @@ class Cadence:
         self._fwd_push = zctx.socket(zmq.PUSH)
         self._fwd_push.setsockopt(zmq.LINGER, 0)
         self._fwd_push.connect(addr)
-        self.writer = SlabWriter(ring, slabs, ready_sock, self._fwd_pull)
+        self.writer = PrefillWriter(ring, slabs, ready_sock, self._fwd_pull)
+        self._t_copy = clock()  # the last prefill or publish
         self.frame_ema_ms: Optional[float] = None
         self._recent_frames_ms: collections.deque = collections.deque(maxlen=RECENT_FRAMES)
         self.interval_ms = tick_interval_ms(cfg, decision, None)
@@ -229,10 +234,12 @@ class Cadence:
         self.drain(0)
         if not self.renderer_heard:
             self.skipped["no_reader"] += 1
+            self._prefill()
             return False
         if (self.latest_only and self.last_pub_seq > self.done_seq
                 and self.clock() - self._t_progress < self.stall_s):
             self.skipped["renderer_pending"] += 1
+            self._prefill()
             return False
         t0 = time.monotonic_ns()
         stats = self.writer.stats
@@ -249,7 +256,7 @@ class Cadence:
             return False
         self.published += 1
         self.last_pub_seq = h.seq
-        self._t_progress = self.clock()
+        self._t_progress = self._t_copy = self.clock()
         self._pub_times.append(tick.now)
         if h.dirty is None:
             self.points_out += h.count
@@ -260,6 +267,13 @@ class Cadence:
             for tid in h.trace_ids:
                 self.spans.record(tid, "cadence_snapshot", t0, t1, 0)
         return h
+
+    def _prefill(self) -> None:
+        """Copy the ring's changes into the next slab ahead of its handoff (every PREFILL_S)."""
+        now = self.clock()
+        if now - self._t_copy >= PREFILL_S:
+            self._t_copy = now
+            self.writer.prefill()
 
     # -------------------------------------------------------------- stats
     def stats(self) -> dict[str, Any]:
@@ -288,6 +302,7 @@ class Cadence:
             "budget": self.decision.point_budget,
             "full_copies": w["full_copies"],
             "copied_slots": w["copied_slots"],
+            "prefilled_slots": w["prefilled_slots"],
             "renderer_hellos": self.hellos,
             "renderer_resyncs": self.resyncs,
             "bad_messages": self.bad_messages,

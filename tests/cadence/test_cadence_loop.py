@@ -376,3 +376,78 @@ def test_a_first_cadence_waits_for_the_renderer_to_speak(tmp_path):
         assert h and h.dirty is None and h.trace_ids == [1]
     finally:
         rig.close()
+
+
+def _slab_equals_ring(rig, slab):
+    ring, dst = rig.ring.arrays, rig.slabs.arrays(slab)
+    return all(np.array_equal(dst[k], a) for k, a in ring.items())
+
+
+def test_ticks_while_the_renderer_draws_prefill_the_next_slab(rig):
+    """The snapshot at a frame's end used to copy two frames' worth of changes (the whole
+    ring at 1M points/s) while the next frame waited. The skipped ticks now copy them into
+    the next slab ahead of time: the handoff then copies only what came since, and still
+    carries every chunk committed since the previous handoff, once, with its ranges."""
+    from pointflow.cadence.process import PREFILL_S
+
+    rig.push(100, 1)
+    h1 = rig.tick()
+    got, _ = rig.recv()                         # the renderer draws slab h1.slab
+    nxt = 1 - h1.slab
+    rig.push(200, 2)
+    assert rig.tick(advance=PREFILL_S + 0.001) is False  # renderer_pending: prefills the other slab
+    st = rig.cad.writer.stats
+    assert st["prefills"] == 1 and st["prefilled_slots"] >= 200
+    assert _slab_equals_ring(rig, nxt)          # chunk 2 is in the next slab before any handoff
+    rig.push(50, 3)
+    assert rig.tick() is False                  # within PREFILL_S of the last copy: nothing copied
+    assert st["prefills"] == 1
+    rig.release()
+    rig.send(encode_frame_time(500.0, h1.seq))
+    copied = st["copied_slots"]
+    h2 = rig.tick()
+    assert h2 and h2.slab == nxt
+    assert st["copied_slots"] - copied == 50    # only chunk 3 was left to copy
+    assert h2.trace_ids == [2, 3]               # the prefilled chunk still rides on this handoff
+    assert h2.dirty == [(100, 350)]             # and so do its ranges
+    got, view = rig.recv()
+    assert got.seq == h2.seq and view.size == 350
+    assert _slab_equals_ring(rig, nxt)
+    assert sorted(np.unique(view.channels["intensity"][:350]).tolist()) == [1.0, 2.0, 3.0]
+    rig.spans.flush()
+    time.sleep(0.05)
+    rig.coll.poll(0)
+    t = rig.coll.table()
+    snap = t.event == t.event_names.index("cadence_snapshot")
+    assert sorted(t.trace_id[snap].tolist()) == [1, 2, 3]  # each chunk once, at its handoff
+
+
+def test_every_handoff_shows_the_ring_as_it_was_at_its_snapshot(tmp_path):
+    """Prefills, handoffs, releases and frame reports in a random order, with the ring
+    wrapping around many times: every handed-out slab equals the ring at its snapshot, and
+    every committed chunk appears in exactly one handoff, in commit order."""
+    from pointflow.cadence.process import PREFILL_S
+
+    rig = Rig(tmp_path)
+    try:
+        rng = np.random.default_rng(7)
+        tid, seen, last = 0, [], None
+        for step in range(120):
+            for _ in range(int(rng.integers(0, 3))):
+                tid += 1
+                rig.push(int(rng.integers(1, 900)), tid)
+            h = rig.tick(advance=PREFILL_S + 0.001 if rng.random() < 0.7 else None)
+            if h:
+                assert _slab_equals_ring(rig, h.slab), f"step {step}: slab {h.slab} differs from the ring"
+                seen += h.trace_ids
+                got, _ = rig.recv()
+                assert got.seq == h.seq
+                last = h
+            elif last is not None and rng.random() < 0.5:   # the frame ends
+                rig.reader.release()
+                rig.send(encode_frame_time(10.0, last.seq))  # after the release, on the same socket
+        assert rig.cad.writer.stats["prefills"] > 10
+        assert seen == sorted(seen) and len(seen) == len(set(seen))
+        assert set(range(1, tid + 1)) - set(seen) <= set(range(seen[-1] + 1 if seen else 1, tid + 1))
+    finally:
+        rig.close()

@@ -137,3 +137,59 @@ def test_cadence_process_ticks_hands_off_traces_and_restarts(world):
     p2.terminate()                                            # SIGTERM: clean exit
     p2.join(10)
     assert p2.exitcode == 0
+
+
+def _slab_is_ring(w, slab):
+    src, dst = w.ring.arrays, w.slabs.arrays(slab)
+    return all(np.array_equal(dst[k], a) for k, a in src.items())
+
+
+def test_a_cadence_process_fills_the_next_slab_while_the_renderer_draws(world):
+    """While the renderer holds its slab (a slow frame), the cadence process copies what
+    ingest commits into the other slab and hands nothing out; when the frame is reported
+    done, the next handoff is that slab, showing the ring as it is, and carries the chunks
+    committed during the frame."""
+    from pointflow.cadence.messages import encode_frame_time
+
+    w = world
+    p = w.start()
+    w.release.send_multipart(encode_hello(os.getpid(), 0))
+    w.ring.push(np.random.rand(1000, 3).astype(np.float32), trace_id=1)
+    got = None
+    end = time.monotonic() + 10
+    while got is None and time.monotonic() < end:
+        got = w.reader.recv(100)
+    assert got is not None, "no first handoff"
+    h1 = got[0]                                   # the renderer "draws" h1: holds its slab
+    while 1 not in h1.trace_ids:                  # (a handoff may have gone out before the push)
+        w.reader.release()
+        w.release.send_multipart(encode_frame_time(10.0, h1.seq))
+        got = w.reader.recv(5000)
+        assert got is not None, "chunk 1 never handed out"
+        h1 = got[0]
+    nxt = 1 - h1.slab
+    w.ring.push(np.random.rand(30_000, 3).astype(np.float32), trace_id=2)
+    end = time.monotonic() + 10
+    while not _slab_is_ring(w, nxt) and time.monotonic() < end:
+        time.sleep(0.05)
+    assert _slab_is_ring(w, nxt), "the next slab was not filled while the renderer drew"
+    assert w.reader.recv(200) is None             # latest_only: nothing handed out mid-frame
+    w.reader.release()
+    w.release.send_multipart(encode_frame_time(500.0, h1.seq))   # the frame is done
+    got = w.reader.recv(10_000)
+    assert got is not None, "no handoff after the frame report"
+    h2, view = got
+    assert h2.slab == nxt and h2.seq > h1.seq
+    assert h2.trace_ids == [2] and h2.count == 31_000
+    assert _slab_is_ring(w, nxt)
+    prefilled = 0
+    end = time.monotonic() + 10
+    while prefilled < 30_000 and time.monotonic() < end:   # heartbeats come every few 100 ms
+        if w.control.poll(100):
+            m = json.loads(w.control.recv())
+            if m["type"] == "heartbeat":
+                prefilled = m["stats"].get("prefilled_slots", 0)
+    assert prefilled >= 30_000
+    p.terminate()
+    p.join(10)
+    assert p.exitcode == 0
