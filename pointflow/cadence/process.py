@@ -38,6 +38,9 @@ FRAME_EMA_ALPHA = 0.15
 #: reports were lost says so itself (``idle``, within 0.5 s), and one stuck mid-frame is
 #: restarted by the supervisor (``hello``).
 STALL_S = 5.0
+#: A handoff the renderer says it never got, sent at least this long ago (or the stall
+#: window, if longer), was lost on the way (a connection to a renderer that died).
+LOST_AFTER_S = 2.0
 STALL_FRAMES = 10.0
 RECENT_FRAMES = 32
 #: While the renderer draws (or before it can), bring the next slab up to date at most this
@@ -96,6 +99,8 @@ class Cadence:
         self.hellos = 0
         self._frame_reports = 0  # frame messages from the current renderer
         self.resyncs = 0        # idle messages that freed a slab the renderer no longer held
+        self.lost_handoffs = 0  # handoffs the renderer never got (freed after an idle message)
+        self._sent_at = [float("-inf")] * 2  # when each slab was last handed out (clock)
         self.bad_messages = 0
         self.latest_only = latest_only
         #: Publish nothing until the renderer has said something (hello, a frame report, a
@@ -164,6 +169,15 @@ class Cadence:
                 self.resyncs += 1
                 self.log.warning("renderer idle for %.0f ms holding no slab (newest handoff it got: %d): "
                                  "freed %d slab(s) whose release was lost", msg.idle_ms, msg.last_seq, freed)
+            age = max(LOST_AFTER_S, self.stall_s)
+            now = self.clock()
+            lost = self.writer.free_lost(msg.last_seq, tuple(i for i in (0, 1) if now - self._sent_at[i] >= age))
+            if lost:
+                self.lost_handoffs += lost
+                self.done_seq = self.last_pub_seq  # nothing is in flight: serve the next tick
+                self.log.warning("renderer idle for %.0f ms and its newest handoff is %d, but %d later "
+                                 "handoff(s) went %.0f s or more ago: lost on the way; freed, next handoff full",
+                                 msg.idle_ms, msg.last_seq, lost, age)
 
     @property
     def stall_s(self) -> float:
@@ -256,6 +270,7 @@ class Cadence:
             return False
         self.published += 1
         self.last_pub_seq = h.seq
+        self._sent_at[h.slab] = self.clock()
         self._t_progress = self._t_copy = self.clock()
         self._pub_times.append(tick.now)
         if h.dirty is None:
@@ -305,6 +320,7 @@ class Cadence:
             "prefilled_slots": w["prefilled_slots"],
             "renderer_hellos": self.hellos,
             "renderer_resyncs": self.resyncs,
+            "lost_handoffs": self.lost_handoffs,
             "bad_messages": self.bad_messages,
         }
 

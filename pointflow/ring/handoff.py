@@ -147,6 +147,24 @@ class SlabWriter:
                 n += 1
         return n
 
+    def free_lost(self, last_seq: int, slabs: tuple[int, ...] = (0, 1)) -> int:
+        """The renderer holds no slab and the newest handoff it received is ``last_seq``, yet
+        a slab among ``slabs`` (the caller's: those handed out long enough ago) is held with
+        a later handoff: it never arrived (sent into the connection of a renderer that died,
+        or before a hello that never came). Free it, and send the next handoff full: the
+        renderer missed that handoff's changes. Returns how many slabs this freed."""
+        self.poll_releases()
+        n = 0
+        for i in slabs:
+            s = self._held[i]
+            if s and s > last_seq:
+                self._held[i] = 0
+                self.slabs.state(i)[S_HELD] = 0
+                n += 1
+        if n:
+            self._force_full = True
+        return n
+
     def reset_reader(self) -> None:
         """The renderer restarted: consider both slabs free and send a full handoff next."""
         self._held = [0, 0]
@@ -301,6 +319,11 @@ class SlabReader:
         msgs = [Handoff.decode(self.ready.recv_multipart())]
         while self.ready.poll(0, zmq.POLLIN):
             msgs.append(Handoff.decode(self.ready.recv_multipart()))
+        # a handoff whose slab carries a newer seq came so late that the cadence took it for
+        # lost and wrote that slab again (SlabWriter.free_lost): it is not ours to read
+        msgs = [m for m in msgs if int(self.slabs.state(m.slab)[S_SEQ]) == m.seq]
+        if not msgs:
+            return None
         h = msgs[-1]
         if len(msgs) > 1:
             dirty: list | None = []

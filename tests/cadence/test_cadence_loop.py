@@ -451,3 +451,46 @@ def test_every_handoff_shows_the_ring_as_it_was_at_its_snapshot(tmp_path):
         assert set(range(1, tid + 1)) - set(seen) <= set(range(seen[-1] + 1 if seen else 1, tid + 1))
     finally:
         rig.close()
+
+
+def test_handoffs_that_never_reached_the_renderer_are_freed_after_its_idle(tmp_path):
+    """Handoffs sent into the connection of a renderer that died (or before a hello that never
+    came) are held forever by nobody: the 60-min chaos soak once drew no frame for 61 s after
+    a frozen renderer was replaced. The new renderer says idle with the newest handoff it got;
+    a later one sent long enough ago (the stall window) was lost: freed, next handoff full."""
+    rig = Rig(tmp_path, latest_only=False)
+    try:
+        rig.push(10, 1)
+        h1 = rig.tick()
+        rig.recv()
+        rig.release()
+        rig.push(10, 2)
+        h2 = rig.tick()
+        rig.push(10, 3)
+        h3 = rig.tick()
+        for _ in (h2, h3):  # both lost on the way: the renderer never reads them
+            assert rig.rpull.poll(1000)
+            rig.rpull.recv_multipart()
+        assert rig.cad.writer.held == (True, True) and rig.tick() is False
+        rig.send(encode_idle(h1.seq, 600.0))  # too soon to call them lost: they may be in flight
+        assert rig.cad.writer.held == (True, True) and rig.cad.stats()["lost_handoffs"] == 0
+        rig.clk.advance(rig.cad.stall_s + 1.0)
+        rig.send(encode_idle(h1.seq, 6000.0))
+        assert rig.cad.writer.held == (False, False) and rig.cad.stats()["lost_handoffs"] == 2
+        h4 = rig.tick()
+        assert h4 and h4.dirty is None  # full: the renderer missed h2's and h3's changes
+        got, view = rig.recv()
+        assert got.seq == h4.seq and int(view.positions.shape[0]) >= 30
+    finally:
+        rig.close()
+
+
+def test_a_handoff_for_a_slab_written_again_since_is_not_read(rig):
+    """The renderer's side of the same rule: a handoff that arrives after its slab was freed
+    as lost and written again (its seq in the slab header is newer) is skipped, not drawn."""
+    from pointflow.ring.slabs import S_SEQ
+
+    rig.push(10, 1)
+    h = rig.tick()
+    rig.slabs.state(h.slab)[S_SEQ] = h.seq + 2  # the cadence reused the slab meanwhile
+    assert rig.reader.recv(1000) is None and rig.reader.held is None
