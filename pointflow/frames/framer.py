@@ -20,7 +20,7 @@ from typing import Any, Callable, Optional
 
 import numpy as np
 
-from . import deskew as dk
+from . import compiled, deskew as dk
 from .buffer import FrameError, NoTransform, TransformBuffer
 from .config import FramesConfig, static_rotation
 from .kernels import Placed, RigidTransform, Scratch, rigid
@@ -80,6 +80,7 @@ class Framer:
         #: positions as sent and the transform), which the ring applies as it writes them
         #: (ingest sets this unless it needs the placed positions itself: recording, thinning)
         self.lazy = False
+        compiled.load()  # numba's import and the cached machine code: now, not at the first cloud
 
     # ------------------------------------------------------------------ transforms
     def add_transforms(self, batch: Transforms) -> list[Ready]:

@@ -17,6 +17,8 @@ from typing import NamedTuple, Optional
 
 import numpy as np
 
+from . import compiled
+
 #: Rows per BLAS call (OpenBLAS keeps products this small on one thread).
 BLOCK = 16_384
 #: Scratch arrays above this many elements are not kept (a rare huge cloud must not leave
@@ -92,14 +94,18 @@ class RigidTransform:
     float32) straight into its slots, so a transformed cloud is read once and never stored in
     float64 (``PointRing.push(..., transform=)``)."""
 
-    __slots__ = ("R", "t", "scratch", "_rows")
+    __slots__ = ("R", "t", "scratch", "_rows", "_kernel", "_v")
 
     def __init__(self, R: np.ndarray, t: np.ndarray, scratch: Optional[Scratch] = None):
-        self.R = np.asarray(R, np.float64)
+        self.R = np.ascontiguousarray(R, np.float64)
         self.t = np.asarray(t, np.float64)
         self.scratch = scratch if scratch is not None else Scratch()
         #: per output axis (t_r, sum_j R_rj, sum_j |R_rj|) as floats, made by the first bounds()
         self._rows: Optional[tuple] = None
+        #: the compiled loop (compiled.py) or None: numpy
+        self._kernel = compiled.load()
+        #: (origin bytes, t - origin) of the last apply (a ring's origin rarely changes)
+        self._v: Optional[tuple] = None
 
     def world(self, pos: np.ndarray) -> np.ndarray:
         """The transformed positions, float64 (N, 3)."""
@@ -108,6 +114,13 @@ class RigidTransform:
     def apply(self, pos: np.ndarray, origin: np.ndarray, out: np.ndarray) -> None:
         """Write the offsets of the transformed ``pos`` from ``origin`` into ``out`` (flat, any
         float dtype, 3 * N values)."""
+        k = self._kernel
+        if k is not None and out.dtype == np.float32 and out.flags.c_contiguous and pos.flags.c_contiguous:
+            key = origin.tobytes()
+            if self._v is None or self._v[0] != key:
+                self._v = (key, self.t - origin)
+            k(pos.reshape(-1), self.R, self._v[1], out.reshape(-1))
+            return
         rigid(pos, self.R, self.t - origin, self.scratch, out=out.reshape(-1, 3))
 
     def bounds(self, lo: float, hi: float) -> tuple[float, float]:
