@@ -128,12 +128,14 @@ class RigidTransform:
         coordinate of the points lies in [lo, hi] (interval arithmetic; conservative, widened
         by a relative 1e-9 for the rounding of the product)."""
         if self._rows is None:
-            self._rows = tuple((float(self.t[r]), float(self.R[r].sum()), float(np.abs(self.R[r]).sum())) for r in range(3))
-        c, h = (lo + hi) / 2.0, (hi - lo) / 2.0
-        wlo, whi = float("inf"), float("-inf")
-        for t, rs, ra in self._rows:  # plain floats: a handful of numpy calls cost ~20 us here
-            m, r = t + rs * c, ra * h
-            wlo, whi = min(wlo, m - r), max(whi, m + r)
+            self._rows = tuple(v for r in range(3) for v in (float(self.t[r]), float(self.R[r].sum()),
+                                                             float(np.abs(self.R[r]).sum())))
+        t0, s0, a0, t1, s1, a1, t2, s2, a2 = self._rows
+        c, h = (lo + hi) * 0.5, (hi - lo) * 0.5
+        # plain floats, one min and one max (this runs once per chunk: numpy calls would cost
+        # ~20 us, a loop with a min/max per axis ~1.8 us)
+        m0, m1, m2, r0, r1, r2 = t0 + s0 * c, t1 + s1 * c, t2 + s2 * c, a0 * h, a1 * h, a2 * h
+        wlo, whi = min(m0 - r0, m1 - r1, m2 - r2), max(m0 + r0, m1 + r1, m2 + r2)
         return wlo - 1e-9 * (1.0 + abs(wlo)), whi + 1e-9 * (1.0 + abs(whi))
 
 
