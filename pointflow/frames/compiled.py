@@ -23,12 +23,21 @@ import logging
 import os
 import threading
 import warnings
-from typing import Any, Callable, Optional
+from typing import Any, Callable, NamedTuple, Optional
 
 log = logging.getLogger("pointflow.frames")
 
 #: float32 or float64 points as sent (flat, contiguous), float32 ring slots (flat, contiguous)
 SRC_DTYPES = ("float32", "float64")
+
+class Kernels(NamedTuple):
+    """The compiled loops: ``rigid(src_flat, R, v, dst_flat_f32)``, ``table(pos, idx, M,
+    out)`` and ``nodes(pos, off, node0, inv_step, M, D, out)`` (deskew.py's two paths)."""
+
+    rigid: Callable
+    table: Callable
+    nodes: Callable
+
 
 _lock = threading.Lock()
 _kernel: Any = None
@@ -52,6 +61,45 @@ def _rigid_into_f32(src, M, v, dst):  # pragma: no cover - runs compiled
         dst[k + 2] = m20 * x + m21 * y + m22 * z + v2
 
 
+def _table_into_f64(pos, idx, M, out):  # pragma: no cover - runs compiled
+    """deskew.apply_table's loop: point i with pose column idx[i] of M (12, U): r00 r01 .. r22
+    tx ty tz; the sums in numpy's order (t + r0 x + r1 y + r2 z, left to right): bit for bit
+    the numpy path's answer."""
+    for i in range(pos.shape[0]):
+        u = idx[i]
+        x = float(pos[i, 0])
+        y = float(pos[i, 1])
+        z = float(pos[i, 2])
+        out[i, 0] = M[9, u] + M[0, u] * x + M[1, u] * y + M[2, u] * z
+        out[i, 1] = M[10, u] + M[3, u] * x + M[4, u] * y + M[5, u] * z
+        out[i, 2] = M[11, u] + M[6, u] * x + M[7, u] * y + M[8, u] * z
+
+
+def _nodes_into_f64(pos, off, node0, inv_step, M, D, out):  # pragma: no cover - runs compiled
+    """deskew.apply_nodes's loop: the pose linearly interpolated between the two nodes around
+    each point's time (M: node poses (12, K), D: differences to the next node); the same
+    operations in the same order as the numpy path."""
+    k = M.shape[1]
+    hi = float(k - 1)
+    for i in range(pos.shape[0]):
+        f = (off[i] - node0) * inv_step
+        if not f >= 0.0:  # also NaN (the frames step passes finite times only): no wild index
+            f = 0.0
+        elif f > hi:
+            f = hi
+        j = int(f)
+        if j > k - 2:
+            j = k - 2
+        f -= j
+        x = float(pos[i, 0])
+        y = float(pos[i, 1])
+        z = float(pos[i, 2])
+        for r in range(3):
+            a = M[9 + r, j] + M[3 * r, j] * x + M[3 * r + 1, j] * y + M[3 * r + 2, j] * z
+            b = D[9 + r, j] + D[3 * r, j] * x + D[3 * r + 1, j] * y + D[3 * r + 2, j] * z
+            out[i, r] = a + b * f
+
+
 def _compile(cache: bool) -> Callable:
     import numba
     from numba import types
@@ -62,11 +110,17 @@ def _compile(cache: bool) -> Callable:
     # inputs typed read-only: received frames may be read-only bytes; writable arrays convert
     sigs = [types.void(arr(dt, 1, True), arr("float64", 2, True), arr("float64", 1, True), arr("float32", 1, False))
             for dt in SRC_DTYPES]
-    return numba.njit(sigs, cache=cache, nogil=True, boundscheck=False)(_rigid_into_f32)
+    rigid = numba.njit(sigs, cache=cache, nogil=True, boundscheck=False)(_rigid_into_f32)
+    table = numba.njit([types.void(arr(dt, 2, True), arr("intp", 1, True), arr("float64", 2, True), arr("float64", 2, False))
+                        for dt in SRC_DTYPES], cache=cache, nogil=True, boundscheck=False)(_table_into_f64)
+    nodes = numba.njit([types.void(arr(dt, 2, True), arr("float64", 1, True), types.float64, types.float64,
+                                   arr("float64", 2, True), arr("float64", 2, True), arr("float64", 2, False))
+                        for dt in SRC_DTYPES], cache=cache, nogil=True, boundscheck=False)(_nodes_into_f64)
+    return Kernels(rigid, table, nodes)
 
 
-def load() -> Optional[Callable]:
-    """The compiled kernel ``fn(src_flat, M, v, dst_flat)``, or None (numpy fallback).
+def load() -> Optional[Kernels]:
+    """The compiled loops (:class:`Kernels`), or None (numpy fallback).
     The first call imports numba and loads (or compiles and caches) the machine code."""
     global _kernel, _tried
     if _tried:

@@ -103,7 +103,8 @@ class RigidTransform:
         #: per output axis (t_r, sum_j R_rj, sum_j |R_rj|) as floats, made by the first bounds()
         self._rows: Optional[tuple] = None
         #: the compiled loop (compiled.py) or None: numpy
-        self._kernel = compiled.load()
+        ks = compiled.load()
+        self._kernel = ks.rigid if ks is not None else None
         #: (origin bytes, t - origin) of the last apply (a ring's origin rarely changes)
         self._v: Optional[tuple] = None
 

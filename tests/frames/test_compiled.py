@@ -68,7 +68,7 @@ def test_cache_failure_compiles_without_cache(monkeypatch):
     assert calls == [True, False] and k is not None
     src = np.ones((4, 3), np.float32)
     out = np.empty(12, np.float32)
-    k(src.reshape(-1), np.eye(3), np.array([1.0, 2.0, 3.0]), out)
+    k.rigid(src.reshape(-1), np.eye(3), np.array([1.0, 2.0, 3.0]), out)
     assert np.array_equal(out.reshape(4, 3), np.array([[2.0, 3.0, 4.0]] * 4, np.float32))
 
 
@@ -96,3 +96,23 @@ def test_fresh_process_places_points_with_or_without_the_kernel(env):
                          timeout=240)
     assert out.returncode == 0, out.stderr
     assert out.stdout.split() == ["False" if "POINTFLOW_NO_NUMBA" in env else "True", "True"]
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_compiled_deskew_loops_equal_the_numpy_path_bit_for_bit(dtype, monkeypatch):
+    """apply_table and apply_nodes: the compiled loops do numpy's sums in numpy's order."""
+    from pointflow.frames import deskew as dk
+
+    rng = np.random.default_rng(7)
+    n, u, k = 20_000, 700, 40
+    pos = rng.uniform(-120, 120, (n, 3)).astype(dtype)
+    R = np.stack([to_matrix(from_rpy(*rng.uniform(-3, 3, 3))) for _ in range(max(u, k))])
+    t = rng.uniform(-50, 50, (max(u, k), 3))
+    idx = rng.integers(0, u, n).astype(np.intp)
+    nodes = np.linspace(0.0, 1e8, k)
+    off = rng.uniform(-1e6, 1.01e8, n)  # a few before the first node and after the last: clipped
+    got = (dk.apply_table(pos, idx, R[:u], t[:u], Scratch()), dk.apply_nodes(pos, off, nodes, R[:k], t[:k], Scratch()))
+    monkeypatch.setattr(compiled, "load", lambda: None)
+    ref = (dk.apply_table(pos, idx, R[:u], t[:u], Scratch()), dk.apply_nodes(pos, off, nodes, R[:k], t[:k], Scratch()))
+    assert np.array_equal(got[0], ref[0])
+    assert np.array_equal(got[1], ref[1])
