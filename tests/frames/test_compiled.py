@@ -116,3 +116,23 @@ def test_compiled_deskew_loops_equal_the_numpy_path_bit_for_bit(dtype, monkeypat
     ref = (dk.apply_table(pos, idx, R[:u], t[:u], Scratch()), dk.apply_nodes(pos, off, nodes, R[:k], t[:k], Scratch()))
     assert np.array_equal(got[0], ref[0])
     assert np.array_equal(got[1], ref[1])
+
+
+_PREPARE = """
+import sys
+from pointflow.config import load_config
+from pointflow.ingest import process
+from pointflow.frames import compiled
+process.prepare(load_config({"source": {"transport": "synthetic"}}), None, None)
+print("numba" in sys.modules)  # frames off: nothing loaded, no numba import
+process.prepare(load_config({"source": {"transport": "synthetic"}, "frames": {"fixed": "odom"}}), None, None)
+print("numba" in sys.modules, compiled.load() is not None)
+"""
+
+
+def test_numba_is_imported_only_for_frames_and_prepare_loads_it():
+    """Importing ingest costs nothing extra; a standby's prepare loads the loops when
+    frames.fixed is set (so an activated ingest does not pay it)."""
+    out = subprocess.run([sys.executable, "-c", _PREPARE], capture_output=True, text=True, timeout=240)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["False", "True", "True"]
