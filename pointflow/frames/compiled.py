@@ -31,10 +31,12 @@ log = logging.getLogger("pointflow.frames")
 SRC_DTYPES = ("float32", "float64")
 
 class Kernels(NamedTuple):
-    """The compiled loops: ``rigid(src_flat, R, v, dst_flat_f32)``, ``table(pos, idx, M,
-    out)`` and ``nodes(pos, off, node0, inv_step, M, D, out)`` (deskew.py's two paths)."""
+    """The compiled loops: ``rigid(src_flat, R, v, dst_flat_f32)``, ``rigid64`` the same into
+    float64, ``table(pos, idx, M, out)`` and ``nodes(pos, off, node0, inv_step, M, D, out)``
+    (deskew.py's two paths)."""
 
     rigid: Callable
+    rigid64: Callable
     table: Callable
     nodes: Callable
 
@@ -46,6 +48,24 @@ _tried = False
 
 def _rigid_into_f32(src, M, v, dst):  # pragma: no cover - runs compiled
     """dst[3i + r] = float32(sum_j M[r, j] * float64(src[3i + j]) + v[r]), left to right."""
+    n = src.shape[0] // 3
+    m00, m01, m02 = M[0, 0], M[0, 1], M[0, 2]
+    m10, m11, m12 = M[1, 0], M[1, 1], M[1, 2]
+    m20, m21, m22 = M[2, 0], M[2, 1], M[2, 2]
+    v0, v1, v2 = v[0], v[1], v[2]
+    for i in range(n):
+        k = 3 * i
+        x = float(src[k])
+        y = float(src[k + 1])
+        z = float(src[k + 2])
+        dst[k] = m00 * x + m01 * y + m02 * z + v0
+        dst[k + 1] = m10 * x + m11 * y + m12 * z + v1
+        dst[k + 2] = m20 * x + m21 * y + m22 * z + v2
+
+
+def _rigid_into_f64(src, M, v, dst):  # pragma: no cover - runs compiled
+    """dst[3i + r] = sum_j M[r, j] * float64(src[3i + j]) + v[r], left to right (float64 out:
+    the placed positions that recording, thinning and small clouds of a dynamic chain need)."""
     n = src.shape[0] // 3
     m00, m01, m02 = M[0, 0], M[0, 1], M[0, 2]
     m10, m11, m12 = M[1, 0], M[1, 1], M[1, 2]
@@ -111,12 +131,15 @@ def _compile(cache: bool) -> Callable:
     sigs = [types.void(arr(dt, 1, True), arr("float64", 2, True), arr("float64", 1, True), arr("float32", 1, False))
             for dt in SRC_DTYPES]
     rigid = numba.njit(sigs, cache=cache, nogil=True, boundscheck=False)(_rigid_into_f32)
+    rigid64 = numba.njit([types.void(arr(dt, 1, True), arr("float64", 2, True), arr("float64", 1, True),
+                                     arr("float64", 1, False)) for dt in SRC_DTYPES],
+                         cache=cache, nogil=True, boundscheck=False)(_rigid_into_f64)
     table = numba.njit([types.void(arr(dt, 2, True), arr("intp", 1, True), arr("float64", 2, True), arr("float64", 2, False))
                         for dt in SRC_DTYPES], cache=cache, nogil=True, boundscheck=False)(_table_into_f64)
     nodes = numba.njit([types.void(arr(dt, 2, True), arr("float64", 1, True), types.float64, types.float64,
                                    arr("float64", 2, True), arr("float64", 2, True), arr("float64", 2, False))
                         for dt in SRC_DTYPES], cache=cache, nogil=True, boundscheck=False)(_nodes_into_f64)
-    return Kernels(rigid, table, nodes)
+    return Kernels(rigid, rigid64, table, nodes)
 
 
 def load() -> Optional[Kernels]:

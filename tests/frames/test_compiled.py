@@ -136,3 +136,17 @@ def test_numba_is_imported_only_for_frames_and_prepare_loads_it():
     out = subprocess.run([sys.executable, "-c", _PREPARE], capture_output=True, text=True, timeout=240)
     assert out.returncode == 0, out.stderr
     assert out.stdout.split() == ["False", "True", "True"]
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_compiled_placed_positions_in_float64_equal_numpy(dtype, monkeypatch):
+    """kernels.rigid into float64 (recording, thinning, small clouds of a dynamic chain):
+    the compiled pass against numpy's product, within an ulp of float64."""
+    R, t, _, rng = _case(5)
+    src = rng.uniform(-150, 150, (40_000, 3)).astype(dtype)
+    got = rigid(src, R, t, Scratch())
+    monkeypatch.setattr(compiled, "load", lambda: None)
+    ref = rigid(src, R, t, Scratch())
+    assert np.abs(got - ref).max() <= 2 * np.spacing(np.abs(ref).max())
+    exact = src.astype(np.float64) @ R.T + t
+    assert np.abs(got - exact).max() <= 2 * np.spacing(np.abs(exact).max())
