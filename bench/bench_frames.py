@@ -44,7 +44,7 @@ import zmq
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 sys.path.insert(0, os.path.join(ROOT, "bench"))
-from bench_ingest import _IngestRun  # noqa: E402  (the shared ingest-stage harness)
+from bench_ingest import _IngestRun, cpu_seconds  # noqa: E402  (the shared ingest-stage harness)
 #: ../shared/data of a clone next to the shared folder (a worktree one level deeper looks further up)
 DATA = next((d for d in (os.path.join(ROOT, "..", "shared", "data", "ouster_os1_128"),
                          os.path.join(ROOT, "..", "..", "shared", "data", "ouster_os1_128")) if os.path.isdir(d)),
@@ -238,7 +238,7 @@ class IngestRun(_IngestRun):
         prod.start()
         ready.wait(60)
         time.sleep(0.1)
-        c0 = self.ps.cpu_times()
+        c0 = cpu_seconds(self.ps)
         go.set()
         t0 = time.perf_counter()
         target = before + n * count
@@ -247,11 +247,11 @@ class IngestRun(_IngestRun):
             if s.get("points_out", 0) + sum(s.get("drops", {}).values()) >= target:
                 break
         dt = time.perf_counter() - t0
-        c1 = self.ps.cpu_times()
+        c1 = cpu_seconds(self.ps)
         prod.join()
         # points per CPU-second of the ingest process: its own cost, steadier than the rate on
         # a machine whose other load comes and goes (includes its idle polling: a lower bound)
-        self.cpu_rate = n * count / max(1e-9, (c1.user + c1.system) - (c0.user + c0.system))
+        self.cpu_rate = n * count / max(1e-9, c1 - c0)
         return n * count / dt
 
 

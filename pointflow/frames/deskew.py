@@ -36,6 +36,7 @@ from typing import Optional
 
 import numpy as np
 
+from . import compiled
 from .kernels import BLOCK, Scratch
 
 #: Node spacing limits (see the module doc).
@@ -157,6 +158,10 @@ def apply_table(pos: np.ndarray, idx: np.ndarray, R: np.ndarray, t: np.ndarray, 
     M[:9] = R.reshape(u, 9).T
     M[9:] = t.T
     out = np.empty((n, 3), np.float64)
+    ks = compiled.load()
+    if ks is not None and pos.dtype.isnative and pos.dtype.char in "fd" and pos.flags.c_contiguous and idx.dtype == np.intp:
+        ks.table(pos, idx, M, out)  # one pass, the same sums in the same order (compiled.py)
+        return out
     for a0 in range(0, n, BLOCK):
         b0 = min(n, a0 + BLOCK)
         k = b0 - a0
@@ -191,6 +196,10 @@ def apply_nodes(pos: np.ndarray, offsets: np.ndarray, nodes: np.ndarray, R: np.n
     D = np.zeros_like(M)
     D[:, :-1] = M[:, 1:] - M[:, :-1]
     out = np.empty((n, 3), np.float64)
+    ks = compiled.load()
+    if ks is not None and pos.dtype.isnative and pos.dtype.char in "fd" and pos.flags.c_contiguous and k >= 2:
+        ks.nodes(pos, np.ascontiguousarray(offsets, np.float64), float(nodes[0]), 1.0 / step, M, D, out)
+        return out
     for a0 in range(0, n, BLOCK):
         b0 = min(n, a0 + BLOCK)
         m = b0 - a0

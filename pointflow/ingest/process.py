@@ -181,8 +181,7 @@ class Ingestor:
             self.reject(exc.reason, f"source {chunk.source_id!r} seq {chunk.seq}: {exc}")
             return False
         self.chunks_accepted += 1
-        n = chunk.n
-        self.counters.points_in += n
+        self.counters.points_in += chunk.positions.shape[0]  # not chunk.n: a property, ~0.2 us
         if self.framer is not None:  # into the fixed frame; may wait for transforms (docs/frames.md)
             for c, p, ch in self.framer.submit(chunk, pos, chans):
                 self._admit(c, p, ch, t0)
@@ -280,10 +279,15 @@ class Ingestor:
     def _convert(self, chunk: PointChunk) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         """Only the ring's channels, in the ring's dtypes; importance resolved."""
         out: dict[str, np.ndarray] = {}
-        n = chunk.n
+        n = chunk.positions.shape[0]
+        dtypes = self._dtypes
         for name, spec in self.specs.items():
             arr = chunk.channels.get(name)
             if arr is None:
+                continue
+            if spec.width == 1 and arr.ndim == 1:
+                dt = dtypes[name]
+                out[name] = arr if arr.dtype == dt else _to_dtype(name, arr, dt)  # the common case, first
                 continue
             if spec.width == 1:
                 if arr.ndim == 2 and arr.shape[1] == 1:
@@ -384,8 +388,10 @@ class Ingestor:
             self.pushes += 1
             refused = n - res.written - res.rejected
             self.counters.points_out += res.written
-            self.counters.drop("out_of_range", res.rejected)  # too far from the ring's origin
-            self.counters.drop("ring_full", refused)
+            if res.rejected:
+                self.counters.drop("out_of_range", res.rejected)  # too far from the ring's origin
+            if refused:
+                self.counters.drop("ring_full", refused)
             self.ring_evicted += res.dropped - refused
             if self.spans is not None:
                 for t in b.traces:
@@ -454,6 +460,15 @@ def recv_frames(sock, flags: int = zmq.NOBLOCK) -> list:
         f = recv(flags, copy=False)
         parts.append(f)
     return parts
+
+
+def prepare(cfg, info, log) -> None:
+    """A standby's head start (``STAGE_PREPARE``): with ``frames.fixed`` set, import numba and
+    load the compiled transform now (0.5-1 s of CPU), not when the stage is needed."""
+    if cfg.frames is not None and cfg.frames.fixed:
+        from ..frames import compiled
+
+        compiled.load()
 
 
 def main(ctx) -> None:

@@ -59,6 +59,10 @@ MAX_OFFSET = float(2 ** 24)
 MAX_ORIGIN_ABS = float(2 ** 53)
 
 _min, _max = np.minimum.reduce, np.maximum.reduce
+#: per-push checks by identity (native float dtypes are singletons; comparing a dtype with a
+#: type, or looking up ``np.integer``, costs a few hundred ns each on the hot path)
+_F32, _F64 = np.dtype(np.float32), np.dtype(np.float64)
+_INTS = (int, np.integer)
 
 EVICTIONS = ("drop_oldest", "drop_newest", "importance")
 _EVICTION_ALIASES = {"fifo": "drop_oldest", "drop_oldest": "drop_oldest", "drop_newest": "drop_newest",
@@ -546,7 +550,8 @@ class PointRing:
         of range, or to choose the origin, the ring places the points first and goes on as
         without a transform."""
         pos = np.asarray(positions)
-        if pos.dtype != np.float64 and pos.dtype != np.float32:
+        dt = pos.dtype
+        if dt is not _F64 and dt is not _F32 and dt != _F64 and dt != _F32:
             pos = pos.astype(np.float64)
         if not pos.flags.c_contiguous:
             pos = np.ascontiguousarray(pos)
@@ -685,7 +690,7 @@ class PointRing:
         st[I_WRITES] += 1
         st[I_TOTAL_WRITTEN] += written
         st[I_LAST_PUSH_NS] = now_ns
-        tids = (trace_id,) if isinstance(trace_id, (int, np.integer)) else trace_id
+        tids = (trace_id,) if isinstance(trace_id, _INTS) else trace_id
         t_commit = time.monotonic_ns()
         cm = self._cmv  # flat int64 view of the commit log: cm[2i], cm[2i+1] = entry i
         for tid in tids:  # one entry per chunk of a coalesced push (a handful, not per point)

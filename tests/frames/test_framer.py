@@ -340,6 +340,27 @@ def test_rigid_transforms_left_to_the_ring_place_points_as_before(ring):
     assert ing.counters.drops == {"non_finite": 1} and _balanced(ing) and ing.counters.points_out == 3000 - 1 + 15_600
 
 
+def test_static_chain_fast_path_follows_changes_of_the_tree(ring):
+    """The second cloud of a static chain skips the lookup (same transform object); a new
+    static transform on that chain, or a dynamic edge put in it, is used from the next cloud."""
+    ing = _ing(ring, static=[StaticTransformConfig("odom", "cam", [3.0, 0.0, 0.0], rpy_deg=[0, 0, 0])])
+    fr = ing.framer
+    got = [fr.submit(_cloud(50, 0, frame="cam", seed=k, src="cam"), _cloud(50, 0, seed=k).positions, {})[0][1]
+           for k in range(2)]
+    assert got[0].xf is got[1].xf and fr.sources["cam"].fast is not None
+    fr.add_transforms(Transforms([Transform("odom", "cam", 0, (0.0, 5.0, 0.0), (0, 0, 0, 1), True)], "tf"))
+    c = _cloud(50, 0, frame="cam", seed=3, src="cam")
+    p = fr.submit(c, c.positions, {})[0][1]
+    assert p.xf is not got[0].xf and np.allclose(p.xf.world(c.positions), c.positions.astype(np.float64) + [0, 5, 0])
+    # other edges change (the buffer's version moves): looked up again, the same placement
+    robot = T.Robot()
+    fr.add_transforms(_tf_batch(robot, range(len(robot.stamps))))
+    c = _cloud(50, 0, frame="cam", seed=4, src="cam")
+    q = fr.submit(c, c.positions, {})[0][1]
+    assert np.array_equal(q.xf.world(c.positions), p.xf.world(c.positions))
+    assert fr.stats()["sources"]["cam"]["clouds"] == 4 and fr.stats()["sources"]["cam"]["chain"] == "odom <- cam"
+
+
 def test_scratch_keeps_small_buffers_and_drops_huge_ones():
     from pointflow.frames.kernels import KEEP_MAX, Scratch
 

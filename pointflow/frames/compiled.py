@@ -1,0 +1,169 @@
+"""The rigid transform as one compiled loop (numba), for the ring's write of a placed cloud.
+
+Why: numpy has no fused "float32 in, float64 ``R p + v``, float32 out"; it takes a float64
+copy, a BLAS product (OpenBLAS's worst shape, K = 3), a translation pass and a rounding copy:
+about 7.6 ns per point on the shared 2-core VM. The loop below reads each point once, does
+the nine products and three sums in float64 and rounds once to float32: about 1.9 ns per
+point (bench/bench_frames.py). No fast-math: the arithmetic is IEEE float64 as written
+(no FMA contraction, no reordering), so it equals numpy's answer up to the summation order
+inside BLAS (an ulp of the float64 result, then the same float32 rounding in nearly all
+cases; tests/ring/test_transform_push.py and tests/frames/test_compiled.py compare).
+
+Loaded on first use (:func:`load`), not at import: importing numba and loading the cached
+machine code costs about 0.5-1 s of CPU, which only a pipeline with ``frames.fixed`` should
+pay (ingest's ``prepare`` does it in a standby, before it is needed). The compiled code is
+cached on disk (``cache=True``: numba's own locations, ``NUMBA_CACHE_DIR`` first); when no
+cache location is writable it compiles without one, and when numba is missing or fails, the
+caller falls back to the numpy path (:func:`pointflow.frames.kernels.rigid`): same results,
+slower. ``POINTFLOW_NO_NUMBA=1`` forces that fallback (tests compare both).
+"""
+from __future__ import annotations
+
+import logging
+import os
+import threading
+import warnings
+from typing import Any, Callable, NamedTuple, Optional
+
+log = logging.getLogger("pointflow.frames")
+
+#: float32 or float64 points as sent (flat, contiguous), float32 ring slots (flat, contiguous)
+SRC_DTYPES = ("float32", "float64")
+
+class Kernels(NamedTuple):
+    """The compiled loops: ``rigid(src_flat, R, v, dst_flat_f32)``, ``rigid64`` the same into
+    float64, ``table(pos, idx, M, out)`` and ``nodes(pos, off, node0, inv_step, M, D, out)``
+    (deskew.py's two paths)."""
+
+    rigid: Callable
+    rigid64: Callable
+    table: Callable
+    nodes: Callable
+
+
+_lock = threading.Lock()
+_kernel: Any = None
+_tried = False
+
+
+def _rigid_into_f32(src, M, v, dst):  # pragma: no cover - runs compiled
+    """dst[3i + r] = float32(sum_j M[r, j] * float64(src[3i + j]) + v[r]), left to right."""
+    n = src.shape[0] // 3
+    m00, m01, m02 = M[0, 0], M[0, 1], M[0, 2]
+    m10, m11, m12 = M[1, 0], M[1, 1], M[1, 2]
+    m20, m21, m22 = M[2, 0], M[2, 1], M[2, 2]
+    v0, v1, v2 = v[0], v[1], v[2]
+    for i in range(n):
+        k = 3 * i
+        x = float(src[k])
+        y = float(src[k + 1])
+        z = float(src[k + 2])
+        dst[k] = m00 * x + m01 * y + m02 * z + v0
+        dst[k + 1] = m10 * x + m11 * y + m12 * z + v1
+        dst[k + 2] = m20 * x + m21 * y + m22 * z + v2
+
+
+def _rigid_into_f64(src, M, v, dst):  # pragma: no cover - runs compiled
+    """dst[3i + r] = sum_j M[r, j] * float64(src[3i + j]) + v[r], left to right (float64 out:
+    the placed positions that recording, thinning and small clouds of a dynamic chain need)."""
+    n = src.shape[0] // 3
+    m00, m01, m02 = M[0, 0], M[0, 1], M[0, 2]
+    m10, m11, m12 = M[1, 0], M[1, 1], M[1, 2]
+    m20, m21, m22 = M[2, 0], M[2, 1], M[2, 2]
+    v0, v1, v2 = v[0], v[1], v[2]
+    for i in range(n):
+        k = 3 * i
+        x = float(src[k])
+        y = float(src[k + 1])
+        z = float(src[k + 2])
+        dst[k] = m00 * x + m01 * y + m02 * z + v0
+        dst[k + 1] = m10 * x + m11 * y + m12 * z + v1
+        dst[k + 2] = m20 * x + m21 * y + m22 * z + v2
+
+
+def _table_into_f64(pos, idx, M, out):  # pragma: no cover - runs compiled
+    """deskew.apply_table's loop: point i with pose column idx[i] of M (12, U): r00 r01 .. r22
+    tx ty tz; the sums in numpy's order (t + r0 x + r1 y + r2 z, left to right): bit for bit
+    the numpy path's answer."""
+    for i in range(pos.shape[0]):
+        u = idx[i]
+        x = float(pos[i, 0])
+        y = float(pos[i, 1])
+        z = float(pos[i, 2])
+        out[i, 0] = M[9, u] + M[0, u] * x + M[1, u] * y + M[2, u] * z
+        out[i, 1] = M[10, u] + M[3, u] * x + M[4, u] * y + M[5, u] * z
+        out[i, 2] = M[11, u] + M[6, u] * x + M[7, u] * y + M[8, u] * z
+
+
+def _nodes_into_f64(pos, off, node0, inv_step, M, D, out):  # pragma: no cover - runs compiled
+    """deskew.apply_nodes's loop: the pose linearly interpolated between the two nodes around
+    each point's time (M: node poses (12, K), D: differences to the next node); the same
+    operations in the same order as the numpy path."""
+    k = M.shape[1]
+    hi = float(k - 1)
+    for i in range(pos.shape[0]):
+        f = (off[i] - node0) * inv_step
+        if not f >= 0.0:  # also NaN (the frames step passes finite times only): no wild index
+            f = 0.0
+        elif f > hi:
+            f = hi
+        j = int(f)
+        if j > k - 2:
+            j = k - 2
+        f -= j
+        x = float(pos[i, 0])
+        y = float(pos[i, 1])
+        z = float(pos[i, 2])
+        for r in range(3):
+            a = M[9 + r, j] + M[3 * r, j] * x + M[3 * r + 1, j] * y + M[3 * r + 2, j] * z
+            b = D[9 + r, j] + D[3 * r, j] * x + D[3 * r + 1, j] * y + D[3 * r + 2, j] * z
+            out[i, r] = a + b * f
+
+
+def _compile(cache: bool) -> Callable:
+    import numba
+    from numba import types
+
+    def arr(dt, nd, readonly):
+        return types.Array(getattr(types, dt), nd, "C", readonly=readonly)
+
+    # inputs typed read-only: received frames may be read-only bytes; writable arrays convert
+    sigs = [types.void(arr(dt, 1, True), arr("float64", 2, True), arr("float64", 1, True), arr("float32", 1, False))
+            for dt in SRC_DTYPES]
+    rigid = numba.njit(sigs, cache=cache, nogil=True, boundscheck=False)(_rigid_into_f32)
+    rigid64 = numba.njit([types.void(arr(dt, 1, True), arr("float64", 2, True), arr("float64", 1, True),
+                                     arr("float64", 1, False)) for dt in SRC_DTYPES],
+                         cache=cache, nogil=True, boundscheck=False)(_rigid_into_f64)
+    table = numba.njit([types.void(arr(dt, 2, True), arr("intp", 1, True), arr("float64", 2, True), arr("float64", 2, False))
+                        for dt in SRC_DTYPES], cache=cache, nogil=True, boundscheck=False)(_table_into_f64)
+    nodes = numba.njit([types.void(arr(dt, 2, True), arr("float64", 1, True), types.float64, types.float64,
+                                   arr("float64", 2, True), arr("float64", 2, True), arr("float64", 2, False))
+                        for dt in SRC_DTYPES], cache=cache, nogil=True, boundscheck=False)(_nodes_into_f64)
+    return Kernels(rigid, rigid64, table, nodes)
+
+
+def load() -> Optional[Kernels]:
+    """The compiled loops (:class:`Kernels`), or None (numpy fallback).
+    The first call imports numba and loads (or compiles and caches) the machine code."""
+    global _kernel, _tried
+    if _tried:
+        return _kernel
+    with _lock:
+        if _tried:
+            return _kernel
+        if os.environ.get("POINTFLOW_NO_NUMBA", "") not in ("", "0"):
+            _tried = True
+            return None
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")  # a cache that cannot be written is not the user's problem
+                try:
+                    _kernel = _compile(cache=True)
+                except Exception as exc:  # noqa: BLE001 - e.g. no writable cache location
+                    log.info("frames: compiled transform without a disk cache (%s: %s)", type(exc).__name__, exc)
+                    _kernel = _compile(cache=False)
+        except Exception as exc:  # noqa: BLE001 - numba missing or broken: numpy does the same, slower
+            log.warning("frames: compiled transform unavailable (%s: %s); using numpy", type(exc).__name__, exc)
+            _kernel = None
+        _tried = True
+        return _kernel
