@@ -40,6 +40,7 @@ from ..profiling.spans import SpanEmitter
 #: ``ctx.prepared``. Kinds not listed only import their module.
 STAGE_PREPARE: dict[str, str] = {
     "render": "pointflow.render.process:prepare",
+    "ingest": "pointflow.ingest.process:prepare",
 }
 
 #: kind -> "module:function" of the stage loop.
