@@ -30,9 +30,10 @@ log = logging.getLogger("pointflow.frames")
 #: float32 or float64 points as sent (flat, contiguous), float32 ring slots (flat, contiguous)
 SRC_DTYPES = ("float32", "float64")
 
+
 class Kernels(NamedTuple):
-    """The compiled loops: ``rigid(src_flat, R, v, dst_flat_f32)``, ``rigid64`` the same into
-    float64, ``table(pos, idx, M, out)`` and ``nodes(pos, off, node0, inv_step, M, D, out)``
+    """The compiled loops: ``rigid(src_flat, R, v, dst_flat)`` into float32 slots, ``rigid64``
+    the same loop into float64, ``table(pos, idx, M, out)`` and ``nodes(pos, off, node0, inv_step, M, D, out)``
     (deskew.py's two paths)."""
 
     rigid: Callable
@@ -46,26 +47,10 @@ _kernel: Any = None
 _tried = False
 
 
-def _rigid_into_f32(src, M, v, dst):  # pragma: no cover - runs compiled
-    """dst[3i + r] = float32(sum_j M[r, j] * float64(src[3i + j]) + v[r]), left to right."""
-    n = src.shape[0] // 3
-    m00, m01, m02 = M[0, 0], M[0, 1], M[0, 2]
-    m10, m11, m12 = M[1, 0], M[1, 1], M[1, 2]
-    m20, m21, m22 = M[2, 0], M[2, 1], M[2, 2]
-    v0, v1, v2 = v[0], v[1], v[2]
-    for i in range(n):
-        k = 3 * i
-        x = float(src[k])
-        y = float(src[k + 1])
-        z = float(src[k + 2])
-        dst[k] = m00 * x + m01 * y + m02 * z + v0
-        dst[k + 1] = m10 * x + m11 * y + m12 * z + v1
-        dst[k + 2] = m20 * x + m21 * y + m22 * z + v2
-
-
-def _rigid_into_f64(src, M, v, dst):  # pragma: no cover - runs compiled
-    """dst[3i + r] = sum_j M[r, j] * float64(src[3i + j]) + v[r], left to right (float64 out:
-    the placed positions that recording, thinning and small clouds of a dynamic chain need)."""
+def _rigid_into(src, M, v, dst):  # pragma: no cover - runs compiled
+    """dst[3i + r] = sum_j M[r, j] * float64(src[3i + j]) + v[r], left to right, rounded once
+    to dst's type: float32 for the ring's slots, float64 for the placed positions that
+    recording, thinning and small clouds of a dynamic chain need."""
     n = src.shape[0] // 3
     m00, m01, m02 = M[0, 0], M[0, 1], M[0, 2]
     m10, m11, m12 = M[1, 0], M[1, 1], M[1, 2]
@@ -128,18 +113,15 @@ def _compile(cache: bool) -> Callable:
         return types.Array(getattr(types, dt), nd, "C", readonly=readonly)
 
     # inputs typed read-only: received frames may be read-only bytes; writable arrays convert
-    sigs = [types.void(arr(dt, 1, True), arr("float64", 2, True), arr("float64", 1, True), arr("float32", 1, False))
-            for dt in SRC_DTYPES]
-    rigid = numba.njit(sigs, cache=cache, nogil=True, boundscheck=False)(_rigid_into_f32)
-    rigid64 = numba.njit([types.void(arr(dt, 1, True), arr("float64", 2, True), arr("float64", 1, True),
-                                     arr("float64", 1, False)) for dt in SRC_DTYPES],
-                         cache=cache, nogil=True, boundscheck=False)(_rigid_into_f64)
+    sigs = [types.void(arr(dt, 1, True), arr("float64", 2, True), arr("float64", 1, True), arr(out, 1, False))
+            for dt in SRC_DTYPES for out in ("float32", "float64")]
+    rigid = numba.njit(sigs, cache=cache, nogil=True, boundscheck=False)(_rigid_into)
     table = numba.njit([types.void(arr(dt, 2, True), arr("intp", 1, True), arr("float64", 2, True), arr("float64", 2, False))
                         for dt in SRC_DTYPES], cache=cache, nogil=True, boundscheck=False)(_table_into_f64)
     nodes = numba.njit([types.void(arr(dt, 2, True), arr("float64", 1, True), types.float64, types.float64,
                                    arr("float64", 2, True), arr("float64", 2, True), arr("float64", 2, False))
                         for dt in SRC_DTYPES], cache=cache, nogil=True, boundscheck=False)(_nodes_into_f64)
-    return Kernels(rigid, rigid64, table, nodes)
+    return Kernels(rigid, rigid, table, nodes)  # one loop, float32 or float64 out
 
 
 def load() -> Optional[Kernels]:
