@@ -186,7 +186,7 @@ def test_points_a_source_drops_at_its_send_queue_are_in_the_identities(tmp_path)
                 a = pipe.stats()["accounting"]
                 return a["sources_received"] == sent * 5000 and a["sources_forwarded"] == a["ingest_received"] \
                     and a["ingest_balanced"]
-            pipe.wait(120, until=settled)
+            pipe.wait(300, until=settled)
     finally:
         push.close()
         zctx.term()
