@@ -121,12 +121,40 @@ def _run(args, profile: bool = False) -> int:
     return code
 
 
+def _serve(pipe, args, every_s: float, summary, done=lambda: False) -> tuple[dict, int, "int | None"]:
+    """Start ``pipe`` and poll it until Ctrl-C/SIGTERM, ``--duration`` (from the command's
+    start) or ``done()``, printing ``summary(stats)`` every ``every_s`` unless ``--quiet``.
+    The signal handlers are restored and the pipeline stopped however it ends. Returns the
+    final stats, the exit code (2 when the pipeline failed) and the signal that stopped it."""
+    from .runtime.supervisor import PipelineFailed
+
+    stop = _Stop()
+    old = {s: signal.signal(s, stop) for s in (signal.SIGINT, signal.SIGTERM)}
+    code = 0
+    pipe.start()
+    t_end = None if args.duration is None else _T0 + args.duration
+    last_print = time.monotonic()
+    try:
+        while not stop.flag and not done() and (t_end is None or time.monotonic() < t_end):
+            pipe.poll(0.05)
+            if not args.quiet and time.monotonic() - last_print >= every_s:
+                last_print = time.monotonic()
+                print(summary(pipe.stats()), file=sys.stderr, flush=True)
+    except PipelineFailed as exc:
+        log.error("%s", exc)
+        code = 2
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+        stats = pipe.stop()
+    return stats, code, stop.signal
+
+
 def _send(args) -> int:
     """``pointflow send``: run only the sources and publish them on ``send.endpoint``; ends
     when every source has ended, after ``--duration``, or on Ctrl-C."""
     from .remote.sender import send_summary
     from .runtime.pipeline import Pipeline
-    from .runtime.supervisor import PipelineFailed
 
     cfg = load_config(args.file)
     if cfg.send is None:
@@ -134,12 +162,6 @@ def _send(args) -> int:
                           "(endpoint, keys; see docs/remote.md and configs/remote-send.yaml)")
     out_dir = args.out
     pipe = Pipeline(cfg, out_dir=out_dir, role="send")
-    stop = _Stop()
-    old = {s: signal.signal(s, stop) for s in (signal.SIGINT, signal.SIGTERM)}
-    code = 0
-    pipe.start()
-    t_end = None if args.duration is None else _T0 + args.duration  # from the command's start (--help)
-    last_print = time.monotonic()
 
     def sources_done() -> bool:
         """Every source ended and the sender has taken all they sent (it may still be
@@ -150,19 +172,7 @@ def _send(args) -> int:
         taken = snd.get("points_in", 0) + snd.get("rejected_messages", 0)
         return all(v.get("finished") for v in srcs) and taken >= sum(v.get("points_out", 0) for v in srcs)
 
-    try:
-        while not stop.flag and not sources_done() and (t_end is None or time.monotonic() < t_end):
-            pipe.poll(0.05)
-            if not args.quiet and time.monotonic() - last_print >= 5.0:
-                last_print = time.monotonic()
-                print(send_summary(pipe.stats()), file=sys.stderr)
-    except PipelineFailed as exc:
-        log.error("%s", exc)
-        code = 2
-    finally:
-        for s, h in old.items():
-            signal.signal(s, h)
-        stats = pipe.stop()
+    stats, code, _ = _serve(pipe, args, 5.0, send_summary, done=sources_done)
     print(send_summary(stats))
     if out_dir:
         print(f"stats.json in {os.path.abspath(out_dir)}")
@@ -174,34 +184,15 @@ def _router(args) -> int:
     ``--duration``, Ctrl-C or SIGTERM, printing its sessions every ``stats_every_s``."""
     from .remote.router import router_summary
     from .runtime.pipeline import Pipeline
-    from .runtime.supervisor import PipelineFailed
 
     cfg = load_config(args.file)
     if cfg.router is None:
         raise ConfigError("router", f"{args.file} has no 'router:' section (listen endpoints, tls; see "
                           "docs/remote.md and configs/zenoh-router.yaml)")
     pipe = Pipeline(cfg, out_dir=args.out, role="router")
-    stop = _Stop()
-    old = {s: signal.signal(s, stop) for s in (signal.SIGINT, signal.SIGTERM)}
-    code = 0
-    pipe.start()
-    t_end = None if args.duration is None else _T0 + args.duration
-    last_print = time.monotonic()
-    try:
-        while not stop.flag and (t_end is None or time.monotonic() < t_end):
-            pipe.poll(0.05)
-            if not args.quiet and time.monotonic() - last_print >= cfg.router.stats_every_s:
-                last_print = time.monotonic()
-                print(router_summary(pipe.stats()), file=sys.stderr, flush=True)
-    except PipelineFailed as exc:
-        log.error("%s", exc)
-        code = 2
-    finally:
-        for s, h in old.items():
-            signal.signal(s, h)
-        stats = pipe.stop()
-    if stop.signal is not None:
-        log.info("stopped by %s", signal.Signals(stop.signal).name)
+    stats, code, signum = _serve(pipe, args, cfg.router.stats_every_s, router_summary)
+    if signum is not None:
+        log.info("stopped by %s", signal.Signals(signum).name)
     print(router_summary(stats), flush=True)
     if args.out:
         print(f"stats.json in {os.path.abspath(args.out)}")
