@@ -45,44 +45,142 @@ def _dtype_str(dt: np.dtype) -> str:
 
 
 def encode(chunk: PointChunk, *, link: dict | None = None, compressor: Any = None,
-           resolution: float | None = None) -> list[Any]:
+           resolution: float | None = None, pack: bool = True) -> list[Any]:
     """Frames for ``socket.send_multipart(frames, copy=False)``; arrays are not copied
     unless they are not C-contiguous little-endian.
 
+    A chunk whose data add up to less than :data:`PACK_MAX_BYTES` goes as two frames, its
+    arrays packed into one (docs/wire-format.md "Packed chunks"), unless ``pack`` is False.
     A link may add a ``link`` header object (per-source link sequence, see
     :mod:`pointflow.remote.transit`), compress the data frames (a
     :class:`pointflow.remote.codec.Compressor`) and quantise positions to ``resolution``;
     without those the output is the plain format, byte for byte."""
     if link is not None or compressor is not None or resolution:
         return _encode_link(chunk, link, compressor, resolution)
-    pos = np.ascontiguousarray(chunk.positions)
-    if pos.dtype.byteorder == ">":
-        pos = pos.astype(pos.dtype.newbyteorder("<"))
+    pos = chunk.positions
+    chans = chunk.channels
+    try:
+        key = (chunk.source_id, chunk.frame_id, not chunk.stamp_ns, pack, pos.dtype, pos.shape,
+               *[(k, a.dtype, a.shape) for k, a in chans.items()])
+        plan = _ENC_PLANS.get(key, _ENC_PLANS)
+    except (AttributeError, TypeError):  # not arrays, unhashable names: the general path reports it
+        plan = None
+    if plan is _ENC_PLANS:
+        plan = _enc_plan(chunk, pack)
+        if len(_ENC_PLANS) >= _PLANS_MAX:
+            _ENC_PLANS.clear()
+        _ENC_PLANS[key] = plan
+    if plan is not None and pos.flags.c_contiguous and all(a.flags.c_contiguous for a in chans.values()):
+        tpl, pads = plan
+        t_sent = chunk.t_sent_ns or time.monotonic_ns()
+        head = tpl % ((chunk.seq, chunk.trace_id, t_sent, chunk.stamp_ns) if chunk.stamp_ns
+                      else (chunk.seq, chunk.trace_id, t_sent))
+        if pads is not None:  # packed: one data frame
+            if not pads:
+                return [head, b"".join((pos, *chans.values()))]
+            parts: list[Any] = [pos]
+            for pad, a in zip(pads, chans.values()):
+                if pad:
+                    parts.append(_ZEROS[:pad])
+                parts.append(a)
+            return [head, b"".join(parts)]
+        return [head, *[a.tobytes() if a.nbytes < ZERO_COPY_MIN_BYTES else memoryview(a).cast("B")
+                        for a in (pos, *chans.values())]]
+    return _encode_general(chunk, pack)
+
+
+#: Chunks whose data frames add up to less than this go packed into one data frame
+#: (docs/wire-format.md "Packed chunks"): below pyzmq's zero-copy size every frame is copied
+#: anyway, and each frame saved is work saved on both ends and both ZeroMQ I/O threads.
+PACK_MAX_BYTES = ZERO_COPY_MIN_BYTES
+#: In a packed frame every array starts at a multiple of this many bytes.
+PACK_ALIGN = 8
+_ZEROS = bytes(PACK_ALIGN)
+#: (source, frame, stamp absent, pack, dtypes, shapes) -> (header template, pads) for
+#: :func:`encode`: the header text of a stream's chunks differs only in seq, trace and times.
+_ENC_PLANS: dict[tuple, Any] = {}
+
+
+class _Slot:
+    """Stands for a per-chunk number while a header template is written."""
+
+    def __repr__(self) -> str:
+        return "\x00"  # never in a JSON text (escaped there as \\u0000)
+
+
+_SLOT = _Slot()
+
+
+def _packed_offsets(nbytes: Sequence[int]) -> tuple[list[int], int]:
+    """Where each array starts in a packed frame (each at a multiple of PACK_ALIGN, in header
+    order, positions first) and the frame's size (no padding after the last)."""
+    offsets, end = [], 0
+    for nb in nbytes:
+        off = end + (-end % PACK_ALIGN)
+        offsets.append(off)
+        end = off + nb
+    return offsets, end
+
+
+def _pack_pads(nbytes: Sequence[int]) -> list[int]:
+    """Zero bytes before each array after the first in a packed frame."""
+    offsets, _ = _packed_offsets(nbytes)
+    return [offsets[i + 1] - offsets[i] - nbytes[i] for i in range(len(nbytes) - 1)]
+
+
+def _enc_plan(chunk: PointChunk, pack: bool) -> Any:
+    """(header template with %d for seq, trace, t_sent_ns and stamp_ns; the pads of a packed
+    frame, or None when the data go as a frame each), or None when this chunk's arrays need
+    the general path (not arrays, big-endian, an unsupported dtype, non-str names)."""
+    arrays = [chunk.positions, *chunk.channels.values()]
+    names = [chunk.source_id, chunk.frame_id, *chunk.channels]
+    if (not all(type(a) is np.ndarray and a.dtype.byteorder != ">" and a.dtype.name in SUPPORTED_DTYPES for a in arrays)
+            or not all(type(s) is str for s in names) or arrays[0].ndim != 2 or arrays[0].shape[1] != 3):
+        return None
+    nbytes = [a.nbytes for a in arrays]
+    packed = pack and len(arrays) > 1 and sum(nbytes) + PACK_ALIGN * len(arrays) < PACK_MAX_BYTES
+    h = _header(chunk, arrays[0], [(k, a) for k, a in chunk.channels.items()], _SLOT, _SLOT,
+                _SLOT, _SLOT if chunk.stamp_ns else 0, packed)
+    tpl = _header_json(h).replace(b"%", b"%%").replace(b"\x00", b"%d")
+    return tpl, (_pack_pads(nbytes) if packed else None)
+
+
+def _header(chunk: PointChunk, pos: np.ndarray, chans: Sequence[tuple[str, np.ndarray]], seq: Any, trace: Any,
+            t_sent: Any, stamp: Any, packed: bool) -> dict:
     n = int(pos.shape[0])
-    chans = []
-    frames: list[Any] = [b"", pos]
-    for name, arr in chunk.channels.items():
-        a = np.ascontiguousarray(arr)
-        if a.dtype.byteorder == ">":
-            a = a.astype(a.dtype.newbyteorder("<"))
-        chans.append({"name": name, "dtype": _dtype_str(a.dtype), "shape": list(a.shape)})
-        frames.append(a)
     header = {
-        "schema": SCHEMA,
-        "source": chunk.source_id,
-        "seq": int(chunk.seq),
-        "trace": int(chunk.trace_id),
-        "t_sent_ns": int(chunk.t_sent_ns or time.monotonic_ns()),
-        "n": n,
+        "schema": SCHEMA, "source": chunk.source_id, "seq": seq, "trace": trace, "t_sent_ns": t_sent, "n": n,
         "positions": {"dtype": _dtype_str(pos.dtype), "shape": [n, 3]},
-        "channels": chans,
+        "channels": [{"name": k, "dtype": _dtype_str(a.dtype), "shape": list(a.shape)} for k, a in chans],
     }
-    if chunk.stamp_ns:  # optional: only sources with a capture time (ROS header.stamp) send it
-        header["stamp_ns"] = int(chunk.stamp_ns)
+    if packed:
+        header["packed"] = True
+    if stamp:  # optional: only sources with a capture time (ROS header.stamp) send it
+        header["stamp_ns"] = stamp
     if chunk.frame_id:  # optional: the coordinate frame (docs/frames.md)
         header["frame"] = chunk.frame_id
-    frames[0] = _header_json(header)
-    return [f if isinstance(f, bytes) else (memoryview(f).cast("B") if f.nbytes >= ZERO_COPY_MIN_BYTES else f.tobytes()) for f in frames]
+    return header
+
+
+def _encode_general(chunk: PointChunk, pack: bool) -> list[Any]:
+    """:func:`encode` for any chunk (copies what is not contiguous little-endian)."""
+    arrays = []
+    for a in (chunk.positions, *chunk.channels.values()):
+        a = np.ascontiguousarray(a)
+        if a.dtype.byteorder == ">":
+            a = a.astype(a.dtype.newbyteorder("<"))
+        arrays.append(a)
+    nbytes = [a.nbytes for a in arrays]
+    packed = pack and len(arrays) > 1 and sum(nbytes) + PACK_ALIGN * len(arrays) < PACK_MAX_BYTES
+    h = _header(chunk, arrays[0], list(zip(chunk.channels, arrays[1:])), int(chunk.seq), int(chunk.trace_id),
+                int(chunk.t_sent_ns or time.monotonic_ns()), int(chunk.stamp_ns), packed)
+    head = _header_json(h)
+    if packed:
+        parts: list[Any] = [arrays[0]]
+        for pad, a in zip(_pack_pads(nbytes), arrays[1:]):
+            parts += [_ZEROS[:pad], a]
+        return [head, b"".join(parts)]
+    return [head, *[a.tobytes() if a.nbytes < ZERO_COPY_MIN_BYTES else memoryview(a).cast("B") for a in arrays]]
 
 
 _json_str = json.encoder.encode_basestring_ascii  # what json.dumps uses for str (ensure_ascii)
@@ -102,7 +200,9 @@ def _header_json(h: dict) -> bytes:
     for i, c in enumerate(chans):
         shape = ",".join([repr(int(x)) for x in c["shape"]])
         parts.append(f'{"," if i else ""}{{"name":{_json_str(c["name"])},"dtype":{_json_str(c["dtype"])},"shape":[{shape}]}}')
-    parts.append(f'],"stamp_ns":{h["stamp_ns"]!r}' if "stamp_ns" in h else "]")
+    parts.append('],"packed":true' if h.get("packed") is True else "]")
+    if "stamp_ns" in h:
+        parts.append(f',"stamp_ns":{h["stamp_ns"]!r}')
     parts.append(f',"frame":{_json_str(h["frame"])}}}' if "frame" in h else "}")
     return "".join(parts).encode()
 
@@ -260,7 +360,7 @@ _INT_RE = re.compile(_INT)
 _PLANS: dict[bytes, Any] = {}
 _PLANS_MAX = 256
 _TAIL_MAX = 4096
-_PLAIN_KEYS = frozenset(("n", "positions", "channels"))
+_PLAIN_KEYS = frozenset(("n", "positions", "channels", "packed"))
 
 
 def _decode_fast(frames: Sequence[Any], max_points: int | None) -> PointChunk | None:
@@ -304,15 +404,26 @@ def _decode_fast(frames: Sequence[Any], max_points: int | None) -> PointChunk | 
         _PLANS[tail] = plan
     if plan is None:
         return None
-    n, specs = plan
-    if (max_points is not None and n > max_points) or len(frames) != 1 + len(specs):
+    n, specs, packed = plan
+    if max_points is not None and n > max_points:
         return None
-    arrays = []
-    for f, (name, dt, shape, nbytes) in zip(frames[1:], specs):
-        t = type(f)
-        if (t is not bytes and t is not _Frame) or len(f) != nbytes:  # len: bytes of either
+    if packed:  # one data frame: the arrays at their offsets (docs/wire-format.md "Packed chunks")
+        if len(frames) != 2:
             return None
-        arrays.append(np.ndarray(shape, dt, f))  # a Frame exports its buffer: no memoryview needed
+        f = frames[1]
+        t = type(f)
+        if (t is not bytes and t is not _Frame) or len(f) != packed:
+            return None
+        arrays = [np.ndarray(shape, dt, f, off) for name, dt, shape, off in specs]
+    else:
+        if len(frames) != 1 + len(specs):
+            return None
+        arrays = []
+        for f, (name, dt, shape, nbytes) in zip(frames[1:], specs):
+            t = type(f)
+            if (t is not bytes and t is not _Frame) or len(f) != nbytes:  # len: bytes of either
+                return None
+            arrays.append(np.ndarray(shape, dt, f))  # a Frame exports its buffer: no memoryview needed
     return PointChunk(
         positions=arrays[0],
         channels={s[0]: a for s, a in zip(specs[1:], arrays[1:])},
@@ -351,7 +462,13 @@ def _plan(tail: bytes) -> Any:
             specs.append((meta["name"], *_frame_spec(meta.get("dtype"), shape, "")))
     except ChunkError:
         return None
-    return n, tuple(specs)
+    packed = h.get("packed", False)
+    if packed is False:
+        return n, tuple(specs), 0
+    if packed is not True:
+        return None
+    offsets, total = _packed_offsets([s[3] for s in specs])
+    return n, tuple((name, dt, shape, off) for (name, dt, shape, _), off in zip(specs, offsets)), total
 
 
 def decode_message(frames: Sequence[Any], max_points: int | None = None) -> tuple[PointChunk, dict]:
@@ -376,11 +493,20 @@ def decode_message(frames: Sequence[Any], max_points: int | None = None) -> tupl
     pos_meta = header.get("positions")
     if not isinstance(chans, list) or not isinstance(pos_meta, dict):
         raise ChunkError("bad_header", "header needs a 'positions' object and a 'channels' list")
+    codec = header.get("codec")
+    packed = header.get("packed", False)
+    if packed is not False:
+        if packed is not True:
+            raise ChunkError("bad_header", f"'packed' must be true when present, got {packed!r}")
+        if codec is not None:
+            raise ChunkError("bad_header", "'packed' is not defined together with a 'codec'")
+        if len(frames) != 2:
+            raise ChunkError("bad_frame_count", f"a packed chunk is a header and one data frame, got {len(frames)} frame(s)")
+        frames = [frames[0], *_unpack(frames[1], n, pos_meta, chans)]
     if len(frames) != 2 + len(chans):
         raise ChunkError("bad_frame_count", f"header lists {len(chans)} channel(s) but message has {len(frames) - 2} data frame(s)")
     if pos_meta.get("shape") != [n, 3]:
         raise ChunkError("bad_header", f"positions shape must be [{n}, 3], got {pos_meta.get('shape')!r}")
-    codec = header.get("codec")
     shuffled = header.get("shuffle") is True
     if shuffled and codec is None:
         raise ChunkError("bad_header", "'shuffle' is only defined together with a 'codec'")
@@ -413,6 +539,27 @@ def decode_message(frames: Sequence[Any], max_points: int | None = None) -> tupl
         stamp_ns=_header_int(header, "stamp_ns"),
         frame_id=_header_frame(header),
     ), header
+
+
+def _unpack(frame: Any, n: int, pos_meta: dict, chans: list) -> list[memoryview]:
+    """The arrays of a packed data frame as views (docs/wire-format.md "Packed chunks"), after
+    the checks decode_message makes of separate frames."""
+    specs = [_frame_spec(pos_meta.get("dtype"), [n, 3], "positions")]
+    for i, meta in enumerate(chans):
+        if not isinstance(meta, dict) or not isinstance(meta.get("name"), str):
+            raise ChunkError("bad_header", f"channel {i} needs a name")
+        shape = meta.get("shape")
+        if not isinstance(shape, list) or not shape or shape[0] != n:
+            raise ChunkError("length_mismatch", f"channel {meta['name']!r} has shape {shape!r}, expected first dimension {n}")
+        specs.append(_frame_spec(meta.get("dtype"), shape, f"channel {meta['name']!r}"))
+    nbytes = [nb for _, _, nb in specs]
+    offsets, total = _packed_offsets(nbytes)
+    mv = _buf(frame).cast("B")
+    if mv.nbytes != total:
+        raise ChunkError("truncated" if mv.nbytes < total else "size_mismatch",
+                         f"packed data frame: header promises {total} bytes (positions and {len(chans)} channel(s), "
+                         f"each at a multiple of {PACK_ALIGN} bytes), frame has {mv.nbytes}")
+    return [mv[off:off + nb] for off, nb in zip(offsets, nbytes)]
 
 
 def _header_int(header: dict, key: str) -> int:

@@ -13,9 +13,11 @@ from .stage_util import IngestStage, base_config
 N_BAD = 10_000
 
 
-def _mutations(rng, good_frames):
-    """Malformed messages of every kind the issue lists, plus random byte mutations."""
+def _mutations(rng, good_frames, packed):
+    """Malformed messages of every kind the issue lists, plus random byte mutations (of a
+    chunk as a frame per array, ``good_frames``, and packed into one data frame, ``packed``)."""
     hdr = json.loads(bytes(good_frames[0]))
+    body = packed[1]
     pos = bytes(good_frames[1])
     ch = bytes(good_frames[2])
 
@@ -40,10 +42,14 @@ def _mutations(rng, good_frames):
         lambda: [rng.bytes(30), rng.bytes(50), rng.bytes(7)],
         lambda: [good_frames[0]],                                          # header only (not JSON chunk)
         lambda: [good_frames[0], pos],                                     # missing channel frame
+        lambda: [packed[0], body[: len(body) - 4]],                        # packed: truncated
+        lambda: [packed[0], body + b"\0" * 8],                             # packed: too long
+        lambda: [packed[0], body, ch],                                     # packed: a frame too many
+        lambda: [packed[0].replace(b'"packed":true', b'"packed":1'), body],  # packed: not true
     ]
 
     def random_mutation():
-        frames = [bytearray(bytes(f)) for f in good_frames]
+        frames = [bytearray(bytes(f)) for f in (good_frames if rng.random() < 0.5 else packed)]
         f = frames[int(rng.integers(0, 1))]  # mutate the header
         for _ in range(int(rng.integers(1, 4))):
             if f:
@@ -82,8 +88,10 @@ def test_fuzz_ten_thousand_bad_messages_exact_accounting():
         rng = np.random.default_rng(1234)
         template = PointChunk(positions=rng.uniform(-5, 5, (64, 3)),
                               channels={"intensity": np.arange(64, dtype=np.float32)}, trace_id=1)
-        good_frames = [bytes(memoryview(f)) if not isinstance(f, bytes) else f for f in wire.encode(template)]
-        bad = _mutations(rng, good_frames)
+        good_frames = [bytes(memoryview(f)) for f in wire.encode(template, pack=False)]
+        packed = [bytes(memoryview(f)) for f in wire.encode(template)]
+        assert len(packed) == 2 and len(good_frames) == 3
+        bad = _mutations(rng, good_frames, packed)
         valid_points = 0
         valid_chunks = 0
         non_finite = 0

@@ -57,9 +57,9 @@ def test_noncontiguous_and_bigendian_inputs(pair):
     np.testing.assert_array_equal(d.channels["i"], np.arange(0, 20, 2))
 
 
-def _frames(n=4):
+def _frames(n=4, pack=False):
     c = PointChunk(positions=np.zeros((n, 3), np.float32), channels={"intensity": np.ones(n, np.float32)})
-    return [bytes(memoryview(f)) if not isinstance(f, bytes) else f for f in wire.encode(c)]
+    return [bytes(memoryview(f)) if not isinstance(f, bytes) else f for f in wire.encode(c, pack=pack)]
 
 
 def _hdr(frames):
@@ -84,6 +84,68 @@ def test_malformed_messages_have_reasons(mutate, reason):
         wire.decode(mutate(_frames()))
     assert ei.value.reason == reason
     assert str(ei.value).startswith(reason)
+
+
+@pytest.mark.parametrize("pos_dtype", ["float32", "float64"])
+@pytest.mark.parametrize("n", [1, 3, 1000])
+def test_small_chunks_go_packed_with_aligned_arrays(pair, pos_dtype, n):
+    """Below PACK_MAX_BYTES the arrays travel in one data frame, each at a multiple of
+    PACK_ALIGN; a big chunk, or pack=False, keeps a frame per array."""
+    chans = {"a": np.arange(n, dtype=np.uint8), "b": np.arange(n, dtype=np.float64), "rgb": np.ones((n, 3), np.uint16)}
+    c = PointChunk(positions=np.arange(3 * n, dtype=pos_dtype).reshape(n, 3), channels=chans, seq=9)
+    frames = wire.encode(c)
+    assert len(frames) == 2 and json.loads(frames[0])["packed"] is True
+    body = bytes(frames[1])
+    sizes = [c.positions.nbytes] + [a.nbytes for a in chans.values()]
+    off = 0
+    for a, nb in zip([c.positions, *chans.values()], sizes):
+        off += -off % wire.PACK_ALIGN
+        assert body[off:off + nb] == a.tobytes()
+        off += nb
+    assert len(body) == off
+    d = _roundtrip(pair, c)
+    np.testing.assert_array_equal(d.positions, c.positions)
+    for k, v in chans.items():
+        np.testing.assert_array_equal(d.channels[k], v)
+        assert d.channels[k].ctypes.data % wire.PACK_ALIGN == d.positions.ctypes.data % wire.PACK_ALIGN
+    assert len(wire.encode(c, pack=False)) == 2 + len(chans)
+    big = PointChunk(positions=np.zeros((wire.PACK_MAX_BYTES // 12, 3), np.float32), channels={"i": np.zeros(wire.PACK_MAX_BYTES // 12, np.float32)})
+    assert len(wire.encode(big)) == 3
+
+
+@pytest.mark.parametrize("mutate,reason", [
+    (lambda f: [f[0], f[1][:-1]], "truncated"),
+    (lambda f: [f[0], f[1] + b"\0" * 8], "size_mismatch"),
+    (lambda f: [f[0], f[1], f[1]], "bad_frame_count"),
+    (lambda f: [f[0].replace(b'"packed":true', b'"packed":1'), f[1]], "bad_header"),
+    (lambda f: [f[0].replace(b'"packed":true', b'"packed":true,"codec":"lz4"'), f[1]], "bad_header"),
+    (lambda f: [f[0].replace(b'"shape":[4]', b'"shape":[5]'), f[1]], "length_mismatch"),
+    (lambda f: [f[0].replace(b'"dtype":"float32","shape":[4]', b'"dtype":"complex64","shape":[4]'), f[1]], "bad_dtype"),
+])
+def test_malformed_packed_messages_have_reasons(mutate, reason):
+    frames = _frames(pack=True)
+    assert len(frames) == 2
+    with pytest.raises(ChunkError) as ei:
+        wire.decode(mutate(frames))
+    assert ei.value.reason == reason
+
+
+def test_encode_fast_path_equals_the_general_one():
+    """encode() fills a cached header template per stream; it must give what the general path
+    (a dict through _header_json) gives, byte for byte, '%' in names included."""
+    rng = np.random.default_rng(3)
+    for i in range(200):
+        n = int(rng.choice([0, 1, 5, 1000, 6000]))
+        chans = {str(k): rng.integers(0, 99, (n, 3) if k == "rgb" else n).astype(rng.choice(["uint8", "float32", "float64"]))
+                 for k in rng.choice(["i", "rgb", "%d", "t%s"], size=int(rng.integers(0, 3)), replace=False)}
+        c = PointChunk(positions=rng.normal(size=(n, 3)).astype(rng.choice(["float32", "float64"])), channels=chans,
+                       source_id=str(rng.choice(["s", "100%", "%d%%"])), seq=int(rng.integers(0, 2**40)),
+                       trace_id=int(rng.integers(0, 2**63)), t_sent_ns=int(rng.integers(1, 2**62)),
+                       stamp_ns=int(rng.choice([0, 5])), frame_id=str(rng.choice(["", "f%", "odom"])))
+        for pack in (True, False):
+            for _ in range(2):  # the second time from the cached template
+                fast = [bytes(memoryview(f)) for f in wire.encode(c, pack=pack)]
+                assert fast == [bytes(memoryview(f)) for f in wire._encode_general(c, pack)], (i, fast[0])
 
 
 def test_max_points_rejects_before_reading_frames():
@@ -173,7 +235,7 @@ def test_fast_decode_equals_the_full_parse_on_good_and_bad_headers(pair):
                            source_id=str(rng.choice(["lidar", "", 'a"b', "l\u00e4", "x\\y"])), seq=int(rng.integers(0, 2**40)),
                            trace_id=int(rng.integers(0, 2**63)), stamp_ns=int(rng.choice([0, int(rng.integers(1, 2**62))])),
                            frame_id=str(rng.choice(["", "", "lidar_top", 'f"r', "b\u00e4se", "x\\y", ",\"frame\":\"", "odom"])))
-        frames = [bytes(f) for f in wire.encode(chunk)]
+        frames = [bytes(f) for f in wire.encode(chunk, pack=bool(rng.integers(2)))]
         kind = i % 10
         if kind == 1:  # random byte flips anywhere
             j = int(rng.integers(len(frames)))
