@@ -234,7 +234,7 @@ def test_fast_decode_equals_the_full_parse_on_good_and_bad_headers(pair):
         chunk = PointChunk(positions=rng.normal(size=(n, 3)).astype(rng.choice(["float32", "float64"])), channels=chans,
                            source_id=str(rng.choice(["lidar", "", 'a"b', "l\u00e4", "x\\y"])), seq=int(rng.integers(0, 2**40)),
                            trace_id=int(rng.integers(0, 2**63)), stamp_ns=int(rng.choice([0, int(rng.integers(1, 2**62))])),
-                           frame_id=str(rng.choice(["", "", "lidar_top", 'f"r', "b\u00e4se", "x\\y", ",\"frame\":\"", "odom"])))
+                           frame_id=str(rng.choice(["", "", "lidar_top", 'f"r', "b\u00e4se", "x\\y", ",\"frame\":\"", "odom", "a]b", "]"])))
         frames = [bytes(f) for f in wire.encode(chunk, pack=bool(rng.integers(2)))]
         kind = i % 10
         if kind == 1:  # random byte flips anywhere
