@@ -7,11 +7,12 @@ Points/s for FIFO and importance ingest into a *full* ring (capacities 100k and 
     XDG_RUNTIME_DIR=/tmp/xdg .venv/bin/python bench/bench_ring.py [--quick] [--out bench/results/ring.json]
 
 What the ingest baseline copies: per point, exactly the bytes the ring writes per point
-(``bytes_per_point``: 32 B for these rings = positions f32 x3, t_ingest_ms f64, importance f32,
-generation u64), from a cache-resident source of that size into a ring-sized destination at
-rotating offsets (so the destination is as cache-cold as the ring's arrays). It reads 32 B and
-writes 32 B per point; the ring reads 28 B of input per point (positions f64 x3, importance f32),
-plus its cached origin tile, and writes the same 32 B, split over four arrays.
+(``bytes_per_point``: 28 B for these rings = positions f32 x3, t_ingest_ms f64, importance f32,
+generation u32; 32 B before ring version 2, whose generation was u64), from a cache-resident
+source of that size into a ring-sized destination at rotating offsets (so the destination is as
+cache-cold as the ring's arrays). It reads and writes that many bytes per point; the ring reads
+28 B of input per point (positions f64 x3, importance f32), plus its cached origin tile, and
+writes the same bytes, split over four arrays.
 
 Ingest: FIFO, importance and copy are timed in interleaved batches (each repeat runs one batch
 of each), so a burst of load from other processes hits all three alike; the figures are the

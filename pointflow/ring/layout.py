@@ -113,20 +113,21 @@ def array_specs(layout: RingLayout) -> list[tuple[str, np.dtype, tuple[int, ...]
     """(key, dtype, shape) of every per-slot array, in storage order.
 
     Keys: ``positions`` (cap,3) f32 offsets from origin; ``t_ingest_ms`` f64; ``importance``
-    f32; ``generation`` u64 (stamp of the slot's occupant); ``ch:<name>`` channel values and
-    ``gen:<name>`` u64 (stamp of the occupant the value was written for).
+    f32; ``generation`` u32 (stamp of the slot's occupant: the low 32 bits of the ring's push
+    counter, see ``pointflow.ring.ring.GEN_MASK``); ``ch:<name>`` channel values and
+    ``gen:<name>`` u32 (stamp of the occupant the value was written for).
     """
     cap = layout.capacity
     out: list[tuple[str, np.dtype, tuple[int, ...]]] = [
         ("positions", np.dtype(np.float32), (cap, 3)),
         ("t_ingest_ms", np.dtype(np.float64), (cap,)),
         ("importance", np.dtype(np.float32), (cap,)),
-        ("generation", np.dtype(np.uint64), (cap,)),
+        ("generation", np.dtype(np.uint32), (cap,)),
     ]
     for c in layout.channels:
         shape = (cap,) if c.width == 1 else (cap, c.width)
         out.append(("ch:" + c.name, np.dtype(c.dtype), shape))
-        out.append(("gen:" + c.name, np.dtype(np.uint64), (cap,)))
+        out.append(("gen:" + c.name, np.dtype(np.uint32), (cap,)))
     return out
 
 

@@ -31,7 +31,13 @@ from .layout import (
 )
 
 MAGIC = b"PFRING\x00\x01"
-VERSION = 1
+VERSION = 2
+#: The per-slot generation stamps (``generation``, ``gen:<channel>``) are the low 32 bits of
+#: the push counter: 4 bytes per point and channel less to write than 64-bit stamps (about
+#: 10 % of ingest's CPU per point at 10k-point chunks). They are only compared for equality
+#: (a channel present, a picked slot unchanged); after 2**32 pushes the stamps repeat, and a
+#: stale value could pass for present only in a slot left untouched for exactly 2**32 pushes.
+GEN_MASK = 0xFFFFFFFF
 K_CANDIDATES = 16  # importance eviction looks at the K oldest points
 
 # ---- header layout (bytes) -------------------------------------------------------------
@@ -655,7 +661,10 @@ class PointRing:
         cap = self.capacity
         st = self._st
         g = int(st[I_GEN]) + 1
+        if not g & GEN_MASK:  # a slot's stamp is the low 32 bits; 0 is a slot never written
+            g += 1
         st[I_GEN] = g
+        g &= GEN_MASK
         now_ns = time.monotonic_ns()
         t_ms = (now_ns - int(st[I_EPOCH])) / 1e6
         head, size = int(st[I_HEAD]), int(st[I_SIZE])

@@ -15,7 +15,7 @@ import numpy as np
 from .layout import RingAttachError, RingLayout, Segment, _finalize_segment, data_size, dumps_json, map_arrays, new_name
 
 SLAB_MAGIC = b"PFSLAB\x00\x01"
-SLAB_VERSION = 1
+SLAB_VERSION = 2
 SLAB_HEADER = 4096
 _S_STATE_OFF, _S_NSTATE = 64, 32
 _S_FSTATE_OFF = 320  # float64[4]: origin xyz
