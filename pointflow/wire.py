@@ -6,8 +6,9 @@ A chunk is one multipart message::
     frame 1   positions: N*3 values, row-major, dtype from the header
     frame 2+  one raw frame per channel, in the order the header lists them
 
-Raw frames are sent with ``copy=False`` above :data:`ZERO_COPY_MIN_BYTES`, so large
-arrays are not copied by the sender. Any language that can write JSON and bytes can send.
+Data frames are byte views on the arrays, sent with ``copy=False``: pyzmq copies one below its
+copy threshold (:data:`ZERO_COPY_MIN_BYTES`) once and sends a larger one without a copy. Small
+chunks go packed, their arrays in one frame (docs/wire-format.md "Packed chunks"). Any language that can write JSON and bytes can send.
 """
 from __future__ import annotations
 
@@ -84,8 +85,8 @@ def encode(chunk: PointChunk, *, link: dict | None = None, compressor: Any = Non
                     parts.append(_ZEROS[:pad])
                 parts.append(a)
             return [head, b"".join(parts)]
-        return [head, *[a.tobytes() if a.nbytes < ZERO_COPY_MIN_BYTES else memoryview(a).cast("B")
-                        for a in (pos, *chans.values())]]
+        # byte views: pyzmq copies a frame below its copy threshold once, into the message
+        return [head, *[memoryview(a).cast("B") if a.nbytes else b"" for a in (pos, *chans.values())]]
     return _encode_general(chunk, pack)
 
 
@@ -180,7 +181,7 @@ def _encode_general(chunk: PointChunk, pack: bool) -> list[Any]:
         for pad, a in zip(_pack_pads(nbytes), arrays[1:]):
             parts += [_ZEROS[:pad], a]
         return [head, b"".join(parts)]
-    return [head, *[a.tobytes() if a.nbytes < ZERO_COPY_MIN_BYTES else memoryview(a).cast("B") for a in arrays]]
+    return [head, *[memoryview(a).cast("B") if a.nbytes else b"" for a in arrays]]
 
 
 _json_str = json.encoder.encode_basestring_ascii  # what json.dumps uses for str (ensure_ascii)
