@@ -218,6 +218,8 @@ class PointRing:
         mm[24:32] = data_size(layout).to_bytes(8, "little")
         mm[CONFIG_OFF:CONFIG_OFF + len(blob)] = blob
         self._map()
+        if self._imp_unit:
+            self._imp[:] = 1.0
         st = self._st
         st[I_CAP] = layout.capacity
         st[I_EPOCH] = time.monotonic_ns()
@@ -280,6 +282,9 @@ class PointRing:
         self._chans = {c.name: (c, self.arrays["ch:" + c.name], self.arrays["gen:" + c.name]) for c in self.layout.channels}
         self._all = list(self.arrays.values())
         self.capacity = self.layout.capacity
+        #: No importance field and no class weights: every point's importance is 1.0, written
+        #: once when the ring is created instead of with every push (4 B per point less).
+        self._imp_unit = self.importance_field is None and not self.classification_weights
 
     @property
     def name(self) -> str:
@@ -463,7 +468,8 @@ class PointRing:
             self._t[s0:s1] = t_ms
             self._gen[s0:s1] = g
             if imp is None:
-                self._imp[s0:s1] = 1.0
+                if not self._imp_unit:
+                    self._imp[s0:s1] = 1.0
             else:
                 self._imp[s0:s1] = imp[c0:c1]
             for vals, gens, arr in prepared:
