@@ -165,6 +165,12 @@ def zenoh_config(o: ZenohOptions, defaults: Optional[dict[str, Any]] = None) -> 
             if conf.get_json(key) == builtin.get_json(key):
                 put(key, value)
 
+    if not o.config_file:
+        # Zenoh's shared-memory transport (on by default) keeps a file in /dev/shm per
+        # process, which a killed process leaves behind; pointflow's links cross hosts and its
+        # local data already travel through its own ring, so it is off unless a config file
+        # says otherwise (docs/remote.md).
+        put("transport/shared_memory/enabled", False)
     put("mode", o.mode)
     put("connect/endpoints", list(o.connect))
     put("listen/endpoints", list(o.listen))

@@ -377,3 +377,20 @@ def test_engine_log_lines_are_parsed_counted_and_relogged(caplog):
     assert text.count("refused a connection") == 2 and "Hint" not in text
     assert "Unable to connect to tls/127.0.0.1:17447! received fatal alert: UnknownCA" in text and ".rs:" not in text
     assert "something the engine printed" in text and e.lines == 4
+
+
+def test_a_killed_zenoh_session_leaves_nothing_in_dev_shm():
+    """pointflow's sessions run without Zenoh's shared-memory transport, which keeps a file in
+    /dev/shm per process that a killed process leaves behind (seen after a loaded test run)."""
+    code = ("import time\nfrom pointflow.remote.zenoh_options import ZenohOptions, open_session\n"
+            "s = open_session(ZenohOptions(mode='peer'))\nprint('open', flush=True)\ntime.sleep(60)\n")
+    before = set(os.listdir("/dev/shm"))
+    p = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    try:
+        assert p.stdout.readline().strip() == "open"
+        assert not [f for f in set(os.listdir("/dev/shm")) - before if f.endswith(".zenoh")]
+    finally:
+        p.kill()
+        p.wait()
+        p.stdout.close()
+    assert not [f for f in set(os.listdir("/dev/shm")) - before if f.endswith(".zenoh")]
