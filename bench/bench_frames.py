@@ -44,7 +44,7 @@ import zmq
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 sys.path.insert(0, os.path.join(ROOT, "bench"))
-from bench_ingest import _IngestRun, cpu_seconds  # noqa: E402  (the shared ingest-stage harness)
+from bench_ingest import FRAMES_ON, _IngestRun, cpu_seconds  # noqa: E402  (the shared ingest-stage harness)
 #: ../shared/data of a clone next to the shared folder (a worktree one level deeper looks further up)
 DATA = next((d for d in (os.path.join(ROOT, "..", "shared", "data", "ouster_os1_128"),
                          os.path.join(ROOT, "..", "..", "shared", "data", "ouster_os1_128")) if os.path.isdir(d)),
@@ -254,9 +254,6 @@ class IngestRun(_IngestRun):
         self.cpu_rate = n * count / max(1e-9, c1 - c0)
         return n * count / dt
 
-
-FRAMES_ON = {"fixed": "odom", "static": [{"parent": "odom", "child": "lidar", "translation": [3.0, -2.0, 1.7],
-                                          "rpy_deg": [1.0, 2.0, 30.0]}]}
 
 
 def pipeline(points: int, rounds: int) -> dict:

@@ -6,9 +6,12 @@ A chunk is one multipart message::
     frame 1   positions: N*3 values, row-major, dtype from the header
     frame 2+  one raw frame per channel, in the order the header lists them
 
-Data frames are byte views on the arrays, sent with ``copy=False``: pyzmq copies one below its
-copy threshold (:data:`ZERO_COPY_MIN_BYTES`) once and sends a larger one without a copy. Small
-chunks go packed, their arrays in one frame (docs/wire-format.md "Packed chunks"). Any language that can write JSON and bytes can send.
+or, packed (``"packed": true`` in the header; what :func:`encode` writes for chunks under
+:data:`PACK_MAX_BYTES`), the header and one frame holding every array, each at a multiple of
+:data:`PACK_ALIGN` bytes (docs/wire-format.md "Packed chunks"). Data frames are byte views on
+the arrays, sent with ``copy=False``: pyzmq copies one below its copy threshold
+(:data:`ZERO_COPY_MIN_BYTES`) once and sends a larger one without a copy. Any language that
+can write JSON and bytes can send.
 """
 from __future__ import annotations
 
@@ -76,17 +79,7 @@ def encode(chunk: PointChunk, *, link: dict | None = None, compressor: Any = Non
         t_sent = chunk.t_sent_ns or time.monotonic_ns()
         head = tpl % ((chunk.seq, chunk.trace_id, t_sent, chunk.stamp_ns) if chunk.stamp_ns
                       else (chunk.seq, chunk.trace_id, t_sent))
-        if pads is not None:  # packed: one data frame
-            if not pads:
-                return [head, b"".join((pos, *chans.values()))]
-            parts: list[Any] = [pos]
-            for pad, a in zip(pads, chans.values()):
-                if pad:
-                    parts.append(_ZEROS[:pad])
-                parts.append(a)
-            return [head, b"".join(parts)]
-        # byte views: pyzmq copies a frame below its copy threshold once, into the message
-        return [head, *[memoryview(a).cast("B") if a.nbytes else b"" for a in (pos, *chans.values())]]
+        return _frames(head, (pos, *chans.values()), pads)
     return _encode_general(chunk, pack)
 
 
@@ -123,10 +116,27 @@ def _packed_offsets(nbytes: Sequence[int]) -> tuple[list[int], int]:
     return offsets, end
 
 
-def _pack_pads(nbytes: Sequence[int]) -> list[int]:
-    """Zero bytes before each array after the first in a packed frame."""
+def _pack_pads(nbytes: Sequence[int], pack: bool) -> list[int] | None:
+    """Zero bytes before each array after the first in a packed frame, or None when the
+    arrays go as a frame each (``pack`` False, a single array, or PACK_MAX_BYTES reached)."""
+    if not pack or len(nbytes) < 2 or sum(nbytes) + PACK_ALIGN * len(nbytes) >= PACK_MAX_BYTES:
+        return None
     offsets, _ = _packed_offsets(nbytes)
     return [offsets[i + 1] - offsets[i] - nbytes[i] for i in range(len(nbytes) - 1)]
+
+
+def _frames(head: bytes, arrays: Sequence[np.ndarray], pads: list[int] | None) -> list[Any]:
+    """The header and the data frames of contiguous little-endian arrays: one packed frame
+    (``pads`` from :func:`_pack_pads`), or a byte view each, which pyzmq copies once below its
+    copy threshold and sends without a copy above it."""
+    if pads is None:
+        return [head, *[memoryview(a).cast("B") if a.nbytes else b"" for a in arrays]]
+    parts: list[Any] = [arrays[0]]
+    for pad, a in zip(pads, arrays[1:]):
+        if pad:
+            parts.append(_ZEROS[:pad])
+        parts.append(a)
+    return [head, b"".join(parts)]
 
 
 def _enc_plan(chunk: PointChunk, pack: bool) -> Any:
@@ -138,12 +148,10 @@ def _enc_plan(chunk: PointChunk, pack: bool) -> Any:
     if (not all(type(a) is np.ndarray and a.dtype.byteorder != ">" and a.dtype.name in SUPPORTED_DTYPES for a in arrays)
             or not all(type(s) is str for s in names) or arrays[0].ndim != 2 or arrays[0].shape[1] != 3):
         return None
-    nbytes = [a.nbytes for a in arrays]
-    packed = pack and len(arrays) > 1 and sum(nbytes) + PACK_ALIGN * len(arrays) < PACK_MAX_BYTES
-    h = _header(chunk, arrays[0], [(k, a) for k, a in chunk.channels.items()], _SLOT, _SLOT,
-                _SLOT, _SLOT if chunk.stamp_ns else 0, packed)
-    tpl = _header_json(h).replace(b"%", b"%%").replace(b"\x00", b"%d")
-    return tpl, (_pack_pads(nbytes) if packed else None)
+    pads = _pack_pads([a.nbytes for a in arrays], pack)
+    h = _header(chunk, arrays[0], list(chunk.channels.items()), _SLOT, _SLOT,
+                _SLOT, _SLOT if chunk.stamp_ns else 0, pads is not None)
+    return _header_json(h).replace(b"%", b"%%").replace(b"\x00", b"%d"), pads
 
 
 def _header(chunk: PointChunk, pos: np.ndarray, chans: Sequence[tuple[str, np.ndarray]], seq: Any, trace: Any,
@@ -171,17 +179,10 @@ def _encode_general(chunk: PointChunk, pack: bool) -> list[Any]:
         if a.dtype.byteorder == ">":
             a = a.astype(a.dtype.newbyteorder("<"))
         arrays.append(a)
-    nbytes = [a.nbytes for a in arrays]
-    packed = pack and len(arrays) > 1 and sum(nbytes) + PACK_ALIGN * len(arrays) < PACK_MAX_BYTES
+    pads = _pack_pads([a.nbytes for a in arrays], pack)
     h = _header(chunk, arrays[0], list(zip(chunk.channels, arrays[1:])), int(chunk.seq), int(chunk.trace_id),
-                int(chunk.t_sent_ns or time.monotonic_ns()), int(chunk.stamp_ns), packed)
-    head = _header_json(h)
-    if packed:
-        parts: list[Any] = [arrays[0]]
-        for pad, a in zip(_pack_pads(nbytes), arrays[1:]):
-            parts += [_ZEROS[:pad], a]
-        return [head, b"".join(parts)]
-    return [head, *[memoryview(a).cast("B") if a.nbytes else b"" for a in arrays]]
+                int(chunk.t_sent_ns or time.monotonic_ns()), int(chunk.stamp_ns), pads is not None)
+    return _frames(_header_json(h), arrays, pads)
 
 
 _json_str = json.encoder.encode_basestring_ascii  # what json.dumps uses for str (ensure_ascii)
