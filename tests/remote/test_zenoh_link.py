@@ -84,7 +84,7 @@ def loop(tmp_path):
 def zsend_cfg(sources, port: int, key: str = "pftest", **send) -> dict:
     sources = sources if isinstance(sources, list) else [sources]
     return {"sources": sources, "send": {"engine": "zenoh", "key": key, "queue_chunks": 256, "wait_subscribers": 1,
-                                         "wait_s": 20, "zenoh": {"listen": [f"tcp/127.0.0.1:{port}"]}, **send}}
+                                         "wait_s": 60, "zenoh": {"listen": [f"tcp/127.0.0.1:{port}"]}, **send}}
 
 
 def zview_cfg(ports: list[int], key: str = "pftest/**", **opts) -> dict:
