@@ -377,7 +377,40 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+#: Exit code when the reader of our output went away (``| head -1``, ``| grep -q``): 128 + SIGPIPE,
+#: what a shell reports for any writer whose reader left (``yes | head -1``).
+EXIT_PIPE = 128 + int(signal.SIGPIPE)
+
+
 def main(argv: Optional[list[str]] = None) -> int:
+    """The ``pointflow`` command. A reader that stops early ends it quietly: the pipeline (if
+    any) is stopped as on Ctrl-C, nothing more is printed, and the exit code is :data:`EXIT_PIPE`."""
+    try:
+        code = _main(argv)
+        sys.stdout.flush()  # a closed pipe shows here, not as "Exception ignored" at exit
+        sys.stderr.flush()
+        return code
+    except BrokenPipeError:
+        _drop_closed_output()
+        return EXIT_PIPE
+
+
+def _drop_closed_output() -> None:
+    """Point stdout and stderr at /dev/null, so the interpreter's last flush of what is still
+    buffered for a closed pipe neither fails nor prints."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+    except OSError:
+        return
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            os.dup2(devnull, stream.fileno())
+        except (OSError, ValueError, AttributeError):
+            pass
+    os.close(devnull)
+
+
+def _main(argv: Optional[list[str]] = None) -> int:
     global _T0
     _T0 = time.monotonic()
     # before any graphics library loads: without a valid XDG_RUNTIME_DIR (ssh, cron,
