@@ -95,8 +95,7 @@ def _run(args, profile: bool = False) -> int:
                 line = summary_line(pipe.stats())
                 sys.stderr.write(("\r\033[K" + line) if tty else line + "\n")
                 sys.stderr.flush()
-    except PipelineFailed as exc:
-        log.error("%s", exc)
+    except PipelineFailed:  # the supervisor printed why, once
         code = 2
     finally:
         if tty:
@@ -140,8 +139,7 @@ def _serve(pipe, args, every_s: float, summary, done=lambda: False) -> tuple[dic
             if not args.quiet and time.monotonic() - last_print >= every_s:
                 last_print = time.monotonic()
                 print(summary(pipe.stats()), file=sys.stderr, flush=True)
-    except PipelineFailed as exc:
-        log.error("%s", exc)
+    except PipelineFailed:  # the supervisor printed why, once
         code = 2
     finally:
         for s, h in old.items():

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 from typing import Any, Optional
 
 import numpy as np
@@ -360,6 +361,7 @@ def live_summary(stats: dict) -> str:
     cpu = " ".join(f"{n[:3]}:{s.get('cpu_percent', 0) or 0:.0f}%" for n, s in st.items())
     if cpu:
         parts.append(f"cpu[{cpu}]")
-    if stats.get("failure"):
-        parts.append(f"FAILED: {stats['failure']}")
+    if stats.get("failure"):  # the supervisor printed the error itself, once (issue 31.5)
+        m = re.match(r"stage (\S+?):? ", stats["failure"])
+        parts.append(f"FAILED ({'stage ' + m.group(1) + ': ' if m else ''}the error is above)")
     return "  ".join(parts)
