@@ -72,6 +72,13 @@ class Transport(ABC):
     def check_options(cls, opts: Any, path: str, base_dir: str) -> None:
         """Semantic checks; raise ``ConfigError(f"{path}.key", ...)``."""
 
+    @classmethod
+    def declared_channels(cls, options: dict[str, Any], base_dir: str = ".") -> Optional[frozenset[str]]:
+        """The channels this source's chunks carry, when the (validated) options tell without
+        waiting for data; None when only the data will. ``render.color_by`` naming a channel
+        that no source declares is refused at load (config.py)."""
+        return None
+
     @property
     def opts(self):
         """Options as the schema dataclass (attribute access)."""

@@ -95,6 +95,34 @@ class FileTransport(Transport):
             raise ConfigError(f"{path}.chunk_points", "must be >= 1")
         o.path = os.path.abspath(p)  # the source process may run elsewhere (cwd)
 
+    #: declared_channels reads a whole file of another format only up to this size
+    #: (LAS/LAZ: one point; KITTI: fixed); larger ones are known when their points arrive.
+    PEEK_BYTES = 8 << 20
+
+    @classmethod
+    def declared_channels(cls, options: dict[str, Any], base_dir: str = ".") -> Optional[frozenset[str]]:
+        """The first file's channels (renamed and filtered as they will be sent), when one
+        format is used and it can be read cheaply; None otherwise (never an error here)."""
+        o = FileOptions(**options)
+        try:
+            files = _expand(o.path)
+            fmts = {o.format if o.format != "auto" else formats.detect_format(f) for f in files}
+            if not files or len(fmts) != 1:
+                return None
+            fmt, f = fmts.pop(), files[0]
+            if fmt in ("las", "laz"):
+                names = set(next(formats.iter_las(f, 1))[1])
+            elif fmt == "bin":
+                names = {"intensity"}
+            elif os.path.getsize(f) <= cls.PEEK_BYTES:
+                names = set(formats.read_points(f, fmt, o.columns)[1])
+            else:
+                return None
+        except Exception:  # noqa: BLE001 - a bad file is reported when it is read, not at load
+            return None
+        names = {o.rename.get(k, k) for k in names}
+        return frozenset(names if o.channels is None else names & set(o.channels))
+
     def __init__(self, options: dict[str, Any], source_id: str):
         super().__init__(options, source_id)
         self.o = FileOptions(**options)
