@@ -53,6 +53,15 @@ def summary_line(stats: dict) -> str:
     return live_summary(stats)
 
 
+def starting_line(cfg) -> str:
+    """What ``run`` starts, printed before the stages are (the first progress line comes once
+    every stage has reported in)."""
+    kinds = ", ".join(sorted({s.transport for s in cfg.sources}))
+    return (f"starting {cfg.name}: {len(cfg.sources)} source{'s' * (len(cfg.sources) != 1)} ({kinds}), "
+            f"ring {cfg.ring.max_points:,} points, render {cfg.render.backend} "
+            f"{cfg.render.size[0]}x{cfg.render.size[1]} ...")
+
+
 class _Stop:
     def __init__(self) -> None:
         self.flag = False
@@ -83,6 +92,8 @@ def _run(args, profile: bool = False) -> int:
     old = {s: signal.signal(s, stop) for s in (signal.SIGINT, signal.SIGTERM)}
     tty = sys.stderr.isatty() and not args.quiet
     code = 0
+    if not args.quiet:  # at once: starting the stages takes seconds (interpreters, imports, GPU device)
+        print(starting_line(cfg), file=sys.stderr, flush=True)
     pipe.start()
     t_end = None if args.duration is None else _T0 + args.duration  # from the command's start (--help)
     last_print = 0.0
@@ -329,9 +340,17 @@ def auto_rule(crossover: int, where: str) -> str:
     return f"wgpu > gl > cpu; the cpu tier for rings of fewer than {crossover:,} points ({where})"
 
 
+def version_line() -> str:
+    """``pointflow --version``: the package version and the Python running it."""
+    from . import __version__
+
+    return f"pointflow {__version__} (Python {sys.version.split()[0]}, {os.path.dirname(os.path.abspath(__file__))})"
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="pointflow", description="Stream live point clouds to the GPU.")
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    p.add_argument("--version", action="version", version=version_line())
     sub = p.add_subparsers(dest="cmd", required=True)
     for name, help_ in (("run", "run a pipeline"), ("profile", "run a pipeline and write profile.json, trace.json, latency.png")):
         r = sub.add_parser(name, help=help_)
@@ -384,10 +403,11 @@ def main(argv: Optional[list[str]] = None) -> int:
     """The ``pointflow`` command. A reader that stops early ends it quietly: the pipeline (if
     any) is stopped as on Ctrl-C, nothing more is printed, and the exit code is :data:`EXIT_PIPE`."""
     try:
-        code = _main(argv)
-        sys.stdout.flush()  # a closed pipe shows here, not as "Exception ignored" at exit
-        sys.stderr.flush()
-        return code
+        try:
+            return _main(argv)
+        finally:  # also after --help/--version (SystemExit): a closed pipe shows here, not at exit
+            sys.stdout.flush()
+            sys.stderr.flush()
     except BrokenPipeError:
         _drop_closed_output()
         return EXIT_PIPE
@@ -417,8 +437,10 @@ def _main(argv: Optional[list[str]] = None) -> int:
 
     ensure_runtime_dir()
     args = build_parser().parse_args(argv)
-    logging.basicConfig(level=logging.DEBUG if args.verbose and args.cmd != "validate" else logging.INFO,
-                        format="%(asctime)s %(name)s %(levelname)s %(message)s", stream=sys.stderr)
+    from .runtime.console import setup_logging
+
+    setup_logging(logging.DEBUG if args.verbose and args.cmd != "validate" else logging.INFO,
+                  "%(asctime)s %(name)s %(levelname)s %(message)s")
     try:
         if args.cmd == "run":
             return _run(args)

@@ -327,7 +327,8 @@ def _n(n: float) -> str:
 
 
 def live_summary(stats: dict) -> str:
-    """One line for ``pointflow run``: input, ring fill, frames, cadence, drops, CPU."""
+    """One line for ``pointflow run``: input, ring fill, frames, cadence, drops, evictions, a
+    file source's progress, CPU."""
     st = stats.get("stages") or {}
     src_out = sum(s.get("points_out", 0) or 0 for s in st.values() if s.get("kind") == "source")
     drops = sum(sum((s.get("drops") or {}).values()) for s in st.values())
@@ -346,6 +347,12 @@ def live_summary(stats: dict) -> str:
         parts.append(f"cadence={cad.get('achieved_hz', 0) or 0:.1f}Hz"
                      + (f" p99jit={j:.2f}ms" if j is not None else "") + (f" skip={skipped}" if skipped else ""))
     parts.append(f"drops={_n(drops)}")
+    # points the ring pushed out to make room (a file bigger than the ring loses its start here)
+    parts.append(f"evicted={_n(sum(s.get('ring_evicted', 0) or 0 for s in st.values()))}")
+    for name, s in st.items():  # a file source's share sent (its own bar would fight this line)
+        if s.get("kind") == "source" and s.get("transport_total"):
+            done = min(1.0, (s.get("transport_points", 0) or 0) / s["transport_total"])
+            parts.append(f"{name}={done * 100:.0f}% of {_n(s['transport_total'])}")
     acc = stats.get("accounting") or {}
     refused = sum(s.get("transport_refused_handshakes", 0) or 0 for s in st.values())
     if "lost_in_transit" in acc:  # a link from `pointflow send` (docs/remote.md)

@@ -234,8 +234,9 @@ def _die_with_parent() -> None:
 
 
 def _setup_logging(name: str, info: RunInfo) -> None:
-    logging.basicConfig(level=info.log_level, stream=sys.stderr,
-                        format=f"%(asctime)s {name}[%(process)d] %(levelname)s %(message)s")
+    from .console import setup_logging  # on a terminal, a log line clears the progress line first
+
+    setup_logging(info.log_level, f"%(asctime)s {name}[%(process)d] %(levelname)s %(message)s")
 
 
 def prepare_stage(name: str, kind: str, cfg_dict: dict, base_dir: str, info: RunInfo) -> Any:

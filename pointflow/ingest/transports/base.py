@@ -45,6 +45,9 @@ class Transport(ABC):
     #: True when ingest places points in a fixed frame (``frames.fixed``): a transport that
     #: can subscribe to transforms (rosbridge's /tf) does so only then. Set before ``open()``.
     wants_transforms: bool = False
+    #: The ring's ``max_points``, set by the source stage before ``open()``: a replay can say
+    #: when it sends more than the ring holds (the ``file`` transport does). None outside a run.
+    ring_capacity: Optional[int] = None
 
     def __init__(self, options: dict[str, Any], source_id: str):
         self.options = options
