@@ -349,10 +349,10 @@ def live_summary(stats: dict) -> str:
     parts.append(f"drops={_n(drops)}")
     # points the ring pushed out to make room (a file bigger than the ring loses its start here)
     parts.append(f"evicted={_n(sum(s.get('ring_evicted', 0) or 0 for s in st.values()))}")
-    for name, s in st.items():  # a file source's share sent (its own bar would fight this line)
-        if s.get("kind") == "source" and s.get("transport_total"):
-            done = min(1.0, (s.get("transport_points", 0) or 0) / s["transport_total"])
-            parts.append(f"{name}={done * 100:.0f}% of {_n(s['transport_total'])}")
+    for name, s in st.items():  # a replay's share sent (its own bar would fight this line)
+        if s.get("kind") == "source" and s.get("transport_progress") is not None:
+            parts.append(f"{name}={min(1.0, s['transport_progress']) * 100:.0f}%"
+                         + (f" of {_n(s['transport_total'])}" if s.get("transport_total") else ""))
     acc = stats.get("accounting") or {}
     refused = sum(s.get("transport_refused_handshakes", 0) or 0 for s in st.values())
     if "lost_in_transit" in acc:  # a link from `pointflow send` (docs/remote.md)

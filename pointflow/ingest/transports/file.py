@@ -12,8 +12,8 @@ Two modes:
 as fast as ingest accepts (the source waits instead of dropping: a replay is lossless).
 Coordinates stay float64 (georeferenced LAS) and the format's channels come along (see
 :mod:`pointflow.ingest.formats`); ``rename`` maps channel names (e.g. Ouster
-``reflectivity`` -> ``intensity``). Its progress (``transport_points`` of ``transport_total``)
-is shown on the progress line of ``pointflow run``, the one place that draws on the terminal;
+``reflectivity`` -> ``intensity``). Its progress (``transport_progress``, of ``transport_total``
+points) is shown on the progress line of ``pointflow run``, the one place that draws on the terminal;
 the first time it sends more points than the ring holds it says so, once.
 A file that cannot be read (a :class:`~pointflow.ingest.formats.FormatError`, or anything a
 reader raises) is logged with the reason, counted (``transport_bad_files``) and skipped: what
@@ -188,6 +188,7 @@ class FileTransport(Transport):
         """Counters for the progress line; once, a line when the ring starts to overrun."""
         if total and self.o.progress != "off":
             self.counters["total"] = total
+            self.counters["progress"] = done / total
         cap = self.ring_capacity
         if cap is None or self._overrun_said or done <= cap:
             return
