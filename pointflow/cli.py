@@ -53,6 +53,15 @@ def summary_line(stats: dict) -> str:
     return live_summary(stats)
 
 
+def starting_line(cfg) -> str:
+    """What ``run`` starts, printed before the stages are (the first progress line comes once
+    every stage has reported in)."""
+    kinds = ", ".join(sorted({s.transport for s in cfg.sources}))
+    return (f"starting {cfg.name}: {len(cfg.sources)} source{'s' * (len(cfg.sources) != 1)} ({kinds}), "
+            f"ring {cfg.ring.max_points:,} points, render {cfg.render.backend} "
+            f"{cfg.render.size[0]}x{cfg.render.size[1]} ...")
+
+
 class _Stop:
     def __init__(self) -> None:
         self.flag = False
@@ -83,6 +92,8 @@ def _run(args, profile: bool = False) -> int:
     old = {s: signal.signal(s, stop) for s in (signal.SIGINT, signal.SIGTERM)}
     tty = sys.stderr.isatty() and not args.quiet
     code = 0
+    if not args.quiet:  # at once: starting the stages takes seconds (interpreters, imports, GPU device)
+        print(starting_line(cfg), file=sys.stderr, flush=True)
     pipe.start()
     t_end = None if args.duration is None else _T0 + args.duration  # from the command's start (--help)
     last_print = 0.0
@@ -95,8 +106,7 @@ def _run(args, profile: bool = False) -> int:
                 line = summary_line(pipe.stats())
                 sys.stderr.write(("\r\033[K" + line) if tty else line + "\n")
                 sys.stderr.flush()
-    except PipelineFailed as exc:
-        log.error("%s", exc)
+    except PipelineFailed:  # the supervisor printed why, once
         code = 2
     finally:
         if tty:
@@ -140,8 +150,7 @@ def _serve(pipe, args, every_s: float, summary, done=lambda: False) -> tuple[dic
             if not args.quiet and time.monotonic() - last_print >= every_s:
                 last_print = time.monotonic()
                 print(summary(pipe.stats()), file=sys.stderr, flush=True)
-    except PipelineFailed as exc:
-        log.error("%s", exc)
+    except PipelineFailed:  # the supervisor printed why, once
         code = 2
     finally:
         for s, h in old.items():
@@ -331,9 +340,17 @@ def auto_rule(crossover: int, where: str) -> str:
     return f"wgpu > gl > cpu; the cpu tier for rings of fewer than {crossover:,} points ({where})"
 
 
+def version_line() -> str:
+    """``pointflow --version``: the package version and the Python running it."""
+    from . import __version__
+
+    return f"pointflow {__version__} (Python {sys.version.split()[0]}, {os.path.dirname(os.path.abspath(__file__))})"
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="pointflow", description="Stream live point clouds to the GPU.")
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    p.add_argument("--version", action="version", version=version_line())
     sub = p.add_subparsers(dest="cmd", required=True)
     for name, help_ in (("run", "run a pipeline"), ("profile", "run a pipeline and write profile.json, trace.json, latency.png")):
         r = sub.add_parser(name, help=help_)
@@ -377,7 +394,41 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+#: Exit code when the reader of our output went away (``| head -1``, ``| grep -q``): 128 + SIGPIPE,
+#: what a shell reports for any writer whose reader left (``yes | head -1``).
+EXIT_PIPE = 128 + int(signal.SIGPIPE)
+
+
 def main(argv: Optional[list[str]] = None) -> int:
+    """The ``pointflow`` command. A reader that stops early ends it quietly: the pipeline (if
+    any) is stopped as on Ctrl-C, nothing more is printed, and the exit code is :data:`EXIT_PIPE`."""
+    try:
+        try:
+            return _main(argv)
+        finally:  # also after --help/--version (SystemExit): a closed pipe shows here, not at exit
+            sys.stdout.flush()
+            sys.stderr.flush()
+    except BrokenPipeError:
+        _drop_closed_output()
+        return EXIT_PIPE
+
+
+def _drop_closed_output() -> None:
+    """Point stdout and stderr at /dev/null, so the interpreter's last flush of what is still
+    buffered for a closed pipe neither fails nor prints."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+    except OSError:
+        return
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            os.dup2(devnull, stream.fileno())
+        except (OSError, ValueError, AttributeError):
+            pass
+    os.close(devnull)
+
+
+def _main(argv: Optional[list[str]] = None) -> int:
     global _T0
     _T0 = time.monotonic()
     # before any graphics library loads: without a valid XDG_RUNTIME_DIR (ssh, cron,
@@ -386,8 +437,10 @@ def main(argv: Optional[list[str]] = None) -> int:
 
     ensure_runtime_dir()
     args = build_parser().parse_args(argv)
-    logging.basicConfig(level=logging.DEBUG if args.verbose and args.cmd != "validate" else logging.INFO,
-                        format="%(asctime)s %(name)s %(levelname)s %(message)s", stream=sys.stderr)
+    from .runtime.console import setup_logging
+
+    setup_logging(logging.DEBUG if args.verbose and args.cmd != "validate" else logging.INFO,
+                  "%(asctime)s %(name)s %(levelname)s %(message)s")
     try:
         if args.cmd == "run":
             return _run(args)

@@ -321,6 +321,34 @@ def _check_semantics(cfg: PipelineConfig) -> None:
                               "or set endpoints.insecure: true")
 
 
+#: ``render.color_by`` values that are not channels of the data.
+COLOR_BY_BUILTIN = ("z", "height", "ingest_time", "none")
+
+
+def _check_color_by(cfg: PipelineConfig) -> None:
+    """A ``color_by`` channel that no source has is refused when every source declares its
+    channels (synthetic, file; ``Transport.declared_channels``); otherwise ingest names a
+    source whose points lack it, once, and they are drawn in ``render.color``. The default,
+    ``intensity``, is never refused: an xyz-only file is drawn in ``render.color``."""
+    cb = cfg.render.color_by
+    if not cb or cb in COLOR_BY_BUILTIN or cb == RenderConfig.color_by or not cfg.sources:
+        return
+    have: set[str] = set()
+    for s in cfg.sources:
+        declared = None if s.external else resolve_transport(s.transport).declared_channels(s.options, cfg.base_dir)
+        if declared is None:
+            return  # known only when the points arrive
+        have |= declared
+    if cb not in have:
+        import difflib
+
+        near = difflib.get_close_matches(cb, sorted(have) + list(COLOR_BY_BUILTIN), n=1)
+        raise ConfigError("render.color_by", f"no source has a channel {cb!r}"
+                          + (f" (did you mean {near[0]!r}?)" if near else "")
+                          + f"; the sources' channels: {', '.join(sorted(have)) or 'none'}; or one of "
+                          + ", ".join(COLOR_BY_BUILTIN[:3]) + ", or null for the single colour render.color")
+
+
 def load_config(data: dict | str | os.PathLike, *, base_dir: str | None = None) -> PipelineConfig:
     """Load from a dict, a YAML file path. ``source:`` (one) and ``sources:`` (list) both work."""
     if isinstance(data, (str, os.PathLike)):
@@ -344,6 +372,7 @@ def load_config(data: dict | str | os.PathLike, *, base_dir: str | None = None) 
     cfg = load_dataclass(PipelineConfig, data, "")
     cfg.base_dir = base_dir or os.getcwd()
     _check_semantics(cfg)
+    _check_color_by(cfg)
     return cfg
 
 

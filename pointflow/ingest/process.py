@@ -169,6 +169,19 @@ class Ingestor:
         self.rejected[reason] += 1
         self._warn(reason, message)
 
+    #: ``render.color_by`` when it is a channel of the data: a source whose points lack it is
+    #: named once (config.py refuses it at load where the sources' channels are known).
+    color_by: str | None = None
+
+    def _colour_missing(self, chunk: PointChunk) -> None:
+        warned = self.__dict__.setdefault("_colour_warned", set())
+        if chunk.source_id in warned:
+            return
+        warned.add(chunk.source_id)
+        have = ", ".join(sorted(chunk.channels)) or "none"
+        self.log.warning("render.color_by: the points of source %r have no channel %r (channels that arrive: %s); "
+                         "they are drawn in the single colour render.color", chunk.source_id, self.color_by, have)
+
     def add_chunk(self, chunk: PointChunk, t0_ns: int | None = None, validated: bool = False) -> bool:
         """Validate and convert a decoded chunk, then queue it. False when rejected."""
         t0 = t0_ns or time.monotonic_ns()
@@ -181,6 +194,8 @@ class Ingestor:
             self.reject(exc.reason, f"source {chunk.source_id!r} seq {chunk.seq}: {exc}")
             return False
         self.chunks_accepted += 1
+        if self.color_by is not None and self.color_by not in chunk.channels:
+            self._colour_missing(chunk)
         self.counters.points_in += chunk.positions.shape[0]  # not chunk.n: a property, ~0.2 us
         if self.framer is not None:  # into the fixed frame; may wait for transforms (docs/frames.md)
             for c, p, ch in self.framer.submit(chunk, pos, chans):
@@ -493,6 +508,8 @@ def main(ctx) -> None:
                    queue_max_batches=icfg.queue_max_batches, adaptive_thinning=icfg.adaptive_thinning,
                    importance_field=ctx.cfg.ring.importance_field, counters=ctx.counters,
                    spans=ctx.spans, log=ctx.log, frames=ctx.cfg.frames, record=tap)
+    if ctx.cfg.render.color_by in ing.specs:
+        ing.color_by = ctx.cfg.render.color_by
     ctx.on_beat.append(lambda: ctx.counters.extra.update(ing.stats_extra()))
     poller = zmq.Poller()
     poller.register(sock, zmq.POLLIN)

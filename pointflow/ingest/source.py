@@ -55,6 +55,7 @@ def main(ctx) -> None:
         extra = (fcfg.deskew.field,) if not isinstance(fcfg.deskew, str) else TIME_FIELDS
         transport.keep_fields = tuple(transport.keep_fields) + extra
     transport.wants_transforms = bool(fcfg.fixed)
+    transport.ring_capacity = ctx.cfg.ring.max_points
     frame_id = scfg.frame_id or ""
     tf_sent = 0
     sock = ctx.zmq.socket(zmq.PUSH)

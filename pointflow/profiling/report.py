@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 from typing import Any, Optional
 
 import numpy as np
@@ -326,7 +327,8 @@ def _n(n: float) -> str:
 
 
 def live_summary(stats: dict) -> str:
-    """One line for ``pointflow run``: input, ring fill, frames, cadence, drops, CPU."""
+    """One line for ``pointflow run``: input, ring fill, frames, cadence, drops, evictions, a
+    file source's progress, CPU."""
     st = stats.get("stages") or {}
     src_out = sum(s.get("points_out", 0) or 0 for s in st.values() if s.get("kind") == "source")
     drops = sum(sum((s.get("drops") or {}).values()) for s in st.values())
@@ -345,6 +347,12 @@ def live_summary(stats: dict) -> str:
         parts.append(f"cadence={cad.get('achieved_hz', 0) or 0:.1f}Hz"
                      + (f" p99jit={j:.2f}ms" if j is not None else "") + (f" skip={skipped}" if skipped else ""))
     parts.append(f"drops={_n(drops)}")
+    # points the ring pushed out to make room (a file bigger than the ring loses its start here)
+    parts.append(f"evicted={_n(sum(s.get('ring_evicted', 0) or 0 for s in st.values()))}")
+    for name, s in st.items():  # a replay's share sent (its own bar would fight this line)
+        if s.get("kind") == "source" and s.get("transport_progress") is not None:
+            parts.append(f"{name}={min(1.0, s['transport_progress']) * 100:.0f}%"
+                         + (f" of {_n(s['transport_total'])}" if s.get("transport_total") else ""))
     acc = stats.get("accounting") or {}
     refused = sum(s.get("transport_refused_handshakes", 0) or 0 for s in st.values())
     if "lost_in_transit" in acc:  # a link from `pointflow send` (docs/remote.md)
@@ -360,6 +368,7 @@ def live_summary(stats: dict) -> str:
     cpu = " ".join(f"{n[:3]}:{s.get('cpu_percent', 0) or 0:.0f}%" for n, s in st.items())
     if cpu:
         parts.append(f"cpu[{cpu}]")
-    if stats.get("failure"):
-        parts.append(f"FAILED: {stats['failure']}")
+    if stats.get("failure"):  # the supervisor printed the error itself, once (issue 31.5)
+        m = re.match(r"stage (\S+?):? ", stats["failure"])
+        parts.append(f"FAILED ({'stage ' + m.group(1) + ': ' if m else ''}the error is above)")
     return "  ".join(parts)

@@ -124,7 +124,7 @@ def main(ctx: StageContext) -> None:
     renderer = ctx.prepared  # a standby's renderer: device created, pipelines warmed up
     if renderer is None:
         renderer = _select(cfg, capacity, channels, ctx.log)
-        ctx.log.info("render tier: %s", renderer.info())
+        ctx.log.debug("render tier: %s", renderer.info())  # long; "tier selection" lines say it in short
         _warm_up(renderer, slabs, capacity, ctx.log)
     _announce(release, ctx, renderer)
     cam = CameraController(cfg, *cfg.render.size)
@@ -313,7 +313,7 @@ def prepare(cfg, info, log) -> Optional[Renderer]:
     try:
         capacity = ring.layout.capacity
         renderer = _select(cfg, capacity, [c.name for c in ring.layout.channels], log)
-        log.info("standby render tier: %s", renderer.info())
+        log.debug("standby render tier: %s", renderer.info())
         _warm_up(renderer, slabs, capacity, log)
         return renderer
     finally:

@@ -220,6 +220,9 @@ class PointRing:
         self._map()
         if self._imp_unit:
             self._imp[:] = 1.0
+        for _, vals, _ in self._chans.values():  # never written = missing: drawn in render.color
+            if vals.dtype.kind == "f":
+                vals.fill(np.nan)
         st = self._st
         st[I_CAP] = layout.capacity
         st[I_EPOCH] = time.monotonic_ns()

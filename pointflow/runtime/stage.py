@@ -170,21 +170,25 @@ class StageContext:
 
     def fail_run(self, message: str) -> None:
         """End this stage and fail the whole run (exit 2) with ``message``: for defects a
-        restart cannot cure (no input can be read)."""
-        self.log.error("%s", message)
-        self._send({"type": "fatal", "message": message[-4000:]})
+        restart cannot cure (no input can be read). The supervisor prints it, once; the
+        stage itself only when the message cannot reach the supervisor."""
+        if not self._send({"type": "fatal", "message": message[-4000:]}):
+            self.log.error("%s", message)
         self._running = False
 
-    def report_error(self, message: str) -> None:
-        self._send({"type": "error", "message": message[-4000:]})
+    def report_error(self, message: str) -> bool:
+        """Hand an error (a traceback) to the supervisor, which prints it once with the
+        stage's exit; False when it could not be sent."""
+        return self._send({"type": "error", "message": message[-4000:]})
 
-    def _send(self, msg: dict) -> None:
+    def _send(self, msg: dict) -> bool:
         msg.setdefault("stage", self.name)
         msg.setdefault("pid", os.getpid())
         try:
             self._control.send_string(json.dumps(msg, default=_json_default), zmq.NOBLOCK)
+            return True
         except zmq.Again:
-            pass
+            return False
 
     def close(self) -> None:
         self._pulse_stop.set()
@@ -230,8 +234,9 @@ def _die_with_parent() -> None:
 
 
 def _setup_logging(name: str, info: RunInfo) -> None:
-    logging.basicConfig(level=info.log_level, stream=sys.stderr,
-                        format=f"%(asctime)s {name}[%(process)d] %(levelname)s %(message)s")
+    from .console import setup_logging  # on a terminal, a log line clears the progress line first
+
+    setup_logging(info.log_level, f"%(asctime)s {name}[%(process)d] %(levelname)s %(message)s")
 
 
 def prepare_stage(name: str, kind: str, cfg_dict: dict, base_dir: str, info: RunInfo) -> Any:
@@ -274,8 +279,11 @@ def stage_main(name: str, kind: str, cfg_dict: dict, base_dir: str, info: RunInf
         if ctx._running:  # returned on its own
             ctx._send({"type": "done"})
     except Exception as exc:  # noqa: BLE001 - report, then exit non-zero
-        ctx.log.error("stage failed: %s", exc)
-        ctx.report_error("".join(traceback.format_exception(exc)))
+        # the supervisor prints the last line with the stage's exit (once); here only when it
+        # cannot be told, or as the whole traceback with -v
+        if not ctx.report_error("".join(traceback.format_exception(exc))):
+            ctx.log.error("stage failed: %s", exc)
+        ctx.log.debug("stage failed", exc_info=True)
         code = 1
     finally:
         ctx.close()

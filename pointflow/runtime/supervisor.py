@@ -439,9 +439,9 @@ class Supervisor:
             log.error("%s", self.failure)
             self.events.append({"stage": st.name, "pid": st.pid, "reason": st.last_error, "action": "stop",
                                 "t": round(time.monotonic() - self._t_start, 3)})
-        elif kind == "error":
+        elif kind == "error":  # printed once, with the stage's exit (_stage_died: "last error: ...")
             st.last_error = msg.get("message", "")
-            log.error("%s reported: %s", st.name, st.last_error.strip().splitlines()[-1] if st.last_error.strip() else "")
+            log.debug("%s reported: %s", st.name, st.last_error)
         elif kind == "done":
             st.finished = True
             if msg.get("stop_pipeline"):

@@ -150,14 +150,32 @@ def test_bad_files_give_clear_errors(tmp_path):
     assert [c.n for c in chunks] == [5] and t.counters["bad_files"] == 1 and t.counters["files"] == 1
 
 
-def test_progress_bar_when_asked(tmp_path, capsys):
+def test_progress_goes_to_the_progress_line_and_an_overrun_is_said_once(tmp_path, capsys, caplog):
+    """Issue 31.7: the transport draws nothing itself (its bar and the run's progress line and
+    log lines overwrote each other); its share sent is counted for the progress line, and the
+    first time it sends more than the ring holds it warns, once, pointing to the remedy."""
+    import logging
+
     pos, inten, _ = _data(5)
     np.save(tmp_path / "a.npy", np.column_stack([pos, inten]))
-    _replay(tmp_path / "a.npy", progress="on", chunk_points=100)
-    err = capsys.readouterr().err
-    assert "100.0%" in err and f"{N:,}/{N:,} points" in err
-    _replay(tmp_path / "a.npy", progress="auto")  # stderr is not a terminal here: silent
-    assert capsys.readouterr().err == ""
+    cls = resolve_transport("file")
+    o = cls.validate_options({"path": str(tmp_path / "a.npy"), "realtime": False, "chunk_points": 100},
+                             "sources[0].options", os.getcwd())
+    t = cls(o, "f")
+    t.ring_capacity = 500  # as the source stage sets it: ring.max_points
+    t.open()
+    with caplog.at_level(logging.INFO, logger="pointflow.transport.file"):
+        chunks = [c for c in t.chunks() if c is not None]
+    t.close()
+    assert sum(c.n for c in chunks) == N and t.counters["points"] == N and t.counters["total"] == N
+    assert capsys.readouterr().err == ""  # nothing written around the logging
+    said = [r for r in caplog.records if "more than the ring holds" in r.getMessage()]
+    assert len(said) == 1 and said[0].levelno == logging.WARNING, [r.getMessage() for r in said]
+    msg = said[0].getMessage()
+    assert "a.npy has sent 600 points" in msg and "ring.max_points 500" in msg and f"of its {N:,} points" in msg
+    assert "raise ring.max_points" in msg and "`map:` layer for big static files is planned" in msg
+    _, quiet = _replay(tmp_path / "a.npy", progress="off")
+    assert "total" not in quiet.counters  # not on the progress line
 
 
 @pytest.mark.parametrize("size", [10, 4, 17, 31])

@@ -185,13 +185,15 @@ def test_recorded_timing_paces_the_replay_in_order(tmp_path):
     assert None in items  # the transport waited for recorded time (idle ticks), it did not burst
 
 
-def test_progress_bar_when_asked(tmp_path, capsys):
+def test_progress_is_for_the_progress_line_not_drawn_here(tmp_path, capsys):
+    """Issue 31.7: the transport's own bar fought the run's progress line and log lines on a
+    terminal; it now only counts the share replayed (``transport_progress``)."""
     path = _write(tmp_path, "ros1")
-    _replay(path, progress="on")
-    err = capsys.readouterr().err
-    assert "100.0%" in err and "messages" in err and "points" in err
-    _replay(path, progress="auto")  # stderr is not a terminal here: silent
+    _, t = _replay(path, progress="on")
+    assert t.counters["progress"] == 1.0
     assert capsys.readouterr().err == ""
+    _, t = _replay(path, progress="off")
+    assert "progress" not in t.counters
 
 
 def test_bad_topics_and_files_are_config_errors_listing_the_pointcloud2_topics(tmp_path):

@@ -45,6 +45,9 @@ class Transport(ABC):
     #: True when ingest places points in a fixed frame (``frames.fixed``): a transport that
     #: can subscribe to transforms (rosbridge's /tf) does so only then. Set before ``open()``.
     wants_transforms: bool = False
+    #: The ring's ``max_points``, set by the source stage before ``open()``: a replay can say
+    #: when it sends more than the ring holds (the ``file`` transport does). None outside a run.
+    ring_capacity: Optional[int] = None
 
     def __init__(self, options: dict[str, Any], source_id: str):
         self.options = options
@@ -71,6 +74,13 @@ class Transport(ABC):
     @classmethod
     def check_options(cls, opts: Any, path: str, base_dir: str) -> None:
         """Semantic checks; raise ``ConfigError(f"{path}.key", ...)``."""
+
+    @classmethod
+    def declared_channels(cls, options: dict[str, Any], base_dir: str = ".") -> Optional[frozenset[str]]:
+        """The channels this source's chunks carry, when the (validated) options tell without
+        waiting for data; None when only the data will. ``render.color_by`` naming a channel
+        that no source declares is refused at load (config.py)."""
+        return None
 
     @property
     def opts(self):

@@ -12,7 +12,9 @@ Two modes:
 as fast as ingest accepts (the source waits instead of dropping: a replay is lossless).
 Coordinates stay float64 (georeferenced LAS) and the format's channels come along (see
 :mod:`pointflow.ingest.formats`); ``rename`` maps channel names (e.g. Ouster
-``reflectivity`` -> ``intensity``). A progress bar goes to stderr when it is a terminal.
+``reflectivity`` -> ``intensity``). Its progress (``transport_progress``, of ``transport_total``
+points) is shown on the progress line of ``pointflow run``, the one place that draws on the terminal;
+the first time it sends more points than the ring holds it says so, once.
 A file that cannot be read (a :class:`~pointflow.ingest.formats.FormatError`, or anything a
 reader raises) is logged with the reason, counted (``transport_bad_files``) and skipped: what
 was read before the defect is kept, and the other files go on. When *none* of the source's
@@ -24,7 +26,6 @@ import dataclasses
 import glob
 import logging
 import os
-import sys
 import time
 from typing import Any, Iterator, Literal, Optional
 
@@ -58,7 +59,8 @@ class FileOptions:
     channels: Optional[list[str]] = None
     #: CSV/XYZ column names when the file has no header row.
     columns: Optional[list[str]] = None
-    #: Progress bar on stderr: auto = when stderr is a terminal.
+    #: The share of a one-file stream sent, on the progress line of ``pointflow run``
+    #: (``transport_total`` in the source's stats); ``off``: not shown. ``auto`` = ``on``.
     progress: Literal["auto", "on", "off"] = "auto"
 
 
@@ -95,6 +97,34 @@ class FileTransport(Transport):
             raise ConfigError(f"{path}.chunk_points", "must be >= 1")
         o.path = os.path.abspath(p)  # the source process may run elsewhere (cwd)
 
+    #: declared_channels reads a whole file of another format only up to this size
+    #: (LAS/LAZ: one point; KITTI: fixed); larger ones are known when their points arrive.
+    PEEK_BYTES = 8 << 20
+
+    @classmethod
+    def declared_channels(cls, options: dict[str, Any], base_dir: str = ".") -> Optional[frozenset[str]]:
+        """The first file's channels (renamed and filtered as they will be sent), when one
+        format is used and it can be read cheaply; None otherwise (never an error here)."""
+        o = FileOptions(**options)
+        try:
+            files = _expand(o.path)
+            fmts = {o.format if o.format != "auto" else formats.detect_format(f) for f in files}
+            if not files or len(fmts) != 1:
+                return None
+            fmt, f = fmts.pop(), files[0]
+            if fmt in ("las", "laz"):
+                names = set(next(formats.iter_las(f, 1))[1])
+            elif fmt == "bin":
+                names = {"intensity"}
+            elif os.path.getsize(f) <= cls.PEEK_BYTES:
+                names = set(formats.read_points(f, fmt, o.columns)[1])
+            else:
+                return None
+        except Exception:  # noqa: BLE001 - a bad file is reported when it is read, not at load
+            return None
+        names = {o.rename.get(k, k) for k in names}
+        return frozenset(names if o.channels is None else names & set(o.channels))
+
     def __init__(self, options: dict[str, Any], source_id: str):
         super().__init__(options, source_id)
         self.o = FileOptions(**options)
@@ -102,8 +132,7 @@ class FileTransport(Transport):
         self.counters = {"files": 0, "points": 0, "loops": 0, "bad_files": 0}
         #: "file: why" of each file that could not be read (for the error when none can).
         self.bad_reasons: list[str] = []
-        self._bar_last = 0.0
-        self._show_bar = self.o.progress == "on" or (self.o.progress == "auto" and sys.stderr.isatty())
+        self._overrun_said = False
 
     def open(self) -> None:
         if not self.files:
@@ -155,22 +184,26 @@ class FileTransport(Transport):
             self.bad_reasons.append(msg)
         log.warning("%s: skipped a file that cannot be read: %s", self.source_id, msg)
 
-    def _progress(self, done: int, total: int | None, final: bool = False) -> None:
-        if not self._show_bar:
+    def _progress(self, done: int, total: int | None) -> None:
+        """Counters for the progress line; once, a line when the ring starts to overrun."""
+        if total and self.o.progress != "off":
+            self.counters["total"] = total
+            self.counters["progress"] = done / total
+        cap = self.ring_capacity
+        if cap is None or self._overrun_said or done <= cap:
             return
-        now = time.monotonic()
-        if not final and now - self._bar_last < 0.25:
-            return
-        self._bar_last = now
-        if total:
-            frac = min(1.0, done / total)
-            bar = "#" * int(frac * 30)
-            sys.stderr.write(f"\r{self.source_id}: [{bar:<30}] {frac * 100:5.1f}% {done:,}/{total:,} points")
-        else:
-            sys.stderr.write(f"\r{self.source_id}: {done:,} points")
-        if final:
-            sys.stderr.write("\n")
-        sys.stderr.flush()
+        self._overrun_said = True
+        if self.mode == "stream" and not self.counters["loops"]:
+            of = f"of its {total:,} points " if total else ""
+            log.warning("%s: %s has sent %s points, more than the ring holds (ring.max_points %s): from here on "
+                        "the ring keeps at most %s of them (ring.eviction decides which; the rest count as "
+                        "ring_evicted), so %sonly the last %s stay in view. To keep a big static file whole, "
+                        "raise ring.max_points (memory permitting); a `map:` layer for big static files is "
+                        "planned, not available yet", self.source_id, os.path.basename(self.files[0]),
+                        f"{done:,}", f"{cap:,}", f"{cap:,}", of, f"{cap:,}")
+        else:  # a replay of scans (or a loop) rolls through the ring as a live sensor does
+            log.info("%s: the replay has sent %s points, more than the ring holds (%s): older points are "
+                     "evicted from now on, as from a live sensor", self.source_id, f"{done:,}", f"{cap:,}")
 
     def _wait(self, due: float) -> Iterator[None]:
         while self.o.realtime:
@@ -214,4 +247,3 @@ class FileTransport(Transport):
             self.counters["loops"] += 1
         if self.mode == "stream":  # the last chunk's time has to pass, as on a live stream
             yield from self._wait(t0 + sent_points / o.points_per_second)
-        self._progress(self.counters["points"], self.total, final=True)

@@ -21,7 +21,6 @@ from __future__ import annotations
 import dataclasses
 import glob
 import os
-import sys
 import time
 from pathlib import Path
 from typing import Any, Iterator, Literal, Optional
@@ -52,7 +51,7 @@ class RosbagOptions:
     rename: dict[str, str] = dataclasses.field(default_factory=dict)
     #: Keep only these channels (after renaming); null = every field.
     channels: Optional[list[str]] = None
-    #: Progress bar on stderr: auto = when stderr is a terminal.
+    #: The share replayed, on the progress line of ``pointflow run``; off: not shown. auto = on.
     progress: Literal["auto", "on", "off"] = "auto"
     #: tf2_msgs/TFMessage topics replayed with the clouds, in recorded order, for the frames
     #: step (docs/frames.md); topics the recording lacks are skipped; [] = none. A topic whose
@@ -164,8 +163,6 @@ class RosbagTransport(Transport):
         self.decoder = PointCloud2Decoder(self.o.rename, self.o.channels)
         self.counters = {"messages": 0, "points": 0, "loops": 0, "rejected": 0, "deserialize_s": 0.0, "decode_s": 0.0}
         self.reader = None
-        self._bar_last = 0.0
-        self._show_bar = self.o.progress == "on" or (self.o.progress == "auto" and sys.stderr.isatty())
 
     def open(self) -> None:
         try:
@@ -191,20 +188,10 @@ class RosbagTransport(Transport):
         self.total = sum(have[t] for t in wanted) if self.o.start == 0 and self.o.end is None else None
 
     def _progress(self, t_ns: int, final: bool = False) -> None:
-        if not self._show_bar:
-            return
-        now = time.monotonic()
-        if not final and now - self._bar_last < 0.25:
-            return
-        self._bar_last = now
-        frac = 1.0 if final else min(1.0, max(0.0, (t_ns - self.start_ns) / self.span_ns))
-        bar = "#" * int(frac * 30)
-        msgs = f"{self.counters['messages']:,}" + (f"/{self.total:,}" if self.total is not None else "")
-        sys.stderr.write(f"\r{self.source_id}: [{bar:<30}] {frac * 100:5.1f}% {msgs} messages, "
-                         f"{self.counters['points']:,} points")
-        if final:
-            sys.stderr.write("\n")
-        sys.stderr.flush()
+        """The share of the recording replayed, for the progress line of ``pointflow run``
+        (``transport_progress``): drawn there, in one place, not here (issue 31.7)."""
+        if self.o.progress != "off":
+            self.counters["progress"] = 1.0 if final else min(1.0, max(0.0, (t_ns - self.start_ns) / self.span_ns))
 
     def _wait(self, due: float) -> Iterator[None]:
         while True:

@@ -200,6 +200,10 @@ class SyntheticTransport(Transport):
     options_schema = SyntheticOptions
 
     @classmethod
+    def declared_channels(cls, options: dict[str, Any], base_dir: str = ".") -> Optional[frozenset[str]]:
+        return frozenset(options.get("channels") or ())
+
+    @classmethod
     def check_options(cls, o: SyntheticOptions, path: str, base_dir: str) -> None:
         for key in ("scan_hz", "max_range", "rate", "scene_size"):
             if getattr(o, key) <= 0:
