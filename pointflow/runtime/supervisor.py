@@ -295,8 +295,10 @@ class Supervisor:
                     raise ValueError(f"source {name!r} is a {st.kind} stage, not an api source")
                 return st.local
             allowed = None if self.role == "send" else self.cfg.ring_channels() + _time_fields(self.cfg)
+            declared = next((s for s in self.cfg.sources if s.name == name), None)
             src = ApiSource(name, self.endpoints.ingest, options, channels=allowed,
-                            max_chunk_points=self.cfg.ingest.max_chunk_points)
+                            max_chunk_points=self.cfg.ingest.max_chunk_points,
+                            frame_id=declared.frame_id if declared is not None else None)
             self.stages[name] = StageProc(name=name, kind="source", local=src, ready=True,
                                           started_ns=time.monotonic_ns(), pid=os.getpid())
             return src

@@ -164,8 +164,11 @@ class ApiSource:
     socket. ``channels`` limits the channel names accepted (the ring's), None = any."""
 
     def __init__(self, name: str, endpoint: str, options: Optional[dict] = None, *,
-                 channels: Optional[Sequence[str]] = None, max_chunk_points: int = 5_000_000):
+                 channels: Optional[Sequence[str]] = None, max_chunk_points: int = 5_000_000,
+                 frame_id: Optional[str] = None):
         self.name = name
+        #: The source's ``frame_id`` from the config: the frame of clouds sent without one.
+        self.frame_id = frame_id or ""
         self.o = ApiOptions(**(options or {}))
         self.allowed = list(channels) if channels is not None else None
         self.max_chunk_points = max_chunk_points
@@ -210,7 +213,7 @@ class ApiSource:
         for a in range(0, n, step):  # clouds larger than ingest takes in one chunk: in parts
             b = min(n, a + step)
             part = (pos, chans) if (a == 0 and b == n) else (pos[a:b], {k: v[a:b] for k, v in chans.items()})
-            self._send_chunk(*part, frame or "", int(stamp_ns or 0))
+            self._send_chunk(*part, frame or self.frame_id, int(stamp_ns or 0))
         return n
 
     def _send_chunk(self, pos: np.ndarray, chans: dict, frame: str, stamp: int) -> None:
