@@ -9,6 +9,7 @@ import threading
 import time
 
 import numpy as np
+import pytest
 
 from pointflow import Pipeline
 
@@ -92,3 +93,28 @@ def test_block_waits_while_ingest_is_stopped_and_loses_nothing():
     assert api["points_in"] == api["points_out"] == 80 * BIG and api["drops"] == {}
     assert api["send_blocked_ms"] > 0
     assert stats["accounting"]["ingest_written"] == 80 * BIG and stats["accounting"]["lost_before_ingest"] == 0
+
+
+@pytest.mark.parametrize("mode", ["block", "drop_oldest"])
+def test_arrays_may_be_reused_as_soon_as_send_returns(mode):
+    """One buffer, overwritten after every send while ingest is stopped (so every message is
+    still in flight): the ring holds each cloud as it was when sent."""
+    p = _pipeline(backpressure=mode, queue_clouds=20)
+    p.start()
+    ingest = p.stats()["stages"]["ingest"]["pid"]
+    pos, inten = _cloud(0)
+    os.kill(ingest, signal.SIGSTOP)
+    try:
+        for i in range(10):
+            pos[:, 0] = i
+            inten[:] = i
+            p.send(pos, intensity=inten)
+    finally:
+        os.kill(ingest, signal.SIGCONT)
+    _settle(p, 10 * BIG)
+    snap = p.supervisor.ring.snapshot()
+    stats = p.stop()
+    assert stats["stages"]["api"]["points_out"] == 10 * BIG
+    ids, counts = np.unique(snap.channels["intensity"].astype(int), return_counts=True)
+    assert ids.tolist() == list(range(10)) and (counts == BIG).all()
+    np.testing.assert_array_equal(snap.positions[:, 0], snap.channels["intensity"].astype(np.float64))
