@@ -81,22 +81,33 @@ class Sender:
         self.close()
 
 
-def connect(endpoint: str, *, source: str = "api", backpressure: Literal["block", "drop_oldest"] = "block",
+def connect(endpoint: Optional[str], *, source: str = "api", backpressure: Literal["block", "drop_oldest"] = "block",
             queue_clouds: int = 8, base_dir: Optional[str] = None, **link_options) -> Sender:
-    """Open a link to ``endpoint`` (``send.endpoint``) with ``link_options`` (the rest of
-    ``send:``: ``curve_secret_key``, ``curve_server_key``, ``socket``, ``bind``, ``engine``,
+    """Open a link to ``endpoint`` with ``link_options`` (the rest of ``send:``:
+    ``curve_secret_key``, ``curve_server_key``, ``socket``, ``bind``, ``engine``, ``key``,
     ``zenoh``, ``compression``, ``insecure``, ...; docs/remote.md) and return a
-    :class:`Sender`. Clouds are tagged with ``source`` (the name the receiver counts them
+    :class:`Sender`. ZeroMQ (default): ``endpoint`` is ``send.endpoint``. Zenoh
+    (``engine="zenoh"``): ``endpoint`` is a locator (``tcp/host:port``) added to
+    ``zenoh.connect`` (None: only the ``zenoh`` block's own). Clouds are tagged with ``source`` (the name the receiver counts them
     under). Relative key paths are taken from ``base_dir`` (default: the working
     directory). Raises :class:`pointflow.ConfigError` naming the option on a bad or unsafe
     option, before anything starts."""
     from .runtime.pipeline import Pipeline
 
+    send = dict(link_options)
+    if send.get("engine") == "zenoh":
+        # the endpoint is a Zenoh locator (tcp/host:port) this end connects to
+        if endpoint:
+            z = dict(send.get("zenoh") or {})
+            z["connect"] = [endpoint, *z.get("connect", [])]
+            send["zenoh"] = z
+    else:
+        send["endpoint"] = endpoint
     data = {
         "name": "connect",
         "sources": [{"transport": "api", "name": source,
                      "options": {"backpressure": backpressure, "queue_clouds": queue_clouds}}],
-        "send": {"endpoint": endpoint, **link_options},
+        "send": send,
         "tracing": {"enabled": False},
         "render": {"output": {"dir": None}},
     }

@@ -134,3 +134,31 @@ finally:
         assert "failure" not in st and st["stages"]["link"]["restarts"] == 0
     finally:
         recv.stop()
+
+
+def test_connect_over_zenoh(tmp_path):
+    """The other engine: connect(engine="zenoh") publishes on <key>/<source>; a zenoh source
+    subscribes; every point arrives and the link balances."""
+    pytest.importorskip("zenoh", reason="eclipse-zenoh comes with the remote extra")
+    port = _free_port()
+    cfg = api_config(sources=[{"transport": "zenoh", "name": "link", "options": {
+        "key": "pfapi/**", "zenoh": {"listen": [f"tcp/127.0.0.1:{port}"]}}}])
+    recv = Pipeline.from_dict(cfg, out_dir="")
+    recv.start()
+    try:
+        run_script(tmp_path, f"""
+import json
+import pointflow
+from tests.api.helpers import known_clouds
+with pointflow.connect("tcp/127.0.0.1:{port}", engine="zenoh", key="pfapi", source="sim",
+                       wait_subscribers=1, wait_s=60) as link:
+    for pos, inten, rgb in known_clouds(10, 1000):
+        link.send(pos, intensity=inten, rgb=rgb)
+""")
+        end = time.monotonic() + 60
+        while time.monotonic() < end and recv.stats()["accounting"]["ingest_written"] < 10_000:
+            time.sleep(0.05)
+    finally:
+        rcv = recv.stop()
+    ra = rcv["accounting"]
+    assert ra["ingest_written"] == ra["link_received"] == ra["link_sent"] == 10_000 and ra["link_balanced"]
