@@ -4,8 +4,9 @@ Unlike every other transport, an ``api`` source runs *inside the process that ho
 Pipeline* (the supervisor's process), not in a source process of its own: the caller's
 arrays are encoded there and pushed straight to ingest's PULL socket, the same wire format
 and socket a source stage uses, so ingest cannot tell them apart. No extra process and no
-extra hop: one copy into the ZeroMQ message (the caller may reuse its arrays as soon as
-``send`` returns), the kernel's socket copies, then ingest's write into the ring.
+extra hop: large arrays are copied once, into reused staging buffers that ZeroMQ sends
+without a further copy (the caller may reuse its arrays as soon as ``send`` returns), then
+the kernel's socket copies and ingest's write into the ring.
 
 The supervisor keeps an :class:`ApiSource` in its stage table like a source stage
 (``kind: source``): its counters are in ``stats()`` and in the accounting
@@ -260,7 +261,8 @@ class ApiSource:
         self._sock.connect(endpoint)
         self._lock = threading.Lock()       # the socket (block) and every counter
         self._cond = threading.Condition(self._lock)
-        self._queue: collections.deque = collections.deque()  # drop_oldest: (frames, points or None)
+        #: drop_oldest: (frames, points (> 0) or -transforms, staging buffer or None)
+        self._queue: collections.deque = collections.deque()
         self._closed = False
         self.seq = 0
         self.points_in = 0
