@@ -301,6 +301,8 @@ class Supervisor:
                             frame_id=declared.frame_id if declared is not None else None)
             self.stages[name] = StageProc(name=name, kind="source", local=src, ready=True,
                                           started_ns=time.monotonic_ns(), pid=os.getpid())
+            log.info("source %s: api source in this process (pid %d), fed by Pipeline.send; backpressure %s",
+                     name, os.getpid(), src.o.backpressure)
             return src
 
     def _go(self) -> None:
