@@ -66,9 +66,17 @@ def _wait_drawn(p, total: int, timeout_s: float) -> None:
         p.wait(0.05)
 
 
-def _show_window(p, total: int, path: Optional[str], timeout_s: float) -> None:
-    print("pointflow.show: close the window to return", file=sys.stderr)
+def _show_window(p, total: int, path: Optional[str], timeout_s: float) -> Optional[str]:
+    """Until the window is closed (or Ctrl-C); a window that does not open within
+    ``timeout_s`` (the render stage went headless) gives the PNG instead."""
+    end = time.monotonic() + timeout_s
+    while not p.stats().get("stages", {}).get("render", {}).get("window"):
+        if time.monotonic() > end or not p.running:
+            print("pointflow.show: the window did not open; writing a PNG instead", file=sys.stderr)
+            return _show_png(p, total, path, timeout_s)
+        p.wait(0.05)
     try:
+        print("pointflow.show: window open; close it to return", file=sys.stderr, flush=True)
         p.wait(None)  # until the window is closed (a stop request)
     except KeyboardInterrupt:
         pass

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from PIL import Image
 
 import pointflow.quickshow as qs
@@ -15,6 +16,7 @@ def test_show_writes_a_png_and_prints_its_path(tmp_path):
 import os
 os.environ.pop("DISPLAY", None); os.environ.pop("WAYLAND_DISPLAY", None)
 import numpy as np
+import pytest
 import pointflow
 xyz = np.random.default_rng(3).normal(size=(5000, 3)).astype(np.float32)
 ret = pointflow.show(xyz, intensity=np.abs(xyz[:, 2]), path="cloud.png", size=(160, 120))
@@ -51,3 +53,44 @@ def test_a_registered_view_is_tried_first():
     finally:
         qs.VIEWS[:] = saved
     assert not qs.in_notebook()
+
+
+def test_show_opens_a_window_where_there_is_a_display(tmp_path):
+    """Under Xvfb: a window opens (the render stage says so); Ctrl-C returns None and the
+    pipeline stops cleanly."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from gpu_util import xvfb_display
+
+    from .helpers import REPO
+
+    pytest.importorskip("rendercanvas", reason="the window extra: pip install 'pointflow[window]'")
+    pytest.importorskip("glfw", reason="the window extra: pip install 'pointflow[window]'")
+    script = tmp_path / "win.py"
+    script.write_text("""
+import numpy as np, pointflow
+print("RETURNED", pointflow.show(np.random.default_rng(0).normal(size=(3000, 3)), size=(160, 120)), flush=True)
+""")
+    with xvfb_display() as display:
+        env = dict(os.environ, DISPLAY=display, PYTHONPATH=str(REPO))
+        proc = subprocess.Popen([sys.executable, str(script)], cwd=tmp_path, env=env, stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, text=True)
+        try:
+            err = ""
+            end = time.monotonic() + 120
+            while time.monotonic() < end and "window open" not in err and proc.poll() is None:
+                line = proc.stderr.readline()
+                err += line
+            assert "pointflow.show: window open; close it to return" in err, err[-3000:]
+            proc.send_signal(signal.SIGINT)
+            out, rest = proc.communicate(timeout=60)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+    assert proc.returncode == 0, (err + rest)[-3000:]
+    assert "RETURNED None" in out
