@@ -13,6 +13,18 @@ def __getattr__(name: str):
         from .runtime.pipeline import Pipeline
 
         return Pipeline
+    if name == "connect":
+        from .client import connect
+
+        return connect
+    if name == "show":
+        from .quickshow import show
+
+        return show
+    if name == "SendError":
+        from .ingest.transports.api import SendError
+
+        return SendError
     if name == "PointRing":
         from .ring import PointRing
 
@@ -20,4 +32,4 @@ def __getattr__(name: str):
     raise AttributeError(name)
 
 
-__all__ = ["Pipeline", "PointChunk", "PointRing", "ChunkError", "ConfigError", "PipelineConfig", "load_config", "__version__"]
+__all__ = ["Pipeline", "connect", "show", "SendError", "PointChunk", "PointRing", "ChunkError", "ConfigError", "PipelineConfig", "load_config", "__version__"]

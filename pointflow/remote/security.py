@@ -78,6 +78,7 @@ class LinkSecurity:
         if not bind:
             self.counters["refused_by_server"] = 0
         self._warned_plain = False
+        self.refusal = ""
         #: endpoints whose last handshake failed: their disconnect is that failure, not a peer leaving
         self._failed: dict[str, int] = {}
         self._last_log: dict[str, float] = {}
@@ -153,10 +154,13 @@ class LinkSecurity:
                                      ev.get("value"), c["refused_handshakes"])
                 elif e == zmq.EVENT_HANDSHAKE_FAILED_AUTH:
                     c["refused_by_server"] += 1
-                    self._warn_every("auth", "the server at %s refused this end's CURVE handshake (status %s; %d "
-                                     "refused so far): its curve_authorized_keys folder does not hold this end's "
-                                     "public key (the NAME.key of curve_secret_key %s); ZeroMQ does not retry a "
-                                     "refused handshake: add the key there, then restart this end", where, ev.get("value"), c["refused_handshakes"], self.o.curve_secret_key)
+                    #: the last refusal, as logged: shown in the sender's stats (pointflow.connect raises it)
+                    self.refusal = ("the server at %s refused this end's CURVE handshake (status %s; %d "
+                                    "refused so far): its curve_authorized_keys folder does not hold this end's "
+                                    "public key (the NAME.key of curve_secret_key %s); ZeroMQ does not retry a "
+                                    "refused handshake: add the key there, then restart this end") % (
+                        where, ev.get("value"), c["refused_handshakes"], self.o.curve_secret_key)
+                    self._warn_every("auth", "%s", self.refusal)
                 else:
                     self._warn_every(f"cli{e}", "CURVE handshake with the server at %s failed (code %s; %d so far): "
                                      "is curve_server_key (%s) the binding end's public key? ZeroMQ retries",

@@ -210,6 +210,8 @@ def main(ctx) -> None:
         ctx.counters.extra.update({f"link_{k}": v for k, v in link.counters.items()})
         ctx.counters.extra["link_subscriptions"] = subscriptions
         ctx.counters.extra["queued_points"] = snd.queued_points
+        if link.refusal:
+            ctx.counters.extra["link_refusal"] = link.refusal
 
     ctx.on_beat.append(_stats)
 

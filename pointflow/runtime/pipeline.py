@@ -124,6 +124,34 @@ class Pipeline:
         rep = self._request({"cmd": "save", "path": os.path.abspath(path)}, timeout_s)
         return rep["path"]
 
+    # ------------------------------------------------------------------ sending (docs/api.md)
+    def send(self, positions, *, source: str = "api", frame: Optional[str] = None,
+             stamp_ns: Optional[int] = None, **channels) -> int:
+        """Send one cloud from this process: ``positions`` float32/float64 ``(n, 3)``, each
+        channel a numpy array of length n (``intensity=...``), ``frame`` its coordinate frame,
+        ``stamp_ns`` its capture time. ``source`` names an ``api`` source: declared in the
+        config, or added now with backpressure ``block``. Returns n once the cloud is handed
+        to the pipeline (the arrays may be reused at once); :class:`ValueError` naming the
+        argument on bad input, the pipeline going on. Safe from several threads."""
+        return self._api(source).send(positions, frame, stamp_ns, **channels)
+
+    def send_transforms(self, transforms, *, source: str = "api") -> int:
+        """Send transforms (dicts with ``parent``, ``child``, ``stamp_ns``, ``translation``,
+        ``rotation`` (x, y, z, w), ``static``; docs/wire-format.md), in order with the clouds
+        of ``source``. Returns how many."""
+        return self._api(source).send_transforms(transforms)
+
+    def _api(self, name: str):
+        sup = self._sup
+        if sup is None or not sup.started:
+            raise RuntimeError("pipeline is not running: call start() first (or use `with Pipeline... as p:`)")
+        st = sup.stages.get(name)
+        if st is not None and st.local is not None:
+            return st.local
+        if not isinstance(name, str) or not name:
+            raise ValueError(f"source: expected a source name (a non-empty str), got {name!r}")
+        return sup.add_local_source(name)
+
     def _request(self, msg: dict, timeout_s: float) -> dict:
         if self._sup is None:
             raise RuntimeError("pipeline is not running")

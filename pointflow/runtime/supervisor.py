@@ -82,6 +82,9 @@ class StageProc:
     busy_mark: Optional[tuple] = None
     #: Why the last silence was judged a hang, beyond the silence itself.
     hang_note: str = ""
+    #: An ``api`` source living in this process (``Pipeline.send``): no process to watch,
+    #: its counters read directly (pointflow/ingest/transports/api.py).
+    local: Any = None
 
 
 def _describe_exit(code: Optional[int]) -> str:
@@ -244,8 +247,9 @@ class Supervisor:
             self.segments = []
             self.stages["sender"] = StageProc(name="sender", kind="sender")
             for i, s in enumerate(cfg.sources):
-                if not s.external:
+                if not s.external and not _in_process(s):
                     self.stages[s.name] = StageProc(name=s.name, kind="source", source_index=i)
+            self._add_local_sources()
             self._go()
             return
         imp = "importance" if (cfg.ring.importance_field or cfg.ring.eviction == "importance") else None
@@ -268,10 +272,38 @@ class Supervisor:
         order = [("render", "render", -1), ("cadence", "cadence", -1), ("ingest", "ingest", -1)]
         if cfg.record is not None:  # binds the socket ingest sends its copies to: before ingest
             order.insert(2, ("recorder", "recorder", -1))
-        order += [(s.name, "source", i) for i, s in enumerate(cfg.sources) if not s.external]
+        order += [(s.name, "source", i) for i, s in enumerate(cfg.sources) if not s.external and not _in_process(s)]
         for name, kind, idx in order:
             self.stages[name] = StageProc(name=name, kind=kind, source_index=idx)
+        self._add_local_sources()
         self._go()
+
+    def _add_local_sources(self) -> None:
+        for s in self.cfg.sources:
+            if not s.external and _in_process(s):
+                self.add_local_source(s.name, s.options)
+
+    def add_local_source(self, name: str, options: Optional[dict] = None):
+        """An ``api`` source in this process (declared, or added by ``Pipeline.send`` while
+        the pipeline runs: nothing to start, so it is ready at once). Returns it."""
+        from ..ingest.transports.api import ApiSource
+
+        with self._lock:
+            st = self.stages.get(name)
+            if st is not None:
+                if st.local is None:
+                    raise ValueError(f"source {name!r} is a {st.kind} stage, not an api source")
+                return st.local
+            allowed = None if self.role == "send" else self.cfg.ring_channels() + _time_fields(self.cfg)
+            declared = next((s for s in self.cfg.sources if s.name == name), None)
+            src = ApiSource(name, self.endpoints.ingest, options, channels=allowed,
+                            max_chunk_points=self.cfg.ingest.max_chunk_points,
+                            frame_id=declared.frame_id if declared is not None else None)
+            self.stages[name] = StageProc(name=name, kind="source", local=src, ready=True,
+                                          started_ns=time.monotonic_ns(), pid=os.getpid())
+            log.info("source %s: api source in this process (pid %d), fed by Pipeline.send; backpressure %s",
+                     name, os.getpid(), src.o.backpressure)
+            return src
 
     def _go(self) -> None:
         """Start the supervision thread; it starts the stages. Returns once every stage has
@@ -322,11 +354,12 @@ class Supervisor:
                    and not self._halt.is_set()):
                 self._poll_once(0.05)
             for st in self.stages.values():
-                if st is not snd:
+                if st is not snd and st.local is None:
                     self._spawn(st)
             return
         for st in self.stages.values():
-            self._spawn(st)
+            if st.local is None:
+                self._spawn(st)
 
     def _spawn(self, st: StageProc) -> None:
         info = RunInfo(
@@ -672,6 +705,12 @@ class Supervisor:
         self._shut = True
         self.started = False
         self._stop_standbys()
+        for st in self.stages.values():  # api sources: what they accepted goes to ingest first
+            if st.local is not None:
+                try:
+                    st.local.close()
+                except Exception:  # noqa: BLE001
+                    log.exception("closing api source %s", st.name)
         sources = [st for st in self.stages.values() if st.kind == "source"]
         waves = [sources, [self.stages[n] for n in ("ingest", "sender", "router") if n in self.stages],
                  [self.stages[n] for n in ("cadence", "render", "recorder") if n in self.stages]]
@@ -774,12 +813,15 @@ class Supervisor:
     def _stats_locked(self) -> dict[str, Any]:
         stages = {}
         for st in self.stages.values():
+            if st.local is not None:
+                st.stats = st.local.stats()
             d = _merge_counts(st.carried, st.stats) if st.carried else dict(st.stats)
             d.setdefault("points_in", 0)
             d.setdefault("points_out", 0)
             d.setdefault("drops", {})
             d.update(pid=st.pid, kind=st.kind, cpu_percent=round(st.cpu_percent, 1), rss_bytes=st.rss_bytes,
-                     restarts=st.restarts, alive=bool(st.process is not None and st.process.exitcode is None),
+                     restarts=st.restarts, alive=bool(st.process is not None and st.process.exitcode is None)
+                     or bool(st.local is not None and not st.local.closed),
                      ready=st.ready,  # this incarnation has reported in
                      standby_pid=st.standby.pid if st.standby is not None else None,
                      starved_silences=st.starved,  # silent past hung_after_ms, but running: kept
@@ -900,6 +942,28 @@ class Supervisor:
         if not any(v.get("restarts") for v in sources):
             acc["lost_before_sender"] = acc["sources_sent"] - acc["sender_received"]
         return acc
+
+
+def _in_process(s) -> bool:
+    """A source the supervisor keeps in its own process (``transport: api``)."""
+    if s.transport == "api":
+        return True
+    try:
+        from ..ingest.transports import resolve_transport
+
+        return bool(getattr(resolve_transport(s.transport), "in_process", False))
+    except Exception:  # noqa: BLE001 - the config loader already checked it resolves
+        return False
+
+
+def _time_fields(cfg) -> list[str]:
+    """Per-point time fields ingest's deskew reads (kept whatever the ring holds)."""
+    fcfg = cfg.frames
+    if not fcfg.fixed or fcfg.deskew == "off":
+        return []
+    from ..frames.deskew import TIME_FIELDS
+
+    return [fcfg.deskew.field] if not isinstance(fcfg.deskew, str) else list(TIME_FIELDS)
 
 
 def _source_balance(sources: list[dict]) -> dict[str, Any]:

@@ -26,7 +26,7 @@ def _readme_python_example() -> str:
     """The README's "From Python" block, verbatim."""
     text = (ROOT / "README.md").read_text()
     blocks = re.findall(r"```python\n(.*?)```", text, re.S)
-    ex = next(b for b in blocks if "Pipeline.from_yaml" in b)
+    ex = next(b for b in blocks if "from pointflow import Pipeline" in b)
     assert "__main__" not in ex  # what a new user copies has no guard
     return ex
 

@@ -19,6 +19,7 @@ BUILTINS: dict[str, str] = {
     "rosbag": "pointflow.ingest.transports.rosbag:RosbagTransport",
     "rosbridge": "pointflow.ingest.transports.rosbridge:RosbridgeTransport",
     "ros2_zenoh": "pointflow.ingest.transports.ros2_zenoh:Ros2ZenohTransport",
+    "api": "pointflow.ingest.transports.api:ApiTransport",
 }
 
 ENTRY_POINT_GROUP = "pointflow.transports"

@@ -1,0 +1,174 @@
+"""``pointflow.show``: the shortest path from a numpy cloud to a picture, no YAML.
+
+``show(positions, **channels)`` starts a pipeline with one ``api`` source, sends the cloud
+(or a sequence of clouds) and shows it with the best view this machine has, tried in the
+order of :data:`VIEWS`:
+
+1. ``notebook``: inside a Jupyter kernel, once a notebook view is registered
+   (:func:`register_view`; none ships yet: the views issue adds it here);
+2. ``window``: a display (``DISPLAY``/``WAYLAND_DISPLAY``) and the window extra
+   (``pip install pointflow[window]``): an interactive window, until it is closed;
+3. ``png``: anywhere else, one frame written to a PNG whose path is printed and returned.
+"""
+from __future__ import annotations
+
+import importlib.util
+import os
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from typing import Any, Callable, Optional, Sequence
+
+import numpy as np
+
+from .ingest.transports.api import SendError, check_cloud
+
+
+@dataclass
+class View:
+    """One way to show clouds: ``available()`` says whether it can here, ``show(pipeline,
+    total_points, path)`` shows what the pipeline holds and returns what ``show`` returns."""
+
+    name: str
+    available: Callable[[], bool]
+    show: Callable[..., Any]
+    #: render config this view needs (merged over show's defaults)
+    render: Optional[dict] = None
+
+
+def in_notebook() -> bool:
+    """True inside a Jupyter kernel (an IPython kernel app, not a terminal IPython)."""
+    ip = sys.modules.get("IPython")
+    try:
+        shell = ip.get_ipython() if ip is not None else None
+    except Exception:  # noqa: BLE001
+        return False
+    return shell is not None and type(shell).__name__ == "ZMQInteractiveShell"
+
+
+def _window_available() -> bool:
+    from .render.window import display_available
+
+    return display_available() and all(importlib.util.find_spec(m) is not None for m in ("rendercanvas", "glfw"))
+
+
+def _wait_drawn(p, total: int, timeout_s: float) -> None:
+    """Until ingest wrote every point and the renderer drew two frames after that."""
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        st = p.stats()
+        if st.get("accounting", {}).get("ingest_received", 0) >= total:
+            break
+        p.wait(0.05)
+    frames0 = p.stats().get("frames", 0)
+    while time.monotonic() < end and p.stats().get("frames", 0) < frames0 + 2:
+        p.wait(0.05)
+
+
+def _show_window(p, total: int, path: Optional[str], timeout_s: float) -> Optional[str]:
+    """Until the window is closed (or Ctrl-C); a window that does not open within
+    ``timeout_s`` (the render stage went headless) gives the PNG instead."""
+    end = time.monotonic() + timeout_s
+    while not p.stats().get("stages", {}).get("render", {}).get("window"):
+        if time.monotonic() > end or not p.running:
+            print("pointflow.show: the window did not open; writing a PNG instead", file=sys.stderr)
+            return _show_png(p, total, path, timeout_s)
+        p.wait(0.05)
+    try:
+        print("pointflow.show: window open; close it to return", file=sys.stderr, flush=True)
+        p.wait(None)  # until the window is closed (a stop request)
+    except KeyboardInterrupt:
+        pass
+    return None
+
+
+def _show_png(p, total: int, path: Optional[str], timeout_s: float) -> str:
+    _wait_drawn(p, total, timeout_s)
+    if path is None:
+        fd, path = tempfile.mkstemp(prefix="pointflow-show-", suffix=".png")
+        os.close(fd)
+    out = p.save_frame(path)
+    print(out)
+    return out
+
+
+def _show_notebook_missing(p, total, path, timeout_s):  # pragma: no cover - the hook's placeholder
+    raise NotImplementedError
+
+
+#: Tried in order; the first available one shows. A notebook view registers itself here
+#: with :func:`register_view` (first in the list).
+VIEWS: list[View] = [
+    View("window", _window_available, _show_window, render={"window": True}),
+    View("png", lambda: True, _show_png),
+]
+
+
+def register_view(view: View) -> None:
+    """Put ``view`` first (a notebook view: ``View("notebook", in_notebook, its_show)``)."""
+    VIEWS[:] = [view] + [v for v in VIEWS if v.name != view.name]
+
+
+def _clouds(positions: Any, channels: dict) -> list[tuple[np.ndarray, dict]]:
+    """One cloud, or a sequence of clouds (a list/tuple of (n, 3) arrays, each channel then
+    a list of the same length), checked; :class:`SendError` names the argument."""
+    seq = isinstance(positions, (list, tuple)) and len(positions) > 0 and \
+        all(isinstance(x, np.ndarray) and x.ndim == 2 for x in positions)
+    if not seq:
+        pos, chans = check_cloud(positions, channels, None, None)
+        return [(pos, chans)]
+    out = []
+    for name, v in channels.items():
+        if not isinstance(v, (list, tuple)) or len(v) != len(positions):
+            raise SendError("length_mismatch", f"channel {name!r}: with a sequence of {len(positions)} clouds, expected a "
+                                               f"list of {len(positions)} arrays, got {type(v).__name__}"
+                                               + (f" of {len(v)}" if isinstance(v, (list, tuple)) else ""))
+    for i, pos in enumerate(positions):
+        try:
+            out.append(check_cloud(pos, {k: v[i] for k, v in channels.items()}, None, None))
+        except SendError as exc:
+            raise SendError(exc.reason, f"cloud {i}: {exc}") from None
+    return out
+
+
+def show(positions: Any, *, path: Optional[str] = None, color_by: Optional[str] = None,
+         size: Sequence[int] = (1280, 720), view: Optional[str] = None, timeout_s: float = 120.0,
+         **channels: Any) -> Optional[str]:
+    """Show one cloud (``(n, 3)`` float32/float64) or a sequence of clouds, with channels
+    (``intensity=...``), in the best view available. Colours by ``color_by`` (default: the
+    first channel given, else height). Returns the PNG's path (also printed) when it wrote
+    one, None after a window was closed. ``view`` forces one of :data:`VIEWS` by name."""
+    from .config import load_config
+    from .runtime.pipeline import Pipeline
+
+    clouds = _clouds(positions, channels)
+    total = sum(len(c[0]) for c in clouds)
+    names = list(clouds[0][1])
+    if color_by is None:
+        color_by = names[0] if names else "z"
+    elif color_by not in names and color_by not in ("z", "height", "ingest_time", "none"):
+        raise SendError("unknown_channel", f"color_by: {color_by!r} is not among the channels given "
+                                           f"({', '.join(names) or 'none'}) nor z, height, ingest_time")
+    if view is not None:
+        chosen = next((v for v in VIEWS if v.name == view), None)
+        if chosen is None:
+            raise ValueError(f"view: expected one of {', '.join(v.name for v in VIEWS)}, got {view!r}")
+    else:
+        chosen = next(v for v in VIEWS if v.available())
+    render = {"size": list(size), "color_by": color_by, "output": {"dir": None},
+              "camera": {"mode": "auto"}, **(chosen.render or {})}
+    cfg = load_config({"name": "show", "sources": [{"transport": "api", "name": "show"}],
+                       "ring": {"max_points": max(total, 1), "extra_channels": [n for n in names if n != color_by]},
+                       "render": render, "tracing": {"enabled": False}, "cadence": {"target_hz": 10}})
+    p = Pipeline(cfg, out_dir="")
+    p.start()
+    try:
+        for pos, chans in clouds:
+            p.send(pos, source="show", **chans)
+        return chosen.show(p, total, path, timeout_s)
+    finally:
+        p.stop()
+
+
+__all__ = ["show", "register_view", "View", "VIEWS", "in_notebook"]

@@ -1,0 +1,96 @@
+"""pointflow.show without a display: one PNG, its path printed, the cloud drawn in it
+(issue 28, item 5). The notebook hook: a registered view is taken first."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from PIL import Image
+
+import pointflow.quickshow as qs
+
+from .helpers import run_script
+
+
+def test_show_writes_a_png_and_prints_its_path(tmp_path):
+    p = run_script(tmp_path, """
+import os
+os.environ.pop("DISPLAY", None); os.environ.pop("WAYLAND_DISPLAY", None)
+import numpy as np
+import pytest
+import pointflow
+xyz = np.random.default_rng(3).normal(size=(5000, 3)).astype(np.float32)
+ret = pointflow.show(xyz, intensity=np.abs(xyz[:, 2]), path="cloud.png", size=(160, 120))
+print("RETURNED", ret)
+seq = pointflow.show([xyz[:2500], xyz[2500:] + 10], size=(160, 120))   # a sequence, a temporary file
+print("RETURNED", seq)
+""")
+    lines = p.stdout.split("\n")
+    png = str(tmp_path / "cloud.png")
+    assert lines[0] == png and f"RETURNED {png}" in lines
+    seq = next(l for l in lines if l.startswith("RETURNED /") and l != f"RETURNED {png}")[len("RETURNED "):]
+    try:
+        for path in (png, seq):
+            img = np.asarray(Image.open(path).convert("RGB"), dtype=int)
+            assert img.shape == (120, 160, 3)
+            bg = img[0, 0]
+            lit = np.abs(img - bg).sum(axis=2) > 30
+            assert lit.sum() > 500, path  # the cloud is drawn, not only the background
+    finally:
+        if seq.startswith("/tmp/") or "pointflow-show-" in seq:
+            import os
+
+            os.unlink(seq)
+
+
+def test_a_registered_view_is_tried_first():
+    calls = []
+    view = qs.View("notebook", lambda: True, lambda p, total, path, timeout: calls.append(total) or "shown")
+    saved = list(qs.VIEWS)
+    try:
+        qs.register_view(view)
+        assert [v.name for v in qs.VIEWS] == ["notebook", "window", "png"]
+        assert qs.show(np.zeros((7, 3), np.float32)) == "shown" and calls == [7]
+    finally:
+        qs.VIEWS[:] = saved
+    assert not qs.in_notebook()
+
+
+def test_show_opens_a_window_where_there_is_a_display(tmp_path):
+    """Under Xvfb: a window opens (the render stage says so); Ctrl-C returns None and the
+    pipeline stops cleanly."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from gpu_util import xvfb_display
+
+    from .helpers import REPO
+
+    pytest.importorskip("rendercanvas", reason="the window extra: pip install 'pointflow[window]'")
+    pytest.importorskip("glfw", reason="the window extra: pip install 'pointflow[window]'")
+    script = tmp_path / "win.py"
+    script.write_text("""
+import numpy as np, pointflow
+print("RETURNED", pointflow.show(np.random.default_rng(0).normal(size=(3000, 3)), size=(160, 120)), flush=True)
+""")
+    with xvfb_display() as display:
+        env = dict(os.environ, DISPLAY=display, PYTHONPATH=str(REPO))
+        proc = subprocess.Popen([sys.executable, str(script)], cwd=tmp_path, env=env, stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, text=True)
+        try:
+            err = ""
+            end = time.monotonic() + 120
+            while time.monotonic() < end and "window open" not in err and proc.poll() is None:
+                line = proc.stderr.readline()
+                err += line
+            assert "pointflow.show: window open; close it to return" in err, err[-3000:]
+            proc.send_signal(signal.SIGINT)
+            out, rest = proc.communicate(timeout=60)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+    assert proc.returncode == 0, (err + rest)[-3000:]
+    assert "RETURNED None" in out
