@@ -14,7 +14,9 @@ frame in one process, of:
 
 Also: each method's image error against the cpu tier (fraction of pixels that differ), bytes
 and time of incremental vs full upload when 1% of the ring changes per tick, and the cost of
-a pick with each method. ``--raster-crossover`` measures compute vs quads over point sizes
+a pick with each method. ``--cpu-raster`` measures the cpu tier's compiled raster method (numba) against the wgpu
+compute method on this adapter and a compiled bare floor, interleaved (with ``--install``:
+the ``cpu_raster.json`` that ``backend: auto`` reads). ``--raster-crossover`` measures compute vs quads over point sizes
 (with ``--install`` written to the user cache that ``render.raster: auto`` reads; see
 :mod:`pointflow.render.calibration`); ``--edl`` measures eye-dome lighting on vs off.
 Scene: ``../shared/data/autzen_trim.laz`` tiled to N points when present (georeferenced: x ~ 6.4e5 ft), else a synthetic terrain.
@@ -435,6 +437,102 @@ def edl_cost(n: int, reps: int) -> dict[str, Any]:
     return out
 
 
+def cpu_raster(sizes: list[int], reps: dict[int, int]) -> dict[str, Any]:
+    """The cpu tier's compiled raster (``raster: compute``) against the wgpu compute method on
+    this adapter and a compiled bare floor (the same chunking, float64 projection and key
+    write, no rules, no resolve), per frame interleaved in rotating order: 1% of the ring
+    rewritten per frame (dirty range), output = read_image. 1280x720, 2 px squares, turbo by
+    intensity. Also the compiled method at 1 thread and at every thread numba has."""
+    import numba
+
+    from pointflow.render import cpu_kernels
+    from pointflow.render.cpu_compute import CpuComputeRenderer
+    adapter, why = select_adapter()
+    base, inten0, scene = base_cloud()
+    cfg = RenderConfig(size=[W, H], color_by="intensity", colormap="turbo", point_size=2.0, gpu_timestamps=False)
+    threads = numba.get_num_threads()
+    rows = []
+    for n in sizes:
+        world, inten = tiled(base, inten0, n)
+        f = make_frame(world, inten)
+        cam = camera_for(world)
+        del world
+        k = reps.get(n, 5)
+        cc = CpuComputeRenderer(replace(cfg, backend="cpu", raster="compute"), n, ["intensity"])
+        wg = WgpuRenderer(replace(cfg, raster="compute"), n, ["intensity"], adapter=adapter) if adapter else None
+        kern = cpu_kernels.load()
+        vp = np.ascontiguousarray(cam.view_proj(W, H, f.origin), np.float64)
+        fpos = np.ascontiguousarray(f.positions, np.float32)
+
+        def floor() -> None:
+            kern.floor(cc._buffers(), fpos, n, 0, n, W, H, vp, 1.0)
+
+        def one(r) -> Callable[[], None]:
+            def go() -> None:
+                r.render(f, cam)
+                r.read_image()
+            return go
+
+        def single() -> None:
+            numba.set_num_threads(1)
+            try:
+                one(cc)()
+            finally:
+                numba.set_num_threads(threads)
+
+        fns = {"cpu_compute": one(cc), "cpu_compute_1thread": single, "floor": floor}
+        if wg is not None:
+            fns["wgpu_compute"] = one(wg)
+        names = list(fns)
+        ts: dict[str, list[float]] = {m: [] for m in names}
+        step, head = max(n // 100, 1), 0
+        for m in names:  # warm-up
+            f.dirty = None
+            fns[m]()
+        for i in range(k):
+            a, b = head, min(head + step, n)
+            head = b % n
+            order = names[i % len(names):] + names[:i % len(names)]
+            for m in order:
+                f.dirty = [(a, b)]
+                t0 = time.perf_counter()
+                fns[m]()
+                ts[m].append((time.perf_counter() - t0) * 1e3)
+        img_cc = cc.read_image()
+        row: dict[str, Any] = {"points": n, "repeats": k, "threads": threads}
+        for m, v in ts.items():
+            row[f"{m}_ms"], row[f"{m}_all_ms"] = float(np.median(v)), v
+        c = np.asarray(ts["cpu_compute"])
+        row["floor_over_cpu_compute_per_frame_median"] = float(np.median(np.asarray(ts["floor"]) / c))
+        row["one_thread_over_all_per_frame_median"] = float(np.median(np.asarray(ts["cpu_compute_1thread"]) / c))
+        if wg is not None:
+            row["wgpu_over_cpu_compute_per_frame_median"] = float(np.median(np.asarray(ts["wgpu_compute"]) / c))
+            row["image_error_cpu_compute_vs_wgpu_compute"] = image_error(img_cc, wg.read_image())
+            wg.close()
+        if n <= 1_000_000:
+            from pointflow.render.cpu import CpuRenderer
+            ref = CpuRenderer(cfg, n, ["intensity"])
+            f.dirty = None
+            ref.render(f, cam)
+            row["image_error_vs_reference"] = image_error(img_cc, ref.read_image())
+        rows.append(row)
+        print(f"  {n:>9,}: cpu compute {row['cpu_compute_ms']:7.1f} ms ({threads} threads; 1 thread "
+              f"{row['cpu_compute_1thread_ms']:7.1f})  wgpu compute {row.get('wgpu_compute_ms', float('nan')):7.1f} ms  "
+              f"floor {row['floor_ms']:7.1f} ms  wgpu/cpu x{row.get('wgpu_over_cpu_compute_per_frame_median', float('nan')):.2f}  "
+              f"floor/cpu x{row['floor_over_cpu_compute_per_frame_median']:.2f}", flush=True)
+        del f, cc
+    sp = {str(r["points"]): round(r["wgpu_over_cpu_compute_per_frame_median"], 2) for r in rows
+          if "wgpu_over_cpu_compute_per_frame_median" in r}
+    faster = [int(p) for p, v in sp.items() if v > 1.0]
+    lim = None if faster and len(faster) == len(sp) else (max(faster) if faster else 0)
+    return {"scene": scene, "size": [W, H], "adapter": adapter.summary if adapter else None,
+            "adapter_type": adapter.info.get("adapter_type", "") if adapter else None, "adapter_choice": why,
+            "numba": numba.__version__, "threads": threads, "rows": rows,
+            "faster_up_to_points": lim, "speedup": sp,
+            "measured_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "platform": platform.platform(),
+            "cpu_count": os.cpu_count(), "command": "bench/bench_render.py --cpu-raster"}
+
+
 def table(res: dict[str, Any]) -> str:
     out = [f"render benchmark — {res['adapter']} — {res['scene']} — {W}x{H}, 2 px squares, turbo by intensity",
            f"{'points':>10} {'floor ms':>9} {'quads ms':>9} {'compute ms':>10} {'floor/comp':>10} "
@@ -496,7 +594,23 @@ def main(argv: Optional[list[str]] = None) -> int:
     ap.add_argument("--install", action="store_true",
                     help="with --raster-crossover: also write the result to the user cache that "
                          "render.raster: auto reads (pointflow.render.calibration)")
+    ap.add_argument("--cpu-raster", action="store_true",
+                    help="only measure the cpu tier's compiled raster vs wgpu compute and a compiled floor "
+                         "at 100k/1M/4M (bench/results/cpu_raster.json; --install: the user cache that "
+                         "backend: auto reads)")
     a = ap.parse_args(argv)
+    if a.cpu_raster:
+        sizes = a.sizes or [100_000, 1_000_000, 4_000_000]
+        res = cpu_raster(sizes, {100_000: 15, 1_000_000: 9, 4_000_000: 5} if not a.quick else {})
+        path = Path(a.out) if a.out != str(RESULTS / "render.json") else RESULTS / "cpu_raster.json"
+        path.write_text(json.dumps(res, indent=2))
+        if a.install:
+            from pointflow.render import calibration
+            keep = {k: res[k] for k in ("faster_up_to_points", "speedup", "adapter", "adapter_type", "scene",
+                                        "size", "threads", "measured_at", "platform", "cpu_count", "command")}
+            print(f"installed {calibration.install('cpu_raster.json', keep)}")
+        print(f"faster_up_to_points = {res['faster_up_to_points']}, wgpu/cpu speedup {res['speedup']}; wrote {path}")
+        return 0
     if a.edl:
         res = edl_cost(1_000_000, 15 if not a.quick else 6)
         path = RESULTS / "edl.json"

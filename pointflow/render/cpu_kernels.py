@@ -402,7 +402,7 @@ def _compile(cache: bool) -> Kernels:
     g = globals()
     opts = dict(cache=cache, nogil=True, boundscheck=False, error_model="numpy")
     for name in ("_pcg", "_u01", "_colour_value", "_test", "_splat"):
-        g[name] = nb.njit(**opts)(g[name])
+        g[name] = nb.njit(inline="always", **opts)(g[name])
     out = {}
     for name in ("_raster", "_select", "_thin", "_cap", "_resolve", "_edl", "_floor"):
         out[name[1:]] = nb.njit(parallel=True, **opts)(g[name])
