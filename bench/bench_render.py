@@ -191,7 +191,7 @@ def image_error(img: np.ndarray, ref: np.ndarray) -> float:
     return float((img[..., :3] != ref[..., :3]).any(axis=-1).mean())
 
 
-def run(sizes: list[int], reps: dict[int, int], cpu_max: int) -> dict[str, Any]:
+def run(sizes: list[int], reps: dict[int, int], cpu_max: int, cpu_compute: bool = False) -> dict[str, Any]:
     adapter, why = select_adapter()
     if adapter is None:
         raise SystemExit(f"no wgpu adapter: {why}")
@@ -228,6 +228,13 @@ def run(sizes: list[int], reps: dict[int, int], cpu_max: int) -> dict[str, Any]:
         fl = Floor(adapter, f, cam)
         fl.frame()
         times: dict[str, list[float]] = {m: [] for m in (*METHODS, "floor")}
+        cc = None
+        if cpu_compute:  # the cpu tier's compiled raster, in the same interleaving
+            from pointflow.render.cpu_compute import CpuComputeRenderer
+            cc = CpuComputeRenderer(replace(cfg, backend="cpu", raster="compute"), n, ["intensity"])
+            f.dirty = None
+            cc.render(f, cam)
+            times["cpu_compute"] = []
         for i in range(k):
             a = state["head"]
             b = min(a + step, n)
@@ -240,7 +247,18 @@ def run(sizes: list[int], reps: dict[int, int], cpu_max: int) -> dict[str, Any]:
             t0 = time.perf_counter()
             fl.frame()
             times["floor"].append((time.perf_counter() - t0) * 1e3)
+            if cc is not None:
+                f.dirty = [(a, b)]
+                t0 = time.perf_counter()
+                cc.render(f, cam)
+                imgs["cpu_compute"] = cc.read_image()
+                times["cpu_compute"].append((time.perf_counter() - t0) * 1e3)
         fl.close()
+        if cc is not None:
+            row["cpu_compute_threads"] = cc.info()["threads"]
+            row["cpu_compute_vs_floor"] = float(np.median(times["cpu_compute"])) / float(np.median(times["floor"]))
+            row["cpu_compute_image_error_vs_wgpu_compute"] = image_error(imgs["cpu_compute"], imgs["compute"])
+            del cc
         for m, ts in times.items():
             row[f"{m}_ms"], row[f"{m}_all_ms"] = float(np.median(ts)), ts
         tf = np.asarray(times["floor"])
@@ -459,13 +477,19 @@ def cpu_raster(sizes: list[int], reps: dict[int, int]) -> dict[str, Any]:
         del world
         k = reps.get(n, 5)
         cc = CpuComputeRenderer(replace(cfg, backend="cpu", raster="compute"), n, ["intensity"])
+        other = "points" if cc.bands else "bands"
+        os.environ["POINTFLOW_CPU_RASTER_SPLIT"] = other
+        try:  # the other way of sharing the work between the threads
+            cc_other = CpuComputeRenderer(replace(cfg, backend="cpu", raster="compute"), n, ["intensity"])
+        finally:
+            del os.environ["POINTFLOW_CPU_RASTER_SPLIT"]
         wg = WgpuRenderer(replace(cfg, raster="compute"), n, ["intensity"], adapter=adapter) if adapter else None
         kern = cpu_kernels.load()
         vp = np.ascontiguousarray(cam.view_proj(W, H, f.origin), np.float64)
         fpos = np.ascontiguousarray(f.positions, np.float32)
 
         def floor() -> None:
-            kern.floor(cc._buffers(), fpos, n, 0, n, W, H, vp, 1.0)
+            kern.floor(cc._buffers(), cc.threads, cc.bands, fpos, n, 0, n, W, H, vp, 1.0)
 
         def one(r) -> Callable[[], None]:
             def go() -> None:
@@ -480,7 +504,8 @@ def cpu_raster(sizes: list[int], reps: dict[int, int]) -> dict[str, Any]:
             finally:
                 numba.set_num_threads(threads)
 
-        fns = {"cpu_compute": one(cc), "cpu_compute_1thread": single, "floor": floor}
+        fns = {"cpu_compute": one(cc), f"cpu_compute_{other}": one(cc_other), "cpu_compute_1thread": single,
+               "floor": floor}
         if wg is not None:
             fns["wgpu_compute"] = one(wg)
         names = list(fns)
@@ -499,12 +524,14 @@ def cpu_raster(sizes: list[int], reps: dict[int, int]) -> dict[str, Any]:
                 fns[m]()
                 ts[m].append((time.perf_counter() - t0) * 1e3)
         img_cc = cc.read_image()
-        row: dict[str, Any] = {"points": n, "repeats": k, "threads": threads}
+        row: dict[str, Any] = {"points": n, "repeats": k, "threads": threads,
+                               "split": "bands" if cc.bands else "points", "other_split": other}
         for m, v in ts.items():
             row[f"{m}_ms"], row[f"{m}_all_ms"] = float(np.median(v)), v
         c = np.asarray(ts["cpu_compute"])
         row["floor_over_cpu_compute_per_frame_median"] = float(np.median(np.asarray(ts["floor"]) / c))
         row["one_thread_over_all_per_frame_median"] = float(np.median(np.asarray(ts["cpu_compute_1thread"]) / c))
+        row["other_split_over_default_per_frame_median"] = float(np.median(np.asarray(ts[f"cpu_compute_{other}"]) / c))
         if wg is not None:
             row["wgpu_over_cpu_compute_per_frame_median"] = float(np.median(np.asarray(ts["wgpu_compute"]) / c))
             row["image_error_cpu_compute_vs_wgpu_compute"] = image_error(img_cc, wg.read_image())
@@ -519,8 +546,9 @@ def cpu_raster(sizes: list[int], reps: dict[int, int]) -> dict[str, Any]:
         print(f"  {n:>9,}: cpu compute {row['cpu_compute_ms']:7.1f} ms ({threads} threads; 1 thread "
               f"{row['cpu_compute_1thread_ms']:7.1f})  wgpu compute {row.get('wgpu_compute_ms', float('nan')):7.1f} ms  "
               f"floor {row['floor_ms']:7.1f} ms  wgpu/cpu x{row.get('wgpu_over_cpu_compute_per_frame_median', float('nan')):.2f}  "
-              f"floor/cpu x{row['floor_over_cpu_compute_per_frame_median']:.2f}", flush=True)
-        del f, cc
+              f"floor/cpu x{row['floor_over_cpu_compute_per_frame_median']:.2f}  {other}/{row['split']} "
+              f"x{row['other_split_over_default_per_frame_median']:.2f}", flush=True)
+        del f, cc, cc_other
     sp = {str(r["points"]): round(r["wgpu_over_cpu_compute_per_frame_median"], 2) for r in rows
           if "wgpu_over_cpu_compute_per_frame_median" in r}
     faster = [int(p) for p, v in sp.items() if v > 1.0]
@@ -594,6 +622,8 @@ def main(argv: Optional[list[str]] = None) -> int:
     ap.add_argument("--install", action="store_true",
                     help="with --raster-crossover: also write the result to the user cache that "
                          "render.raster: auto reads (pointflow.render.calibration)")
+    ap.add_argument("--with-cpu-compute", action="store_true",
+                    help="also time the cpu tier's compiled raster in the main run's interleaving")
     ap.add_argument("--cpu-raster", action="store_true",
                     help="only measure the cpu tier's compiled raster vs wgpu compute and a compiled floor "
                          "at 100k/1M/4M (bench/results/cpu_raster.json; --install: the user cache that "
@@ -633,7 +663,7 @@ def main(argv: Optional[list[str]] = None) -> int:
     if a.quick:
         reps = {k: max(2, v // 2) for k, v in reps.items()}
     t0 = time.perf_counter()
-    res = run(sizes, reps, a.cpu_max)
+    res = run(sizes, reps, a.cpu_max, a.with_cpu_compute)
     res["bench_seconds"] = time.perf_counter() - t0
     out = Path(a.out)
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -20,6 +20,7 @@ The float64 numpy tier (:mod:`.cpu`, ``raster: reference``) stays the accuracy r
 """
 from __future__ import annotations
 
+import os
 import time
 from typing import Any, Optional
 
@@ -33,6 +34,10 @@ from .rules import (EDL_SCALE, budget_fraction, budget_seed, check_frame, edl_of
                     resolve_pick, rgba_u8, seed_hash)
 
 __all__ = ["CpuComputeRenderer"]
+
+ENV_SPLIT = "POINTFLOW_CPU_RASTER_SPLIT"
+#: how the threads share the work (bench/bench_render.py --cpu-raster measures both)
+DEFAULT_SPLIT = "points"
 
 Range = tuple[int, int]
 
@@ -81,6 +86,14 @@ class CpuComputeRenderer(Renderer):
         self._edl = edl_offsets(cfg.edl.radius_px).astype(np.int64) if cfg.edl.enabled else None
         self._logz = np.zeros(H * W if self._edl is not None else 1, np.float64)
         self._keys = np.empty((0, H * W), np.uint64)
+        #: split the work by screen bands (one key buffer, every thread runs every point and
+        #: writes its rows) or by points (one buffer per thread, merged in the resolve);
+        #: env POINTFLOW_CPU_RASTER_SPLIT=bands|points, default DEFAULT_SPLIT (measured faster)
+        split = os.environ.get(ENV_SPLIT, "").strip().lower() or DEFAULT_SPLIT
+        if split not in ("bands", "points"):
+            raise RenderError(f"${ENV_SPLIT}={split!r}: expected bands or points")
+        self.bands = split == "bands"
+        self.threads = 1
         self._origin: Optional[np.ndarray] = None
         self._cap = -1
         cb = cfg.color_by
@@ -150,9 +163,11 @@ class CpuComputeRenderer(Renderer):
         return total
 
     def _buffers(self) -> np.ndarray:
-        T = max(1, int(self._k_numba().get_num_threads()))
-        if self._keys.shape[0] != T:
-            self._keys = np.empty((T, self.width * self.height), np.uint64)
+        """The key buffers for this frame's thread count: one (bands) or one per thread."""
+        self.threads = T = max(1, int(self._k_numba().get_num_threads()))
+        nb = 1 if self.bands else T
+        if self._keys.shape[0] != nb:
+            self._keys = np.empty((nb, self.width * self.height), np.uint64)
         return self._keys
 
     @staticmethod
@@ -218,7 +233,7 @@ class CpuComputeRenderer(Renderer):
             else:
                 range_mode = cmode
         keys = self._buffers()
-        T = keys.shape[0]
+        T = self.threads
         st = np.zeros((T, cpu_kernels.N_ST), np.int64)
         vr = np.empty((T, 2), np.float64)
         seed_h = np.uint64(seed_hash(frame.frame_seed))
@@ -244,7 +259,7 @@ class CpuComputeRenderer(Renderer):
             pre = st.copy()
             pre_vr = vr.copy()
         t2 = time.perf_counter()
-        k.raster(keys, st, vr, mask, use_mask, self._pos, self._t, self._imp, self._cval, head, size, cap, W, H,
+        k.raster(keys, T, self.bands, st, vr, mask, use_mask, self._pos, self._t, self._imp, self._cval, head, size, cap, W, H,
                  vp, planes, half, world, size_scale, round_, has_window, now, window, lod, has_imp, imp_deg,
                  imp_lo, imp_scale, seed_h, range_mode)
         t3 = time.perf_counter()
@@ -277,7 +292,8 @@ class CpuComputeRenderer(Renderer):
             timings["edl"] = ms(t4, t5)
         return FrameStats(drawn=drawn, timings_ms=timings, uploaded_bytes=copied,
                           extra={"removed_nonfinite": nonfinite, "nonfinite_total": self.nonfinite_total,
-                                 "occupied": size, "threads": T, "raster": "compute"})
+                                 "occupied": size, "threads": T, "raster": "compute",
+                                 "split": "bands" if self.bands else "points"})
 
     # ---------------------------------------------------------------- outputs
     def read_image(self) -> np.ndarray:
@@ -299,5 +315,6 @@ class CpuComputeRenderer(Renderer):
 
     def info(self) -> dict[str, Any]:
         return {"tier": self.tier, "raster": self.raster, "size": [self.width, self.height],
+                "split": "bands" if self.bands else "points",
                 "threads": int(cpu_kernels.numba.get_num_threads()), "numba": cpu_kernels.numba.__version__,
                 "deterministic": True}

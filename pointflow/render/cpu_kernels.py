@@ -97,7 +97,7 @@ def _test(logical, slot, pos, tms, imp, planes, has_window, now_ms, window_ms, l
     return True
 
 
-def _splat(kb, fb, ub, logical, slot, pos, vp, W, H, half_px, world, size_scale, round_):
+def _splat(kb, fb, ub, logical, slot, pos, vp, W, H, half_px, world, size_scale, round_, ylo, yhi):
     """Write the point's key into every pixel of its footprint (rules.footprint_box).
     ``fb``/``ub``: a one-element float32 scratch and its uint32 view (the bits of w)."""
     x = np.float64(pos[slot, 0])
@@ -129,6 +129,10 @@ def _splat(kb, fb, ub, logical, slot, pos, vp, W, H, half_px, world, size_scale,
     fy0 = min(max(fy0, 0.0), np.float64(H))
     fy1 = min(max(fy1, 0.0), np.float64(H))
     x0, x1, y0, y1 = int(fx0), int(fx1), int(fy0), int(fy1)
+    if y0 < ylo:
+        y0 = ylo
+    if y1 > yhi:
+        y1 = yhi
     if x1 <= x0 or y1 <= y0:
         return
     wf = np.float32(w)
@@ -150,22 +154,33 @@ def _splat(kb, fb, ub, logical, slot, pos, vp, W, H, half_px, world, size_scale,
                 kb[i] = key
 
 
-def _raster(keys, st, vrange, mask, use_mask, pos, tms, imp, cval, head, size, cap, W, H, vp, planes,
+def _raster(keys, T, bands, st, vrange, mask, use_mask, pos, tms, imp, cval, head, size, cap, W, H, vp, planes,
             half_px, world, size_scale, round_, has_window, now_ms, window_ms, lod, has_imp, imp_degenerate,
             imp_lo, imp_scale, seed_h, range_mode):
-    """One chunk of logical indices per key buffer (= per thread): clear the buffer, then
-    test + splat (or splat the points ``mask`` keeps when ``use_mask``: the budget's passes
-    did the tests). Counters per chunk in ``st``; the auto colour range in ``vrange``."""
-    T = keys.shape[0]
-    npx = keys.shape[1]
+    """T threads. ``bands``: one key buffer, thread c owns rows [H c/T, H (c+1)/T) and runs
+    every point (counting only in thread 0); else one buffer and one chunk of logical indices
+    per thread. Each thread clears what it owns, then tests + splats (or splats the points
+    ``mask`` keeps when ``use_mask``: the budget's passes did the tests). Counters per chunk in
+    ``st``; the auto colour range in ``vrange``."""
     for c in numba.prange(T):
-        kb = keys[c]
-        for i in range(npx):
-            kb[i] = EMPTY
+        if bands:
+            kb = keys[0]
+            ylo = H * c // T
+            yhi = H * (c + 1) // T
+            for i in range(ylo * W, yhi * W):
+                kb[i] = EMPTY
+            a = 0
+            b = size
+        else:
+            kb = keys[c]
+            ylo = 0
+            yhi = H
+            for i in range(kb.shape[0]):
+                kb[i] = EMPTY
+            a = size * c // T
+            b = size * (c + 1) // T
         fb = np.empty(1, np.float32)
         ub = fb.view(np.uint32)
-        a = size * c // T
-        b = size * (c + 1) // T
         n_occ = 0
         n_bad = 0
         n_keep = 0
@@ -193,8 +208,12 @@ def _raster(keys, st, vrange, mask, use_mask, pos, tms, imp, cval, head, size, c
                              imp_degenerate, imp_lo, imp_scale, seed_h):
                     continue
                 n_keep += 1
-            _splat(kb, fb, ub, logical, slot, pos, vp, W, H, half_px, world, size_scale, round_)
+            _splat(kb, fb, ub, logical, slot, pos, vp, W, H, half_px, world, size_scale, round_, ylo, yhi)
             n_drawn += 1
+        if bands and c != 0:  # every band saw every point: count once
+            n_occ = n_bad = n_keep = n_drawn = 0
+            vmin = np.inf
+            vmax = -np.inf
         st[c, ST_OCC] = n_occ
         st[c, ST_BAD] = n_bad
         st[c, ST_KEEP] = n_keep
@@ -353,19 +372,28 @@ def _edl(slot_at, logz, img, offsets, k_shade):
             img[y, x] = r | (g << np.uint32(8)) | (bl << np.uint32(16)) | (c & np.uint32(0xFF000000))
 
 
-def _floor(keys, pos, size, head, cap, W, H, vp, half_px):
-    """The benchmark's bare floor: the same chunking, projection and key write, no rules
-    (no tests but w > 0, square footprint, no colour)."""
-    T = keys.shape[0]
-    npx = keys.shape[1]
+def _floor(keys, T, bands, pos, size, head, cap, W, H, vp, half_px):
+    """The benchmark's bare floor: the same threads, bands or buffers, projection and key
+    write, no rules (no tests but w > 0, square footprint, no colour, no resolve)."""
     for c in numba.prange(T):
-        kb = keys[c]
-        for i in range(npx):
-            kb[i] = EMPTY
+        if bands:
+            kb = keys[0]
+            ylo = H * c // T
+            yhi = H * (c + 1) // T
+            for i in range(ylo * W, yhi * W):
+                kb[i] = EMPTY
+            a = 0
+            b = size
+        else:
+            kb = keys[c]
+            ylo = 0
+            yhi = H
+            for i in range(kb.shape[0]):
+                kb[i] = EMPTY
+            a = size * c // T
+            b = size * (c + 1) // T
         fb = np.empty(1, np.float32)
         ub = fb.view(np.uint32)
-        a = size * c // T
-        b = size * (c + 1) // T
         for logical in range(a, b):
             slot = head + logical
             if slot >= cap:
@@ -376,7 +404,7 @@ def _floor(keys, pos, size, head, cap, W, H, vp, half_px):
             w = vp[3, 0] * x + vp[3, 1] * y + vp[3, 2] * z + vp[3, 3]
             if not w > 0.0:
                 continue
-            _splat(kb, fb, ub, logical, slot, pos, vp, W, H, half_px, False, 0.0, False)
+            _splat(kb, fb, ub, logical, slot, pos, vp, W, H, half_px, False, 0.0, False, ylo, yhi)
 
 
 # --------------------------------------------------------------------------- compilation

@@ -117,6 +117,26 @@ def cpu_method(cfg: RenderConfig, explicit: bool) -> tuple[list[str], str]:
     return ["cpu-compute", "cpu"], f"render.raster={want}: the compiled raster (numba), the reference if it cannot start"
 
 
+def cpu_summary() -> str:
+    """The cpu tier's raster methods here, in words (``pointflow info``)."""
+    from . import cpu_kernels
+
+    off = cpu_kernels.disabled()
+    if off:
+        comp = f"compiled raster off ({off})"
+    elif not cpu_kernels.available():
+        comp = "compiled raster unavailable (numba not installed)"
+    else:
+        data, where = cpu_raster_crossover()
+        if data is None:
+            comp = "compiled raster (numba); auto: no measurement against a software adapter"
+        else:
+            lim = data.get("faster_up_to_points")
+            upto = "at every size measured" if lim is None else f"up to {int(lim):,} points"
+            comp = f"compiled raster (numba); auto prefers it over a software wgpu adapter {upto} ({where})"
+    return f"reference (numpy, float64); {comp}"
+
+
 def cpu_raster_crossover() -> tuple[Optional[dict], str]:
     """(calibration, where from): ``faster_up_to_points`` (int, or None = at every size
     measured; 0 = never) below which the compiled cpu raster beat the wgpu tier on a

@@ -62,7 +62,11 @@ def test_budget_keeps_the_same_points_as_the_reference():
     assert diff_fraction(a, b) <= 0.001
 
 
-def test_byte_identical_whatever_the_thread_count():
+@pytest.mark.parametrize("split", ["points", "bands"])
+def test_byte_identical_whatever_the_thread_count(split, monkeypatch):
+    """One key buffer per thread (points) or one shared by screen bands: same bytes at 1 and
+    at every thread, and the same as the other split."""
+    monkeypatch.setenv("POINTFLOW_CPU_RASTER_SPLIT", split)
     frame, cam, kw = SCENES["world_rgb_filters"]()
     frame2, cam2, kw2 = SCENES["sphere"]()
     imgs = {}
@@ -78,6 +82,12 @@ def test_byte_identical_whatever_the_thread_count():
     (a1, b1, s1), (a2, b2, s2) = imgs.values()
     assert a1.tobytes() == a2.tobytes() and b1.tobytes() == b2.tobytes()
     assert np.array_equal(s1, s2)
+    assert r.info()["split"] == split
+    monkeypatch.setenv("POINTFLOW_CPU_RASTER_SPLIT", "bands" if split == "points" else "points")
+    other = CpuComputeRenderer(render_cfg(size=[320, 240], edl=EdlConfig(enabled=True), **kw), frame.capacity,
+                               list(frame.channels))
+    other.render(frame, cam)
+    assert other.read_image().tobytes() == a2.tobytes()
 
 
 @pytest.mark.parametrize("strategy", ["nearest", "highest_importance", "recent_first"])
@@ -284,11 +294,13 @@ def test_compiled_raster_failing_mid_run_falls_back_to_the_reference(clean_env):
     assert nxt.selection_log[0].startswith("cpu: failed mid-run")
 
 
-def test_budget_hard_cap_keeps_the_first_b_in_logical_order(monkeypatch):
+@pytest.mark.parametrize("split", ["points", "bands"])
+def test_budget_hard_cap_keeps_the_first_b_in_logical_order(monkeypatch, split):
     """With the thinning switched off (fraction 2 = keep all), the cap alone keeps exactly
     the oldest b survivors, across the threads' chunks (ranked by a prefix sum)."""
     import pointflow.render.cpu_compute as cc
     import pointflow.render.rules as rules
+    monkeypatch.setenv("POINTFLOW_CPU_RASTER_SPLIT", split)
     monkeypatch.setattr(cc, "budget_fraction", lambda b, n: np.float32(2.0))
     monkeypatch.setattr(rules, "budget_fraction", lambda b, n: np.float32(2.0))
     w = terrain(20_000, seed=6)
