@@ -82,7 +82,7 @@ class CpuComputeRenderer(Renderer):
         self._lut = np.ascontiguousarray(colormap.lut(cfg.colormap)).view(np.uint32).reshape(256)
         self._img = np.empty((H, W), np.uint32)
         self._img[:] = self._bg
-        self._slot_at = np.full(H * W, -1, np.int64)
+        self._last_ring = (0, 1)  # head, capacity of the last frame (slots from its keys)
         self._edl = edl_offsets(cfg.edl.radius_px).astype(np.int64) if cfg.edl.enabled else None
         self._logz = np.zeros(H * W if self._edl is not None else 1, np.float64)
         self._keys = np.empty((0, H * W), np.uint64)
@@ -189,7 +189,7 @@ class CpuComputeRenderer(Renderer):
         finally:
             self._cap, self._pos, self._t, self._imp, self._cval, self._rgb, self._origin = saved
             self._img[:] = self._bg
-            self._slot_at[:] = -1
+            self._keys[:] = cpu_kernels.EMPTY
             self._synced_mode = None
             self.frames = 0
             self.nonfinite_total = 0
@@ -275,12 +275,13 @@ class CpuComputeRenderer(Renderer):
         degenerate = not hi_c > lo_c
         lo32 = np.float32(lo_c)
         scale32 = np.float32(1.0 / (hi_c - lo_c)) if not degenerate else np.float32(0)
-        k.resolve(keys, self._slot_at, self._img, self._logz, self._edl is not None, vp, head, cap, cmode,
+        self._last_ring = (head, cap)
+        k.resolve(keys, self._img, self._logz, self._edl is not None, vp, head, cap, cmode,
                   self._single, self._bg, self._rgb, self._pos, self._t, self._cval, lo32, scale32, degenerate,
                   self._lut)
         t4 = time.perf_counter()
         if self._edl is not None:
-            k.edl(self._slot_at, self._logz, self._img, self._edl, -EDL_SCALE * float(cfg.edl.strength))
+            k.edl(self._logz, self._img, self._edl, -EDL_SCALE * float(cfg.edl.strength))
         t5 = time.perf_counter()
         self.nonfinite_total += nonfinite
         self.frames += 1
@@ -299,12 +300,21 @@ class CpuComputeRenderer(Renderer):
     def read_image(self) -> np.ndarray:
         return self._img.view(np.uint8).reshape(self.height, self.width, 4).copy()
 
+    def winners(self, ya: int = 0, yb: Optional[int] = None, xa: int = 0, xb: Optional[int] = None) -> np.ndarray:
+        """Ring slot drawn at each pixel of the last frame's block [ya:yb, xa:xb] (-1 =
+        background), from the key buffers (the smallest key over the threads' buffers)."""
+        H, W = self.height, self.width
+        kb = self._keys.reshape(-1, H, W)[:, ya:yb, xa:xb].min(axis=0)
+        head, cap = self._last_ring
+        slots = ((kb & np.uint64(0xFFFFFFFF)).astype(np.int64) + head) % cap
+        return np.where(kb == cpu_kernels.EMPTY, -1, slots)
+
     def pick(self, x: float, y: float, pixel_ratio: float = 1.0) -> Optional[int]:
         win = pick_window(self.width, self.height, x, y, pixel_ratio, self.cfg.pick_radius)
-        if win is None:
+        if win is None or self._keys.shape[0] == 0:
             return None
         X, Y, xa, xb, ya, yb = win
-        block = self._slot_at.reshape(self.height, self.width)[ya:yb, xa:xb]
+        block = self.winners(ya, yb, xa, xb)
         block = in_pick_circle(block, xa, ya, x, y, pixel_ratio, self.cfg.pick_radius)
         last: dict[str, np.ndarray] = {}
         if self.cfg.pick_strategy != "nearest":  # attributes of the last frame's own copy

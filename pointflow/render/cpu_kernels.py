@@ -291,10 +291,11 @@ def _cap(mask, base, size, T, budget):
                 run += 1
 
 
-def _resolve(keys, slot_at, img, logz, edl, vp, head, cap, cmode, single, bg, rgbp, pos, tms, cval, lo, scale,
-             degenerate, lut):
-    """Per pixel: the smallest key over the buffers -> the winner's slot and colour (or the
-    background); with EDL, log2 of the winner's linear depth (clip w, float64 as the reference)."""
+def _resolve(keys, img, logz, edl, vp, head, cap, cmode, single, bg, rgbp, pos, tms, cval, lo, scale, degenerate,
+             lut):
+    """Per pixel: the smallest key over the buffers -> the winner's colour (or the
+    background); with EDL, log2 of the winner's linear depth (clip w, float64 as the
+    reference), +inf on the background. (Picking reads the keys themselves.)"""
     T = keys.shape[0]
     H = img.shape[0]
     W = img.shape[1]
@@ -308,13 +309,13 @@ def _resolve(keys, slot_at, img, logz, edl, vp, head, cap, cmode, single, bg, rg
                     k = k2
             if k == EMPTY:
                 img[y, x] = bg
-                slot_at[i] = -1
+                if edl:
+                    logz[i] = np.inf
                 continue
             logical = np.int64(k & _M32)
             slot = head + logical
             if slot >= cap:
                 slot -= cap
-            slot_at[i] = slot
             if edl:
                 w = (vp[3, 0] * np.float64(pos[slot, 0]) + vp[3, 1] * np.float64(pos[slot, 1])
                      + vp[3, 2] * np.float64(pos[slot, 2]) + vp[3, 3])
@@ -340,27 +341,25 @@ def _resolve(keys, slot_at, img, logz, edl, vp, head, cap, cmode, single, bg, rg
                     img[y, x] = lut[int(np.floor(t * _F255 + _FH))]
 
 
-def _edl(slot_at, logz, img, offsets, k_shade):
-    """Eye-dome lighting (rules.edl_shade + rules.apply_shade) over the winners' log2 depth."""
+def _edl(logz, img, offsets, k_shade):
+    """Eye-dome lighting (rules.edl_shade + rules.apply_shade) over the winners' log2 depth
+    (+inf = background: contributes nothing, is not shaded)."""
     H = img.shape[0]
     W = img.shape[1]
     n = offsets.shape[0]
     for y in numba.prange(H):
         for x in range(W):
             i = y * W + x
-            if slot_at[i] < 0:
-                continue
             d = logz[i]
+            if d == np.inf:
+                continue
             resp = 0.0
             for k in range(n):
                 qx = x + offsets[k, 0]
                 qy = y + offsets[k, 1]
                 if qx < 0 or qy < 0 or qx >= W or qy >= H:
                     continue
-                q = qy * W + qx
-                if slot_at[q] < 0:
-                    continue
-                e = d - logz[q]
+                e = d - logz[qy * W + qx]
                 if e > 0.0:
                     resp += e
             resp /= n
