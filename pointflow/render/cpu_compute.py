@@ -208,6 +208,10 @@ class CpuComputeRenderer(Renderer):
         origin = np.asarray(frame.origin, np.float64)
         vp = np.ascontiguousarray(camera.view_proj(W, H, origin), np.float64)
         planes = np.ascontiguousarray(camera.frustum_planes(W, H, origin), np.float64).reshape(6, 4)
+        # clip-space frustum decisions need a margin far above float64 rounding of a dot
+        # product with these coefficients (|error| <= ~4e-16 * sum |terms|); the planes decide
+        # the points inside the margin (cpu_kernels._frustum)
+        eps_s = 1e-11 * 2.0 * float(np.abs(vp).max())
         world = cfg.point_size_space == "world"
         size_scale = float(cfg.point_size) * float(camera.proj(W, H)[1, 1]) * H * 0.5 if world else 0.0
         # importance sampling: the handoff's range, else the finite range over occupied slots
@@ -247,8 +251,8 @@ class CpuComputeRenderer(Renderer):
         counts = {"occupied": size}
         if use_mask:  # budget: tests -> thinning -> the first b in logical order
             b = max(int(frame.budget), 0)
-            k.select(mask, st, vr, self._pos, self._t, self._imp, self._cval, head, size, cap, T, planes,
-                     has_window, now, window, lod, has_imp, imp_deg, imp_lo, imp_scale, seed_h, range_mode)
+            k.select(mask, st, vr, self._pos, self._t, self._imp, self._cval, head, size, cap, T, vp, planes,
+                     has_window, now, window, lod, has_imp, imp_deg, imp_lo, imp_scale, seed_h, range_mode, eps_s)
             n = int(st[:, cpu_kernels.ST_KEEP].sum())
             if n > b:
                 per = np.zeros(T, np.int64)
@@ -261,7 +265,7 @@ class CpuComputeRenderer(Renderer):
         t2 = time.perf_counter()
         k.raster(keys, T, self.bands, st, vr, mask, use_mask, self._pos, self._t, self._imp, self._cval, head, size, cap, W, H,
                  vp, planes, half, world, size_scale, round_, has_window, now, window, lod, has_imp, imp_deg,
-                 imp_lo, imp_scale, seed_h, range_mode)
+                 imp_lo, imp_scale, seed_h, range_mode, eps_s)
         t3 = time.perf_counter()
         drawn = int(st[:, cpu_kernels.ST_DRAWN].sum())
         if use_mask:

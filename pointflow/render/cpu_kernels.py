@@ -71,15 +71,28 @@ def _colour_value(cmode, slot, pos, tms, cval):
     return np.float64(cval[slot])
 
 
-def _test(logical, slot, pos, tms, imp, planes, has_window, now_ms, window_ms, lod, has_imp, imp_degenerate,
-          imp_lo, imp_scale, seed_h):
-    """Every test before the budget (rules.select_points) on one finite point."""
-    x = np.float64(pos[slot, 0])
-    y = np.float64(pos[slot, 1])
-    z = np.float64(pos[slot, 2])
+def _frustum(x, y, z, cx, cy, cz, w, planes, eps):
+    """The six planes test of rules.select_points (float64, a point on a plane is kept).
+    Clip space decides when it is clear by ``eps`` (far above float64 rounding of either
+    form: the planes are the clip rows' sums, normalised); the planes decide otherwise."""
+    a0 = w + cx
+    a1 = w - cx
+    a2 = w + cy
+    a3 = w - cy
+    a5 = w - cz
+    if a0 > eps and a1 > eps and a2 > eps and a3 > eps and cz > eps and a5 > eps:
+        return True
+    if a0 < -eps or a1 < -eps or a2 < -eps or a3 < -eps or cz < -eps or a5 < -eps:
+        return False
     for k in range(6):
         if planes[k, 0] * x + planes[k, 1] * y + planes[k, 2] * z + planes[k, 3] < 0.0:
             return False
+    return True
+
+
+def _test(logical, slot, tms, imp, has_window, now_ms, window_ms, lod, has_imp, imp_degenerate, imp_lo, imp_scale,
+          seed_h):
+    """The tests after the frustum and before the budget (rules.select_points)."""
     if has_window and not (now_ms - tms[slot]) <= window_ms:
         return False
     if lod > 1 and logical % lod != 0:
@@ -87,25 +100,22 @@ def _test(logical, slot, pos, tms, imp, planes, has_window, now_ms, window_ms, l
     if has_imp:
         p = _F1
         if not imp_degenerate:
-            v = imp[slot]
-            if np.isfinite(v):
-                p = min(max((v - imp_lo) * imp_scale, _F0), _F1)
-            else:
+            p = (imp[slot] - imp_lo) * imp_scale  # float32, clipped as np.clip; NaN -> 0
+            if p != p:
                 p = _F0
+            elif p < _F0:
+                p = _F0
+            elif p > _F1:
+                p = _F1
         if not _u01(slot, seed_h) <= p:
             return False
     return True
 
 
-def _splat(kb, fb, ub, logical, slot, pos, vp, W, H, half_px, world, size_scale, round_, ylo, yhi):
-    """Write the point's key into every pixel of its footprint (rules.footprint_box).
+def _splat(kb, fb, ub, logical, cx, cy, w, W, H, half_px, world, size_scale, round_, ylo, yhi):
+    """Write the point's key into every pixel of its footprint (rules.footprint_box) within
+    rows [ylo, yhi) (a thread's band of the screen); (cx, cy, w) its clip coordinates.
     ``fb``/``ub``: a one-element float32 scratch and its uint32 view (the bits of w)."""
-    x = np.float64(pos[slot, 0])
-    y = np.float64(pos[slot, 1])
-    z = np.float64(pos[slot, 2])
-    cx = vp[0, 0] * x + vp[0, 1] * y + vp[0, 2] * z + vp[0, 3]
-    cy = vp[1, 0] * x + vp[1, 1] * y + vp[1, 2] * z + vp[1, 3]
-    w = vp[3, 0] * x + vp[3, 1] * y + vp[3, 2] * z + vp[3, 3]
     px = (cx / w * 0.5 + 0.5) * W
     py = (0.5 - cy / w * 0.5) * H
     half = half_px
@@ -156,7 +166,7 @@ def _splat(kb, fb, ub, logical, slot, pos, vp, W, H, half_px, world, size_scale,
 
 def _raster(keys, T, bands, st, vrange, mask, use_mask, pos, tms, imp, cval, head, size, cap, W, H, vp, planes,
             half_px, world, size_scale, round_, has_window, now_ms, window_ms, lod, has_imp, imp_degenerate,
-            imp_lo, imp_scale, seed_h, range_mode):
+            imp_lo, imp_scale, seed_h, range_mode, eps_s):
     """T threads. ``bands``: one key buffer, thread c owns rows [H c/T, H (c+1)/T) and runs
     every point (counting only in thread 0); else one buffer and one chunk of logical indices
     per thread. Each thread clears what it owns, then tests + splats (or splats the points
@@ -204,11 +214,21 @@ def _raster(keys, T, bands, st, vrange, mask, use_mask, pos, tms, imp, cval, hea
                     if np.isfinite(v):
                         vmin = min(vmin, v)
                         vmax = max(vmax, v)
-                if not _test(logical, slot, pos, tms, imp, planes, has_window, now_ms, window_ms, lod, has_imp,
-                             imp_degenerate, imp_lo, imp_scale, seed_h):
+            x = np.float64(pos[slot, 0])
+            y = np.float64(pos[slot, 1])
+            z = np.float64(pos[slot, 2])
+            cx = vp[0, 0] * x + vp[0, 1] * y + vp[0, 2] * z + vp[0, 3]
+            cy = vp[1, 0] * x + vp[1, 1] * y + vp[1, 2] * z + vp[1, 3]
+            w = vp[3, 0] * x + vp[3, 1] * y + vp[3, 2] * z + vp[3, 3]
+            if not use_mask:
+                cz = vp[2, 0] * x + vp[2, 1] * y + vp[2, 2] * z + vp[2, 3]
+                if not _frustum(x, y, z, cx, cy, cz, w, planes, eps_s * (abs(x) + abs(y) + abs(z) + 1.0)):
+                    continue
+                if not _test(logical, slot, tms, imp, has_window, now_ms, window_ms, lod, has_imp, imp_degenerate,
+                             imp_lo, imp_scale, seed_h):
                     continue
                 n_keep += 1
-            _splat(kb, fb, ub, logical, slot, pos, vp, W, H, half_px, world, size_scale, round_, ylo, yhi)
+            _splat(kb, fb, ub, logical, cx, cy, w, W, H, half_px, world, size_scale, round_, ylo, yhi)
             n_drawn += 1
         if bands and c != 0:  # every band saw every point: count once
             n_occ = n_bad = n_keep = n_drawn = 0
@@ -222,8 +242,8 @@ def _raster(keys, T, bands, st, vrange, mask, use_mask, pos, tms, imp, cval, hea
         vrange[c, 1] = vmax
 
 
-def _select(mask, st, vrange, pos, tms, imp, cval, head, size, cap, T, planes, has_window, now_ms, window_ms, lod,
-            has_imp, imp_degenerate, imp_lo, imp_scale, seed_h, range_mode):
+def _select(mask, st, vrange, pos, tms, imp, cval, head, size, cap, T, vp, planes, has_window, now_ms, window_ms, lod,
+            has_imp, imp_degenerate, imp_lo, imp_scale, seed_h, range_mode, eps_s):
     """The budget's first pass: the tests only, a keep flag per logical index."""
     for c in numba.prange(T):
         a = size * c // T
@@ -247,8 +267,17 @@ def _select(mask, st, vrange, pos, tms, imp, cval, head, size, cap, T, planes, h
                 if np.isfinite(v):
                     vmin = min(vmin, v)
                     vmax = max(vmax, v)
-            if _test(logical, slot, pos, tms, imp, planes, has_window, now_ms, window_ms, lod, has_imp,
-                     imp_degenerate, imp_lo, imp_scale, seed_h):
+            x = np.float64(pos[slot, 0])
+            y = np.float64(pos[slot, 1])
+            z = np.float64(pos[slot, 2])
+            cx = vp[0, 0] * x + vp[0, 1] * y + vp[0, 2] * z + vp[0, 3]
+            cy = vp[1, 0] * x + vp[1, 1] * y + vp[1, 2] * z + vp[1, 3]
+            cz = vp[2, 0] * x + vp[2, 1] * y + vp[2, 2] * z + vp[2, 3]
+            w = vp[3, 0] * x + vp[3, 1] * y + vp[3, 2] * z + vp[3, 3]
+            if not _frustum(x, y, z, cx, cy, cz, w, planes, eps_s * (abs(x) + abs(y) + abs(z) + 1.0)):
+                continue
+            if _test(logical, slot, tms, imp, has_window, now_ms, window_ms, lod, has_imp, imp_degenerate, imp_lo,
+                     imp_scale, seed_h):
                 mask[logical] = 1
                 n_keep += 1
         st[c, ST_OCC] = n_occ
@@ -403,7 +432,9 @@ def _floor(keys, T, bands, pos, size, head, cap, W, H, vp, half_px):
             w = vp[3, 0] * x + vp[3, 1] * y + vp[3, 2] * z + vp[3, 3]
             if not w > 0.0:
                 continue
-            _splat(kb, fb, ub, logical, slot, pos, vp, W, H, half_px, False, 0.0, False, ylo, yhi)
+            cx = vp[0, 0] * x + vp[0, 1] * y + vp[0, 2] * z + vp[0, 3]
+            cy = vp[1, 0] * x + vp[1, 1] * y + vp[1, 2] * z + vp[1, 3]
+            _splat(kb, fb, ub, logical, cx, cy, w, W, H, half_px, False, 0.0, False, ylo, yhi)
 
 
 # --------------------------------------------------------------------------- compilation
@@ -428,7 +459,7 @@ def _compile(cache: bool) -> Kernels:
     numba = nb  # the loops name numba.prange through this module global
     g = globals()
     opts = dict(cache=cache, nogil=True, boundscheck=False, error_model="numpy")
-    for name in ("_pcg", "_u01", "_colour_value", "_test", "_splat"):
+    for name in ("_pcg", "_u01", "_colour_value", "_frustum", "_test", "_splat"):
         g[name] = nb.njit(inline="always", **opts)(g[name])
     out = {}
     for name in ("_raster", "_select", "_thin", "_cap", "_resolve", "_edl", "_floor"):

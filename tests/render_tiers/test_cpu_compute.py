@@ -311,3 +311,26 @@ def test_budget_hard_cap_keeps_the_first_b_in_logical_order(monkeypatch, split):
         (_, a, sa), (_, b, sb) = both(cfg, f, terrain_camera())
         assert sa.drawn == sb.drawn == 5_000
         assert np.array_equal(a, b)
+
+
+def test_points_on_the_frustum_boundary_are_decided_as_the_reference_decides():
+    """Clip space decides only where it is clear by a margin; the points within float64
+    rounding of a side, near or far plane get the reference's plane test (same survivors)."""
+    cam = Camera(eye=[0, 0, 0], target=[0, 0, -1], up=[0, 1, 0], fov_deg=60, near=1.0, far=10.0)
+    W, H = 64, 48
+    inv = np.linalg.inv(cam.view_proj(W, H))
+    rng = np.random.default_rng(12)
+    n = 4000
+    ndc = rng.uniform(-1, 1, (n, 3))
+    ndc[:, 2] = rng.uniform(0, 1, n)
+    side = rng.integers(0, 6, n)  # put each point on one of the six planes
+    ndc[side == 0, 0], ndc[side == 1, 0], ndc[side == 2, 1], ndc[side == 3, 1] = -1, 1, -1, 1
+    ndc[side == 4, 2], ndc[side == 5, 2] = 0, 1
+    h = np.column_stack([ndc, np.ones(n)]) @ inv.T
+    pts = h[:, :3] / h[:, 3:]
+    pts *= 1 + rng.choice([-1, 0, 1], (n, 1)) * 1e-15  # a hair inside, on, or outside
+    f = make_frame(pts, intensity=np.linspace(0, 1, n, dtype=np.float32))
+    cfg = render_cfg(size=[W, H], point_size=1)
+    (_, a, sa), (_, b, sb) = both(cfg, f, cam)
+    assert 0 < sa.drawn < n and sb.drawn == sa.drawn
+    assert np.array_equal(a, b)
