@@ -395,7 +395,7 @@ def main(argv=None) -> int:
                     help="keep the crossover figures of the existing tiers.json (and crossover.json)")
     ap.add_argument("--chart-only", action="store_true", help="redraw tiers.png from tiers.json, run nothing")
     ap.add_argument("--merge", action="store_true",
-                    help="run only --tiers on the accuracy scenes and replace those tiers' rows in the existing "
+                    help="run only --tiers on the accuracy scenes and replace those tiers' rows (per scene) in the existing "
                          "tiers.json (the other rows keep their older timings; say so where quoted)")
     a = ap.parse_args(argv)
     if a.chart_only:
@@ -419,7 +419,8 @@ def main(argv=None) -> int:
         stamp = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
         for r in rows:
             r["measured_at"] = stamp
-        old["rows"] = [r for r in old["rows"] if r["tier"] not in tiers] + rows
+        done = {(r["tier"], r["scene"]) for r in rows}
+        old["rows"] = [r for r in old["rows"] if (r["tier"], r["scene"]) not in done] + rows
         old.setdefault("merged", []).append({"tiers": tiers, "at": stamp, "scenes": list(scenes),
                                              "machine": {"platform": platform.platform(), "cpus": os.cpu_count()}})
         (RESULTS / "tiers.json").write_text(json.dumps(old, indent=1))
