@@ -465,6 +465,8 @@ def cpu_raster(sizes: list[int], reps: dict[int, int]) -> dict[str, Any]:
 
     from pointflow.render import cpu_kernels
     from pointflow.render.cpu_compute import CpuComputeRenderer
+    import subprocess
+    load = {"before": subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()}
     adapter, why = select_adapter()
     base, inten0, scene = base_cloud()
     cfg = RenderConfig(size=[W, H], color_by="intensity", colormap="turbo", point_size=2.0, gpu_timestamps=False)
@@ -557,8 +559,42 @@ def cpu_raster(sizes: list[int], reps: dict[int, int]) -> dict[str, Any]:
             "adapter_type": adapter.info.get("adapter_type", "") if adapter else None, "adapter_choice": why,
             "numba": numba.__version__, "threads": threads, "rows": rows,
             "faster_up_to_points": lim, "speedup": sp,
+            "load": {**load, "after": subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()},
             "measured_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "platform": platform.platform(),
             "cpu_count": os.cpu_count(), "command": "bench/bench_render.py --cpu-raster"}
+
+
+def cpu_raster_chart(res: dict[str, Any], path: Path) -> None:
+    """Frame time per method against points (log-log), ratios to wgpu compute and the floor noted."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    rows = res["rows"]
+    n = [r["points"] for r in rows]
+    fig, ax = plt.subplots(figsize=(7.2, 4.6))
+    series = [("wgpu_compute_ms", "o-", "wgpu compute method on " + str(res.get("adapter") or "?").split(" (")[0]),
+              ("cpu_compute_ms", "*-", f"cpu compiled raster, {res['threads']} threads (split by points)"),
+              ("cpu_compute_1thread_ms", "v:", "cpu compiled raster, 1 thread"),
+              (f"cpu_compute_{rows[0].get('other_split', 'bands')}_ms", "x:",
+               f"cpu compiled raster, split by {rows[0].get('other_split', 'bands')}"),
+              ("floor_ms", "s--", "compiled bare floor (projection + key write)")]
+    for key, style, label in series:
+        if all(key in r for r in rows):
+            ax.loglog(n, [r[key] for r in rows], style, label=label)
+    for r in rows:
+        if "wgpu_over_cpu_compute_per_frame_median" in r:
+            ax.annotate(f"x{r['wgpu_over_cpu_compute_per_frame_median']:.2f} vs wgpu\n"
+                        f"floor/cpu {r['floor_over_cpu_compute_per_frame_median']:.2f}",
+                        (r["points"], r["cpu_compute_ms"]), xytext=(6, -26), textcoords="offset points", fontsize=7.5)
+    ax.set_xlabel("points")
+    ax.set_ylabel("median frame time, ms (interleaved)")
+    ax.set_title(f"{res['size'][0]}x{res['size'][1]}, 2 px, turbo by intensity, 1% dirty per frame; "
+                 f"{res.get('cpu_count')} cores", fontsize=9)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=7.5, loc="upper left")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 def table(res: dict[str, Any]) -> str:
@@ -634,6 +670,7 @@ def main(argv: Optional[list[str]] = None) -> int:
         res = cpu_raster(sizes, {100_000: 15, 1_000_000: 9, 4_000_000: 5} if not a.quick else {})
         path = Path(a.out) if a.out != str(RESULTS / "render.json") else RESULTS / "cpu_raster.json"
         path.write_text(json.dumps(res, indent=2))
+        cpu_raster_chart(res, path.with_suffix(".png"))
         if a.install:
             from pointflow.render import calibration
             keep = {k: res[k] for k in ("faster_up_to_points", "speedup", "adapter", "adapter_type", "scene",
