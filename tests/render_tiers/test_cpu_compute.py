@@ -334,3 +334,25 @@ def test_points_on_the_frustum_boundary_are_decided_as_the_reference_decides():
     (_, a, sa), (_, b, sb) = both(cfg, f, cam)
     assert 0 < sa.drawn < n and sb.drawn == sa.drawn
     assert np.array_equal(a, b)
+
+
+def test_a_pipeline_draws_with_the_compiled_raster_and_picks(tmp_path):
+    """The real stages (synthetic source -> ingest -> ring -> cadence -> render): the render
+    stage starts the compiled method, draws frames from the slab handoffs (dirty ranges) and
+    answers a pick from its key buffer."""
+    from pointflow import Pipeline
+    cfg = {"source": {"transport": "synthetic", "options": {"scan_hz": 10, "points_per_scan": 20000}},
+           "ring": {"max_points": 100_000}, "cadence": {"target_hz": 30},
+           "render": {"backend": "cpu", "raster": "compute", "size": [160, 120], "point_size": 3,
+                      "camera": {"mode": "fixed", "position": [0, -60, 40], "target": [0, 0, 0]},
+                      "output": {"every_n_frames": 1000}},
+           "supervisor": {"max_restarts": 0}}
+    pipe = Pipeline.from_dict(cfg, out_dir=str(tmp_path))
+    with pipe:
+        pipe.wait(90, until=lambda: pipe.stats()["frames"] >= 5)
+        render = pipe.stats()["stages"]["render"]
+        assert render["tier"] == "cpu" and render["tier_info"]["raster"] == "compute"
+        hits = [pipe.pick(x, y) for x in range(10, 160, 20) for y in range(10, 120, 20)]
+    assert pipe.stats()["frames"] >= 5
+    got = [h for h in hits if h is not None]
+    assert got and all("slot" in h and "position" in h for h in got)
