@@ -464,7 +464,7 @@ def cpu_raster(sizes: list[int], reps: dict[int, int]) -> dict[str, Any]:
     import numba
 
     from pointflow.render import cpu_kernels
-    from pointflow.render.cpu_compute import CpuComputeRenderer
+    from pointflow.render.cpu_compute import CHUNKS_PER_THREAD, CpuComputeRenderer
     import subprocess
     load = {"before": subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()}
     adapter, why = select_adapter()
@@ -491,7 +491,13 @@ def cpu_raster(sizes: list[int], reps: dict[int, int]) -> dict[str, Any]:
         fpos = np.ascontiguousarray(f.positions, np.float32)
 
         def floor() -> None:
-            kern.floor(cc._buffers(), cc.threads, cc.bands, fpos, n, 0, n, W, H, vp, 1.0)
+            keys = cc._buffers()
+            C = cc.threads if cc.bands else cc.threads * CHUNKS_PER_THREAD
+            prev = numba.set_parallel_chunksize(1)  # as the renderer runs its raster pass
+            try:
+                kern.floor(keys, cc.threads, C, cc.bands, fpos, n, 0, n, W, H, vp, 1.0)
+            finally:
+                numba.set_parallel_chunksize(prev)
 
         def one(r) -> Callable[[], None]:
             def go() -> None:

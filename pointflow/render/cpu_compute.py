@@ -38,6 +38,8 @@ __all__ = ["CpuComputeRenderer"]
 ENV_SPLIT = "POINTFLOW_CPU_RASTER_SPLIT"
 #: how the threads share the work (bench/bench_render.py --cpu-raster measures both)
 DEFAULT_SPLIT = "points"
+#: split by points: chunks of logical indices per thread, taken as threads come free
+CHUNKS_PER_THREAD = 8
 
 Range = tuple[int, int]
 
@@ -238,8 +240,10 @@ class CpuComputeRenderer(Renderer):
                 range_mode = cmode
         keys = self._buffers()
         T = self.threads
-        st = np.zeros((T, cpu_kernels.N_ST), np.int64)
-        vr = np.empty((T, 2), np.float64)
+        C = T if self.bands else T * CHUNKS_PER_THREAD  # chunks of the raster pass
+        st = np.zeros((max(C, T), cpu_kernels.N_ST), np.int64)
+        vr = np.empty((max(C, T), 2), np.float64)
+        vr[:, 0], vr[:, 1] = np.inf, -np.inf
         seed_h = np.uint64(seed_hash(frame.frame_seed))
         has_window = cfg.time_window_ms > 0
         now, window = float(frame.now_ms), float(cfg.time_window_ms)
@@ -263,9 +267,14 @@ class CpuComputeRenderer(Renderer):
             pre = st.copy()
             pre_vr = vr.copy()
         t2 = time.perf_counter()
-        k.raster(keys, T, self.bands, st, vr, mask, use_mask, self._pos, self._t, self._imp, self._cval, head, size, cap, W, H,
-                 vp, planes, half, world, size_scale, round_, has_window, now, window, lod, has_imp, imp_deg,
-                 imp_lo, imp_scale, seed_h, range_mode, eps_s)
+        nb = self._k_numba()
+        prev = nb.set_parallel_chunksize(1)  # chunks go to whichever thread is free
+        try:
+            k.raster(keys, T, C, self.bands, st, vr, mask, use_mask, self._pos, self._t, self._imp, self._cval, head,
+                     size, cap, W, H, vp, planes, half, world, size_scale, round_, has_window, now, window, lod,
+                     has_imp, imp_deg, imp_lo, imp_scale, seed_h, range_mode, eps_s)
+        finally:
+            nb.set_parallel_chunksize(prev)
         t3 = time.perf_counter()
         drawn = int(st[:, cpu_kernels.ST_DRAWN].sum())
         if use_mask:

@@ -164,15 +164,23 @@ def _splat(kb, fb, ub, logical, cx, cy, w, W, H, half_px, world, size_scale, rou
                 kb[i] = key
 
 
-def _raster(keys, T, bands, st, vrange, mask, use_mask, pos, tms, imp, cval, head, size, cap, W, H, vp, planes,
+def _raster(keys, T, C, bands, st, vrange, mask, use_mask, pos, tms, imp, cval, head, size, cap, W, H, vp, planes,
             half_px, world, size_scale, round_, has_window, now_ms, window_ms, lod, has_imp, imp_degenerate,
             imp_lo, imp_scale, seed_h, range_mode, eps_s):
-    """T threads. ``bands``: one key buffer, thread c owns rows [H c/T, H (c+1)/T) and runs
-    every point (counting only in thread 0); else one buffer and one chunk of logical indices
-    per thread. Each thread clears what it owns, then tests + splats (or splats the points
-    ``mask`` keeps when ``use_mask``: the budget's passes did the tests). Counters per chunk in
-    ``st``; the auto colour range in ``vrange``."""
-    for c in numba.prange(T):
+    """T threads. ``bands`` (C = T): one key buffer, thread c owns rows [H c/T, H (c+1)/T),
+    clears them and runs every point (counting only in thread 0). Else one key buffer per
+    thread, cleared first, and C chunks of logical indices handed out as threads come free
+    (the caller sets a parallel chunk size of 1: a thread slowed by other work takes fewer
+    chunks), each written into the buffer of the thread that runs it. Tests + splat (or
+    splat the points ``mask`` keeps when ``use_mask``: the budget's passes did the tests).
+    Counters per chunk in ``st``; the auto colour range in ``vrange``."""
+    if not bands:
+        for r in numba.prange(T * H):
+            t = r // H
+            y = r - t * H
+            for i in range(y * W, (y + 1) * W):
+                keys[t, i] = EMPTY
+    for c in numba.prange(C):
         if bands:
             kb = keys[0]
             ylo = H * c // T
@@ -182,13 +190,11 @@ def _raster(keys, T, bands, st, vrange, mask, use_mask, pos, tms, imp, cval, hea
             a = 0
             b = size
         else:
-            kb = keys[c]
+            kb = keys[numba.get_thread_id()]
             ylo = 0
             yhi = H
-            for i in range(kb.shape[0]):
-                kb[i] = EMPTY
-            a = size * c // T
-            b = size * (c + 1) // T
+            a = size * c // C
+            b = size * (c + 1) // C
         fb = np.empty(1, np.float32)
         ub = fb.view(np.uint32)
         n_occ = 0
@@ -400,10 +406,17 @@ def _edl(logz, img, offsets, k_shade):
             img[y, x] = r | (g << np.uint32(8)) | (bl << np.uint32(16)) | (c & np.uint32(0xFF000000))
 
 
-def _floor(keys, T, bands, pos, size, head, cap, W, H, vp, half_px):
-    """The benchmark's bare floor: the same threads, bands or buffers, projection and key
-    write, no rules (no tests but w > 0, square footprint, no colour, no resolve)."""
-    for c in numba.prange(T):
+def _floor(keys, T, C, bands, pos, size, head, cap, W, H, vp, half_px):
+    """The benchmark's bare floor: the same threads, split and chunks, projection and key
+    write as :func:`_raster`, no rules (no tests but w > 0, square footprint, no colour, no
+    resolve)."""
+    if not bands:
+        for r in numba.prange(T * H):
+            t = r // H
+            y = r - t * H
+            for i in range(y * W, (y + 1) * W):
+                keys[t, i] = EMPTY
+    for c in numba.prange(C):
         if bands:
             kb = keys[0]
             ylo = H * c // T
@@ -413,13 +426,11 @@ def _floor(keys, T, bands, pos, size, head, cap, W, H, vp, half_px):
             a = 0
             b = size
         else:
-            kb = keys[c]
+            kb = keys[numba.get_thread_id()]
             ylo = 0
             yhi = H
-            for i in range(kb.shape[0]):
-                kb[i] = EMPTY
-            a = size * c // T
-            b = size * (c + 1) // T
+            a = size * c // C
+            b = size * (c + 1) // C
         fb = np.empty(1, np.float32)
         ub = fb.view(np.uint32)
         for logical in range(a, b):
