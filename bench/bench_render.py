@@ -478,6 +478,8 @@ def cpu_raster(sizes: list[int], reps: dict[int, int]) -> dict[str, Any]:
         cam = camera_for(world)
         del world
         k = reps.get(n, 5)
+        # cpu_compute: the renderer as shipped (per frame 1 thread or all, whichever drew faster
+        # lately); cpu_compute_1thread: numba limited to 1 thread
         cc = CpuComputeRenderer(replace(cfg, backend="cpu", raster="compute"), n, ["intensity"])
         other = "points" if cc.bands else "bands"
         os.environ["POINTFLOW_CPU_RASTER_SPLIT"] = other
@@ -491,13 +493,16 @@ def cpu_raster(sizes: list[int], reps: dict[int, int]) -> dict[str, Any]:
         fpos = np.ascontiguousarray(f.positions, np.float32)
 
         def floor() -> None:
-            keys = cc._buffers()
-            C = cc.threads if cc.bands else cc.threads * CHUNKS_PER_THREAD
+            T = cc.threads  # the thread count the renderer chose for its last frame
+            keys = cc._buffers(T)
+            C = T if cc.bands else T * CHUNKS_PER_THREAD
             prev = numba.set_parallel_chunksize(1)  # as the renderer runs its raster pass
+            numba.set_num_threads(T)
             try:
-                kern.floor(keys, cc.threads, C, cc.bands, fpos, n, 0, n, W, H, vp, 1.0)
+                kern.floor(keys, T, C, cc.bands, fpos, n, 0, n, W, H, vp, 1.0)
             finally:
                 numba.set_parallel_chunksize(prev)
+                numba.set_num_threads(threads)
 
         def one(r) -> Callable[[], None]:
             def go() -> None:
@@ -533,6 +538,8 @@ def cpu_raster(sizes: list[int], reps: dict[int, int]) -> dict[str, Any]:
                 ts[m].append((time.perf_counter() - t0) * 1e3)
         img_cc = cc.read_image()
         row: dict[str, Any] = {"points": n, "repeats": k, "threads": threads,
+                               "frames_per_thread_count": {str(t): c for t, c in sorted(cc.frames_at.items())},
+                               "tune_ms": {str(t): v for t, v in cc._tune.items()},
                                "split": "bands" if cc.bands else "points", "other_split": other}
         for m, v in ts.items():
             row[f"{m}_ms"], row[f"{m}_all_ms"] = float(np.median(v)), v

@@ -40,6 +40,10 @@ ENV_SPLIT = "POINTFLOW_CPU_RASTER_SPLIT"
 DEFAULT_SPLIT = "points"
 #: split by points: chunks of logical indices per thread, taken as threads come free
 CHUNKS_PER_THREAD = 8
+ENV_ADAPTIVE = "POINTFLOW_CPU_RASTER_ADAPTIVE"
+#: frames timed per thread count before choosing; the other count is re-tried every RETRY_EVERY
+TUNE_FRAMES = 3
+RETRY_EVERY = 30
 
 Range = tuple[int, int]
 
@@ -96,6 +100,11 @@ class CpuComputeRenderer(Renderer):
             raise RenderError(f"${ENV_SPLIT}={split!r}: expected bands or points")
         self.bands = split == "bands"
         self.threads = 1
+        #: thread count chosen per frame by measurement (env POINTFLOW_CPU_RASTER_ADAPTIVE=0: always all)
+        self._adaptive = os.environ.get(ENV_ADAPTIVE, "1") not in ("0", "false", "no")
+        self._tune: dict[int, list[float]] = {}
+        self._tune_n = 0
+        self.frames_at: dict[int, int] = {}  # frames drawn per thread count
         self._origin: Optional[np.ndarray] = None
         self._cap = -1
         cb = cfg.color_by
@@ -164,9 +173,26 @@ class CpuComputeRenderer(Renderer):
         self._synced_mode = (cmode, chan)
         return total
 
-    def _buffers(self) -> np.ndarray:
+    def _pick_threads(self) -> int:
+        """This frame's thread count: 1 or all of numba's (``numba.get_num_threads()``),
+        whichever drew faster lately (the image is the same either way). The first frames
+        alternate, starting with all threads; then the slower count is re-tried every
+        RETRY_EVERY frames, so a machine whose other load changes is followed."""
+        most = max(1, int(self._k_numba().get_num_threads()))
+        if most == 1 or not self._adaptive:
+            return most
+        cands = (most, 1)
+        seen = {t: self._tune.get(t, []) for t in cands}
+        for t in cands:
+            if len(seen[t]) < TUNE_FRAMES:
+                return t
+        best, other = sorted(cands, key=lambda t: float(np.median(seen[t])))
+        self._tune_n += 1
+        return other if self._tune_n % RETRY_EVERY == 0 else best
+
+    def _buffers(self, threads: Optional[int] = None) -> np.ndarray:
         """The key buffers for this frame's thread count: one (bands) or one per thread."""
-        self.threads = T = max(1, int(self._k_numba().get_num_threads()))
+        self.threads = T = max(1, int(self._k_numba().get_num_threads())) if threads is None else threads
         nb = 1 if self.bands else T
         if self._keys.shape[0] != nb:
             self._keys = np.empty((nb, self.width * self.height), np.uint64)
@@ -195,9 +221,26 @@ class CpuComputeRenderer(Renderer):
             self._synced_mode = None
             self.frames = 0
             self.nonfinite_total = 0
+            self._tune, self._tune_n, self.frames_at = {}, 0, {}
 
     # ---------------------------------------------------------------- render
     def render(self, frame: FrameInput, camera: Camera) -> FrameStats:
+        nb = self._k_numba()
+        caller = nb.get_num_threads()
+        T = self._pick_threads()
+        nb.set_num_threads(T)
+        try:
+            st = self._render(frame, camera, T)
+        finally:
+            nb.set_num_threads(caller)
+        self.frames_at[T] = self.frames_at.get(T, 0) + 1
+        if self._adaptive and caller > 1:
+            ts = self._tune.setdefault(T, [])
+            ts.append(st.timings_ms["total"])
+            del ts[:-TUNE_FRAMES]
+        return st
+
+    def _render(self, frame: FrameInput, camera: Camera, T: int) -> FrameStats:
         cap, size = check_frame(frame)
         if not 0 <= int(frame.head) < cap:
             raise ValueError(f"FrameInput.head must be in 0..capacity-1 ({cap - 1}), got {frame.head}")
@@ -238,8 +281,7 @@ class CpuComputeRenderer(Renderer):
                 lo_c, hi_c = (float(x) for x in frame.channel_ranges[chan])
             else:
                 range_mode = cmode
-        keys = self._buffers()
-        T = self.threads
+        keys = self._buffers(T)
         C = T if self.bands else T * CHUNKS_PER_THREAD  # chunks of the raster pass
         st = np.zeros((max(C, T), cpu_kernels.N_ST), np.int64)
         vr = np.empty((max(C, T), 2), np.float64)
@@ -338,6 +380,7 @@ class CpuComputeRenderer(Renderer):
 
     def info(self) -> dict[str, Any]:
         return {"tier": self.tier, "raster": self.raster, "size": [self.width, self.height],
-                "split": "bands" if self.bands else "points",
+                "split": "bands" if self.bands else "points", "adaptive_threads": self._adaptive,
+                "frames_per_thread_count": {str(t): n for t, n in sorted(self.frames_at.items())},
                 "threads": int(cpu_kernels.numba.get_num_threads()), "numba": cpu_kernels.numba.__version__,
                 "deterministic": True}

@@ -77,7 +77,7 @@ def test_byte_identical_whatever_the_thread_count(split, monkeypatch):
         r2 = CpuComputeRenderer(render_cfg(size=[320, 240], **kw2), frame2.capacity, list(frame2.channels))
         st = r.render(frame, cam)
         r2.render(frame2, cam2)
-        assert st.extra["threads"] == threads
+        assert st.extra["threads"] == threads  # the first frame runs every thread numba has
         imgs[threads] = (r.read_image(), r2.read_image(), r.winners())
     (a1, b1, s1), (a2, b2, s2) = imgs.values()
     assert a1.tobytes() == a2.tobytes() and b1.tobytes() == b2.tobytes()
@@ -356,3 +356,29 @@ def test_a_pipeline_draws_with_the_compiled_raster_and_picks(tmp_path):
     assert pipe.stats()["frames"] >= 5
     got = [h for h in hits if h is not None]
     assert got and all("slot" in h and "position" in h for h in got)
+
+
+def test_thread_count_follows_the_faster_one_and_keeps_the_image():
+    """Per frame the renderer runs 1 thread or all of numba's, whichever drew faster lately:
+    both are timed first, the slower is re-tried now and then; the image never changes and
+    the caller's numba thread count is restored."""
+    import pointflow.render.cpu_compute as cc
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        pytest.skip("one core: nothing to choose")
+    numba.set_num_threads(2)
+    frame, cam, kw = SCENES["terrain"]()
+    r = CpuComputeRenderer(render_cfg(size=[320, 240], **kw), frame.capacity, list(frame.channels))
+    used, imgs = [], set()
+    for i in range(2 * cc.TUNE_FRAMES):
+        frame.dirty = None if i == 0 else []
+        used.append(r.render(frame, cam).extra["threads"])
+        imgs.add(r.read_image().tobytes())
+    assert used == [2] * cc.TUNE_FRAMES + [1] * cc.TUNE_FRAMES and len(imgs) == 1
+    assert numba.get_num_threads() == 2
+    assert sorted(r._tune) == [1, 2] and all(len(v) == cc.TUNE_FRAMES for v in r._tune.values())
+    # then the faster count, with the other re-tried every RETRY_EVERY frames
+    r._tune = {1: [1.0] * cc.TUNE_FRAMES, 2: [9.0] * cc.TUNE_FRAMES}
+    picks = [r._pick_threads() for _ in range(2 * cc.RETRY_EVERY)]
+    assert picks.count(2) == 2 and picks.count(1) == 2 * cc.RETRY_EVERY - 2
+    r._tune = {1: [9.0] * cc.TUNE_FRAMES, 2: [1.0] * cc.TUNE_FRAMES}
+    assert r._pick_threads() == 2
