@@ -464,7 +464,7 @@ def cpu_raster(sizes: list[int], reps: dict[int, int]) -> dict[str, Any]:
     import numba
 
     from pointflow.render import cpu_kernels
-    from pointflow.render.cpu_compute import CHUNKS_PER_THREAD, CpuComputeRenderer
+    from pointflow.render.cpu_compute import CHUNKS_PER_THREAD, TUNE_FRAMES, CpuComputeRenderer
     import subprocess
     load = {"before": subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()}
     adapter, why = select_adapter()
@@ -524,9 +524,10 @@ def cpu_raster(sizes: list[int], reps: dict[int, int]) -> dict[str, Any]:
         names = list(fns)
         ts: dict[str, list[float]] = {m: [] for m in names}
         step, head = max(n // 100, 1), 0
-        for m in names:  # warm-up
+        for m in names:  # warm-up; the renderers also settle their thread count (2 x TUNE_FRAMES frames)
             f.dirty = None
-            fns[m]()
+            for _ in range(1 + (2 * TUNE_FRAMES if m.startswith("cpu_compute") else 0)):
+                fns[m]()
         for i in range(k):
             a, b = head, min(head + step, n)
             head = b % n
