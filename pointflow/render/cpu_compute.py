@@ -122,8 +122,8 @@ class CpuComputeRenderer(Renderer):
         self._pos = np.zeros((cap, 3), np.float32)
         self._t = np.zeros(cap if self._need_t else 1, np.float64)
         self._imp = np.zeros(cap if self._need_imp else 1, np.float32)
-        self._cval = np.zeros(cap, np.float32)   # the scalar colour channel (scalar mode)
-        self._rgb = np.zeros(cap, np.uint32)     # packed rgb (rgb mode)
+        self._cval = np.zeros(1, np.float32)   # the scalar colour channel (scalar mode; sized in _sync)
+        self._rgb = np.zeros(1, np.uint32)     # packed rgb (rgb mode; sized in _sync)
         self._cmode_chan: Optional[str] = None
         self._origin = None
 
@@ -151,6 +151,10 @@ class CpuComputeRenderer(Renderer):
         origin = np.asarray(frame.origin, np.float64)
         full = (frame.dirty is None or self._origin is None or not np.array_equal(origin, self._origin)
                 or (cmode, chan) != getattr(self, "_synced_mode", None))
+        if cmode == cpu_kernels.C_SCALAR and self._cval.shape[0] != cap:
+            self._cval, full = np.zeros(cap, np.float32), True
+        if cmode == cpu_kernels.C_RGB and self._rgb.shape[0] != cap:
+            self._rgb, full = np.zeros(cap, np.uint32), True
         ranges = [(0, cap)] if full else merge_ranges(list(frame.dirty or []), cap)
         total = 0
         for a, b in ranges:
@@ -204,13 +208,11 @@ class CpuComputeRenderer(Renderer):
 
     def _warm(self) -> None:
         """Compile (or load from the disk cache) every loop now, not on the first frame."""
-        from .camera import Camera as _Cam
-
         cap = 4
         f = FrameInput(positions=np.zeros((cap, 3), np.float32), importance=np.zeros(cap, np.float32),
                        t_ingest_ms=np.zeros(cap), channels={}, head=0, size=cap, capacity=cap,
                        origin=np.zeros(3), now_ms=0.0, budget=1)
-        cam = _Cam(eye=[0, -5, 0], target=[0, 0, 0], near=0.1, far=100)
+        cam = Camera(eye=[0, -5, 0], target=[0, 0, 0], near=0.1, far=100)
         saved = (self._cap, self._pos, self._t, self._imp, self._cval, self._rgb, self._origin)
         try:
             self.render(f, cam)
