@@ -8,7 +8,10 @@ part of the render rate).
 
     XDG_RUNTIME_DIR=/tmp/xdg .venv/bin/python bench/bench_pipeline.py [--seconds 8] [--rounds 2]
 
-Writes ``bench/results/pipeline_raster.json``.
+Writes ``bench/results/pipeline_raster.json``. ``--auto`` instead compares ``backend: auto``
+(which picks the compiled cpu raster over a software adapter where it measured faster) with
+what ``auto`` drew before it existed, ``backend: wgpu, raster: compute`` (issue 29), and writes
+``bench/results/pipeline_auto.json``.
 """
 from __future__ import annotations
 
@@ -28,9 +31,10 @@ import yaml  # noqa: E402
 from bench_latency import stats_window  # noqa: E402 - same folder
 
 
-def run_once(raster: str, seconds: float, warmup_s: float) -> dict:
+def run_once(raster: str, seconds: float, warmup_s: float, backend: str = "auto") -> dict:
     cfg = yaml.safe_load((ROOT / "configs" / "demo.yaml").read_text())
     cfg["render"]["raster"] = raster
+    cfg["render"]["backend"] = backend
     cfg["render"]["output"] = {"dir": None}
     cfg.setdefault("supervisor", {})["hung_after_ms"] = 10000
     s0, s1 = stats_window(cfg, seconds, warmup_s, f"raster {raster}")
@@ -49,7 +53,11 @@ def main() -> None:
     ap.add_argument("--warmup", type=float, default=12.0, help="fills the 1M ring (1M points/s)")
     ap.add_argument("--rounds", type=int, default=2)
     ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "pipeline_raster.json"))
+    ap.add_argument("--auto", action="store_true",
+                    help="backend: auto against backend: wgpu, raster: compute (bench/results/pipeline_auto.json)")
     a = ap.parse_args()
+    if a.auto:
+        return compare_auto(a)
     runs = []
     for r in range(a.rounds):
         for raster in (("quads", "compute") if r % 2 == 0 else ("compute", "quads")):
@@ -66,6 +74,33 @@ def main() -> None:
                                        "machine": {"cpus": os.cpu_count(), "platform": platform.platform()}},
                                       indent=1))
     print(f"wrote {a.out}")
+
+
+def compare_auto(a) -> None:
+    """``backend: auto`` (today's selection) against ``wgpu`` + ``compute`` (before issue 29),
+    alternating per round so both see the same load."""
+    import subprocess
+    kinds = {"auto": ("auto", "auto"), "wgpu_compute": ("wgpu", "compute")}
+    runs = []
+    load = {"before": subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()}
+    for r in range(a.rounds):
+        for k in (list(kinds) if r % 2 == 0 else list(kinds)[::-1]):
+            backend, raster = kinds[k]
+            res = run_once(raster, a.seconds, a.warmup, backend=backend)
+            res["kind"] = k
+            runs.append(res)
+            print(f"  round {r + 1} {k:13}: {res['fps']:6.2f} frames/s ({res['frames']} frames in "
+                  f"{res['seconds']:.1f} s; tier {res['tier']}, raster {res['raster_used']})", flush=True)
+    load["after"] = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
+    med = {k: statistics.median(x["fps"] for x in runs if x["kind"] == k) for k in kinds}
+    print(f"median frames/s: backend auto {med['auto']:.2f}, wgpu compute {med['wgpu_compute']:.2f} "
+          f"(x{med['auto'] / max(med['wgpu_compute'], 1e-9):.2f})")
+    out = Path(a.out if a.out != str(ROOT / "bench" / "results" / "pipeline_raster.json")
+               else ROOT / "bench" / "results" / "pipeline_auto.json")
+    out.write_text(json.dumps({"config": "configs/demo.yaml (1M ring, 1280x720, 2 px, intensity)", "runs": runs,
+                               "median_fps": med, "load": load,
+                               "machine": {"cpus": os.cpu_count(), "platform": platform.platform()}}, indent=1))
+    print(f"wrote {out}")
 
 
 if __name__ == "__main__":

@@ -14,7 +14,9 @@ frame in one process, of:
 
 Also: each method's image error against the cpu tier (fraction of pixels that differ), bytes
 and time of incremental vs full upload when 1% of the ring changes per tick, and the cost of
-a pick with each method. ``--raster-crossover`` measures compute vs quads over point sizes
+a pick with each method. ``--cpu-raster`` measures the cpu tier's compiled raster method (numba) against the wgpu
+compute method on this adapter and a compiled bare floor, interleaved (with ``--install``:
+the ``cpu_raster.json`` that ``backend: auto`` reads). ``--raster-crossover`` measures compute vs quads over point sizes
 (with ``--install`` written to the user cache that ``render.raster: auto`` reads; see
 :mod:`pointflow.render.calibration`); ``--edl`` measures eye-dome lighting on vs off.
 Scene: ``../shared/data/autzen_trim.laz`` tiled to N points when present (georeferenced: x ~ 6.4e5 ft), else a synthetic terrain.
@@ -189,7 +191,7 @@ def image_error(img: np.ndarray, ref: np.ndarray) -> float:
     return float((img[..., :3] != ref[..., :3]).any(axis=-1).mean())
 
 
-def run(sizes: list[int], reps: dict[int, int], cpu_max: int) -> dict[str, Any]:
+def run(sizes: list[int], reps: dict[int, int], cpu_max: int, cpu_compute: bool = False) -> dict[str, Any]:
     adapter, why = select_adapter()
     if adapter is None:
         raise SystemExit(f"no wgpu adapter: {why}")
@@ -226,6 +228,13 @@ def run(sizes: list[int], reps: dict[int, int], cpu_max: int) -> dict[str, Any]:
         fl = Floor(adapter, f, cam)
         fl.frame()
         times: dict[str, list[float]] = {m: [] for m in (*METHODS, "floor")}
+        cc = None
+        if cpu_compute:  # the cpu tier's compiled raster, in the same interleaving
+            from pointflow.render.cpu_compute import CpuComputeRenderer
+            cc = CpuComputeRenderer(replace(cfg, backend="cpu", raster="compute"), n, ["intensity"])
+            f.dirty = None
+            cc.render(f, cam)
+            times["cpu_compute"] = []
         for i in range(k):
             a = state["head"]
             b = min(a + step, n)
@@ -238,7 +247,18 @@ def run(sizes: list[int], reps: dict[int, int], cpu_max: int) -> dict[str, Any]:
             t0 = time.perf_counter()
             fl.frame()
             times["floor"].append((time.perf_counter() - t0) * 1e3)
+            if cc is not None:
+                f.dirty = [(a, b)]
+                t0 = time.perf_counter()
+                cc.render(f, cam)
+                imgs["cpu_compute"] = cc.read_image()
+                times["cpu_compute"].append((time.perf_counter() - t0) * 1e3)
         fl.close()
+        if cc is not None:
+            row["cpu_compute_threads"] = cc.info()["threads"]
+            row["cpu_compute_vs_floor"] = float(np.median(times["cpu_compute"])) / float(np.median(times["floor"]))
+            row["cpu_compute_image_error_vs_wgpu_compute"] = image_error(imgs["cpu_compute"], imgs["compute"])
+            del cc
         for m, ts in times.items():
             row[f"{m}_ms"], row[f"{m}_all_ms"] = float(np.median(ts)), ts
         tf = np.asarray(times["floor"])
@@ -435,6 +455,162 @@ def edl_cost(n: int, reps: int) -> dict[str, Any]:
     return out
 
 
+def cpu_raster(sizes: list[int], reps: dict[int, int]) -> dict[str, Any]:
+    """The cpu tier's compiled raster (``raster: compute``) against the wgpu compute method on
+    this adapter and a compiled bare floor (the same chunking, float64 projection and key
+    write, no rules, no resolve), per frame interleaved in rotating order: 1% of the ring
+    rewritten per frame (dirty range), output = read_image. 1280x720, 2 px squares, turbo by
+    intensity. Also the compiled method at 1 thread and at every thread numba has."""
+    import numba
+
+    from pointflow.render import cpu_kernels
+    from pointflow.render.cpu_compute import CHUNKS_PER_THREAD, TUNE_FRAMES, CpuComputeRenderer
+    import subprocess
+    load = {"before": subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()}
+    adapter, why = select_adapter()
+    base, inten0, scene = base_cloud()
+    cfg = RenderConfig(size=[W, H], color_by="intensity", colormap="turbo", point_size=2.0, gpu_timestamps=False)
+    threads = numba.get_num_threads()
+    rows = []
+    for n in sizes:
+        world, inten = tiled(base, inten0, n)
+        f = make_frame(world, inten)
+        cam = camera_for(world)
+        del world
+        k = reps.get(n, 5)
+        # cpu_compute: the renderer as shipped (per frame 1 thread or all, whichever drew faster
+        # lately); cpu_compute_1thread: numba limited to 1 thread
+        cc = CpuComputeRenderer(replace(cfg, backend="cpu", raster="compute"), n, ["intensity"])
+        other = "points" if cc.bands else "bands"
+        os.environ["POINTFLOW_CPU_RASTER_SPLIT"] = other
+        try:  # the other way of sharing the work between the threads
+            cc_other = CpuComputeRenderer(replace(cfg, backend="cpu", raster="compute"), n, ["intensity"])
+        finally:
+            del os.environ["POINTFLOW_CPU_RASTER_SPLIT"]
+        wg = WgpuRenderer(replace(cfg, raster="compute"), n, ["intensity"], adapter=adapter) if adapter else None
+        kern = cpu_kernels.load()
+        vp = np.ascontiguousarray(cam.view_proj(W, H, f.origin), np.float64)
+        fpos = np.ascontiguousarray(f.positions, np.float32)
+
+        def floor() -> None:
+            T = cc.threads  # the thread count the renderer chose for its last frame
+            keys = cc._buffers(T)
+            C = T if cc.bands else T * CHUNKS_PER_THREAD
+            prev = numba.set_parallel_chunksize(1)  # as the renderer runs its raster pass
+            numba.set_num_threads(T)
+            try:
+                kern.floor(keys, T, C, cc.bands, fpos, n, 0, n, W, H, vp, 1.0)
+            finally:
+                numba.set_parallel_chunksize(prev)
+                numba.set_num_threads(threads)
+
+        def one(r) -> Callable[[], None]:
+            def go() -> None:
+                r.render(f, cam)
+                r.read_image()
+            return go
+
+        def single() -> None:
+            numba.set_num_threads(1)
+            try:
+                one(cc)()
+            finally:
+                numba.set_num_threads(threads)
+
+        fns = {"cpu_compute": one(cc), f"cpu_compute_{other}": one(cc_other), "cpu_compute_1thread": single,
+               "floor": floor}
+        if wg is not None:
+            fns["wgpu_compute"] = one(wg)
+        names = list(fns)
+        ts: dict[str, list[float]] = {m: [] for m in names}
+        step, head = max(n // 100, 1), 0
+        for m in names:  # warm-up; the renderers also settle their thread count (2 x TUNE_FRAMES frames)
+            f.dirty = None
+            for _ in range(1 + (2 * TUNE_FRAMES if m.startswith("cpu_compute") else 0)):
+                fns[m]()
+        for i in range(k):
+            a, b = head, min(head + step, n)
+            head = b % n
+            order = names[i % len(names):] + names[:i % len(names)]
+            for m in order:
+                f.dirty = [(a, b)]
+                t0 = time.perf_counter()
+                fns[m]()
+                ts[m].append((time.perf_counter() - t0) * 1e3)
+        img_cc = cc.read_image()
+        row: dict[str, Any] = {"points": n, "repeats": k, "threads": threads,
+                               "frames_per_thread_count": {str(t): c for t, c in sorted(cc.frames_at.items())},
+                               "tune_ms": {str(t): v for t, v in cc._tune.items()},
+                               "split": "bands" if cc.bands else "points", "other_split": other}
+        for m, v in ts.items():
+            row[f"{m}_ms"], row[f"{m}_all_ms"] = float(np.median(v)), v
+        c = np.asarray(ts["cpu_compute"])
+        row["floor_over_cpu_compute_per_frame_median"] = float(np.median(np.asarray(ts["floor"]) / c))
+        row["one_thread_over_all_per_frame_median"] = float(np.median(np.asarray(ts["cpu_compute_1thread"]) / c))
+        row["other_split_over_default_per_frame_median"] = float(np.median(np.asarray(ts[f"cpu_compute_{other}"]) / c))
+        if wg is not None:
+            row["wgpu_over_cpu_compute_per_frame_median"] = float(np.median(np.asarray(ts["wgpu_compute"]) / c))
+            row["image_error_cpu_compute_vs_wgpu_compute"] = image_error(img_cc, wg.read_image())
+            wg.close()
+        if n <= 1_000_000:
+            from pointflow.render.cpu import CpuRenderer
+            ref = CpuRenderer(cfg, n, ["intensity"])
+            f.dirty = None
+            ref.render(f, cam)
+            row["image_error_vs_reference"] = image_error(img_cc, ref.read_image())
+        rows.append(row)
+        print(f"  {n:>9,}: cpu compute {row['cpu_compute_ms']:7.1f} ms ({threads} threads; 1 thread "
+              f"{row['cpu_compute_1thread_ms']:7.1f})  wgpu compute {row.get('wgpu_compute_ms', float('nan')):7.1f} ms  "
+              f"floor {row['floor_ms']:7.1f} ms  wgpu/cpu x{row.get('wgpu_over_cpu_compute_per_frame_median', float('nan')):.2f}  "
+              f"floor/cpu x{row['floor_over_cpu_compute_per_frame_median']:.2f}  {other}/{row['split']} "
+              f"x{row['other_split_over_default_per_frame_median']:.2f}", flush=True)
+        del f, cc, cc_other
+    sp = {str(r["points"]): round(r["wgpu_over_cpu_compute_per_frame_median"], 2) for r in rows
+          if "wgpu_over_cpu_compute_per_frame_median" in r}
+    faster = [int(p) for p, v in sp.items() if v > 1.0]
+    lim = None if faster and len(faster) == len(sp) else (max(faster) if faster else 0)
+    return {"scene": scene, "size": [W, H], "adapter": adapter.summary if adapter else None,
+            "adapter_type": adapter.info.get("adapter_type", "") if adapter else None, "adapter_choice": why,
+            "numba": numba.__version__, "threads": threads, "rows": rows,
+            "faster_up_to_points": lim, "speedup": sp,
+            "load": {**load, "after": subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()},
+            "measured_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "platform": platform.platform(),
+            "cpu_count": os.cpu_count(), "command": "bench/bench_render.py --cpu-raster"}
+
+
+def cpu_raster_chart(res: dict[str, Any], path: Path) -> None:
+    """Frame time per method against points (log-log), ratios to wgpu compute and the floor noted."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    rows = res["rows"]
+    n = [r["points"] for r in rows]
+    fig, ax = plt.subplots(figsize=(7.2, 4.6))
+    series = [("wgpu_compute_ms", "o-", "wgpu compute method on " + str(res.get("adapter") or "?").split(" (")[0]),
+              ("cpu_compute_ms", "*-", f"cpu compiled raster, {res['threads']} threads (split by points)"),
+              ("cpu_compute_1thread_ms", "v:", "cpu compiled raster, 1 thread"),
+              (f"cpu_compute_{rows[0].get('other_split', 'bands')}_ms", "x:",
+               f"cpu compiled raster, split by {rows[0].get('other_split', 'bands')}"),
+              ("floor_ms", "s--", "compiled bare floor (projection + key write)")]
+    for key, style, label in series:
+        if all(key in r for r in rows):
+            ax.loglog(n, [r[key] for r in rows], style, label=label)
+    for r in rows:
+        if "wgpu_over_cpu_compute_per_frame_median" in r:
+            ax.annotate(f"x{r['wgpu_over_cpu_compute_per_frame_median']:.2f} vs wgpu\n"
+                        f"floor/cpu {r['floor_over_cpu_compute_per_frame_median']:.2f}",
+                        (r["points"], r["cpu_compute_ms"]), xytext=(6, -26), textcoords="offset points", fontsize=7.5)
+    ax.set_xlabel("points")
+    ax.set_ylabel("median frame time, ms (interleaved)")
+    ax.set_title(f"{res['size'][0]}x{res['size'][1]}, 2 px, turbo by intensity, 1% dirty per frame; "
+                 f"{res.get('cpu_count')} cores", fontsize=9)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=7.5, loc="upper left")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def table(res: dict[str, Any]) -> str:
     out = [f"render benchmark — {res['adapter']} — {res['scene']} — {W}x{H}, 2 px squares, turbo by intensity",
            f"{'points':>10} {'floor ms':>9} {'quads ms':>9} {'compute ms':>10} {'floor/comp':>10} "
@@ -496,7 +672,26 @@ def main(argv: Optional[list[str]] = None) -> int:
     ap.add_argument("--install", action="store_true",
                     help="with --raster-crossover: also write the result to the user cache that "
                          "render.raster: auto reads (pointflow.render.calibration)")
+    ap.add_argument("--with-cpu-compute", action="store_true",
+                    help="also time the cpu tier's compiled raster in the main run's interleaving")
+    ap.add_argument("--cpu-raster", action="store_true",
+                    help="only measure the cpu tier's compiled raster vs wgpu compute and a compiled floor "
+                         "at 100k/1M/4M (bench/results/cpu_raster.json; --install: the user cache that "
+                         "backend: auto reads)")
     a = ap.parse_args(argv)
+    if a.cpu_raster:
+        sizes = a.sizes or [100_000, 1_000_000, 4_000_000]
+        res = cpu_raster(sizes, {100_000: 15, 1_000_000: 9, 4_000_000: 5} if not a.quick else {})
+        path = Path(a.out) if a.out != str(RESULTS / "render.json") else RESULTS / "cpu_raster.json"
+        path.write_text(json.dumps(res, indent=2))
+        cpu_raster_chart(res, path.with_suffix(".png"))
+        if a.install:
+            from pointflow.render import calibration
+            keep = {k: res[k] for k in ("faster_up_to_points", "speedup", "adapter", "adapter_type", "scene",
+                                        "size", "threads", "measured_at", "platform", "cpu_count", "command")}
+            print(f"installed {calibration.install('cpu_raster.json', keep)}")
+        print(f"faster_up_to_points = {res['faster_up_to_points']}, wgpu/cpu speedup {res['speedup']}; wrote {path}")
+        return 0
     if a.edl:
         res = edl_cost(1_000_000, 15 if not a.quick else 6)
         path = RESULTS / "edl.json"
@@ -519,7 +714,7 @@ def main(argv: Optional[list[str]] = None) -> int:
     if a.quick:
         reps = {k: max(2, v // 2) for k, v in reps.items()}
     t0 = time.perf_counter()
-    res = run(sizes, reps, a.cpu_max)
+    res = run(sizes, reps, a.cpu_max, a.with_cpu_compute)
     res["bench_seconds"] = time.perf_counter() - t0
     out = Path(a.out)
     out.parent.mkdir(parents=True, exist_ok=True)

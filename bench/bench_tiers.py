@@ -136,8 +136,11 @@ def scene_ouster(aspect: float) -> Optional[tuple[FrameInput, Camera, str]]:
 # ----------------------------------------------------------------------------- tiers & methods
 def make_tier(tier: str, cfg: RenderConfig, capacity: int) -> Optional[Renderer]:
     try:
-        if tier == "cpu":
+        if tier == "cpu":  # the float64 reference (render.raster: reference)
             return CpuRenderer(cfg, capacity, ["intensity"])
+        if tier == "cpu-compute":  # the cpu tier's compiled raster (render.raster: compute)
+            from pointflow.render.cpu_compute import CpuComputeRenderer
+            return CpuComputeRenderer(cfg, capacity, ["intensity"])
         if tier == "gl":
             from pointflow.render.gl import GlRenderer
             return GlRenderer(cfg, capacity, ["intensity"])
@@ -299,7 +302,7 @@ def crossover_from(res: dict[str, dict[int, float]], sizes: list[int]) -> tuple[
 
 #: floor for the log error axis: the reference itself has error 0 (drawn on this line, "exact")
 _EXACT = 3e-6
-_TIER_COLOURS = {"cpu": "tab:blue", "gl": "tab:orange", "wgpu": "tab:green", "wgpu-quads": "tab:green",
+_TIER_COLOURS = {"cpu": "tab:blue", "cpu-compute": "tab:purple", "gl": "tab:orange", "wgpu": "tab:green", "wgpu-quads": "tab:green",
                  "wgpu-compute": "tab:red"}
 _FAMILY_MARKERS = {"full": "*", "lod": "s", "importance": "o", "time window": "^"}
 
@@ -391,6 +394,9 @@ def main(argv=None) -> int:
     ap.add_argument("--skip-crossover", action="store_true",
                     help="keep the crossover figures of the existing tiers.json (and crossover.json)")
     ap.add_argument("--chart-only", action="store_true", help="redraw tiers.png from tiers.json, run nothing")
+    ap.add_argument("--merge", action="store_true",
+                    help="run only --tiers on the accuracy scenes and replace those tiers' rows (per scene) in the existing "
+                         "tiers.json (the other rows keep their older timings; say so where quoted)")
     a = ap.parse_args(argv)
     if a.chart_only:
         chart(json.loads((RESULTS / "tiers.json").read_text())["rows"], RESULTS / "tiers.png")
@@ -408,6 +414,19 @@ def main(argv=None) -> int:
             if s is not None:
                 scenes[key] = s
     rows = accuracy_runs(scenes, tiers, size, a.repeats)
+    if a.merge:
+        old = json.loads((RESULTS / "tiers.json").read_text())
+        stamp = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+        for r in rows:
+            r["measured_at"] = stamp
+        done = {(r["tier"], r["scene"]) for r in rows}
+        old["rows"] = [r for r in old["rows"] if (r["tier"], r["scene"]) not in done] + rows
+        old.setdefault("merged", []).append({"tiers": tiers, "at": stamp, "scenes": list(scenes),
+                                             "machine": {"platform": platform.platform(), "cpus": os.cpu_count()}})
+        (RESULTS / "tiers.json").write_text(json.dumps(old, indent=1))
+        chart(old["rows"], RESULTS / "tiers.png")
+        print(f"\nmerged {tiers} into {RESULTS / 'tiers.json'}; wrote {RESULTS / 'tiers.png'}")
+        return 0
     out = {"machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "python": platform.python_version(),
                        "numpy": np.__version__},
            "size": list(size), "repeats": a.repeats, "reference": "cpu tier, every point, float64 projection",

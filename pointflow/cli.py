@@ -321,7 +321,12 @@ def probe_backends() -> dict[str, str]:
         ctx.release()
     except Exception as exc:  # noqa: BLE001
         out["gl"] = f"unavailable ({type(exc).__name__}: {exc})"
-    out["cpu"] = "available (numpy)"
+    try:
+        from .render.select import cpu_summary
+
+        out["cpu"] = "available: " + cpu_summary()
+    except Exception:  # noqa: BLE001
+        out["cpu"] = "available (numpy)"
     try:
         from .render.select import crossover_points
 

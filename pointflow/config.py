@@ -157,8 +157,10 @@ class RenderConfig:
         default="auto", metadata=check(non_negative, message="must be >= 0 or 'auto'"))
     gpu_timestamps: bool = True
     #: wgpu tier: ``compute`` (atomic per-pixel keys), ``quads`` (instanced-quad draw) or
-    #: ``auto`` (compute where it measured faster; see docs/render-wgpu.md).
-    raster: Literal["auto", "compute", "quads"] = "auto"
+    #: ``auto`` (compute where it measured faster; see docs/render-wgpu.md). cpu tier:
+    #: ``compute`` (compiled, numba) or ``reference`` (float64 numpy; also what an explicit
+    #: ``backend: cpu`` with ``auto`` draws); docs/render-tiers.md.
+    raster: Literal["auto", "compute", "quads", "reference"] = "auto"
     #: Eye-dome lighting (depth cue for clouds without normals); off by default.
     edl: EdlConfig = field(default_factory=EdlConfig)
 

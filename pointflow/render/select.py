@@ -9,6 +9,12 @@ nothing works.
 - ``auto`` tries wgpu → gl → cpu. Scenes smaller than the cpu crossover go to the cpu
   tier first: below it, uploading to a GPU costs more than it saves (measured by
   ``bench/bench_tiers.py``, see :func:`crossover_points` for where the number comes from).
+  When the wgpu adapter is a software one (Mesa lavapipe/llvmpipe: adapter type CPU) and
+  the compiled cpu raster measured faster than it (``cpu_raster.json``, written by
+  ``bench/bench_render.py --cpu-crossover --install``), the cpu tier goes first.
+- The cpu tier has two raster methods (:func:`cpu_method`): ``compute`` (compiled, numba,
+  :mod:`.cpu_compute`) and ``reference`` (float64 numpy, :mod:`.cpu`). Without numba, or
+  with ``POINTFLOW_NO_NUMBA=1``, ``compute`` falls back to the reference with one log line.
 - :func:`fallback_after` gives the next tier when one raises ``RenderError`` mid-run.
 """
 from __future__ import annotations
@@ -33,6 +39,8 @@ TIERS = {
     "wgpu": "pointflow.render.wgpu_tier:WgpuRenderer",
     "gl": "pointflow.render.gl:GlRenderer",
     "cpu": "pointflow.render.cpu:CpuRenderer",
+    # the cpu tier's compiled raster method (render.raster: compute); tried before "cpu"
+    "cpu-compute": "pointflow.render.cpu_compute:CpuComputeRenderer",
 }
 ENV_BACKEND = "POINTFLOW_BACKEND"
 ENV_CROSSOVER = "POINTFLOW_CROSSOVER"
@@ -43,6 +51,8 @@ ENV_CROSSOVER = "POINTFLOW_CROSSOVER"
 #: never sends a scene to the cpu tier unless a measurement says so.
 DEFAULT_CROSSOVER = 0
 CROSSOVER_FILE = "crossover.json"
+#: where the compiled cpu raster beats the wgpu tier on a software adapter
+CPU_RASTER_FILE = "cpu_raster.json"
 
 
 def _load_class(tier: str) -> type[Renderer]:
@@ -85,6 +95,91 @@ def crossover_points(cfg: Optional[RenderConfig] = None) -> tuple[int, str]:
         return DEFAULT_CROSSOVER, "built-in default"
 
 
+def cpu_method(cfg: RenderConfig, explicit: bool) -> tuple[list[str], str]:
+    """(candidates for the cpu tier, why): ``["cpu-compute", "cpu"]`` (compiled first, the
+    reference if it cannot start) or ``["cpu"]`` (the float64 reference). ``explicit``: the
+    cpu tier was asked for by name, where ``raster: auto`` keeps the reference (deterministic
+    images, what ``backend: cpu`` has always drawn); under ``backend: auto`` the cpu tier
+    draws with the compiled method."""
+    want = cfg.raster
+    if want == "reference":
+        return ["cpu"], "render.raster=reference: the float64 numpy reference"
+    if explicit and want != "compute":
+        return ["cpu"], (f"backend cpu with render.raster={want}: the float64 numpy reference "
+                         "(render.raster: compute asks for the compiled method)")
+    from . import cpu_kernels
+
+    off = cpu_kernels.disabled()
+    if off:
+        return ["cpu"], f"{off}: compiled raster off; the float64 numpy reference draws"
+    if not cpu_kernels.available():
+        return ["cpu"], "numba is not installed: the float64 numpy reference draws"
+    return ["cpu-compute", "cpu"], f"render.raster={want}: the compiled raster (numba), the reference if it cannot start"
+
+
+def cpu_summary() -> str:
+    """The cpu tier's raster methods here, in words (``pointflow info``)."""
+    from . import cpu_kernels
+
+    off = cpu_kernels.disabled()
+    if off:
+        comp = f"compiled raster off ({off})"
+    elif not cpu_kernels.available():
+        comp = "compiled raster unavailable (numba not installed)"
+    else:
+        data, where = cpu_raster_crossover()
+        if data is None:
+            comp = "compiled raster (numba); auto: no measurement against a software adapter"
+        else:
+            lim = data.get("faster_up_to_points")
+            upto = "at every size measured" if lim is None else f"up to {int(lim):,} points"
+            comp = f"compiled raster (numba); auto prefers it over a software wgpu adapter {upto} ({where})"
+    return f"reference (numpy, float64); {comp}"
+
+
+def cpu_raster_crossover() -> tuple[Optional[dict], str]:
+    """(calibration, where from): ``faster_up_to_points`` (int, or None = at every size
+    measured; 0 = never) below which the compiled cpu raster beat the wgpu tier on a
+    software adapter, with the speedups measured."""
+    return calibration.load(CPU_RASTER_FILE, ("faster_up_to_points",))
+
+
+def probe_adapter(cfg: RenderConfig) -> Optional[dict]:
+    """The wgpu adapter the wgpu tier would take (its summary), or None (no wgpu)."""
+    try:
+        from .wgpu_tier.device import adapter_summary, select_adapter
+        a, _why = select_adapter(cfg.power_preference)
+        return adapter_summary(a) if a is not None else None
+    except Exception:  # noqa: BLE001 - no wgpu stack: nothing to compare with
+        return None
+
+
+def _prefer_cpu_compute(cfg: RenderConfig, n: int, lines: list[str]) -> bool:
+    """``auto``: the compiled cpu raster before a software wgpu adapter when it measured faster."""
+    if cfg.raster not in ("auto", "compute"):
+        return False
+    cands, _ = cpu_method(cfg, explicit=False)
+    if cands[0] != "cpu-compute":
+        return False
+    ad = probe_adapter(cfg)
+    if ad is None or ad.get("adapter_type") != "CPU":
+        return False
+    data, where = cpu_raster_crossover()
+    if data is None:
+        lines.append(f"wgpu adapter {ad['summary']} is software, but no cpu_raster.json measurement ({where}): GPU tiers first")
+        return False
+    lim = data.get("faster_up_to_points")
+    sp = data.get("speedup") or {}
+    told = ", ".join(f"{float(v):.1f}x at {k} points" for k, v in sp.items())
+    if lim is not None and n > int(lim):
+        lines.append(f"wgpu adapter {ad['summary']} is software; the compiled cpu raster measured faster only up to "
+                     f"{lim} points ({told}; from {where}): GPU tiers first for {n} points")
+        return False
+    lines.append(f"cpu compute first: the wgpu adapter {ad['summary']} is software and the compiled cpu raster "
+                 f"measured faster than it ({told}; from {where})")
+    return True
+
+
 def _candidates(cfg: RenderConfig, expected_points: Optional[int], capacity: int, lines: list[str]) -> list[str]:
     env = os.environ.get(ENV_BACKEND, "").strip().lower()
     backend = cfg.backend
@@ -95,14 +190,29 @@ def _candidates(cfg: RenderConfig, expected_points: Optional[int], capacity: int
         backend = env
     if backend != "auto":
         lines.append(f"backend {backend} requested explicitly: no other tier is tried")
-        return [backend]
+        return _expand([backend], cfg, True, lines)
+    if cfg.raster == "reference":
+        lines.append("render.raster=reference: the float64 numpy reference tier only")
+        return ["cpu"]
     n = capacity if expected_points is None else int(expected_points)
     xo, src = crossover_points(cfg)
     if n < xo:
         lines.append(f"cpu first: scene of {n} points < crossover {xo} (from {src}); a GPU upload costs more than it saves")
-        return ["cpu", "wgpu", "gl"]
+        return _expand(["cpu", "wgpu", "gl"], cfg, False, lines)
+    if _prefer_cpu_compute(cfg, n, lines):
+        return _expand(["cpu", "wgpu", "gl"], cfg, False, lines)
     lines.append(f"scene of {n} points >= crossover {xo} (from {src}): GPU tiers first")
-    return list(ORDER)
+    return _expand(list(ORDER), cfg, False, lines)
+
+
+def _expand(tiers: list[str], cfg: RenderConfig, explicit: bool, lines: list[str]) -> list[str]:
+    """Replace "cpu" by the cpu tier's raster method(s) (:func:`cpu_method`), saying why once."""
+    if "cpu" not in tiers:
+        return tiers
+    cands, why = cpu_method(cfg, explicit)
+    lines.append(f"cpu raster: {why}")
+    i = tiers.index("cpu")
+    return tiers[:i] + cands + tiers[i + 1:]
 
 
 def _describe(exc: BaseException) -> str:
@@ -124,8 +234,8 @@ def _try(tiers: list[str], cfg: RenderConfig, capacity: int, channels: list[str]
             lines.append(f"{tier}: skipped: {_describe(exc)}")
             first = first or (tier, exc)
             continue
-        lines.append(f"{tier}: chosen")
-        if getattr(r, "raster", None):  # the wgpu tier's raster method and why (render.raster)
+        lines.append(f"{r.tier}: chosen" + (" (compiled raster)" if tier == "cpu-compute" else ""))
+        if getattr(r, "raster", None) and tier != "cpu-compute":  # the wgpu tier's raster method and why
             lines.append(f"{tier}: raster method {r.raster} ({getattr(r, '_raster_why', '')})")
         for line in lines:
             log.info("tier selection: %s", line)
@@ -169,7 +279,12 @@ def fallback_after(renderer: Renderer, exc: BaseException, cfg: Optional[RenderC
         renderer.close()
     except Exception as cexc:  # noqa: BLE001 - a lost device may not close cleanly
         lines.append(f"{renderer.tier}: close failed ({_describe(cexc)})")
-    tiers = next_tiers(renderer.tier)
+    if renderer.tier == "cpu" and getattr(renderer, "raster", None) == "compute":
+        tiers = ["cpu"]  # the compiled raster failed: the float64 reference is left
+    else:
+        tiers = next_tiers(renderer.tier)
+        if tiers:
+            tiers = _expand(tiers, cfg, False, lines)
     if not tiers:
         for line in lines:
             log.error("tier fallback: %s", line)

@@ -18,8 +18,9 @@ os.makedirs(os.environ["XDG_RUNTIME_DIR"], exist_ok=True)
 
 from gpu_util import require_adapter, require_egl  # noqa: E402
 
-#: the wgpu tier runs once per raster method (render.raster)
-TIERS = ["cpu", "gl", "wgpu-quads", "wgpu-compute"]
+#: the wgpu tier runs once per raster method (render.raster); cpu-compute is the cpu tier's
+#: compiled raster method (render: {backend: cpu, raster: compute})
+TIERS = ["cpu", "cpu-compute", "gl", "wgpu-quads", "wgpu-compute"]
 
 
 def tier_class(tier: str):
@@ -27,6 +28,9 @@ def tier_class(tier: str):
     if tier == "cpu":
         from pointflow.render.cpu import CpuRenderer
         return CpuRenderer
+    if tier == "cpu-compute":
+        from pointflow.render.cpu_compute import CpuComputeRenderer
+        return CpuComputeRenderer
     if tier == "gl":
         ctx = require_egl()
         ctx.release()

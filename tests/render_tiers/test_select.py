@@ -75,11 +75,12 @@ def test_crossover_sources_in_order(monkeypatch, tmp_path):
 def test_auto_logs_each_skip_and_falls_through(monkeypatch):
     monkeypatch.setitem(select.TIERS, "wgpu", f"{__name__}:BrokenTier")
     monkeypatch.setitem(select.TIERS, "gl", "pointflow.render.no_such_tier:GlRenderer")
+    monkeypatch.setattr(select, "probe_adapter", lambda c: None)  # no software adapter to weigh
     r, lines = select.select_renderer(cfg(cpu_crossover_points=0), 1000, [])
     assert r.tier == "cpu"
     assert "wgpu: skipped: RenderError: no adapter: vkCreateInstance failed" in lines
     assert any(l.startswith("gl: skipped: not available (ModuleNotFoundError") for l in lines)
-    assert lines[-1] == "cpu: chosen"
+    assert lines[-1] == "cpu: chosen (compiled raster)"  # under auto the cpu tier draws compiled
 
 
 def test_explicit_backend_is_strict_and_quotes_the_error(monkeypatch):
@@ -96,5 +97,8 @@ def test_fallback_after_device_loss_goes_to_next_tier(monkeypatch):
     r = select.fallback_after(lost, RenderError("device lost"))
     assert r.tier == "cpu"
     assert r.selection_log[0] == "gl: failed mid-run (RenderError: device lost); falling back"
+    if getattr(r, "raster", None) == "compute":  # the compiled cpu raster; the reference after it
+        r = select.fallback_after(r, RenderError("boom"))
+        assert type(r) is CpuRenderer
     with pytest.raises(RenderError, match="no tier is left"):
         select.fallback_after(r, RenderError("boom"))

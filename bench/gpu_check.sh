@@ -1,0 +1,91 @@
+#!/usr/bin/env bash
+# The GPU check in one call (issue 29): on a machine with a real GPU, in under 8 minutes,
+#   1. `pointflow info` (the adapters and what auto picks),
+#   2. the GPU tests (tests/render_wgpu, tests/render_tiers; a missing adapter fails them),
+#   3. the render benchmark at 1M, 4M and 16M points for every method -- wgpu compute, wgpu
+#      quads, the cpu tier's compiled raster -- against the bare quad floor, interleaved,
+# and writes ONE JSON (bench/results/gpu_check.json) plus a short table on stdout.
+#
+#   bench/gpu_check.sh                                  # the real check
+#   GPU_CHECK_SIZES="100000 1000000" GPU_CHECK_TESTS=tests/render_tiers/test_agreement.py \
+#       bench/gpu_check.sh                              # a dry run on a software adapter
+#
+# Env: PYTHON (default .venv/bin/python, else python3), GPU_CHECK_SIZES, GPU_CHECK_TESTS,
+# GPU_CHECK_OUT (the JSON), GPU_CHECK_REQUIRE_GPU (default 1: tests fail without an adapter).
+set -u
+ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+cd "$ROOT"
+PY="${PYTHON:-}"
+if [ -z "$PY" ]; then
+  if [ -x "$ROOT/.venv/bin/python" ]; then PY="$ROOT/.venv/bin/python"; else PY="$(command -v python3)"; fi
+fi
+SIZES="${GPU_CHECK_SIZES:-1000000 4000000 16000000}"
+TESTS="${GPU_CHECK_TESTS:-tests/render_wgpu tests/render_tiers}"
+OUT="${GPU_CHECK_OUT:-$ROOT/bench/results/gpu_check.json}"
+export PYTHONPATH="$ROOT${PYTHONPATH:+:$PYTHONPATH}"
+export XDG_RUNTIME_DIR="${XDG_RUNTIME_DIR:-/tmp/pointflow-xdg-$(id -u)}"
+mkdir -p -m 700 "$XDG_RUNTIME_DIR"
+export POINTFLOW_REQUIRE_GPU="${GPU_CHECK_REQUIRE_GPU:-1}"
+WORK="$(mktemp -d "${TMPDIR:-/tmp}/gpu_check.XXXXXX")"
+trap 'rm -rf "$WORK"' EXIT
+T0=$(date +%s)
+
+echo "== pointflow info" >&2
+"$PY" -m pointflow.cli info >"$WORK/info.txt" 2>&1
+INFO_RC=$?
+cat "$WORK/info.txt" >&2
+command -v nvidia-smi >/dev/null && nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader \
+  >"$WORK/nvidia.txt" 2>&1 || true
+
+echo "== GPU tests: $TESTS" >&2
+T1=$(date +%s)
+# shellcheck disable=SC2086
+"$PY" -m pytest $TESTS -q -p no:cacheprovider --junitxml="$WORK/tests.xml" >"$WORK/tests.txt" 2>&1
+TEST_RC=$?
+tail -n 5 "$WORK/tests.txt" >&2
+T2=$(date +%s)
+
+echo "== render benchmark: $SIZES points" >&2
+# shellcheck disable=SC2086
+"$PY" bench/bench_render.py --sizes $SIZES --cpu-max 0 --with-cpu-compute --out "$WORK/render.json" \
+  >"$WORK/bench.txt" 2>&1
+BENCH_RC=$?
+tail -n 8 "$WORK/bench.txt" >&2
+T3=$(date +%s)
+
+"$PY" - "$WORK" "$OUT" "$INFO_RC" "$TEST_RC" "$BENCH_RC" "$T0" "$T1" "$T2" "$T3" <<'EOF'
+import json, os, platform, subprocess, sys, time
+import xml.etree.ElementTree as ET
+work, out, info_rc, test_rc, bench_rc = sys.argv[1], sys.argv[2], *map(int, sys.argv[3:6])
+t0, t1, t2, t3 = map(int, sys.argv[6:10])
+read = lambda n: open(os.path.join(work, n)).read() if os.path.exists(os.path.join(work, n)) else ""
+tests = {}
+try:
+    s = ET.parse(os.path.join(work, "tests.xml")).getroot()
+    s = s if s.tag == "testsuite" else s[0]
+    tests = {k: int(s.get(k, 0)) for k in ("tests", "failures", "errors", "skipped")}
+except Exception as e:  # noqa: BLE001
+    tests = {"error": f"no junit report ({type(e).__name__})"}
+bench = json.loads(read("render.json")) if read("render.json") else None
+res = {"measured_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "host": platform.node(),
+       "platform": platform.platform(), "cpu_count": os.cpu_count(),
+       "gpu": read("nvidia.txt").strip() or None, "info": read("info.txt"), "info_rc": info_rc,
+       "tests": {"rc": test_rc, **tests, "tail": read("tests.txt")[-3000:]},
+       "bench_rc": bench_rc, "bench": bench, "bench_tail": None if bench else read("bench.txt")[-3000:],
+       "seconds": {"info": t1 - t0, "tests": t2 - t1, "bench": t3 - t2, "total": t3 - t0},
+       "load": subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()}
+os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
+with open(out, "w") as f:
+    json.dump(res, f, indent=1)
+print(f"gpu check -- {bench['adapter'] if bench else 'no benchmark'} -- {res['gpu'] or 'no nvidia-smi'}")
+print(f"tests: rc {test_rc}, {tests}; info rc {info_rc}; bench rc {bench_rc}; {res['seconds']['total']} s")
+if bench:
+    print(f"{'points':>11} {'floor ms':>9} {'quads ms':>9} {'compute ms':>10} {'cpu comp ms':>11} "
+          f"{'floor/comp':>10} {'floor/quads':>11}")
+    for r in bench["rows"]:
+        cc = r.get("cpu_compute_ms", float("nan"))
+        print(f"{r['points']:>11,} {r['floor_ms']:>9.1f} {r['quads_ms']:>9.1f} {r['compute_ms']:>10.1f} {cc:>11.1f} "
+              f"{r['floor_over_compute_per_frame_median']:>10.2f} {r['floor_ms'] / r['quads_ms']:>11.2f}")
+print(f"wrote {out}")
+sys.exit(1 if (test_rc or bench_rc) else 0)
+EOF

@@ -1,0 +1,388 @@
+"""The cpu tier's compiled raster method (``render: {backend: cpu, raster: compute}``).
+
+The wgpu compute method's semantics on the CPU, compiled with numba
+(:mod:`.cpu_kernels`), parallel over the cores:
+
+1. **Incremental copy**: the tier keeps its own float32 copy of positions and of what the
+   config draws with (importance, ingest times, the colour channel; rgb packed to 32 bits),
+   and takes only the handoff's dirty slot ranges (everything after an origin or capacity
+   change), as the wgpu tier uploads.
+2. **Tests + keys**: every rule of :mod:`.rules` fused with the float64 projection and a
+   write of ``bits(float32 w) << 32 | logical`` into each pixel of the footprint, the
+   smallest key winning: nearer linear depth, ties to the lower logical index. One chunk of
+   logical indices and one key buffer per thread. With a budget below the survivors, three
+   short passes first (tests, thinning, the first b in logical order).
+3. **Resolve**: per pixel the minimum over the threads' buffers (keys are unique, so the
+   image is the same whatever the thread count), its colour, and EDL over the winners'
+   log2 depth. Picking reads the winners' slots of the last frame.
+
+The float64 numpy tier (:mod:`.cpu`, ``raster: reference``) stays the accuracy reference.
+"""
+from __future__ import annotations
+
+import os
+import time
+from typing import Any, Optional
+
+import numpy as np
+
+from ..config import RenderConfig
+from . import colormap, cpu_kernels
+from .base import FrameInput, FrameStats, Renderer, RenderError
+from .camera import Camera
+from .rules import (EDL_SCALE, budget_fraction, budget_seed, check_frame, edl_offsets, in_pick_circle, pick_window,
+                    resolve_pick, rgba_u8, seed_hash)
+
+__all__ = ["CpuComputeRenderer"]
+
+ENV_SPLIT = "POINTFLOW_CPU_RASTER_SPLIT"
+#: how the threads share the work (bench/bench_render.py --cpu-raster measures both)
+DEFAULT_SPLIT = "points"
+#: split by points: chunks of logical indices per thread, taken as threads come free
+CHUNKS_PER_THREAD = 8
+ENV_ADAPTIVE = "POINTFLOW_CPU_RASTER_ADAPTIVE"
+#: frames timed per thread count before choosing; the other count is re-tried every RETRY_EVERY
+TUNE_FRAMES = 3
+RETRY_EVERY = 30
+
+Range = tuple[int, int]
+
+
+def _pack(c: np.ndarray) -> np.uint32:
+    c = np.asarray(c, np.uint32)
+    return np.uint32(c[0] | (c[1] << 8) | (c[2] << 16) | (c[3] << 24))
+
+
+def merge_ranges(ranges: list[Range], capacity: int) -> list[Range]:
+    """Sorted, non-overlapping, clipped to [0, capacity); a wrapping range (b < a) is split."""
+    out: list[Range] = []
+    for a, b in ranges:
+        a, b = int(a), int(b)
+        out.extend([(a, capacity), (0, b)] if b < a else [(a, b)])
+    out = sorted((max(a, 0), min(b, capacity)) for a, b in out if min(b, capacity) > max(a, 0))
+    merged: list[Range] = []
+    for a, b in out:
+        if merged and a <= merged[-1][1]:
+            merged[-1] = (merged[-1][0], max(merged[-1][1], b))
+        else:
+            merged.append((a, b))
+    return merged
+
+
+class CpuComputeRenderer(Renderer):
+    """Compiled CPU raster with the wgpu compute method's key and rules."""
+
+    tier = "cpu"
+    raster = "compute"
+
+    def __init__(self, cfg: RenderConfig, capacity: int, channels: list[str]):
+        super().__init__(cfg, capacity, channels)
+        k = cpu_kernels.load()
+        if k is None:
+            raise RenderError(f"cpu compute raster unavailable: {cpu_kernels.why_unavailable()}")
+        self._k = k
+        self._raster_why = "render.raster=compute"
+        W, H = self.width, self.height
+        self._bg = _pack(rgba_u8(cfg.background))
+        self._single = _pack(rgba_u8(cfg.color))
+        self._lut = np.ascontiguousarray(colormap.lut(cfg.colormap)).view(np.uint32).reshape(256)
+        self._img = np.empty((H, W), np.uint32)
+        self._img[:] = self._bg
+        self._last_ring = (0, 1)  # head, capacity of the last frame (slots from its keys)
+        self._edl = edl_offsets(cfg.edl.radius_px).astype(np.int64) if cfg.edl.enabled else None
+        self._logz = np.zeros(H * W if self._edl is not None else 1, np.float64)
+        self._keys = np.empty((0, H * W), np.uint64)
+        #: split the work by screen bands (one key buffer, every thread runs every point and
+        #: writes its rows) or by points (one buffer per thread, merged in the resolve);
+        #: env POINTFLOW_CPU_RASTER_SPLIT=bands|points, default DEFAULT_SPLIT (measured faster)
+        split = os.environ.get(ENV_SPLIT, "").strip().lower() or DEFAULT_SPLIT
+        if split not in ("bands", "points"):
+            raise RenderError(f"${ENV_SPLIT}={split!r}: expected bands or points")
+        self.bands = split == "bands"
+        self.threads = 1
+        #: thread count chosen per frame by measurement (env POINTFLOW_CPU_RASTER_ADAPTIVE=0: always all)
+        self._adaptive = os.environ.get(ENV_ADAPTIVE, "1") not in ("0", "false", "no")
+        self._tune: dict[int, list[float]] = {}
+        self._tune_n = 0
+        self.frames_at: dict[int, int] = {}  # frames drawn per thread count
+        self._origin: Optional[np.ndarray] = None
+        self._cap = -1
+        cb = cfg.color_by
+        self._need_t = cfg.time_window_ms > 0 or cb == "ingest_time"
+        self._need_imp = cfg.importance_sampling or cfg.pick_strategy == "highest_importance"
+        self._need_t = self._need_t or cfg.pick_strategy == "recent_first"
+        self._alloc(max(int(capacity), 1))
+        self.nonfinite_total = 0
+        self.frames = 0
+        self._warm()
+
+    # ---------------------------------------------------------------- own copy
+    def _alloc(self, cap: int) -> None:
+        self._cap = cap
+        self._pos = np.zeros((cap, 3), np.float32)
+        self._t = np.zeros(cap if self._need_t else 1, np.float64)
+        self._imp = np.zeros(cap if self._need_imp else 1, np.float32)
+        self._cval = np.zeros(1, np.float32)   # the scalar colour channel (scalar mode; sized in _sync)
+        self._rgb = np.zeros(1, np.uint32)     # packed rgb (rgb mode; sized in _sync)
+        self._cmode_chan: Optional[str] = None
+        self._origin = None
+
+    def _colour_mode(self, frame: FrameInput) -> tuple[int, Optional[str]]:
+        cb = self.cfg.color_by
+        if cb in (None, "none"):
+            return cpu_kernels.C_SINGLE, None
+        if cb == "rgb":
+            return (cpu_kernels.C_RGB, "rgb") if "rgb" in frame.channels else (cpu_kernels.C_SINGLE, None)
+        if cb in ("z", "height"):
+            return cpu_kernels.C_Z, None
+        if cb == "ingest_time":
+            return cpu_kernels.C_TIME, None
+        ch = frame.channels.get(cb)
+        if ch is None or ch.ndim != 1:
+            return cpu_kernels.C_SINGLE, None
+        return cpu_kernels.C_SCALAR, cb
+
+    def _sync(self, frame: FrameInput, cmode: int, chan: Optional[str]) -> int:
+        """Copy the dirty ranges (all of them after an origin, capacity or colour change);
+        returns the bytes copied."""
+        cap = int(frame.capacity)
+        if cap != self._cap:
+            self._alloc(cap)
+        origin = np.asarray(frame.origin, np.float64)
+        full = (frame.dirty is None or self._origin is None or not np.array_equal(origin, self._origin)
+                or (cmode, chan) != getattr(self, "_synced_mode", None))
+        if cmode == cpu_kernels.C_SCALAR and self._cval.shape[0] != cap:
+            self._cval, full = np.zeros(cap, np.float32), True
+        if cmode == cpu_kernels.C_RGB and self._rgb.shape[0] != cap:
+            self._rgb, full = np.zeros(cap, np.uint32), True
+        ranges = [(0, cap)] if full else merge_ranges(list(frame.dirty or []), cap)
+        total = 0
+        for a, b in ranges:
+            self._pos[a:b] = frame.positions[a:b]
+            total += (b - a) * 12
+            if self._need_t:
+                self._t[a:b] = frame.t_ingest_ms[a:b]
+                total += (b - a) * 8
+            if self._need_imp:
+                self._imp[a:b] = frame.importance[a:b]
+                total += (b - a) * 4
+            if cmode == cpu_kernels.C_SCALAR:
+                self._cval[a:b] = frame.channels[chan][a:b]
+                total += (b - a) * 4
+            elif cmode == cpu_kernels.C_RGB:
+                rgb = np.asarray(frame.channels["rgb"][a:b], np.uint32)
+                self._rgb[a:b] = rgb[:, 0] | (rgb[:, 1] << 8) | (rgb[:, 2] << 16) | np.uint32(0xFF000000)
+                total += (b - a) * 4
+        self._origin = origin.copy()
+        self._synced_mode = (cmode, chan)
+        return total
+
+    def _pick_threads(self) -> int:
+        """This frame's thread count: 1 or all of numba's (``numba.get_num_threads()``),
+        whichever drew faster lately (the image is the same either way). The first frames
+        alternate, starting with all threads; then the slower count is re-tried every
+        RETRY_EVERY frames, so a machine whose other load changes is followed."""
+        most = max(1, int(self._k_numba().get_num_threads()))
+        if most == 1 or not self._adaptive:
+            return most
+        cands = (most, 1)
+        seen = {t: self._tune.get(t, []) for t in cands}
+        for t in cands:
+            if len(seen[t]) < TUNE_FRAMES:
+                return t
+        best, other = sorted(cands, key=lambda t: float(np.median(seen[t])))
+        self._tune_n += 1
+        return other if self._tune_n % RETRY_EVERY == 0 else best
+
+    def _buffers(self, threads: Optional[int] = None) -> np.ndarray:
+        """The key buffers for this frame's thread count: one (bands) or one per thread."""
+        self.threads = T = max(1, int(self._k_numba().get_num_threads())) if threads is None else threads
+        nb = 1 if self.bands else T
+        if self._keys.shape[0] != nb:
+            self._keys = np.empty((nb, self.width * self.height), np.uint64)
+        return self._keys
+
+    @staticmethod
+    def _k_numba():
+        return cpu_kernels.numba
+
+    def _warm(self) -> None:
+        """Compile (or load from the disk cache) every loop now, not on the first frame."""
+        cap = 4
+        f = FrameInput(positions=np.zeros((cap, 3), np.float32), importance=np.zeros(cap, np.float32),
+                       t_ingest_ms=np.zeros(cap), channels={}, head=0, size=cap, capacity=cap,
+                       origin=np.zeros(3), now_ms=0.0, budget=1)
+        cam = Camera(eye=[0, -5, 0], target=[0, 0, 0], near=0.1, far=100)
+        saved = (self._cap, self._pos, self._t, self._imp, self._cval, self._rgb, self._origin)
+        try:
+            self.render(f, cam)
+        finally:
+            self._cap, self._pos, self._t, self._imp, self._cval, self._rgb, self._origin = saved
+            self._img[:] = self._bg
+            self._keys[:] = cpu_kernels.EMPTY
+            self._synced_mode = None
+            self.frames = 0
+            self.nonfinite_total = 0
+            self._tune, self._tune_n, self.frames_at = {}, 0, {}
+
+    # ---------------------------------------------------------------- render
+    def render(self, frame: FrameInput, camera: Camera) -> FrameStats:
+        nb = self._k_numba()
+        caller = nb.get_num_threads()
+        T = self._pick_threads()
+        nb.set_num_threads(T)
+        try:
+            st = self._render(frame, camera, T)
+        finally:
+            nb.set_num_threads(caller)
+        self.frames_at[T] = self.frames_at.get(T, 0) + 1
+        if self._adaptive and caller > 1:
+            ts = self._tune.setdefault(T, [])
+            ts.append(st.timings_ms["total"])
+            del ts[:-TUNE_FRAMES]
+        return st
+
+    def _render(self, frame: FrameInput, camera: Camera, T: int) -> FrameStats:
+        cap, size = check_frame(frame)
+        if not 0 <= int(frame.head) < cap:
+            raise ValueError(f"FrameInput.head must be in 0..capacity-1 ({cap - 1}), got {frame.head}")
+        t0 = time.perf_counter()
+        cfg, W, H, k = self.cfg, self.width, self.height, self._k
+        cmode, chan = self._colour_mode(frame)
+        copied = self._sync(frame, cmode, chan)
+        t1 = time.perf_counter()
+        head = int(frame.head)
+        origin = np.asarray(frame.origin, np.float64)
+        vp = np.ascontiguousarray(camera.view_proj(W, H, origin), np.float64)
+        planes = np.ascontiguousarray(camera.frustum_planes(W, H, origin), np.float64).reshape(6, 4)
+        # clip-space frustum decisions need a margin far above float64 rounding of a dot
+        # product with these coefficients (|error| <= ~4e-16 * sum |terms|); the planes decide
+        # the points inside the margin (cpu_kernels._frustum)
+        eps_s = 1e-11 * 2.0 * float(np.abs(vp).max())
+        world = cfg.point_size_space == "world"
+        size_scale = float(cfg.point_size) * float(camera.proj(W, H)[1, 1]) * H * 0.5 if world else 0.0
+        # importance sampling: the handoff's range, else the finite range over occupied slots
+        has_imp, imp_deg, imp_lo, imp_scale = bool(cfg.importance_sampling), True, np.float32(0), np.float32(0)
+        if has_imp:
+            r = frame.channel_ranges.get("importance")
+            if r is None:
+                occ = frame.occupied_slots()
+                v = self._imp[occ]
+                v = v[np.isfinite(v)]
+                r = (float(v.min()), float(v.max())) if v.size else (0.0, 0.0)
+            lo, hi = float(r[0]), float(r[1])
+            if hi > lo:
+                imp_deg, imp_lo, imp_scale = False, np.float32(lo), np.float32(1.0 / (hi - lo))
+        # colour range: fixed, the handoff's, or reduced in the raster pass (auto)
+        shift = float(frame.origin[2]) if cmode == cpu_kernels.C_Z else 0.0
+        range_mode, lo_c, hi_c = 0, 0.0, 0.0
+        if cmode in (cpu_kernels.C_SCALAR, cpu_kernels.C_Z, cpu_kernels.C_TIME):
+            if isinstance(cfg.color_range, list):
+                lo_c, hi_c = float(cfg.color_range[0]) - shift, float(cfg.color_range[1]) - shift
+            elif cmode == cpu_kernels.C_SCALAR and chan in frame.channel_ranges:
+                lo_c, hi_c = (float(x) for x in frame.channel_ranges[chan])
+            else:
+                range_mode = cmode
+        keys = self._buffers(T)
+        C = T if self.bands else T * CHUNKS_PER_THREAD  # chunks of the raster pass
+        st = np.zeros((max(C, T), cpu_kernels.N_ST), np.int64)
+        vr = np.empty((max(C, T), 2), np.float64)
+        vr[:, 0], vr[:, 1] = np.inf, -np.inf
+        seed_h = np.uint64(seed_hash(frame.frame_seed))
+        has_window = cfg.time_window_ms > 0
+        now, window = float(frame.now_ms), float(cfg.time_window_ms)
+        lod = max(int(cfg.lod_stride), 1)
+        half = float(cfg.point_size) * 0.5
+        round_ = cfg.point_shape == "round"
+        use_mask = frame.budget is not None and size > max(int(frame.budget), 0)
+        mask = np.zeros(size if use_mask else 1, np.uint8)
+        counts = {"occupied": size}
+        if use_mask:  # budget: tests -> thinning -> the first b in logical order
+            b = max(int(frame.budget), 0)
+            k.select(mask, st, vr, self._pos, self._t, self._imp, self._cval, head, size, cap, T, vp, planes,
+                     has_window, now, window, lod, has_imp, imp_deg, imp_lo, imp_scale, seed_h, range_mode, eps_s)
+            n = int(st[:, cpu_kernels.ST_KEEP].sum())
+            if n > b:
+                per = np.zeros(T, np.int64)
+                k.thin(mask, per, head, size, cap, T, np.uint64(budget_seed(frame.frame_seed)),
+                       np.float32(budget_fraction(b, n)))
+                base = np.concatenate([[0], np.cumsum(per)[:-1]]).astype(np.int64)
+                k.cap(mask, base, size, T, b)
+            pre = st.copy()
+            pre_vr = vr.copy()
+        t2 = time.perf_counter()
+        nb = self._k_numba()
+        prev = nb.set_parallel_chunksize(1)  # chunks go to whichever thread is free
+        try:
+            k.raster(keys, T, C, self.bands, st, vr, mask, use_mask, self._pos, self._t, self._imp, self._cval, head,
+                     size, cap, W, H, vp, planes, half, world, size_scale, round_, has_window, now, window, lod,
+                     has_imp, imp_deg, imp_lo, imp_scale, seed_h, range_mode, eps_s)
+        finally:
+            nb.set_parallel_chunksize(prev)
+        t3 = time.perf_counter()
+        drawn = int(st[:, cpu_kernels.ST_DRAWN].sum())
+        if use_mask:
+            st, vr = pre, pre_vr
+        nonfinite = int(st[:, cpu_kernels.ST_BAD].sum())
+        if range_mode:
+            mn, mx = float(vr[:, 0].min()), float(vr[:, 1].max())
+            if mn > mx:
+                mn = mx = 0.0
+            lo_c, hi_c = (mn + shift) - shift, (mx + shift) - shift
+        degenerate = not hi_c > lo_c
+        lo32 = np.float32(lo_c)
+        scale32 = np.float32(1.0 / (hi_c - lo_c)) if not degenerate else np.float32(0)
+        self._last_ring = (head, cap)
+        k.resolve(keys, self._img, self._logz, self._edl is not None, vp, head, cap, cmode,
+                  self._single, self._bg, self._rgb, self._pos, self._t, self._cval, lo32, scale32, degenerate,
+                  self._lut)
+        t4 = time.perf_counter()
+        if self._edl is not None:
+            k.edl(self._logz, self._img, self._edl, -EDL_SCALE * float(cfg.edl.strength))
+        t5 = time.perf_counter()
+        self.nonfinite_total += nonfinite
+        self.frames += 1
+        counts["nonfinite"] = nonfinite
+        ms = lambda a, b: (b - a) * 1e3
+        timings = {"copy": ms(t0, t1), "select": ms(t1, t2), "raster": ms(t2, t3), "resolve": ms(t3, t4),
+                   "total": ms(t0, t5)}
+        if self._edl is not None:
+            timings["edl"] = ms(t4, t5)
+        return FrameStats(drawn=drawn, timings_ms=timings, uploaded_bytes=copied,
+                          extra={"removed_nonfinite": nonfinite, "nonfinite_total": self.nonfinite_total,
+                                 "occupied": size, "threads": T, "raster": "compute",
+                                 "split": "bands" if self.bands else "points"})
+
+    # ---------------------------------------------------------------- outputs
+    def read_image(self) -> np.ndarray:
+        return self._img.view(np.uint8).reshape(self.height, self.width, 4).copy()
+
+    def winners(self, ya: int = 0, yb: Optional[int] = None, xa: int = 0, xb: Optional[int] = None) -> np.ndarray:
+        """Ring slot drawn at each pixel of the last frame's block [ya:yb, xa:xb] (-1 =
+        background), from the key buffers (the smallest key over the threads' buffers)."""
+        H, W = self.height, self.width
+        kb = self._keys.reshape(-1, H, W)[:, ya:yb, xa:xb].min(axis=0)
+        head, cap = self._last_ring
+        slots = ((kb & np.uint64(0xFFFFFFFF)).astype(np.int64) + head) % cap
+        return np.where(kb == cpu_kernels.EMPTY, -1, slots)
+
+    def pick(self, x: float, y: float, pixel_ratio: float = 1.0) -> Optional[int]:
+        win = pick_window(self.width, self.height, x, y, pixel_ratio, self.cfg.pick_radius)
+        if win is None or self._keys.shape[0] == 0:
+            return None
+        X, Y, xa, xb, ya, yb = win
+        block = self.winners(ya, yb, xa, xb)
+        block = in_pick_circle(block, xa, ya, x, y, pixel_ratio, self.cfg.pick_radius)
+        last: dict[str, np.ndarray] = {}
+        if self.cfg.pick_strategy != "nearest":  # attributes of the last frame's own copy
+            s = np.unique(block[block >= 0])
+            last = {"slots": s, "importance": self._imp[s].astype(np.float64) if self._need_imp else np.zeros(s.size),
+                    "t": self._t[s].astype(np.float64) if self._need_t else np.zeros(s.size)}
+        return resolve_pick(block, X - xa, Y - ya, self.cfg.pick_strategy, last)
+
+    def info(self) -> dict[str, Any]:
+        return {"tier": self.tier, "raster": self.raster, "size": [self.width, self.height],
+                "split": "bands" if self.bands else "points", "adaptive_threads": self._adaptive,
+                "frames_per_thread_count": {str(t): n for t, n in sorted(self.frames_at.items())},
+                "threads": int(cpu_kernels.numba.get_num_threads()), "numba": cpu_kernels.numba.__version__,
+                "deterministic": True}

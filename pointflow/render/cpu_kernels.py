@@ -1,0 +1,527 @@
+"""Compiled (numba) loops of the cpu tier's ``compute`` raster method (:mod:`.cpu_compute`).
+
+The same key and rules as the wgpu compute method: every per-point test of
+:mod:`pointflow.render.rules` fused with the projection and a write of the point's key
+``bits(float32 w) << 32 | logical`` into every pixel of its footprint, the smallest key
+winning (nearer linear depth, then the lower logical index). Parallel over the cores: the
+occupied logical range is split into one contiguous chunk per thread, each thread clears and
+writes its own key buffer, and the per-pixel resolve takes the minimum over the buffers
+(keys are unique, so the image does not depend on the thread count). Projection and the
+frustum test run in float64 like the numpy reference; colours follow ``colormap.lut_index``
+in float32.
+
+:func:`load` imports numba and compiles (or loads from the disk cache) on first use; it
+returns None when numba is missing or ``POINTFLOW_NO_NUMBA=1``.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import threading
+import warnings
+from typing import Any, Optional
+
+import numpy as np
+
+log = logging.getLogger("pointflow.render.cpu_kernels")
+
+#: an empty pixel (every real key is smaller: bits(w) of a finite w < 0x7f800000)
+EMPTY = np.uint64(0xFFFFFFFFFFFFFFFF)
+_M32 = np.uint64(0xFFFFFFFF)
+_C1 = np.uint64(747796405)
+_C2 = np.uint64(2891336453)
+_C3 = np.uint64(277803737)
+_U4 = np.uint64(4)
+_U8 = np.uint64(8)
+_U22 = np.uint64(22)
+_U28 = np.uint64(28)
+_U32 = np.uint64(32)
+_INV24 = np.float32(2.0 ** -24)
+_F0 = np.float32(0.0)
+_F1 = np.float32(1.0)
+_F255 = np.float32(255.0)
+_FH = np.float32(0.5)
+
+# colour modes (the resolve pass)
+C_SINGLE, C_RGB, C_SCALAR, C_Z, C_TIME = 0, 1, 2, 3, 4
+# per-chunk counters written by the passes
+ST_OCC, ST_BAD, ST_KEEP, ST_DRAWN = 0, 1, 2, 3
+N_ST = 4
+
+ENV_NO_NUMBA = "POINTFLOW_NO_NUMBA"
+
+
+# --------------------------------------------------------------------------- the loops (plain Python, compiled by load())
+def _pcg(v):
+    # PCG RXS-M-XS 32 (rules.pcg) on a uint64 holding a uint32
+    state = (v * _C1 + _C2) & _M32
+    word = (((state >> ((state >> _U28) + _U4)) ^ state) * _C3) & _M32
+    return ((word >> _U22) ^ word) & _M32
+
+
+def _u01(slot, hseed):
+    return np.float32(_pcg((np.uint64(slot) ^ hseed) & _M32) >> _U8) * _INV24
+
+
+def _colour_value(cmode, slot, pos, tms, cval):
+    if cmode == C_Z:
+        return np.float64(pos[slot, 2])
+    if cmode == C_TIME:
+        return np.float64(tms[slot])
+    return np.float64(cval[slot])
+
+
+def _frustum(x, y, z, cx, cy, cz, w, planes, eps):
+    """The six planes test of rules.select_points (float64, a point on a plane is kept).
+    Clip space decides when it is clear by ``eps`` (far above float64 rounding of either
+    form: the planes are the clip rows' sums, normalised); the planes decide otherwise."""
+    a0 = w + cx
+    a1 = w - cx
+    a2 = w + cy
+    a3 = w - cy
+    a5 = w - cz
+    if a0 > eps and a1 > eps and a2 > eps and a3 > eps and cz > eps and a5 > eps:
+        return True
+    if a0 < -eps or a1 < -eps or a2 < -eps or a3 < -eps or cz < -eps or a5 < -eps:
+        return False
+    for k in range(6):
+        if planes[k, 0] * x + planes[k, 1] * y + planes[k, 2] * z + planes[k, 3] < 0.0:
+            return False
+    return True
+
+
+def _test(logical, slot, tms, imp, has_window, now_ms, window_ms, lod, has_imp, imp_degenerate, imp_lo, imp_scale,
+          seed_h):
+    """The tests after the frustum and before the budget (rules.select_points)."""
+    if has_window and not (now_ms - tms[slot]) <= window_ms:
+        return False
+    if lod > 1 and logical % lod != 0:
+        return False
+    if has_imp:
+        p = _F1
+        if not imp_degenerate:
+            p = (imp[slot] - imp_lo) * imp_scale  # float32, clipped as np.clip; NaN -> 0
+            if p != p:
+                p = _F0
+            elif p < _F0:
+                p = _F0
+            elif p > _F1:
+                p = _F1
+        if not _u01(slot, seed_h) <= p:
+            return False
+    return True
+
+
+def _splat(kb, fb, ub, logical, cx, cy, w, W, H, half_px, world, size_scale, round_, ylo, yhi):
+    """Write the point's key into every pixel of its footprint (rules.footprint_box) within
+    rows [ylo, yhi) (a thread's band of the screen); (cx, cy, w) its clip coordinates.
+    ``fb``/``ub``: a one-element float32 scratch and its uint32 view (the bits of w)."""
+    px = (cx / w * 0.5 + 0.5) * W
+    py = (0.5 - cy / w * 0.5) * H
+    half = half_px
+    if world:
+        s = size_scale / w
+        if s < 1.0:
+            s = 1.0
+        if s > 4096.0:
+            s = 4096.0
+        half = s * 0.5
+    fx0 = np.ceil(px - half - 0.5)
+    fy0 = np.ceil(py - half - 0.5)
+    if round_:
+        fx1 = np.floor(px + half - 0.5) + 1.0
+        fy1 = np.floor(py + half - 0.5) + 1.0
+    else:
+        fx1 = np.ceil(px + half - 0.5)
+        fy1 = np.ceil(py + half - 0.5)
+    fx0 = min(max(fx0, 0.0), np.float64(W))
+    fx1 = min(max(fx1, 0.0), np.float64(W))
+    fy0 = min(max(fy0, 0.0), np.float64(H))
+    fy1 = min(max(fy1, 0.0), np.float64(H))
+    x0, x1, y0, y1 = int(fx0), int(fx1), int(fy0), int(fy1)
+    if y0 < ylo:
+        y0 = ylo
+    if y1 > yhi:
+        y1 = yhi
+    if x1 <= x0 or y1 <= y0:
+        return
+    wf = np.float32(w)
+    if wf < _F0:
+        wf = _F0
+    fb[0] = wf
+    key = (np.uint64(ub[0]) << _U32) | np.uint64(logical)
+    hh = half * half
+    for yy in range(y0, y1):
+        row = yy * W
+        ey = yy + 0.5 - py
+        for xx in range(x0, x1):
+            if round_:
+                ex = xx + 0.5 - px
+                if ex * ex + ey * ey > hh:
+                    continue
+            i = row + xx
+            if key < kb[i]:
+                kb[i] = key
+
+
+def _raster(keys, T, C, bands, st, vrange, mask, use_mask, pos, tms, imp, cval, head, size, cap, W, H, vp, planes,
+            half_px, world, size_scale, round_, has_window, now_ms, window_ms, lod, has_imp, imp_degenerate,
+            imp_lo, imp_scale, seed_h, range_mode, eps_s):
+    """T threads. ``bands`` (C = T): one key buffer, thread c owns rows [H c/T, H (c+1)/T),
+    clears them and runs every point (counting only in thread 0). Else one key buffer per
+    thread, cleared first, and C chunks of logical indices handed out as threads come free
+    (the caller sets a parallel chunk size of 1: a thread slowed by other work takes fewer
+    chunks), each written into the buffer of the thread that runs it. Tests + splat (or
+    splat the points ``mask`` keeps when ``use_mask``: the budget's passes did the tests).
+    Counters per chunk in ``st``; the auto colour range in ``vrange``."""
+    if not bands:
+        for r in numba.prange(T * H):
+            t = r // H
+            y = r - t * H
+            for i in range(y * W, (y + 1) * W):
+                keys[t, i] = EMPTY
+    for c in numba.prange(C):
+        if bands:
+            kb = keys[0]
+            ylo = H * c // T
+            yhi = H * (c + 1) // T
+            for i in range(ylo * W, yhi * W):
+                kb[i] = EMPTY
+            a = 0
+            b = size
+        else:
+            kb = keys[numba.get_thread_id()]
+            ylo = 0
+            yhi = H
+            a = size * c // C
+            b = size * (c + 1) // C
+        fb = np.empty(1, np.float32)
+        ub = fb.view(np.uint32)
+        n_occ = 0
+        n_bad = 0
+        n_keep = 0
+        n_drawn = 0
+        vmin = np.inf
+        vmax = -np.inf
+        for logical in range(a, b):
+            slot = head + logical
+            if slot >= cap:
+                slot -= cap
+            if use_mask:
+                if mask[logical] == 0:
+                    continue
+            else:
+                n_occ += 1
+                if not (np.isfinite(pos[slot, 0]) and np.isfinite(pos[slot, 1]) and np.isfinite(pos[slot, 2])):
+                    n_bad += 1
+                    continue
+                if range_mode != 0:
+                    v = _colour_value(range_mode, slot, pos, tms, cval)
+                    if np.isfinite(v):
+                        vmin = min(vmin, v)
+                        vmax = max(vmax, v)
+            x = np.float64(pos[slot, 0])
+            y = np.float64(pos[slot, 1])
+            z = np.float64(pos[slot, 2])
+            cx = vp[0, 0] * x + vp[0, 1] * y + vp[0, 2] * z + vp[0, 3]
+            cy = vp[1, 0] * x + vp[1, 1] * y + vp[1, 2] * z + vp[1, 3]
+            w = vp[3, 0] * x + vp[3, 1] * y + vp[3, 2] * z + vp[3, 3]
+            if not use_mask:
+                cz = vp[2, 0] * x + vp[2, 1] * y + vp[2, 2] * z + vp[2, 3]
+                if not _frustum(x, y, z, cx, cy, cz, w, planes, eps_s * (abs(x) + abs(y) + abs(z) + 1.0)):
+                    continue
+                if not _test(logical, slot, tms, imp, has_window, now_ms, window_ms, lod, has_imp, imp_degenerate,
+                             imp_lo, imp_scale, seed_h):
+                    continue
+                n_keep += 1
+            _splat(kb, fb, ub, logical, cx, cy, w, W, H, half_px, world, size_scale, round_, ylo, yhi)
+            n_drawn += 1
+        if bands and c != 0:  # every band saw every point: count once
+            n_occ = n_bad = n_keep = n_drawn = 0
+            vmin = np.inf
+            vmax = -np.inf
+        st[c, ST_OCC] = n_occ
+        st[c, ST_BAD] = n_bad
+        st[c, ST_KEEP] = n_keep
+        st[c, ST_DRAWN] = n_drawn
+        vrange[c, 0] = vmin
+        vrange[c, 1] = vmax
+
+
+def _select(mask, st, vrange, pos, tms, imp, cval, head, size, cap, T, vp, planes, has_window, now_ms, window_ms, lod,
+            has_imp, imp_degenerate, imp_lo, imp_scale, seed_h, range_mode, eps_s):
+    """The budget's first pass: the tests only, a keep flag per logical index."""
+    for c in numba.prange(T):
+        a = size * c // T
+        b = size * (c + 1) // T
+        n_occ = 0
+        n_bad = 0
+        n_keep = 0
+        vmin = np.inf
+        vmax = -np.inf
+        for logical in range(a, b):
+            slot = head + logical
+            if slot >= cap:
+                slot -= cap
+            mask[logical] = 0
+            n_occ += 1
+            if not (np.isfinite(pos[slot, 0]) and np.isfinite(pos[slot, 1]) and np.isfinite(pos[slot, 2])):
+                n_bad += 1
+                continue
+            if range_mode != 0:
+                v = _colour_value(range_mode, slot, pos, tms, cval)
+                if np.isfinite(v):
+                    vmin = min(vmin, v)
+                    vmax = max(vmax, v)
+            x = np.float64(pos[slot, 0])
+            y = np.float64(pos[slot, 1])
+            z = np.float64(pos[slot, 2])
+            cx = vp[0, 0] * x + vp[0, 1] * y + vp[0, 2] * z + vp[0, 3]
+            cy = vp[1, 0] * x + vp[1, 1] * y + vp[1, 2] * z + vp[1, 3]
+            cz = vp[2, 0] * x + vp[2, 1] * y + vp[2, 2] * z + vp[2, 3]
+            w = vp[3, 0] * x + vp[3, 1] * y + vp[3, 2] * z + vp[3, 3]
+            if not _frustum(x, y, z, cx, cy, cz, w, planes, eps_s * (abs(x) + abs(y) + abs(z) + 1.0)):
+                continue
+            if _test(logical, slot, tms, imp, has_window, now_ms, window_ms, lod, has_imp, imp_degenerate, imp_lo,
+                     imp_scale, seed_h):
+                mask[logical] = 1
+                n_keep += 1
+        st[c, ST_OCC] = n_occ
+        st[c, ST_BAD] = n_bad
+        st[c, ST_KEEP] = n_keep
+        vrange[c, 0] = vmin
+        vrange[c, 1] = vmax
+
+
+def _thin(mask, counts, head, size, cap, T, bseed, frac):
+    """The budget's thinning: a survivor stays iff ``uniform01(slot, budget_seed) < frac``."""
+    for c in numba.prange(T):
+        a = size * c // T
+        b = size * (c + 1) // T
+        n = 0
+        for logical in range(a, b):
+            if mask[logical] == 0:
+                continue
+            slot = head + logical
+            if slot >= cap:
+                slot -= cap
+            if _u01(slot, bseed) < frac:
+                n += 1
+            else:
+                mask[logical] = 0
+        counts[c] = n
+
+
+def _cap(mask, base, size, T, budget):
+    """Keep at most ``budget`` thinned survivors, the first in logical order (``base``: the
+    thinned survivors before each chunk)."""
+    for c in numba.prange(T):
+        a = size * c // T
+        b = size * (c + 1) // T
+        run = base[c]
+        for logical in range(a, b):
+            if mask[logical] != 0:
+                if run >= budget:
+                    mask[logical] = 0
+                run += 1
+
+
+def _resolve(keys, img, logz, edl, vp, head, cap, cmode, single, bg, rgbp, pos, tms, cval, lo, scale, degenerate,
+             lut):
+    """Per pixel: the smallest key over the buffers -> the winner's colour (or the
+    background); with EDL, log2 of the winner's linear depth (clip w, float64 as the
+    reference), +inf on the background. (Picking reads the keys themselves.)"""
+    T = keys.shape[0]
+    H = img.shape[0]
+    W = img.shape[1]
+    for y in numba.prange(H):
+        for x in range(W):
+            i = y * W + x
+            k = keys[0, i]
+            for c in range(1, T):
+                k2 = keys[c, i]
+                if k2 < k:
+                    k = k2
+            if k == EMPTY:
+                img[y, x] = bg
+                if edl:
+                    logz[i] = np.inf
+                continue
+            logical = np.int64(k & _M32)
+            slot = head + logical
+            if slot >= cap:
+                slot -= cap
+            if edl:
+                w = (vp[3, 0] * np.float64(pos[slot, 0]) + vp[3, 1] * np.float64(pos[slot, 1])
+                     + vp[3, 2] * np.float64(pos[slot, 2]) + vp[3, 3])
+                logz[i] = np.log2(w)
+            if cmode == C_SINGLE:
+                img[y, x] = single
+            elif cmode == C_RGB:
+                img[y, x] = rgbp[slot]
+            else:
+                if cmode == C_Z:
+                    v = pos[slot, 2]
+                elif cmode == C_TIME:
+                    v = np.float32(tms[slot])
+                else:
+                    v = cval[slot]
+                if not np.isfinite(v):
+                    img[y, x] = single
+                elif degenerate:
+                    img[y, x] = lut[255]
+                else:
+                    t = (v - lo) * scale
+                    t = min(max(t, _F0), _F1)
+                    img[y, x] = lut[int(np.floor(t * _F255 + _FH))]
+
+
+def _edl(logz, img, offsets, k_shade):
+    """Eye-dome lighting (rules.edl_shade + rules.apply_shade) over the winners' log2 depth
+    (+inf = background: contributes nothing, is not shaded)."""
+    H = img.shape[0]
+    W = img.shape[1]
+    n = offsets.shape[0]
+    for y in numba.prange(H):
+        for x in range(W):
+            i = y * W + x
+            d = logz[i]
+            if d == np.inf:
+                continue
+            resp = 0.0
+            for k in range(n):
+                qx = x + offsets[k, 0]
+                qy = y + offsets[k, 1]
+                if qx < 0 or qy < 0 or qx >= W or qy >= H:
+                    continue
+                e = d - logz[qy * W + qx]
+                if e > 0.0:
+                    resp += e
+            resp /= n
+            shade = np.exp(k_shade * resp)
+            c = img[y, x]
+            r = np.uint32(min(max(np.floor(np.float64(c & np.uint32(255)) * shade + 0.5), 0.0), 255.0))
+            g = np.uint32(min(max(np.floor(np.float64((c >> np.uint32(8)) & np.uint32(255)) * shade + 0.5), 0.0), 255.0))
+            bl = np.uint32(min(max(np.floor(np.float64((c >> np.uint32(16)) & np.uint32(255)) * shade + 0.5), 0.0), 255.0))
+            img[y, x] = r | (g << np.uint32(8)) | (bl << np.uint32(16)) | (c & np.uint32(0xFF000000))
+
+
+def _floor(keys, T, C, bands, pos, size, head, cap, W, H, vp, half_px):
+    """The benchmark's bare floor: the same threads, split and chunks, projection and key
+    write as :func:`_raster`, no rules (no tests but w > 0, square footprint, no colour, no
+    resolve)."""
+    if not bands:
+        for r in numba.prange(T * H):
+            t = r // H
+            y = r - t * H
+            for i in range(y * W, (y + 1) * W):
+                keys[t, i] = EMPTY
+    for c in numba.prange(C):
+        if bands:
+            kb = keys[0]
+            ylo = H * c // T
+            yhi = H * (c + 1) // T
+            for i in range(ylo * W, yhi * W):
+                kb[i] = EMPTY
+            a = 0
+            b = size
+        else:
+            kb = keys[numba.get_thread_id()]
+            ylo = 0
+            yhi = H
+            a = size * c // C
+            b = size * (c + 1) // C
+        fb = np.empty(1, np.float32)
+        ub = fb.view(np.uint32)
+        for logical in range(a, b):
+            slot = head + logical
+            if slot >= cap:
+                slot -= cap
+            x = np.float64(pos[slot, 0])
+            y = np.float64(pos[slot, 1])
+            z = np.float64(pos[slot, 2])
+            w = vp[3, 0] * x + vp[3, 1] * y + vp[3, 2] * z + vp[3, 3]
+            if not w > 0.0:
+                continue
+            cx = vp[0, 0] * x + vp[0, 1] * y + vp[0, 2] * z + vp[0, 3]
+            cy = vp[1, 0] * x + vp[1, 1] * y + vp[1, 2] * z + vp[1, 3]
+            _splat(kb, fb, ub, logical, cx, cy, w, W, H, half_px, False, 0.0, False, ylo, yhi)
+
+
+# --------------------------------------------------------------------------- compilation
+class Kernels:
+    """The compiled loops (attributes named as the functions above, without the underscore)."""
+
+    def __init__(self, **fns: Any):
+        self.__dict__.update(fns)
+
+
+numba: Any = None
+_kernels: Optional[Kernels] = None
+_why: str = ""
+_tried = False
+_lock = threading.Lock()
+
+
+def _compile(cache: bool) -> Kernels:
+    global numba
+    import numba as nb
+
+    numba = nb  # the loops name numba.prange through this module global
+    g = globals()
+    opts = dict(cache=cache, nogil=True, boundscheck=False, error_model="numpy")
+    for name in ("_pcg", "_u01", "_colour_value", "_frustum", "_test", "_splat"):
+        g[name] = nb.njit(inline="always", **opts)(g[name])
+    out = {}
+    for name in ("_raster", "_select", "_thin", "_cap", "_resolve", "_edl", "_floor"):
+        out[name[1:]] = nb.njit(parallel=True, **opts)(g[name])
+    return Kernels(**out)
+
+
+def disabled() -> Optional[str]:
+    """Why the compiled method is off by request (``POINTFLOW_NO_NUMBA``), or None."""
+    if os.environ.get(ENV_NO_NUMBA, "") not in ("", "0"):
+        return f"${ENV_NO_NUMBA}={os.environ[ENV_NO_NUMBA]}"
+    return None
+
+
+def load() -> Optional[Kernels]:
+    """The compiled loops, or None (numba missing or disabled; :func:`why_unavailable` says why)."""
+    global _kernels, _tried, _why
+    if _tried:
+        return _kernels
+    with _lock:
+        if _tried:
+            return _kernels
+        off = disabled()
+        if off:
+            _why = f"{off} turns compiled loops off"
+        else:
+            try:
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")  # a cache that cannot be written is not the user's problem
+                    try:
+                        _kernels = _compile(cache=True)
+                    except Exception as exc:  # noqa: BLE001 - e.g. no writable cache location
+                        log.info("cpu raster: compiled without a disk cache (%s: %s)", type(exc).__name__, exc)
+                        _kernels = _compile(cache=False)
+            except Exception as exc:  # noqa: BLE001 - numba missing or broken
+                _why = f"numba unavailable ({type(exc).__name__}: {exc})"
+                _kernels = None
+        _tried = True
+        return _kernels
+
+
+def why_unavailable() -> str:
+    return _why
+
+
+def available() -> bool:
+    """True when numba can be imported and is not disabled (without compiling anything)."""
+    if disabled():
+        return False
+    try:
+        import importlib.util
+        return importlib.util.find_spec("numba") is not None
+    except (ImportError, ValueError):
+        return False
