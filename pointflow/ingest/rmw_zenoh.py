@@ -287,21 +287,25 @@ class SequenceLedger:
         self.lost: dict[tuple[str, str], int] = {}
         self.received: dict[tuple[str, str], int] = {}
         self.joined_after: dict[tuple[str, str], int] = {}
+        self.min_step: dict[tuple[str, str], int] = {}
         self.out_of_order = 0
 
-    def observe(self, topic: str, att: Attachment, stride: int = 1) -> int:
+    def observe(self, topic: str, att: Attachment, stride: int = 0) -> int:
         """Account one message; returns how many were lost just before it.
 
-        ``stride``: how many numbers the publisher uses per message on the path this one came
-        by. A buffer-aware publisher numbers every put, and puts each message once on
-        ``_buf_cpu`` and once more per other subscription, so a ``_buf_cpu`` reader sees steps
-        of 1 + those subscriptions; a step that is not a whole number of strides (a
-        subscription came or went) is rounded down, so loss is never overstated."""
+        ``stride`` (a message that came on ``_buf_cpu``): a buffer-aware publisher numbers
+        every put, and puts each message once on ``_buf_cpu`` and once more per other
+        subscription it has discovered (and it never forgets one that left), so steps are
+        ``1 + those``. The stride used is the larger of ``stride`` (from the graph now) and the
+        smallest step this publisher has shown on that path; a step that is not a whole number
+        of strides is rounded down: loss is never overstated. 0: a plain path, step 1."""
         k = (topic, att.gid_hex)
         seq = att.sequence_number
-        stride = max(1, int(stride))
-        self.received[k] = self.received.get(k, 0) + 1
         last = self.last.get(k)
+        if stride and last is not None and seq > last:
+            self.min_step[k] = min(self.min_step.get(k, seq - last), seq - last)
+        stride = max(1, int(stride), self.min_step.get(k, 1) if stride else 1)
+        self.received[k] = self.received.get(k, 0) + 1
         if last is None:
             self.last[k] = seq
             self.lost.setdefault(k, 0)

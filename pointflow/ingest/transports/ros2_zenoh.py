@@ -238,7 +238,7 @@ class Ros2ZenohTransport(Transport):
         is_cloud = topic == self.o.topic
         with self._lock:
             if isinstance(att, rz.Attachment):
-                self.ledger.observe(topic, att, self._cpu_stride(topic) if cpu_group else 1)
+                self.ledger.observe(topic, att, self._cpu_stride(topic) if cpu_group else 0)
             if cpu_group:
                 self.counters["buffer_cpu_messages"] = self.counters.get("buffer_cpu_messages", 0) + 1
             if is_cloud:
