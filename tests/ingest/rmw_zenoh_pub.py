@@ -120,6 +120,7 @@ class Endpoint:
         self.lock = threading.Lock()
         self.token = session.liveliness().declare_token(self.entity.key())
         self.seq = 0
+        self.seen: set[bytes] = set()               # subscription GIDs seen in the graph
         self.matched = threading.Event()
 
     def _publisher(self, key: str):
@@ -129,6 +130,7 @@ class Endpoint:
 
     def discover(self, sub: rz.Entity) -> None:
         """A subscription of this topic came into the graph (``on_subscriber_discovered``)."""
+        self.seen.add(sub.gid())
         if self.buffer_aware:
             g = sub.gid()
             with self.lock:
@@ -213,11 +215,14 @@ def publish(spec: dict) -> None:
         line = sys.stdin.readline()
         if line.strip() != "go":
             return
-    want = int(spec.get("min_subscribers", 1))  # buffer-aware topics: wait for that many subscriptions
+    want = int(spec.get("min_subscribers", 0))  # a test that needs that many subscriptions first
     for ep in {eps[step[1]] for step in spec["script"]}:
-        end = time.monotonic() + 60
-        while ep.buffer_aware and len(ep.cpu_subs) + len(ep.gid_pubs) < want and time.monotonic() < end:
+        end = time.monotonic() + 120
+        while len(ep.seen) < want and time.monotonic() < end:
             time.sleep(0.01)
+        if want and not ep.wait_matched(60):
+            say("NO_SUBSCRIBER", ep.entity.topic)
+            return
     sent: dict[str, int] = {}
     for step in spec["script"]:
         topic = step[1]

@@ -265,7 +265,7 @@ class Ros2ZenohTransport(Transport):
         self._start(self.o.zenoh)
         if self._peer_cut_off():
             routers = ", ".join(self.o.zenoh.connect)
-            log.warning("%s: peer mode reached the Zenoh router at %s but no ROS node on domain %d: rmw_zenoh's "
+            log.warning("%s: peer mode reached the Zenoh router at %s but no ROS publisher on domain %d: rmw_zenoh's "
                         "router does not forward between peers (peers_failover_brokering: false) and its nodes "
                         "accept connections from their own host only; reopened as a client of the router "
                         "(set zenoh.mode: client to skip this wait, docs/ros.md)",
@@ -322,8 +322,9 @@ class Ros2ZenohTransport(Transport):
                 self._lock.wait(min(0.05, max(0.0, deadline - time.monotonic())))
 
     def _peer_cut_off(self) -> bool:
-        """A peer that reached a router on another host and not one ROS entity: rmw_zenohd does
-        not forward between peers and the robot's nodes listen on its loopback only."""
+        """A peer that reached a router on another host, no other peer, and not one publisher:
+        rmw_zenohd does not forward between peers and the robot's nodes listen on its loopback
+        only. (A robot with no publisher up yet reads the same; a client sees it as well.)"""
         if self._mode != "peer" or all(is_loopback_locator(x) for x in self.o.zenoh.connect):
             return False
         s = self._session
@@ -333,8 +334,9 @@ class Ros2ZenohTransport(Transport):
         except Exception:  # noqa: BLE001 - a closed session: nothing to decide
             return False
         me = str(s.zid())
-        with self._lock:
-            return not any(e.zid != me for e in self._graph.values() if e.domain_id == self.o.domain_id)
+        with self._lock:  # clients' tokens do reach a peer through the router: only publishers tell
+            return not any(e.zid != me and e.kind == "MP" for e in self._graph.values()
+                           if e.domain_id == self.o.domain_id)
 
     def _stop_session(self) -> None:
         for obj in list(self._sub_tokens.values()) + self._undeclare[::-1]:
