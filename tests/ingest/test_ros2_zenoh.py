@@ -1,7 +1,7 @@
 """``ros2_zenoh``: live ROS 2 over rmw_zenoh without ROS. Real processes throughout: a Zenoh
 router, a publisher that behaves as rmw_zenoh's (``rmw_zenoh_pub.py``: its keys, attachments,
-liveliness tokens, transient-local cache, Humble and 0.10+ modes), and the real source and
-ingest stages feeding a ring (or ``pointflow run``)."""
+liveliness tokens, transient-local cache, Humble and buffer-aware Rolling modes), and the real
+source and ingest stages feeding a ring (or ``pointflow run``)."""
 from __future__ import annotations
 
 import os

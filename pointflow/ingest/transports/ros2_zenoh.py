@@ -11,9 +11,10 @@ conventions (:mod:`pointflow.ingest.rmw_zenoh`):
   topic of another type says what it is); with no PointCloud2 publisher at all it waits.
 * **Its own place in the graph**: a node token (``NN``, node ``node_name``) and, per topic, a
   subscription token (``MS``) exactly as rmw_zenoh declares them, so ``ros2 topic info`` on
-  the robot lists it and publishers that send only to matched subscriptions (rmw_zenoh 0.10+)
-  send to it. The token carries the type hash the topic's publishers use (``RIHS01_...``, or
-  ``TypeHashNotSupported`` for Humble).
+  the robot lists it and buffer-aware publishers (rmw_zenoh 0.10.5+/0.12.0+), which send only to
+  subscriptions they discovered, send to it. The token carries the type hash the topic's
+  publishers use (``RIHS01_...``, or ``TypeHashNotSupported`` for Humble) and, for PointCloud2,
+  ``backends:cpu:`` (a CPU-only buffer-aware subscription, served on ``_buf_cpu``).
 * **Data**: a subscriber on ``<domain_id>/<topic>/sensor_msgs::msg::dds_::PointCloud2_/*``
   (the ``*`` matches every distribution's hash chunk), where Jazzy/Humble publishers put, and
   one on ``.../*/_buf_cpu``, where buffer-aware publishers (rmw_zenoh 0.10.5+ Lyrical, 0.12.0+
