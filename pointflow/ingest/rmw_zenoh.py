@@ -20,6 +20,18 @@ from its released sources, so the ``ros2_zenoh`` transport can talk to ROS 2 nod
   namespace is ``%`` and ``/ouster/points`` is ``%ouster%points``). The QoS chunk is
   ``reliability:durability:history,depth:deadline s,ns:lifespan s,ns:liveliness,lease s,ns``,
   each value left empty when it is rmw_zenoh's default (reliable, volatile, keep last, 42).
+  The GID of an entity is XXH3-128 of its token (low 64 bits, then high, little-endian).
+* **Buffer-aware topics** (rmw_zenoh 0.10.5 on Lyrical, 0.12.0 on Rolling, ros2/rmw_zenoh#930:
+  ``buffer_endpoint_helpers.hpp``, ``rmw_publisher_data.cpp``, ``rmw_subscription_data.cpp``,
+  ``liveliness_utils.cpp``, ``graph_cache.cpp``): for a type whose typesupport has buffer fields
+  (PointCloud2's ``uint8[] data``), publisher and subscription tokens end with a 14th chunk
+  ``backends:<name>:<metadata>[;...]`` (sorted by name, ``% ; : /`` escaped as ``%25 %3B %3A
+  %2F``); a publisher always includes ``cpu``, so its token ends ``backends:cpu:``. Once it has
+  discovered every matched subscription (each subscription token on the topic name), a publisher
+  puts nothing on the base key: subscriptions whose backends are exactly ``{cpu}`` get plain CDR
+  on ``<base key>/_buf_cpu`` (one put), every other one (including a token without backends) its
+  own put on ``<base key>/_buf/<subscription GID hex>``, each put with the next sequence number.
+  With no subscription discovered it sends nothing.
 
 No zenoh import here (the parts are plain strings and bytes), except where an attachment is
 read or written with Zenoh's serialiser.
@@ -28,7 +40,7 @@ from __future__ import annotations
 
 import dataclasses
 import re
-from typing import Any, Optional
+from typing import Any, Mapping, Optional
 
 #: Prefix of every rmw_zenoh liveliness token.
 ADMIN_SPACE = "@ros2_lv"
@@ -65,6 +77,58 @@ def topic_key(domain_id: int, topic: str, ros_type_name: str, type_hash: str = "
     return f"{int(domain_id)}/{topic.strip('/')}/{dds_type(ros_type_name)}/{type_hash}"
 
 
+#: The backends a CPU-only buffer-aware subscription declares (rmw_subscription_data.cpp: no
+#: acceptable_buffer_backends given -> ``{"cpu": ""}``).
+CPU_ONLY = {"cpu": ""}
+#: Types whose typesupport has buffer fields (rosidl sets ``has_buffer_fields``; rmw_zenoh only
+#: reads it): the top-level ``uint8[]`` of PointCloud2. Transient-local endpoints never use them.
+BUFFER_TYPES = frozenset({"sensor_msgs/msg/PointCloud2"})
+
+
+def buffer_cpu_key(base_key: str) -> str:
+    """Where a buffer-aware publisher puts for CPU-only subscriptions (``make_cpu_group_key``)."""
+    return f"{base_key}/_buf_cpu"
+
+
+def buffer_key(base_key: str, subscription_gid: bytes) -> str:
+    """Where it puts for one other subscription (``make_accelerated_key``, GID in lowercase hex)."""
+    return f"{base_key}/_buf/{bytes(subscription_gid).hex()}"
+
+
+def gid(token_key: str) -> bytes:
+    """An entity's 16-byte GID: XXH3-128 of its token (``Entity::Entity``: memcpy of the low
+    then the high 64 bits, little-endian machines)."""
+    import xxhash
+
+    return xxhash.xxh3_128(token_key.encode()).intdigest().to_bytes(16, "little")
+
+
+def _escape_backend(text: str) -> str:
+    return "".join({"%": "%25", ";": "%3B", ":": "%3A", "/": "%2F"}.get(c, c) for c in text)
+
+
+def _unescape_backend(text: str) -> str:
+    return re.sub(r"%([0-9A-Fa-f]{2})", lambda m: chr(int(m.group(1), 16)), text)
+
+
+def backends_chunk(backends: Mapping[str, str]) -> str:
+    """``{"cpu": ""}`` -> ``backends:cpu:`` (names sorted, fields escaped)."""
+    return "backends:" + ";".join(f"{_escape_backend(n)}:{_escape_backend(backends[n])}" for n in sorted(backends))
+
+
+def parse_backends(chunk: str) -> Optional[dict[str, str]]:
+    """The reverse of :func:`backends_chunk`; None for a chunk that is not one (or lists none)."""
+    if not chunk.startswith("backends:"):
+        return None
+    out = {}
+    for entry in chunk[len("backends:"):].split(";"):
+        if entry:
+            name, _, meta = entry.partition(":")
+            if name:
+                out[_unescape_backend(name)] = _unescape_backend(meta)
+    return out or None
+
+
 def mangle(name: str) -> str:
     return name.replace("/", "%")
 
@@ -96,6 +160,17 @@ class Entity:
     type: str = ""             # ROS spelling, sensor_msgs/msg/PointCloud2
     type_hash: str = ""
     qos: str = ""
+    #: Buffer backends (rmw_zenoh 0.10.5+/0.12.0+, buffer-aware types only); None: no chunk.
+    backends: Optional[dict[str, str]] = dataclasses.field(default=None, hash=False)
+
+    @property
+    def buffer_aware(self) -> bool:
+        return bool(self.backends)
+
+    @property
+    def cpu_only(self) -> bool:
+        """A subscription a buffer-aware publisher serves on ``_buf_cpu`` (backends exactly cpu)."""
+        return self.backends == CPU_ONLY
 
     @property
     def durability(self) -> int:
@@ -108,7 +183,12 @@ class Entity:
                  mangle(self.enclave), mangle(self.namespace), mangle(self.node)]
         if self.kind != "NN":
             parts += [mangle(self.topic), mangle(dds_type(self.type)), mangle(self.type_hash), self.qos]
+            if self.backends:
+                parts.append(backends_chunk(self.backends))
         return "/".join(parts)
+
+    def gid(self) -> bytes:
+        return gid(self.key())
 
 
 def parse_token(key: str) -> Optional[Entity]:
@@ -127,8 +207,9 @@ def parse_token(key: str) -> Optional[Entity]:
         return Entity(**common)
     if len(parts) < 13 or not all(parts[9:12]):
         return None
+    backends = parse_backends(parts[13]) if len(parts) > 13 else None
     return Entity(**common, topic=demangle(parts[9]), type=ros_type(demangle(parts[10])),
-                  type_hash=demangle(parts[11]), qos=parts[12])
+                  type_hash=demangle(parts[11]), qos=parts[12], backends=backends)
 
 
 def graph_key(domain_id: int) -> str:
@@ -206,23 +287,34 @@ class SequenceLedger:
         self.lost: dict[tuple[str, str], int] = {}
         self.received: dict[tuple[str, str], int] = {}
         self.joined_after: dict[tuple[str, str], int] = {}
+        self.min_step: dict[tuple[str, str], int] = {}
         self.out_of_order = 0
 
-    def observe(self, topic: str, att: Attachment) -> int:
-        """Account one message; returns how many were lost just before it."""
+    def observe(self, topic: str, att: Attachment, stride: int = 0) -> int:
+        """Account one message; returns how many were lost just before it.
+
+        ``stride`` (a message that came on ``_buf_cpu``): a buffer-aware publisher numbers
+        every put, and puts each message once on ``_buf_cpu`` and once more per other
+        subscription it has discovered (and it never forgets one that left), so steps are
+        ``1 + those``. The stride used is the larger of ``stride`` (from the graph now) and the
+        smallest step this publisher has shown on that path; a step that is not a whole number
+        of strides is rounded down: loss is never overstated. 0: a plain path, step 1."""
         k = (topic, att.gid_hex)
         seq = att.sequence_number
-        self.received[k] = self.received.get(k, 0) + 1
         last = self.last.get(k)
+        if stride and last is not None and seq > last:
+            self.min_step[k] = min(self.min_step.get(k, seq - last), seq - last)
+        stride = max(1, int(stride), self.min_step.get(k, 1) if stride else 1)
+        self.received[k] = self.received.get(k, 0) + 1
         if last is None:
             self.last[k] = seq
             self.lost.setdefault(k, 0)
-            self.joined_after[k] = max(0, seq - 1)
+            self.joined_after[k] = max(0, seq - 1) // stride
             return 0
         if seq <= last:
             self.out_of_order += 1
             return 0
-        gap = seq - last - 1
+        gap = (seq - last) // stride - 1
         self.lost[k] += gap
         self.last[k] = seq
         return gap

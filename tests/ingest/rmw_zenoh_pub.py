@@ -7,22 +7,28 @@
 * data on ``<domain>/<topic>/<dds type>/<type hash>``; the hash is ``RIHS01_<hex>`` (computed by
   rosbags, as rosidl does) or ``TypeHashNotSupported`` in ``humble`` mode;
 * every sample carries the attachment (int64 sequence number from 1, int64 source time in ns,
-  16-byte GID) in Zenoh's serialisation; the GID here is a 128-bit hash of the publisher's
-  token (rmw_zenoh uses XXH3-128 of it; receivers treat it as opaque);
+  16-byte GID) in Zenoh's serialisation; the GID is XXH3-128 of the publisher's token, as
+  rmw_zenoh's ``Entity`` computes it;
 * transient-local topics (``/tf_static``) go through an advanced publisher with a cache and
   publisher detection, as rmw_zenoh's do, so a subscription that comes later gets them;
-* ``rolling`` mode (rmw_zenoh 0.10+, Lyrical/Rolling): no sample leaves before a subscription
-  token (``MS``) for the topic is in the graph; ``jazzy``/``humble`` publish when the test says
-  ``go`` on stdin.
+* ``rolling`` (also ``lyrical``) mode is a buffer-aware publisher of rmw_zenoh 0.12.0 (0.10.5 on
+  Lyrical), for PointCloud2 topics: its token ends ``backends:cpu:``; it discovers each
+  subscription token on the topic (same type) and never forgets one; a subscription whose
+  backends are exactly ``cpu`` is served on ``<key>/_buf_cpu`` (one put per message for all of
+  them), any other (a token without backends included) on ``<key>/_buf/<its GID hex>``, each put
+  numbered; nothing goes on the base key and nothing is sent before a subscription is
+  discovered. Its other topics, as ``jazzy``/``humble`` all of theirs, use the base key; those
+  modes publish when the test says ``go`` on stdin, ``rolling`` when its topics have a
+  subscription (a test convenience for the non-buffer topics).
 
 Run as ``python rmw_zenoh_pub.py SPEC.pickle`` (a publisher) or ``python rmw_zenoh_pub.py --router
 LOCATOR`` (a Zenoh router, as ``rmw_zenohd`` is). It prints ``READY`` once declared,
-``MATCHED <token>`` for each subscription token of its topics, ``SENT <topic> <n>`` when a topic's
+``MATCHED <token>`` for each subscription token of its topics, ``PATH cpu <token>`` or ``PATH gid
+<hex> <token>`` when a buffer-aware topic serves a subscription, ``SENT <topic> <n>`` when a topic's
 script is done, and exits when stdin closes.
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import pickle
 import sys
@@ -75,8 +81,11 @@ def cdr_tf(items) -> bytes:
 
 
 def router(locator: str) -> None:
+    """A router configured as rmw_zenohd's DEFAULT_RMW_ZENOH_ROUTER_CONFIG.json5 where it matters
+    here: it does not forward between two peers (``peers_failover_brokering: false``)."""
     conf = zenoh.Config()
     conf.insert_json5("mode", '"router"')
+    conf.insert_json5("routing/router/peers_failover_brokering", "false")
     conf.insert_json5("listen/endpoints", json.dumps([locator]))
     conf.insert_json5("scouting/multicast/enabled", "false")
     with zenoh.open(conf):
@@ -85,46 +94,82 @@ def router(locator: str) -> None:
 
 
 class Endpoint:
-    """One publisher: its token, its Zenoh publisher, its sequence numbers."""
+    """One publisher: its token, its Zenoh publishers, its sequence numbers."""
 
-    def __init__(self, session, domain, node, eid, topic, typ, type_hash, reliable=False):
+    def __init__(self, session, domain, node, eid, topic, typ, type_hash, reliable=False, buffer_aware=False):
         static = topic.endswith("_static")
         qos = (rz.qos_chunk(rz.RELIABLE, rz.TRANSIENT_LOCAL, 1) if static else
                rz.qos_chunk(rz.RELIABLE if reliable else rz.BEST_EFFORT, rz.VOLATILE, 5))
-        self.entity = rz.Entity(domain, str(session.zid()), "0", str(eid), "MP", "/", "/", node, topic, typ, type_hash, qos)
-        self.gid = hashlib.blake2b(self.entity.key().encode(), digest_size=16).digest()
-        key = rz.topic_key(domain, topic, typ, type_hash)
+        self.buffer_aware = buffer_aware and typ in rz.BUFFER_TYPES and not static
+        self.entity = rz.Entity(domain, str(session.zid()), "0", str(eid), "MP", "/", "/", node, topic, typ, type_hash,
+                                qos, backends=dict(rz.CPU_ONLY) if self.buffer_aware else None)
+        self.gid = self.entity.gid()
+        self.session = session
+        self.key = rz.topic_key(domain, topic, typ, type_hash)
+        self.reliable = reliable
         if static:
             self.pub = zenoh.ext.declare_advanced_publisher(
-                session, key, cache=zenoh.ext.CacheConfig(1), publisher_detection=True,
+                session, self.key, cache=zenoh.ext.CacheConfig(1), publisher_detection=True,
                 reliability=zenoh.Reliability.RELIABLE)
         else:
-            self.pub = session.declare_publisher(key, reliability=zenoh.Reliability.RELIABLE if reliable
-                                                 else zenoh.Reliability.BEST_EFFORT,
-                                                 congestion_control=zenoh.CongestionControl.BLOCK)
+            self.pub = self._publisher(self.key)
+        # buffer-aware: the CPU-group publisher is declared at once, one per subscription GID later
+        self.cpu_pub = self._publisher(rz.buffer_cpu_key(self.key)) if self.buffer_aware else None
+        self.cpu_subs: list[bytes] = []
+        self.gid_pubs: dict[bytes, object] = {}     # subscription GID -> its publisher, in discovery order
+        self.lock = threading.Lock()
         self.token = session.liveliness().declare_token(self.entity.key())
         self.seq = 0
+        self.seen: set[bytes] = set()               # subscription GIDs seen in the graph
         self.matched = threading.Event()
 
+    def _publisher(self, key: str):
+        return self.session.declare_publisher(key, reliability=zenoh.Reliability.RELIABLE if self.reliable
+                                              else zenoh.Reliability.BEST_EFFORT,
+                                              congestion_control=zenoh.CongestionControl.BLOCK)
+
+    def discover(self, sub: rz.Entity) -> None:
+        """A subscription of this topic came into the graph (``on_subscriber_discovered``)."""
+        self.seen.add(sub.gid())
+        if self.buffer_aware:
+            g = sub.gid()
+            with self.lock:
+                if g in self.cpu_subs or g in self.gid_pubs:
+                    return
+                if sub.cpu_only:
+                    self.cpu_subs.append(g)
+                    say("PATH", "cpu", sub.key())
+                else:
+                    self.gid_pubs[g] = self._publisher(rz.buffer_key(self.key, g))
+                    say("PATH", "gid", g.hex(), sub.key())
+        self.matched.set()
+
+    def _pubs(self) -> list:
+        if not self.buffer_aware:
+            return [self.pub]
+        with self.lock:
+            return ([self.cpu_pub] if self.cpu_subs else []) + list(self.gid_pubs.values())
+
     def wait_matched(self, timeout: float) -> bool:
-        """The token is in the graph and Zenoh routes to its subscriber (the token can arrive
-        a moment before the subscriber's declaration)."""
+        """A subscription is in the graph and Zenoh routes to every publisher this one puts on
+        (the token can arrive a moment before the subscriber's declaration)."""
         end = time.monotonic() + timeout
         if not self.matched.wait(timeout):
             return False
-        while hasattr(self.pub, "matching_status") and not self.pub.matching_status.matching:
+        while not all(p.matching_status.matching for p in self._pubs() if hasattr(p, "matching_status")):
             if time.monotonic() > end:
                 return False
             time.sleep(0.01)
         return True
 
     def put(self, payload: bytes) -> None:
-        self.seq += 1
-        self.pub.put(payload, attachment=rz.encode_attachment(self.seq, time.time_ns(), self.gid))
+        for pub in self._pubs():  # buffer-aware: _buf_cpu once, then each other subscription's key
+            self.seq += 1
+            pub.put(payload, attachment=rz.encode_attachment(self.seq, time.time_ns(), self.gid))
 
     def skip(self) -> None:
-        """A sample lost on the way: its number is used, nothing arrives."""
-        self.seq += 1
+        """A message lost on the way: its numbers are used, nothing arrives."""
+        self.seq += len(self._pubs())
 
 
 def publish(spec: dict) -> None:
@@ -134,6 +179,7 @@ def publish(spec: dict) -> None:
     conf.insert_json5("listen/endpoints", json.dumps(["tcp/127.0.0.1:0"]))
     conf.insert_json5("scouting/multicast/enabled", "false")
     conf.insert_json5("timestamping/enabled", "true")  # as rmw_zenoh's session config: caches need it
+    conf.insert_json5("transport/shared_memory/enabled", "false")  # namespaces share /dev/shm, hosts do not
     mode = spec.get("mode", "jazzy")
     domain = int(spec.get("domain", 0))
     node = spec.get("node", "lidar_driver")
@@ -147,7 +193,8 @@ def publish(spec: dict) -> None:
     eps: dict[str, Endpoint] = {}
     for i, (topic, typ) in enumerate(spec["advertise"], start=1):
         h = rz.HUMBLE_HASH if mode == "humble" else ts.hash_rihs01(typ)
-        eps[topic] = Endpoint(session, domain, node, i, topic, typ, h, spec.get("reliable", False))
+        eps[topic] = Endpoint(session, domain, node, i, topic, typ, h, spec.get("reliable", False),
+                              buffer_aware=mode in ("rolling", "lyrical"))
 
     def on_token(sample):
         if sample.kind != zenoh.SampleKind.PUT:
@@ -156,7 +203,7 @@ def publish(spec: dict) -> None:
         if ent is None or ent.kind != "MS" or ent.topic not in eps or ent.type != eps[ent.topic].entity.type:
             return
         say("MATCHED", sample.key_expr)
-        eps[ent.topic].matched.set()
+        eps[ent.topic].discover(ent)
 
     watch = live.declare_subscriber(rz.graph_key(domain), on_token, history=True)
     say("READY")
@@ -164,15 +211,23 @@ def publish(spec: dict) -> None:
     # subscription fetches them from the publisher's cache
     for topic, payload in spec.get("at_start", []):
         eps[topic].put(payload)
-    if mode != "rolling":
+    if mode not in ("rolling", "lyrical") and not spec.get("go_at_once"):
         line = sys.stdin.readline()
         if line.strip() != "go":
+            return
+    want = int(spec.get("min_subscribers", 0))  # a test that needs that many subscriptions first
+    for ep in {eps[step[1]] for step in spec["script"]}:
+        end = time.monotonic() + 120
+        while len(ep.seen) < want and time.monotonic() < end:
+            time.sleep(0.01)
+        if want and not ep.wait_matched(60):
+            say("NO_SUBSCRIBER", ep.entity.topic)
             return
     sent: dict[str, int] = {}
     for step in spec["script"]:
         topic = step[1]
         ep = eps[topic]
-        if mode == "rolling" and not ep.wait_matched(60):
+        if mode in ("rolling", "lyrical") and not ep.wait_matched(60):
             say("NO_SUBSCRIBER", topic)
             return
         if step[0] == "skip":
@@ -183,7 +238,10 @@ def publish(spec: dict) -> None:
         time.sleep(spec.get("period_s", 0.005))
     for topic, n in sent.items():
         say("SENT", topic, n)
-    sys.stdin.read()  # stay in the graph (and keep the caches) until the test is done
+    if spec.get("linger_s") is not None:  # started without a pipe on stdin (a namespace test)
+        time.sleep(float(spec["linger_s"]))
+    else:
+        sys.stdin.read()  # stay in the graph (and keep the caches) until the test is done
     watch.undeclare()
     node_tok.undeclare()
     session.close()

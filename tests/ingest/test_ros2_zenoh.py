@@ -1,7 +1,7 @@
 """``ros2_zenoh``: live ROS 2 over rmw_zenoh without ROS. Real processes throughout: a Zenoh
 router, a publisher that behaves as rmw_zenoh's (``rmw_zenoh_pub.py``: its keys, attachments,
-liveliness tokens, transient-local cache, Humble and 0.10+ modes), and the real source and
-ingest stages feeding a ring (or ``pointflow run``)."""
+liveliness tokens, transient-local cache, Humble and buffer-aware Rolling modes), and the real
+source and ingest stages feeding a ring (or ``pointflow run``)."""
 from __future__ import annotations
 
 import os
@@ -167,6 +167,44 @@ def test_keys_tokens_and_attachment_follow_rmw_zenoh():
     assert c[f"lost_in_transit_messages:/t@{a.hex()}"] == 2 and c[f"lost_in_transit_messages:/t@{b.hex()}"] == 1
 
 
+def test_buffer_aware_tokens_keys_and_gids_follow_rmw_zenoh_0_12():
+    """rmw_zenoh 0.12.0 / 0.10.5 (liveliness_utils.cpp, buffer_endpoint_helpers.hpp): a 14th token
+    chunk ``backends:<name>:<meta>;...`` (sorted, ``% ; : /`` escaped), the GID as XXH3-128 of
+    the token (low 64 bits first, little-endian), ``_buf_cpu`` and ``_buf/<gid hex>`` keys."""
+    h = "RIHS01_9198cabf7da3796ae6fe19c4cb3bdd3525492988c70522628af5daa124bae2b5"
+    base = f"0/ouster/points/sensor_msgs::msg::dds_::PointCloud2_/{h}"
+    pub = rz.Entity(0, "aac3178e146ba6f1fc6e6a4085e77f21", "0", "1", "MP", "/", "/", "driver", TOPIC, P.PC2, h,
+                    "2::,5:,:,:,,", backends=dict(rz.CPU_ONLY))
+    key = pub.key()
+    assert key == (f"@ros2_lv/0/aac3178e146ba6f1fc6e6a4085e77f21/0/1/MP/%/%/driver/%ouster%points/"
+                   f"sensor_msgs::msg::dds_::PointCloud2_/{h}/2::,5:,:,:,,/backends:cpu:")
+    back = rz.parse_token(key)
+    assert back == pub and back.buffer_aware and back.cpu_only
+    jazzy = rz.parse_token(key.rsplit("/", 1)[0])               # the same token without the chunk
+    assert jazzy.backends is None and not jazzy.buffer_aware and not jazzy.cpu_only
+    odd = {"cuda": "dev:0/a;b%", "cpu": ""}
+    assert rz.backends_chunk(odd) == "backends:cpu:;cuda:dev%3A0%2Fa%3Bb%25"
+    assert rz.parse_backends(rz.backends_chunk(odd)) == odd and rz.parse_backends("backends:") is None
+    many = rz.parse_token(key.replace("backends:cpu:", rz.backends_chunk(odd)))
+    assert many.backends == odd and not many.cpu_only       # served on _buf/<gid>, not _buf_cpu
+    # XXH3-128 of the empty input is 99aa06d3014798d8 6001c324468d497f (xxHash's test vector):
+    # rmw_zenoh copies the low half first, each little-endian
+    assert rz.gid("").hex() == "7f498d4624c30160" + "d8984701d306aa99"
+    assert pub.gid() == rz.gid(key) and len(pub.gid()) == 16 and pub.gid() != jazzy.gid()
+    assert rz.buffer_cpu_key(base) == base + "/_buf_cpu"
+    assert rz.buffer_key(base, bytes(range(16))) == base + "/_buf/000102030405060708090a0b0c0d0e0f"
+    assert rz.BUFFER_TYPES == {P.PC2}
+    # a _buf_cpu reader's sequence numbers step by 1 + the publisher's other subscriptions
+    led, g = rz.SequenceLedger(), bytes(16)
+    for seq in (1, 3, 5, 9, 11):     # stride 2 (one other subscription); 7 lost
+        led.observe("/t", rz.Attachment(seq, 0, g), stride=2)
+    assert led.counters()["lost_in_transit_messages"] == 1
+    led = rz.SequenceLedger()
+    for seq in (2, 4, 6, 8):         # the graph says 1 (the other subscription left: the publisher
+        led.observe("/t", rz.Attachment(seq, 0, g), stride=1)   # still serves it), steps say 2
+    assert led.counters()["lost_in_transit_messages"] == 0
+
+
 # ----------------------------------------------------------------------------- end to end
 @pytest.mark.parametrize("mode,domain", [("jazzy", 0), ("humble", 0), ("rolling", 3)])
 def test_clouds_arrive_exactly_and_skipped_sequence_numbers_count_as_lost(tmp_path, router, mode, domain):
@@ -182,7 +220,8 @@ def test_clouds_arrive_exactly_and_skipped_sequence_numbers_count_as_lost(tmp_pa
     try:
         st = ru.SourceIngest(source_cfg(router, domain_id=domain))
         matched = rz.parse_token(pub.wait_line("MATCHED").split()[1])
-        if mode != "rolling":  # rmw_zenoh before 0.10 publishes whether or not anyone listens
+        path = pub.wait_line("PATH", timeout=60) if mode == "rolling" else None
+        if mode != "rolling":  # rmw_zenoh before 0.10.5 publishes whether or not anyone listens
             pub.send("go\n")
         assert pub.wait_line("SENT") == f"SENT {TOPIC} 7"
         want = sum(c.n for c in clouds)
@@ -195,9 +234,16 @@ def test_clouds_arrive_exactly_and_skipped_sequence_numbers_count_as_lost(tmp_pa
         if st is not None:
             st.close()
         pub.close()
-    # our own subscription token, as rmw_zenoh declares it, with the publishers' type hash
+    # our own subscription token, as rmw_zenoh declares it, with the publishers' type hash, and
+    # (PointCloud2 has buffer fields) as a CPU-only buffer-aware subscription: backends:cpu:
     assert (matched.kind, matched.topic, matched.type, matched.node, matched.domain_id) == \
         ("MS", TOPIC, P.PC2, "pointflow", domain)
+    assert matched.backends == {"cpu": ""} and matched.key().endswith("/2::,5:,:,:,,/backends:cpu:")
+    if mode == "rolling":  # a buffer-aware publisher served us on <key>/_buf_cpu, never the base key
+        assert path == f"PATH cpu {matched.key()}"
+        assert src["transport_buffer_cpu_messages"] == 7
+    else:
+        assert "transport_buffer_cpu_messages" not in src
     assert matched.type_hash == (rz.HUMBLE_HASH if mode == "humble" else
                                  "RIHS01_9198cabf7da3796ae6fe19c4cb3bdd3525492988c70522628af5daa124bae2b5")
     assert stats["drops"] == {} and stats["points_out"] == want
@@ -208,6 +254,73 @@ def test_clouds_arrive_exactly_and_skipped_sequence_numbers_count_as_lost(tmp_pa
     per_pub = {k: v for k, v in src.items() if k.startswith("transport_lost_in_transit_messages:")}
     assert list(per_pub.values()) == [3] and list(per_pub)[0].startswith(f"transport_lost_in_transit_messages:{TOPIC}@")
     assert src["transport_graph_publishers"] == 2
+
+
+def test_a_rolling_publisher_serves_an_old_subscription_on_its_gid_key_and_ours_on_buf_cpu(tmp_path, router):
+    """Against a buffer-aware (Rolling 0.12.0) publisher: the subscription token the source
+    declared before (no backends chunk) and its base-key subscriber get nothing on the base key
+    (the reported 0 of 6): that subscription is served on ``<key>/_buf/<its GID>``; the source,
+    CPU-only, gets every cloud on ``_buf_cpu``, and three skipped messages count as 3 lost
+    although each message uses two sequence numbers."""
+    import zenoh
+
+    clouds = [ru.cloud_padded(k, n=40 + k) for k in range(6)]
+    script = [("put", TOPIC, P.cdr_cloud(c)) for c in clouds[:3]] + [("skip", TOPIC)] * 3
+    script += [("put", TOPIC, P.cdr_cloud(c)) for c in clouds[3:]]
+    h = "RIHS01_9198cabf7da3796ae6fe19c4cb3bdd3525492988c70522628af5daa124bae2b5"
+    base = rz.topic_key(0, TOPIC, P.PC2, h)
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"peer"')
+    conf.insert_json5("connect/endpoints", f'["{router}"]')
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    old = zenoh.open(conf)
+    got: dict[str, list] = {"base": [], "gid": []}
+    # exactly what ros2_zenoh declared before: a subscriber on the base key and a token without backends
+    token = rz.Entity(0, str(old.zid()), "0", "1", "MS", "/", "/", "old_viewer", TOPIC, P.PC2, h,
+                      rz.qos_chunk(rz.BEST_EFFORT, rz.VOLATILE, 5))
+    subs = [old.declare_subscriber(rz.topic_key(0, TOPIC, P.PC2), lambda s: got["base"].append(s.attachment)),
+            old.declare_subscriber(rz.buffer_key(base, token.gid()),
+                                   lambda s: got["gid"].append(rz.parse_attachment(s.attachment)))]
+    tok = old.liveliness().declare_token(token.key())
+    graph: list[rz.Entity] = []
+    subs.append(old.liveliness().declare_subscriber(
+        "@ros2_lv/0/**", lambda s: s.kind == zenoh.SampleKind.PUT and graph.append(rz.parse_token(str(s.key_expr))),
+        history=True))
+    pub = start_publisher(tmp_path, {"connect": router, "mode": "rolling", "advertise": [(TOPIC, P.PC2)],
+                                     "script": script, "min_subscribers": 2})
+    st = None
+    try:
+        st = ru.SourceIngest(source_cfg(router))
+        paths = {pub.wait_line("PATH", timeout=60) for _ in range(2)}
+        assert pub.wait_line("SENT") == f"SENT {TOPIC} 6"
+        want = sum(c.n for c in clouds)
+        stats = wait_ingest(st, lambda s: s.get("points_out") == want)
+        src = st.wait_stats(lambda s: st.stage_stats.get("source", {}).get("transport_messages") == 6) and \
+            st.stage_stats["source"]
+        snap = st.ring.snapshot()
+        end = time.monotonic() + 30
+        while len(got["gid"]) < 6 and time.monotonic() < end:
+            time.sleep(0.05)
+    finally:
+        if st is not None:
+            st.close()
+        pub.close()
+        tok.undeclare()
+        for sub in subs:
+            sub.undeclare()
+        old.close()
+    ours = [e for e in graph if e and e.kind == "MS" and e.node == "pointflow"]
+    pubs = [e for e in graph if e and e.kind == "MP"]
+    assert len(ours) == 1 and ours[0].cpu_only
+    assert paths == {f"PATH gid {token.gid().hex()} {token.key()}", f"PATH cpu {ours[0].key()}"}
+    # the publisher's token ends backends:cpu:, and its GID in every attachment is XXH3-128 of it
+    assert len(pubs) == 1 and pubs[0].key().endswith("/backends:cpu:") and pubs[0].cpu_only
+    assert got["base"] == []                                    # the old subscription: 0 of 6
+    assert len(got["gid"]) == 6 and {a.gid for a in got["gid"]} == {pubs[0].gid()}
+    assert [a.sequence_number for a in got["gid"]] == [2, 4, 6, 14, 16, 18]   # cpu put first, then this one
+    assert stats["drops"] == {} and stats["points_out"] == want
+    assert np.array_equal(snap.positions, np.concatenate([c.expected()[0] for c in clouds]).astype(np.float64))
+    assert src["transport_buffer_cpu_messages"] == 6 and src["transport_lost_in_transit_messages"] == 3
 
 
 def test_a_humble_publisher_that_starts_later_is_matched_and_read(tmp_path, router):

@@ -11,12 +11,19 @@ conventions (:mod:`pointflow.ingest.rmw_zenoh`):
   topic of another type says what it is); with no PointCloud2 publisher at all it waits.
 * **Its own place in the graph**: a node token (``NN``, node ``node_name``) and, per topic, a
   subscription token (``MS``) exactly as rmw_zenoh declares them, so ``ros2 topic info`` on
-  the robot lists it and publishers that send only to matched subscriptions (rmw_zenoh 0.10+)
-  send to it. The token carries the type hash the topic's publishers use (``RIHS01_...``, or
-  ``TypeHashNotSupported`` for Humble).
+  the robot lists it and buffer-aware publishers (rmw_zenoh 0.10.5+/0.12.0+), which send only to
+  subscriptions they discovered, send to it. The token carries the type hash the topic's
+  publishers use (``RIHS01_...``, or ``TypeHashNotSupported`` for Humble) and, for PointCloud2,
+  ``backends:cpu:`` (a CPU-only buffer-aware subscription, served on ``_buf_cpu``).
 * **Data**: a subscriber on ``<domain_id>/<topic>/sensor_msgs::msg::dds_::PointCloud2_/*``
-  (the ``*`` matches every distribution's hash chunk); each sample's CDR payload is read by
-  rosbags and decoded by :mod:`pointflow.ingest.pointcloud2`, stamped with ``header.stamp``.
+  (the ``*`` matches every distribution's hash chunk), where Jazzy/Humble publishers put, and
+  one on ``.../*/_buf_cpu``, where buffer-aware publishers (rmw_zenoh 0.10.5+ Lyrical, 0.12.0+
+  Rolling) put for subscriptions that, as ours, declare ``backends:cpu:``; each sample's CDR
+  payload is read by rosbags and decoded by :mod:`pointflow.ingest.pointcloud2`, stamped with
+  ``header.stamp``.
+* **Peer mode across hosts**: rmw_zenoh's router does not forward between peers and its nodes
+  listen on their host's loopback only, so a peer that reaches a remote router and not one ROS
+  entity within ``discovery_timeout_s`` reopens as a client of that router, with one warning.
 * **Loss**: each sample's attachment carries the publisher's GID and sequence number; a gap is
   counted as ``lost_in_transit_messages`` (and per publisher,
   ``lost_in_transit_messages:<topic>@<gid>``).
@@ -39,7 +46,7 @@ from typing import Any, Iterator, Optional
 
 from ...chunk import ChunkError, PointChunk
 from ...frames.message import Transforms
-from ...remote.zenoh_options import ZenohOpenError, ZenohOptions, check_zenoh, open_session
+from ...remote.zenoh_options import ZenohOpenError, ZenohOptions, check_zenoh, is_loopback_locator, open_session
 from ...typed import ConfigError, at_least_one, check, load_dataclass, non_negative, positive
 from .. import rmw_zenoh as rz
 from ..pointcloud2 import PointCloud2Decoder
@@ -126,6 +133,7 @@ class Ros2ZenohTransport(Transport):
         self._next_entity = 1
         self._typestore = None
         self._waiting_logged = False
+        self._mode = self.o.zenoh.mode
 
     # ------------------------------------------------------------------ graph
     def _on_token(self, sample) -> None:
@@ -173,6 +181,21 @@ class Ros2ZenohTransport(Transport):
         return False
 
     # ------------------------------------------------------------------ our entities
+    @staticmethod
+    def _buffer_aware(topic: str, typ: str) -> bool:
+        """A subscription rmw_zenoh would make buffer-aware: a buffer type, not transient local."""
+        return typ in rz.BUFFER_TYPES and not topic.endswith("_static")
+
+    def _cpu_stride(self, topic: str) -> int:
+        """Sequence numbers a buffer-aware publisher uses per message while it serves us on
+        ``_buf_cpu``: one for that put, one per other (non-CPU-only) subscription of the topic.
+        Called with the lock held."""
+        typ = self._topic_types.get(topic)
+        others = sum(1 for e in self._graph.values()
+                     if e.kind == "MS" and e.topic == topic and e.type == typ and not e.cpu_only
+                     and e.domain_id == self.o.domain_id)
+        return 1 + others
+
     def _entity(self, kind: str, topic: str = "", typ: str = "", type_hash: str = "", qos: str = "") -> rz.Entity:
         eid = "0" if kind == "NN" else str(self._next_entity)
         if kind != "NN":
@@ -197,14 +220,17 @@ class Ros2ZenohTransport(Transport):
                 else:
                     qos = rz.qos_chunk(rz.RELIABLE, rz.VOLATILE, 100)
                 ent = self._entity("MS", topic, typ, h, qos)
+                if self._buffer_aware(topic, typ):  # rmw_zenoh 0.10.5+/0.12.0+: serve us on _buf_cpu
+                    ent = dataclasses.replace(ent, backends=dict(rz.CPU_ONLY))
                 tok = self._session.liveliness().declare_token(ent.key())
                 self._sub_tokens[(topic, h)] = tok
                 log.debug("%s: declared subscription token %s", self.source_id, ent.key())
 
     # ------------------------------------------------------------------ samples
-    def _on_sample(self, topic: str, sample) -> None:
+    def _on_sample(self, topic: str, sample, cpu_group: bool = False) -> None:
         """On a Zenoh thread: account the sequence number at arrival (so our own queue drops
-        are never mistaken for losses on the way), then queue the sample."""
+        are never mistaken for losses on the way), then queue the sample. ``cpu_group``: it
+        came on ``<key>/_buf_cpu`` from a buffer-aware publisher."""
         try:
             att: Any = rz.parse_attachment(sample.attachment)
         except rz.AttachmentError as exc:
@@ -213,7 +239,9 @@ class Ros2ZenohTransport(Transport):
         is_cloud = topic == self.o.topic
         with self._lock:
             if isinstance(att, rz.Attachment):
-                self.ledger.observe(topic, att)
+                self.ledger.observe(topic, att, self._cpu_stride(topic) if cpu_group else 0)
+            if cpu_group:
+                self.counters["buffer_cpu_messages"] = self.counters.get("buffer_cpu_messages", 0) + 1
             if is_cloud:
                 if self._clouds_queued >= self.o.queue_messages:
                     for i, item in enumerate(self._queue):
@@ -227,7 +255,6 @@ class Ros2ZenohTransport(Transport):
             self._lock.notify_all()
 
     def open(self) -> None:
-        import zenoh
         from rosbags.typesys import Stores, get_typestore
 
         self._typestore = get_typestore(Stores.LATEST)
@@ -236,13 +263,40 @@ class Ros2ZenohTransport(Transport):
         if self.wants_transforms:
             for t in self.o.tf_topics:
                 self._topic_types[t] = TFM
+        self._start(self.o.zenoh)
+        if self._peer_cut_off():
+            routers = ", ".join(self.o.zenoh.connect)
+            log.warning("%s: peer mode reached the Zenoh router at %s but no ROS publisher on domain %d: rmw_zenoh's "
+                        "router does not forward between peers (peers_failover_brokering: false) and its nodes "
+                        "accept connections from their own host only; reopened as a client of the router "
+                        "(set zenoh.mode: client to skip this wait, docs/ros.md)",
+                        self.source_id, routers, self.o.domain_id)
+            self.counters["peer_reopened_as_client"] = 1
+            self._stop_session()
+            self._start(dataclasses.replace(self.o.zenoh, mode="client", listen=[]))
+        found = self._check_topic(final=True)
+        self.counters["graph_publishers"] = len(self.publishers())
+        self._declare_sub_tokens()
+        if found:
+            pubs = [e for e in self.publishers() if e.topic == self.o.topic]
+            log.info("%s: %s published by %s", self.source_id, self.o.topic,
+                     ", ".join(f"{e.namespace.rstrip('/')}/{e.node} ({e.type_hash[:14]})" for e in pubs))
+        else:
+            self._log_waiting()
+
+    def _start(self, zopts: ZenohOptions) -> None:
+        """Open the session, read the graph, declare our node and the data subscribers, and wait
+        up to ``discovery_timeout_s`` for the topic's publisher."""
+        import zenoh
+
         try:
-            self._session = open_session(self.o.zenoh)
+            self._session = open_session(zopts)
         except ZenohOpenError as exc:
             raise RuntimeError(str(exc)) from None
+        self._mode = zopts.mode
         s = self._session
         deadline = time.monotonic() + self.o.discovery_timeout_s
-        if self.o.zenoh.connect and self.o.zenoh.mode != "router":
+        if zopts.connect and zopts.mode != "router":
             # the graph is read through the router: give the connection its moment first
             while not list(s.info.routers_zid()) and not list(s.info.peers_zid()) and time.monotonic() < deadline:
                 time.sleep(0.02)
@@ -259,18 +313,48 @@ class Ros2ZenohTransport(Transport):
             else:
                 sub = s.declare_subscriber(key, cb)
             self._undeclare.append(sub)
+            if self._buffer_aware(topic, typ):
+                # buffer-aware publishers (0.10.5+/0.12.0+) serve a CPU-only subscription here, not
+                # on the base key, which stays for Jazzy/Humble publishers and mixed graphs
+                cpu_cb = (lambda t: (lambda sample: self._on_sample(t, sample, cpu_group=True)))(topic)
+                self._undeclare.append(s.declare_subscriber(rz.buffer_cpu_key(key), cpu_cb))
         with self._lock:
             while time.monotonic() < deadline and not self._check_topic(final=False):
                 self._lock.wait(min(0.05, max(0.0, deadline - time.monotonic())))
-        found = self._check_topic(final=True)
-        self.counters["graph_publishers"] = len(self.publishers())
-        self._declare_sub_tokens()
-        if found:
-            pubs = [e for e in self.publishers() if e.topic == self.o.topic]
-            log.info("%s: %s published by %s", self.source_id, self.o.topic,
-                     ", ".join(f"{e.namespace.rstrip('/')}/{e.node} ({e.type_hash[:14]})" for e in pubs))
-        else:
-            self._log_waiting()
+
+    def _peer_cut_off(self) -> bool:
+        """A peer that reached a router on another host, no other peer, and not one publisher:
+        rmw_zenohd does not forward between peers and the robot's nodes listen on its loopback
+        only. (A robot with no publisher up yet reads the same; a client sees it as well.)"""
+        if self._mode != "peer" or all(is_loopback_locator(x) for x in self.o.zenoh.connect):
+            return False
+        s = self._session
+        try:
+            if not list(s.info.routers_zid()) or list(s.info.peers_zid()):
+                return False
+        except Exception:  # noqa: BLE001 - a closed session: nothing to decide
+            return False
+        me = str(s.zid())
+        with self._lock:  # clients' tokens do reach a peer through the router: only publishers tell
+            return not any(e.zid != me and e.kind == "MP" for e in self._graph.values()
+                           if e.domain_id == self.o.domain_id)
+
+    def _stop_session(self) -> None:
+        for obj in list(self._sub_tokens.values()) + self._undeclare[::-1]:
+            try:
+                obj.undeclare()
+            except Exception:  # noqa: BLE001 - the session may already be gone
+                pass
+        self._sub_tokens.clear()
+        self._undeclare.clear()
+        if self._session is not None:
+            try:
+                self._session.close()
+            except Exception:  # noqa: BLE001
+                pass
+            self._session = None
+        with self._lock:
+            self._graph.clear()
 
     def _log_waiting(self) -> None:
         if not self._waiting_logged:
@@ -349,16 +433,4 @@ class Ros2ZenohTransport(Transport):
 
     def close(self) -> None:
         self.counters.update(self.ledger.counters())
-        for obj in list(self._sub_tokens.values()) + self._undeclare[::-1]:
-            try:
-                obj.undeclare()
-            except Exception:  # noqa: BLE001 - the session may already be gone
-                pass
-        self._sub_tokens.clear()
-        self._undeclare.clear()
-        if self._session is not None:
-            try:
-                self._session.close()
-            except Exception:  # noqa: BLE001
-                pass
-            self._session = None
+        self._stop_session()
