@@ -36,6 +36,7 @@ PARAMS = (
     ("head", "u32"), ("size", "u32"), ("capacity", "u32"), ("lod_stride", "u32"),
     ("seed", "u32"), ("flags", "u32"), ("budget", "u32"), ("color_mode", "u32"),
     ("budget_seed", "u32"), ("groups_x", "u32"), ("n_slots", "u32"), ("groups_total", "u32"),
+    ("depth_scale", "f32"),
 )
 
 #: the compute method's per-dispatch parameters (shaders: ``C``)

@@ -43,42 +43,67 @@ fn size_px(clip: vec4<f32>) -> f32 {
   return P.point_size;
 }
 
-// corner vi of the quad of survivor ii; pad: extra px around a round footprint
+// The footprint is decided per pixel centre in the fragment shader, by the rules of
+// render/base.py computed exactly as the compute method does (raster.wgsl, splat), never by
+// the rasteriser's snapping and edge rules: the quad is one pixel larger than the footprint.
+// Depth is the linear view depth w times P.depth_scale (a power of two, so exact and < 1
+// inside the far plane) at w = 1: the depth test orders points by w with float32's full
+// relative precision, as the compute method's keys do, not by the hyperbolic z/w.
+
+// the footprint's centre in px (x, y) and its half size h = s / 2 (z)
+fn centre_of(clip: vec4<f32>, s: f32) -> vec3<f32> {
+  let w = clip.w;
+  return vec3<f32>((clip.x / w * 0.5 + 0.5) * P.vw, (0.5 - clip.y / w * 0.5) * P.vh, 0.5 * s);
+}
+
+// corner vi of the quad of survivor ii, ext px from its centre in x and y
 fn corner(vi: u32, clip: vec4<f32>, ext: f32) -> vec4<f32> {
   var corners = array<vec2<f32>, 6>(vec2<f32>(-1.0, -1.0), vec2<f32>(1.0, -1.0), vec2<f32>(-1.0, 1.0),
                                     vec2<f32>(-1.0, 1.0), vec2<f32>(1.0, -1.0), vec2<f32>(1.0, 1.0));
-  let off = corners[vi] * ext * vec2<f32>(2.0 / P.vw, 2.0 / P.vh) * clip.w;
-  // a point exactly on the far plane (depth 1.0) must still pass 'less' against the cleared 1.0
-  return vec4<f32>(clip.xy + off, min(clip.z, clip.w * 0.99999994), clip.w);
+  let off = corners[vi] * ext * vec2<f32>(2.0 / P.vw, 2.0 / P.vh);
+  let depth = min(max(clip.w, 0.0) * P.depth_scale, 0.99999994);
+  return vec4<f32>(clip.xy / clip.w + off, depth, 1.0);
 }
 
-// the footprint's centre in px and its radius (round points)
-fn centre_of(clip: vec4<f32>, s: f32) -> vec3<f32> {
-  let ndc = clip.xy / clip.w;
-  return vec3<f32>((ndc.x * 0.5 + 0.5) * P.vw, (0.5 - ndc.y * 0.5) * P.vh, 0.5 * s);
+// square: the pixels x in [ceil(px - h - 0.5), ceil(px + h - 0.5)), the same for y, i.e.
+// centres in [p - s/2, p + s/2) (as floats: x0, x1, y0, y1)
+fn box_of(c: vec3<f32>) -> vec4<f32> {
+  return vec4<f32>(ceil(c.x - c.z - 0.5), ceil(c.x + c.z - 0.5), ceil(c.y - c.z - 0.5), ceil(c.y + c.z - 0.5));
 }
 
+fn outside_box(frag: vec4<f32>, b: vec4<f32>) -> bool {
+  let x = frag.x - 0.5;
+  let y = frag.y - 0.5;
+  return x < b.x || x >= b.y || y < b.z || y >= b.w;
+}
+
+// round: centres within s/2 (<=)
 fn outside(frag: vec4<f32>, centre: vec3<f32>) -> bool {
-  let d = frag.xy - centre.xy;
-  return dot(d, d) > centre.z * centre.z;
+  let ex = frag.x - centre.x;
+  let ey = frag.y - centre.y;
+  return ex * ex + ey * ey > centre.z * centre.z;
 }
 
 struct VSquare {
   @builtin(position) position: vec4<f32>,
   @location(0) @interpolate(flat) color: u32,
+  @location(1) @interpolate(flat) box: vec4<f32>,
 };
 
 @vertex
 fn vs_square(@builtin(vertex_index) vi: u32, @builtin(instance_index) ii: u32) -> VSquare {
   let clip = clipb[ii];
+  let s = size_px(clip);
   var o: VSquare;
-  o.position = corner(vi, clip, 0.5 * size_px(clip));
+  o.position = corner(vi, clip, 0.5 * s + 1.0);
   o.color = colour_of(ii);
+  o.box = box_of(centre_of(clip, s));
   return o;
 }
 
 @fragment
 fn fs_square(in: VSquare) -> @location(0) vec4<f32> {
+  if (outside_box(in.position, in.box)) { discard; }
   return unpack4x8unorm(in.color);
 }
 
@@ -121,20 +146,24 @@ fn pick_out(slot: u32, z: f32) -> PickOut {
 
 struct VPickSquare {
   @builtin(position) position: vec4<f32>,
+  @location(1) @interpolate(flat) box: vec4<f32>,
   @location(2) @interpolate(flat) slot: u32,
 };
 
 @vertex
 fn vs_pick_square(@builtin(vertex_index) vi: u32, @builtin(instance_index) ii: u32) -> VPickSquare {
   let clip = clipb[ii];
+  let s = size_px(clip);
   var o: VPickSquare;
-  o.position = corner(vi, clip, 0.5 * size_px(clip));
+  o.position = corner(vi, clip, 0.5 * s + 1.0);
+  o.box = box_of(centre_of(clip, s));
   o.slot = idx[ii].x;
   return o;
 }
 
 @fragment
 fn fs_pick_square(in: VPickSquare) -> PickOut {
+  if (outside_box(in.position, in.box)) { discard; }
   return pick_out(in.slot, in.position.z);
 }
 
@@ -166,6 +195,7 @@ fn fs_pick_round(in: VPickRound) -> PickOut {
 struct VSquareEdl {
   @builtin(position) position: vec4<f32>,
   @location(0) @interpolate(flat) color: u32,
+  @location(1) @interpolate(flat) box: vec4<f32>,
   @location(3) @interpolate(flat) w: f32,
 };
 
@@ -177,15 +207,18 @@ struct EdlOut {
 @vertex
 fn vs_square_edl(@builtin(vertex_index) vi: u32, @builtin(instance_index) ii: u32) -> VSquareEdl {
   let clip = clipb[ii];
+  let s = size_px(clip);
   var o: VSquareEdl;
-  o.position = corner(vi, clip, 0.5 * size_px(clip));
+  o.position = corner(vi, clip, 0.5 * s + 1.0);
   o.color = colour_of(ii);
+  o.box = box_of(centre_of(clip, s));
   o.w = clip.w;
   return o;
 }
 
 @fragment
 fn fs_square_edl(in: VSquareEdl) -> EdlOut {
+  if (outside_box(in.position, in.box)) { discard; }
   return EdlOut(unpack4x8unorm(in.color), in.w);
 }
 
