@@ -138,7 +138,7 @@ struct PickOut {
 
 fn pick_out(slot: u32, z: f32) -> PickOut {
   var o: PickOut;
-  o.slot = slot + 1u;
+  o.slot = P.slot_base + slot + 1u;  // (slot is the chunk's; the ring's slot + 1 goes out)
   let t = tms[slot];
   o.attrs = vec4<f32>(z, imp[slot], t.x, t.y);
   return o;
