@@ -5,8 +5,8 @@ squares, 480x320), with and without eye-dome lighting.
 The quads method used to leave the footprint to the rasteriser (snapped corners, top-left
 rule) and order points by the hyperbolic float32 depth z/w: 0.08% of pixels off at footprint
 edges without EDL and 0.8% with EDL on the autzen scan (EDL spreads every footprint and depth
-swap to its neighbours). It now applies the pixel-centre rule in the fragment shader and
-orders by the linear view depth, as the compute method does."""
+swap to its neighbours). It now puts the quads' corners on the pixel edges of the footprint's
+pixel box, computed as the compute method computes it, and orders by the linear view depth."""
 from __future__ import annotations
 
 import dataclasses
