@@ -109,14 +109,16 @@ def test_dispatch_split_beyond_max_workgroups_draws_the_same(make_renderer, rast
         assert np.array_equal(a.debug_survivors(), b.debug_survivors())
 
 
-def test_compute_capacity_caps_use_its_workgroup_size(make_renderer, raster):
+def test_compute_chunks_use_its_workgroup_size(make_renderer, raster):
+    """The dispatch limit bounds a chunk (one dispatch per segment) by the method's points per
+    workgroup; the ring is split, not capped."""
     r = make_renderer(cfg(), 1000)
     r._limits = {"max-storage-buffer-binding-size": 1 << 30, "max-buffer-size": 1 << 30,
                  "max-compute-workgroups-per-dimension": 4}
-    r._caps = []
     per_group = 4096 if raster.startswith("compute") else 256
-    assert r._cap_capacity(10 ** 6) == 16 * per_group
-    assert "dispatch" in r._caps[0]
+    table = r._chunk_plan(10 ** 6)
+    assert max(n for _, n in table) == 16 * per_group and sum(n for _, n in table) == 10 ** 6
+    assert "dispatches 4^2 workgroups" in r._chunk_why
 
 
 def test_auto_chooses_by_the_measured_crossover_and_says_why(make_any, monkeypatch, tmp_path):

@@ -29,12 +29,17 @@ def test_info_and_capacity_caps(make_renderer):
     r = make_renderer(cfg(), 1000)
     info = r.info()
     assert info["tier"] == "wgpu" and info["render_capacity"] == 1000 and info["caps"] == []
+    assert info["chunks"] == 1 and info["chunk_slots"] == 1000
     assert info["limits"]["max-storage-buffer-binding-size"] > 0 and isinstance(info["timestamps"], bool)
-    r._limits = {"max-storage-buffer-binding-size": 1200, "max-buffer-size": 1 << 30,
+    # a ring beyond one storage binding is split into chunks that each fit one (nothing capped)
+    r._limits = {"max-storage-buffer-binding-size": 16 * 600, "max-buffer-size": 1 << 30,
                  "max-compute-workgroups-per-dimension": 65535}
-    r._caps = []
-    assert r._cap_capacity(1000) == 100
-    assert "1000" in r._caps[0] and "1200" in r._caps[0]      # says why, with the numbers
+    table = r._chunk_plan(1000)
+    assert sum(n for _, n in table) == 1000 and [a for a, _ in table] == sorted(a for a, _ in table)
+    assert len(table) >= 2 and all(n * r._method_cls.slot_bytes <= 16 * 600 for _, n in table)
+    r._limits["max-storage-buffer-binding-size"] = 1200  # not even 256 points: refused, with the numbers
+    with pytest.raises(RenderError, match="1200 bytes"):
+        r._chunk_plan(1000)
 
 
 def test_require_adapter_fails_under_require_gpu(monkeypatch):

@@ -1,6 +1,7 @@
 """The raster-method refactor (issue 17) left every image byte-identical: the agreement scenes
 rendered by each raster method equal the images recorded from the code before it
-(``data/refactor_refs.npz``, made by ``make_refactor_refs.py`` at commit b2b1037)."""
+(``data/refactor_refs.npz``, made by ``make_refactor_refs.py`` at commit b2b1037; the quads
+images re-recorded for issue 31 item 6, which changed them on purpose)."""
 from __future__ import annotations
 
 import numpy as np

@@ -1,6 +1,8 @@
 """The per-frame ``Params`` record of the wgpu tier (layout: :data:`.layout.PARAMS`)."""
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from ...config import RenderConfig
@@ -39,6 +41,13 @@ def importance_range(frame: FrameInput) -> tuple[float, float]:
     imp = frame.importance[:cap] if size == cap else frame.importance[frame.occupied_slots()]
     imp = imp[np.isfinite(imp)]
     return (float(imp.min()), float(imp.max())) if imp.size else (0.0, 0.0)
+
+
+def depth_scale(camera: Camera) -> float:
+    """2^-k with 2^k > far: the quads method's depth ``w * depth_scale`` is exact (a power of
+    two) and below 1 for every point inside the far plane, so it orders like the linear view
+    depth ``w`` with float32's full relative precision (unlike the hyperbolic ``z/w``)."""
+    return float(2.0 ** -(math.floor(math.log2(max(float(camera.far), 1e-30))) + 1))
 
 
 def build(cfg: RenderConfig, frame: FrameInput, camera: Camera, w: int, h: int, cmode: int, chan,
@@ -92,4 +101,5 @@ def build(cfg: RenderConfig, frame: FrameInput, camera: Camera, w: int, h: int, 
     P["budget"] = NO_BUDGET if frame.budget is None else max(0, min(int(frame.budget), NO_BUDGET - 1))
     P["color_mode"] = int(cmode)
     P["groups_x"], P["n_slots"], P["groups_total"] = gx, n_slots, groups
+    P["depth_scale"] = depth_scale(camera)
     return P

@@ -26,7 +26,9 @@ _TYPES = {
     "array<vec4<i32>, 4>": ((4, 4), "<i4", 16),
 }
 
-#: the per-frame parameters of every wgpu pass (shaders: ``P``)
+#: the per-frame parameters of every wgpu pass (shaders: ``P``), one record per segment of a
+#: ring split over several buffers (head/size/capacity/n_slots then describe the segment in its
+#: chunk's buffers; slot_base, logical_base and group_base place it in the whole ring)
 PARAMS = (
     ("vp", "mat4x4<f32>"), ("model", "mat4x4<f32>"), ("planes", "array<vec4<f32>, 6>"),
     ("fixed_color", "vec4<f32>"),
@@ -36,6 +38,7 @@ PARAMS = (
     ("head", "u32"), ("size", "u32"), ("capacity", "u32"), ("lod_stride", "u32"),
     ("seed", "u32"), ("flags", "u32"), ("budget", "u32"), ("color_mode", "u32"),
     ("budget_seed", "u32"), ("groups_x", "u32"), ("n_slots", "u32"), ("groups_total", "u32"),
+    ("depth_scale", "f32"), ("slot_base", "u32"), ("logical_base", "u32"), ("group_base", "u32"),
 )
 
 #: the compute method's per-dispatch parameters (shaders: ``C``)

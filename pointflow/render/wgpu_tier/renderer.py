@@ -12,6 +12,9 @@ no readback on the frame path):
    atomic depth keys + per-pixel resolve);
 4. copy the counters into a fence buffer and submit.
 
+A ring larger than one storage binding is kept in chunks of slots, each with its own buffers,
+and every pass runs once per segment of the ring (:mod:`.chunks`): every slot is drawn.
+
 At most two frames are in flight: before reusing buffer set ``s`` we wait for the frame
 that last read it, which also bounds latency when the GPU is slower than the cadence.
 The wait maps a 64-byte fence into which that frame copied its counters, so the
@@ -30,7 +33,7 @@ from ...config import RenderConfig
 from .. import colormap
 from ..base import FrameInput, FrameStats, Renderer, RenderError
 from ..camera import Camera
-from . import frame_params
+from . import chunks, frame_params
 from .device import adapter_summary, request_device, select_adapter
 from .layout import PARAMS_DTYPE, ColourMode
 from .pick import pick_block, resolve_pick
@@ -75,7 +78,8 @@ class WgpuRenderer(Renderer):
 
     def __init__(self, cfg: RenderConfig, capacity: int, channels: list[str], *,
                  adapter: Any = None, naive_float32: Optional[bool] = None,
-                 key64: Optional[bool] = None, max_groups: Optional[int] = None):
+                 key64: Optional[bool] = None, max_groups: Optional[int] = None,
+                 max_binding: Optional[int] = None):
         super().__init__(cfg, capacity, channels)
         import wgpu
         self._wgpu = wgpu
@@ -109,7 +113,10 @@ class WgpuRenderer(Renderer):
         self._key64 = bool(dinfo["features"])
         self._max_groups = int(max_groups or self._limits.get("max-compute-workgroups-per-dimension", _MAX_GROUPS))
         self._caps: list[str] = []
-        self.render_capacity = self._cap_capacity(int(capacity))
+        self._max_binding = max_binding  # tests: a smaller storage-binding limit (more chunks)
+        self.render_capacity = max(int(capacity), 1)
+        self._chunk_table = self._chunk_plan(self.render_capacity)
+        self._nseg = 1 if len(self._chunk_table) == 1 else len(self._chunk_table) + 1
         self._setup_colour(channels)
         self._need_t = cfg.time_window_ms > 0 or self._cmode == ColourMode.TIME or cfg.pick_strategy == "recent_first"
         self._need_imp = bool(cfg.importance_sampling) or cfg.pick_strategy == "highest_importance"
@@ -129,30 +136,33 @@ class WgpuRenderer(Renderer):
         self._gpu_ms: dict[str, float] = {}
         self._closed = False
         log.info("wgpu tier on %s (%s); capacity %d%s; timestamps %s", adapter.summary, why,
-                 self.render_capacity, f" (capped: {'; '.join(self._caps)})" if self._caps else "",
+                 self.render_capacity, f" in {len(self._chunk_table)} chunks of up to "
+                 f"{self._chunk_table[0][1]} slots ({self._chunk_why})" if len(self._chunk_table) > 1 else "",
                  "on" if self._ts else "off")
         log.info("wgpu tier raster method: %s (%s)%s", self.raster, self._raster_why,
                  "".join(f"; {k}: {v}" for k, v in self._method.info().items()))
 
     # ------------------------------------------------------------------ setup
-    def _cap_capacity(self, capacity: int) -> int:
+    def _chunk_plan(self, capacity: int) -> list[tuple[int, int]]:
+        """The ring's chunks (:mod:`.chunks`): as many slots per chunk as the method's widest
+        per-slot array fits in one storage binding (and one buffer) and one dispatch."""
         lim = self._limits
-        cap = max(capacity, 1)
         per_binding = int(lim.get("max-storage-buffer-binding-size", 2 ** 27))
         per_buffer = int(lim.get("max-buffer-size", 2 ** 28))
-        max_pos = min(per_binding, per_buffer) // 12  # positions are the widest array (3 f32)
-        if cap > max_pos:
-            self._caps.append(f"ring capacity {cap} > {max_pos} points: positions would need {cap * 12} bytes, "
-                              f"device allows {min(per_binding, per_buffer)} per storage buffer")
-            cap = max_pos
-        max_dispatch = int(lim.get("max-compute-workgroups-per-dimension", _MAX_GROUPS)) ** 2 \
-            * self._method_cls.points_per_group
-        if cap > max_dispatch:
-            self._caps.append(f"capped to {max_dispatch} points by the compute dispatch limit")
-            cap = max_dispatch
-        for c in self._caps:
-            log.warning("wgpu tier: %s; rendering only the first %d slots", c, cap)
-        return cap
+        limit = min(per_binding, per_buffer, int(self._max_binding or per_binding))
+        groups = int(lim.get("max-compute-workgroups-per-dimension", _MAX_GROUPS))
+        m = self._method_cls
+        clen = chunks.chunk_len(limit, m.slot_bytes, m.pad_slots, groups * groups * m.points_per_group)
+        if clen < chunks.ALIGN_SLOTS:
+            raise RenderError(f"wgpu tier: a storage binding of {limit} bytes cannot hold "
+                              f"{chunks.ALIGN_SLOTS} points of the {m.name} method ({m.slot_bytes} B each)")
+        table = chunks.chunks(capacity, clen)
+        self._chunk_why = (f"the {m.name} method's widest array is {m.slot_bytes} B/point; the device binds "
+                           f"{limit} bytes per storage buffer and dispatches {groups}^2 workgroups")
+        if len(table) > 1:
+            log.info("wgpu tier: ring of %d slots split into %d chunks of up to %d slots (%s); every slot "
+                     "is drawn", capacity, len(table), clen, self._chunk_why)
+        return table
 
     def _setup_colour(self, channels: list[str]) -> None:
         cb = self.cfg.color_by
@@ -181,21 +191,28 @@ class WgpuRenderer(Renderer):
         cap = self.render_capacity
         sto = BU.STORAGE | BU.COPY_DST
         colour_words = self._cmode in (ColourMode.RGB, ColourMode.SCALAR)
-        self._sets = [{"pos": self._buf(cap * 12, sto, f"pos{s}"),
-                       "tms": self._buf(cap * 8 if self._need_t else 16, sto, f"tms{s}"),
-                       "imp": self._buf(cap * 4 if self._need_imp else 16, sto, f"imp{s}"),
-                       "col": self._buf(cap * 4 if colour_words else 16, sto, f"col{s}")} for s in range(2)]
-        self._state = self._buf(64, BU.STORAGE | BU.INDIRECT | BU.COPY_DST | BU.COPY_SRC, "state")
-        self._rng = self._buf(8, BU.STORAGE | BU.COPY_DST, "range")
+        self._sets = [[{"pos": self._buf(n * 12, sto, f"pos{s}.{c}"),
+                        "tms": self._buf(n * 8 if self._need_t else 16, sto, f"tms{s}.{c}"),
+                        "imp": self._buf(n * 4 if self._need_imp else 16, sto, f"imp{s}.{c}"),
+                        "col": self._buf(n * 4 if colour_words else 16, sto, f"col{s}.{c}")}
+                       for c, (_, n) in enumerate(self._chunk_table)] for s in range(2)]
+        nseg = self._nseg
+        self._state = self._buf(Gpu.STATE_STRIDE * nseg, BU.STORAGE | BU.INDIRECT | BU.COPY_DST | BU.COPY_SRC,
+                                "state")
+        # colour range (ord_f min, max) in words 0, 1; words 4, 5: the quads method's counts
+        # over all segments (survivors, drawn under the budget)
+        self._rng = self._buf(32, BU.STORAGE | BU.COPY_DST, "range")
         self._dargs = self._buf(16, BU.STORAGE | BU.INDIRECT | BU.COPY_DST, "dispatch-args")
-        self._params = self._buf(PARAMS_DTYPE.itemsize, BU.UNIFORM | BU.COPY_DST, "params")
+        self._params = self._buf(Gpu.PARAMS_STRIDE * nseg, BU.UNIFORM | BU.COPY_DST, "params")
         self._lut = self._buf(1024, sto, "lut")
         self.queue.write_buffer(self._lut, 0, np.ascontiguousarray(colormap.lut(self.cfg.colormap)).view(np.uint32))
-        self._state_reset = np.array([6, 0, 0, 0, 0, 1, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0], np.uint32)
-        self._rng_reset = np.array([0xFFFFFFFF, 0], np.uint32)
+        one = np.zeros(Gpu.STATE_STRIDE // 4, np.uint32)
+        one[:16] = [6, 0, 0, 0, 0, 1, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0]
+        self._state_reset = np.tile(one, nseg)
+        self._rng_reset = np.array([0xFFFFFFFF, 0, 0, 0, 0, 0, 0, 0], np.uint32)
         self._row_bytes = (self.width * 4 + 255) // 256 * 256
         self._readback = self._buf(self._row_bytes * self.height, BU.MAP_READ | BU.COPY_DST, "readback")
-        self._fence = [self._buf(64, BU.MAP_READ | BU.COPY_DST, f"fence{s}") for s in range(2)]
+        self._fence = [self._buf(Gpu.STATE_STRIDE * nseg, BU.MAP_READ | BU.COPY_DST, f"fence{s}") for s in range(2)]
         qs = None
         if self._ts:
             qs = dev.create_query_set(type=wgpu.QueryType.timestamp, count=4)
@@ -205,7 +222,8 @@ class WgpuRenderer(Renderer):
         gpu = Gpu(wgpu=wgpu, device=dev, cfg=self.cfg, width=self.width, height=self.height,
                   capacity=cap, cmode=int(self._cmode), naive_float32=self.naive_float32, key64=self._key64,
                   max_groups=self._max_groups, row_bytes=self._row_bytes, sets=self._sets, params=self._params,
-                  state=self._state, rng=self._rng, dargs=self._dargs, lut=self._lut, timestamps=qs)
+                  state=self._state, rng=self._rng, dargs=self._dargs, lut=self._lut, timestamps=qs,
+                  chunks=list(self._chunk_table), max_segments=nseg)
         self._method = self._method_cls(gpu)
 
     # ------------------------------------------------------------------ upload
@@ -214,31 +232,40 @@ class WgpuRenderer(Renderer):
         cap = min(self.render_capacity, frame.capacity)
         ranges = merge_ranges(self._pending[s], cap)
         self._pending[s] = []
-        S, q, total = self._sets[s], self.queue, 0
+        total = 0
         for a, b in ranges:
-            pos = np.ascontiguousarray(frame.positions[a:b], dtype=np.float32)
-            q.write_buffer(S["pos"], a * 12, pos)
-            total += pos.nbytes
-            if self._need_t:
-                t64 = np.asarray(frame.t_ingest_ms[a:b], dtype=np.float64)
-                tt = np.empty((b - a, 2), np.float32)
-                tt[:, 0] = t64
-                tt[:, 1] = t64 - tt[:, 0]
-                q.write_buffer(S["tms"], a * 8, tt)
-                total += tt.nbytes
-            if self._need_imp:
-                imp = np.ascontiguousarray(frame.importance[a:b], dtype=np.float32)
-                q.write_buffer(S["imp"], a * 4, imp)
-                total += imp.nbytes
-            if self._cmode == ColourMode.RGB:
-                rgb = np.asarray(frame.channels["rgb"][a:b], dtype=np.uint32)
-                packed = rgb[:, 0] | (rgb[:, 1] << 8) | (rgb[:, 2] << 16) | np.uint32(0xFF000000)
-                q.write_buffer(S["col"], a * 4, packed)
-                total += packed.nbytes
-            elif self._cmode == ColourMode.SCALAR:
-                v = np.ascontiguousarray(frame.channels[self._cchan][a:b], dtype=np.float32)
-                q.write_buffer(S["col"], a * 4, v)
-                total += v.nbytes
+            for c, (c0, n) in enumerate(self._chunk_table):
+                lo, hi = max(a, c0), min(b, c0 + n)
+                if lo < hi:
+                    total += self._write(frame, self._sets[s][c], lo, hi, lo - c0)
+        return total
+
+    def _write(self, frame: FrameInput, S: dict[str, Any], a: int, b: int, at: int) -> int:
+        """Write slots [a, b) into the chunk buffers ``S`` from their slot ``at``; bytes written."""
+        q, total = self.queue, 0
+        pos = np.ascontiguousarray(frame.positions[a:b], dtype=np.float32)
+        q.write_buffer(S["pos"], at * 12, pos)
+        total += pos.nbytes
+        if self._need_t:
+            t64 = np.asarray(frame.t_ingest_ms[a:b], dtype=np.float64)
+            tt = np.empty((b - a, 2), np.float32)
+            tt[:, 0] = t64
+            tt[:, 1] = t64 - tt[:, 0]
+            q.write_buffer(S["tms"], at * 8, tt)
+            total += tt.nbytes
+        if self._need_imp:
+            imp = np.ascontiguousarray(frame.importance[a:b], dtype=np.float32)
+            q.write_buffer(S["imp"], at * 4, imp)
+            total += imp.nbytes
+        if self._cmode == ColourMode.RGB:
+            rgb = np.asarray(frame.channels["rgb"][a:b], dtype=np.uint32)
+            packed = rgb[:, 0] | (rgb[:, 1] << 8) | (rgb[:, 2] << 16) | np.uint32(0xFF000000)
+            q.write_buffer(S["col"], at * 4, packed)
+            total += packed.nbytes
+        elif self._cmode == ColourMode.SCALAR:
+            v = np.ascontiguousarray(frame.channels[self._cchan][a:b], dtype=np.float32)
+            q.write_buffer(S["col"], at * 4, v)
+            total += v.nbytes
         return total
 
     def _mark_dirty(self, frame: FrameInput) -> None:
@@ -274,7 +301,7 @@ class WgpuRenderer(Renderer):
         GPU counters: ``drawn`` and ``extra`` removed_nonfinite / culled / occupied."""
         f = self._fence[s]
         f.map_sync(self._wgpu.MapMode.READ)
-        st = np.frombuffer(f.read_mapped(), np.uint32).copy()
+        st = self._state_sum(np.frombuffer(f.read_mapped(), np.uint32))
         f.unmap()
         self._done[s] = False
         fs = self._stats[s]
@@ -284,6 +311,11 @@ class WgpuRenderer(Renderer):
                              "survivors_before_budget": int(st[8]), "counters": "exact (read after the GPU finished)"})
             self._stats[s] = None
         self.nonfinite_total += int(st[12])
+
+    def _state_sum(self, words: np.ndarray) -> np.ndarray:
+        """The 16 state words summed over the segments' windows (counters add up; the
+        method's own per-segment words 0, 10, 11 mean nothing summed)."""
+        return words.reshape(self._nseg, Gpu.STATE_STRIDE // 4)[:, :16].astype(np.int64).sum(axis=0)
 
     @staticmethod
     def check_frame(frame: FrameInput) -> None:
@@ -323,19 +355,28 @@ class WgpuRenderer(Renderer):
         self._mark_dirty(frame)
         uploaded = self._upload(frame, s)
         n_slots = min(self.render_capacity, int(frame.capacity))
-        # one thread per logical index (oldest first); a capped ring renders its oldest slots
-        n_threads = min(int(frame.size), int(frame.capacity), self.render_capacity)
-        groups, gx, gy, budget_on = self._method.plan(n_threads, frame.budget)
+        segs = chunks.segments(int(frame.head), int(frame.size), int(frame.capacity), n_slots, self._chunk_table)
+        if len(self._chunk_table) == 1:
+            # one thread per logical index (oldest first); slots beyond the tier's are skipped
+            segs[0].size = min(int(frame.size), int(frame.capacity), self.render_capacity)
+        n_threads = sum(g.size for g in segs)
+        groups_total = 0
+        for g in segs:
+            g.groups, g.gx, g.gy, _ = self._method.plan(g.size, frame.budget)
+            g.group_base = groups_total
+            groups_total += g.groups
+        budget_on = self._method.plan(n_threads, frame.budget)[3]
         P = frame_params.build(self.cfg, frame, camera, self.width, self.height, self._cmode, self._cchan,
-                               self.naive_float32, n_slots, gx, groups)
+                               self.naive_float32, n_slots, segs[0].gx, segs[0].groups)
         q = self.queue
-        q.write_buffer(self._params, 0, P.tobytes())
+        q.write_buffer(self._params, 0, self._segment_params(P, segs, n_slots, groups_total))
         q.write_buffer(self._state, 0, self._state_reset)
         q.write_buffer(self._rng, 0, self._rng_reset)
         t_up = time.perf_counter()
-        plan = FramePlan(set=s, n_threads=n_threads, groups=groups, gx=gx, gy=gy, budget_on=budget_on,
-                         budget_n=frame.budget, head=int(frame.head) % max(int(frame.capacity), 1),
-                         capacity=int(frame.capacity), params=P)
+        plan = FramePlan(set=s, n_threads=n_threads, groups=groups_total, gx=segs[0].gx, gy=segs[0].gy,
+                         budget_on=budget_on, budget_n=frame.budget,
+                         head=int(frame.head) % max(int(frame.capacity), 1),
+                         capacity=int(frame.capacity), params=P, segments=segs)
         enc = self.device.create_command_encoder()
         self._method.encode(enc, plan)
         if self._ts:
@@ -343,7 +384,7 @@ class WgpuRenderer(Renderer):
             enc.copy_buffer_to_buffer(self._ts_resolve, 0, self._ts_read[s], 0, 32)
             self._ts_used[s] = True
         # the fence doubles as the (lagged) counter readout: copied now, read once the GPU is done
-        enc.copy_buffer_to_buffer(self._state, 0, self._fence[s], 0, 64)
+        enc.copy_buffer_to_buffer(self._state, 0, self._fence[s], 0, Gpu.STATE_STRIDE * self._nseg)
         q.submit([enc.finish()])
         self._done[s] = True
         t_sub = time.perf_counter()
@@ -358,6 +399,23 @@ class WgpuRenderer(Renderer):
         self._stats[s] = stats  # drawn/removed_nonfinite filled in once the GPU is done
         self._last_stats = stats
         return stats
+
+    def _segment_params(self, P: np.ndarray, segs: list[chunks.Segment], n_slots: int, groups_total: int) -> bytes:
+        """Every segment's Params record at :attr:`Gpu.PARAMS_STRIDE` (one segment: ``P``)."""
+        out = np.zeros(len(segs) * Gpu.PARAMS_STRIDE, np.uint8)
+        glob = self._method_cls.global_groups
+        single = len(self._chunk_table) == 1
+        for g in segs:
+            R = P.copy()
+            if not single:  # (one chunk: the frame's own ring, as build() wrote it)
+                R["head"], R["size"], R["capacity"], R["n_slots"] = g.head, g.size, g.capacity, g.capacity
+            R["groups_x"] = g.gx
+            R["groups_total"] = groups_total if glob else g.groups
+            R["group_base"] = g.group_base if glob else 0
+            R["slot_base"], R["logical_base"] = g.slot_base, g.logical_base
+            o = g.index * Gpu.PARAMS_STRIDE
+            out[o:o + PARAMS_DTYPE.itemsize] = np.frombuffer(R.tobytes(), np.uint8)
+        return out.tobytes()
 
     # ------------------------------------------------------------------ output
     def read_image(self) -> np.ndarray:
@@ -387,9 +445,10 @@ class WgpuRenderer(Renderer):
     def debug_counts(self) -> dict[str, int]:
         """Tests only (syncs the GPU): survivors of the cull, after the budget, and the draw count
         (compute: ``instance_count`` is the raster pass's count of points written)."""
-        st = np.frombuffer(self.queue.read_buffer(self._state), np.uint32)
+        raw = np.frombuffer(self.queue.read_buffer(self._state), np.uint32)
+        st = self._state_sum(raw)
         return {"culled": int(st[8]), "thinned": int(st[9]), "instance_count": int(st[1]),
-                "vertex_count": int(st[0])}
+                "vertex_count": int(raw[0])}
 
     def debug_survivors(self) -> np.ndarray:
         """Tests only (syncs the GPU): sorted slots the last frame draws."""
@@ -420,7 +479,8 @@ class WgpuRenderer(Renderer):
         return {"tier": self.tier, "adapter": adapter_summary(self.adapter), "adapter_choice": self._adapter_why,
                 "backend": self.adapter.info.get("backend_type", ""), "limits": dict(self._limits),
                 "ring_capacity": self.capacity, "render_capacity": self.render_capacity,
-                "caps": list(self._caps), "timestamps": self._ts, "naive_float32": self.naive_float32,
+                "caps": list(self._caps), "chunks": len(self._chunk_table),
+                "chunk_slots": self._chunk_table[0][1], "timestamps": self._ts, "naive_float32": self.naive_float32,
                 "size": [self.width, self.height], "raster": self.raster, "raster_choice": self._raster_why,
                 "compute_keys": None, **self._method.info()}
 
@@ -434,7 +494,7 @@ class WgpuRenderer(Renderer):
             pass
         if self._method is not None:
             self._method.close()
-        bufs = [b for S in getattr(self, "_sets", []) for b in S.values()]
+        bufs = [b for per_set in getattr(self, "_sets", []) for S in per_set for b in S.values()]
         bufs += [getattr(self, n, None) for n in ("_state", "_rng", "_dargs", "_params", "_lut", "_readback",
                                                    "_ts_resolve")]
         bufs += list(getattr(self, "_ts_read", [])) + list(getattr(self, "_fence", []))

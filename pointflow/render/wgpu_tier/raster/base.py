@@ -18,6 +18,7 @@ import numpy as np
 
 from ....config import RenderConfig
 from .. import sources
+from ..layout import PARAMS_DTYPE
 
 
 @dataclass(eq=False)
@@ -34,13 +35,38 @@ class Gpu:
     key64: bool                      #: 64-bit atomics were granted (compute method)
     max_groups: int                  #: workgroups per dispatch dimension
     row_bytes: int                   #: readback pitch (256-byte aligned rows of RGBA8)
-    sets: list[dict[str, Any]]       #: per buffer set: pos, tms, imp, col storage buffers
-    params: Any                      #: the Params uniform
-    state: Any                       #: 16 counter words (+ draw-indirect args in 0..3)
-    rng: Any                         #: colour range reduced on the GPU (ord_f min, max)
+    sets: list[list[dict[str, Any]]]  #: per buffer set, per chunk: pos, tms, imp, col storage buffers
+    params: Any                      #: the Params uniforms, one per segment (:meth:`params_at`)
+    state: Any                       #: per segment 16 counter words (+ draw-indirect args in 0..3)
+    rng: Any                         #: colour range reduced on the GPU (ord_f min, max); words 4, 5: see cull.wgsl
     dargs: Any                       #: dispatch-indirect args
     lut: Any                         #: 256 RGBA8 colormap entries
     timestamps: Optional[Any] = None  #: query set of 4 (pass 1 begin/end, pass 2 begin/end) or None
+    chunks: list[tuple[int, int]] = field(default_factory=lambda: [(0, 1)])  #: (first slot, slots) per chunk
+    max_segments: int = 1            #: segments a frame can have (params/state windows)
+
+    #: bytes between segments' Params records / state words (a multiple of every offset alignment)
+    PARAMS_STRIDE: ClassVar[int] = 512
+    STATE_STRIDE: ClassVar[int] = 256
+
+    @property
+    def chunk_len(self) -> int:
+        """Slots of the largest chunk (the size of per-chunk and per-segment scratch)."""
+        return max(n for _, n in self.chunks)
+
+    def params_at(self, i: int) -> dict[str, Any]:
+        """Binding resource: segment ``i``'s Params record."""
+        return {"buffer": self.params, "offset": i * self.PARAMS_STRIDE, "size": PARAMS_DTYPE.itemsize}
+
+    def state_at(self, i: int) -> dict[str, Any]:
+        """Binding resource: segment ``i``'s 16 state words."""
+        return {"buffer": self.state, "offset": i * self.STATE_STRIDE, "size": 64}
+
+    @staticmethod
+    def window(buf: Any, first: int, entry_bytes: int) -> dict[str, Any]:
+        """Binding resource: ``buf`` from entry ``first`` to its end."""
+        off = int(first) * int(entry_bytes)
+        return {"buffer": buf, "offset": off, "size": buf.size - off}
 
     @property
     def queue(self) -> Any:
@@ -76,8 +102,8 @@ class Gpu:
         return self.device.create_compute_pipeline(
             layout=self.device.create_pipeline_layout(bind_group_layouts=[bgl]), compute=stage)
 
-    def data(self, s: int) -> list[Any]:
-        S = self.sets[s]
+    def data(self, s: int, chunk: int = 0) -> list[Any]:
+        S = self.sets[s][chunk]
         return [S["pos"], S["tms"], S["imp"], S["col"]]
 
     def ts_writes(self, first: int) -> dict[str, Any]:
@@ -100,14 +126,22 @@ class FramePlan:
     budget_n: Optional[int]  #: the frame's budget
     head: int
     capacity: int
-    params: np.ndarray = field(repr=False)  #: the Params record written this frame
+    params: np.ndarray = field(repr=False)  #: the Params record written this frame (segment 0's)
+    segments: list[Any] = field(default_factory=list)  #: :class:`..chunks.Segment` s in logical order
 
 
 class RasterMethod(abc.ABC):
     """One way of rasterising the survivors (``render.raster``)."""
     name: ClassVar[str]
-    #: logical indices one workgroup of the cull/raster pass covers (caps the ring capacity)
+    #: logical indices one workgroup of the cull/raster pass covers (bounds a chunk's length)
     points_per_group: ClassVar[int] = 256
+    #: the widest per-slot storage array of the method, and the entries of slack per chunk
+    #: (they set how many slots a chunk may hold, see :mod:`..chunks`)
+    slot_bytes: ClassVar[int] = 12
+    pad_slots: ClassVar[int] = 0
+    #: workgroup numbers run over the whole ring (group_base, groups_total of all segments)
+    #: rather than over each segment
+    global_groups: ClassVar[bool] = False
 
     @classmethod
     def wanted_features(cls, cfg: RenderConfig, key64: Optional[bool]) -> tuple[str, ...]:

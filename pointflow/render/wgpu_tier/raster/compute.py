@@ -54,6 +54,8 @@ _MODES = {"count": 0, "thin": 1, "scan": 1, "raster": 2, "index": 2, "debug": 3}
 class ComputeRaster(RasterMethod):
     name = "compute"
     points_per_group = 256 * K
+    slot_bytes = 12        # positions
+    global_groups = True   # budget offsets over the whole ring
 
     @classmethod
     def wanted_features(cls, cfg, key64: Optional[bool]) -> tuple[str, ...]:
@@ -68,7 +70,7 @@ class ComputeRaster(RasterMethod):
         self.n_px = g.width * g.height
         self.keys = g.buffer(self.n_px * (8 if self.key64 else 4), BU.STORAGE | BU.COPY_DST, "keys")
         self.ikeys = g.buffer(16 if self.key64 else self.n_px * 4, BU.STORAGE | BU.COPY_DST, "index-keys")
-        self.wgc = g.buffer((self.groups_for(g.capacity) + 1) * 4, BU.STORAGE, "workgroup-counts")
+        self.wgc = g.buffer((self.groups_for(g.capacity) + g.max_segments + 1) * 4, BU.STORAGE, "workgroup-counts")
         self.dbg = g.buffer(16, BU.STORAGE, "debug-flags")
         self.cparams = g.buffer(CPARAMS_DTYPE.itemsize, BU.UNIFORM | BU.COPY_DST, "compute-params")
         self.img = g.buffer(g.row_bytes * g.height, BU.STORAGE | BU.COPY_SRC, "image")  # readback pitch
@@ -88,7 +90,7 @@ class ComputeRaster(RasterMethod):
         self.fixed = {"ROUND": g.cfg.point_shape == "round", "WORLD": g.cfg.point_size_space == "world",
                       "NAIVE": g.naive_float32, "K": K}
         self.pipes: dict[Any, Any] = {}
-        self.bg_cache: dict[int, dict[str, Any]] = {}
+        self.bg_cache: dict[tuple[int, int, int], dict[str, Any]] = {}
 
     # ------------------------------------------------------------------ helpers
     def groups_for(self, n: int) -> int:
@@ -128,17 +130,20 @@ class ComputeRaster(RasterMethod):
             self.pipes[key] = p
         return p
 
-    def _head(self, s: int) -> list[Any]:
+    def _head(self, s: int, seg: Any) -> list[Any]:
         g = self.gpu
-        return [g.params, self.cparams, *g.data(s), self.keys, self.ikeys]
+        return [g.params_at(seg.index), self.cparams, *g.data(s, seg.chunk), self.keys, self.ikeys]
 
-    def groups(self, s: int) -> dict[str, Any]:
-        bg = self.bg_cache.get(s)
+    def groups(self, s: int, seg: Any) -> dict[str, Any]:
+        """Bind groups of buffer set ``s`` for segment ``seg`` (its Params, its chunk's data;
+        the counters are one set for the whole ring)."""
+        key = (s, seg.index, seg.chunk)
+        bg = self.bg_cache.get(key)
         if bg is None:
             g = self.gpu
-            bg = {"raster": g.bind(self.bgl_raster, self._head(s) + [g.state, g.rng, self.wgc, self.dbg]),
-                  "resolve": g.bind(self.bgl_resolve, self._head(s) + [g.lut, g.rng, self.img, self.edl])}
-            self.bg_cache[s] = bg
+            bg = {"raster": g.bind(self.bgl_raster, self._head(s, seg) + [g.state_at(0), g.rng, self.wgc, self.dbg]),
+                  "resolve": g.bind(self.bgl_resolve, self._head(s, seg) + [g.lut, g.rng, self.img, self.edl])}
+            self.bg_cache[key] = bg
         return bg
 
     def write_cparams(self, gx: int, budget_on: bool, pick: tuple[int, int, int, int] = (0, 0, 0, 0)) -> None:
@@ -157,26 +162,33 @@ class ComputeRaster(RasterMethod):
         g = self.gpu
         var = self.variant(plan, g.cmode)
         self.write_cparams(plan.gx, plan.budget_on, (g.row_bytes // 4, 0, 0, 0))
-        bg = self.groups(plan.set)
+        segs = plan.segments
+        bgs = [self.groups(plan.set, seg) for seg in segs]
         enc.clear_buffer(self.keys)
         if not self.key64:
             enc.clear_buffer(self.ikeys)
         cp = enc.begin_compute_pass(**g.ts_writes(0))
-        cp.set_bind_group(0, bg["raster"])
+
+        def each(name: str) -> None:  # one dispatch per segment, in logical order
+            cp.set_pipeline(self._raster_pipe(name, var))
+            for seg, bg in zip(segs, bgs):
+                cp.set_bind_group(0, bg["raster"])
+                cp.dispatch_workgroups(seg.gx, seg.gy, 1)
+
         if plan.budget_on:
-            for name in ("count", "thin"):
-                cp.set_pipeline(self._raster_pipe(name, var))
-                cp.dispatch_workgroups(plan.gx, plan.gy, 1)
+            each("count")
+            each("thin")
+            cp.set_bind_group(0, bgs[0]["raster"])
             cp.set_pipeline(self._raster_pipe("scan", var))
             cp.dispatch_workgroups(1, 1, 1)
         for name in (("raster",) if self.key64 else ("raster", "index")):
-            cp.set_pipeline(self._raster_pipe(name, var))
-            cp.dispatch_workgroups(plan.gx, plan.gy, 1)
+            each(name)
         cp.end()
         cp = enc.begin_compute_pass(**g.ts_writes(2))
-        cp.set_bind_group(0, bg["resolve"])
         cp.set_pipeline(self._resolve_pipe(g.cmode, var["RANGE_AUTO"]))
-        cp.dispatch_workgroups(math.ceil(g.width / 256), g.height, 1)
+        for bg in bgs:
+            cp.set_bind_group(0, bg["resolve"])
+            cp.dispatch_workgroups(math.ceil(g.width / 256), g.height, 1)
         cp.end()
 
     def copy_image(self, enc: Any, dst: Any) -> None:
@@ -194,12 +206,13 @@ class ComputeRaster(RasterMethod):
             self.pipes["pick"] = g.compute_pipeline(self.bgl_resolve, self.resolve_files + ("pick.wgsl",), "main",
                                                     "pick")
         self.write_cparams(0, False, (x0, y0, bw, bh))
-        bg = g.bind(self.bgl_resolve, self._head(plan.set) + [g.lut, g.rng, self.pick_buf, self.edl])
         enc = g.device.create_command_encoder()
         cp = enc.begin_compute_pass()
         cp.set_pipeline(self.pipes["pick"])
-        cp.set_bind_group(0, bg)
-        cp.dispatch_workgroups(math.ceil(n / 64), 1, 1)
+        for seg in plan.segments:
+            cp.set_bind_group(0, g.bind(self.bgl_resolve, self._head(plan.set, seg)
+                                        + [g.lut, g.rng, self.pick_buf, self.edl]))
+            cp.dispatch_workgroups(math.ceil(n / 64), 1, 1)
         cp.end()
         g.queue.submit([enc.finish()])
         raw = g.queue.read_buffer(self.pick_buf, 0, n * 32)
@@ -213,16 +226,17 @@ class ComputeRaster(RasterMethod):
         parameters, capped at the budget, as slots."""
         g = self.gpu
         BU = g.wgpu.BufferUsage
-        size = plan.n_threads
+        size = max(seg.logical_base + seg.size for seg in plan.segments)  # logical indices walked
         dbg = g.buffer(max(size, 1) * 4, BU.STORAGE | BU.COPY_SRC, "debug-flags")
         try:
-            bg = g.bind(self.bgl_raster, self._head(plan.set) + [g.state, g.rng, self.wgc, dbg])
             self.write_cparams(plan.gx, plan.budget_on)
             enc = g.device.create_command_encoder()
             cp = enc.begin_compute_pass()
-            cp.set_bind_group(0, bg)
             cp.set_pipeline(self._raster_pipe("debug", self.variant(plan, g.cmode)))
-            cp.dispatch_workgroups(plan.gx, plan.gy, 1)
+            for seg in plan.segments:
+                cp.set_bind_group(0, g.bind(self.bgl_raster, self._head(plan.set, seg)
+                                            + [g.state_at(0), g.rng, self.wgc, dbg]))
+                cp.dispatch_workgroups(seg.gx, seg.gy, 1)
             cp.end()
             g.queue.submit([enc.finish()])
             flags = np.frombuffer(g.queue.read_buffer(dbg, 0, max(size, 1) * 4), np.uint32)[:size]

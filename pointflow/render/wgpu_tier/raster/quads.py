@@ -11,6 +11,12 @@
 2. ``draw_indirect`` of instanced quads (6 vertices per point) into an RGBA8 target with a
    depth buffer, one entry point per shape (``wgsl/draw.wgsl``).
 
+A ring in several chunks (:mod:`..chunks`) runs steps 1 for every segment in logical order
+(each segment's survivors land in its chunk's output buffers, a second segment of the same
+chunk in a window after the first's), the budget steps after all of them (the thinning
+fraction counts every segment's survivors, the hard cap runs on across segments), and one
+indirect draw per segment in logical order, so ties still go to the lower logical index.
+
 Picking re-draws the last frame's survivors into an id + attribute target under a scissor
 of the (2r+1)^2 block around the cursor.
 """
@@ -22,6 +28,7 @@ from typing import Any
 import numpy as np
 
 from .. import edl, sources
+from ..chunks import OUT_ALIGN
 from ..layout import Flag
 from .base import FramePlan, RasterMethod, destroy_all
 
@@ -34,23 +41,27 @@ _DRAW = ("common.wgsl", "lut_colour.wgsl", "draw.wgsl")
 class QuadsRaster(RasterMethod):
     name = "quads"
     points_per_group = 256
+    slot_bytes = 16        # survivors' clip positions
+    pad_slots = OUT_ALIGN  # a second segment's window starts aligned
 
     def __init__(self, gpu):
         super().__init__(gpu)
         g, wgpu = gpu, gpu.wgpu
         BU, TU, SS = wgpu.BufferUsage, wgpu.TextureUsage, wgpu.ShaderStage
-        cap = g.capacity
-        self.idx1 = g.buffer(cap * 8, BU.STORAGE | BU.COPY_SRC, "idx1")  # survivors: (slot, RGBA8)
-        self.clip1 = g.buffer(cap * 16, BU.STORAGE, "clip1")            # survivors' clip positions
-        groups = (cap + 255) // 256
+        # per chunk: the survivors (slot in the chunk, RGBA8) and their clip positions
+        self.out_len = [n + (OUT_ALIGN if len(g.chunks) > 1 else 0) for _, n in g.chunks]
+        self.idx1 = [g.buffer(n * 8, BU.STORAGE | BU.COPY_SRC, f"idx1.{c}") for c, n in enumerate(self.out_len)]
+        self.clip1 = [g.buffer(n * 16, BU.STORAGE, f"clip1.{c}") for c, n in enumerate(self.out_len)]
+        groups = (g.chunk_len + 255) // 256  # scratch of one segment at a time
         self.flags = g.buffer(groups * 256 * 4, BU.STORAGE, "keep-flags")          # per logical index
         self.wgc = g.buffer((groups + _EMIT_K) * 4, BU.STORAGE, "workgroup-counts")  # -> offsets (scan)
-        self.idx2 = self.clip2 = None  # thinned survivors (made with the first budget)
+        self.idx2: list[Any] = []  # thinned survivors (made with the first budget)
+        self.clip2: list[Any] = []
         self.bgl_cull = g.layout(["uniform"] + ["read"] * 4 + ["rw"] * 4 + ["read"] + ["rw"] * 3, SS.COMPUTE)
-        self.bgl_thin = g.layout(["uniform", "read", "rw", "rw", "read", "rw", "rw", "rw"], SS.COMPUTE)
-        # only the pick fragment shader reads storage (t_ingest, importance)
+        self.bgl_thin = g.layout(["uniform", "read", "rw", "rw", "read", "rw", "rw", "rw", "rw"], SS.COMPUTE)
+        # only the pick fragment shader reads storage (t_ingest, importance) and Params (slot_base)
         self.bgl_draw = g.layout(["uniform"] + ["read"] * 8, SS.VERTEX,
-                                 {2: SS.VERTEX | SS.FRAGMENT, 3: SS.VERTEX | SS.FRAGMENT})
+                                 {0: SS.VERTEX | SS.FRAGMENT, 2: SS.VERTEX | SS.FRAGMENT, 3: SS.VERTEX | SS.FRAGMENT})
         naive = g.naive_float32
         self.p = {e: g.compute_pipeline(self.bgl_cull, _CULL, e, NAIVE=naive)
                   for e in ("cull", "scan", "emit", "finalize", "finalize_budget")}
@@ -127,52 +138,71 @@ class QuadsRaster(RasterMethod):
             self.draw_cache[colour_in_vs] = p
         return p
 
-    def groups(self, s: int, budget: bool) -> dict[str, Any]:
-        key = (s, budget)
+    def groups(self, s: int, budget: bool, seg: Any) -> dict[str, Any]:
+        """Bind groups of buffer set ``s`` for segment ``seg``: its Params and state words, its
+        chunk's data, and its window of the chunk's output buffers."""
+        c, off = seg.chunk, seg.out_off
+        key = (s, budget, seg.index, c, off)
         bg = self.bg_cache.get(key)
         if bg is None:
             g = self.gpu
-            data = g.data(s)
-            bg = {"cull": g.bind(self.bgl_cull, [g.params, *data, self.idx1, g.state, g.rng, g.dargs, g.lut,
-                                                 self.clip1, self.flags, self.wgc])}
-            drawn_idx, drawn_clip = self.idx1, self.clip1
+            if len(self.bg_cache) > 64:  # a second segment's window moves with the head
+                self.bg_cache.clear()
+            data, P, st, win = g.data(s, c), g.params_at(seg.index), g.state_at(seg.index), g.window
+            idx1, clip1 = win(self.idx1[c], off, 8), win(self.clip1[c], off, 16)
+            bg = {"cull": g.bind(self.bgl_cull, [P, *data, idx1, st, g.rng, g.dargs, g.lut, clip1, self.flags,
+                                                 self.wgc])}
+            drawn_idx, drawn_clip = idx1, clip1
             if budget:
-                if self.idx2 is None:
+                if not self.idx2:
                     BU = g.wgpu.BufferUsage
-                    self.idx2 = g.buffer(g.capacity * 8, BU.STORAGE | BU.COPY_SRC, "idx2")
-                    self.clip2 = g.buffer(g.capacity * 16, BU.STORAGE, "clip2")
-                bg["thin"] = g.bind(self.bgl_thin, [g.params, self.idx1, self.idx2, g.state, self.clip1,
-                                                    self.clip2, self.flags, self.wgc])
-                drawn_idx, drawn_clip = self.idx2, self.clip2
-            bg["draw"] = g.bind(self.bgl_draw, [g.params, *data, drawn_idx, g.lut, g.rng, drawn_clip])
+                    self.idx2 = [g.buffer(n * 8, BU.STORAGE | BU.COPY_SRC, f"idx2.{i}") for i, n in enumerate(self.out_len)]
+                    self.clip2 = [g.buffer(n * 16, BU.STORAGE, f"clip2.{i}") for i, n in enumerate(self.out_len)]
+                idx2, clip2 = win(self.idx2[c], off, 8), win(self.clip2[c], off, 16)
+                bg["thin"] = g.bind(self.bgl_thin, [P, idx1, idx2, st, clip1, clip2, self.flags, self.wgc, g.rng])
+                drawn_idx, drawn_clip = idx2, clip2
+            bg["draw"] = g.bind(self.bgl_draw, [P, *data, drawn_idx, g.lut, g.rng, drawn_clip])
             self.bg_cache[key] = bg
         return bg
+
+    def _draws(self, rp: Any, plan: FramePlan) -> None:
+        """One indirect draw per segment, in logical order (ties: the lower logical index)."""
+        g = self.gpu
+        for seg in plan.segments:
+            rp.set_bind_group(0, self.groups(plan.set, plan.budget_on, seg)["draw"])
+            rp.draw_indirect(g.state, seg.index * g.STATE_STRIDE)
 
     # ------------------------------------------------------------------ frame
     def encode(self, enc: Any, plan: FramePlan) -> None:
         g, wgpu, p = self.gpu, self.gpu.wgpu, self.p
-        bg = self.groups(plan.set, plan.budget_on)
+        bgs = [self.groups(plan.set, plan.budget_on, seg) for seg in plan.segments]
         cp = enc.begin_compute_pass(**g.ts_writes(0))
-        cp.set_bind_group(0, bg["cull"])
-        cp.set_pipeline(p["cull"])
-        cp.dispatch_workgroups(plan.gx, plan.gy, 1)
-        cp.set_pipeline(p["scan"])
-        cp.dispatch_workgroups(1, 1, 1)
-        cp.set_pipeline(p["emit"])
-        cp.dispatch_workgroups(math.ceil(plan.groups / _EMIT_K), 1, 1)
-        cp.set_pipeline(p["finalize"])
-        cp.dispatch_workgroups(1, 1, 1)
-        if plan.budget_on:
-            cp.set_bind_group(0, bg["thin"])
-            cp.set_pipeline(p["thin"])
-            cp.dispatch_workgroups_indirect(g.dargs, 0)
-            cp.set_pipeline(p["thin_scan"])
-            cp.dispatch_workgroups(1, 1, 1)
-            cp.set_pipeline(p["thin_emit"])
-            cp.dispatch_workgroups_indirect(g.dargs, 0)
-            cp.set_pipeline(p["finalize_budget"])
+        for seg, bg in zip(plan.segments, bgs):
             cp.set_bind_group(0, bg["cull"])
+            cp.set_pipeline(p["cull"])
+            cp.dispatch_workgroups(seg.gx, seg.gy, 1)
+            cp.set_pipeline(p["scan"])
             cp.dispatch_workgroups(1, 1, 1)
+            cp.set_pipeline(p["emit"])
+            cp.dispatch_workgroups(math.ceil(seg.groups / _EMIT_K), 1, 1)
+            if not plan.budget_on:
+                cp.set_pipeline(p["finalize"])
+                cp.dispatch_workgroups(1, 1, 1)
+        if plan.budget_on:  # after every segment's cull: the fraction counts all survivors
+            for bg in bgs:
+                cp.set_bind_group(0, bg["cull"])
+                cp.set_pipeline(p["finalize"])
+                cp.dispatch_workgroups(1, 1, 1)
+                cp.set_bind_group(0, bg["thin"])
+                cp.set_pipeline(p["thin"])
+                cp.dispatch_workgroups_indirect(g.dargs, 0)
+                cp.set_pipeline(p["thin_scan"])
+                cp.dispatch_workgroups(1, 1, 1)
+                cp.set_pipeline(p["thin_emit"])
+                cp.dispatch_workgroups_indirect(g.dargs, 0)
+                cp.set_pipeline(p["finalize_budget"])
+                cp.set_bind_group(0, bg["cull"])
+                cp.dispatch_workgroups(1, 1, 1)
         cp.end()
         b = g.cfg.background
         targets = [{"view": self.color_view, "load_op": wgpu.LoadOp.clear, "store_op": wgpu.StoreOp.store,
@@ -186,8 +216,7 @@ class QuadsRaster(RasterMethod):
                                       "depth_load_op": wgpu.LoadOp.clear, "depth_store_op": wgpu.StoreOp.store},
             **g.ts_writes(2))
         rp.set_pipeline(self.draw_pipeline(bool(int(plan.params["flags"]) & Flag.COLOUR_IN_VS)))
-        rp.set_bind_group(0, bg["draw"])
-        rp.draw_indirect(g.state, 0)
+        self._draws(rp, plan)
         rp.end()
         if self.edl is not None:
             cp = enc.begin_compute_pass()
@@ -224,7 +253,6 @@ class QuadsRaster(RasterMethod):
         g, wgpu = self.gpu, self.gpu.wgpu
         self._ensure_pick()
         T = self.pick_tex
-        bg = self.groups(plan.set, plan.budget_on)
         enc = g.device.create_command_encoder()
         rp = enc.begin_render_pass(
             color_attachments=[
@@ -236,8 +264,7 @@ class QuadsRaster(RasterMethod):
                                       "depth_load_op": wgpu.LoadOp.clear, "depth_store_op": wgpu.StoreOp.store})
         rp.set_scissor_rect(x0, y0, bw, bh)
         rp.set_pipeline(self.p_pick)
-        rp.set_bind_group(0, bg["draw"])
-        rp.draw_indirect(g.state, 0)
+        self._draws(rp, plan)
         rp.end()
         row_ids = (bw * 4 + 255) // 256 * 256
         row_attr = (bw * 16 + 255) // 256 * 256
@@ -264,16 +291,19 @@ class QuadsRaster(RasterMethod):
     # ------------------------------------------------------------------ tests
     def survivors(self, plan: FramePlan) -> np.ndarray:
         g = self.gpu
-        n = int(np.frombuffer(g.queue.read_buffer(g.state), np.uint32)[1])
-        if n == 0:
-            return np.zeros(0, np.int64)
-        buf = self.idx2 if plan.budget_on else self.idx1
-        idx = np.frombuffer(g.queue.read_buffer(buf, 0, n * 8), np.uint32)[0::2]
-        return np.sort(idx.astype(np.int64))
+        st = np.frombuffer(g.queue.read_buffer(g.state), np.uint32).reshape(-1, g.STATE_STRIDE // 4)
+        out = [np.zeros(0, np.int64)]
+        for seg in plan.segments:
+            n = int(st[seg.index, 1])
+            if n:
+                buf = (self.idx2 if plan.budget_on else self.idx1)[seg.chunk]
+                idx = np.frombuffer(g.queue.read_buffer(buf, seg.out_off * 8, n * 8), np.uint32)[0::2]
+                out.append(idx.astype(np.int64) + seg.slot_base)
+        return np.sort(np.concatenate(out))
 
     def close(self) -> None:
         T, E = self.pick_tex, self.edl or {}
-        destroy_all([E.get("tex"), E.get("ubo"), E.get("img"), self.idx1, self.idx2, self.clip1, self.clip2, self.flags, self.wgc, self.color_tex,
-                     self.depth_tex, T.get("ids"), T.get("attrs"), T.get("depth")])
+        destroy_all([E.get("tex"), E.get("ubo"), E.get("img"), *self.idx1, *self.idx2, *self.clip1, *self.clip2,
+                     self.flags, self.wgc, self.color_tex, self.depth_tex, T.get("ids"), T.get("attrs"), T.get("depth")])
         self.pick_tex = {}
         self.bg_cache.clear()

@@ -1,5 +1,7 @@
 // The quads method's cull, compaction and draw-argument passes (raster/quads.py); with
-// common.wgsl and scan.wgsl.
+// common.wgsl and scan.wgsl. They run once per segment of the ring (render/wgpu_tier/chunks.py)
+// with that segment's Params and state words; rng[G_KEPT] and rng[G_USED] count over all
+// segments (survivors, and those drawn under the budget by the segments before).
 @group(0) @binding(0) var<uniform> P: Params;
 @group(0) @binding(1) var<storage, read> pos: array<f32>;
 @group(0) @binding(2) var<storage, read> tms: array<vec2<f32>>;
@@ -7,7 +9,9 @@
 @group(0) @binding(4) var<storage, read> col: array<u32>;
 @group(0) @binding(5) var<storage, read_write> idx_out: array<vec2<u32>>;
 @group(0) @binding(6) var<storage, read_write> st: array<atomic<u32>, 16>;
-@group(0) @binding(7) var<storage, read_write> rng: array<atomic<u32>, 2>;
+@group(0) @binding(7) var<storage, read_write> rng: array<atomic<u32>, 8>;
+const G_KEPT: u32 = 4u;
+const G_USED: u32 = 5u;
 @group(0) @binding(8) var<storage, read_write> dargs: array<u32, 4>;
 @group(0) @binding(9) var<storage, read> lut: array<u32, 256>;
 @group(0) @binding(10) var<storage, read_write> clip_out: array<vec4<f32>>;
@@ -87,7 +91,7 @@ fn cull(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: v
         }
       }
       if (keep && P.lod_stride > 1u) {
-        keep = (logical % P.lod_stride) == 0u;
+        keep = ((logical + P.logical_base) % P.lod_stride) == 0u;
       }
       if (keep && (P.flags & F_IMPORTANCE) != 0u) {
         var n = 1.0;
@@ -96,7 +100,7 @@ fn cull(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: v
           n = clamp((x - P.imp_lo) * P.imp_scale, 0.0, 1.0);
           if (!is_finite(x)) { n = 0.0; }
         }
-        keep = u01(slot, P.seed) <= n;
+        keep = u01(slot + P.slot_base, P.seed) <= n;
       }
     }
   }
@@ -104,7 +108,9 @@ fn cull(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: v
   if (keep) { atomicAdd(&wg_count, 1u); }
   workgroupBarrier();
   if (lid == 0u) {
-    if (g < P.groups_total) { wgc[g] = atomicLoad(&wg_count); }
+    let kc = atomicLoad(&wg_count);
+    if (g < P.groups_total) { wgc[g] = kc; }
+    if (kc > 0u) { atomicAdd(&rng[G_KEPT], kc); }
     let bad = atomicLoad(&wg_bad);
     if (bad > 0u) { atomicAdd(&st[S_NONFINITE], bad); }
     let occ = atomicLoad(&wg_occ);
@@ -166,11 +172,12 @@ fn finalize() {
   } else {
     atomicStore(&st[1], 0u);
     var frac = 2.0;
-    if (c1 > P.budget) {
+    let all = atomicLoad(&rng[G_KEPT]);  // survivors of every segment (all culled by now)
+    if (all > P.budget) {
       // aim 3 sigma under the budget so the hard cap rarely bites: the drawn set then
       // depends only on the hash
       let b = f32(P.budget);
-      frac = max(b - 3.0 * sqrt(b), 0.5 * b) / f32(c1);
+      frac = max(b - 3.0 * sqrt(b), 0.5 * b) / f32(all);
     }
     atomicStore(&st[10], bitcast<u32>(frac));
     let groups = (c1 + 255u) / 256u;
@@ -184,5 +191,9 @@ fn finalize() {
 
 @compute @workgroup_size(1)
 fn finalize_budget() {
-  atomicStore(&st[1], min(atomicLoad(&st[S_COUNT2]), P.budget));
+  // the hard cap over the whole ring: the first `budget` in logical order, segment by segment
+  let used = atomicLoad(&rng[G_USED]);
+  let d = min(atomicLoad(&st[S_COUNT2]), P.budget - used);
+  atomicStore(&st[1], d);
+  atomicStore(&rng[G_USED], used + d);
 }

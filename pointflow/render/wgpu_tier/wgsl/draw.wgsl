@@ -43,24 +43,49 @@ fn size_px(clip: vec4<f32>) -> f32 {
   return P.point_size;
 }
 
-// corner vi of the quad of survivor ii; pad: extra px around a round footprint
-fn corner(vi: u32, clip: vec4<f32>, ext: f32) -> vec4<f32> {
-  var corners = array<vec2<f32>, 6>(vec2<f32>(-1.0, -1.0), vec2<f32>(1.0, -1.0), vec2<f32>(-1.0, 1.0),
-                                    vec2<f32>(-1.0, 1.0), vec2<f32>(1.0, -1.0), vec2<f32>(1.0, 1.0));
-  let off = corners[vi] * ext * vec2<f32>(2.0 / P.vw, 2.0 / P.vh) * clip.w;
-  // a point exactly on the far plane (depth 1.0) must still pass 'less' against the cleared 1.0
-  return vec4<f32>(clip.xy + off, min(clip.z, clip.w * 0.99999994), clip.w);
-}
+// The footprint's pixels are the rules of render/base.py computed as the compute method does
+// (raster.wgsl, splat): the pixel box [x0, x1) x [y0, y1) of the float32 centre, and for round
+// points the centre test in the fragment shader. The quad's corners lie on that box's pixel
+// edges, half a pixel from every pixel centre, so the rasteriser's vertex snapping and edge
+// rules cannot change which centres it covers (relying on them put ~0.1% of footprint edge
+// pixels one pixel off the cpu rule). Depth is the linear view depth w times P.depth_scale (a
+// power of two, so exact and < 1 inside the far plane) at clip w = 1: the depth test orders
+// points by w with float32's full relative precision, as the compute keys do, not by z/w.
 
-// the footprint's centre in px and its radius (round points)
+// the footprint's centre in px (x, y) and its half size h = s / 2 (z)
 fn centre_of(clip: vec4<f32>, s: f32) -> vec3<f32> {
-  let ndc = clip.xy / clip.w;
-  return vec3<f32>((ndc.x * 0.5 + 0.5) * P.vw, (0.5 - ndc.y * 0.5) * P.vh, 0.5 * s);
+  let w = clip.w;
+  return vec3<f32>((clip.x / w * 0.5 + 0.5) * P.vw, (0.5 - clip.y / w * 0.5) * P.vh, 0.5 * s);
 }
 
+// square: the pixels x in [ceil(px - h - 0.5), ceil(px + h - 0.5)), the same for y, i.e.
+// centres in [p - s/2, p + s/2) (as floats: x0, x1, y0, y1)
+fn box_square(c: vec3<f32>) -> vec4<f32> {
+  return vec4<f32>(ceil(c.x - c.z - 0.5), ceil(c.x + c.z - 0.5), ceil(c.y - c.z - 0.5), ceil(c.y + c.z - 0.5));
+}
+
+// round: the box of the centres within s/2 (the fragment shader tests each centre)
+fn box_round(c: vec3<f32>) -> vec4<f32> {
+  return vec4<f32>(ceil(c.x - c.z - 0.5), floor(c.x + c.z - 0.5) + 1.0,
+                   ceil(c.y - c.z - 0.5), floor(c.y + c.z - 0.5) + 1.0);
+}
+
+// corner vi of the quad on the pixel box b (an empty box draws nothing, as in the compute method)
+fn corner(vi: u32, clip: vec4<f32>, b: vec4<f32>) -> vec4<f32> {
+  var corners = array<vec2<f32>, 6>(vec2<f32>(0.0, 0.0), vec2<f32>(1.0, 0.0), vec2<f32>(0.0, 1.0),
+                                    vec2<f32>(0.0, 1.0), vec2<f32>(1.0, 0.0), vec2<f32>(1.0, 1.0));
+  let k = corners[vi];
+  let x = select(b.x, b.y, k.x > 0.5);
+  let y = select(b.z, b.w, k.y > 0.5);
+  let depth = min(max(clip.w, 0.0) * P.depth_scale, 0.99999994);
+  return vec4<f32>(x / P.vw * 2.0 - 1.0, 1.0 - y / P.vh * 2.0, depth, 1.0);
+}
+
+// round: centres within s/2 (<=)
 fn outside(frag: vec4<f32>, centre: vec3<f32>) -> bool {
-  let d = frag.xy - centre.xy;
-  return dot(d, d) > centre.z * centre.z;
+  let ex = frag.x - centre.x;
+  let ey = frag.y - centre.y;
+  return ex * ex + ey * ey > centre.z * centre.z;
 }
 
 struct VSquare {
@@ -71,8 +96,9 @@ struct VSquare {
 @vertex
 fn vs_square(@builtin(vertex_index) vi: u32, @builtin(instance_index) ii: u32) -> VSquare {
   let clip = clipb[ii];
+  let s = size_px(clip);
   var o: VSquare;
-  o.position = corner(vi, clip, 0.5 * size_px(clip));
+  o.position = corner(vi, clip, box_square(centre_of(clip, s)));
   o.color = colour_of(ii);
   return o;
 }
@@ -93,9 +119,10 @@ fn vs_round(@builtin(vertex_index) vi: u32, @builtin(instance_index) ii: u32) ->
   let clip = clipb[ii];
   let s = size_px(clip);
   var o: VRound;
-  o.position = corner(vi, clip, 0.5 * s + 1.0);
+  let c = centre_of(clip, s);
+  o.position = corner(vi, clip, box_round(c));
   o.color = colour_of(ii);
-  o.centre = centre_of(clip, s);
+  o.centre = c;
   return o;
 }
 
@@ -113,7 +140,7 @@ struct PickOut {
 
 fn pick_out(slot: u32, z: f32) -> PickOut {
   var o: PickOut;
-  o.slot = slot + 1u;
+  o.slot = P.slot_base + slot + 1u;  // (slot is the chunk's; the ring's slot + 1 goes out)
   let t = tms[slot];
   o.attrs = vec4<f32>(z, imp[slot], t.x, t.y);
   return o;
@@ -127,8 +154,9 @@ struct VPickSquare {
 @vertex
 fn vs_pick_square(@builtin(vertex_index) vi: u32, @builtin(instance_index) ii: u32) -> VPickSquare {
   let clip = clipb[ii];
+  let s = size_px(clip);
   var o: VPickSquare;
-  o.position = corner(vi, clip, 0.5 * size_px(clip));
+  o.position = corner(vi, clip, box_square(centre_of(clip, s)));
   o.slot = idx[ii].x;
   return o;
 }
@@ -149,8 +177,9 @@ fn vs_pick_round(@builtin(vertex_index) vi: u32, @builtin(instance_index) ii: u3
   let clip = clipb[ii];
   let s = size_px(clip);
   var o: VPickRound;
-  o.position = corner(vi, clip, 0.5 * s + 1.0);
-  o.centre = centre_of(clip, s);
+  let c = centre_of(clip, s);
+  o.position = corner(vi, clip, box_round(c));
+  o.centre = c;
   o.slot = idx[ii].x;
   return o;
 }
@@ -177,8 +206,9 @@ struct EdlOut {
 @vertex
 fn vs_square_edl(@builtin(vertex_index) vi: u32, @builtin(instance_index) ii: u32) -> VSquareEdl {
   let clip = clipb[ii];
+  let s = size_px(clip);
   var o: VSquareEdl;
-  o.position = corner(vi, clip, 0.5 * size_px(clip));
+  o.position = corner(vi, clip, box_square(centre_of(clip, s)));
   o.color = colour_of(ii);
   o.w = clip.w;
   return o;
@@ -201,9 +231,10 @@ fn vs_round_edl(@builtin(vertex_index) vi: u32, @builtin(instance_index) ii: u32
   let clip = clipb[ii];
   let s = size_px(clip);
   var o: VRoundEdl;
-  o.position = corner(vi, clip, 0.5 * s + 1.0);
+  let c = centre_of(clip, s);
+  o.position = corner(vi, clip, box_round(c));
   o.color = colour_of(ii);
-  o.centre = centre_of(clip, s);
+  o.centre = c;
   o.w = clip.w;
   return o;
 }

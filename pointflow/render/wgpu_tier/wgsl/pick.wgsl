@@ -16,13 +16,18 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
   var logical = 0u;
   var depth = 0u;
   if (winner(y * u32(P.vw) + x, &logical, &depth)) {
-    let slot = (P.head + logical) % P.capacity;
-    t.slot1 = slot + 1u;
+    // once per segment, as the resolve pass (the first also writes the empty texels)
+    let l = logical - P.logical_base;
+    if (l >= P.size) { return; }
+    let slot = slot_of(l);
+    t.slot1 = P.slot_base + slot + 1u;
     t.depth = bitcast<f32>(depth);
     t.imp = imp[slot];
     let tt = tms[slot];
     t.t_hi = tt.x;
     t.t_lo = tt.y;
+  } else if (P.logical_base != 0u) {
+    return;
   }
   pick_out[gid.x] = t;
 }

@@ -84,7 +84,7 @@ fn test_point(logical: u32, count: bool) -> Pt {
     keep = (P.now_hi - t.x) + (P.now_lo - t.y) <= P.window_ms;
   }
   if (HAS_LOD && keep) {
-    keep = (logical % P.lod_stride) == 0u;
+    keep = ((logical + P.logical_base) % P.lod_stride) == 0u;
   }
   if (HAS_IMP && keep) {
     var n = 1.0;
@@ -93,7 +93,7 @@ fn test_point(logical: u32, count: bool) -> Pt {
       n = clamp((x - P.imp_lo) * P.imp_scale, 0.0, 1.0);
       if (!is_finite(x)) { n = 0.0; }
     }
-    keep = u01(slot, P.seed) <= n;
+    keep = u01(slot + P.slot_base, P.seed) <= n;
   }
   r.keep = keep;
   return r;
@@ -155,8 +155,10 @@ fn main(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: v
     atomicStore(&wg_min, 0xffffffffu);
     atomicStore(&wg_max, 0u);
   }
-  let g = C.first_group + wid.y * C.groups_x + wid.x;
-  let first = g * 256u * K;
+  // workgroups of this segment, numbered over the whole ring (budget offsets in wgc)
+  let gl = wid.y * P.groups_x + wid.x;
+  let g = P.group_base + gl;
+  let first = gl * 256u * K;
   var frac = 2.0;
   // budget raster: 0 = all thinned survivors of this workgroup are under the budget,
   // 1 = none is, 2 = the budget ends inside it (rank each one in logical order)
@@ -196,9 +198,9 @@ fn main(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: v
       }
       if (keep) { n_keep = n_keep + 1u; }
     }
-    if (C.budget_on != 0u && MODE != MODE_COUNT && keep) { keep = u01(pt.slot, P.budget_seed) < frac; }
+    if (C.budget_on != 0u && MODE != MODE_COUNT && keep) { keep = u01(pt.slot + P.slot_base, P.budget_seed) < frac; }
     if (MODE == MODE_THIN_COUNT && keep) { n_keep = n_keep + 1u; }
-    if (MODE == MODE_DEBUG && logical < P.size) { dbg[logical] = select(0u, 1u, keep); }
+    if (MODE == MODE_DEBUG && logical < P.size) { dbg[P.logical_base + logical] = select(0u, 1u, keep); }
     if (MODE == MODE_RASTER) {
       if (mode == 1u) {
         keep = false;
@@ -211,7 +213,7 @@ fn main(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: v
       }
       if (keep) {
         n_drawn = n_drawn + 1u;
-        splat(logical, pt.clip);
+        splat(P.logical_base + logical, pt.clip);
       }
     }
   }

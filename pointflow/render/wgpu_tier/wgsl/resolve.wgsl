@@ -25,8 +25,14 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
   var logical = 0u;
   var depth = 0u;
   if (winner(gid.y * W + x, &logical, &depth)) {
-    c = point_colour(slot_of(logical));
+    // a ring in several chunks resolves once per segment: each writes the pixels its own
+    // points won (the first also the background)
+    let l = logical - P.logical_base;  // wraps to a huge value before this segment
+    if (l >= P.size) { return; }
+    c = point_colour(slot_of(l));
     if (EDL) { c = shade_rgba8(c, edl_shade(x, gid.y, bitcast<f32>(depth))); }
+  } else if (P.logical_base != 0u) {
+    return;
   }
   img[gid.y * C.pick_x0 + x] = c;  // pick_x0 holds the row pitch in pixels here
 }

@@ -7,6 +7,8 @@
 @group(0) @binding(5) var<storage, read_write> clip_out: array<vec4<f32>>;
 @group(0) @binding(6) var<storage, read_write> flags: array<u32>;
 @group(0) @binding(7) var<storage, read_write> wgc: array<u32>;
+// the colour-range buffer: word 5 counts the survivors drawn by the segments before (cull.wgsl)
+@group(0) @binding(8) var<storage, read_write> glob: array<atomic<u32>, 8>;
 
 var<workgroup> wg_count: atomic<u32>;
 
@@ -24,7 +26,7 @@ fn thin(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: v
   let c1 = atomicLoad(&st[S_COUNT1]);
   let frac = bitcast<f32>(atomicLoad(&st[10]));
   var keep = false;
-  if (i < c1) { keep = u01(idx_in[i].x, P.budget_seed) < frac; }
+  if (i < c1) { keep = u01(idx_in[i].x + P.slot_base, P.budget_seed) < frac; }
   if (i < thin_groups() * 256u) { flags[i] = select(0u, 1u, keep); }
   if (keep) { atomicAdd(&wg_count, 1u); }
   workgroupBarrier();
@@ -46,7 +48,7 @@ fn thin_emit(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) w
   let local = wg_exclusive(lid, k);
   if (k == 1u) {
     let o = wgc[g] + local;
-    if (o < P.budget) {
+    if (o + atomicLoad(&glob[5]) < P.budget) {
       idx_out[o] = idx_in[i];
       clip_out[o] = clip_in[i];
     }
