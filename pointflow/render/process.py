@@ -6,10 +6,12 @@ spans, and every ``output.every_n_frames`` frames read the image back and save a
 """
 from __future__ import annotations
 
+import dataclasses
 import glob
+import json
 import os
 import time
-from typing import Optional
+from typing import Any, Optional
 
 import numpy as np
 import zmq
@@ -19,7 +21,9 @@ from ..ring.handoff import SlabReader
 from ..ring.slabs import SlabPair
 from ..runtime.stage import StageContext
 from .base import FrameInput, RenderError, Renderer
+from . import control
 from .camera import Camera
+from .control import ControlError, ViewState, camera_near_far, style_render_config
 
 
 class CameraController:
@@ -57,18 +61,23 @@ class CameraController:
         diag = max(float(np.linalg.norm(hi0 - lo0)), 1e-9)
         return max(float(np.abs(box[0] - lo0).max()), float(np.abs(box[1] - hi0).max())) > 0.1 * diag
 
-    def update(self, frame: FrameInput) -> Optional[Camera]:
-        c = self.cfg
-        if c.mode == "fixed":
-            return self.camera
+    def refresh(self, frame: FrameInput) -> None:
+        """Keep the data box current (about once a second; refit only on a >10% change)."""
         now = time.monotonic()
         if frame.size and (self._box is None or now - self._last_fit > 1.0):
             self._last_fit = now
             box = self._bounds(frame)
             if box is not None and (self._box is None or self._moved(box)):
                 self._box = box
+
+    def update(self, frame: FrameInput) -> Optional[Camera]:
+        c = self.cfg
+        if c.mode == "fixed":
+            return self.camera
+        self.refresh(frame)
         if self._box is None:
             return None
+        now = time.monotonic()
         az = -60.0 + (c.orbit_deg_per_s * (now - self._t0) if c.orbit_deg_per_s else 0.0)
         cam = Camera.fit(self._box[0], self._box[1], fov_deg=c.fov_deg, azimuth_deg=az,
                          elevation_deg=c.elevation_deg, up=c.up, aspect=self.aspect)
@@ -78,6 +87,86 @@ class CameraController:
             cam.target = np.asarray(c.target, np.float64)
         self.camera = cam
         return cam
+
+
+class ViewController:
+    """The render stage's view: the control state (:mod:`pointflow.render.control`), the
+    camera it gives each frame, and whether a frame would look like the last one drawn
+    (then it is not drawn: an idle pipeline costs the render stage next to no CPU)."""
+
+    def __init__(self, cfg, width: int, height: int, channels: list[str]):
+        self.cfg = cfg
+        self.auto = CameraController(cfg, width, height)
+        self.state = ViewState.from_render_config(cfg.render)
+        self.user_camera = False  # True once a control message set or turned the camera
+        self.channels = channels
+        self.height = height
+        self.last: Optional[Camera] = None  # the camera of the last frame drawn
+        self.drawn_version = -1
+        self.changed_ns = 0  # when the newest version was applied
+        self.drawn_ns = 0  # when the frame that first showed drawn_version was done
+        self._drawn_key = None
+        self.skipped = 0
+
+    def camera(self, frame: FrameInput) -> Optional[Camera]:
+        c = self.state.camera
+        if self.user_camera and c.mode == "fixed":
+            self.auto.refresh(frame)
+            near, far = camera_near_far(c.eye, c.target, self.auto._box)
+            return Camera(eye=c.eye, target=c.target, up=c.up, fov_deg=c.fov_deg, near=near, far=far)
+        return self.auto.update(frame)
+
+    def unchanged(self, frame: FrameInput, camera: Camera, renderer: Renderer) -> bool:
+        """True when drawing ``frame`` would repeat the last frame: no slot changed, same
+        ring window and origin, same camera, same view version, same renderer, no time window."""
+        key = (frame.head, frame.size, tuple(np.round(frame.origin, 9)), self.state.version, id(renderer),
+               camera.view_proj(16, 9).tobytes(), camera.near, camera.far)
+        same = (frame.dirty is not None and not frame.dirty and key == self._drawn_key
+                and not self.state.style.time_window_ms > 0)
+        self._pending_key = key
+        return same
+
+    def drawn(self) -> None:
+        self._drawn_key = self._pending_key
+        if self.drawn_version != self.state.version:
+            self.drawn_version = self.state.version
+            self.drawn_ns = time.monotonic_ns()
+
+    def apply(self, msg: dict, window) -> None:
+        """Apply one control message (raises ControlError); a camera change reaches the window too."""
+        cur = window.camera if window is not None else self.last
+        new = control.apply(self.state, msg, current=cur, channels=self.channels, height_px=self.height)
+        if new.version == self.state.version:
+            return
+        if msg.get("cmd") == "fit":
+            self.user_camera = False
+            self.auto.cfg = dataclasses.replace(self.auto.cfg, mode="auto", position=None, target=None)
+        elif new.camera.mode == "fixed" and new.camera != self.state.camera:
+            self.user_camera = True
+        self.state = new
+        self.changed_ns = time.monotonic_ns()
+        if window is not None and msg.get("cmd") != "style":
+            cam = self.camera_for_window()
+            if cam is not None:
+                window.controller.camera = cam
+
+    def camera_for_window(self) -> Optional[Camera]:
+        c = self.state.camera
+        if self.user_camera and c.mode == "fixed":
+            near, far = camera_near_far(c.eye, c.target, self.auto._box)
+            return Camera(eye=c.eye, target=c.target, up=c.up, fov_deg=c.fov_deg, near=near, far=far)
+        return self.auto.camera
+
+    def reply(self, window, frames: int) -> dict:
+        d = self.state.to_dict()
+        cam = window.camera if window is not None else self.last
+        d["camera_drawn"] = None if cam is None else {
+            "eye": [float(v) for v in cam.eye], "target": [float(v) for v in cam.target],
+            "up": [float(v) for v in cam.up], "fov_deg": float(cam.fov_deg), "near": float(cam.near),
+            "far": float(cam.far)}
+        d.update(drawn_version=self.drawn_version, changed_ns=self.changed_ns, drawn_ns=self.drawn_ns,
+                 frames=frames, frames_skipped=self.skipped, view_block=control.view_block(self.state))
+        return d
 
 
 def frame_from_slab(h, view, now_ns: int, capacity: int) -> FrameInput:
@@ -127,7 +216,8 @@ def main(ctx: StageContext) -> None:
         ctx.log.info("render tier: %s", renderer.info())
         _warm_up(renderer, slabs, capacity, ctx.log)
     _announce(release, ctx, renderer)
-    cam = CameraController(cfg, *cfg.render.size)
+    view = ViewController(cfg, *cfg.render.size, channels)
+    stage = _Stage(renderer=renderer, view=view, capacity=capacity, channels=channels)
     window = None
     want_window = cfg.render.window
     if want_window:
@@ -150,21 +240,30 @@ def main(ctx: StageContext) -> None:
     try:
         while ctx.running:
             ctx.beat()
-            _serve_commands(commands, renderer, ring, ctx)
+            stage.window, stage.frames = window, frames - base
+            _serve_commands(commands, stage, ring, ctx)
+            renderer = stage.renderer
             if window is not None:
                 window.process_events()
             got = reader.recv(timeout_ms=20 if window is not None else 50)
             if got is None:
                 t_idle = _resync_if_idle(release, reader, t_free, t_idle, tick_s)
                 continue
-            h, view = got
+            h, slab_view = got
             tick_s = float(h.extra.get("interval_ms") or 0.0) / 1000.0
             drew = False
             try:  # the slab is read only inside this block and goes back in its finally, the one place
                 t0 = time.monotonic_ns()
-                frame = frame_from_slab(h, view, t0, capacity)
-                camera = cam.update(frame)
+                frame = frame_from_slab(h, slab_view, t0, capacity)
+                if stage.full_upload:  # a new renderer: everything in the slab is new to it
+                    frame.dirty = None
+                    stage.full_upload = False
+                camera = window.camera if window is not None else view.camera(frame)
                 if camera is None:  # nothing to frame yet
+                    continue
+                if view.unchanged(frame, camera, renderer):  # the same picture again: not drawn
+                    view.skipped += 1
+                    c.extra["frames_skipped_unchanged"] = view.skipped
                     continue
                 try:
                     if want_window and window is None:
@@ -182,6 +281,7 @@ def main(ctx: StageContext) -> None:
                     else:
                         fs = renderer.render(frame, camera)
                     drew = True
+                    view.last = camera
                 except ValueError as exc:  # a malformed frame (tiers check their input): skip it, counted
                     ctx.log.error("frame %d rejected by the %s tier: %s", h.seq, renderer.tier, exc)
                     c.drop("bad_frame", 1)
@@ -190,7 +290,9 @@ def main(ctx: StageContext) -> None:
                     from .select import fallback_after
 
                     ctx.log.error("%s tier failed (%s); falling back", renderer.tier, exc)
-                    renderer = fallback_after(renderer, exc, cfg.render, capacity, channels)
+                    renderer = fallback_after(renderer, exc, renderer.cfg, capacity, channels)
+                    stage.renderer = renderer
+                    stage.full_upload = True
                     if window is not None:
                         window.renderer = renderer
                     c.extra["tier"] = renderer.tier
@@ -203,8 +305,9 @@ def main(ctx: StageContext) -> None:
                 if not drew:  # ready for the next handoff at once
                     _feedback(release, 0.0, h.seq, drawn=False)
             t_up = time.monotonic_ns()
-            if tracing and h.trace_ids and hasattr(renderer, "finish"):
+            if (tracing and h.trace_ids or view.drawn_version != view.state.version) and hasattr(renderer, "finish"):
                 renderer.finish()  # frame_done means the GPU work is complete
+            view.drawn()
             frames += 1
             png = out_dir is not None and frames % out.every_n_frames == 0
             if png:
@@ -278,15 +381,30 @@ def _print_pick(ring, slot, x, y) -> None:
           flush=True)
 
 
-def _serve_commands(sock, renderer: Renderer, ring, ctx) -> None:
-    """Answer pending REQ/REP requests: ``pick`` (resolved through the ring, generation-checked)
-    and ``save`` (write the current frame as PNG)."""
-    import json
+@dataclasses.dataclass
+class _Stage:
+    """What a command may replace: the renderer (a style the tier cannot take in place)."""
 
+    renderer: Renderer
+    view: "ViewController"
+    capacity: int
+    channels: list
+    window: Any = None
+    frames: int = 0
+    #: The next frame uploads the whole slab (a renderer built since the last frame).
+    full_upload: bool = False
+
+
+def _serve_commands(sock, stage: _Stage, ring, ctx) -> None:
+    """Answer pending REQ/REP requests: ``pick`` (resolved through the ring, generation-checked),
+    ``save`` (write the current frame as PNG) and the view control messages of
+    :mod:`pointflow.render.control` (a bad one is answered with its error, counted
+    ``bad_control``; the view stays as it was)."""
     while sock.poll(0, zmq.POLLIN):
         try:
             req = json.loads(sock.recv())
-            cmd = req.get("cmd")
+            cmd = req.get("cmd") if isinstance(req, dict) else None
+            renderer = stage.renderer
             if cmd == "pick":
                 slot = renderer.pick(float(req["x"]), float(req["y"]), float(req.get("pixel_ratio", 1.0)))
                 rep = {"point": point_to_dict(ring.get_point(slot)) if slot is not None else None}
@@ -295,12 +413,45 @@ def _serve_commands(sock, renderer: Renderer, ring, ctx) -> None:
                 os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
                 write_png(path, renderer.read_image())
                 rep = {"path": path}
+            elif cmd in control.COMMANDS:
+                rep = _control(req, stage, ctx)
             else:
-                rep = {"error": f"unknown command {cmd!r}; expected pick or save"}
+                rep = {"error": f"unknown command {cmd!r}; expected pick, save or one of {', '.join(control.COMMANDS)}"}
+        except ControlError as exc:
+            ctx.counters.drop("bad_control", 1)
+            ctx.log.warning("render control message refused: %s", exc)
+            rep = {"error": str(exc), "key": exc.key}
         except Exception as exc:  # noqa: BLE001 - a bad request must not kill the stage
             ctx.log.warning("render command failed: %s", exc)
             rep = {"error": f"{type(exc).__name__}: {exc}"}
         sock.send_string(json.dumps(rep))
+
+
+def _control(req: dict, stage: _Stage, ctx) -> dict:
+    """Apply a view control message; a new style goes to the renderer (in place, or a new
+    renderer of the same tier when the tier caches it)."""
+    view = stage.view
+    old = view.state
+    view.apply(req, stage.window)
+    if view.state.style != old.style:
+        r = stage.renderer
+        new_cfg = style_render_config(r.cfg, view.state.style)
+        if not r.restyle(new_cfg):
+            try:
+                nr = type(r)(new_cfg, stage.capacity, stage.channels)
+            except Exception as exc:  # noqa: BLE001 - keep drawing with the old style
+                view.state = old
+                raise ControlError("style", f"the {r.tier} tier could not take the new style: {exc}") from None
+            r.close()
+            stage.renderer = nr
+            stage.full_upload = True
+            if stage.window is not None:
+                stage.window.renderer = nr
+            ctx.counters.extra["tier_info"] = nr.info()
+            ctx.log.info("new %s renderer for the style %s", nr.tier, dataclasses.asdict(view.state.style))
+    if view.state.version != old.version:
+        ctx.counters.extra["view_version"] = view.state.version
+    return view.reply(stage.window, stage.frames)
 
 
 def prepare(cfg, info, log) -> Optional[Renderer]:

@@ -14,6 +14,16 @@ from .supervisor import PipelineFailed, Supervisor
 
 log = logging.getLogger("pointflow")
 
+#: "argument not given" (None is a value for some, e.g. ``style(color_by=None)``).
+_UNSET: Any = type("_Unset", (), {"__repr__": lambda self: "<unset>"})()
+
+
+def _plain(args: dict) -> dict:
+    """numpy arrays and scalars as JSON-ready lists and floats."""
+    import numpy as np
+
+    return {k: (np.asarray(v).tolist() if isinstance(v, (np.ndarray, np.generic)) else v) for k, v in args.items()}
+
 
 class Pipeline:
     """A running (or runnable) pointflow pipeline.
@@ -123,6 +133,70 @@ class Pipeline:
         """Write the current frame as PNG at ``path`` (on request, besides every N frames)."""
         rep = self._request({"cmd": "save", "path": os.path.abspath(path)}, timeout_s)
         return rep["path"]
+
+    # ------------------------------------------------------------------ steer the view (docs/api.md)
+    def camera(self, *, eye=None, target=None, up=None, fov_deg: Optional[float] = None, wait: bool = True) -> dict:
+        """Set the camera (world coordinates; any subset). The view stays there until
+        :meth:`fit`. Returns the view state (:meth:`view_state`)."""
+        args = {k: v for k, v in (("eye", eye), ("target", target), ("up", up), ("fov_deg", fov_deg)) if v is not None}
+        return self.control({"cmd": "camera", **_plain(args)}, wait=wait)
+
+    def orbit(self, azimuth_deg: float = 0.0, elevation_deg: float = 0.0, wait: bool = True) -> dict:
+        """Turn the eye about the target (degrees; azimuth counter-clockwise about up)."""
+        return self.control({"cmd": "orbit", "azimuth_deg": azimuth_deg, "elevation_deg": elevation_deg}, wait=wait)
+
+    def pan(self, right: float = 0.0, up: float = 0.0, wait: bool = True) -> dict:
+        """Move eye and target sideways by fractions of the view height."""
+        return self.control({"cmd": "pan", "right": right, "up": up}, wait=wait)
+
+    def zoom(self, factor: float, wait: bool = True) -> dict:
+        """Move towards the target: 2 = twice as close, 0.5 = twice as far."""
+        return self.control({"cmd": "zoom", "factor": factor}, wait=wait)
+
+    def fit(self, wait: bool = True) -> dict:
+        """Frame the data again (and follow it as it grows)."""
+        return self.control({"cmd": "fit"}, wait=wait)
+
+    def style(self, *, color_by: Any = _UNSET, colormap: Any = _UNSET, color_range: Any = _UNSET,
+              point_size: Any = _UNSET, point_shape: Any = _UNSET, edl: Any = _UNSET, edl_strength: Any = _UNSET,
+              time_window_ms: Any = _UNSET, wait: bool = True) -> dict:
+        """Change how points are drawn (only the arguments given). ``color_by``: a ring
+        channel, ``z``, ``ingest_time`` or None; ``color_range``: ``'auto'`` or ``[lo, hi]``."""
+        args = {k: v for k, v in locals().items() if k not in ("self", "wait") and v is not _UNSET}
+        return self.control({"cmd": "style", **_plain(args)}, wait=wait)
+
+    def view_state(self) -> dict:
+        """The view now: ``camera``, ``style``, ``version``, ``drawn_version`` (the version
+        the last frame showed), ``camera_drawn`` and ``view_block`` (for a YAML ``view:``)."""
+        return self.control({"cmd": "view_state"}, wait=False)
+
+    def save_view(self, path: Union[str, os.PathLike]) -> str:
+        """Write the view as a YAML ``view:`` block; put it in a pipeline YAML to start there."""
+        import yaml
+
+        block = self.view_state()["view_block"]
+        with open(path, "w") as f:
+            yaml.safe_dump({"view": block}, f, sort_keys=False)
+        return str(path)
+
+    def control(self, msg: dict, wait: bool = True, timeout_s: float = 10.0) -> dict:
+        """Send one view control message (render/control.py); with ``wait`` return once a
+        frame shows it (or ``timeout_s`` passed: nothing to draw yet). A refused message
+        raises :class:`~pointflow.render.control.ControlError` naming the argument."""
+        from ..render.control import ControlError
+
+        if self._sup is None:
+            raise RuntimeError("pipeline is not running")
+        rep = self._sup.request(msg, timeout_s)
+        if "error" in rep:
+            if "key" in rep:
+                raise ControlError(rep["key"], rep["error"].split(": ", 1)[-1])
+            raise RuntimeError(f"render stage: {rep['error']}")
+        end = time.monotonic() + timeout_s
+        while wait and rep["drawn_version"] < rep["version"] and time.monotonic() < end:
+            time.sleep(0.005)
+            rep = self._sup.request({"cmd": "view_state"}, timeout_s)
+        return rep
 
     def _request(self, msg: dict, timeout_s: float) -> dict:
         if self._sup is None:
