@@ -17,6 +17,7 @@ from .. import wire
 from ..chunk import new_trace_id
 from ..frames import message as tfmsg
 from ..frames.deskew import TIME_FIELDS
+from . import playback
 from .transports import resolve_transport
 from .transports.base import InputUnreadable
 
@@ -70,10 +71,22 @@ def main(ctx) -> None:
 
     ctx.on_beat.append(_stats)
     seq = 0
+    control = None  # the replay's control path (pause, seek, step, rate, loop): ingest/playback.py
+    clock = transport.playback if getattr(transport, "seekable", False) else None
     try:
         transport.open()
+        if clock is not None:
+            clock.configure(ctx.cfg.playback)
+            transport.counters.update(clock.counters())
+            if ctx.endpoints.playback:
+                control = ctx.zmq.socket(zmq.REP)
+                control.setsockopt(zmq.LINGER, 0)
+                control.bind(playback.playback_endpoint(ctx.endpoints.playback, idx))
         it = transport.chunks()
         while ctx.running:
+            if control is not None:
+                playback.serve(control, clock, ctx.log, ctx.counters)
+                transport.counters.update(clock.counters())
             t0 = time.monotonic_ns()
             try:
                 chunk = next(it)
@@ -122,3 +135,5 @@ def main(ctx) -> None:
         finally:
             _stats()
             sock.close()
+            if control is not None:
+                control.close(0)

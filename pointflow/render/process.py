@@ -98,7 +98,8 @@ class ViewController:
         self.cfg = cfg
         self.auto = CameraController(cfg, width, height)
         self.state = ViewState.from_render_config(cfg.render)
-        self.user_camera = False  # True once a control message set or turned the camera
+        # True once a control message set or turned the camera, or a `view:` block set it
+        self.user_camera = bool(isinstance(cfg.view, dict) and isinstance(cfg.view.get("camera"), dict))
         self.channels = channels
         self.height = height
         self.last: Optional[Camera] = None  # the camera of the last frame drawn

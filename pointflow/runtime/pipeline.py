@@ -198,6 +198,50 @@ class Pipeline:
             rep = self._sup.request({"cmd": "view_state"}, timeout_s)
         return rep
 
+    # ------------------------------------------------------------------ steer the replay (docs/api.md)
+    def playback(self, source: Optional[str] = None, *, paused: Optional[bool] = None, seek_s: Optional[float] = None,
+                 seek_fraction: Optional[float] = None, step: int = 0, rate: Optional[float] = None,
+                 loop: Optional[bool] = None, timeout_s: float = 5.0) -> dict[str, dict]:
+        """Steer the replaying sources (``file``, ``rosbag``): all of them, or ``source`` by
+        name. With no argument it only reads their state. Returns ``{source name: state}``
+        (``paused``, ``rate``, ``loop``, ``position_s``, ``index`` of the last message sent,
+        ``duration_s``, ``seeks``, ``steps``...). A refused argument raises
+        :class:`~pointflow.ingest.playback.PlaybackError` naming it."""
+        from ..ingest.playback import PlaybackError, playback_endpoint, request
+        from ..ingest.transports import resolve_transport
+
+        if self._sup is None:
+            raise RuntimeError("pipeline is not running")
+        msg: dict[str, Any] = {"cmd": "playback"}
+        for k, v in (("paused", paused), ("seek_s", seek_s), ("seek_fraction", seek_fraction), ("rate", rate),
+                     ("loop", loop)):
+            if v is not None:
+                msg[k] = v.item() if hasattr(v, "item") else v
+        if step:
+            msg["step"] = step
+        replays = [(i, s) for i, s in enumerate(self.cfg.sources)
+                   if not s.external and getattr(resolve_transport(s.transport), "seekable", False)]
+        if source is not None:
+            replays = [(i, s) for i, s in replays if s.name == source]
+            if not replays:
+                names = [s.name for i, s in enumerate(self.cfg.sources)
+                         if getattr(resolve_transport(s.transport), "seekable", False)]
+                raise PlaybackError("source", f"no replaying source named {source!r}; replaying sources: "
+                                    f"{', '.join(names) or 'none (only file and rosbag sources replay)'}")
+        if not replays:
+            raise PlaybackError("source", "this pipeline has no replaying source (file or rosbag)")
+        out = {}
+        for i, s in replays:
+            try:
+                rep = request(self._sup._zctx, playback_endpoint(self._sup.endpoints.playback, i), msg, timeout_s)
+            except TimeoutError:
+                raise RuntimeError(f"source {s.name!r} did not answer within {timeout_s} s: its replay has ended "
+                                   "(loop=True keeps it going) or it is restarting") from None
+            if "error" in rep:
+                raise PlaybackError(rep.get("key", "cmd"), rep["error"].split(": ", 1)[-1])
+            out[s.name] = rep["state"]
+        return out
+
     def _request(self, msg: dict, timeout_s: float) -> dict:
         if self._sup is None:
             raise RuntimeError("pipeline is not running")

@@ -45,6 +45,10 @@ class Transport(ABC):
     #: True when ingest places points in a fixed frame (``frames.fixed``): a transport that
     #: can subscribe to transforms (rosbridge's /tf) does so only then. Set before ``open()``.
     wants_transforms: bool = False
+    #: True for replays whose ``playback`` (a :class:`pointflow.ingest.playback.PlaybackClock`)
+    #: can be paused, sought, stepped, sped up and looped from Python (docs/api.md).
+    seekable: ClassVar[bool] = False
+    playback: Any = None
 
     def __init__(self, options: dict[str, Any], source_id: str):
         self.options = options
