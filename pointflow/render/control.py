@@ -256,7 +256,8 @@ def apply(state: ViewState, msg: Any, *, current: Optional[Camera] = None, chann
         new.camera = CameraState(mode="fixed", eye=list(map(float, cam.eye)), target=list(map(float, cam.target)),
                                  up=list(map(float, cam.up)), fov_deg=float(cam.fov_deg))
     else:
-        raise ControlError("cmd", f"unknown control message {cmd!r}; expected one of {', '.join(COMMANDS)}")
+        raise ControlError("cmd", f"unknown control message {cmd!r}; expected one of {', '.join(COMMANDS)} "
+                                  "(or pick, save)")
     new.version = state.version + 1
     return new
 
