@@ -14,6 +14,7 @@ message, the reply the clock's state (docs/api.md, "Steer the replay")::
     {"cmd": "playback", "step": 1}                      release one message (pauses first)
     {"cmd": "playback", "rate": 2.0}                    twice as fast as recorded
     {"cmd": "playback", "loop": true}                   start again at the end
+    {"cmd": "playback", "hold": true}                   at the end, wait for a seek (do not end)
     {"cmd": "playback"}                                 the state only
 
 A seek lands on the first message whose time is at or after the target. The ring keeps
@@ -56,6 +57,8 @@ class PlaybackConfig:
     loop: Optional[bool] = None
     #: Start paused (step or resume from Python).
     paused: bool = False
+    #: At the end of a replay (no loop), keep the source waiting for a seek instead of ending it.
+    hold: bool = False
 
 
 def check_playback(p: PlaybackConfig, path: str = "playback") -> None:
@@ -94,6 +97,8 @@ class PlaybackClock:
         self.loop = bool(loop)
         self.realtime = bool(realtime)
         self.paused = False
+        self.hold = False
+        self.at_end = False
         #: The recording's length in seconds, when the transport knows it (seek checks, fractions).
         self.duration_s: Optional[float] = None
         #: Number of messages in one pass, when known.
@@ -119,6 +124,7 @@ class PlaybackClock:
         if cfg.loop is not None:
             self.loop = bool(cfg.loop)
         self.paused = bool(cfg.paused)
+        self.hold = bool(cfg.hold)
         self._start = cfg.start
 
     def start_s(self) -> float:
@@ -175,6 +181,15 @@ class PlaybackClock:
             if left > _SLICE_S:
                 yield None
 
+    def hold_at_end(self) -> Iterator[None]:
+        """At the end of a pass without loop: with ``hold``, wait until a seek (or loop) asks
+        for more; the caller then goes on, else the replay ends."""
+        self.at_end = True
+        while self.hold and self._seek is None and not self.loop:
+            time.sleep(_SLICE_S)
+            yield None
+        self.at_end = False
+
     def released(self, t_s: float, index: int) -> None:
         self.position_s = float(t_s)
         self.index = int(index)
@@ -184,7 +199,7 @@ class PlaybackClock:
         """Apply one request (see the module docstring); returns the state."""
         if not isinstance(msg, dict) or msg.get("cmd") != "playback":
             raise PlaybackError("cmd", f"expected {{'cmd': 'playback', ...}}, got {msg!r}")
-        allowed = ("paused", "seek_s", "seek_fraction", "step", "rate", "loop")
+        allowed = ("paused", "seek_s", "seek_fraction", "step", "rate", "loop", "hold")
         for k in msg:
             if k != "cmd" and k not in allowed:
                 raise PlaybackError(k, f"unknown argument; playback takes {', '.join(allowed)}")
@@ -209,7 +224,7 @@ class PlaybackClock:
             if isinstance(s, bool) or not isinstance(s, int) or s < 0:
                 raise PlaybackError("step", f"expected a whole number of messages >= 0, got {s!r}")
             step = s
-        for k in ("paused", "loop"):
+        for k in ("paused", "loop", "hold"):
             if k in msg and not isinstance(msg[k], bool):
                 raise PlaybackError(k, f"expected true or false, got {msg[k]!r}")
         if rate is not None:
@@ -220,6 +235,8 @@ class PlaybackClock:
             self.realtime = True
         if "loop" in msg:
             self.loop = msg["loop"]
+        if "hold" in msg:
+            self.hold = msg["hold"]
         if "paused" in msg:
             if self.paused and not msg["paused"]:
                 self._anchor = None  # resume: the next message goes now
@@ -234,6 +251,7 @@ class PlaybackClock:
 
     def state(self) -> dict:
         return {"paused": self.paused, "rate": self.rate if self.realtime else 0.0, "loop": self.loop,
+                "hold": self.hold, "at_end": self.at_end,
                 "position_s": round(self.position_s, 6), "index": self.index, "duration_s": self.duration_s,
                 "messages": self.messages, "seeks": self.seeks, "steps": self.steps_done,
                 "skipped_messages": self.skipped_messages, "seek_pending": self._seek is not None,

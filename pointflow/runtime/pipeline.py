@@ -201,9 +201,10 @@ class Pipeline:
     # ------------------------------------------------------------------ steer the replay (docs/api.md)
     def playback(self, source: Optional[str] = None, *, paused: Optional[bool] = None, seek_s: Optional[float] = None,
                  seek_fraction: Optional[float] = None, step: int = 0, rate: Optional[float] = None,
-                 loop: Optional[bool] = None, timeout_s: float = 5.0) -> dict[str, dict]:
+                 loop: Optional[bool] = None, hold: Optional[bool] = None, timeout_s: float = 5.0) -> dict[str, dict]:
         """Steer the replaying sources (``file``, ``rosbag``): all of them, or ``source`` by
-        name. With no argument it only reads their state. Returns ``{source name: state}``
+        name. With no argument it only reads their state. ``hold``: at the end (no loop) wait
+        for a seek instead of ending the source. Returns ``{source name: state}``
         (``paused``, ``rate``, ``loop``, ``position_s``, ``index`` of the last message sent,
         ``duration_s``, ``seeks``, ``steps``...). A refused argument raises
         :class:`~pointflow.ingest.playback.PlaybackError` naming it."""
@@ -214,7 +215,7 @@ class Pipeline:
             raise RuntimeError("pipeline is not running")
         msg: dict[str, Any] = {"cmd": "playback"}
         for k, v in (("paused", paused), ("seek_s", seek_s), ("seek_fraction", seek_fraction), ("rate", rate),
-                     ("loop", loop)):
+                     ("loop", loop), ("hold", hold)):
             if v is not None:
                 msg[k] = v.item() if hasattr(v, "item") else v
         if step:
@@ -236,7 +237,7 @@ class Pipeline:
                 rep = request(self._sup._zctx, playback_endpoint(self._sup.endpoints.playback, i), msg, timeout_s)
             except TimeoutError:
                 raise RuntimeError(f"source {s.name!r} did not answer within {timeout_s} s: its replay has ended "
-                                   "(loop=True keeps it going) or it is restarting") from None
+                                   "(hold=True keeps it waiting for a seek) or it is restarting") from None
             if "error" in rep:
                 raise PlaybackError(rep.get("key", "cmd"), rep["error"].split(": ", 1)[-1])
             out[s.name] = rep["state"]

@@ -186,7 +186,7 @@ class FileTransport(Transport):
             clock.duration_s = self.total / o.points_per_second
         start = clock.start_s()
         while True:
-            done = yield from self._pass(start)
+            yield from self._pass(start)
             seek = clock.take_seek()
             if seek is not None:
                 start = seek
@@ -196,7 +196,12 @@ class FileTransport(Transport):
                                       + "; ".join(self.bad_reasons))
             if self.mode == "stream" and clock.duration_s is None and self.total is not None:
                 clock.duration_s = self.total / o.points_per_second  # known once a pass has counted it
-            if not (done and clock.loop):
+            if not clock.loop:
+                yield from clock.hold_at_end()  # with hold: wait for a seek
+                if clock.seek_pending:
+                    start = clock.take_seek()
+                    continue
+            if not clock.loop:
                 break
             self.counters["loops"] += 1
             clock.restart()

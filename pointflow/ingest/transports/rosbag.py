@@ -252,6 +252,11 @@ class RosbagTransport(Transport):
             if seek is not None:
                 start = seek
                 continue
+            if not clock.loop:
+                yield from clock.hold_at_end()  # with hold: wait for a seek
+                if clock.seek_pending:
+                    start = clock.take_seek()
+                    continue
             if not clock.loop or not count:
                 break  # done, or an empty window: nothing to loop over
             self.counters["loops"] += 1
