@@ -108,6 +108,7 @@ class ViewController:
         self.drawn_ns = 0  # when the frame that first showed drawn_version was done
         self._drawn_key = None
         self.skipped = 0
+        self.last_frame_ms = 0.0  # how long the last frame drawn took (render + finish)
 
     def camera(self, frame: FrameInput) -> Optional[Camera]:
         c = self.state.camera
@@ -166,7 +167,8 @@ class ViewController:
             "up": [float(v) for v in cam.up], "fov_deg": float(cam.fov_deg), "near": float(cam.near),
             "far": float(cam.far)}
         d.update(drawn_version=self.drawn_version, changed_ns=self.changed_ns, drawn_ns=self.drawn_ns,
-                 frames=frames, frames_skipped=self.skipped, view_block=control.view_block(self.state))
+                 frames=frames, frames_skipped=self.skipped, last_frame_ms=round(self.last_frame_ms, 3),
+                 view_block=control.view_block(self.state))
         return d
 
 
@@ -211,6 +213,9 @@ def main(ctx: StageContext) -> None:
     commands.setsockopt(zmq.LINGER, 0)
     commands.bind(ctx.endpoints.render_commands)
     reader = SlabReader(slabs, ready, release)
+    poller = zmq.Poller()
+    poller.register(ready, zmq.POLLIN)
+    poller.register(commands, zmq.POLLIN)
     renderer = ctx.prepared  # a standby's renderer: device created, pipelines warmed up
     if renderer is None:
         renderer = _select(cfg, capacity, channels, ctx.log)
@@ -246,7 +251,12 @@ def main(ctx: StageContext) -> None:
             renderer = stage.renderer
             if window is not None:
                 window.process_events()
-            got = reader.recv(timeout_ms=20 if window is not None else 50)
+            # a control message wakes the loop at once (it then shows with the next handoff)
+            woke = dict(poller.poll(20 if window is not None else 50))
+            got = reader.recv(timeout_ms=0) if ready in woke else None
+            if got is not None:  # a message that came with the handoff applies to it
+                _serve_commands(commands, stage, ring, ctx)
+                renderer = stage.renderer
             if got is None:
                 t_idle = _resync_if_idle(release, reader, t_free, t_idle, tick_s)
                 continue
@@ -322,6 +332,7 @@ def main(ctx: StageContext) -> None:
             t1 = time.monotonic_ns()
             ms = (t1 - t0) / 1e6
             ema = ms if ema is None else 0.85 * ema + 0.15 * ms
+            view.last_frame_ms = ms
             c.points_in += h.count
             if fs.drawn is not None:
                 c.points_out += fs.drawn
