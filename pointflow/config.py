@@ -264,6 +264,8 @@ class PipelineConfig:
         for c in (self.record.channels or []) if self.record is not None else []:
             if c not in names:
                 names.append(c)
+        if len(self.sources) > 1 and "source_index" not in names:  # per-source visibility (docs/api.md)
+            names.append("source_index")
         return names
 
     def resolved_endpoints(self, run_dir: str) -> EndpointsConfig:
@@ -350,6 +352,10 @@ def _apply_view(cfg: PipelineConfig) -> None:
     edl = dataclasses.replace(r.edl, **{f: st[k] for k, f in (("edl", "enabled"), ("edl_strength", "strength"))
                                         if k in st})
     r = dataclasses.replace(r, edl=edl, **simple)
+    names = [s.name for s in cfg.sources]
+    for i, name in enumerate(v["hidden_sources"]):
+        if name not in names:
+            raise ConfigError(f"view.hidden_sources[{i}]", f"no source named {name!r}; sources: {', '.join(names)}")
     if v["camera"] is not None:
         c = v["camera"]
         r.camera = dataclasses.replace(r.camera, mode="fixed", position=c["eye"], target=c["target"],

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import time
 
+import numpy as np
 import zmq
 
 from .. import wire
@@ -57,6 +58,8 @@ def main(ctx) -> None:
         transport.keep_fields = tuple(transport.keep_fields) + extra
     transport.wants_transforms = bool(fcfg.fixed)
     frame_id = scfg.frame_id or ""
+    # which configured source each point came from, for per-source visibility (render/control.py)
+    mark = "source_index" in ctx.cfg.ring_channels()
     tf_sent = 0
     sock = ctx.zmq.socket(zmq.PUSH)
     sock.setsockopt(zmq.SNDHWM, SEND_HWM)
@@ -107,6 +110,8 @@ def main(ctx) -> None:
             t1 = time.monotonic_ns()
             n = len(chunk)
             chunk.source_id = chunk.source_id or source_id
+            if mark:
+                chunk.channels["source_index"] = np.full(n, idx, np.float32)
             chunk.seq = seq
             chunk.trace_id = new_trace_id()
             chunk.t_sent_ns = time.monotonic_ns()

@@ -18,6 +18,7 @@ Messages (docs/api.md "Steer the view", docs/architecture.md):
 ``fit``            back to ``auto``: frame the data (and follow it)
 ``style``          ``color_by``, ``colormap``, ``color_range`` ('auto' or [lo, hi]), ``point_size``,
                    ``point_shape``, ``edl`` (bool), ``edl_strength``, ``time_window_ms``
+``visible``        ``source`` (a source name), ``on`` (bool): show or hide that source's points
 ``view_state``     no change; the reply is the state
 =================  ===========================================================================
 
@@ -46,7 +47,10 @@ BUILTIN_COLOR = ("z", "height", "ingest_time", "none")
 _STYLE_KEYS = ("color_by", "colormap", "color_range", "point_size", "point_shape", "edl", "edl_strength",
                "time_window_ms")
 _CAMERA_KEYS = ("eye", "target", "up", "fov_deg")
-COMMANDS = ("camera", "orbit", "pan", "zoom", "fit", "style", "view_state")
+COMMANDS = ("camera", "orbit", "pan", "zoom", "fit", "style", "visible", "view_state")
+#: The ring channel that says which configured source a point came from (pipelines with
+#: two or more sources; the source stage adds it to every chunk).
+SOURCE_CHANNEL = "source_index"
 
 
 class ControlError(ValueError):
@@ -83,6 +87,8 @@ class StyleState:
 class ViewState:
     camera: CameraState = field(default_factory=CameraState)
     style: StyleState = field(default_factory=StyleState)
+    #: Names of the sources whose points are not drawn.
+    hidden_sources: list[str] = field(default_factory=list)
     #: Raised by every change (a reply says which version a frame must reach to show it).
     version: int = 0
 
@@ -105,7 +111,8 @@ class ViewState:
 
     def copy(self) -> "ViewState":
         return ViewState(camera=dataclasses.replace(self.camera, up=list(self.camera.up)),
-                         style=dataclasses.replace(self.style), version=self.version)
+                         style=dataclasses.replace(self.style), hidden_sources=list(self.hidden_sources),
+                         version=self.version)
 
 
 # --------------------------------------------------------------------------- checks
@@ -189,6 +196,20 @@ def check_style(args: dict, channels: Optional[list[str]], prefix: str = "style"
     return out
 
 
+def check_visible(source: Any, on: Any, sources: Optional[list[str]], channels: Optional[list[str]],
+                  key: str = "visible") -> bool:
+    if not isinstance(on, bool):
+        raise ControlError(f"{key}.on", f"expected true or false, got {on!r}")
+    if not isinstance(source, str):
+        raise ControlError(f"{key}.source", f"expected a source name, got {source!r}")
+    if sources is not None and source not in sources:
+        raise ControlError(f"{key}.source", f"no source named {source!r}; sources: {', '.join(sources)}")
+    if channels is not None and SOURCE_CHANNEL not in channels:
+        raise ControlError(f"{key}.source", "this pipeline has one source: there is no other to show alone "
+                           "(the ring marks each point's source only with two or more sources)")
+    return on
+
+
 def check_camera(args: dict, prefix: str = "camera") -> dict:
     _unknown(args, _CAMERA_KEYS, prefix)
     out: dict[str, Any] = {}
@@ -202,10 +223,11 @@ def check_camera(args: dict, prefix: str = "camera") -> dict:
 
 # --------------------------------------------------------------------------- apply
 def apply(state: ViewState, msg: Any, *, current: Optional[Camera] = None, channels: Optional[list[str]] = None,
-          height_px: int = 720) -> ViewState:
+          height_px: int = 720, sources: Optional[list[str]] = None) -> ViewState:
     """The state after ``msg``. ``current``: the camera drawn last (turned by orbit/pan/zoom
     and completed by a partial ``camera`` while the mode is auto); ``channels``: the ring's
-    channels (``color_by`` must be one of them or a built-in colouring)."""
+    channels (``color_by`` must be one of them or a built-in colouring); ``sources``: the
+    configured source names (``visible``)."""
     if not isinstance(msg, dict) or not isinstance(msg.get("cmd"), str):
         raise ControlError("cmd", f"a control message is a mapping with 'cmd'; got {msg!r}")
     cmd = msg["cmd"]
@@ -219,6 +241,13 @@ def apply(state: ViewState, msg: Any, *, current: Optional[Camera] = None, chann
         if not s:
             return new
         new.style = dataclasses.replace(new.style, **s)
+    elif cmd == "visible":
+        _unknown(args, ("source", "on"), cmd)
+        on = check_visible(args.get("source"), args.get("on", True), sources, channels)
+        name = args["source"]
+        if on == (name not in state.hidden_sources):
+            return new  # already so
+        new.hidden_sources = [s for s in state.hidden_sources if s != name] if on else state.hidden_sources + [name]
     elif cmd == "fit":
         _unknown(args, (), cmd)
         new.camera = CameraState(mode="auto", up=list(state.camera.up), fov_deg=state.camera.fov_deg)
@@ -299,7 +328,10 @@ def view_block(state: ViewState) -> dict:
     c = state.camera
     cam: Any = "fit" if c.mode == "auto" else {"eye": list(c.eye), "target": list(c.target), "up": list(c.up),
                                                "fov_deg": c.fov_deg}
-    return {"camera": cam, "style": dataclasses.asdict(state.style)}
+    out = {"camera": cam, "style": dataclasses.asdict(state.style)}
+    if state.hidden_sources:
+        out["hidden_sources"] = list(state.hidden_sources)
+    return out
 
 
 def load_view_block(data: Any, path: str = "view") -> dict:
@@ -307,8 +339,12 @@ def load_view_block(data: Any, path: str = "view") -> dict:
     checked values. Errors are :class:`ControlError` naming ``view.<key>``."""
     if not isinstance(data, dict):
         raise ControlError(path, f"expected a mapping with camera and/or style, got {data!r}")
-    _unknown(data, ("camera", "style"), path)
-    out: dict[str, Any] = {"camera": None, "style": {}}
+    _unknown(data, ("camera", "style", "hidden_sources"), path)
+    out: dict[str, Any] = {"camera": None, "style": {}, "hidden_sources": []}
+    hs = data.get("hidden_sources") or []
+    if not isinstance(hs, list) or not all(isinstance(x, str) for x in hs):
+        raise ControlError(f"{path}.hidden_sources", f"expected a list of source names, got {hs!r}")
+    out["hidden_sources"] = list(hs)
     cam = data.get("camera")
     if cam not in (None, "fit"):
         if not isinstance(cam, dict):

@@ -89,6 +89,44 @@ class CameraController:
         return cam
 
 
+class SourceMask:
+    """Hides the points of some sources: a render-private copy of the positions with NaN where
+    a hidden source's points are (every tier skips non-finite positions), kept up to date
+    range by range with the handoffs' dirty ranges; a change of the hidden set re-uploads the
+    whole slab once. Costs one positions array (12 B a slot) while something is hidden."""
+
+    def __init__(self, names: list[str]):
+        self.names = names
+        self.pos: Optional[np.ndarray] = None
+        self.ids: Optional[np.ndarray] = None  # the hidden sources' indices
+        self.hidden_draws = 0  # point-draws not made because hidden (kept out of nonfinite_skipped)
+
+    def apply(self, frame: FrameInput, hidden: list[str]) -> FrameInput:
+        ids = np.array(sorted(self.names.index(h) for h in hidden if h in self.names), np.float32)
+        src = frame.channels.get(control.SOURCE_CHANNEL)
+        if src is None or (not ids.size and self.ids is None):
+            return frame
+        if not ids.size:  # shown again: the slab's own positions, all of them once
+            self.pos, self.ids = None, None
+            frame.dirty = None
+            return frame
+        full = self.ids is None or not np.array_equal(ids, self.ids) or frame.dirty is None
+        if self.pos is None:
+            self.pos = np.empty_like(frame.positions)
+        ranges = [(0, frame.capacity)] if full else frame.dirty
+        for a, b in ranges:
+            p = self.pos[a:b]
+            p[:] = frame.positions[a:b]
+            p[np.isin(src[a:b], ids)] = np.nan
+        if full:
+            frame.dirty = None
+        self.ids = ids
+        occ = frame.occupied_slots()
+        self.hidden_draws += int(np.count_nonzero(np.isin(src[occ], ids)))
+        frame.positions = self.pos
+        return frame
+
+
 class ViewController:
     """The render stage's view: the control state (:mod:`pointflow.render.control`), the
     camera it gives each frame, and whether a frame would look like the last one drawn
@@ -98,6 +136,9 @@ class ViewController:
         self.cfg = cfg
         self.auto = CameraController(cfg, width, height)
         self.state = ViewState.from_render_config(cfg.render)
+        if isinstance(cfg.view, dict) and cfg.view.get("hidden_sources"):
+            self.state.hidden_sources = list(cfg.view["hidden_sources"])
+        self.mask = SourceMask([s.name for s in cfg.sources])
         # True once a control message set or turned the camera, or a `view:` block set it
         self.user_camera = bool(isinstance(cfg.view, dict) and isinstance(cfg.view.get("camera"), dict))
         self.channels = channels
@@ -137,7 +178,8 @@ class ViewController:
     def apply(self, msg: dict, window) -> None:
         """Apply one control message (raises ControlError); a camera change reaches the window too."""
         cur = window.camera if window is not None else self.last
-        new = control.apply(self.state, msg, current=cur, channels=self.channels, height_px=self.height)
+        new = control.apply(self.state, msg, current=cur, channels=self.channels, height_px=self.height,
+                            sources=self.mask.names)
         if new.version == self.state.version:
             return
         if msg.get("cmd") == "fit":
@@ -276,6 +318,7 @@ def main(ctx: StageContext) -> None:
                     view.skipped += 1
                     c.extra["frames_skipped_unchanged"] = view.skipped
                     continue
+                frame = view.mask.apply(frame, view.state.hidden_sources)
                 try:
                     if want_window and window is None:
                         from .window import PointWindow
@@ -336,7 +379,9 @@ def main(ctx: StageContext) -> None:
             c.points_in += h.count
             if fs.drawn is not None:
                 c.points_out += fs.drawn
-            c.extra["nonfinite_skipped"] = int(getattr(renderer, "nonfinite_total", 0))  # point-draws not made
+            c.extra["nonfinite_skipped"] = max(0, int(getattr(renderer, "nonfinite_total", 0)) - view.mask.hidden_draws)
+            if view.mask.hidden_draws:
+                c.extra["hidden_skipped"] = view.mask.hidden_draws  # point-draws of hidden sources
             c.extra.update(frames=frames - base, frame_ms_ema=round(ema, 3), last_frame_ms=round(ms, 3),
                            uploaded_bytes=c.extra.get("uploaded_bytes", 0) + fs.uploaded_bytes,
                            **{f"tier_{k}_ms": round(v, 3) for k, v in fs.timings_ms.items()})

@@ -165,6 +165,10 @@ class Pipeline:
         args = {k: v for k, v in locals().items() if k not in ("self", "wait") and v is not _UNSET}
         return self.control({"cmd": "style", **_plain(args)}, wait=wait)
 
+    def visible(self, source: str, on: bool = True, wait: bool = True) -> dict:
+        """Show (``on=True``) or hide a source's points (pipelines with two or more sources)."""
+        return self.control({"cmd": "visible", "source": source, "on": on}, wait=wait)
+
     def view_state(self) -> dict:
         """The view now: ``camera``, ``style``, ``version``, ``drawn_version`` (the version
         the last frame showed), ``camera_drawn`` and ``view_block`` (for a YAML ``view:``)."""

@@ -191,6 +191,7 @@ def test_bad_control_messages_are_refused_and_the_pipeline_goes_on(tmp_path):
             (lambda: pipe.zoom(0.0), "zoom.factor", "> 0"),
             (lambda: pipe.control({"cmd": "spin"}), "cmd", "camera, orbit"),
             (lambda: pipe.control({"cmd": "camera", "eyes": [0, 0, 1]}), "camera.eyes", "unknown argument"),
+            (lambda: pipe.visible("scene", on=False), "visible.source", "one source"),
         ]
         for call, key, words in bad:
             with pytest.raises(ControlError) as exc:
@@ -203,3 +204,41 @@ def test_bad_control_messages_are_refused_and_the_pipeline_goes_on(tmp_path):
         refused = lambda: pipe.stats()["stages"]["render"]["drops"].get("bad_control", 0)
         pipe.wait(20, until=lambda: refused() >= len(bad))  # counted with the next heartbeat
         assert refused() == len(bad) and pipe.stats()["stages"]["render"]["restarts"] == 0
+
+
+def test_hide_and_show_a_source(tmp_path):
+    files = {}
+    for name, x0 in (("left", 0.0), ("right", 12.0)):
+        g = np.stack(np.meshgrid(np.arange(x0, x0 + 8, 0.25), np.arange(6, 14, 0.25)), -1).reshape(-1, 2)
+        files[name] = str(tmp_path / f"{name}.npz")
+        np.savez(files[name], x=g[:, 0], y=g[:, 1], z=np.zeros(len(g)))
+    cfg = _config(files["left"])
+    cfg["sources"] = [{"transport": "file", "name": n, "options": {"path": f, "realtime": False}}
+                      for n, f in files.items()]
+    del cfg["source"]
+    cfg["view"] = {"camera": {"eye": EYE, "target": TARGET, "up": UP}}
+    cam = Camera(eye=EYE, target=TARGET, up=UP, fov_deg=60.0)
+    left, right = _px(cam, [4.0, 10.0, 0.0]), _px(cam, [16.0, 10.0, 0.0])
+    with Pipeline.from_dict(cfg, out_dir=str(tmp_path)) as pipe:
+        pipe.wait(90, until=lambda: pipe.stats()["ring"]["total_points"] >= 2 * 32 * 32)
+        assert pipe.stats()["ring"]["total_points"] >= 2 * 32 * 32, "the sources' points never reached the ring"
+        pipe.style(point_size=2.0)  # any message: returns once a frame drawn after it shows both
+        both = _frame(pipe, tmp_path, "both")
+        assert not _is_bg(both[left[1], left[0]]) and not _is_bg(both[right[1], right[0]])
+        st = pipe.visible("right", on=False)
+        assert st["hidden_sources"] == ["right"]
+        img = _frame(pipe, tmp_path, "left_only")
+        assert _is_bg(img[right[1], right[0]]) and (img[left[1], left[0]] == both[left[1], left[0]]).all()
+        half = W // 2  # the right source is drawn only right of the centre
+        assert (img[:, half:] == BG).all() and (img[:, :half] == both[:, :half]).all()
+        with pytest.raises(ControlError) as exc:
+            pipe.visible("middle", on=False)
+        assert exc.value.key == "visible.source" and "left, right" in str(exc.value)
+        st = pipe.visible("right")
+        assert st["hidden_sources"] == []
+        assert (_frame(pipe, tmp_path, "both_again") == both).all()
+        assert pipe.view_state()["view_block"].get("hidden_sources") is None
+        pipe.visible("left", on=False)
+        assert pipe.view_state()["view_block"]["hidden_sources"] == ["left"]
+        render = pipe.stats()["stages"]["render"]
+        assert render.get("nonfinite_skipped", 0) == 0, "hidden points were counted as non-finite input"

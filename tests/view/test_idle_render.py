@@ -53,3 +53,12 @@ def test_idle_render_stage_uses_next_to_no_cpu(tmp_path, backend):
         assert rep["drawn_version"] == rep["version"]
         pipe.wait(1.0, until=lambda: render()["frames"] > st["frames"])
         assert render()["frames"] > st["frames"]
+        # a new style on this tier (in place on cpu, a new renderer of the same tier on wgpu)
+        before = pipe.save_frame(str(tmp_path / "before.png"))
+        rep = pipe.style(color_by="z", colormap="viridis", edl=True, point_shape="round")
+        assert rep["drawn_version"] == rep["version"] and rep["style"]["edl"] is True
+        after = pipe.save_frame(str(tmp_path / "after.png"))
+        from PIL import Image
+
+        assert (np.asarray(Image.open(before)) != np.asarray(Image.open(after))).any()
+        assert render()["tier"] == backend and render()["restarts"] == 0
