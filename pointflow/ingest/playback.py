@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 import math
 import time
 from typing import Any, Iterator, Optional, Union
@@ -132,7 +133,15 @@ class PlaybackClock:
         s = self._start
         if isinstance(s, str):
             f = float(s.strip()[:-1]) / 100.0
-            return f * self.duration_s if self.duration_s is not None else 0.0
+            if self.duration_s is None:
+                logging.getLogger("pointflow.playback").warning(
+                    "playback.start %s: the recording's length is not known before its first pass (a stream of a "
+                    "non-LAS file); starting at the beginning (give start in seconds instead)", s)
+                return 0.0
+            return f * self.duration_s
+        if self.duration_s is not None and s > self.duration_s:
+            logging.getLogger("pointflow.playback").warning(
+                "playback.start %g s is past the end of the recording (%g s): nothing to replay", s, self.duration_s)
         return float(s)
 
     # ----------------------------------------------------------------- pacing
