@@ -180,6 +180,9 @@ class EndpointsConfig:
     #: Replay control of the sources that read recordings (REP bound by each; ``-<index>``
     #: is added per source, or the index to a tcp port): ingest/playback.py.
     playback: Optional[str] = field(default=None, metadata=check(endpoint))
+    #: Transforms for a camera that follows a frame (only with ``frames.fixed``): PULL bound
+    #: by render, every source PUSHes the transforms it sends ingest here too.
+    view_transforms: Optional[str] = field(default=None, metadata=check(endpoint))
     #: Allow these (unencrypted) endpoints on a non-loopback tcp:// address.
     insecure: bool = False
 
@@ -276,6 +279,7 @@ class PipelineConfig:
             release=e.release or d("release"), control=e.control or d("control"),
             trace=e.trace or d("trace"), render_commands=e.render_commands or d("render-commands"),
             record=e.record or d("record"), playback=e.playback or d("playback"),
+            view_transforms=e.view_transforms or d("view-transforms"),
         )
 
     def to_dict(self) -> dict:
@@ -327,7 +331,8 @@ def _check_semantics(cfg: PipelineConfig) -> None:
     check_playback(cfg.playback, "playback")
     if cfg.view is not None:
         _apply_view(cfg)
-    for key in ("ingest", "frames", "release", "control", "trace", "render_commands", "record", "playback"):
+    for key in ("ingest", "frames", "release", "control", "trace", "render_commands", "record", "playback",
+                "view_transforms"):
         ep = getattr(e, key)
         if ep and not e.insecure and not is_loopback_endpoint(ep):
             raise ConfigError(f"endpoints.{key}", f"{ep} is reachable from other hosts and the links between "

@@ -65,6 +65,12 @@ def main(ctx) -> None:
     sock.setsockopt(zmq.SNDHWM, SEND_HWM)
     sock.setsockopt(zmq.LINGER, 2000)  # let the last chunks of a finished replay go out
     sock.connect(ctx.endpoints.ingest)
+    view_tf = None  # the same transforms to the render stage, for a camera that follows a frame
+    if fcfg.fixed and ctx.endpoints.view_transforms:
+        view_tf = ctx.zmq.socket(zmq.PUSH)
+        view_tf.setsockopt(zmq.SNDHWM, 64)
+        view_tf.setsockopt(zmq.LINGER, 0)
+        view_tf.connect(ctx.endpoints.view_transforms)
 
     def _stats() -> None:
         ctx.counters.extra.update({f"transport_{k}": v for k, v in transport.counters.items()})
@@ -100,7 +106,13 @@ def main(ctx) -> None:
                 continue
             if isinstance(chunk, tfmsg.Transforms):  # on the same socket, in order with the clouds
                 if chunk.transforms:
-                    if _send(ctx, sock, tfmsg.encode(chunk, source_id), lossless):
+                    encoded = tfmsg.encode(chunk, source_id)
+                    if view_tf is not None:
+                        try:  # never waits: the view may not follow anything
+                            view_tf.send_multipart(encoded, zmq.NOBLOCK)
+                        except zmq.Again:
+                            pass
+                    if _send(ctx, sock, encoded, lossless):
                         tf_sent += len(chunk.transforms)
                     else:  # a live source behind ingest: counted like dropped chunks
                         ctx.counters.extra["transforms_dropped"] = ctx.counters.extra.get("transforms_dropped", 0) + len(chunk.transforms)
@@ -142,3 +154,5 @@ def main(ctx) -> None:
             sock.close()
             if control is not None:
                 control.close(0)
+            if view_tf is not None:
+                view_tf.close(0)

@@ -16,6 +16,8 @@ Messages (docs/api.md "Steer the view", docs/architecture.md):
 ``pan``            ``right``, ``up``: move eye and target by these fractions of the view height
 ``zoom``           ``factor`` > 0: 2 = twice as close to the target
 ``fit``            back to ``auto``: frame the data (and follow it)
+``follow``         ``frame``: keep the camera's offset from that frame's origin as it moves
+                   (a frame of ``frames``, looked up in ``frames.fixed``); null: stop
 ``style``          ``color_by``, ``colormap``, ``color_range`` ('auto' or [lo, hi]), ``point_size``,
                    ``point_shape``, ``edl`` (bool), ``edl_strength``, ``time_window_ms``
 ``visible``        ``source`` (a source name), ``on`` (bool): show or hide that source's points
@@ -47,7 +49,7 @@ BUILTIN_COLOR = ("z", "height", "ingest_time", "none")
 _STYLE_KEYS = ("color_by", "colormap", "color_range", "point_size", "point_shape", "edl", "edl_strength",
                "time_window_ms")
 _CAMERA_KEYS = ("eye", "target", "up", "fov_deg")
-COMMANDS = ("camera", "orbit", "pan", "zoom", "fit", "style", "visible", "view_state")
+COMMANDS = ("camera", "orbit", "pan", "zoom", "fit", "follow", "style", "visible", "view_state")
 #: The ring channel that says which configured source a point came from (pipelines with
 #: two or more sources; the source stage adds it to every chunk).
 SOURCE_CHANNEL = "source_index"
@@ -69,6 +71,8 @@ class CameraState:
     target: Optional[list[float]] = None
     up: list[float] = field(default_factory=lambda: [0.0, 0.0, 1.0])
     fov_deg: float = 60.0
+    #: A frame whose origin the camera follows (eye and target keep their offset from it).
+    follow: Optional[str] = None
 
 
 @dataclass
@@ -223,11 +227,13 @@ def check_camera(args: dict, prefix: str = "camera") -> dict:
 
 # --------------------------------------------------------------------------- apply
 def apply(state: ViewState, msg: Any, *, current: Optional[Camera] = None, channels: Optional[list[str]] = None,
-          height_px: int = 720, sources: Optional[list[str]] = None) -> ViewState:
+          height_px: int = 720, sources: Optional[list[str]] = None, fixed_frame: Optional[str] = None,
+          follow_origin=None) -> ViewState:
     """The state after ``msg``. ``current``: the camera drawn last (turned by orbit/pan/zoom
     and completed by a partial ``camera`` while the mode is auto); ``channels``: the ring's
     channels (``color_by`` must be one of them or a built-in colouring); ``sources``: the
-    configured source names (``visible``)."""
+    configured source names (``visible``); ``fixed_frame``: ``frames.fixed`` (``follow``);
+    ``follow_origin``: where the followed frame's origin is now, if known."""
     if not isinstance(msg, dict) or not isinstance(msg.get("cmd"), str):
         raise ControlError("cmd", f"a control message is a mapping with 'cmd'; got {msg!r}")
     cmd = msg["cmd"]
@@ -251,6 +257,22 @@ def apply(state: ViewState, msg: Any, *, current: Optional[Camera] = None, chann
     elif cmd == "fit":
         _unknown(args, (), cmd)
         new.camera = CameraState(mode="auto", up=list(state.camera.up), fov_deg=state.camera.fov_deg)
+    elif cmd == "follow":
+        _unknown(args, ("frame",), cmd)
+        name = args.get("frame")
+        if name is not None and (not isinstance(name, str) or not name.strip()):
+            raise ControlError("follow.frame", f"expected a frame name or null, got {name!r}")
+        if name is not None and not fixed_frame:
+            raise ControlError("follow.frame", "following a frame needs frames.fixed in the config (the "
+                               "transforms reach the render stage only then; docs/frames.md)")
+        base = current if current is not None else _camera_of(state, None)
+        if base is None:
+            raise ControlError("follow", "nothing is drawn yet: wait for the first frame")
+        eye, target = np.asarray(base.eye, np.float64), np.asarray(base.target, np.float64)
+        if name is not None and follow_origin is not None:  # keep the view: the offset from the frame now
+            eye, target = eye - target + np.asarray(follow_origin, np.float64), np.asarray(follow_origin, np.float64)
+        new.camera = CameraState(mode="fixed", eye=list(map(float, eye)), target=list(map(float, target)),
+                                 up=list(map(float, base.up)), fov_deg=float(base.fov_deg), follow=name)
     elif cmd == "camera":
         c = check_camera(args, "camera")
         if not c:
@@ -283,7 +305,7 @@ def apply(state: ViewState, msg: Any, *, current: Optional[Camera] = None, chann
                 raise ControlError("zoom.factor", f"expected a number > 0, got {f:g}")
             cam = OrbitController(base, zoom_per_wheel=1.0 / f).zoom(1.0)
         new.camera = CameraState(mode="fixed", eye=list(map(float, cam.eye)), target=list(map(float, cam.target)),
-                                 up=list(map(float, cam.up)), fov_deg=float(cam.fov_deg))
+                                 up=list(map(float, cam.up)), fov_deg=float(cam.fov_deg), follow=state.camera.follow)
     else:
         raise ControlError("cmd", f"unknown control message {cmd!r}; expected one of {', '.join(COMMANDS)} "
                                   "(or pick, save)")

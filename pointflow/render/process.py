@@ -127,6 +127,41 @@ class SourceMask:
         return frame
 
 
+class FollowFrame:
+    """The transforms the sources send (a copy of what ingest gets, only with ``frames.fixed``),
+    so the camera can follow a frame: where that frame's origin is in the fixed frame now."""
+
+    def __init__(self, fixed: str, sock):
+        from ..frames.buffer import TransformBuffer
+
+        self.fixed = fixed
+        self.sock = sock
+        self.buf = TransformBuffer()
+        self.bad = 0
+
+    def drain(self) -> None:
+        from ..frames import message as tfmsg
+        from ..frames.buffer import FrameError
+
+        while self.sock.poll(0, zmq.POLLIN):
+            try:
+                batch = tfmsg.decode(json.loads(self.sock.recv()))
+                for t in batch.transforms:
+                    self.buf.set_transform(t.parent, t.child, t.stamp_ns, t.translation, t.rotation, t.static)
+            except (ValueError, FrameError):  # ingest counts and reports bad transforms; here they are skipped
+                self.bad += 1
+
+    def origin(self, frame: str) -> Optional[np.ndarray]:
+        """The origin of ``frame`` in the fixed frame at the newest time known, or None."""
+        if frame == self.fixed:
+            return np.zeros(3)
+        try:
+            _, t = self.buf.lookup(self.fixed, frame, self.buf.newest_of_chain(self.fixed, frame) or 0)
+        except Exception:  # noqa: BLE001 - not (yet) connected to the fixed frame
+            return None
+        return np.asarray(t, np.float64)
+
+
 class ViewController:
     """The render stage's view: the control state (:mod:`pointflow.render.control`), the
     camera it gives each frame, and whether a frame would look like the last one drawn
@@ -139,6 +174,7 @@ class ViewController:
         if isinstance(cfg.view, dict) and cfg.view.get("hidden_sources"):
             self.state.hidden_sources = list(cfg.view["hidden_sources"])
         self.mask = SourceMask([s.name for s in cfg.sources])
+        self.follow: Optional[FollowFrame] = None  # set by main() when frames.fixed is set
         # True once a control message set or turned the camera, or a `view:` block set it
         self.user_camera = bool(isinstance(cfg.view, dict) and isinstance(cfg.view.get("camera"), dict))
         self.channels = channels
@@ -153,11 +189,23 @@ class ViewController:
 
     def camera(self, frame: FrameInput) -> Optional[Camera]:
         c = self.state.camera
+        if self.follow is not None:
+            self.follow.drain()  # keep the transforms current (and the socket's queue short)
         if self.user_camera and c.mode == "fixed":
             self.auto.refresh(frame)
-            near, far = camera_near_far(c.eye, c.target, self.auto._box)
-            return Camera(eye=c.eye, target=c.target, up=c.up, fov_deg=c.fov_deg, near=near, far=far)
+            return self._fixed()
         return self.auto.update(frame)
+
+    def _fixed(self) -> Camera:
+        c = self.state.camera
+        eye, target = np.asarray(c.eye, np.float64), np.asarray(c.target, np.float64)
+        if c.follow and self.follow is not None:
+            self.follow.drain()
+            o = self.follow.origin(c.follow)
+            if o is not None:  # keep the offset from the frame's origin
+                eye, target = eye - target + o, o
+        near, far = camera_near_far(eye, target, self.auto._box)
+        return Camera(eye=eye, target=target, up=c.up, fov_deg=c.fov_deg, near=near, far=far)
 
     def unchanged(self, frame: FrameInput, camera: Camera, renderer: Renderer) -> bool:
         """True when drawing ``frame`` would repeat the last frame: no slot changed, same
@@ -178,8 +226,12 @@ class ViewController:
     def apply(self, msg: dict, window) -> None:
         """Apply one control message (raises ControlError); a camera change reaches the window too."""
         cur = window.camera if window is not None else self.last
+        origin = None
+        if msg.get("cmd") == "follow" and self.follow is not None and isinstance(msg.get("frame"), str):
+            self.follow.drain()
+            origin = self.follow.origin(msg["frame"])
         new = control.apply(self.state, msg, current=cur, channels=self.channels, height_px=self.height,
-                            sources=self.mask.names)
+                            sources=self.mask.names, fixed_frame=self.cfg.frames.fixed, follow_origin=origin)
         if new.version == self.state.version:
             return
         if msg.get("cmd") == "fit":
@@ -197,8 +249,7 @@ class ViewController:
     def camera_for_window(self) -> Optional[Camera]:
         c = self.state.camera
         if self.user_camera and c.mode == "fixed":
-            near, far = camera_near_far(c.eye, c.target, self.auto._box)
-            return Camera(eye=c.eye, target=c.target, up=c.up, fov_deg=c.fov_deg, near=near, far=far)
+            return self._fixed()
         return self.auto.camera
 
     def reply(self, window, frames: int) -> dict:
@@ -208,6 +259,11 @@ class ViewController:
             "eye": [float(v) for v in cam.eye], "target": [float(v) for v in cam.target],
             "up": [float(v) for v in cam.up], "fov_deg": float(cam.fov_deg), "near": float(cam.near),
             "far": float(cam.far)}
+        f = self.state.camera.follow
+        if f:
+            known = self.follow is not None and self.follow.origin(f) is not None
+            d["follow_status"] = "following" if known else (f"waiting for transforms linking {f!r} to "
+                                                            f"{self.cfg.frames.fixed!r}")
         d.update(drawn_version=self.drawn_version, changed_ns=self.changed_ns, drawn_ns=self.drawn_ns,
                  frames=frames, frames_skipped=self.skipped, last_frame_ms=round(self.last_frame_ms, 3),
                  view_block=control.view_block(self.state))
@@ -265,6 +321,12 @@ def main(ctx: StageContext) -> None:
         _warm_up(renderer, slabs, capacity, ctx.log)
     _announce(release, ctx, renderer)
     view = ViewController(cfg, *cfg.render.size, channels)
+    if cfg.frames.fixed and ctx.endpoints.view_transforms:
+        tf_in = ctx.zmq.socket(zmq.PULL)
+        tf_in.setsockopt(zmq.LINGER, 0)
+        tf_in.setsockopt(zmq.RCVHWM, 256)
+        tf_in.bind(ctx.endpoints.view_transforms)
+        view.follow = FollowFrame(cfg.frames.fixed, tf_in)
     stage = _Stage(renderer=renderer, view=view, capacity=capacity, channels=channels)
     window = None
     want_window = cfg.render.window
@@ -395,6 +457,8 @@ def main(ctx: StageContext) -> None:
         if window is not None:
             window.close()
         commands.close(0)
+        if view.follow is not None:
+            view.follow.sock.close(0)
         if frames and out_dir:
             try:  # the last frame, so a short run always leaves a picture
                 write_png(os.path.join(out_dir, "last.png"), renderer.read_image())

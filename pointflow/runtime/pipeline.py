@@ -157,6 +157,11 @@ class Pipeline:
         """Frame the data again (and follow it as it grows)."""
         return self.control({"cmd": "fit"}, wait=wait)
 
+    def follow(self, frame: Optional[str], wait: bool = True) -> dict:
+        """Keep the camera's offset from ``frame``'s origin as it moves (a frame of the
+        transforms, looked up in ``frames.fixed``); None stops following."""
+        return self.control({"cmd": "follow", "frame": frame}, wait=wait)
+
     def style(self, *, color_by: Any = _UNSET, colormap: Any = _UNSET, color_range: Any = _UNSET,
               point_size: Any = _UNSET, point_shape: Any = _UNSET, edl: Any = _UNSET, edl_strength: Any = _UNSET,
               time_window_ms: Any = _UNSET, wait: bool = True) -> dict:

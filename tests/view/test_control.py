@@ -192,6 +192,7 @@ def test_bad_control_messages_are_refused_and_the_pipeline_goes_on(tmp_path):
             (lambda: pipe.control({"cmd": "spin"}), "cmd", "camera, orbit"),
             (lambda: pipe.control({"cmd": "camera", "eyes": [0, 0, 1]}), "camera.eyes", "unknown argument"),
             (lambda: pipe.visible("scene", on=False), "visible.source", "one source"),
+            (lambda: pipe.follow("base_link"), "follow.frame", "frames.fixed"),
         ]
         for call, key, words in bad:
             with pytest.raises(ControlError) as exc:
@@ -242,3 +243,34 @@ def test_hide_and_show_a_source(tmp_path):
         assert pipe.view_state()["view_block"]["hidden_sources"] == ["left"]
         render = pipe.stats()["stages"]["render"]
         assert render.get("nonfinite_skipped", 0) == 0, "hidden points were counted as non-finite input"
+
+
+def test_follow_a_moving_frame(tmp_path):
+    """The synthetic lidar drives along the street (odom -> base_link at 20 Hz): a camera
+    that follows base_link keeps its offset from it while the target moves with it."""
+    cfg = {"source": {"transport": "synthetic", "options": {"scan_hz": 10, "points_per_scan": 5000,
+                                                            "drive_speed": 8, "mode": "moving"}},
+           "frames": {"fixed": "odom", "tf_wait_ms": 200}, "ring": {"max_points": 50000},
+           "cadence": {"target_hz": 20},
+           "render": {"backend": "cpu", "size": [W, H], "output": {"every_n_frames": 100000}}}
+    with Pipeline.from_dict(cfg, out_dir=str(tmp_path)) as pipe:
+        pipe.wait(90, until=lambda: pipe.stats()["frames"] >= 2)
+        pipe.camera(eye=[-20.0, -20.0, 15.0], target=[0.0, 0.0, 0.0], up=[0.0, 0.0, 1.0])
+        st = pipe.follow("base_link")
+        pipe.wait(30, until=lambda: pipe.view_state().get("follow_status") == "following")
+        st = pipe.view_state()
+        assert st["camera"]["follow"] == "base_link" and st["follow_status"] == "following"
+        offset = np.subtract(st["camera"]["eye"], st["camera"]["target"])
+        np.testing.assert_allclose(offset, [-20.0, -20.0, 15.0], atol=1e-9)
+        seen = []
+        for _ in range(3):
+            pipe.wait(1.0)
+            d = pipe.view_state()["camera_drawn"]
+            np.testing.assert_allclose(np.subtract(d["eye"], d["target"]), offset, atol=1e-6)
+            seen.append(d["target"])
+        assert np.linalg.norm(np.subtract(seen[-1], seen[0])) > 1.0, f"the target did not move with base_link: {seen}"
+        st = pipe.follow(None)
+        assert st["camera"]["follow"] is None and "follow_status" not in st
+        still = pipe.view_state()["camera_drawn"]["target"]
+        pipe.wait(1.0)
+        assert pipe.view_state()["camera_drawn"]["target"] == still
