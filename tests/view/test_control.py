@@ -70,7 +70,7 @@ def test_each_control_message_shows_in_the_next_frame(tmp_path):
         # camera: set it; the reply comes once a frame shows it, and reads back
         st = pipe.camera(eye=EYE, target=TARGET, up=UP, fov_deg=60.0)
         assert st["drawn_version"] >= st["version"] >= 1
-        assert st["camera"] == {"mode": "fixed", "eye": EYE, "target": TARGET, "up": UP, "fov_deg": 60.0}
+        assert st["camera"] == {"mode": "fixed", "eye": EYE, "target": TARGET, "up": UP, "fov_deg": 60.0, "follow": None}
         cam = Camera(eye=EYE, target=TARGET, up=UP, fov_deg=60.0)
         img_a = _frame(pipe, tmp_path, "a")
         assert not _is_bg(img_a[H // 2, W // 2]), "the plane is under the image centre"

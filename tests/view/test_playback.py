@@ -123,7 +123,7 @@ def test_loop_repeats_and_pause_holds(tmp_path):
     with Pipeline.from_dict(_config(scans, rate=4.0, loop=True), out_dir=str(tmp_path)) as pipe:
         pipe.wait(60, until=lambda: pipe.stats()["stages"]["rec"].get("transport_loops", 0) >= 2)
         assert pipe.stats()["stages"]["rec"]["transport_loops"] >= 2
-        assert _points_in(pipe) > 2 * total
+        assert _points_in(pipe) >= 2 * total  # two whole passes (the loop count goes up as the third starts)
         pipe.playback(paused=True)
         pipe.wait(0.5)
         held = _points_in(pipe)
