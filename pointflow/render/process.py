@@ -328,6 +328,9 @@ def main(ctx: StageContext) -> None:
         tf_in.bind(ctx.endpoints.view_transforms)
         view.follow = FollowFrame(cfg.frames.fixed, tf_in)
     stage = _Stage(renderer=renderer, view=view, capacity=capacity, channels=channels)
+    if ctx.info.restart_count:
+        _restore_view(ctx, view, stage)
+        renderer = stage.renderer
     window = None
     want_window = cfg.render.window
     if want_window:
@@ -546,6 +549,50 @@ def _serve_commands(sock, stage: _Stage, ring, ctx) -> None:
         sock.send_string(json.dumps(rep))
 
 
+def _view_file(ctx) -> Optional[str]:
+    d = getattr(ctx.info, "run_dir", None)
+    return os.path.join(d, "view-state.json") if d else None
+
+
+def _keep_view(ctx, view: "ViewController") -> None:
+    """Write the view where a restarted render stage finds it (the private run directory)."""
+    path = _view_file(ctx)
+    if not path:
+        return
+    try:
+        tmp = path + ".tmp"
+        with open(tmp, "w") as f:
+            json.dump({"state": view.state.to_dict(), "user_camera": view.user_camera}, f)
+        os.replace(tmp, path)
+    except OSError as exc:  # the view still works; only a restart would forget it
+        ctx.log.warning("could not keep the view state for a restart: %s", exc)
+
+
+def _restore_view(ctx, view: "ViewController", stage: "_Stage") -> None:
+    """A restarted render stage takes up the view its predecessor had (camera, style, hidden)."""
+    path = _view_file(ctx)
+    if not path or not os.path.exists(path):
+        return
+    try:
+        with open(path) as f:
+            d = json.load(f)
+        s = d["state"]
+        state = ViewState(camera=control.CameraState(**s["camera"]), style=control.StyleState(**s["style"]),
+                          hidden_sources=list(s.get("hidden_sources", [])), version=int(s["version"]))
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        ctx.log.warning("the kept view state is unreadable (%s); starting from the config", exc)
+        return
+    view.state, view.user_camera = state, bool(d.get("user_camera"))
+    r = stage.renderer
+    new_cfg = style_render_config(r.cfg, state.style)
+    if not r.restyle(new_cfg):
+        nr = type(r)(new_cfg, stage.capacity, stage.channels)
+        r.close()
+        stage.renderer = nr
+        stage.full_upload = True
+    ctx.log.info("view state of the previous render stage taken up (version %d)", state.version)
+
+
 def _control(req: dict, stage: _Stage, ctx) -> dict:
     """Apply a view control message; a new style goes to the renderer (in place, or a new
     renderer of the same tier when the tier caches it)."""
@@ -570,6 +617,7 @@ def _control(req: dict, stage: _Stage, ctx) -> dict:
             ctx.log.info("new %s renderer for the style %s", nr.tier, dataclasses.asdict(view.state.style))
     if view.state.version != old.version:
         ctx.counters.extra["view_version"] = view.state.version
+        _keep_view(ctx, view)
     return view.reply(stage.window, stage.frames)
 
 

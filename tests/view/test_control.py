@@ -274,3 +274,27 @@ def test_follow_a_moving_frame(tmp_path):
         still = pipe.view_state()["camera_drawn"]["target"]
         pipe.wait(1.0)
         assert pipe.view_state()["camera_drawn"]["target"] == still
+
+
+def test_the_view_survives_a_render_restart(tmp_path):
+    import signal
+
+    scene = _scene(str(tmp_path))
+    with Pipeline.from_dict(_config(scene), out_dir=str(tmp_path)) as pipe:
+        _wait_loaded(pipe, 1000)
+        pipe.camera(eye=EYE, target=TARGET, up=UP)
+        pipe.style(color_by="z", colormap="viridis", color_range=[0.0, 3.0])
+        before = pipe.view_state()
+        old = pipe.stats()["stages"]["render"]["pid"]
+        os.kill(old, signal.SIGKILL)
+        pipe.wait(90, until=lambda: pipe.stats()["stages"]["render"]["pid"] != old
+                  and pipe.stats()["stages"]["render"]["ready"])
+        assert pipe.stats()["stages"]["render"]["restarts"] == 1
+        pipe.wait(60, until=lambda: pipe.view_state()["drawn_version"] >= before["version"])
+        after = pipe.view_state()
+        assert after["camera"] == before["camera"] and after["style"] == before["style"]
+        assert after["drawn_version"] >= before["version"]
+        cam = Camera(eye=EYE, target=TARGET, up=UP, fov_deg=60.0)
+        img = _frame(pipe, tmp_path, "restarted")
+        hi = _px(cam, [15.0, 10.0, 3.0])
+        np.testing.assert_array_equal(img[hi[1], hi[0]], colormap.lut("viridis")[255, :3])
