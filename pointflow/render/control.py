@@ -73,6 +73,9 @@ class CameraState:
     fov_deg: float = 60.0
     #: A frame whose origin the camera follows (eye and target keep their offset from it).
     follow: Optional[str] = None
+    #: Where that origin was when following began: eye and target are drawn shifted by
+    #: (origin now - anchor), so orbit, zoom and pan still work while following.
+    follow_anchor: Optional[list[float]] = None
 
 
 @dataclass
@@ -114,7 +117,9 @@ class ViewState:
         return dataclasses.asdict(self)
 
     def copy(self) -> "ViewState":
-        return ViewState(camera=dataclasses.replace(self.camera, up=list(self.camera.up)),
+        return ViewState(camera=dataclasses.replace(self.camera, up=list(self.camera.up),
+                                                    follow_anchor=None if self.camera.follow_anchor is None
+                                                    else list(self.camera.follow_anchor)),
                          style=dataclasses.replace(self.style), hidden_sources=list(self.hidden_sources),
                          version=self.version)
 
@@ -272,7 +277,8 @@ def apply(state: ViewState, msg: Any, *, current: Optional[Camera] = None, chann
         if name is not None and follow_origin is not None:  # keep the view: the offset from the frame now
             eye, target = eye - target + np.asarray(follow_origin, np.float64), np.asarray(follow_origin, np.float64)
         new.camera = CameraState(mode="fixed", eye=list(map(float, eye)), target=list(map(float, target)),
-                                 up=list(map(float, base.up)), fov_deg=float(base.fov_deg), follow=name)
+                                 up=list(map(float, base.up)), fov_deg=float(base.fov_deg), follow=name,
+                                 follow_anchor=list(map(float, target)) if name is not None else None)
     elif cmd == "camera":
         c = check_camera(args, "camera")
         if not c:
@@ -305,7 +311,8 @@ def apply(state: ViewState, msg: Any, *, current: Optional[Camera] = None, chann
                 raise ControlError("zoom.factor", f"expected a number > 0, got {f:g}")
             cam = OrbitController(base, zoom_per_wheel=1.0 / f).zoom(1.0)
         new.camera = CameraState(mode="fixed", eye=list(map(float, cam.eye)), target=list(map(float, cam.target)),
-                                 up=list(map(float, cam.up)), fov_deg=float(cam.fov_deg), follow=state.camera.follow)
+                                 up=list(map(float, cam.up)), fov_deg=float(cam.fov_deg), follow=state.camera.follow,
+                                 follow_anchor=state.camera.follow_anchor)
     else:
         raise ControlError("cmd", f"unknown control message {cmd!r}; expected one of {', '.join(COMMANDS)} "
                                   "(or pick, save)")

@@ -202,8 +202,9 @@ class ViewController:
         if c.follow and self.follow is not None:
             self.follow.drain()
             o = self.follow.origin(c.follow)
-            if o is not None:  # keep the offset from the frame's origin
-                eye, target = eye - target + o, o
+            if o is not None:  # move with the frame's origin since following began
+                shift = o - np.asarray(c.follow_anchor if c.follow_anchor is not None else c.target, np.float64)
+                eye, target = eye + shift, target + shift
         near, far = camera_near_far(eye, target, self.auto._box)
         return Camera(eye=eye, target=target, up=c.up, fov_deg=c.fov_deg, near=near, far=far)
 

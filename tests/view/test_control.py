@@ -70,7 +70,8 @@ def test_each_control_message_shows_in_the_next_frame(tmp_path):
         # camera: set it; the reply comes once a frame shows it, and reads back
         st = pipe.camera(eye=EYE, target=TARGET, up=UP, fov_deg=60.0)
         assert st["drawn_version"] >= st["version"] >= 1
-        assert st["camera"] == {"mode": "fixed", "eye": EYE, "target": TARGET, "up": UP, "fov_deg": 60.0, "follow": None}
+        assert st["camera"] == {"mode": "fixed", "eye": EYE, "target": TARGET, "up": UP, "fov_deg": 60.0, "follow": None,
+                                "follow_anchor": None}
         cam = Camera(eye=EYE, target=TARGET, up=UP, fov_deg=60.0)
         img_a = _frame(pipe, tmp_path, "a")
         assert not _is_bg(img_a[H // 2, W // 2]), "the plane is under the image centre"
@@ -269,6 +270,11 @@ def test_follow_a_moving_frame(tmp_path):
             np.testing.assert_allclose(np.subtract(d["eye"], d["target"]), offset, atol=1e-6)
             seen.append(d["target"])
         assert np.linalg.norm(np.subtract(seen[-1], seen[0])) > 1.0, f"the target did not move with base_link: {seen}"
+        st = pipe.pan(right=0.2)  # still works while following: the target moves off the frame's origin
+        moved = np.subtract(st["camera"]["target"], st["camera"]["follow_anchor"])
+        assert np.linalg.norm(moved) > 1.0 and st["camera"]["follow"] == "base_link"
+        d = pipe.view_state()["camera_drawn"]
+        np.testing.assert_allclose(np.subtract(d["eye"], d["target"]), offset, atol=1e-6)
         st = pipe.follow(None)
         assert st["camera"]["follow"] is None and "follow_status" not in st
         still = pipe.view_state()["camera_drawn"]["target"]
