@@ -72,6 +72,31 @@ class _Stop:
         self.signal = signum
 
 
+def _playback_flags(cfg, args) -> None:
+    """``--start``/``--rate``/``--loop`` over the YAML's ``playback:`` block, checked like it."""
+    import dataclasses
+
+    from .ingest.playback import check_playback
+
+    pb = dataclasses.replace(cfg.playback)
+    for flag in ("start", "rate", "loop"):
+        v = getattr(args, flag, None)
+        if v is not None:
+            setattr(pb, flag, v)
+    if isinstance(pb.start, str) and not pb.start.strip().endswith("%"):
+        try:
+            pb.start = float(pb.start)
+        except ValueError:
+            raise ConfigError("--start", f"must be seconds or a percentage like 25%, got {pb.start!r}") from None
+    try:
+        check_playback(pb, "playback")
+    except ConfigError as exc:
+        key = exc.path.rpartition(".")[2]
+        given = getattr(args, key, None) is not None
+        raise ConfigError(f"--{key}" if given else exc.path, str(exc)[len(exc.path) + 2:]) from None
+    cfg.playback = pb
+
+
 def _run(args, profile: bool = False) -> int:
     from .runtime.pipeline import Pipeline
     from .runtime.supervisor import PipelineFailed
@@ -84,6 +109,7 @@ def _run(args, profile: bool = False) -> int:
         from .record.config import with_record_path
 
         cfg = with_record_path(cfg, args.record)
+    _playback_flags(cfg, args)
     out_dir = _out_dir(args.out or cfg.render.output.dir or "out")
     if args.backend:
         os.environ["POINTFLOW_BACKEND"] = args.backend
@@ -367,6 +393,10 @@ def build_parser() -> argparse.ArgumentParser:
         r.add_argument("-q", "--quiet", action="store_true", help="no live progress line")
         r.add_argument("--record", metavar="FILE.mcap", default=None,
                        help="record what ingest accepts to this MCAP file (docs/record.md)")
+        r.add_argument("--start", default=None, metavar="SECONDS|PCT%",
+                       help="replays (file, rosbag) start here: seconds into the recording, or e.g. 25%%")
+        r.add_argument("--rate", type=float, default=None, help="replays run this many times as fast as recorded")
+        r.add_argument("--loop", action="store_true", default=None, help="replays start again at the end")
     v = sub.add_parser("validate", help="check a pipeline YAML without running it")
     v.add_argument("file")
     v.add_argument("--verbose", action="store_true", help="print the resolved config")

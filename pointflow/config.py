@@ -18,6 +18,7 @@ from typing import Any, ClassVar, Literal, Optional, Union
 import yaml
 
 from .frames.config import FramesConfig, check_frames
+from .ingest.playback import PlaybackConfig, check_playback
 from .ingest.transports import resolve_transport
 from .record.config import RecordConfig, check_record
 from .remote.options import SendConfig, check_send, is_loopback_endpoint
@@ -178,6 +179,12 @@ class EndpointsConfig:
     render_commands: Optional[str] = field(default=None, metadata=check(endpoint))
     #: Ingest -> recorder (only with ``record:``); PULL bound by the recorder.
     record: Optional[str] = field(default=None, metadata=check(endpoint))
+    #: Replay control of the sources that read recordings (REP bound by each; ``-<index>``
+    #: is added per source, or the index to a tcp port): ingest/playback.py.
+    playback: Optional[str] = field(default=None, metadata=check(endpoint))
+    #: Transforms for a camera that follows a frame (only with ``frames.fixed``): PULL bound
+    #: by render, every source PUSHes the transforms it sends ingest here too.
+    view_transforms: Optional[str] = field(default=None, metadata=check(endpoint))
     #: Allow these (unencrypted) endpoints on a non-loopback tcp:// address.
     insecure: bool = False
 
@@ -235,6 +242,12 @@ class PipelineConfig:
     record: Optional[RecordConfig] = None
     #: The Zenoh router ``pointflow router`` runs (docs/remote.md); a file may hold only this.
     router: Optional[RouterConfig] = None
+    #: How replaying sources (file, rosbag) start: ``start``, ``rate``, ``loop``, ``paused``
+    #: (``pointflow run --start/--rate/--loop``); steer them later with ``Pipeline.playback``.
+    playback: PlaybackConfig = field(default_factory=PlaybackConfig)
+    #: A view to start from (``Pipeline.save_view`` writes one): ``camera`` (fit, or
+    #: eye/target/up/fov_deg) and ``style``; applied over ``render`` at load (render/control.py).
+    view: Optional[dict[str, Any]] = None
     #: Where the YAML came from (for relative paths in options); not a YAML key.
     base_dir: str = field(default=".", metadata={"internal": True})
 
@@ -256,6 +269,8 @@ class PipelineConfig:
         for c in (self.record.channels or []) if self.record is not None else []:
             if c not in names:
                 names.append(c)
+        if len(self.sources) > 1 and "source_index" not in names:  # per-source visibility (docs/api.md)
+            names.append("source_index")
         return names
 
     def resolved_endpoints(self, run_dir: str) -> EndpointsConfig:
@@ -265,7 +280,8 @@ class PipelineConfig:
             ingest=e.ingest or d("ingest"), frames=e.frames or d("frames"),
             release=e.release or d("release"), control=e.control or d("control"),
             trace=e.trace or d("trace"), render_commands=e.render_commands or d("render-commands"),
-            record=e.record or d("record"),
+            record=e.record or d("record"), playback=e.playback or d("playback"),
+            view_transforms=e.view_transforms or d("view-transforms"),
         )
 
     def to_dict(self) -> dict:
@@ -314,7 +330,11 @@ def _check_semantics(cfg: PipelineConfig) -> None:
     if cfg.record is not None:
         check_record(cfg.record, "record")
     e = cfg.endpoints
-    for key in ("ingest", "frames", "release", "control", "trace", "render_commands", "record"):
+    check_playback(cfg.playback, "playback")
+    if cfg.view is not None:
+        _apply_view(cfg)
+    for key in ("ingest", "frames", "release", "control", "trace", "render_commands", "record", "playback",
+                "view_transforms"):
         ep = getattr(e, key)
         if ep and not e.insecure and not is_loopback_endpoint(ep):
             raise ConfigError(f"endpoints.{key}", f"{ep} is reachable from other hosts and the links between "
@@ -349,6 +369,35 @@ def _check_color_by(cfg: PipelineConfig) -> None:
                           + (f" (did you mean {near[0]!r}?)" if near else "")
                           + f"; the sources' channels: {', '.join(sorted(have)) or 'none'}; or one of "
                           + ", ".join(COLOR_BY_BUILTIN[:3]) + ", or null for the single colour render.color")
+
+
+def _apply_view(cfg: PipelineConfig) -> None:
+    """Check the ``view:`` block and start the render config from it (so the ring keeps the
+    channel it colours by)."""
+    from .render.control import ControlError, load_view_block
+
+    try:
+        v = load_view_block(cfg.view, "view")
+    except ControlError as exc:
+        raise ConfigError(exc.key, str(exc)[len(exc.key) + 2:]) from None
+    r = cfg.render
+    st = v["style"]
+    simple = {k: st[k] for k in ("color_by", "colormap", "color_range", "point_size", "point_shape", "time_window_ms")
+              if k in st}
+    edl = dataclasses.replace(r.edl, **{f: st[k] for k, f in (("edl", "enabled"), ("edl_strength", "strength"))
+                                        if k in st})
+    r = dataclasses.replace(r, edl=edl, **simple)
+    names = [s.name for s in cfg.sources]
+    for i, name in enumerate(v["hidden_sources"]):
+        if name not in names:
+            raise ConfigError(f"view.hidden_sources[{i}]", f"no source named {name!r}; sources: {', '.join(names)}")
+    if v["camera"] is not None:
+        c = v["camera"]
+        r.camera = dataclasses.replace(r.camera, mode="fixed", position=c["eye"], target=c["target"],
+                                       up=c.get("up", r.camera.up), fov_deg=c.get("fov_deg", r.camera.fov_deg))
+    elif cfg.view.get("camera") == "fit":
+        r.camera = dataclasses.replace(r.camera, mode="auto", position=None, target=None)
+    cfg.render = r
 
 
 def load_config(data: dict | str | os.PathLike, *, base_dir: str | None = None) -> PipelineConfig:

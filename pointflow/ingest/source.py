@@ -11,12 +11,14 @@ from __future__ import annotations
 
 import time
 
+import numpy as np
 import zmq
 
 from .. import wire
 from ..chunk import new_trace_id
 from ..frames import message as tfmsg
 from ..frames.deskew import TIME_FIELDS
+from . import playback
 from .transports import resolve_transport
 from .transports.base import InputUnreadable
 
@@ -57,11 +59,19 @@ def main(ctx) -> None:
     transport.wants_transforms = bool(fcfg.fixed)
     transport.ring_capacity = ctx.cfg.ring.max_points
     frame_id = scfg.frame_id or ""
+    # which configured source each point came from, for per-source visibility (render/control.py)
+    mark = "source_index" in ctx.cfg.ring_channels()
     tf_sent = 0
     sock = ctx.zmq.socket(zmq.PUSH)
     sock.setsockopt(zmq.SNDHWM, SEND_HWM)
     sock.setsockopt(zmq.LINGER, 2000)  # let the last chunks of a finished replay go out
     sock.connect(ctx.endpoints.ingest)
+    view_tf = None  # the same transforms to the render stage, for a camera that follows a frame
+    if fcfg.fixed and ctx.endpoints.view_transforms:
+        view_tf = ctx.zmq.socket(zmq.PUSH)
+        view_tf.setsockopt(zmq.SNDHWM, 64)
+        view_tf.setsockopt(zmq.LINGER, 0)
+        view_tf.connect(ctx.endpoints.view_transforms)
 
     def _stats() -> None:
         ctx.counters.extra.update({f"transport_{k}": v for k, v in transport.counters.items()})
@@ -71,10 +81,22 @@ def main(ctx) -> None:
 
     ctx.on_beat.append(_stats)
     seq = 0
+    control = None  # the replay's control path (pause, seek, step, rate, loop): ingest/playback.py
+    clock = transport.playback if getattr(transport, "seekable", False) else None
     try:
         transport.open()
+        if clock is not None:
+            clock.configure(ctx.cfg.playback)
+            transport.counters.update(clock.counters())
+            if ctx.endpoints.playback:
+                control = ctx.zmq.socket(zmq.REP)
+                control.setsockopt(zmq.LINGER, 0)
+                control.bind(playback.playback_endpoint(ctx.endpoints.playback, idx))
         it = transport.chunks()
         while ctx.running:
+            if control is not None:
+                playback.serve(control, clock, ctx.log, ctx.counters)
+                transport.counters.update(clock.counters())
             t0 = time.monotonic_ns()
             try:
                 chunk = next(it)
@@ -85,7 +107,13 @@ def main(ctx) -> None:
                 continue
             if isinstance(chunk, tfmsg.Transforms):  # on the same socket, in order with the clouds
                 if chunk.transforms:
-                    if _send(ctx, sock, tfmsg.encode(chunk, source_id), lossless):
+                    encoded = tfmsg.encode(chunk, source_id)
+                    if view_tf is not None:
+                        try:  # never waits: the view may not follow anything
+                            view_tf.send_multipart(encoded, zmq.NOBLOCK)
+                        except zmq.Again:
+                            pass
+                    if _send(ctx, sock, encoded, lossless):
                         tf_sent += len(chunk.transforms)
                     else:  # a live source behind ingest: counted like dropped chunks
                         ctx.counters.extra["transforms_dropped"] = ctx.counters.extra.get("transforms_dropped", 0) + len(chunk.transforms)
@@ -95,6 +123,8 @@ def main(ctx) -> None:
             t1 = time.monotonic_ns()
             n = len(chunk)
             chunk.source_id = chunk.source_id or source_id
+            if mark:
+                chunk.channels["source_index"] = np.full(n, idx, np.float32)
             chunk.seq = seq
             chunk.trace_id = new_trace_id()
             chunk.t_sent_ns = time.monotonic_ns()
@@ -123,3 +153,7 @@ def main(ctx) -> None:
         finally:
             _stats()
             sock.close()
+            if control is not None:
+                control.close(0)
+            if view_tf is not None:
+                view_tf.close(0)

@@ -80,6 +80,12 @@ class Renderer(ABC):
         """Ring slot of the point under window pixel (x, y), or None."""
         raise NotImplementedError(f"{self.tier} tier does not support picking")
 
+    def restyle(self, cfg: RenderConfig) -> bool:
+        """Take a new style (colouring, point size and shape, EDL, time window) for the next
+        frame, in place; False when the tier cannot (it caches them in pipelines), and the
+        render stage builds a new renderer of the same tier instead (render/control.py)."""
+        return False
+
     def info(self) -> dict[str, Any]:
         return {"tier": self.tier}
 

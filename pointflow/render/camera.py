@@ -12,6 +12,7 @@ pixel (i, j) is (i + 0.5, j + 0.5). Frustum planes are (a, b, c, d) with
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -111,3 +112,68 @@ def project_to_pixels(points_rel: np.ndarray, view_proj: np.ndarray, width: int,
     px = (ndc[:, 0] * 0.5 + 0.5) * width
     py = (0.5 - ndc[:, 1] * 0.5) * height
     return px, py, ndc[:, 2], w
+
+
+class OrbitController:
+    """Turns mouse motion into a new :class:`Camera` (orbit about the target, pan, dolly).
+
+    Angles are in the camera's up frame; the distance never collapses to zero."""
+
+    def __init__(self, camera: Camera, *, orbit_deg_per_px: float = 0.3, zoom_per_wheel: float = 1.0015):
+        self.camera = camera
+        self.orbit_deg_per_px = orbit_deg_per_px
+        self.zoom_per_wheel = zoom_per_wheel
+
+    def _frame(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+        c = self.camera
+        up = c.up / (np.linalg.norm(c.up) or 1.0)
+        off = c.eye - c.target
+        dist = float(np.linalg.norm(off)) or 1e-6
+        fwd = -off / dist
+        right = np.cross(fwd, up)
+        if np.linalg.norm(right) < 1e-9:
+            right = np.cross(fwd, np.array([1.0, 0.0, 0.0]))
+        right /= np.linalg.norm(right)
+        return up, right, np.cross(right, fwd), dist
+
+    def orbit(self, dx_px: float, dy_px: float) -> Camera:
+        c = self.camera
+        up, right, _, dist = self._frame()
+        off = c.eye - c.target
+        az = math.radians(-dx_px * self.orbit_deg_per_px)
+        el = math.radians(dy_px * self.orbit_deg_per_px)
+        off = _rotate(off, up, az)
+        # clamp elevation so we never flip over the pole
+        cur = math.asin(max(-1.0, min(1.0, float(np.dot(off / dist, up)))))
+        el = max(-math.radians(89) - cur, min(math.radians(89) - cur, el))
+        right = np.cross(-off / dist, up)
+        if np.linalg.norm(right) > 1e-9:
+            off = _rotate(off, right / np.linalg.norm(right), el)
+        self.camera = Camera(eye=c.target + off, target=c.target.copy(), up=c.up, fov_deg=c.fov_deg,
+                             near=c.near, far=c.far)
+        return self.camera
+
+    def pan(self, dx_px: float, dy_px: float, height_px: int) -> Camera:
+        c = self.camera
+        _, right, cam_up, dist = self._frame()
+        world_per_px = 2.0 * dist * math.tan(math.radians(c.fov_deg) / 2.0) / max(height_px, 1)
+        move = (-dx_px * right + dy_px * cam_up) * world_per_px
+        self.camera = Camera(eye=c.eye + move, target=c.target + move, up=c.up, fov_deg=c.fov_deg,
+                             near=c.near, far=c.far)
+        return self.camera
+
+    def zoom(self, wheel_dy: float) -> Camera:
+        c = self.camera
+        f = self.zoom_per_wheel ** float(wheel_dy)
+        off = (c.eye - c.target) * f
+        if np.linalg.norm(off) < 1e-6:
+            off = (c.eye - c.target)
+        self.camera = Camera(eye=c.target + off, target=c.target.copy(), up=c.up, fov_deg=c.fov_deg,
+                             near=c.near * f, far=c.far * f)
+        return self.camera
+
+
+def _rotate(v: np.ndarray, axis: np.ndarray, angle: float) -> np.ndarray:
+    """Rodrigues rotation of v about a unit axis."""
+    k = axis / (np.linalg.norm(axis) or 1.0)
+    return v * math.cos(angle) + np.cross(k, v) * math.sin(angle) + k * np.dot(k, v) * (1 - math.cos(angle))

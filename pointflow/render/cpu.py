@@ -53,6 +53,13 @@ class CpuRenderer(Renderer):
         self.nonfinite_total = 0
         self.frames = 0
 
+    def restyle(self, cfg: RenderConfig) -> bool:
+        """Every style field is read per frame except EDL's offsets and the background."""
+        self.cfg = cfg
+        self._bg = rgba_u8(cfg.background)
+        self._edl = edl_offsets(cfg.edl.radius_px) if cfg.edl.enabled else None
+        return True
+
     # ---------------------------------------------------------------- render
     def render(self, frame: FrameInput, camera: Camera) -> FrameStats:
         t0 = time.perf_counter()

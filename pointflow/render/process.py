@@ -6,10 +6,12 @@ spans, and every ``output.every_n_frames`` frames read the image back and save a
 """
 from __future__ import annotations
 
+import dataclasses
 import glob
+import json
 import os
 import time
-from typing import Optional
+from typing import Any, Optional
 
 import numpy as np
 import zmq
@@ -19,7 +21,9 @@ from ..ring.handoff import SlabReader
 from ..ring.slabs import SlabPair
 from ..runtime.stage import StageContext
 from .base import FrameInput, RenderError, Renderer
+from . import control
 from .camera import Camera
+from .control import ControlError, ViewState, camera_near_far, style_render_config
 
 
 class CameraController:
@@ -57,18 +61,23 @@ class CameraController:
         diag = max(float(np.linalg.norm(hi0 - lo0)), 1e-9)
         return max(float(np.abs(box[0] - lo0).max()), float(np.abs(box[1] - hi0).max())) > 0.1 * diag
 
-    def update(self, frame: FrameInput) -> Optional[Camera]:
-        c = self.cfg
-        if c.mode == "fixed":
-            return self.camera
+    def refresh(self, frame: FrameInput) -> None:
+        """Keep the data box current (about once a second; refit only on a >10% change)."""
         now = time.monotonic()
         if frame.size and (self._box is None or now - self._last_fit > 1.0):
             self._last_fit = now
             box = self._bounds(frame)
             if box is not None and (self._box is None or self._moved(box)):
                 self._box = box
+
+    def update(self, frame: FrameInput) -> Optional[Camera]:
+        c = self.cfg
+        if c.mode == "fixed":
+            return self.camera
+        self.refresh(frame)
         if self._box is None:
             return None
+        now = time.monotonic()
         az = -60.0 + (c.orbit_deg_per_s * (now - self._t0) if c.orbit_deg_per_s else 0.0)
         cam = Camera.fit(self._box[0], self._box[1], fov_deg=c.fov_deg, azimuth_deg=az,
                          elevation_deg=c.elevation_deg, up=c.up, aspect=self.aspect)
@@ -78,6 +87,188 @@ class CameraController:
             cam.target = np.asarray(c.target, np.float64)
         self.camera = cam
         return cam
+
+
+class SourceMask:
+    """Hides the points of some sources: a render-private copy of the positions with NaN where
+    a hidden source's points are (every tier skips non-finite positions), kept up to date
+    range by range with the handoffs' dirty ranges; a change of the hidden set re-uploads the
+    whole slab once. Costs one positions array (12 B a slot) while something is hidden."""
+
+    def __init__(self, names: list[str]):
+        self.names = names
+        self.pos: Optional[np.ndarray] = None
+        self.ids: Optional[np.ndarray] = None  # the hidden sources' indices
+        self.hidden_draws = 0  # point-draws not made because hidden (kept out of nonfinite_skipped)
+
+    def apply(self, frame: FrameInput, hidden: list[str]) -> FrameInput:
+        ids = np.array(sorted(self.names.index(h) for h in hidden if h in self.names), np.float32)
+        src = frame.channels.get(control.SOURCE_CHANNEL)
+        if src is None or (not ids.size and self.ids is None):
+            return frame
+        if not ids.size:  # shown again: the slab's own positions, all of them once
+            self.pos, self.ids = None, None
+            frame.dirty = None
+            return frame
+        full = self.ids is None or not np.array_equal(ids, self.ids) or frame.dirty is None
+        if self.pos is None:
+            self.pos = np.empty_like(frame.positions)
+        ranges = [(0, frame.capacity)] if full else frame.dirty
+        for a, b in ranges:
+            p = self.pos[a:b]
+            p[:] = frame.positions[a:b]
+            p[np.isin(src[a:b], ids)] = np.nan
+        if full:
+            frame.dirty = None
+        self.ids = ids
+        occ = frame.occupied_slots()
+        self.hidden_draws += int(np.count_nonzero(np.isin(src[occ], ids)))
+        frame.positions = self.pos
+        return frame
+
+
+class FollowFrame:
+    """The transforms the sources send (a copy of what ingest gets, only with ``frames.fixed``),
+    so the camera can follow a frame: where that frame's origin is in the fixed frame now."""
+
+    def __init__(self, fixed: str, sock):
+        from ..frames.buffer import TransformBuffer
+
+        self.fixed = fixed
+        self.sock = sock
+        self.buf = TransformBuffer()
+        self.bad = 0
+
+    def drain(self) -> None:
+        from ..frames import message as tfmsg
+        from ..frames.buffer import FrameError
+
+        while self.sock.poll(0, zmq.POLLIN):
+            try:
+                batch = tfmsg.decode(json.loads(self.sock.recv()))
+                for t in batch.transforms:
+                    self.buf.set_transform(t.parent, t.child, t.stamp_ns, t.translation, t.rotation, t.static)
+            except (ValueError, FrameError):  # ingest counts and reports bad transforms; here they are skipped
+                self.bad += 1
+
+    def origin(self, frame: str) -> Optional[np.ndarray]:
+        """The origin of ``frame`` in the fixed frame at the newest time known, or None."""
+        if frame == self.fixed:
+            return np.zeros(3)
+        try:
+            _, t = self.buf.lookup(self.fixed, frame, self.buf.newest_of_chain(self.fixed, frame) or 0)
+        except Exception:  # noqa: BLE001 - not (yet) connected to the fixed frame
+            return None
+        return np.asarray(t, np.float64)
+
+
+class ViewController:
+    """The render stage's view: the control state (:mod:`pointflow.render.control`), the
+    camera it gives each frame, and whether a frame would look like the last one drawn
+    (then it is not drawn: an idle pipeline costs the render stage next to no CPU)."""
+
+    def __init__(self, cfg, width: int, height: int, channels: list[str]):
+        self.cfg = cfg
+        self.auto = CameraController(cfg, width, height)
+        self.state = ViewState.from_render_config(cfg.render)
+        if isinstance(cfg.view, dict) and cfg.view.get("hidden_sources"):
+            self.state.hidden_sources = list(cfg.view["hidden_sources"])
+        self.mask = SourceMask([s.name for s in cfg.sources])
+        self.follow: Optional[FollowFrame] = None  # set by main() when frames.fixed is set
+        # True once a control message set or turned the camera, or a `view:` block set it
+        self.user_camera = bool(isinstance(cfg.view, dict) and isinstance(cfg.view.get("camera"), dict))
+        self.channels = channels
+        self.height = height
+        self.last: Optional[Camera] = None  # the camera of the last frame drawn
+        self.drawn_version = -1
+        self.changed_ns = 0  # when the newest version was applied
+        self.drawn_ns = 0  # when the frame that first showed drawn_version was done
+        self._drawn_key = None
+        self.skipped = 0
+        self.last_frame_ms = 0.0  # how long the last frame drawn took (render + finish)
+
+    def camera(self, frame: FrameInput) -> Optional[Camera]:
+        c = self.state.camera
+        if self.follow is not None:
+            self.follow.drain()  # keep the transforms current (and the socket's queue short)
+        if self.user_camera and c.mode == "fixed":
+            self.auto.refresh(frame)
+            return self._fixed()
+        return self.auto.update(frame)
+
+    def _fixed(self) -> Camera:
+        c = self.state.camera
+        eye, target = np.asarray(c.eye, np.float64), np.asarray(c.target, np.float64)
+        if c.follow and self.follow is not None:
+            self.follow.drain()
+            o = self.follow.origin(c.follow)
+            if o is not None:  # move with the frame's origin since following began
+                shift = o - np.asarray(c.follow_anchor if c.follow_anchor is not None else c.target, np.float64)
+                eye, target = eye + shift, target + shift
+        near, far = camera_near_far(eye, target, self.auto._box)
+        return Camera(eye=eye, target=target, up=c.up, fov_deg=c.fov_deg, near=near, far=far)
+
+    def unchanged(self, frame: FrameInput, camera: Camera, renderer: Renderer) -> bool:
+        """True when drawing ``frame`` would repeat the last frame: no slot changed, same
+        ring window and origin, same camera, same view version, same renderer, no time window."""
+        key = (frame.head, frame.size, tuple(np.round(frame.origin, 9)), self.state.version, id(renderer),
+               camera.view_proj(16, 9).tobytes(), camera.near, camera.far)
+        same = (frame.dirty is not None and not frame.dirty and key == self._drawn_key
+                and not self.state.style.time_window_ms > 0)
+        self._pending_key = key
+        return same
+
+    def drawn(self) -> None:
+        self._drawn_key = self._pending_key
+        if self.drawn_version != self.state.version:
+            self.drawn_version = self.state.version
+            self.drawn_ns = time.monotonic_ns()
+
+    def apply(self, msg: dict, window) -> None:
+        """Apply one control message (raises ControlError); a camera change reaches the window too."""
+        cur = window.camera if window is not None else self.last
+        origin = None
+        if msg.get("cmd") == "follow" and self.follow is not None and isinstance(msg.get("frame"), str):
+            self.follow.drain()
+            origin = self.follow.origin(msg["frame"])
+        new = control.apply(self.state, msg, current=cur, channels=self.channels, height_px=self.height,
+                            sources=self.mask.names, fixed_frame=self.cfg.frames.fixed, follow_origin=origin)
+        if new.version == self.state.version:
+            return
+        if msg.get("cmd") == "fit":
+            self.user_camera = False
+            self.auto.cfg = dataclasses.replace(self.auto.cfg, mode="auto", position=None, target=None)
+        elif new.camera.mode == "fixed" and new.camera != self.state.camera:
+            self.user_camera = True
+        self.state = new
+        self.changed_ns = time.monotonic_ns()
+        if window is not None and msg.get("cmd") != "style":
+            cam = self.camera_for_window()
+            if cam is not None:
+                window.controller.camera = cam
+
+    def camera_for_window(self) -> Optional[Camera]:
+        c = self.state.camera
+        if self.user_camera and c.mode == "fixed":
+            return self._fixed()
+        return self.auto.camera
+
+    def reply(self, window, frames: int) -> dict:
+        d = self.state.to_dict()
+        cam = window.camera if window is not None else self.last
+        d["camera_drawn"] = None if cam is None else {
+            "eye": [float(v) for v in cam.eye], "target": [float(v) for v in cam.target],
+            "up": [float(v) for v in cam.up], "fov_deg": float(cam.fov_deg), "near": float(cam.near),
+            "far": float(cam.far)}
+        f = self.state.camera.follow
+        if f:
+            known = self.follow is not None and self.follow.origin(f) is not None
+            d["follow_status"] = "following" if known else (f"waiting for transforms linking {f!r} to "
+                                                            f"{self.cfg.frames.fixed!r}")
+        d.update(drawn_version=self.drawn_version, changed_ns=self.changed_ns, drawn_ns=self.drawn_ns,
+                 frames=frames, frames_skipped=self.skipped, last_frame_ms=round(self.last_frame_ms, 3),
+                 view_block=control.view_block(self.state))
+        return d
 
 
 def frame_from_slab(h, view, now_ns: int, capacity: int) -> FrameInput:
@@ -121,13 +312,26 @@ def main(ctx: StageContext) -> None:
     commands.setsockopt(zmq.LINGER, 0)
     commands.bind(ctx.endpoints.render_commands)
     reader = SlabReader(slabs, ready, release)
+    poller = zmq.Poller()
+    poller.register(ready, zmq.POLLIN)
+    poller.register(commands, zmq.POLLIN)
     renderer = ctx.prepared  # a standby's renderer: device created, pipelines warmed up
     if renderer is None:
         renderer = _select(cfg, capacity, channels, ctx.log)
         ctx.log.debug("render tier: %s", renderer.info())  # long; "tier selection" lines say it in short
         _warm_up(renderer, slabs, capacity, ctx.log)
     _announce(release, ctx, renderer)
-    cam = CameraController(cfg, *cfg.render.size)
+    view = ViewController(cfg, *cfg.render.size, channels)
+    if cfg.frames.fixed and ctx.endpoints.view_transforms:
+        tf_in = ctx.zmq.socket(zmq.PULL)
+        tf_in.setsockopt(zmq.LINGER, 0)
+        tf_in.setsockopt(zmq.RCVHWM, 256)
+        tf_in.bind(ctx.endpoints.view_transforms)
+        view.follow = FollowFrame(cfg.frames.fixed, tf_in)
+    stage = _Stage(renderer=renderer, view=view, capacity=capacity, channels=channels)
+    if ctx.info.restart_count:
+        _restore_view(ctx, view, stage)
+        renderer = stage.renderer
     window = None
     want_window = cfg.render.window
     if want_window:
@@ -150,22 +354,37 @@ def main(ctx: StageContext) -> None:
     try:
         while ctx.running:
             ctx.beat()
-            _serve_commands(commands, renderer, ring, ctx)
+            stage.window, stage.frames = window, frames - base
+            _serve_commands(commands, stage, ring, ctx)
+            renderer = stage.renderer
             if window is not None:
                 window.process_events()
-            got = reader.recv(timeout_ms=20 if window is not None else 50)
+            # a control message wakes the loop at once (it then shows with the next handoff)
+            woke = dict(poller.poll(20 if window is not None else 50))
+            got = reader.recv(timeout_ms=0) if ready in woke else None
+            if got is not None:  # a message that came with the handoff applies to it
+                _serve_commands(commands, stage, ring, ctx)
+                renderer = stage.renderer
             if got is None:
                 t_idle = _resync_if_idle(release, reader, t_free, t_idle, tick_s)
                 continue
-            h, view = got
+            h, slab_view = got
             tick_s = float(h.extra.get("interval_ms") or 0.0) / 1000.0
             drew = False
             try:  # the slab is read only inside this block and goes back in its finally, the one place
                 t0 = time.monotonic_ns()
-                frame = frame_from_slab(h, view, t0, capacity)
-                camera = cam.update(frame)
+                frame = frame_from_slab(h, slab_view, t0, capacity)
+                if stage.full_upload:  # a new renderer: everything in the slab is new to it
+                    frame.dirty = None
+                    stage.full_upload = False
+                camera = window.camera if window is not None else view.camera(frame)
                 if camera is None:  # nothing to frame yet
                     continue
+                if view.unchanged(frame, camera, renderer):  # the same picture again: not drawn
+                    view.skipped += 1
+                    c.extra["frames_skipped_unchanged"] = view.skipped
+                    continue
+                frame = view.mask.apply(frame, view.state.hidden_sources)
                 try:
                     if want_window and window is None:
                         from .window import PointWindow
@@ -182,6 +401,7 @@ def main(ctx: StageContext) -> None:
                     else:
                         fs = renderer.render(frame, camera)
                     drew = True
+                    view.last = camera
                 except ValueError as exc:  # a malformed frame (tiers check their input): skip it, counted
                     ctx.log.error("frame %d rejected by the %s tier: %s", h.seq, renderer.tier, exc)
                     c.drop("bad_frame", 1)
@@ -190,7 +410,9 @@ def main(ctx: StageContext) -> None:
                     from .select import fallback_after
 
                     ctx.log.error("%s tier failed (%s); falling back", renderer.tier, exc)
-                    renderer = fallback_after(renderer, exc, cfg.render, capacity, channels)
+                    renderer = fallback_after(renderer, exc, renderer.cfg, capacity, channels)
+                    stage.renderer = renderer
+                    stage.full_upload = True
                     if window is not None:
                         window.renderer = renderer
                     c.extra["tier"] = renderer.tier
@@ -203,8 +425,9 @@ def main(ctx: StageContext) -> None:
                 if not drew:  # ready for the next handoff at once
                     _feedback(release, 0.0, h.seq, drawn=False)
             t_up = time.monotonic_ns()
-            if tracing and h.trace_ids and hasattr(renderer, "finish"):
+            if (tracing and h.trace_ids or view.drawn_version != view.state.version) and hasattr(renderer, "finish"):
                 renderer.finish()  # frame_done means the GPU work is complete
+            view.drawn()
             frames += 1
             png = out_dir is not None and frames % out.every_n_frames == 0
             if png:
@@ -218,10 +441,13 @@ def main(ctx: StageContext) -> None:
             t1 = time.monotonic_ns()
             ms = (t1 - t0) / 1e6
             ema = ms if ema is None else 0.85 * ema + 0.15 * ms
+            view.last_frame_ms = ms
             c.points_in += h.count
             if fs.drawn is not None:
                 c.points_out += fs.drawn
-            c.extra["nonfinite_skipped"] = int(getattr(renderer, "nonfinite_total", 0))  # point-draws not made
+            c.extra["nonfinite_skipped"] = max(0, int(getattr(renderer, "nonfinite_total", 0)) - view.mask.hidden_draws)
+            if view.mask.hidden_draws:
+                c.extra["hidden_skipped"] = view.mask.hidden_draws  # point-draws of hidden sources
             c.extra.update(frames=frames - base, frame_ms_ema=round(ema, 3), last_frame_ms=round(ms, 3),
                            uploaded_bytes=c.extra.get("uploaded_bytes", 0) + fs.uploaded_bytes,
                            **{f"tier_{k}_ms": round(v, 3) for k, v in fs.timings_ms.items()})
@@ -235,6 +461,8 @@ def main(ctx: StageContext) -> None:
         if window is not None:
             window.close()
         commands.close(0)
+        if view.follow is not None:
+            view.follow.sock.close(0)
         if frames and out_dir:
             try:  # the last frame, so a short run always leaves a picture
                 write_png(os.path.join(out_dir, "last.png"), renderer.read_image())
@@ -278,15 +506,30 @@ def _print_pick(ring, slot, x, y) -> None:
           flush=True)
 
 
-def _serve_commands(sock, renderer: Renderer, ring, ctx) -> None:
-    """Answer pending REQ/REP requests: ``pick`` (resolved through the ring, generation-checked)
-    and ``save`` (write the current frame as PNG)."""
-    import json
+@dataclasses.dataclass
+class _Stage:
+    """What a command may replace: the renderer (a style the tier cannot take in place)."""
 
+    renderer: Renderer
+    view: "ViewController"
+    capacity: int
+    channels: list
+    window: Any = None
+    frames: int = 0
+    #: The next frame uploads the whole slab (a renderer built since the last frame).
+    full_upload: bool = False
+
+
+def _serve_commands(sock, stage: _Stage, ring, ctx) -> None:
+    """Answer pending REQ/REP requests: ``pick`` (resolved through the ring, generation-checked),
+    ``save`` (write the current frame as PNG) and the view control messages of
+    :mod:`pointflow.render.control` (a bad one is answered with its error, counted
+    ``bad_control``; the view stays as it was)."""
     while sock.poll(0, zmq.POLLIN):
         try:
             req = json.loads(sock.recv())
-            cmd = req.get("cmd")
+            cmd = req.get("cmd") if isinstance(req, dict) else None
+            renderer = stage.renderer
             if cmd == "pick":
                 slot = renderer.pick(float(req["x"]), float(req["y"]), float(req.get("pixel_ratio", 1.0)))
                 rep = {"point": point_to_dict(ring.get_point(slot)) if slot is not None else None}
@@ -295,12 +538,88 @@ def _serve_commands(sock, renderer: Renderer, ring, ctx) -> None:
                 os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
                 write_png(path, renderer.read_image())
                 rep = {"path": path}
-            else:
-                rep = {"error": f"unknown command {cmd!r}; expected pick or save"}
+            else:  # the view control messages; an unknown one is refused there, naming them
+                rep = _control(req, stage, ctx)
+        except ControlError as exc:
+            ctx.counters.drop("bad_control", 1)
+            ctx.log.warning("render control message refused: %s", exc)
+            rep = {"error": str(exc), "key": exc.key}
         except Exception as exc:  # noqa: BLE001 - a bad request must not kill the stage
             ctx.log.warning("render command failed: %s", exc)
             rep = {"error": f"{type(exc).__name__}: {exc}"}
         sock.send_string(json.dumps(rep))
+
+
+def _view_file(ctx) -> Optional[str]:
+    d = getattr(ctx.info, "run_dir", None)
+    return os.path.join(d, "view-state.json") if d else None
+
+
+def _keep_view(ctx, view: "ViewController") -> None:
+    """Write the view where a restarted render stage finds it (the private run directory)."""
+    path = _view_file(ctx)
+    if not path:
+        return
+    try:
+        tmp = path + ".tmp"
+        with open(tmp, "w") as f:
+            json.dump({"state": view.state.to_dict(), "user_camera": view.user_camera}, f)
+        os.replace(tmp, path)
+    except OSError as exc:  # the view still works; only a restart would forget it
+        ctx.log.warning("could not keep the view state for a restart: %s", exc)
+
+
+def _restore_view(ctx, view: "ViewController", stage: "_Stage") -> None:
+    """A restarted render stage takes up the view its predecessor had (camera, style, hidden)."""
+    path = _view_file(ctx)
+    if not path or not os.path.exists(path):
+        return
+    try:
+        with open(path) as f:
+            d = json.load(f)
+        s = d["state"]
+        state = ViewState(camera=control.CameraState(**s["camera"]), style=control.StyleState(**s["style"]),
+                          hidden_sources=list(s.get("hidden_sources", [])), version=int(s["version"]))
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        ctx.log.warning("the kept view state is unreadable (%s); starting from the config", exc)
+        return
+    view.state, view.user_camera = state, bool(d.get("user_camera"))
+    r = stage.renderer
+    new_cfg = style_render_config(r.cfg, state.style)
+    if not r.restyle(new_cfg):
+        nr = type(r)(new_cfg, stage.capacity, stage.channels)
+        r.close()
+        stage.renderer = nr
+        stage.full_upload = True
+    ctx.log.info("view state of the previous render stage taken up (version %d)", state.version)
+
+
+def _control(req: dict, stage: _Stage, ctx) -> dict:
+    """Apply a view control message; a new style goes to the renderer (in place, or a new
+    renderer of the same tier when the tier caches it)."""
+    view = stage.view
+    old = view.state
+    view.apply(req, stage.window)
+    if view.state.style != old.style:
+        r = stage.renderer
+        new_cfg = style_render_config(r.cfg, view.state.style)
+        if not r.restyle(new_cfg):
+            try:
+                nr = type(r)(new_cfg, stage.capacity, stage.channels)
+            except Exception as exc:  # noqa: BLE001 - keep drawing with the old style
+                view.state = old
+                raise ControlError("style", f"the {r.tier} tier could not take the new style: {exc}") from None
+            r.close()
+            stage.renderer = nr
+            stage.full_upload = True
+            if stage.window is not None:
+                stage.window.renderer = nr
+            ctx.counters.extra["tier_info"] = nr.info()
+            ctx.log.info("new %s renderer for the style %s", nr.tier, dataclasses.asdict(view.state.style))
+    if view.state.version != old.version:
+        ctx.counters.extra["view_version"] = view.state.version
+        _keep_view(ctx, view)
+    return view.reply(stage.window, stage.frames)
 
 
 def prepare(cfg, info, log) -> Optional[Renderer]:

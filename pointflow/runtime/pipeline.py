@@ -14,6 +14,16 @@ from .supervisor import PipelineFailed, Supervisor
 
 log = logging.getLogger("pointflow")
 
+#: "argument not given" (None is a value for some, e.g. ``style(color_by=None)``).
+_UNSET: Any = type("_Unset", (), {"__repr__": lambda self: "<unset>"})()
+
+
+def _plain(args: dict) -> dict:
+    """numpy arrays and scalars as JSON-ready lists and floats."""
+    import numpy as np
+
+    return {k: (np.asarray(v).tolist() if isinstance(v, (np.ndarray, np.generic)) else v) for k, v in args.items()}
+
 
 class Pipeline:
     """A running (or runnable) pointflow pipeline.
@@ -151,6 +161,124 @@ class Pipeline:
         if not isinstance(name, str) or not name:
             raise ValueError(f"source: expected a source name (a non-empty str), got {name!r}")
         return sup.add_local_source(name)
+
+    # ------------------------------------------------------------------ steer the view (docs/api.md)
+    def camera(self, *, eye=None, target=None, up=None, fov_deg: Optional[float] = None, wait: bool = True) -> dict:
+        """Set the camera (world coordinates; any subset). The view stays there until
+        :meth:`fit`. Returns the view state (:meth:`view_state`)."""
+        args = {k: v for k, v in (("eye", eye), ("target", target), ("up", up), ("fov_deg", fov_deg)) if v is not None}
+        return self.control({"cmd": "camera", **_plain(args)}, wait=wait)
+
+    def orbit(self, azimuth_deg: float = 0.0, elevation_deg: float = 0.0, wait: bool = True) -> dict:
+        """Turn the eye about the target (degrees; azimuth counter-clockwise about up)."""
+        return self.control({"cmd": "orbit", "azimuth_deg": azimuth_deg, "elevation_deg": elevation_deg}, wait=wait)
+
+    def pan(self, right: float = 0.0, up: float = 0.0, wait: bool = True) -> dict:
+        """Move eye and target sideways by fractions of the view height."""
+        return self.control({"cmd": "pan", "right": right, "up": up}, wait=wait)
+
+    def zoom(self, factor: float, wait: bool = True) -> dict:
+        """Move towards the target: 2 = twice as close, 0.5 = twice as far."""
+        return self.control({"cmd": "zoom", "factor": factor}, wait=wait)
+
+    def fit(self, wait: bool = True) -> dict:
+        """Frame the data again (and follow it as it grows)."""
+        return self.control({"cmd": "fit"}, wait=wait)
+
+    def follow(self, frame: Optional[str], wait: bool = True) -> dict:
+        """Keep the camera's offset from ``frame``'s origin as it moves (a frame of the
+        transforms, looked up in ``frames.fixed``); None stops following."""
+        return self.control({"cmd": "follow", "frame": frame}, wait=wait)
+
+    def style(self, *, color_by: Any = _UNSET, colormap: Any = _UNSET, color_range: Any = _UNSET,
+              point_size: Any = _UNSET, point_shape: Any = _UNSET, edl: Any = _UNSET, edl_strength: Any = _UNSET,
+              time_window_ms: Any = _UNSET, wait: bool = True) -> dict:
+        """Change how points are drawn (only the arguments given). ``color_by``: a ring
+        channel, ``z``, ``ingest_time`` or None; ``color_range``: ``'auto'`` or ``[lo, hi]``."""
+        args = {k: v for k, v in locals().items() if k not in ("self", "wait") and v is not _UNSET}
+        return self.control({"cmd": "style", **_plain(args)}, wait=wait)
+
+    def visible(self, source: str, on: bool = True, wait: bool = True) -> dict:
+        """Show (``on=True``) or hide a source's points (pipelines with two or more sources)."""
+        return self.control({"cmd": "visible", "source": source, "on": on}, wait=wait)
+
+    def view_state(self) -> dict:
+        """The view now: ``camera``, ``style``, ``version``, ``drawn_version`` (the version
+        the last frame showed), ``camera_drawn`` and ``view_block`` (for a YAML ``view:``)."""
+        return self.control({"cmd": "view_state"}, wait=False)
+
+    def save_view(self, path: Union[str, os.PathLike]) -> str:
+        """Write the view as a YAML ``view:`` block; put it in a pipeline YAML to start there."""
+        import yaml
+
+        block = self.view_state()["view_block"]
+        with open(path, "w") as f:
+            yaml.safe_dump({"view": block}, f, sort_keys=False)
+        return str(path)
+
+    def control(self, msg: dict, wait: bool = True, timeout_s: float = 10.0) -> dict:
+        """Send one view control message (render/control.py); with ``wait`` return once a
+        frame shows it (or ``timeout_s`` passed: nothing to draw yet). A refused message
+        raises :class:`~pointflow.render.control.ControlError` naming the argument."""
+        from ..render.control import ControlError
+
+        if self._sup is None:
+            raise RuntimeError("pipeline is not running")
+        rep = self._sup.request(msg, timeout_s)
+        if "error" in rep:
+            if "key" in rep:
+                raise ControlError(rep["key"], rep["error"].split(": ", 1)[-1])
+            raise RuntimeError(f"render stage: {rep['error']}")
+        end = time.monotonic() + timeout_s
+        while wait and rep["drawn_version"] < rep["version"] and time.monotonic() < end:
+            time.sleep(0.005)
+            rep = self._sup.request({"cmd": "view_state"}, timeout_s)
+        return rep
+
+    # ------------------------------------------------------------------ steer the replay (docs/api.md)
+    def playback(self, source: Optional[str] = None, *, paused: Optional[bool] = None, seek_s: Optional[float] = None,
+                 seek_fraction: Optional[float] = None, step: int = 0, rate: Optional[float] = None,
+                 loop: Optional[bool] = None, hold: Optional[bool] = None, timeout_s: float = 5.0) -> dict[str, dict]:
+        """Steer the replaying sources (``file``, ``rosbag``): all of them, or ``source`` by
+        name. With no argument it only reads their state. ``hold``: at the end (no loop) wait
+        for a seek instead of ending the source. Returns ``{source name: state}``
+        (``paused``, ``rate``, ``loop``, ``position_s``, ``index`` of the last message sent,
+        ``duration_s``, ``seeks``, ``steps``...). A refused argument raises
+        :class:`~pointflow.ingest.playback.PlaybackError` naming it."""
+        from ..ingest.playback import PlaybackError, playback_endpoint, request
+        from ..ingest.transports import resolve_transport
+
+        if self._sup is None:
+            raise RuntimeError("pipeline is not running")
+        msg: dict[str, Any] = {"cmd": "playback"}
+        for k, v in (("paused", paused), ("seek_s", seek_s), ("seek_fraction", seek_fraction), ("rate", rate),
+                     ("loop", loop), ("hold", hold)):
+            if v is not None:
+                msg[k] = v.item() if hasattr(v, "item") else v
+        if step:
+            msg["step"] = step
+        replays = [(i, s) for i, s in enumerate(self.cfg.sources)
+                   if not s.external and getattr(resolve_transport(s.transport), "seekable", False)]
+        if source is not None:
+            replays = [(i, s) for i, s in replays if s.name == source]
+            if not replays:
+                names = [s.name for i, s in enumerate(self.cfg.sources)
+                         if getattr(resolve_transport(s.transport), "seekable", False)]
+                raise PlaybackError("source", f"no replaying source named {source!r}; replaying sources: "
+                                    f"{', '.join(names) or 'none (only file and rosbag sources replay)'}")
+        if not replays:
+            raise PlaybackError("source", "this pipeline has no replaying source (file or rosbag)")
+        out = {}
+        for i, s in replays:
+            try:
+                rep = request(self._sup._zctx, playback_endpoint(self._sup.endpoints.playback, i), msg, timeout_s)
+            except TimeoutError:
+                raise RuntimeError(f"source {s.name!r} did not answer within {timeout_s} s: its replay has ended "
+                                   "(hold=True keeps it waiting for a seek) or it is restarting") from None
+            if "error" in rep:
+                raise PlaybackError(rep.get("key", "cmd"), rep["error"].split(": ", 1)[-1])
+            out[s.name] = rep["state"]
+        return out
 
     def _request(self, msg: dict, timeout_s: float) -> dict:
         if self._sup is None:

@@ -1,7 +1,8 @@
 """The docs check for Python: every ```python block of README.md and docs/api.md runs, as
 written, in a fresh interpreter, and must exit 0 (issue 28: runnable examples).
 
-Each block runs in its own temporary folder (outputs stay out of the clone), with no display
+Each block runs in its own temporary folder (outputs stay out of the clone; the repository's
+``configs/`` is linked there, so ``Pipeline.from_yaml("configs/demo.yaml")`` works), with no display
 (``pointflow.show`` writes its PNG instead of opening a window). A block may be exempted with
 ``<!-- docs-check: skip <reason> -->`` as in :mod:`test_docs`. Other docs' Python blocks are
 fragments (a plugin class, a reference algorithm) and are not run."""
@@ -28,6 +29,7 @@ def test_python_block_runs(block, tmp_path):
     if block.skip is not None:
         assert block.skip, f"{block.id}: a docs-check skip marker needs a reason"
         pytest.skip(f"docs-check: skip {block.id}: {block.skip}")
+    os.symlink(ROOT / "configs", tmp_path / "configs")
     env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
     env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
     env["TMPDIR"] = str(tmp_path)
@@ -37,3 +39,4 @@ def test_python_block_runs(block, tmp_path):
     except subprocess.TimeoutExpired:
         pytest.fail(f"{block.id}: timed out after 240 s")
     assert p.returncode == 0, f"{block.id} exited {p.returncode}:\n{p.stdout[-2000:]}\n{p.stderr[-4000:]}"
+    assert "Traceback" not in p.stderr, f"{block.id}: a traceback reached the user:\n{p.stderr[-4000:]}"

@@ -49,6 +49,11 @@ class Transport(ABC):
     #: when it sends more than the ring holds (the ``file`` transport does). None outside a run.
     ring_capacity: Optional[int] = None
 
+    #: True for replays whose ``playback`` (a :class:`pointflow.ingest.playback.PlaybackClock`)
+    #: can be paused, sought, stepped, sped up and looped from Python (docs/api.md).
+    seekable: ClassVar[bool] = False
+    playback: Any = None
+
     def __init__(self, options: dict[str, Any], source_id: str):
         self.options = options
         self.source_id = source_id

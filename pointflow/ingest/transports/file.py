@@ -34,6 +34,7 @@ import numpy as np
 from ...chunk import PointChunk
 from ...typed import ConfigError
 from .. import formats
+from ..playback import PlaybackClock
 from .base import InputUnreadable, Transport
 
 log = logging.getLogger("pointflow.transport.file")
@@ -77,6 +78,7 @@ class FileTransport(Transport):
     name = "file"
     options_schema = FileOptions
     lossless = True
+    seekable = True
 
     @classmethod
     def check_options(cls, o: FileOptions, path: str, base_dir: str) -> None:
@@ -133,6 +135,8 @@ class FileTransport(Transport):
         #: "file: why" of each file that could not be read (for the error when none can).
         self.bad_reasons: list[str] = []
         self._overrun_said = False
+        #: Pacing, pause, seek, step, rate (a factor on ``rate``/``points_per_second``), loop.
+        self.playback = PlaybackClock(rate=1.0, loop=self.o.loop, realtime=self.o.realtime)
 
     def open(self) -> None:
         if not self.files:
@@ -205,45 +209,77 @@ class FileTransport(Transport):
             log.info("%s: the replay has sent %s points, more than the ring holds (%s): older points are "
                      "evicted from now on, as from a live sensor", self.source_id, f"{done:,}", f"{cap:,}")
 
-    def _wait(self, due: float) -> Iterator[None]:
-        while self.o.realtime:
-            left = due - time.monotonic()
-            if left <= 0:
-                return
-            time.sleep(min(left, 0.05))
-            if left > 0.05:
-                yield None
-
     def chunks(self) -> Iterator[Optional[PointChunk]]:
-        o = self.o
-        t0 = time.monotonic()
-        sent_points = 0
-        scan = 0
+        """Messages (a scan file in ``scans`` mode, a chunk of ``chunk_points`` in ``stream``
+        mode) paced by :attr:`playback`, which also pauses, seeks, steps and loops them."""
+        o, clock = self.o, self.playback
+        if self.mode == "scans":
+            clock.duration_s, clock.messages = len(self.files) / o.rate, len(self.files)
+        elif self.total is not None:
+            clock.duration_s = self.total / o.points_per_second
+        start = clock.start_s()
         while True:
-            for f in self.files:
-                if self.mode == "scans":
-                    yield from self._wait(t0 + scan / o.rate)
-                    scan += 1
-                try:
-                    for pos, ch in self._pieces(f):
-                        n = pos.shape[0]
-                        if self.mode == "stream":
-                            yield from self._wait(t0 + sent_points / o.points_per_second)
-                        sent_points += n
-                        self.counters["points"] += n
-                        total = self.total if self.mode == "stream" else None
-                        self._progress(self.counters["points"], total)
-                        yield PointChunk(positions=pos, channels=self._channels(ch), source_id=self.source_id)
-                except Exception as exc:  # noqa: BLE001 - a bad file is skipped, never the end of the stage
-                    self._bad_file(f, exc)
-                    yield None  # the stage beats between files, however many are bad
-                    continue
-                self.counters["files"] += 1
+            yield from self._pass(start)
+            seek = clock.take_seek()
+            if seek is not None:
+                start = seek
+                continue
             if not self.counters["files"]:  # none can be read: an empty replay would look like success
                 raise InputUnreadable(f"source {self.source_id!r}: none of its {len(self.files)} file(s) can be read: "
                                       + "; ".join(self.bad_reasons))
-            if not o.loop:
+            if self.mode == "stream" and clock.duration_s is None and self.total is not None:
+                clock.duration_s = self.total / o.points_per_second  # known once a pass has counted it
+            if not clock.loop:
+                yield from clock.hold_at_end()  # with hold: wait for a seek
+                if clock.seek_pending:
+                    start = clock.take_seek()
+                    continue
+            if not clock.loop:
                 break
             self.counters["loops"] += 1
-        if self.mode == "stream":  # the last chunk's time has to pass, as on a live stream
-            yield from self._wait(t0 + sent_points / o.points_per_second)
+            clock.restart()
+            start = 0.0
+        if self.mode == "stream" and not clock.seek_pending:  # the last chunk's time has to pass, as live
+            yield from clock.pace(self.total / o.points_per_second if self.total else clock.position_s, counts=False)
+        self._progress(self.counters["points"], self.total)
+
+    def _pass(self, start_s: float):
+        """One pass from the first message at or after ``start_s``; False when a seek cut it short."""
+        o, clock = self.o, self.playback
+        index = 0
+        sent_points = 0  # stream mode: points before this chunk in the file
+        for i, f in enumerate(self.files):
+            if self.mode == "scans":
+                t = i / o.rate
+                if t < start_s - 1e-9:
+                    clock.skipped_messages += 1
+                    continue
+                yield from clock.pace(t)
+                if clock.seek_pending:
+                    return False
+            try:
+                for pos, ch in self._pieces(f):
+                    n = pos.shape[0]
+                    if self.mode == "stream":
+                        t = sent_points / o.points_per_second
+                        index += 1
+                        sent_points += n
+                        if t < start_s - 1e-9:
+                            clock.skipped_messages += 1
+                            continue
+                        yield from clock.pace(t)
+                        if clock.seek_pending:
+                            return False
+                    self.counters["points"] += n
+                    total = self.total if self.mode == "stream" else None
+                    self._progress(self.counters["points"], total)
+                    clock.released(t, i if self.mode == "scans" else index - 1)
+                    yield PointChunk(positions=pos, channels=self._channels(ch), source_id=self.source_id)
+            except Exception as exc:  # noqa: BLE001 - a bad file is skipped, never the end of the stage
+                self._bad_file(f, exc)
+                yield None  # the stage beats between files, however many are bad
+                continue
+            self.counters["files"] += 1
+        if self.mode == "stream":
+            clock.messages = index
+        return True

@@ -30,6 +30,7 @@ from ...frames.message import Transforms
 from ...typed import ConfigError
 from ..pointcloud2 import MSGTYPES, PointCloud2Decoder
 from ..rostf import TF_MSGTYPES, decode_tf
+from ..playback import PlaybackClock
 from .base import Transport
 
 
@@ -111,6 +112,7 @@ class RosbagTransport(Transport):
     name = "rosbag"
     options_schema = RosbagOptions
     lossless = True
+    seekable = True
 
     @classmethod
     def check_options(cls, o: RosbagOptions, path: str, base_dir: str) -> None:
@@ -163,6 +165,9 @@ class RosbagTransport(Transport):
         self.decoder = PointCloud2Decoder(self.o.rename, self.o.channels)
         self.counters = {"messages": 0, "points": 0, "loops": 0, "rejected": 0, "deserialize_s": 0.0, "decode_s": 0.0}
         self.reader = None
+        #: Pacing (``rate``; 0 = as fast as ingest takes), pause, seek, step, loop.
+        self.playback = PlaybackClock(rate=self.o.rate if self.o.rate > 0 else 1.0, loop=self.o.loop,
+                                      realtime=self.o.rate > 0)
 
     def open(self) -> None:
         try:
@@ -193,15 +198,6 @@ class RosbagTransport(Transport):
         if self.o.progress != "off":
             self.counters["progress"] = 1.0 if final else min(1.0, max(0.0, (t_ns - self.start_ns) / self.span_ns))
 
-    def _wait(self, due: float) -> Iterator[None]:
-        while True:
-            left = due - time.monotonic()
-            if left <= 0:
-                return
-            time.sleep(min(left, 0.05))
-            if left > 0.05:
-                yield None
-
     def _parse(self, item: tuple[Any, bytes]) -> PointChunk:
         conn, raw = item
         t0 = time.perf_counter()
@@ -230,42 +226,72 @@ class RosbagTransport(Transport):
                 yield batch
 
     def chunks(self) -> Iterator[Optional[PointChunk]]:
-        o = self.o
+        """Messages at their recorded times, paced by :attr:`playback` (which also pauses,
+        seeks, steps and loops them; times count from the window's start)."""
+        clock = self.playback
+        clock.duration_s = self.span_ns / 1e9
+        clock.messages = self.total
         yield from self._static_first()
+        start = clock.start_s()
         while True:
-            wall0 = time.monotonic()
-            first_t = last_t = None
-            count = 0
-            for conn, t_ns, raw in self.reader.messages(connections=self.connections, start=self.start_ns,
-                                                        stop=self.stop_ns):
-                if o.rate > 0:
-                    yield from self._wait(wall0 + (t_ns - self.start_ns) / 1e9 / o.rate)
-                if conn.msgtype in TF_MSGTYPES:
-                    batch = self.accept(self._tf, (conn, raw))
-                    if batch is not None:
-                        self.counters["transforms"] = self.counters.get("transforms", 0) + len(batch)
-                    yield batch
+            count, first_t, last_t = yield from self._pass(start)
+            seek = clock.take_seek()
+            if seek is not None:
+                start = seek
+                continue
+            if not clock.loop:
+                yield from clock.hold_at_end()  # with hold: wait for a seek
+                if clock.seek_pending:
+                    start = clock.take_seek()
                     continue
-                first_t = t_ns if first_t is None else first_t
-                last_t = t_ns
-                count += 1
-                self.counters["messages"] += 1
-                chunk = self.accept(self._parse, (conn, raw))
-                self._progress(t_ns)
-                if chunk is None:
-                    yield None
-                    continue
-                if not chunk.stamp_ns:
-                    chunk.stamp_ns = int(t_ns)  # no header stamp: the recording time
-                self.counters["points"] += chunk.n
-                yield chunk
-            if not o.loop or not count:
+            if not clock.loop or not count:
                 break  # done, or an empty window: nothing to loop over
             self.counters["loops"] += 1
-            if o.rate > 0 and count > 1:  # one mean message interval before the recording starts again
+            if count > 1:  # one mean message interval before the recording starts again
                 gap = (last_t - first_t) / (count - 1)
-                yield from self._wait(wall0 + (last_t - self.start_ns + gap) / 1e9 / o.rate)
+                yield from clock.pace((last_t - self.start_ns + gap) / 1e9, counts=False)
+            clock.restart()
+            start = 0.0
         self._progress(0, final=True)
+
+    def _pass(self, start_s: float):
+        """One pass from ``start_s`` (seconds into the window); (clouds, first, last time)."""
+        clock = self.playback
+        first_t = last_t = None
+        count = 0
+        begin = self.start_ns + int(round(start_s * 1e9))
+        clouds = [c for c in self.connections if c.msgtype in MSGTYPES]
+        index = sum(1 for _ in self.reader.messages(connections=clouds, start=self.start_ns, stop=begin)) \
+            if begin > self.start_ns else 0
+        clock.skipped_messages += index if start_s > 0 else 0
+        for conn, t_ns, raw in self.reader.messages(connections=self.connections, start=begin, stop=self.stop_ns):
+            t_s = (t_ns - self.start_ns) / 1e9
+            is_tf = conn.msgtype in TF_MSGTYPES
+            yield from clock.pace(t_s, counts=not is_tf)
+            if clock.seek_pending:
+                break
+            if is_tf:
+                batch = self.accept(self._tf, (conn, raw))
+                if batch is not None:
+                    self.counters["transforms"] = self.counters.get("transforms", 0) + len(batch)
+                yield batch
+                continue
+            first_t = t_ns if first_t is None else first_t
+            last_t = t_ns
+            count += 1
+            self.counters["messages"] += 1
+            clock.released(t_s, index)
+            index += 1
+            chunk = self.accept(self._parse, (conn, raw))
+            self._progress(t_ns)
+            if chunk is None:
+                yield None
+                continue
+            if not chunk.stamp_ns:
+                chunk.stamp_ns = int(t_ns)  # no header stamp: the recording time
+            self.counters["points"] += chunk.n
+            yield chunk
+        return count, first_t, last_t
 
     def close(self) -> None:
         if self.reader is not None:

@@ -1,0 +1,390 @@
+"""The view control messages: one set for every view (the window, Python, a future view server).
+
+A view is a :class:`ViewState`: a camera (``auto`` = framed on the data, following it as it
+grows; ``fixed`` = an eye/target/up/fov the user set or turned) and a style (colouring,
+point size and shape, eye-dome lighting, time window). A control message is a small JSON
+object ``{"cmd": NAME, ...}``; :func:`apply` checks it and returns the new state, or raises
+:class:`ControlError` naming the argument and what was expected. The module holds no
+sockets and no renderer, so a server with several views keeps one ``ViewState`` per view
+and feeds each its own messages; the render stage (``render/process.py``) is one such user.
+
+Messages (docs/api.md "Steer the view", docs/architecture.md):
+
+=================  ===========================================================================
+``camera``         ``eye``, ``target``, ``up`` ([x, y, z] world), ``fov_deg`` (0..180): any subset
+``orbit``          ``azimuth_deg``, ``elevation_deg``: turn the eye about the target
+``pan``            ``right``, ``up``: move eye and target by these fractions of the view height
+``zoom``           ``factor`` > 0: 2 = twice as close to the target
+``fit``            back to ``auto``: frame the data (and follow it)
+``follow``         ``frame``: keep the camera's offset from that frame's origin as it moves
+                   (a frame of ``frames``, looked up in ``frames.fixed``); null: stop
+``style``          ``color_by``, ``colormap``, ``color_range`` ('auto' or [lo, hi]), ``point_size``,
+                   ``point_shape``, ``edl`` (bool), ``edl_strength``, ``time_window_ms``
+``visible``        ``source`` (a source name), ``on`` (bool): show or hide that source's points
+``view_state``     no change; the reply is the state
+=================  ===========================================================================
+
+Every reply is the state after the message (:meth:`ViewState.to_dict`) with ``version``
+(raised by every change); the render stage adds ``drawn_version``, the version of the last
+frame drawn, so a caller can wait for the frame that shows its change.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from typing import Any, Optional
+
+import numpy as np
+
+from . import colormap
+from .camera import Camera, OrbitController
+
+__all__ = ["ControlError", "ViewState", "CameraState", "StyleState", "apply", "COMMANDS", "BUILTIN_COLOR",
+           "load_view_block", "view_block", "style_render_config", "camera_near_far"]
+
+#: Colourings that need no ring channel.
+BUILTIN_COLOR = ("z", "height", "ingest_time", "none")
+#: The style fields and the type each one takes.
+_STYLE_KEYS = ("color_by", "colormap", "color_range", "point_size", "point_shape", "edl", "edl_strength",
+               "time_window_ms")
+_CAMERA_KEYS = ("eye", "target", "up", "fov_deg")
+COMMANDS = ("camera", "orbit", "pan", "zoom", "fit", "follow", "style", "visible", "view_state")
+#: The ring channel that says which configured source a point came from (pipelines with
+#: two or more sources; the source stage adds it to every chunk).
+SOURCE_CHANNEL = "source_index"
+
+
+class ControlError(ValueError):
+    """A control message (or ``view:`` block) that cannot be applied; ``key`` names the argument."""
+
+    def __init__(self, key: str, message: str):
+        super().__init__(f"{key}: {message}")
+        self.key = key
+
+
+@dataclass
+class CameraState:
+    #: ``auto``: framed on the data by the render stage; ``fixed``: the fields below.
+    mode: str = "auto"
+    eye: Optional[list[float]] = None
+    target: Optional[list[float]] = None
+    up: list[float] = field(default_factory=lambda: [0.0, 0.0, 1.0])
+    fov_deg: float = 60.0
+    #: A frame whose origin the camera follows (eye and target keep their offset from it).
+    follow: Optional[str] = None
+    #: Where that origin was when following began: eye and target are drawn shifted by
+    #: (origin now - anchor), so orbit, zoom and pan still work while following.
+    follow_anchor: Optional[list[float]] = None
+
+
+@dataclass
+class StyleState:
+    color_by: Optional[str] = "intensity"
+    colormap: str = "turbo"
+    color_range: Any = "auto"
+    point_size: float = 2.0
+    point_shape: str = "square"
+    edl: bool = False
+    edl_strength: float = 1.0
+    time_window_ms: float = 0.0
+
+
+@dataclass
+class ViewState:
+    camera: CameraState = field(default_factory=CameraState)
+    style: StyleState = field(default_factory=StyleState)
+    #: Names of the sources whose points are not drawn.
+    hidden_sources: list[str] = field(default_factory=list)
+    #: Raised by every change (a reply says which version a frame must reach to show it).
+    version: int = 0
+
+    @classmethod
+    def from_render_config(cls, r) -> "ViewState":
+        """The state a :class:`~pointflow.config.RenderConfig` starts from."""
+        c = r.camera
+        cam = CameraState(mode="fixed" if c.mode == "fixed" else "auto",
+                          eye=list(map(float, c.position)) if c.mode == "fixed" else None,
+                          target=list(map(float, c.target)) if c.mode == "fixed" else None,
+                          up=list(map(float, c.up)), fov_deg=float(c.fov_deg))
+        st = StyleState(color_by=r.color_by, colormap=r.colormap,
+                        color_range=r.color_range if r.color_range == "auto" else list(map(float, r.color_range)),
+                        point_size=float(r.point_size), point_shape=r.point_shape, edl=bool(r.edl.enabled),
+                        edl_strength=float(r.edl.strength), time_window_ms=float(r.time_window_ms))
+        return cls(camera=cam, style=st)
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    def copy(self) -> "ViewState":
+        return ViewState(camera=dataclasses.replace(self.camera, up=list(self.camera.up),
+                                                    follow_anchor=None if self.camera.follow_anchor is None
+                                                    else list(self.camera.follow_anchor)),
+                         style=dataclasses.replace(self.style), hidden_sources=list(self.hidden_sources),
+                         version=self.version)
+
+
+# --------------------------------------------------------------------------- checks
+def _vec3(v: Any, key: str) -> list[float]:
+    try:
+        out = [float(x) for x in v]
+    except (TypeError, ValueError):
+        raise ControlError(key, f"expected [x, y, z] numbers, got {v!r}") from None
+    if len(out) != 3:
+        raise ControlError(key, f"expected [x, y, z] (3 numbers), got {len(out)}")
+    if not all(math.isfinite(x) for x in out):
+        raise ControlError(key, f"expected finite numbers, got {out!r}")
+    return out
+
+
+def _num(v: Any, key: str, lo: float = -math.inf, hi: float = math.inf, lo_open: bool = False,
+         hi_open: bool = False) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
+        raise ControlError(key, f"expected a number, got {v!r}")
+    x = float(v)
+    if not math.isfinite(x):
+        raise ControlError(key, f"expected a finite number, got {x!r}")
+    if x < lo or x > hi or (lo_open and x == lo) or (hi_open and x == hi):
+        lb = "(" if lo_open else "["
+        rb = ")" if hi_open else "]"
+        raise ControlError(key, f"expected a number in {lb}{lo:g}, {hi:g}{rb}, got {x:g}")
+    return x
+
+
+def _unknown(msg: dict, allowed: tuple, cmd: str) -> None:
+    extra = sorted(set(msg) - set(allowed) - {"cmd"})
+    if extra:
+        raise ControlError(f"{cmd}.{extra[0]}", f"unknown argument; {cmd} takes {', '.join(allowed) or 'none'}")
+
+
+def check_style(args: dict, channels: Optional[list[str]], prefix: str = "style") -> dict:
+    """Validated style fields. ``channels``: the ring's channels (None = not known here)."""
+    _unknown(args, _STYLE_KEYS, prefix)
+    out: dict[str, Any] = {}
+    for k, v in args.items():
+        key = f"{prefix}.{k}"
+        if k == "color_by":
+            if v is None or v == "none":
+                out[k] = None
+                continue
+            if not isinstance(v, str) or not v:
+                raise ControlError(key, f"expected a channel name or one of {', '.join(BUILTIN_COLOR)}, got {v!r}")
+            if v not in BUILTIN_COLOR and channels is not None and v not in channels:
+                raise ControlError(key, f"channel {v!r} is not in the ring (it holds {sorted(channels) or 'none'}); "
+                                   f"to colour by it while running, list it in ring.extra_channels (or start with "
+                                   f"render.color_by: {v}) so ingest keeps it")
+            out[k] = v
+        elif k == "colormap":
+            if v not in colormap.NAMES:
+                raise ControlError(key, f"unknown colormap {v!r}; expected one of {', '.join(colormap.NAMES)}")
+            out[k] = v
+        elif k == "color_range":
+            if v == "auto":
+                out[k] = "auto"
+                continue
+            if not isinstance(v, (list, tuple)) or len(v) != 2:
+                raise ControlError(key, f"expected 'auto' or [lo, hi], got {v!r}")
+            lo, hi = _num(v[0], key), _num(v[1], key)
+            if not lo < hi:
+                raise ControlError(key, f"expected lo < hi, got [{lo:g}, {hi:g}]")
+            out[k] = [lo, hi]
+        elif k == "point_size":
+            out[k] = _num(v, key, 0.0, 4096.0, lo_open=True)
+        elif k == "point_shape":
+            if v not in ("square", "round"):
+                raise ControlError(key, f"expected 'square' or 'round', got {v!r}")
+            out[k] = v
+        elif k == "edl":
+            if not isinstance(v, bool):
+                raise ControlError(key, f"expected true or false, got {v!r}")
+            out[k] = v
+        elif k == "edl_strength":
+            out[k] = _num(v, key, 0.0)
+        elif k == "time_window_ms":
+            out[k] = _num(v, key, 0.0)
+    return out
+
+
+def check_visible(source: Any, on: Any, sources: Optional[list[str]], channels: Optional[list[str]],
+                  key: str = "visible") -> bool:
+    if not isinstance(on, bool):
+        raise ControlError(f"{key}.on", f"expected true or false, got {on!r}")
+    if not isinstance(source, str):
+        raise ControlError(f"{key}.source", f"expected a source name, got {source!r}")
+    if sources is not None and source not in sources:
+        raise ControlError(f"{key}.source", f"no source named {source!r}; sources: {', '.join(sources)}")
+    if channels is not None and SOURCE_CHANNEL not in channels:
+        raise ControlError(f"{key}.source", "this pipeline has one source: there is no other to show alone "
+                           "(the ring marks each point's source only with two or more sources)")
+    return on
+
+
+def check_camera(args: dict, prefix: str = "camera") -> dict:
+    _unknown(args, _CAMERA_KEYS, prefix)
+    out: dict[str, Any] = {}
+    for k, v in args.items():
+        key = f"{prefix}.{k}"
+        out[k] = _num(v, key, 0.0, 180.0, lo_open=True, hi_open=True) if k == "fov_deg" else _vec3(v, key)
+    if "up" in out and not any(out["up"]):
+        raise ControlError(f"{prefix}.up", "must not be [0, 0, 0]")
+    return out
+
+
+# --------------------------------------------------------------------------- apply
+def apply(state: ViewState, msg: Any, *, current: Optional[Camera] = None, channels: Optional[list[str]] = None,
+          height_px: int = 720, sources: Optional[list[str]] = None, fixed_frame: Optional[str] = None,
+          follow_origin=None) -> ViewState:
+    """The state after ``msg``. ``current``: the camera drawn last (turned by orbit/pan/zoom
+    and completed by a partial ``camera`` while the mode is auto); ``channels``: the ring's
+    channels (``color_by`` must be one of them or a built-in colouring); ``sources``: the
+    configured source names (``visible``); ``fixed_frame``: ``frames.fixed`` (``follow``);
+    ``follow_origin``: where the followed frame's origin is now, if known."""
+    if not isinstance(msg, dict) or not isinstance(msg.get("cmd"), str):
+        raise ControlError("cmd", f"a control message is a mapping with 'cmd'; got {msg!r}")
+    cmd = msg["cmd"]
+    args = {k: v for k, v in msg.items() if k != "cmd"}
+    new = state.copy()
+    if cmd == "view_state":
+        _unknown(args, (), cmd)
+        return new
+    if cmd == "style":
+        s = check_style(args, channels, "style")
+        if not s:
+            return new
+        new.style = dataclasses.replace(new.style, **s)
+    elif cmd == "visible":
+        _unknown(args, ("source", "on"), cmd)
+        on = check_visible(args.get("source"), args.get("on", True), sources, channels)
+        name = args["source"]
+        if on == (name not in state.hidden_sources):
+            return new  # already so
+        new.hidden_sources = [s for s in state.hidden_sources if s != name] if on else state.hidden_sources + [name]
+    elif cmd == "fit":
+        _unknown(args, (), cmd)
+        new.camera = CameraState(mode="auto", up=list(state.camera.up), fov_deg=state.camera.fov_deg)
+    elif cmd == "follow":
+        _unknown(args, ("frame",), cmd)
+        name = args.get("frame")
+        if name is not None and (not isinstance(name, str) or not name.strip()):
+            raise ControlError("follow.frame", f"expected a frame name or null, got {name!r}")
+        if name is not None and not fixed_frame:
+            raise ControlError("follow.frame", "following a frame needs frames.fixed in the config (the "
+                               "transforms reach the render stage only then; docs/frames.md)")
+        base = current if current is not None else _camera_of(state, None)
+        if base is None:
+            raise ControlError("follow", "nothing is drawn yet: wait for the first frame")
+        eye, target = np.asarray(base.eye, np.float64), np.asarray(base.target, np.float64)
+        if name is not None and follow_origin is not None:  # keep the view: the offset from the frame now
+            eye, target = eye - target + np.asarray(follow_origin, np.float64), np.asarray(follow_origin, np.float64)
+        new.camera = CameraState(mode="fixed", eye=list(map(float, eye)), target=list(map(float, target)),
+                                 up=list(map(float, base.up)), fov_deg=float(base.fov_deg), follow=name,
+                                 follow_anchor=list(map(float, target)) if name is not None else None)
+    elif cmd == "camera":
+        c = check_camera(args, "camera")
+        if not c:
+            return new
+        base = _camera_of(state, current)
+        if base is None and not ("eye" in c and "target" in c):
+            raise ControlError("camera.eye", "nothing is drawn yet to start from: give both eye and target")
+        cs = new.camera
+        cs.mode = "fixed"
+        cs.eye = c.get("eye", list(map(float, base.eye)) if base is not None else None)
+        cs.target = c.get("target", list(map(float, base.target)) if base is not None else None)
+        cs.up = c.get("up", cs.up)
+        cs.fov_deg = c.get("fov_deg", cs.fov_deg)
+        if np.allclose(cs.eye, cs.target):
+            raise ControlError("camera.eye", f"must differ from the target {cs.target}")
+    elif cmd in ("orbit", "pan", "zoom"):
+        keys = {"orbit": ("azimuth_deg", "elevation_deg"), "pan": ("right", "up"), "zoom": ("factor",)}[cmd]
+        _unknown(args, keys, cmd)
+        vals = {k: _num(args.get(k, 0.0 if cmd != "zoom" else 1.0), f"{cmd}.{k}") for k in keys}
+        base = _camera_of(state, current)
+        if base is None:
+            raise ControlError(cmd, "nothing is drawn yet to turn: wait for the first frame, or set eye and target")
+        if cmd == "orbit":
+            cam = OrbitController(base, orbit_deg_per_px=1.0).orbit(-vals["azimuth_deg"], vals["elevation_deg"])
+        elif cmd == "pan":
+            cam = OrbitController(base).pan(-vals["right"] * height_px, vals["up"] * height_px, height_px)
+        else:
+            f = vals["factor"]
+            if not f > 0:
+                raise ControlError("zoom.factor", f"expected a number > 0, got {f:g}")
+            cam = OrbitController(base, zoom_per_wheel=1.0 / f).zoom(1.0)
+        new.camera = CameraState(mode="fixed", eye=list(map(float, cam.eye)), target=list(map(float, cam.target)),
+                                 up=list(map(float, cam.up)), fov_deg=float(cam.fov_deg), follow=state.camera.follow,
+                                 follow_anchor=state.camera.follow_anchor)
+    else:
+        raise ControlError("cmd", f"unknown control message {cmd!r}; expected one of {', '.join(COMMANDS)} "
+                                  "(or pick, save)")
+    new.version = state.version + 1
+    return new
+
+
+def _camera_of(state: ViewState, current: Optional[Camera]) -> Optional[Camera]:
+    c = state.camera
+    if c.mode == "fixed" and c.eye is not None and c.target is not None:
+        return Camera(eye=c.eye, target=c.target, up=c.up, fov_deg=c.fov_deg)
+    return current
+
+
+def camera_near_far(eye, target, box) -> tuple[float, float]:
+    """Near and far planes that hold the data box ``(lo, hi)`` seen from ``eye`` (or a
+    range around the target when no data is known)."""
+    eye = np.asarray(eye, np.float64)
+    if box is None:
+        d = float(np.linalg.norm(np.asarray(target, np.float64) - eye)) or 1.0
+        return d * 1e-3, d * 100.0
+    lo, hi = (np.asarray(b, np.float64) for b in box)
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    far = float(np.linalg.norm(corners - eye, axis=1).max()) * 1.5 + 1e-3
+    inside = np.clip(eye, lo, hi)
+    near_d = float(np.linalg.norm(inside - eye))
+    return max(near_d * 0.5, far * 1e-3), far
+
+
+def style_render_config(render_cfg, style: StyleState):
+    """``render_cfg`` (a RenderConfig) with the style applied (a new object; the old is untouched)."""
+    edl = dataclasses.replace(render_cfg.edl, enabled=bool(style.edl), strength=float(style.edl_strength))
+    return dataclasses.replace(render_cfg, color_by=style.color_by, colormap=style.colormap,
+                               color_range=style.color_range, point_size=float(style.point_size),
+                               point_shape=style.point_shape, time_window_ms=float(style.time_window_ms), edl=edl)
+
+
+# --------------------------------------------------------------------------- the YAML `view:` block
+def view_block(state: ViewState) -> dict:
+    """The state as a ``view:`` block (``yaml.safe_dump({"view": view_block(s)})``) that a
+    later run starts from."""
+    c = state.camera
+    cam: Any = "fit" if c.mode == "auto" else {"eye": list(c.eye), "target": list(c.target), "up": list(c.up),
+                                               "fov_deg": c.fov_deg}
+    out = {"camera": cam, "style": dataclasses.asdict(state.style)}
+    if state.hidden_sources:
+        out["hidden_sources"] = list(state.hidden_sources)
+    return out
+
+
+def load_view_block(data: Any, path: str = "view") -> dict:
+    """Check a ``view:`` block; returns ``{"camera": None | {...}, "style": {...}}`` with
+    checked values. Errors are :class:`ControlError` naming ``view.<key>``."""
+    if not isinstance(data, dict):
+        raise ControlError(path, f"expected a mapping with camera and/or style, got {data!r}")
+    _unknown(data, ("camera", "style", "hidden_sources"), path)
+    out: dict[str, Any] = {"camera": None, "style": {}, "hidden_sources": []}
+    hs = data.get("hidden_sources") or []
+    if not isinstance(hs, list) or not all(isinstance(x, str) for x in hs):
+        raise ControlError(f"{path}.hidden_sources", f"expected a list of source names, got {hs!r}")
+    out["hidden_sources"] = list(hs)
+    cam = data.get("camera")
+    if cam not in (None, "fit"):
+        if not isinstance(cam, dict):
+            raise ControlError(f"{path}.camera", f"expected 'fit' or a mapping of eye/target/up/fov_deg, got {cam!r}")
+        c = check_camera(cam, f"{path}.camera")
+        if "eye" not in c or "target" not in c:
+            raise ControlError(f"{path}.camera.{'eye' if 'eye' not in c else 'target'}", "required with a fixed camera")
+        out["camera"] = c
+    st = data.get("style")
+    if st is not None:
+        if not isinstance(st, dict):
+            raise ControlError(f"{path}.style", f"expected a mapping, got {st!r}")
+        out["style"] = check_style(st, None, f"{path}.style")
+    return out
