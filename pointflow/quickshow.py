@@ -54,15 +54,14 @@ def _window_available() -> bool:
 
 
 def _wait_drawn(p, total: int, timeout_s: float) -> None:
-    """Until ingest wrote every point and the renderer drew two frames after that."""
+    """Until ingest wrote every point and the renderer drew a frame that holds them (the
+    render stage draws only when something changed, so a count of frames would not do)."""
     end = time.monotonic() + timeout_s
+    want = min(total, p.cfg.ring.max_points)
     while time.monotonic() < end:
         st = p.stats()
-        if st.get("accounting", {}).get("ingest_received", 0) >= total:
-            break
-        p.wait(0.05)
-    frames0 = p.stats().get("frames", 0)
-    while time.monotonic() < end and p.stats().get("frames", 0) < frames0 + 2:
+        if st.get("stages", {}).get("render", {}).get("drawn_count", 0) >= want:
+            return
         p.wait(0.05)
 
 

@@ -443,6 +443,7 @@ def main(ctx: StageContext) -> None:
             ema = ms if ema is None else 0.85 * ema + 0.15 * ms
             view.last_frame_ms = ms
             c.points_in += h.count
+            c.extra["drawn_count"] = h.count  # points in the ring when the last frame was drawn
             if fs.drawn is not None:
                 c.points_out += fs.drawn
             c.extra["nonfinite_skipped"] = max(0, int(getattr(renderer, "nonfinite_total", 0)) - view.mask.hidden_draws)
