@@ -112,10 +112,19 @@ def _test(logical, slot, tms, imp, has_window, now_ms, window_ms, lod, has_imp, 
     return True
 
 
-def _splat(kb, fb, ub, logical, cx, cy, w, W, H, half_px, world, size_scale, round_, ylo, yhi):
+def _f32_bits(typingctx, v):
+    """The bits of a float32 as a uint32 (a register bit-cast; no scratch store)."""
+    from llvmlite import ir
+    from numba.core import types
+
+    def codegen(context, builder, signature, args):
+        return builder.bitcast(args[0], ir.IntType(32))
+    return types.uint32(types.float32), codegen
+
+
+def _splat(kb, logical, cx, cy, w, W, H, half_px, world, size_scale, round_, ylo, yhi):
     """Write the point's key into every pixel of its footprint (rules.footprint_box) within
-    rows [ylo, yhi) (a thread's band of the screen); (cx, cy, w) its clip coordinates.
-    ``fb``/``ub``: a one-element float32 scratch and its uint32 view (the bits of w)."""
+    rows [ylo, yhi) (a thread's band of the screen); (cx, cy, w) its clip coordinates."""
     px = (cx / w * 0.5 + 0.5) * W
     py = (0.5 - cy / w * 0.5) * H
     half = half_px
@@ -126,19 +135,16 @@ def _splat(kb, fb, ub, logical, cx, cy, w, W, H, half_px, world, size_scale, rou
         if s > 4096.0:
             s = 4096.0
         half = s * 0.5
-    fx0 = np.ceil(px - half - 0.5)
-    fy0 = np.ceil(py - half - 0.5)
+    Wf = np.float64(W)
+    Hf = np.float64(H)
+    x0 = int(min(max(np.ceil(px - half - 0.5), 0.0), Wf))
+    y0 = int(min(max(np.ceil(py - half - 0.5), 0.0), Hf))
     if round_:
-        fx1 = np.floor(px + half - 0.5) + 1.0
-        fy1 = np.floor(py + half - 0.5) + 1.0
+        x1 = int(min(max(np.floor(px + half - 0.5) + 1.0, 0.0), Wf))
+        y1 = int(min(max(np.floor(py + half - 0.5) + 1.0, 0.0), Hf))
     else:
-        fx1 = np.ceil(px + half - 0.5)
-        fy1 = np.ceil(py + half - 0.5)
-    fx0 = min(max(fx0, 0.0), np.float64(W))
-    fx1 = min(max(fx1, 0.0), np.float64(W))
-    fy0 = min(max(fy0, 0.0), np.float64(H))
-    fy1 = min(max(fy1, 0.0), np.float64(H))
-    x0, x1, y0, y1 = int(fx0), int(fx1), int(fy0), int(fy1)
+        x1 = int(min(max(np.ceil(px + half - 0.5), 0.0), Wf))
+        y1 = int(min(max(np.ceil(py + half - 0.5), 0.0), Hf))
     if y0 < ylo:
         y0 = ylo
     if y1 > yhi:
@@ -148,8 +154,26 @@ def _splat(kb, fb, ub, logical, cx, cy, w, W, H, half_px, world, size_scale, rou
     wf = np.float32(w)
     if wf < _F0:
         wf = _F0
-    fb[0] = wf
-    key = (np.uint64(ub[0]) << _U32) | np.uint64(logical)
+    key = (np.uint64(_f32_bits(wf)) << _U32) | np.uint64(logical)
+    if not round_:
+        # square: every pixel of the box; the 2x2 and 1x1 boxes of 2 px and 1 px points
+        # unrolled, min() stores instead of a compare-and-branch (unpredictable)
+        dx = x1 - x0
+        dy = y1 - y0
+        i = y0 * W + x0
+        if dx == 2 and dy == 2:
+            kb[i] = min(key, kb[i])
+            kb[i + 1] = min(key, kb[i + 1])
+            kb[i + W] = min(key, kb[i + W])
+            kb[i + W + 1] = min(key, kb[i + W + 1])
+        elif dx == 1 and dy == 1:
+            kb[i] = min(key, kb[i])
+        else:
+            for yy in range(y0, y1):
+                row = yy * W
+                for xx in range(x0, x1):
+                    kb[row + xx] = min(key, kb[row + xx])
+        return
     hh = half * half
     for yy in range(y0, y1):
         row = yy * W
@@ -160,8 +184,7 @@ def _splat(kb, fb, ub, logical, cx, cy, w, W, H, half_px, world, size_scale, rou
                 if ex * ex + ey * ey > hh:
                     continue
             i = row + xx
-            if key < kb[i]:
-                kb[i] = key
+            kb[i] = min(key, kb[i])
 
 
 def _raster(keys, T, C, bands, st, vrange, mask, use_mask, pos, tms, imp, cval, head, size, cap, W, H, vp, planes,
@@ -195,8 +218,6 @@ def _raster(keys, T, C, bands, st, vrange, mask, use_mask, pos, tms, imp, cval, 
             yhi = H
             a = size * c // C
             b = size * (c + 1) // C
-        fb = np.empty(1, np.float32)
-        ub = fb.view(np.uint32)
         n_occ = 0
         n_bad = 0
         n_keep = 0
@@ -234,7 +255,7 @@ def _raster(keys, T, C, bands, st, vrange, mask, use_mask, pos, tms, imp, cval, 
                              imp_lo, imp_scale, seed_h):
                     continue
                 n_keep += 1
-            _splat(kb, fb, ub, logical, cx, cy, w, W, H, half_px, world, size_scale, round_, ylo, yhi)
+            _splat(kb, logical, cx, cy, w, W, H, half_px, world, size_scale, round_, ylo, yhi)
             n_drawn += 1
         if bands and c != 0:  # every band saw every point: count once
             n_occ = n_bad = n_keep = n_drawn = 0
@@ -431,8 +452,6 @@ def _floor(keys, T, C, bands, pos, size, head, cap, W, H, vp, half_px):
             yhi = H
             a = size * c // C
             b = size * (c + 1) // C
-        fb = np.empty(1, np.float32)
-        ub = fb.view(np.uint32)
         for logical in range(a, b):
             slot = head + logical
             if slot >= cap:
@@ -445,8 +464,10 @@ def _floor(keys, T, C, bands, pos, size, head, cap, W, H, vp, half_px):
                 continue
             cx = vp[0, 0] * x + vp[0, 1] * y + vp[0, 2] * z + vp[0, 3]
             cy = vp[1, 0] * x + vp[1, 1] * y + vp[1, 2] * z + vp[1, 3]
-            _splat(kb, fb, ub, logical, cx, cy, w, W, H, half_px, False, 0.0, False, ylo, yhi)
+            _splat(kb, logical, cx, cy, w, W, H, half_px, False, 0.0, False, ylo, yhi)
 
+
+_F32_BITS_PY = _f32_bits
 
 # --------------------------------------------------------------------------- compilation
 class Kernels:
@@ -470,6 +491,8 @@ def _compile(cache: bool) -> Kernels:
     numba = nb  # the loops name numba.prange through this module global
     g = globals()
     opts = dict(cache=cache, nogil=True, boundscheck=False, error_model="numpy")
+    from numba.extending import intrinsic
+    g["_f32_bits"] = intrinsic(_F32_BITS_PY)
     for name in ("_pcg", "_u01", "_colour_value", "_frustum", "_test", "_splat"):
         g[name] = nb.njit(inline="always", **opts)(g[name])
     out = {}
