@@ -187,6 +187,80 @@ def _splat(kb, logical, cx, cy, w, W, H, half_px, world, size_scale, round_, ylo
             kb[i] = min(key, kb[i])
 
 
+def _chunk_sq(kb, a, b, head, cap, pos, tms, cval, vp, planes, eps_s, W, H, half, range_mode, ylo, yhi):
+    """:func:`_raster`'s loop over logical [a, b) when no per-point test but the finite and
+    frustum ones applies and the footprint is a screen-space square: the same decisions,
+    bounds and keys, with the matrix in registers (stores to ``kb`` would otherwise reload
+    it) and :func:`_splat`'s square path. Returns (occupied, non-finite, kept, vmin, vmax)."""
+    v00, v01, v02, v03 = vp[0, 0], vp[0, 1], vp[0, 2], vp[0, 3]
+    v10, v11, v12, v13 = vp[1, 0], vp[1, 1], vp[1, 2], vp[1, 3]
+    v20, v21, v22, v23 = vp[2, 0], vp[2, 1], vp[2, 2], vp[2, 3]
+    v30, v31, v32, v33 = vp[3, 0], vp[3, 1], vp[3, 2], vp[3, 3]
+    Wf = np.float64(W)
+    Hf = np.float64(H)
+    n_bad = 0
+    n_keep = 0
+    vmin = np.inf
+    vmax = -np.inf
+    rows = ylo > 0 or yhi < H
+    for seg in range(2):  # the ring's two runs of slots: no wrap test per point
+        if seg == 0:
+            la, lb, off = a, min(b, cap - head), head
+        else:
+            la, lb, off = max(a, cap - head), b, head - cap
+        for logical in range(la, lb):
+            slot = logical + off
+            x = np.float64(pos[slot, 0])
+            y = np.float64(pos[slot, 1])
+            z = np.float64(pos[slot, 2])
+            if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
+                n_bad += 1
+                continue
+            if range_mode != 0:
+                v = _colour_value(range_mode, slot, pos, tms, cval)
+                if np.isfinite(v):
+                    vmin = min(vmin, v)
+                    vmax = max(vmax, v)
+            cx = v00 * x + v01 * y + v02 * z + v03
+            cy = v10 * x + v11 * y + v12 * z + v13
+            cz = v20 * x + v21 * y + v22 * z + v23
+            w = v30 * x + v31 * y + v32 * z + v33
+            if not _frustum(x, y, z, cx, cy, cz, w, planes, eps_s * (abs(x) + abs(y) + abs(z) + 1.0)):
+                continue
+            n_keep += 1
+            px = (cx / w * 0.5 + 0.5) * W
+            py = (0.5 - cy / w * 0.5) * H
+            x0 = int(min(max(np.ceil(px - half - 0.5), 0.0), Wf))
+            y0 = int(min(max(np.ceil(py - half - 0.5), 0.0), Hf))
+            x1 = int(min(max(np.ceil(px + half - 0.5), 0.0), Wf))
+            y1 = int(min(max(np.ceil(py + half - 0.5), 0.0), Hf))
+            if rows:  # a band of the screen (split by bands)
+                if y0 < ylo:
+                    y0 = ylo
+                if y1 > yhi:
+                    y1 = yhi
+            wf = np.float32(w)
+            if wf < _F0:
+                wf = _F0
+            key = (np.uint64(_f32_bits(wf)) << _U32) | np.uint64(logical)
+            dx = x1 - x0
+            dy = y1 - y0
+            i = y0 * W + x0
+            if dx == 2 and dy == 2:
+                kb[i] = min(key, kb[i])
+                kb[i + 1] = min(key, kb[i + 1])
+                kb[i + W] = min(key, kb[i + W])
+                kb[i + W + 1] = min(key, kb[i + W + 1])
+            elif dx == 1 and dy == 1:
+                kb[i] = min(key, kb[i])
+            else:
+                for yy in range(y0, y1):
+                    row = yy * W
+                    for xx in range(x0, x1):
+                        kb[row + xx] = min(key, kb[row + xx])
+    return b - a, n_bad, n_keep, vmin, vmax
+
+
 def _raster(keys, T, C, bands, st, vrange, mask, use_mask, pos, tms, imp, cval, head, size, cap, W, H, vp, planes,
             half_px, world, size_scale, round_, has_window, now_ms, window_ms, lod, has_imp, imp_degenerate,
             imp_lo, imp_scale, seed_h, range_mode, eps_s):
@@ -197,6 +271,7 @@ def _raster(keys, T, C, bands, st, vrange, mask, use_mask, pos, tms, imp, cval, 
     chunks), each written into the buffer of the thread that runs it. Tests + splat (or
     splat the points ``mask`` keeps when ``use_mask``: the budget's passes did the tests).
     Counters per chunk in ``st``; the auto colour range in ``vrange``."""
+    lean = not use_mask and not world and not round_ and not has_window and lod <= 1 and not has_imp
     if not bands:
         for r in numba.prange(T * H):
             t = r // H
@@ -224,6 +299,11 @@ def _raster(keys, T, C, bands, st, vrange, mask, use_mask, pos, tms, imp, cval, 
         n_drawn = 0
         vmin = np.inf
         vmax = -np.inf
+        if lean:
+            n_occ, n_bad, n_keep, vmin, vmax = _chunk_sq(kb, a, b, head, cap, pos, tms, cval, vp, planes, eps_s, W, H,
+                                                         half_px, range_mode, ylo, yhi)
+            n_drawn = n_keep
+            a = b  # done: skip the general loop
         for logical in range(a, b):
             slot = head + logical
             if slot >= cap:
@@ -493,7 +573,7 @@ def _compile(cache: bool) -> Kernels:
     opts = dict(cache=cache, nogil=True, boundscheck=False, error_model="numpy")
     from numba.extending import intrinsic
     g["_f32_bits"] = intrinsic(_F32_BITS_PY)
-    for name in ("_pcg", "_u01", "_colour_value", "_frustum", "_test", "_splat"):
+    for name in ("_pcg", "_u01", "_colour_value", "_frustum", "_test", "_splat", "_chunk_sq"):
         g[name] = nb.njit(inline="always", **opts)(g[name])
     out = {}
     for name in ("_raster", "_select", "_thin", "_cap", "_resolve", "_edl", "_floor"):
