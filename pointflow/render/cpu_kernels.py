@@ -477,6 +477,40 @@ def _resolve(keys, img, logz, edl, vp, head, cap, cmode, single, bg, rgbp, pos, 
                     img[y, x] = lut[int(np.floor(t * _F255 + _FH))]
 
 
+def _resolve_scalar(keys, img, head, cap, single, bg, cval, lo, scale, degenerate, lut):
+    """:func:`_resolve` for the commonest case, a colormap of a scalar channel without EDL:
+    the same per-pixel rule without the per-pixel mode and EDL branches, over flat rows.
+    Compiled without ``parallel`` (``resolve_scalar_1``) for frames drawn with one thread:
+    measured 0.47 of the parallel resolve's time there (the parallel build of this loop is
+    no faster than :func:`_resolve`'s)."""
+    T = keys.shape[0]
+    H = img.shape[0]
+    W = img.shape[1]
+    fl = img.reshape(H * W)
+    for y in numba.prange(H):
+        for i in range(y * W, (y + 1) * W):
+            k = keys[0, i]
+            for c in range(1, T):
+                k2 = keys[c, i]
+                if k2 < k:
+                    k = k2
+            if k == EMPTY:
+                fl[i] = bg
+                continue
+            slot = head + np.int64(k & _M32)
+            if slot >= cap:
+                slot -= cap
+            v = cval[slot]
+            if not np.isfinite(v):
+                fl[i] = single
+            elif degenerate:
+                fl[i] = lut[255]
+            else:
+                t = (v - lo) * scale
+                t = min(max(t, _F0), _F1)
+                fl[i] = lut[int(np.floor(t * _F255 + _FH))]
+
+
 def _edl(logz, img, offsets, k_shade):
     """Eye-dome lighting (rules.edl_shade + rules.apply_shade) over the winners' log2 depth
     (+inf = background: contributes nothing, is not shaded)."""
@@ -578,6 +612,7 @@ def _compile(cache: bool) -> Kernels:
     out = {}
     for name in ("_raster", "_select", "_thin", "_cap", "_resolve", "_edl", "_floor"):
         out[name[1:]] = nb.njit(parallel=True, **opts)(g[name])
+    out["resolve_scalar_1"] = nb.njit(**opts)(g["_resolve_scalar"])  # one thread: prange runs as range
     return Kernels(**out)
 
 
