@@ -681,7 +681,7 @@ def main(argv: Optional[list[str]] = None) -> int:
     a = ap.parse_args(argv)
     if a.cpu_raster:
         sizes = a.sizes or [100_000, 1_000_000, 4_000_000]
-        res = cpu_raster(sizes, {100_000: 15, 1_000_000: 9, 4_000_000: 5} if not a.quick else {})
+        res = cpu_raster(sizes, {100_000: 15, 1_000_000: 15, 4_000_000: 5} if not a.quick else {})
         path = Path(a.out) if a.out != str(RESULTS / "render.json") else RESULTS / "cpu_raster.json"
         path.write_text(json.dumps(res, indent=2))
         cpu_raster_chart(res, path.with_suffix(".png"))

@@ -216,6 +216,10 @@ class CpuComputeRenderer(Renderer):
         saved = (self._cap, self._pos, self._t, self._imp, self._cval, self._rgb, self._origin)
         try:
             self.render(f, cam)
+            # the one-thread scalar resolve (not reached by the frame above)
+            empty = np.full((1, self.width * self.height), cpu_kernels.EMPTY, np.uint64)
+            self._k.resolve_scalar_1(empty, self._img, 0, cap, self._single, self._bg,
+                                     np.zeros(cap, np.float32), np.float32(0), np.float32(1), False, self._lut)
         finally:
             self._cap, self._pos, self._t, self._imp, self._cval, self._rgb, self._origin = saved
             self._img[:] = self._bg
@@ -333,9 +337,13 @@ class CpuComputeRenderer(Renderer):
         lo32 = np.float32(lo_c)
         scale32 = np.float32(1.0 / (hi_c - lo_c)) if not degenerate else np.float32(0)
         self._last_ring = (head, cap)
-        k.resolve(keys, self._img, self._logz, self._edl is not None, vp, head, cap, cmode,
-                  self._single, self._bg, self._rgb, self._pos, self._t, self._cval, lo32, scale32, degenerate,
-                  self._lut)
+        if cmode == cpu_kernels.C_SCALAR and self._edl is None and T == 1:  # the same rule, serial build
+            k.resolve_scalar_1(keys, self._img, head, cap, self._single, self._bg, self._cval, lo32, scale32,
+                               degenerate, self._lut)
+        else:
+            k.resolve(keys, self._img, self._logz, self._edl is not None, vp, head, cap, cmode,
+                      self._single, self._bg, self._rgb, self._pos, self._t, self._cval, lo32, scale32, degenerate,
+                      self._lut)
         t4 = time.perf_counter()
         if self._edl is not None:
             k.edl(self._logz, self._img, self._edl, -EDL_SCALE * float(cfg.edl.strength))
