@@ -636,7 +636,9 @@ class Supervisor:
         if self.ring is None:
             return
         try:
-            written = int(self.ring.stats().total_written)
+            # without the ring's lock: a stage stopped inside a push (frozen, starved) must
+            # not stop supervision; the writer is gone, so the counter is final
+            written = int(self.ring.stats(wait=False).total_written)
         except Exception:  # noqa: BLE001
             return
         reported = int(st.carried.get("points_out", 0)) + int(st.stats.get("points_out", 0))
@@ -795,8 +797,8 @@ class Supervisor:
             "shm_segments": list(getattr(self, "segments", [])),
         }
         if self.ring is not None:
-            try:
-                out["ring"] = self.ring.stats().to_dict()
+            try:  # never waits for a stage that holds the ring's lock (test_ring_lock_holder.py)
+                out["ring"] = self.ring.stats(wait=False).to_dict()
             except Exception:  # noqa: BLE001
                 pass
         elif getattr(self, "final_stats", None):
