@@ -140,6 +140,10 @@ BACKOFF_MAX_MS = 10_000.0
 #: When several stages are silent at once, one counts as hung only after this many
 #: times ``supervisor.hung_after_ms`` (at most ``stall_after_ms``).
 STALLED_HUNG_FACTOR = 5
+#: A stage that has not reported in within ``supervisor.startup_timeout_ms`` but is still
+#: starting (using the CPU, or waiting for one) is kept up to this many times the timeout
+#: (and at least ``supervisor.stall_after_ms``).
+STARTUP_LOAD_FACTOR = 4
 
 #: Stage kinds that get a standby, and how many standbys in a row may die before it is
 #: given up. A render or cadence restart stops the frames until the new one draws; a fresh
@@ -507,6 +511,8 @@ class Supervisor:
             silent = (now - st.last_seen_ns) > limit_ms * 1e6
             if silent and st.ready and code is None:
                 silent = self._silence_is_hang(st, now, limit_ms)
+            elif silent and code is None:
+                silent = self._start_is_stuck(st, now, limit_ms)
             stalled = st.ready and (now - st.last_progress_ns) > sup.stall_after_ms * 1e6
             hung = code is None and (silent or stalled)
             if code is None and not hung:
@@ -517,7 +523,7 @@ class Supervisor:
                 continue
             if hung:
                 if not st.ready:
-                    reason = f"did not start: no heartbeat within {limit_ms:.0f} ms"
+                    reason = f"did not start: no heartbeat within {(now - st.started_ns) / 1e6:.0f} ms"
                 elif silent:
                     reason = f"hung: no heartbeat for {(now - st.last_seen_ns) / 1e6:.0f} ms{st.hang_note}"
                 else:
@@ -565,6 +571,31 @@ class Supervisor:
         # others went quiet too: the machine (or this process) stalled; only a longer
         # silence counts then
         return quiet > max(limit_ms, min(sup.stall_after_ms, STALLED_HUNG_FACTOR * limit_ms)) * 1e6
+
+    def _start_is_stuck(self, st: StageProc, now: int, limit_ms: float) -> bool:
+        """Not reported in within ``startup_timeout_ms``: stuck, or still starting on a
+        loaded machine? A fresh interpreter importing numpy, ZeroMQ and wgpu took 13-32 s to
+        start a pipeline at load 14-18 on 2 cores; killing it there only starts the same
+        work again. Still starting (it used at least 2% of a CPU since the last look, or a
+        thread waits for one): kept, up to ``STARTUP_LOAD_FACTOR`` x the timeout (at least
+        ``stall_after_ms``). Frozen
+        (SIGSTOP), or asleep without using the CPU for a second of watching: did not start."""
+        if now - st.started_ns > max(STARTUP_LOAD_FACTOR * limit_ms, self.cfg.supervisor.stall_after_ms) * 1e6:
+            return True
+        act = activity(st.pid)
+        if act is None:
+            return False  # it ended: its exit code tells why, next round
+        if act.stopped:
+            return True
+        mark = st.silence_mark
+        if mark is None or mark[0] < st.started_ns:  # first look past the timeout
+            st.silence_mark = (now, act, False)
+            return False
+        t0, before, _ = mark
+        if act.running_since(before, (now - t0) / 1e9):
+            st.silence_mark = (now, act, True)
+            return False
+        return now - t0 >= 1e9
 
     def _spins_holding_the_gil(self, st: StageProc, act) -> bool:
         """Silent, yet its main thread has been on (or waiting for) a CPU at every look and
