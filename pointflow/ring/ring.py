@@ -795,6 +795,13 @@ class PointRing:
         with self.lock():
             return self._read_stats()
 
+    @property
+    def total_written(self) -> int:
+        """Points stored since the ring was made (or reset), read without the lock (one
+        aligned 8-byte word). Exact for the ring's only writer between its pushes, and for
+        anyone once no process writes."""
+        return int(self._st[I_TOTAL_WRITTEN])
+
     def _read_stats(self) -> RingStats:
         st = self._st
         size = int(st[I_SIZE])

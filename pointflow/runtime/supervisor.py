@@ -82,6 +82,9 @@ class StageProc:
     busy_mark: Optional[tuple] = None
     #: Why the last silence was judged a hang, beyond the silence itself.
     hang_note: str = ""
+    #: Ingest only: the ring's write counter as of ingest's last report (read by ingest in
+    #: the same instant as its counts) or as read back after it died (a new ring: 0).
+    ring_at_report: int = 0
 
 
 def _describe_exit(code: Optional[int]) -> str:
@@ -436,6 +439,9 @@ class Supervisor:
         st.last_progress_ns = now
         if kind == "heartbeat":
             st.stats = msg.get("stats", {})
+            seen = st.stats.get("ring_written_at_report")
+            if st.kind == "ingest" and isinstance(seen, int):
+                st.ring_at_report = seen
         elif kind == "fatal":  # restarting cannot help: the run fails
             st.last_error = str(msg.get("message", ""))
             st.failed = True
@@ -672,6 +678,7 @@ class Supervisor:
             written = int(self.ring.stats(wait=False).total_written)
         except Exception:  # noqa: BLE001
             return
+        st.ring_at_report = written  # both sides as of now: ingest's totals are set from it
         reported = int(st.carried.get("points_out", 0)) + int(st.stats.get("points_out", 0))
         if written > reported:
             st.stats = dict(st.stats)
@@ -862,8 +869,16 @@ class Supervisor:
         # written by an ingest that died before reporting them, read back from the ring
         acc["ingest_unreported_written"] = ing.get("unreported_written", 0)
         if ring:
-            acc["ring_written"] = ring.get("total_written")
-            acc["ring_agrees"] = ring.get("total_written") == acc["ingest_written"]
+            # As of ingest's last report (the ring's counter read by ingest with its counts),
+            # or as read back after it died or the run stopped: then both sides hold the same
+            # writes. The counter now runs ahead of any report while ingest writes (the pushes
+            # since its last heartbeat); comparing it with the report read ring_agrees: false
+            # in live samples under load (issue 31).
+            now_written = ring.get("total_written")
+            ing_st = self.stages.get("ingest")
+            acc["ring_written"] = ing_st.ring_at_report if ing_st is not None else now_written
+            acc["ring_written_now"] = now_written
+            acc["ring_agrees"] = acc["ring_written"] == acc["ingest_written"]
         sources = [v for v in stages.values() if v.get("kind") == "source"]
         acc.update(_source_balance(sources))
         if not any(s.external for s in self.cfg.sources):
