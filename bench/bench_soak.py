@@ -18,7 +18,8 @@ background thread's). Checks: every kill restarted; frames resume within 2 s of 
 restarted stage reporting in; frames never stop for more than 2 s after a kill (the
 longest gap without a new frame from the kill until frames flow again); each stage's RSS
 late vs early within 5% (medians of the last and first thirds after the warm-up); the
-accounting identities exact at the end; nothing left in /dev/shm, the run directory or the
+accounting identities exact at the end, and in every 0.1-s sample of ``stats()``
+(``accounting_exact_in_every_sample``); nothing left in /dev/shm, the run directory or the
 process table (standby processes included). Prints per kill: whether a standby was ready,
 report-in time, time to the next frame from report-in and from the kill, longest gap.
 Writes bench/results/soak_chaos_<M>min.json and .png (RSS and frames over time).
@@ -178,7 +179,11 @@ def chaos(args) -> None:
             stages = st["stages"]
             pids_seen.update(v["pid"] for v in stages.values() if v.get("pid"))
             pids_seen.update(v["standby_pid"] for v in stages.values() if v.get("standby_pid"))
+            a = st.get("accounting") or {}
             samples.append({"t": round(t, 2), "frames": st["frames"], "load1": round(os.getloadavg()[0], 2),
+                            # the identities in this live sample (issue 31: they hold in every one)
+                            "exact": bool(a.get("ingest_balanced") and a.get("ring_agrees") and a.get("sources_balanced")),
+                            "ring_ahead": (a.get("ring_written_now") or 0) - (a.get("ring_written") or 0),
                             "rss_mb": {n: round(v.get("rss_bytes", 0) / 2**20, 1) for n, v in stages.items()},
                             "pid": {n: v["pid"] for n, v in stages.items()},
                             "ready": {n: bool(v.get("ready")) and bool(v.get("alive")) for n, v in stages.items()}})
@@ -299,6 +304,7 @@ def _chaos_report(args, cfg, samples, kills, freezes, final, segments, run_dir, 
                                                       and k["frames_resumed_after_kill_s"] is not None for k in kills),
         "rss_flat_within_5pct": all(g is None or g <= RSS_LIMIT for g in growth.values()),
         "accounting_exact": exact,
+        "accounting_exact_in_every_sample": all(r["exact"] for r in samples),
         "nothing_left_in_dev_shm": not leftover_shm,
         "run_dir_removed": not (run_dir and os.path.exists(run_dir)),
         "no_process_left": not leftover_procs,
@@ -331,9 +337,11 @@ def _chaos_report(args, cfg, samples, kills, freezes, final, segments, run_dir, 
         "max_steady_frame_gap_s": round(steady_gap, 2),
         "rss_mb_early_median": early, "rss_mb_late_median": late, "rss_growth_ratio_late_vs_early": growth,
         "accounting": acc, "leftover_shm": leftover_shm, "leftover_pids": leftover_procs,
+        "live_samples": len(samples), "live_samples_exact": sum(1 for r in samples if r["exact"]),
+        "live_samples_ring_ahead_of_report": sum(1 for r in samples if r["ring_ahead"] > 0),
         "samples_note": "one sample per second (t, frames, rss_mb, pid per stage); the chart uses all 0.1 s samples",
     }
-    rows_1s = [{k: v for k, v in r.items() if k != "ready"} for r in samples[::10]]
+    rows_1s = [{k: v for k, v in r.items() if k not in ("ready", "exact", "ring_ahead")} for r in samples[::10]]
     tag = f"soak_chaos_{args.minutes:g}min" + (f"_busy{args.busy_loops}" if args.busy_loops else "")
     RESULTS.mkdir(exist_ok=True)
     txt = json.dumps(out, indent=1, default=str)  # then one compact line per sample
@@ -357,6 +365,8 @@ def _chaos_report(args, cfg, samples, kills, freezes, final, segments, run_dir, 
           f"after the restarted stage reported in, {out['frames_resumed_within_2s_of_kill']} of {len(kills)} after the kill "
           f"(median {out['median_frames_resumed_after_kill_s']} s, max {out['max_frames_resumed_after_kill_s']} s)")
     print("RSS late/early:", ", ".join(f"{n} {g}" for n, g in growth.items()))
+    print(f"live samples with every identity exact: {out['live_samples_exact']} of {out['live_samples']} "
+          f"({out['live_samples_ring_ahead_of_report']} taken while the ring ran ahead of ingest's last report)")
     print(f"accounting: received {acc.get('ingest_received'):,} = written {acc.get('ingest_written'):,} + dropped "
           f"{acc.get('ingest_dropped'):,}; ring {acc.get('ring_written'):,}; reconciled from the ring "
           f"{acc.get('ingest_unreported_written'):,}; sources {acc.get('sources_received'):,} = "
