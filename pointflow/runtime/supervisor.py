@@ -584,8 +584,8 @@ class Supervisor:
         start a pipeline at load 14-18 on 2 cores; killing it there only starts the same
         work again. Still starting (it used at least 2% of a CPU since the last look, or a
         thread waits for one): kept, up to ``STARTUP_LOAD_FACTOR`` x the timeout (at least
-        ``stall_after_ms``). Frozen
-        (SIGSTOP), or asleep without using the CPU for a second of watching: did not start."""
+        ``stall_after_ms``). Frozen (SIGSTOP), or asleep without using the CPU for a second
+        of watching: did not start."""
         if now - st.started_ns > max(STARTUP_LOAD_FACTOR * limit_ms, self.cfg.supervisor.stall_after_ms) * 1e6:
             return True
         act = activity(st.pid)
