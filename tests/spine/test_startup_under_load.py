@@ -14,7 +14,13 @@ to start than the timeout by setting the timeout to 100 ms, less than any interp
 start: none may be killed, and the run draws frames. Nothing is timed."""
 from __future__ import annotations
 
+import os
+import signal
+
+import pytest
+
 from pointflow import Pipeline
+from pointflow.runtime.supervisor import PipelineFailed
 
 from .helpers import assert_segments_gone, small_config
 
@@ -29,3 +35,51 @@ def test_stages_slower_to_start_than_the_timeout_are_kept_while_they_start(tmp_p
         assert st["frames"] >= 2
         assert all(v["ready"] and v["restarts"] == 0 for v in st["stages"].values()), st["stages"]
     assert_segments_gone(pipe.stats())
+
+
+SLEEPER = '''
+import dataclasses, time
+from pointflow.ingest.transports import Transport
+
+@dataclasses.dataclass
+class SleepOptions:
+    pass
+
+class SleepTransport(Transport):
+    name = "sleeper"
+    options_schema = SleepOptions
+
+    def open(self):
+        time.sleep(3600)  # still opening: never reports in
+
+    def chunks(self):
+        yield from ()
+'''
+
+
+def test_a_stage_frozen_before_it_reports_in_did_not_start(tmp_path, monkeypatch):
+    """The other side of the rule: a stage frozen (SIGSTOP) before its first report is not
+    starting, however loaded the machine, and is replaced past the timeout (here it may not
+    be: the run fails, naming it). The plugin source never gets past ``open()``, so it is
+    still starting when it is frozen; its pulse thread kept it from looking silent until
+    then."""
+    (tmp_path / "sleeper_plugin.py").write_text(SLEEPER)
+    monkeypatch.setenv("PYTHONPATH", str(tmp_path))
+    monkeypatch.syspath_prepend(str(tmp_path))
+    cfg = small_config(source={"transport": "sleeper_plugin:SleepTransport", "options": {}},
+                       supervisor={"max_restarts": 0, "startup_timeout_ms": 500, "standby": False})
+    pipe = Pipeline.from_dict(cfg, out_dir=str(tmp_path / "out"))
+    pipe.start()
+    pid = pipe.stats()["stages"]["source"]["pid"]
+    try:
+        os.kill(pid, signal.SIGSTOP)
+        with pytest.raises(PipelineFailed, match=r"source .*did not start: no heartbeat within"):
+            pipe.wait(120)
+    finally:
+        try:
+            os.kill(pid, signal.SIGCONT)
+        except ProcessLookupError:
+            pass
+        st = pipe.stop()
+    assert [e["stage"] for e in st["events"]] == ["source"], st["events"]
+    assert_segments_gone(st)
