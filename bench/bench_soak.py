@@ -18,12 +18,20 @@ background thread's). Checks: every kill restarted; frames resume within 2 s of 
 restarted stage reporting in; frames never stop for more than 2 s after a kill (the
 longest gap without a new frame from the kill until frames flow again); each stage's RSS
 late vs early within 5% (medians of the last and first thirds after the warm-up); the
-accounting identities exact at the end; nothing left in /dev/shm, the run directory or the
+accounting identities exact at the end, and in every 0.1-s sample of ``stats()``
+(``accounting_exact_in_every_sample``); nothing left in /dev/shm, the run directory or the
 process table (standby processes included). Prints per kill: whether a standby was ready,
 report-in time, time to the next frame from report-in and from the kill, longest gap.
 Writes bench/results/soak_chaos_<M>min.json and .png (RSS and frames over time).
 
     .venv/bin/python bench/bench_soak.py --minutes 10
+
+``--busy-loops N`` runs N ``while True: pass`` processes beside it at the default priority
+(the load under which issue 31 asked for exact accounting) and ends them with the run; the
+result file is then soak_chaos_<M>min_busy<N>.json. The load average is sampled with the
+stats.
+
+    .venv/bin/python bench/bench_soak.py --minutes 30 --busy-loops 2
 """
 from __future__ import annotations
 
@@ -53,6 +61,8 @@ def main() -> None:
     ap.add_argument("--freeze-every", type=float, default=150.0)
     ap.add_argument("--freeze-s", type=float, default=3.0)
     ap.add_argument("--seed", type=int, default=19)
+    ap.add_argument("--busy-loops", type=int, default=0,
+                    help="chaos soak: run this many `while True: pass` processes beside it (load)")
     args = ap.parse_args()
     if args.minutes is not None:
         chaos(args)
@@ -145,8 +155,18 @@ def chaos(args) -> None:
     kills: list[dict] = []
     freezes: list[dict] = []
     pids_seen: set[int] = set()
+    import subprocess
+    import sys
+
+    load_start = os.getloadavg()
+    busy = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(args.busy_loops)]
     pipe = Pipeline.from_dict(cfg, out_dir=None)
-    pipe.start()
+    try:
+        pipe.start()
+    except BaseException:
+        for p in busy:
+            p.kill()
+        raise
     sup = pipe.supervisor
     run_dir = sup.run_dir
     t0 = time.monotonic()
@@ -159,7 +179,11 @@ def chaos(args) -> None:
             stages = st["stages"]
             pids_seen.update(v["pid"] for v in stages.values() if v.get("pid"))
             pids_seen.update(v["standby_pid"] for v in stages.values() if v.get("standby_pid"))
-            samples.append({"t": round(t, 2), "frames": st["frames"],
+            a = st.get("accounting") or {}
+            samples.append({"t": round(t, 2), "frames": st["frames"], "load1": round(os.getloadavg()[0], 2),
+                            # the identities in this live sample (issue 31: they hold in every one)
+                            "exact": bool(a.get("ingest_balanced") and a.get("ring_agrees") and a.get("sources_balanced")),
+                            "ring_ahead": (a.get("ring_written_now") or 0) - (a.get("ring_written") or 0),
                             "rss_mb": {n: round(v.get("rss_bytes", 0) / 2**20, 1) for n, v in stages.items()},
                             "pid": {n: v["pid"] for n, v in stages.items()},
                             "ready": {n: bool(v.get("ready")) and bool(v.get("alive")) for n, v in stages.items()}})
@@ -198,9 +222,13 @@ def chaos(args) -> None:
                 pass
         segments = list(sup.segments)
         final = pipe.stop()
+        for p in busy:
+            p.kill()
+            p.wait()
     pids_seen.update(v["pid"] for v in final["stages"].values() if v.get("pid"))
     pids_seen.update(v["standby_pid"] for v in final["stages"].values() if v.get("standby_pid"))
     time.sleep(1.0)
+    args.load_start = load_start
     _chaos_report(args, cfg, samples, kills, freezes, final, segments, run_dir, pids_seen, warm)
 
 
@@ -276,6 +304,7 @@ def _chaos_report(args, cfg, samples, kills, freezes, final, segments, run_dir, 
                                                       and k["frames_resumed_after_kill_s"] is not None for k in kills),
         "rss_flat_within_5pct": all(g is None or g <= RSS_LIMIT for g in growth.values()),
         "accounting_exact": exact,
+        "accounting_exact_in_every_sample": all(r["exact"] for r in samples),
         "nothing_left_in_dev_shm": not leftover_shm,
         "run_dir_removed": not (run_dir and os.path.exists(run_dir)),
         "no_process_left": not leftover_procs,
@@ -287,7 +316,10 @@ def _chaos_report(args, cfg, samples, kills, freezes, final, segments, run_dir, 
     out = {
         "benchmark": "soak_chaos", "minutes": args.minutes, "kill_every_s": args.kill_every,
         "freeze_every_s": args.freeze_every, "freeze_s": args.freeze_s, "seed": args.seed, "warmup_s": warm,
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "loadavg_at_end": load,
+        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(),
+                    "loadavg_at_start": getattr(args, "load_start", None), "loadavg_at_end": load,
+                    "load1_min_max": [min(s["load1"] for s in samples), max(s["load1"] for s in samples)],
+                    "busy_loops": args.busy_loops, "nice": os.nice(0),
                     "note": "2-core shared VM (other sessions' tests and benchmarks running), lavapipe"},
         "config": cfg, "checks": checks, "passed": all(checks.values()),
         "kills": kills, "freezes": freezes, "events": events,
@@ -305,10 +337,12 @@ def _chaos_report(args, cfg, samples, kills, freezes, final, segments, run_dir, 
         "max_steady_frame_gap_s": round(steady_gap, 2),
         "rss_mb_early_median": early, "rss_mb_late_median": late, "rss_growth_ratio_late_vs_early": growth,
         "accounting": acc, "leftover_shm": leftover_shm, "leftover_pids": leftover_procs,
+        "live_samples": len(samples), "live_samples_exact": sum(1 for r in samples if r["exact"]),
+        "live_samples_ring_ahead_of_report": sum(1 for r in samples if r["ring_ahead"] > 0),
         "samples_note": "one sample per second (t, frames, rss_mb, pid per stage); the chart uses all 0.1 s samples",
     }
-    rows_1s = [{k: v for k, v in r.items() if k != "ready"} for r in samples[::10]]
-    tag = f"soak_chaos_{args.minutes:g}min"
+    rows_1s = [{k: v for k, v in r.items() if k not in ("ready", "exact", "ring_ahead")} for r in samples[::10]]
+    tag = f"soak_chaos_{args.minutes:g}min" + (f"_busy{args.busy_loops}" if args.busy_loops else "")
     RESULTS.mkdir(exist_ok=True)
     txt = json.dumps(out, indent=1, default=str)  # then one compact line per sample
     txt = txt[:-2] + ',\n "samples": [\n' + ",\n".join("  " + json.dumps(r, separators=(",", ":")) for r in rows_1s) + "\n ]\n}\n"
@@ -331,6 +365,12 @@ def _chaos_report(args, cfg, samples, kills, freezes, final, segments, run_dir, 
           f"after the restarted stage reported in, {out['frames_resumed_within_2s_of_kill']} of {len(kills)} after the kill "
           f"(median {out['median_frames_resumed_after_kill_s']} s, max {out['max_frames_resumed_after_kill_s']} s)")
     print("RSS late/early:", ", ".join(f"{n} {g}" for n, g in growth.items()))
+    print(f"live samples with every identity exact: {out['live_samples_exact']} of {out['live_samples']} "
+          f"({out['live_samples_ring_ahead_of_report']} taken while the ring ran ahead of ingest's last report)")
+    print(f"accounting: received {acc.get('ingest_received'):,} = written {acc.get('ingest_written'):,} + dropped "
+          f"{acc.get('ingest_dropped'):,}; ring {acc.get('ring_written'):,}; reconciled from the ring "
+          f"{acc.get('ingest_unreported_written'):,}; sources {acc.get('sources_received'):,} = "
+          f"{acc.get('sources_forwarded'):,} + {acc.get('sources_dropped'):,}")
     for k, v in checks.items():
         print(f"  {'ok  ' if v else 'FAIL'} {k}")
     print(f"wrote {RESULTS / (tag + '.json')} and .png")

@@ -128,6 +128,7 @@ class Ingestor:
         self.chunks_accepted = 0
         self.ring_evicted = 0
         self.pushes = 0
+        self._ring_written_seen = 0
         #: A :class:`pointflow.record.tap.RecordTap` when the pipeline records (docs/record.md).
         self.record = record
         self._fill = 0.0
@@ -428,7 +429,13 @@ class Ingestor:
         return sum(b.n for b in self.queue)
 
     def stats_extra(self) -> dict[str, Any]:
+        if not getattr(self.ring, "_closed", False):
+            # the ring's counter in the same instant as points_out (ingest is the ring's only
+            # writer, and this runs between pushes): the supervisor compares the two as of
+            # this report, not the counter later against this report (docs/reliability.md)
+            self._ring_written_seen = self.ring.total_written
         return {
+            "ring_written_at_report": self._ring_written_seen,
             **(self.record.stats() if self.record is not None else {}),
             "messages_in": self.messages_in,
             "chunks_accepted": self.chunks_accepted,

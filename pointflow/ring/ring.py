@@ -786,16 +786,34 @@ class PointRing:
         return self.push(chunk.positions, trace_id=int(getattr(chunk, "trace_id", 0) or 0), **chunk.channels)
 
     # ------------------------------------------------------------------ reading
-    def stats(self) -> RingStats:
+    def stats(self, wait: bool = True) -> RingStats:
+        """The ring's counters. ``wait=False`` reads them without the lock, so it never waits
+        for a process that holds it (frozen, starved, or stuck in a call): each counter is
+        one aligned 8-byte word, read whole, though two counters may come from either side
+        of a push in progress. The supervisor reads this way: supervision must not stop
+        because a stage stopped inside a push (docs/reliability.md). Once no process
+        writes (every writer has exited), the values are exact either way."""
+        if not wait:
+            return self._read_stats()
         with self.lock():
-            st = self._st
-            size = int(st[I_SIZE])
-            origin = tuple(float(x) for x in self._fst[0:3]) if st[I_ORIGIN_SET] else None
-            return RingStats(total_points=size, dropped_points=int(st[I_DROPPED]), under_pressure=size >= self.capacity,
-                             capacity=self.capacity, head=int(st[I_HEAD]), origin=origin, epoch_ns=int(st[I_EPOCH]),
-                             write_count=int(st[I_WRITES]), eviction=self.eviction,
-                             total_written=int(st[I_TOTAL_WRITTEN]), resets=int(st[I_RESETS]),
-                             rejected_points=int(st[I_REJECTED]))
+            return self._read_stats()
+
+    @property
+    def total_written(self) -> int:
+        """Points stored since the ring was made (or reset), read without the lock (one
+        aligned 8-byte word). Exact for the ring's only writer between its pushes, and for
+        anyone once no process writes."""
+        return int(self._st[I_TOTAL_WRITTEN])
+
+    def _read_stats(self) -> RingStats:
+        st = self._st
+        size = int(st[I_SIZE])
+        origin = tuple(float(x) for x in self._fst[0:3]) if st[I_ORIGIN_SET] else None
+        return RingStats(total_points=size, dropped_points=int(st[I_DROPPED]), under_pressure=size >= self.capacity,
+                         capacity=self.capacity, head=int(st[I_HEAD]), origin=origin, epoch_ns=int(st[I_EPOCH]),
+                         write_count=int(st[I_WRITES]), eviction=self.eviction,
+                         total_written=int(st[I_TOTAL_WRITTEN]), resets=int(st[I_RESETS]),
+                         rejected_points=int(st[I_REJECTED]))
 
     def _logical_slots(self) -> np.ndarray:
         head, size = int(self._st[I_HEAD]), int(self._st[I_SIZE])

@@ -86,6 +86,10 @@ class StageProc:
     #: its counters read directly (pointflow/ingest/transports/api.py).
     local: Any = None
 
+    #: Ingest only: the ring's write counter as of ingest's last report (read by ingest in
+    #: the same instant as its counts) or as read back after it died (a new ring: 0).
+    ring_at_report: int = 0
+
 
 def _describe_exit(code: Optional[int]) -> str:
     if code is None:
@@ -143,6 +147,10 @@ BACKOFF_MAX_MS = 10_000.0
 #: When several stages are silent at once, one counts as hung only after this many
 #: times ``supervisor.hung_after_ms`` (at most ``stall_after_ms``).
 STALLED_HUNG_FACTOR = 5
+#: A stage that has not reported in within ``supervisor.startup_timeout_ms`` but is still
+#: starting (using the CPU, or waiting for one) is kept up to this many times the timeout
+#: (and at least ``supervisor.stall_after_ms``).
+STARTUP_LOAD_FACTOR = 4
 
 #: Stage kinds that get a standby, and how many standbys in a row may die before it is
 #: given up. A render or cadence restart stops the frames until the new one draws; a fresh
@@ -465,6 +473,9 @@ class Supervisor:
         st.last_progress_ns = now
         if kind == "heartbeat":
             st.stats = msg.get("stats", {})
+            seen = st.stats.get("ring_written_at_report")
+            if st.kind == "ingest" and isinstance(seen, int):
+                st.ring_at_report = seen
         elif kind == "fatal":  # restarting cannot help: the run fails
             st.last_error = str(msg.get("message", ""))
             st.failed = True
@@ -540,6 +551,8 @@ class Supervisor:
             silent = (now - st.last_seen_ns) > limit_ms * 1e6
             if silent and st.ready and code is None:
                 silent = self._silence_is_hang(st, now, limit_ms)
+            elif silent and code is None:
+                silent = self._start_is_stuck(st, now, limit_ms)
             stalled = st.ready and (now - st.last_progress_ns) > sup.stall_after_ms * 1e6
             hung = code is None and (silent or stalled)
             if code is None and not hung:
@@ -550,7 +563,7 @@ class Supervisor:
                 continue
             if hung:
                 if not st.ready:
-                    reason = f"did not start: no heartbeat within {limit_ms:.0f} ms"
+                    reason = f"did not start: no heartbeat within {(now - st.started_ns) / 1e6:.0f} ms"
                 elif silent:
                     reason = f"hung: no heartbeat for {(now - st.last_seen_ns) / 1e6:.0f} ms{st.hang_note}"
                 else:
@@ -598,6 +611,31 @@ class Supervisor:
         # others went quiet too: the machine (or this process) stalled; only a longer
         # silence counts then
         return quiet > max(limit_ms, min(sup.stall_after_ms, STALLED_HUNG_FACTOR * limit_ms)) * 1e6
+
+    def _start_is_stuck(self, st: StageProc, now: int, limit_ms: float) -> bool:
+        """Not reported in within ``startup_timeout_ms``: stuck, or still starting on a
+        loaded machine? A fresh interpreter importing numpy, ZeroMQ and wgpu took 13-32 s to
+        start a pipeline at load 14-18 on 2 cores; killing it there only starts the same
+        work again. Still starting (it used at least 2% of a CPU since the last look, or a
+        thread waits for one): kept, up to ``STARTUP_LOAD_FACTOR`` x the timeout (at least
+        ``stall_after_ms``). Frozen (SIGSTOP), or asleep without using the CPU for a second
+        of watching: did not start."""
+        if now - st.started_ns > max(STARTUP_LOAD_FACTOR * limit_ms, self.cfg.supervisor.stall_after_ms) * 1e6:
+            return True
+        act = activity(st.pid)
+        if act is None:
+            return False  # it ended: its exit code tells why, next round
+        if act.stopped:
+            return True
+        mark = st.silence_mark
+        if mark is None or mark[0] < st.started_ns:  # first look past the timeout
+            st.silence_mark = (now, act, False)
+            return False
+        t0, before, _ = mark
+        if act.running_since(before, (now - t0) / 1e9):
+            st.silence_mark = (now, act, True)
+            return False
+        return now - t0 >= 1e9
 
     def _spins_holding_the_gil(self, st: StageProc, act) -> bool:
         """Silent, yet its main thread has been on (or waiting for) a CPU at every look and
@@ -669,9 +707,12 @@ class Supervisor:
         if self.ring is None:
             return
         try:
-            written = int(self.ring.stats().total_written)
+            # without the ring's lock: a stage stopped inside a push (frozen, starved) must
+            # not stop supervision; the writer is gone, so the counter is final
+            written = int(self.ring.stats(wait=False).total_written)
         except Exception:  # noqa: BLE001
             return
+        st.ring_at_report = written  # both sides as of now: ingest's totals are set from it
         reported = int(st.carried.get("points_out", 0)) + int(st.stats.get("points_out", 0))
         if written > reported:
             st.stats = dict(st.stats)
@@ -837,8 +878,8 @@ class Supervisor:
             "shm_segments": list(getattr(self, "segments", [])),
         }
         if self.ring is not None:
-            try:
-                out["ring"] = self.ring.stats().to_dict()
+            try:  # never waits for a stage that holds the ring's lock (test_ring_lock_holder.py)
+                out["ring"] = self.ring.stats(wait=False).to_dict()
             except Exception:  # noqa: BLE001
                 pass
         elif getattr(self, "final_stats", None):
@@ -871,8 +912,16 @@ class Supervisor:
         # written by an ingest that died before reporting them, read back from the ring
         acc["ingest_unreported_written"] = ing.get("unreported_written", 0)
         if ring:
-            acc["ring_written"] = ring.get("total_written")
-            acc["ring_agrees"] = ring.get("total_written") == acc["ingest_written"]
+            # As of ingest's last report (the ring's counter read by ingest with its counts),
+            # or as read back after it died or the run stopped: then both sides hold the same
+            # writes. The counter now runs ahead of any report while ingest writes (the pushes
+            # since its last heartbeat); comparing it with the report read ring_agrees: false
+            # in live samples under load (issue 31).
+            now_written = ring.get("total_written")
+            ing_st = self.stages.get("ingest")
+            acc["ring_written"] = ing_st.ring_at_report if ing_st is not None else now_written
+            acc["ring_written_now"] = now_written
+            acc["ring_agrees"] = acc["ring_written"] == acc["ingest_written"]
         sources = [v for v in stages.values() if v.get("kind") == "source"]
         acc.update(_source_balance(sources))
         if not any(s.external for s in self.cfg.sources):

@@ -65,7 +65,7 @@ def world(tmp_path):
     assert_unlinked(*names)
 
 
-def recv_handoffs(w, n, timeout=10.0):
+def recv_handoffs(w, n, timeout=60.0):
     out = []
     end = time.monotonic() + timeout
     while len(out) < n and time.monotonic() < end:
@@ -77,7 +77,10 @@ def recv_handoffs(w, n, timeout=10.0):
     return out
 
 
-def last_heartbeat(w, timeout=5.0):
+def last_heartbeat(w, timeout=60.0):
+    """The first heartbeat that has seen 20 ticks and 5 handoffs (or the last one at the
+    timeout). Not the first one followed by a quiet 100 ms: on a loaded machine that can be
+    a heartbeat queued before the handoffs the test already received."""
     hb = None
     end = time.monotonic() + timeout
     while time.monotonic() < end:
@@ -87,12 +90,12 @@ def last_heartbeat(w, timeout=5.0):
                 hb = m
                 if hb["stats"]["ticks"] > 20 and hb["stats"].get("published", 0) >= 5:
                     return hb
-        elif hb:
-            return hb
     return hb
 
 
 def test_cadence_process_ticks_hands_off_traces_and_restarts(world):
+    """On a loaded machine the same handoffs, heartbeat and restart hold; a cadence process
+    can take many seconds to start there, so every wait is up to 60 s (nothing timed)."""
     w = world
     p = w.start()
     w.ring.push(np.random.rand(500, 3).astype(np.float32), trace_id=0xABC)
@@ -109,7 +112,7 @@ def test_cadence_process_ticks_hands_off_traces_and_restarts(world):
     assert st["policy"]["tier"] == "L" and st["policy"]["point_budget"] == 80_000
     assert st["jitter_ms"]["p99"] is not None
     # spans reach the collector
-    end = time.monotonic() + 5
+    end = time.monotonic() + 60
     while time.monotonic() < end:
         w.coll.poll(100)
         t = w.coll.table()

@@ -1,4 +1,13 @@
-"""Configs and waits shared by the link tests."""
+"""Configs and waits shared by the link tests.
+
+What the link guarantees on a loaded machine (load 17-32 on 2 cores), and so what these
+tests assert: every point the sender put on the link is received or counted lost in
+transit, and the receiver's own accounting balances; neither the counts nor their
+exactness depend on load. Load changes how long things take, and one more thing: a peer
+starved of CPU for longer than ``heartbeat_timeout_s`` looks dead to ZeroMQ's heartbeat,
+which drops the connection (what was in flight is counted lost) and reconnects. So the
+links here use the product's default timeout (3 s) unless a test is about a dead link, and
+every wait is long enough for a loaded machine (nothing is timed)."""
 from __future__ import annotations
 
 import json
@@ -27,14 +36,14 @@ def synthetic_source(name: str = "lidar", scans: int = 6, points: int = 4000, hz
 def sender_cfg(source: dict | list, **send) -> dict:
     sources = source if isinstance(source, list) else [source]
     return {"sources": sources, "send": {"socket": "push", "bind": False, "queue_chunks": 256,
-                                         "heartbeat_ivl_s": 0.3, "heartbeat_timeout_s": 1.0,
-                                         "heartbeat_ttl_s": 1.0, "reconnect_max_s": 0.5, **send}}
+                                         "heartbeat_ivl_s": 0.3, "heartbeat_timeout_s": 3.0,
+                                         "heartbeat_ttl_s": 3.0, "reconnect_max_s": 0.5, **send}}
 
 
 def receiver_cfg(endpoint: str, socket: str = "pull", bind: bool = True, **opts) -> dict:
     return {"source": {"transport": "zmq", "name": "link",
                        "options": {"endpoint": endpoint, "socket": socket, "bind": bind,
-                                   "heartbeat_ivl_s": 0.3, "heartbeat_timeout_s": 1.0, "heartbeat_ttl_s": 1.0,
+                                   "heartbeat_ivl_s": 0.3, "heartbeat_timeout_s": 3.0, "heartbeat_ttl_s": 3.0,
                                    "reconnect_max_s": 0.5, **opts}},
             "ring": {"max_points": 300_000},
             "cadence": {"target_hz": 10},
@@ -45,7 +54,8 @@ def receiver_cfg(endpoint: str, socket: str = "pull", bind: bool = True, **opts)
 
 def start_receiver(net: Net, ns: str, cfg: dict, name: str = "recv"):
     path = write_cfg(net.workdir / f"{name}.yaml", cfg)
-    return net.pointflow(ns, "run", path, "--duration", "120", "--out", str(net.workdir / name), "-q",
+    # stopped by the test (finish); the duration only bounds a test that never gets there
+    return net.pointflow(ns, "run", path, "--duration", "600", "--out", str(net.workdir / name), "-q",
                          log=f"{name}.log")
 
 
@@ -54,7 +64,7 @@ def start_sender(net: Net, ns: str, cfg: dict, name: str = "send"):
     return net.pointflow(ns, "send", path, "--out", str(net.workdir / name), "-q", log=f"{name}.log")
 
 
-def start_probe(net: Net, ns: str, opts: dict, senders: int = 1, name: str = "probe", timeout: float = 30):
+def start_probe(net: Net, ns: str, opts: dict, senders: int = 1, name: str = "probe", timeout: float = 150):
     return net.spawn(ns, sys.executable, str(REPO / "tests/remote/probe.py"), json.dumps(opts),
                      str(net.workdir / name), str(senders), str(timeout), log=f"{name}.log")
 
@@ -68,20 +78,20 @@ def wait_for(pred, timeout: float, what: str, logs=lambda: "") -> None:
     raise AssertionError(f"timed out after {timeout} s waiting for {what}\n{logs()}")
 
 
-def wait_listening(net: Net, log: str, timeout: float = 40) -> None:
+def wait_listening(net: Net, log: str, timeout: float = 120) -> None:
     """A receiver is up once its link source logged it (the zmq transport opened)."""
     wait_for(lambda: "probe: listening" in net.log(log) or "ring " in net.log(log), timeout,
              f"{log} to start", lambda: net.log(log))
 
 
 def finish(net: Net, sender, receiver, senders_ended: int = 1, name: str = "recv", sender_name: str = "send",
-           timeout: float = 60) -> tuple[dict, dict]:
+           timeout: float = 180) -> tuple[dict, dict]:
     """Wait for the sender to end and the receiver to log its final sync; stop the receiver;
     return (sender stats, receiver stats)."""
     assert sender.wait(timeout) == 0, net.log(f"{sender_name}.log")
-    wait_for(lambda: net.log(f"{name}.log").count("stopped: sent") >= senders_ended, 20,
+    wait_for(lambda: net.log(f"{name}.log").count("stopped: sent") >= senders_ended, 90,
              "the sender's final sync at the receiver", lambda: net.log(f"{name}.log"))
-    assert stop(receiver) == 0, net.log(f"{name}.log")
+    assert stop(receiver, 90) == 0, net.log(f"{name}.log")  # three waves of stops, each up to 5 s, then exits
     return read_stats(net.workdir / sender_name / "stats.json"), read_stats(net.workdir / name / "stats.json")
 
 

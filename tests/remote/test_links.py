@@ -77,8 +77,8 @@ def test_compressed_and_quantised_positions(net, codec, resolution):
     send = start_sender(net, sensor, sender_cfg(src, endpoint=ep, compression=codec, quantise=resolution,
                                                 backpressure=True, queue_chunks=8,
                                                 curve_secret_key=k["sensor"][1], curve_server_key=k["viewer"][0]))
-    assert send.wait(60) == 0, net.log("send.log")
-    assert probe.wait(30) == 0, net.log("probe.log")
+    assert send.wait(180) == 0, net.log("send.log")
+    assert probe.wait(180) == 0, net.log("probe.log")
     got = np.load(net.workdir / "probe.npy")
     counters = json.loads((net.workdir / "probe.json").read_text())
     assert counters["ended"] == ["replay"] and counters["lost_in_transit"] == 0
@@ -105,7 +105,7 @@ def test_wrong_key_is_refused_and_the_pipeline_keeps_running(net):
     bad = start_sender(net, intruder, sender_cfg(synthetic_source("evil", scans=3), endpoint=f"tcp://{a_viewer2}:{PORT}",
                                                  curve_secret_key=k["intruder"][1], curve_server_key=k["viewer"][0]),
                        name="bad")
-    wait_for(lambda: "refused a CURVE handshake" in net.log("recv.log"), 30, "the refusal to be logged",
+    wait_for(lambda: "refused a CURVE handshake" in net.log("recv.log"), 120, "the refusal to be logged",
              lambda: net.log("recv.log"))
     stop(bad)
     # the pipeline still takes an authorized sender
@@ -129,7 +129,7 @@ def test_two_senders_fan_in(net):
     wait_listening(net, "recv.log")
     a = start_sender(net, s1, sender_cfg(synthetic_source("left"), endpoint=f"tcp://{v1}:{PORT}", insecure=True), name="a")
     b = start_sender(net, s2, sender_cfg(synthetic_source("right"), endpoint=f"tcp://{v2}:{PORT}", insecure=True), name="b")
-    assert b.wait(60) == 0, net.log("b.log")
+    assert b.wait(180) == 0, net.log("b.log")
     sa, rcv = finish(net, a, recv, senders_ended=2, sender_name="a")
     sb = read_stats(net.workdir / "b" / "stats.json")
     ra = rcv["accounting"]
@@ -153,7 +153,7 @@ def test_one_sender_fans_out_to_two_pipelines(net):
     send = start_sender(net, sensor, sender_cfg(synthetic_source(), endpoint=f"tcp://0.0.0.0:{PORT}", socket="pub",
                                                 bind=True, wait_subscribers=2, wait_s=60, send_hwm=256,
                                                 curve_secret_key=k["sensor"][1], curve_authorized_keys=clients))
-    assert send.wait(90) == 0, net.log("send.log")
+    assert send.wait(180) == 0, net.log("send.log")
     snd = read_stats(net.workdir / "send" / "stats.json")
     assert snd["stages"]["sender"]["link_subscriptions"] >= 2
     for name, proc in (("r1", recv1), ("r2", recv2)):
@@ -161,22 +161,30 @@ def test_one_sender_fans_out_to_two_pipelines(net):
         assert_exact(snd, rcv)
 
 
-def test_link_down_for_two_seconds(net):
-    """The link goes down for 2 s (heartbeats notice, ZeroMQ reconnects): every point the
-    sensor produced arrives or is counted lost in transit."""
+def test_link_down_for_five_seconds(net):
+    """The link goes down for 5 s (heartbeats notice, ZeroMQ reconnects): every point the
+    sensor produced arrives or is counted lost in transit. A 1-s heartbeat timeout; on a
+    loaded machine a peer's I/O thread may hardly run during a short outage (a 2-s one,
+    beside four busy loops, ended with no reconnect counted), so the outage lasts five
+    timeouts, which a starved peer still sees. A starved peer can
+    also trip the timeout with the link up; the same identities cover that (more
+    disconnects, each one's losses counted)."""
     sensor, viewer = net.host("sensor"), net.host("viewer")
     _, a_viewer = net.link(sensor, viewer)
     ep = f"tcp://{a_viewer}:{PORT}"
-    recv = start_receiver(net, viewer, receiver_cfg(ep, insecure=True))
+    hb = {"heartbeat_timeout_s": 1.0, "heartbeat_ttl_s": 1.0}
+    recv = start_receiver(net, viewer, receiver_cfg(ep, insecure=True, **hb))
     wait_listening(net, "recv.log")
-    send = start_sender(net, sensor, sender_cfg(synthetic_source(scans=60, points=2000, hz=10), endpoint=ep,
-                                                insecure=True, queue_chunks=8, send_hwm=4))
-    wait_for(lambda: "sending on" in net.log("send.log"), 40, "the sender", lambda: net.log("send.log"))
+    # 12 s of sensor data: it runs on for seconds after the outage, so the sender reconnects
+    # and its final sync gets through
+    send = start_sender(net, sensor, sender_cfg(synthetic_source(scans=120, points=2000, hz=10), endpoint=ep,
+                                                insecure=True, queue_chunks=8, send_hwm=4, **hb))
+    wait_for(lambda: "sending on" in net.log("send.log"), 120, "the sender", lambda: net.log("send.log"))
     time.sleep(1.5)
     net.set_link(sensor, viewer, up=False)
-    time.sleep(2.0)
+    time.sleep(5.0)
     net.set_link(sensor, viewer, up=True)
-    snd, rcv = finish(net, send, recv, timeout=90)
+    snd, rcv = finish(net, send, recv)
     assert_exact(snd, rcv, lost_ok=True)
     assert rcv["stages"]["link"]["transport_disconnects"] >= 1, "the heartbeat did not notice the dead link"
     assert rcv["stages"]["link"]["transport_reconnects"] >= 1
@@ -197,7 +205,7 @@ def test_netem_delay_and_loss(net):
     send = start_sender(net, sensor, sender_cfg(synthetic_source(scans=8), endpoint=ep, compression="lz4",
                                                 curve_secret_key=k["sensor"][1], curve_server_key=k["viewer"][0],
                                                 heartbeat_timeout_s=3.0, heartbeat_ttl_s=3.0))
-    snd, rcv = finish(net, send, recv, timeout=90)
+    snd, rcv = finish(net, send, recv)
     assert_exact(snd, rcv, lost_ok=True)
     assert rcv["accounting"]["link_received"] > 0
     assert "failure" not in rcv and rcv["frames"] > 0
@@ -216,11 +224,11 @@ def test_slow_link_drops_oldest_and_the_sensor_never_waits(net):
     wait_listening(net, "recv.log")
     send = start_sender(net, sensor, sender_cfg(synthetic_source(scans=50, points=8000, hz=10), endpoint=ep,
                                                 insecure=True, queue_chunks=4, send_hwm=2, send_buffer_kb=64, **hb))
-    wait_for(lambda: "sending on" in net.log("send.log"), 40, "the sender", lambda: net.log("send.log"))
+    wait_for(lambda: "sending on" in net.log("send.log"), 120, "the sender", lambda: net.log("send.log"))
     net.qdisc(sensor, viewer, "tbf", "rate", "4mbit", "burst", "32kbit", "latency", "400ms")
     time.sleep(2.5)
     net.del_qdisc(sensor, viewer)
-    snd, rcv = finish(net, send, recv, timeout=90)
+    snd, rcv = finish(net, send, recv)
     assert_exact(snd, rcv, lost_ok=True)
     dropped = snd["stages"]["sender"]["drops"].get("link_queue_full", 0)
     assert dropped > 0, "the link was not the bottleneck"
@@ -256,7 +264,7 @@ def test_fan_out_a_slow_viewer_loses_only_its_own_chunks(net):
     net.qdisc(sensor, slow, "tbf", "rate", "1mbit", "burst", "32kbit", "latency", "400ms")
     time.sleep(3.0)
     net.del_qdisc(sensor, slow)
-    snd, fast_stats = finish(net, send, r1, name="r1", timeout=90)
+    snd, fast_stats = finish(net, send, r1, name="r1")
     _, slow_stats = finish(net, send, r2, name="r2")
     assert snd["stages"]["sender"]["drops"] == {}  # PUB never blocks the sender
     assert_exact(snd, fast_stats, lost_ok=True)

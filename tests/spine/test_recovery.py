@@ -19,11 +19,18 @@ def _ingest_balanced(st: dict) -> bool:
 
 
 def test_kill_each_stage_in_turn_recovers(tmp_path):
+    """Each SIGKILLed stage is restarted once and frames resume; nothing else restarts.
+
+    On a loaded machine (load 17-32 on 2 cores) the product guarantees the same outcome,
+    not its speed: a restarted stage may take tens of seconds to report in (a fresh
+    interpreter and its imports) and a starved stage is not judged hung (liveness from
+    the kernel's run state, runtime/liveness.py), so the only restarts are the kills. The
+    waits are long enough for that (120 s each); nothing here is timed."""
     cfg = small_config(supervisor={"max_restarts": 2, "restart_backoff_ms": 50, "hung_after_ms": 1000})
     pipe = Pipeline.from_dict(cfg, out_dir=str(tmp_path))
     all_pids = set()
     with pipe:
-        pipe.wait(60, until=lambda: pipe.stats()["frames"] >= 3)
+        pipe.wait(120, until=lambda: pipe.stats()["frames"] >= 3)
         for stage in ("render", "cadence", "ingest", "source"):
             st = pipe.stats()
             old_pid = st["stages"][stage]["pid"]
@@ -32,9 +39,9 @@ def test_kill_each_stage_in_turn_recovers(tmp_path):
             all_pids.update(s["pid"] for s in st["stages"].values())
             os.kill(old_pid, signal.SIGKILL)
             # restarted with a new pid, and frames resume
-            pipe.wait(30, until=lambda: pipe.stats()["stages"][stage]["pid"] != old_pid
+            pipe.wait(120, until=lambda: pipe.stats()["stages"][stage]["pid"] != old_pid
                       and pipe.stats()["stages"][stage]["alive"])
-            pipe.wait(30, until=lambda: pipe.stats()["frames"] >= frames_before + 3)
+            pipe.wait(120, until=lambda: pipe.stats()["frames"] >= frames_before + 3)
             st = pipe.stats()
             assert st["stages"][stage]["pid"] != old_pid, f"{stage} was not restarted"
             assert st["stages"][stage]["restarts"] == 1
@@ -59,18 +66,20 @@ def test_kill_each_stage_in_turn_recovers(tmp_path):
 
 
 def test_restart_limit_stops_the_pipeline(tmp_path):
+    """The second death of a stage allowed one restart stops the run with PipelineFailed.
+    Load changes only how long the restart takes (waits of 120 s), not the outcome."""
     cfg = small_config(supervisor={"max_restarts": 1, "restart_backoff_ms": 50})
     pipe = Pipeline.from_dict(cfg, out_dir=str(tmp_path))
     pipe.start()
     try:
-        pipe.wait(60, until=lambda: pipe.stats()["frames"] >= 1)
+        pipe.wait(120, until=lambda: pipe.stats()["frames"] >= 1)
         os.kill(pipe.stats()["stages"]["render"]["pid"], signal.SIGKILL)
         old = pipe.stats()["stages"]["render"]["pid"]
-        pipe.wait(30, until=lambda: pipe.stats()["stages"]["render"]["pid"] != old)
-        pipe.wait(30, until=lambda: pipe.stats()["stages"]["render"]["alive"])
+        pipe.wait(120, until=lambda: pipe.stats()["stages"]["render"]["pid"] != old)
+        pipe.wait(120, until=lambda: pipe.stats()["stages"]["render"]["alive"])
         os.kill(pipe.stats()["stages"]["render"]["pid"], signal.SIGKILL)
         with pytest.raises(PipelineFailed, match="render.*restart limit 1 reached"):
-            pipe.wait(20)
+            pipe.wait(120)
     finally:
         stats = pipe.stop()
     assert [e["action"] for e in stats["events"]] == ["restart", "stop"]
@@ -79,19 +88,26 @@ def test_restart_limit_stops_the_pipeline(tmp_path):
 
 def test_a_frozen_stage_is_detected_and_restarted(tmp_path):
     """SIGSTOP freezes a stage: no heartbeat, no pulse. The supervisor kills it after
-    ``hung_after_ms`` and restarts it; the run goes on."""
+    ``hung_after_ms`` and restarts it; the run goes on.
+
+    On a loaded machine the guarantee is the same: a frozen stage (every thread stopped,
+    ``T`` in /proc) is hung at once whatever the load, and the healthy stages around it,
+    starved or not, are not killed (runtime/liveness.py); so the only event is the frozen
+    ingest's. What load changes is how long its successor takes to start and ingest again
+    (waits of 120 s, nothing timed)."""
     cfg = small_config(supervisor={"max_restarts": 1, "restart_backoff_ms": 50, "hung_after_ms": 800})
     with Pipeline.from_dict(cfg, out_dir=str(tmp_path)) as pipe:
-        pipe.wait(60, until=lambda: pipe.stats()["frames"] >= 2)
+        pipe.wait(120, until=lambda: pipe.stats()["frames"] >= 2)
         old = pipe.stats()["stages"]["ingest"]["pid"]
         os.kill(old, signal.SIGSTOP)
-        pipe.wait(20, until=lambda: pipe.stats()["stages"]["ingest"]["pid"] != old
+        pipe.wait(120, until=lambda: pipe.stats()["stages"]["ingest"]["pid"] != old
                   and pipe.stats()["stages"]["ingest"]["alive"])
         n0 = pipe.stats()["stages"]["ingest"]["points_in"]
-        pipe.wait(20, until=lambda: pipe.stats()["stages"]["ingest"]["points_in"] > n0)
+        pipe.wait(120, until=lambda: pipe.stats()["stages"]["ingest"]["points_in"] > n0)
         st = pipe.stats()
+    assert [(e["stage"], e["pid"]) for e in st["events"]] == [("ingest", old)], st["events"]
     ev = st["events"][0]
-    assert ev["stage"] == "ingest" and ev["action"] == "restart" and ev["reason"].startswith("hung")
+    assert ev["action"] == "restart" and ev["reason"].startswith("hung")
     assert st["stages"]["ingest"]["points_in"] > n0, "ingest did not resume"
     assert_gone([old])
     assert_segments_gone(pipe.stats())

@@ -102,10 +102,40 @@ def test_supervision_runs_while_the_caller_only_sleeps(tmp_path):
     assert_segments_gone(final)
 
 
+def _unreported(pipe) -> int:
+    st = pipe.stats()
+    return st["ring"]["total_written"] - st["stages"]["ingest"]["points_out"]
+
+
+def _kill_with_unreported_writes(pipe, pid: int, tries: int = 400) -> None:
+    """SIGKILL ingest while it is stopped with points in the ring it has not reported."""
+    for _ in range(tries):
+        try:
+            os.kill(pid, signal.SIGSTOP)
+            # a report sent before the stop may still be on its way: take two looks
+            time.sleep(0.15)
+            a = _unreported(pipe)
+            time.sleep(0.15)
+            if a > 0 and _unreported(pipe) == a:
+                os.kill(pid, signal.SIGKILL)  # a stopped process dies too
+                return
+            os.kill(pid, signal.SIGCONT)
+        except ProcessLookupError:
+            return  # the supervisor found it frozen and replaced it: a kill all the same
+        time.sleep(0.2)
+    raise AssertionError("ingest never stopped with unreported writes")
+
+
 def test_ingest_killed_repeatedly_during_a_replay_accounting_exact(tmp_path):
     """The ring's write counter is the truth: points a killed ingest wrote but never
     reported are reconciled from shared memory (``unreported_written``), including an
-    ingest killed just before the stop, which no restart path sees."""
+    ingest killed just before the stop, which no restart path sees.
+
+    Each kill lands at the precise point, whatever the load: ingest is stopped (SIGSTOP)
+    and killed only once the ring holds points it has not reported (the supervisor's view
+    of its ``points_out`` stays behind the ring's counter); waiting a fixed 0.7 s and
+    hoping it wrote since its last report failed on a loaded machine, where a starved
+    ingest may write nothing in that time."""
     rng = np.random.default_rng(3)
     data = np.column_stack([rng.uniform(-20, 20, (400_000, 3)), rng.uniform(0, 1, 400_000)]).astype(np.float32)
     np.save(tmp_path / "cloud.npy", data)
@@ -121,10 +151,9 @@ def test_ingest_killed_repeatedly_during_a_replay_accounting_exact(tmp_path):
             # the (new) ingest has started (a fresh interpreter: seconds on a busy machine) and writes
             pipe.wait(60, until=lambda: pipe.stats()["stages"]["ingest"].get("ready", True)
                       and pipe.stats()["ring"]["total_written"] > written)
-            pipe.wait(0.7)  # writing all the time, reporting every 0.5 s
             pid = pipe.stats()["stages"]["ingest"]["pid"]
             pids.add(pid)
-            os.kill(pid, signal.SIGKILL)
+            _kill_with_unreported_writes(pipe, pid)
             if i < 3:
                 pipe.wait(30, until=lambda: pipe.stats()["stages"]["ingest"]["pid"] != pid)
         pids.update(s["pid"] for s in pipe.stats()["stages"].values())
