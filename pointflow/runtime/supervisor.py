@@ -85,7 +85,6 @@ class StageProc:
     #: An ``api`` source living in this process (``Pipeline.send``): no process to watch,
     #: its counters read directly (pointflow/ingest/transports/api.py).
     local: Any = None
-
     #: Ingest only: the ring's write counter as of ingest's last report (read by ingest in
     #: the same instant as its counts) or as read back after it died (a new ring: 0).
     ring_at_report: int = 0
