@@ -24,6 +24,29 @@ import numpy as np
 from ..config import RenderConfig
 from .camera import Camera
 
+#: A half-open range of ring slots.
+Range = tuple[int, int]
+
+
+def merge_ranges(ranges: list[Range], capacity: int) -> list[Range]:
+    """A frame's dirty slot ranges as a tier uploads them: sorted, non-overlapping, clipped
+    to [0, capacity); a wrapping range (b < a) is split."""
+    out: list[Range] = []
+    for a, b in ranges:
+        a, b = int(a), int(b)
+        if b < a:  # wraps around the end of the ring
+            out.extend([(a, capacity), (0, b)])
+        else:
+            out.append((a, b))
+    out = sorted((max(a, 0), min(b, capacity)) for a, b in out if min(b, capacity) > max(a, 0))
+    merged: list[Range] = []
+    for a, b in out:
+        if merged and a <= merged[-1][1]:
+            merged[-1] = (merged[-1][0], max(merged[-1][1], b))
+        else:
+            merged.append((a, b))
+    return merged
+
 
 @dataclass
 class FrameInput:

@@ -28,7 +28,7 @@ import numpy as np
 
 from ..config import RenderConfig
 from . import colormap, cpu_kernels
-from .base import FrameInput, FrameStats, Renderer, RenderError
+from .base import FrameInput, FrameStats, Range, Renderer, RenderError, merge_ranges
 from .camera import Camera
 from .rules import (EDL_SCALE, budget_fraction, budget_seed, check_frame, edl_offsets, in_pick_circle, pick_window,
                     resolve_pick, rgba_u8, seed_hash)
@@ -45,28 +45,11 @@ ENV_ADAPTIVE = "POINTFLOW_CPU_RASTER_ADAPTIVE"
 TUNE_FRAMES = 3
 RETRY_EVERY = 30
 
-Range = tuple[int, int]
 
 
 def _pack(c: np.ndarray) -> np.uint32:
     c = np.asarray(c, np.uint32)
     return np.uint32(c[0] | (c[1] << 8) | (c[2] << 16) | (c[3] << 24))
-
-
-def merge_ranges(ranges: list[Range], capacity: int) -> list[Range]:
-    """Sorted, non-overlapping, clipped to [0, capacity); a wrapping range (b < a) is split."""
-    out: list[Range] = []
-    for a, b in ranges:
-        a, b = int(a), int(b)
-        out.extend([(a, capacity), (0, b)] if b < a else [(a, b)])
-    out = sorted((max(a, 0), min(b, capacity)) for a, b in out if min(b, capacity) > max(a, 0))
-    merged: list[Range] = []
-    for a, b in out:
-        if merged and a <= merged[-1][1]:
-            merged[-1] = (merged[-1][0], max(merged[-1][1], b))
-        else:
-            merged.append((a, b))
-    return merged
 
 
 class CpuComputeRenderer(Renderer):

@@ -31,7 +31,7 @@ import numpy as np
 
 from ...config import RenderConfig
 from .. import colormap
-from ..base import FrameInput, FrameStats, Renderer, RenderError
+from ..base import FrameInput, FrameStats, Range, Renderer, RenderError, merge_ranges
 from ..camera import Camera
 from . import chunks, frame_params
 from .device import adapter_summary, request_device, select_adapter
@@ -47,28 +47,8 @@ _MAX_GROUPS = 65535
 #: origin-relative view-projection (shows the large-coordinate error it avoids).
 NAIVE_FLOAT32 = False
 
-Range = tuple[int, int]
 
 __all__ = ["WgpuRenderer", "merge_ranges", "resolve_pick"]
-
-
-def merge_ranges(ranges: list[Range], capacity: int) -> list[Range]:
-    """Sorted, non-overlapping, clipped to [0, capacity); wrapping ranges are split."""
-    out: list[Range] = []
-    for a, b in ranges:
-        a, b = int(a), int(b)
-        if b < a:  # wraps around the end of the ring
-            out.extend([(a, capacity), (0, b)])
-        else:
-            out.append((a, b))
-    out = sorted((max(a, 0), min(b, capacity)) for a, b in out if min(b, capacity) > max(a, 0))
-    merged: list[Range] = []
-    for a, b in out:
-        if merged and a <= merged[-1][1]:
-            merged[-1] = (merged[-1][0], max(merged[-1][1], b))
-        else:
-            merged.append((a, b))
-    return merged
 
 
 class WgpuRenderer(Renderer):
