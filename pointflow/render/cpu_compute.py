@@ -28,7 +28,7 @@ import numpy as np
 
 from ..config import RenderConfig
 from . import colormap, cpu_kernels
-from .base import FrameInput, FrameStats, Range, Renderer, RenderError, merge_ranges
+from .base import FrameInput, FrameStats, Renderer, RenderError, merge_ranges
 from .camera import Camera
 from .rules import (EDL_SCALE, budget_fraction, budget_seed, check_frame, edl_offsets, in_pick_circle, pick_window,
                     resolve_pick, rgba_u8, seed_hash)
