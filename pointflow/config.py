@@ -302,6 +302,9 @@ def _check_semantics(cfg: PipelineConfig) -> None:
         raise ConfigError("render.camera.near", f"must be less than camera.far ({c.far}), got {c.near}")
     if c.mode == "fixed" and (c.position is None or c.target is None):
         raise ConfigError("render.camera.position", "camera.mode fixed needs position and target")
+    if r.backend == "wgpu" and r.raster == "reference":
+        raise ConfigError("render.raster", "'reference' is a method of the cpu tier; backend wgpu takes auto, "
+                          "compute or quads (or use backend: cpu)")
     if not cfg.sources and cfg.router is None:
         raise ConfigError("sources", "at least one source is required")
     if cfg.router is not None:
@@ -364,8 +367,12 @@ def _check_color_by(cfg: PipelineConfig) -> None:
     if cb not in have:
         import difflib
 
+        v = cfg.view
+        key = ("view.style.color_by" if isinstance(v, dict) and isinstance(v.get("style"), dict)
+               and v["style"].get("color_by") == cb else "render.color_by")
+
         near = difflib.get_close_matches(cb, sorted(have) + list(COLOR_BY_BUILTIN), n=1)
-        raise ConfigError("render.color_by", f"no source has a channel {cb!r}"
+        raise ConfigError(key, f"no source has a channel {cb!r}"
                           + (f" (did you mean {near[0]!r}?)" if near else "")
                           + f"; the sources' channels: {', '.join(sorted(have)) or 'none'}; or one of "
                           + ", ".join(COLOR_BY_BUILTIN[:3]) + ", or null for the single colour render.color")
