@@ -364,8 +364,8 @@ def view_block(state: ViewState) -> dict:
 
 
 def load_view_block(data: Any, path: str = "view") -> dict:
-    """Check a ``view:`` block; returns ``{"camera": None | {...}, "style": {...}}`` with
-    checked values. Errors are :class:`ControlError` naming ``view.<key>``."""
+    """Check a ``view:`` block; returns ``{"camera": None | {...}, "style": {...},
+    "hidden_sources": [...]}`` with checked values. Errors are :class:`ControlError` naming ``view.<key>``."""
     if not isinstance(data, dict):
         raise ControlError(path, f"expected a mapping with camera and/or style, got {data!r}")
     _unknown(data, ("camera", "style", "hidden_sources"), path)
