@@ -220,6 +220,10 @@ class CpuComputeRenderer(Renderer):
         nb.set_num_threads(T)
         try:
             st = self._render(frame, camera, T)
+        except (ValueError, RenderError):  # a malformed frame (skipped, counted), or already a tier failure
+            raise
+        except Exception as exc:  # noqa: BLE001 - the render stage falls back only on RenderError
+            raise RenderError(f"cpu compute raster failed: {type(exc).__name__}: {exc}") from exc
         finally:
             nb.set_num_threads(caller)
         self.frames_at[T] = self.frames_at.get(T, 0) + 1
