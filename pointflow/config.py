@@ -312,8 +312,12 @@ def _check_semantics(cfg: PipelineConfig) -> None:
     if cfg.ring.eviction == "importance" and not cfg.ring.importance_field and not cfg.ring.classification_weights:
         cfg.ring.importance_field = "auto"
     seen = set()
+    named = {s.name for s in cfg.sources if s.name}
     for i, s in enumerate(cfg.sources):
         p = f"sources[{i}]"
+        if not s.name and s.transport == "api" and "api" not in named:
+            s.name = "api"  # the name Pipeline.send(source="api") feeds by default
+            named.add("api")
         if not s.name:
             s.name = f"source{i}" if len(cfg.sources) > 1 else "source"
         if s.name in seen:
