@@ -162,6 +162,14 @@ class FollowFrame:
         return np.asarray(t, np.float64)
 
 
+def _window_control(view: "ViewController", msg: dict, window, ctx) -> None:
+    """The window's mouse and wheel, as control messages: the same path as Python's."""
+    try:
+        view.apply(msg, window)
+    except control.ControlError as exc:  # e.g. a turn before anything was framed
+        ctx.log.debug("window: %s", exc)
+
+
 class ViewController:
     """The render stage's view: the control state (:mod:`pointflow.render.control`), the
     camera it gives each frame, and whether a frame would look like the last one drawn
@@ -390,7 +398,8 @@ def main(ctx: StageContext) -> None:
                         from .window import PointWindow
 
                         window = PointWindow(renderer, camera, title=f"pointflow: {cfg.name}",
-                                             on_pick=lambda slot, x, y: _print_pick(ring, slot, x, y))
+                                             on_pick=lambda slot, x, y: _print_pick(ring, slot, x, y),
+                                             on_control=lambda msg: _window_control(view, msg, window, ctx))
                         c.extra["window"] = True
                         ctx.log.info("window open on display %s", os.environ.get("DISPLAY"))
                     if window is not None:

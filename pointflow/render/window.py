@@ -33,7 +33,8 @@ class PointWindow:
     last rendered frame (``renderer.pick(x, y, pixel_ratio)``)."""
 
     def __init__(self, renderer: Renderer, camera: Camera, *, title: str = "pointflow",
-                 on_pick: Optional[Callable[[Optional[int], float, float], Any]] = None):
+                 on_pick: Optional[Callable[[Optional[int], float, float], Any]] = None,
+                 on_control: Optional[Callable[[dict], Any]] = None):
         if not display_available():
             raise RuntimeError("no display (DISPLAY/WAYLAND_DISPLAY unset); run headless or under Xvfb")
         from rendercanvas.glfw import GlfwRenderCanvas
@@ -41,6 +42,9 @@ class PointWindow:
         self.controller = OrbitController(camera)
         self.title = title
         self.on_pick = on_pick or (lambda slot, x, y: print(f"pick ({x:.0f}, {y:.0f}) -> slot {slot}"))
+        #: With it, mouse and wheel become view control messages (render/control.py), the
+        #: set Python and other views use; the render stage applies them and sets the camera.
+        self.on_control = on_control
         w, h = renderer.width, renderer.height
         self.canvas = GlfwRenderCanvas(size=(w, h), title=title, update_mode="manual")
         self._ctx = self.canvas.get_bitmap_context()
@@ -68,8 +72,7 @@ class PointWindow:
     def _on_event(self, e: dict) -> None:
         et = e["event_type"]
         if et == "wheel":
-            self.controller.zoom(e.get("dy", 0.0))
-            self._dirty = True
+            self._turn("zoom", e.get("dy", 0.0), 0.0)
         elif et == "pointer_down":
             shift = "Shift" in e.get("modifiers", ())
             self._down = (e["x"], e["y"], e.get("button", 1), shift)
@@ -80,16 +83,27 @@ class PointWindow:
             self._last_xy = (e["x"], e["y"])
             self._moved += abs(dx) + abs(dy)
             _, _, button, shift = self._down
-            if button == 2 or shift:
-                self.controller.pan(dx, dy, self.renderer.height)
-            else:
-                self.controller.orbit(dx, dy)
-            self._dirty = True
+            self._turn("pan" if button == 2 or shift else "orbit", dx, dy)
         elif et == "pointer_up" and self._down is not None:
             x0, y0, button, _ = self._down
             self._down = None
             if button == 1 and abs(e["x"] - x0) + abs(e["y"] - y0) <= CLICK_TOLERANCE_PX:
                 self.pick(e["x"], e["y"])
+
+    def _turn(self, cmd: str, dx: float, dy: float) -> None:
+        """Orbit or pan by a drag of (dx, dy) px, or zoom by a wheel's dx: as a control
+        message when ``on_control`` is set, else on the window's own controller."""
+        c, h = self.controller, self.renderer.height
+        if self.on_control is None:
+            {"orbit": lambda: c.orbit(dx, dy), "pan": lambda: c.pan(dx, dy, h), "zoom": lambda: c.zoom(dx)}[cmd]()
+        elif cmd == "orbit":
+            self.on_control({"cmd": "orbit", "azimuth_deg": -dx * c.orbit_deg_per_px,
+                             "elevation_deg": dy * c.orbit_deg_per_px})
+        elif cmd == "pan":
+            self.on_control({"cmd": "pan", "right": -dx / max(h, 1), "up": dy / max(h, 1)})
+        else:
+            self.on_control({"cmd": "zoom", "factor": 1.0 / c.zoom_per_wheel ** float(dx)})
+        self._dirty = True
 
     def pick(self, x: float, y: float) -> Optional[int]:
         """Pick at logical window coordinates (scaled by the canvas' pixel ratio)."""

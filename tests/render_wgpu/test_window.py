@@ -68,3 +68,47 @@ def test_window_presents_orbits_and_picks(make_renderer, display):
     finally:
         win.close()
     assert win.canvas.get_closed()
+
+
+def test_window_input_is_view_control_messages(make_renderer, display):
+    """In the render stage the window's drag and wheel travel as the view control messages
+    Python sends (render/control.py), and applying them moves the camera exactly as the
+    window's own controller would."""
+    from pointflow.render import control
+    from pointflow.render.camera import OrbitController
+    from pointflow.render.window import PointWindow
+
+    pts = np.array([[0.0, 0.0, 0.0], [2.0, 0.0, 1.0]])
+    r = make_renderer(cfg(point_size=4.0, color=[1, 1, 1]), 2)
+    cam = Camera(eye=[0.0, -10.0, 0.0], target=[0.0, 0.0, 0.0], near=0.5, far=100.0)
+    sent = []
+    state = {"s": control.ViewState.from_render_config(cfg())}
+
+    def on_control(msg):
+        sent.append(msg)
+        state["s"] = control.apply(state["s"], msg, current=win.camera, height_px=r.height)
+        c = state["s"].camera
+        win.controller.camera = Camera(eye=c.eye, target=c.target, up=c.up, fov_deg=c.fov_deg, near=0.5, far=100.0)
+
+    win = PointWindow(r, cam, title="pf-test", on_control=on_control)
+    try:
+        assert win.step(frame(pts))
+        ev = dict(button=1, buttons=(1,), modifiers=())
+        win.canvas.submit_event(dict(event_type="pointer_down", x=100.0, y=100.0, **ev))
+        win.canvas.submit_event(dict(event_type="pointer_move", x=160.0, y=110.0, **ev))
+        win.canvas.submit_event(dict(event_type="pointer_up", x=160.0, y=110.0, **ev))
+        sev = dict(button=1, buttons=(1,), modifiers=("Shift",))
+        win.canvas.submit_event(dict(event_type="pointer_down", x=100.0, y=100.0, **sev))
+        win.canvas.submit_event(dict(event_type="pointer_move", x=130.0, y=90.0, **sev))
+        win.canvas.submit_event(dict(event_type="pointer_up", x=130.0, y=90.0, **sev))
+        win.canvas.submit_event(dict(event_type="wheel", x=100.0, y=100.0, dx=0.0, dy=200.0, buttons=(), modifiers=()))
+        win.process_events()
+        assert [m["cmd"] for m in sent] == ["orbit", "pan", "zoom"]
+        direct = OrbitController(cam)
+        direct.orbit(60.0, 10.0)
+        direct.pan(30.0, -10.0, r.height)
+        direct.zoom(200.0)
+        assert np.allclose(win.camera.eye, direct.camera.eye, atol=1e-9)
+        assert np.allclose(win.camera.target, direct.camera.target, atol=1e-9)
+    finally:
+        win.close()
