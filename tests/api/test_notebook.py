@@ -9,8 +9,8 @@ import pytest
 
 from .helpers import REPO, api_config
 
-jupyter_client = pytest.importorskip("jupyter_client")
-pytest.importorskip("ipykernel")
+jupyter_client = pytest.importorskip("jupyter_client", reason="jupyter_client comes with the test extra: pip install 'pointflow[test]'")
+pytest.importorskip("ipykernel", reason="ipykernel comes with the test extra: pip install 'pointflow[test]'")
 
 
 def _run(kc, code: str, timeout: float = 180) -> str:

@@ -10,6 +10,14 @@ from .helpers import cfg, frame
 pytestmark = pytest.mark.gpu
 
 
+def _drag(win, x0: float, y0: float, x1: float, y1: float, shift: bool = False) -> None:
+    """One left-button drag (shift: a pan) from (x0, y0) to (x1, y1), submitted to the canvas."""
+    ev = dict(button=1, buttons=(1,), modifiers=("Shift",) if shift else ())
+    win.canvas.submit_event(dict(event_type="pointer_down", x=x0, y=y0, **ev))
+    win.canvas.submit_event(dict(event_type="pointer_move", x=x1, y=y1, **ev))
+    win.canvas.submit_event(dict(event_type="pointer_up", x=x1, y=y1, **ev))
+
+
 @pytest.fixture(scope="module")
 def display():
     # one display for every raster method: glfw keeps its X connection across windows, and
@@ -43,9 +51,7 @@ def test_window_presents_orbits_and_picks(make_renderer, display):
 
         # left drag orbits about the target: distance kept, eye moved
         d0 = np.linalg.norm(win.camera.eye - win.camera.target)
-        win.canvas.submit_event(dict(event_type="pointer_down", x=100.0, y=100.0, **ev))
-        win.canvas.submit_event(dict(event_type="pointer_move", x=160.0, y=110.0, **ev))
-        win.canvas.submit_event(dict(event_type="pointer_up", x=160.0, y=110.0, **ev))
+        _drag(win, 100.0, 100.0, 160.0, 110.0)
         win.process_events()
         assert picked == [1]                                   # a drag is not a click
         assert np.allclose(win.camera.target, 0.0)
@@ -56,10 +62,7 @@ def test_window_presents_orbits_and_picks(make_renderer, display):
         assert not np.array_equal(before, r.read_image())      # the new view was drawn
 
         # shift-drag pans (target moves), wheel zooms (distance changes)
-        sev = dict(button=1, buttons=(1,), modifiers=("Shift",))
-        win.canvas.submit_event(dict(event_type="pointer_down", x=100.0, y=100.0, **sev))
-        win.canvas.submit_event(dict(event_type="pointer_move", x=130.0, y=100.0, **sev))
-        win.canvas.submit_event(dict(event_type="pointer_up", x=130.0, y=100.0, **sev))
+        _drag(win, 100.0, 100.0, 130.0, 100.0, shift=True)
         win.canvas.submit_event(dict(event_type="wheel", x=100.0, y=100.0, dx=0.0, dy=200.0, buttons=(), modifiers=()))
         win.process_events()
         assert not np.allclose(win.camera.target, 0.0)
@@ -93,14 +96,8 @@ def test_window_input_is_view_control_messages(make_renderer, display):
     win = PointWindow(r, cam, title="pf-test", on_control=on_control)
     try:
         assert win.step(frame(pts))
-        ev = dict(button=1, buttons=(1,), modifiers=())
-        win.canvas.submit_event(dict(event_type="pointer_down", x=100.0, y=100.0, **ev))
-        win.canvas.submit_event(dict(event_type="pointer_move", x=160.0, y=110.0, **ev))
-        win.canvas.submit_event(dict(event_type="pointer_up", x=160.0, y=110.0, **ev))
-        sev = dict(button=1, buttons=(1,), modifiers=("Shift",))
-        win.canvas.submit_event(dict(event_type="pointer_down", x=100.0, y=100.0, **sev))
-        win.canvas.submit_event(dict(event_type="pointer_move", x=130.0, y=90.0, **sev))
-        win.canvas.submit_event(dict(event_type="pointer_up", x=130.0, y=90.0, **sev))
+        _drag(win, 100.0, 100.0, 160.0, 110.0)
+        _drag(win, 100.0, 100.0, 130.0, 90.0, shift=True)
         win.canvas.submit_event(dict(event_type="wheel", x=100.0, y=100.0, dx=0.0, dy=200.0, buttons=(), modifiers=()))
         win.process_events()
         assert [m["cmd"] for m in sent] == ["orbit", "pan", "zoom"]
