@@ -21,6 +21,7 @@ from .frames.config import FramesConfig, check_frames
 from .ingest.playback import PlaybackConfig, check_playback
 from .ingest.transports import resolve_transport
 from .record.config import RecordConfig, check_record
+from .serve.config import ServeConfig, check_serve
 from .remote.options import SendConfig, check_send, is_loopback_endpoint
 from .remote.router import RouterConfig, check_router
 from .typed import Bound, ConfigError, Each, Length, check, check_keys, dataclass_schema, load_dataclass
@@ -185,6 +186,8 @@ class EndpointsConfig:
     #: Transforms for a camera that follows a frame (only with ``frames.fixed``): PULL bound
     #: by render, every source PUSHes the transforms it sends ingest here too.
     view_transforms: Optional[str] = field(default=None, metadata=check(endpoint))
+    #: The view server's views (only with ``serve:``): ROUTER bound by render, DEALER of the view server.
+    views: Optional[str] = field(default=None, metadata=check(endpoint))
     #: Allow these (unencrypted) endpoints on a non-loopback tcp:// address.
     insecure: bool = False
 
@@ -248,6 +251,8 @@ class PipelineConfig:
     #: A view to start from (``Pipeline.save_view`` writes one): ``camera`` (fit, or
     #: eye/target/up/fov_deg) and ``style``; applied over ``render`` at load (render/control.py).
     view: Optional[dict[str, Any]] = None
+    #: The view server (docs/views.md): a page and a WebSocket; also ``pointflow run --serve [HOST:]PORT``.
+    serve: Optional[ServeConfig] = None
     #: Where the YAML came from (for relative paths in options); not a YAML key.
     base_dir: str = field(default=".", metadata={"internal": True})
 
@@ -282,6 +287,7 @@ class PipelineConfig:
             trace=e.trace or d("trace"), render_commands=e.render_commands or d("render-commands"),
             record=e.record or d("record"), playback=e.playback or d("playback"),
             view_transforms=e.view_transforms or d("view-transforms"),
+            views=e.views or d("views"),
         )
 
     def to_dict(self) -> dict:
@@ -336,12 +342,14 @@ def _check_semantics(cfg: PipelineConfig) -> None:
             raise ConfigError(f"sources[{i}].frame_id", "must be a frame name or null")
     if cfg.record is not None:
         check_record(cfg.record, "record")
+    if cfg.serve is not None:
+        check_serve(cfg.serve, "serve", cfg.base_dir)
     e = cfg.endpoints
     check_playback(cfg.playback, "playback")
     if cfg.view is not None:
         _apply_view(cfg)
     for key in ("ingest", "frames", "release", "control", "trace", "render_commands", "record", "playback",
-                "view_transforms"):
+                "view_transforms", "views"):
         ep = getattr(e, key)
         if ep and not e.insecure and not is_loopback_endpoint(ep):
             raise ConfigError(f"endpoints.{key}", f"{ep} is reachable from other hosts and the links between "
