@@ -158,12 +158,17 @@ class ViewServer:
         if self._dealer is not None:
             self._dealer.close(0)
 
+    def _warn(self, text: str, n: int) -> None:
+        """A hostile client must not flood the log: the first 10 of a kind, then every 1000th."""
+        if n <= 10 or n % 1000 == 0:
+            log.warning("%s", text)
+
     # ------------------------------------------------------------------ HTTP
     def _refuse(self, key: str, status: int, reason: str):
         from aiohttp import web
 
         _count(self.extra, key)
-        log.warning("refused a client: %s", reason)
+        self._warn(f"refused a client ({self.extra[key]} so far): {reason}", self.extra[key])
         return web.Response(status=status, text=f"pointflow view: {reason}\n")
 
     def _auth(self, request) -> Optional[str]:
@@ -251,7 +256,8 @@ class ViewServer:
         finally:
             writer.cancel()
             if reason:
-                log.warning("client %s closed: %s", view, reason)
+                self._warn(f"client {view} closed ({self.extra['bad_messages']} bad so far): {reason}",
+                           self.extra["bad_messages"])
             await self._drop_client(c, 1000, "")
         return ws
 
@@ -316,10 +322,12 @@ class ViewServer:
         else:
             raise BadMessage(f"unknown cmd {cmd[:40]!r}")
 
-    def _grant(self, c: ViewClient) -> None:
-        n = MAX_IN_FLIGHT - c.granted - c.in_flight
-        if n > 0 and not c.closed:
-            c.granted += n
+    def _grant(self, c: ViewClient, again: bool = False) -> None:
+        """Tell render how many frames this view may take now (absolute: render sets its
+        credit to ``n``): two less the frames not yet shown by the page."""
+        n = max(0, MAX_IN_FLIGHT - c.in_flight)
+        if (n != c.granted or again) and not c.closed:
+            c.granted = n
             self._to_render(c.view, "credit", n=n)
 
     def _to_render(self, view: str, cmd: str, **args) -> None:
@@ -393,11 +401,11 @@ class ViewServer:
                 c.granted = max(0, c.granted - 1)
                 c.in_flight += 1
                 asyncio.ensure_future(self._encode(c, head, parts[1]))
-            elif kind == "error" and head.get("key") == "view" and head.get("req") is None:
+            elif kind == "error" and head.get("key") == "view" and "unknown view" in str(head.get("error")):
                 # the render stage restarted and lost the view: open it again
                 self._to_render(c.view, "open", width=c.width, height=c.height)
-                c.granted, c.in_flight = 0, 0
-                self._grant(c)
+                c.in_flight = 0
+                self._grant(c, again=True)
             else:
                 await self._send_json(c, head)
 
@@ -476,7 +484,8 @@ class ViewServer:
             self.update_stats()
             rs = self.render_stats
             for c in list(self.clients.values()):
-                self._grant(c)
+                if c.in_flight == 0:  # nothing on its way: say the credit again (a lost one must not stall)
+                    self._grant(c, again=True)
                 await self._send_json(c, {"type": "stats", "points": rs.get("points"), "fps": rs.get("fps"),
                                           "sources": rs.get("sources", self.sources),
                                           "view": self.view_stats(c), "clients": len(self.clients)})
