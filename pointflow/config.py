@@ -185,6 +185,8 @@ class EndpointsConfig:
     #: Transforms for a camera that follows a frame (only with ``frames.fixed``): PULL bound
     #: by render, every source PUSHes the transforms it sends ingest here too.
     view_transforms: Optional[str] = field(default=None, metadata=check(endpoint))
+    #: The view server's views (only with ``serve:``): ROUTER bound by render, DEALER of the view server.
+    views: Optional[str] = field(default=None, metadata=check(endpoint))
     #: Allow these (unencrypted) endpoints on a non-loopback tcp:// address.
     insecure: bool = False
 
@@ -282,6 +284,7 @@ class PipelineConfig:
             trace=e.trace or d("trace"), render_commands=e.render_commands or d("render-commands"),
             record=e.record or d("record"), playback=e.playback or d("playback"),
             view_transforms=e.view_transforms or d("view-transforms"),
+            views=e.views or d("views"),
         )
 
     def to_dict(self) -> dict:
@@ -341,7 +344,7 @@ def _check_semantics(cfg: PipelineConfig) -> None:
     if cfg.view is not None:
         _apply_view(cfg)
     for key in ("ingest", "frames", "release", "control", "trace", "render_commands", "record", "playback",
-                "view_transforms"):
+                "view_transforms", "views"):
         ep = getattr(e, key)
         if ep and not e.insecure and not is_loopback_endpoint(ep):
             raise ConfigError(f"endpoints.{key}", f"{ep} is reachable from other hosts and the links between "
