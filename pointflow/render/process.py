@@ -337,6 +337,11 @@ def main(ctx: StageContext) -> None:
         tf_in.bind(ctx.endpoints.view_transforms)
         view.follow = FollowFrame(cfg.frames.fixed, tf_in)
     stage = _Stage(renderer=renderer, view=view, capacity=capacity, channels=channels)
+    from .views import ViewHub  # the view server's views (render/views.py)
+
+    stage.hub = ViewHub.open(ctx, cfg, channels)
+    if stage.hub is not None:
+        poller.register(stage.hub.sock, zmq.POLLIN)
     if ctx.info.restart_count:
         _restore_view(ctx, view, stage)
         renderer = stage.renderer
@@ -364,6 +369,8 @@ def main(ctx: StageContext) -> None:
             ctx.beat()
             stage.window, stage.frames = window, frames - base
             _serve_commands(commands, stage, ring, ctx)
+            if stage.hub is not None:
+                stage.hub.service(stage, ring)
             renderer = stage.renderer
             if window is not None:
                 window.process_events()
@@ -379,6 +386,7 @@ def main(ctx: StageContext) -> None:
             h, slab_view = got
             tick_s = float(h.extra.get("interval_ms") or 0.0) / 1000.0
             drew = False
+            frame = None
             try:  # the slab is read only inside this block and goes back in its finally, the one place
                 t0 = time.monotonic_ns()
                 frame = frame_from_slab(h, slab_view, t0, capacity)
@@ -429,6 +437,8 @@ def main(ctx: StageContext) -> None:
                     c.drop("render_error", 1)
                     continue
             finally:
+                if stage.hub is not None and frame is not None:
+                    stage.hub.handoff(frame, drew, stage)
                 reader.release(h.slab)
                 t_free = time.monotonic_ns()
                 if not drew:  # ready for the next handoff at once
@@ -471,6 +481,8 @@ def main(ctx: StageContext) -> None:
         if window is not None:
             window.close()
         commands.close(0)
+        if stage.hub is not None:
+            stage.hub.close()
         if view.follow is not None:
             view.follow.sock.close(0)
         if frames and out_dir:
@@ -525,6 +537,7 @@ class _Stage:
     capacity: int
     channels: list
     window: Any = None
+    hub: Any = None  # the views of a view server (render/views.py)
     frames: int = 0
     #: The next frame uploads the whole slab (a renderer built since the last frame).
     full_upload: bool = False
@@ -539,6 +552,8 @@ def _serve_commands(sock, stage: _Stage, ring, ctx) -> None:
         try:
             req = json.loads(sock.recv())
             cmd = req.get("cmd") if isinstance(req, dict) else None
+            if cmd in ("pick", "save") and stage.hub is not None:
+                stage.hub.restore_main(stage)  # a view's picture may be in the target
             renderer = stage.renderer
             if cmd == "pick":
                 slot = renderer.pick(float(req["x"]), float(req["y"]), float(req.get("pixel_ratio", 1.0)))

@@ -55,6 +55,7 @@ class WgpuRenderer(Renderer):
     """GPU tier on wgpu. ``info()`` reports the adapter, limits, caps and timestamp support."""
 
     tier = "wgpu"
+    keeps_data = True
 
     def __init__(self, cfg: RenderConfig, capacity: int, channels: list[str], *,
                  adapter: Any = None, naive_float32: Optional[bool] = None,
