@@ -26,7 +26,7 @@ def scene(path: str, known=(1.5, -2.25, 3.0)) -> str:
 
 def config(source: dict, *, serve: dict | None = None, size=(W, H), **extra) -> dict:
     cfg = {"source": source, "ring": {"max_points": 20000}, "cadence": {"target_hz": 20},
-           "render": {"backend": "cpu", "size": list(size), "point_size": 3, "color_by": "z",
+           "render": {"backend": "cpu", "size": list(size), "point_size": 3, "color_by": "intensity",
                       "output": {"every_n_frames": 100000}},
            "serve": {"port": 0, "token": TOKEN, **(serve or {})}}
     cfg.update(extra)

@@ -14,6 +14,7 @@
 
   function send(msg) { if (ws && ws.readyState === 1) ws.send(JSON.stringify(msg)); }
   function control(msg) { msg.req = req++; send(msg); return msg.req; }
+  window.pointflowView.control = control;
 
   function viewSize() {
     const r = canvas.getBoundingClientRect(), dpr = window.devicePixelRatio || 1;
