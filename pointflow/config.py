@@ -21,6 +21,7 @@ from .frames.config import FramesConfig, check_frames
 from .ingest.playback import PlaybackConfig, check_playback
 from .ingest.transports import resolve_transport
 from .record.config import RecordConfig, check_record
+from .serve.config import ServeConfig, check_serve
 from .remote.options import SendConfig, check_send, is_loopback_endpoint
 from .remote.router import RouterConfig, check_router
 from .typed import Bound, ConfigError, Each, Length, check, check_keys, dataclass_schema, load_dataclass
@@ -250,6 +251,8 @@ class PipelineConfig:
     #: A view to start from (``Pipeline.save_view`` writes one): ``camera`` (fit, or
     #: eye/target/up/fov_deg) and ``style``; applied over ``render`` at load (render/control.py).
     view: Optional[dict[str, Any]] = None
+    #: The view server (docs/views.md): a page and a WebSocket; also ``pointflow run --serve [HOST:]PORT``.
+    serve: Optional[ServeConfig] = None
     #: Where the YAML came from (for relative paths in options); not a YAML key.
     base_dir: str = field(default=".", metadata={"internal": True})
 
@@ -339,6 +342,8 @@ def _check_semantics(cfg: PipelineConfig) -> None:
             raise ConfigError(f"sources[{i}].frame_id", "must be a frame name or null")
     if cfg.record is not None:
         check_record(cfg.record, "record")
+    if cfg.serve is not None:
+        check_serve(cfg.serve, "serve", cfg.base_dir)
     e = cfg.endpoints
     check_playback(cfg.playback, "playback")
     if cfg.view is not None:

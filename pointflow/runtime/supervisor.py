@@ -279,6 +279,8 @@ class Supervisor:
         order = [("render", "render", -1), ("cadence", "cadence", -1), ("ingest", "ingest", -1)]
         if cfg.record is not None:  # binds the socket ingest sends its copies to: before ingest
             order.insert(2, ("recorder", "recorder", -1))
+        if cfg.serve is not None:  # the view server (docs/views.md): its DEALER connects to render's ROUTER
+            order.insert(1, ("serve", "serve", -1))
         order += [(s.name, "source", i) for i, s in enumerate(cfg.sources) if not s.external and not _in_process(s)]
         for name, kind, idx in order:
             self.stages[name] = StageProc(name=name, kind=kind, source_index=idx)
@@ -752,7 +754,7 @@ class Supervisor:
                 except Exception:  # noqa: BLE001
                     log.exception("closing api source %s", st.name)
         sources = [st for st in self.stages.values() if st.kind == "source"]
-        waves = [sources, [self.stages[n] for n in ("ingest", "sender", "router") if n in self.stages],
+        waves = [sources, [self.stages[n] for n in ("ingest", "sender", "router", "serve") if n in self.stages],
                  [self.stages[n] for n in ("cadence", "render", "recorder") if n in self.stages]]
         for wave in waves:
             for st in wave:

