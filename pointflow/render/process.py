@@ -339,7 +339,8 @@ def main(ctx: StageContext) -> None:
     stage = _Stage(renderer=renderer, view=view, capacity=capacity, channels=channels)
     from .views import ViewHub  # the view server's views (render/views.py)
 
-    stage.hub = ViewHub.open(ctx, cfg, channels)
+    stage.hub = ViewHub.open(ctx, cfg, channels, view_cls=ViewController, shared_control=_control,
+                             point_dict=point_to_dict)
     if stage.hub is not None:
         poller.register(stage.hub.sock, zmq.POLLIN)
     if ctx.info.restart_count:

@@ -84,8 +84,12 @@ def _size(msg: dict, cmd: str) -> tuple[int, int]:
 class ViewHub:
     """The views of one render stage and the ROUTER they come through."""
 
-    def __init__(self, ctx, sock, cfg, channels: list[str]):
+    def __init__(self, ctx, sock, cfg, channels: list[str], stage_api: dict):
         self.ctx = ctx
+        #: what the render stage lends (render/process.py; passed in, so imports run one way):
+        #: ``view_cls`` (ViewController), ``shared_control`` (applies a style/visible message
+        #: to the pipeline's style) and ``point_dict`` (a ring point as a dict)
+        self.api = stage_api
         self.sock = sock
         self.cfg = cfg
         self.channels = channels
@@ -104,7 +108,7 @@ class ViewHub:
         self.draw_ms_ema = 0.0
 
     @classmethod
-    def open(cls, ctx, cfg, channels: list[str]) -> Optional["ViewHub"]:
+    def open(cls, ctx, cfg, channels: list[str], **stage_api) -> Optional["ViewHub"]:
         ep = getattr(ctx.endpoints, "views", None)
         if not ep:
             return None
@@ -114,7 +118,7 @@ class ViewHub:
         sock.setsockopt(zmq.MAXMSGSIZE, MAX_MESSAGE_BYTES)
         sock.setsockopt(zmq.SNDHWM, MAX_CREDIT * MAX_VIEWS + 64)
         sock.bind(ep)
-        return cls(ctx, sock, cfg, channels)
+        return cls(ctx, sock, cfg, channels, stage_api)
 
     # ------------------------------------------------------------------ messages
     def service(self, stage, ring) -> None:
@@ -213,9 +217,7 @@ class ViewHub:
             pr = control._num(args.get("pixel_ratio", 1.0), "pick.pixel_ratio", 0.0, 16.0, lo_open=True)
             self._pick(v, x, y, pr, req, stage, ring)
         elif cmd in ("style", "visible"):  # the pipeline's, shared by every view (module docstring)
-            from .process import _control
-
-            _control(dict(args, cmd=cmd), stage, self.ctx)
+            self.api["shared_control"](dict(args, cmd=cmd), stage, self.ctx)
             main = stage.view.state
             st = v.ctl.state.copy()
             st.style, st.hidden_sources = dataclasses.replace(main.style), list(main.hidden_sources)
@@ -230,9 +232,7 @@ class ViewHub:
                                       f"or one of {', '.join(control.COMMANDS)}")
 
     def _new_view(self, vid: str, peer: bytes, w: int, h: int, stage) -> View:
-        from .process import ViewController
-
-        ctl = ViewController(self.cfg, w, h, self.channels)
+        ctl = self.api["view_cls"](self.cfg, w, h, self.channels)
         ctl.state.style = dataclasses.replace(stage.view.state.style)
         ctl.state.hidden_sources = list(stage.view.state.hidden_sources)
         return View(id=vid, peer=peer, width=w, height=h, ctl=ctl, changed_t=time.monotonic())
@@ -400,9 +400,7 @@ class ViewHub:
         finally:
             r.resize(*self.cfg.render.size)
             self.clobbered = True
-        from .process import point_to_dict
-
-        point = point_to_dict(ring.get_point(slot)) if slot is not None else None
+        point = self.api["point_dict"](ring.get_point(slot)) if slot is not None else None
         source = None
         if point is not None:
             idx = point["channels"].get(control.SOURCE_CHANNEL)
