@@ -53,6 +53,27 @@ CONTROL = ("camera", "orbit", "pan", "zoom", "fit", "follow", "style", "visible"
 PLAYBACK_KEYS = ("paused", "seek_s", "seek_fraction", "step", "rate", "loop", "hold")
 
 
+class _OneLine(logging.Filter):
+    """aiohttp's own error logs (a client that vanished mid-request) become one counted
+    line without a traceback: no traceback reaches the user, and a hostile client cannot
+    flood the log (the first 10, then every 1000th)."""
+
+    def __init__(self, extra: dict):
+        super().__init__()
+        self.extra = extra
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.levelno < logging.WARNING:
+            return True
+        _count(self.extra, "server_errors")
+        n = self.extra["server_errors"]
+        if record.exc_info and record.exc_info[1] is not None:
+            e = record.exc_info[1]
+            record.msg, record.args = f"{record.getMessage()}: {type(e).__name__}: {e} ({n} so far)", ()
+            record.exc_info, record.exc_text = None, None
+        return n <= 10 or n % 1000 == 0
+
+
 class BadMessage(ValueError):
     """A client message that is not one of the page's (closes that client, counted)."""
 
@@ -102,7 +123,8 @@ class ViewServer:
         self.extra: dict[str, Any] = counters.extra if counters is not None else {}
         for k in ("clients", "clients_total", "refused_token", "refused_origin", "refused_full", "bad_messages",
                   "rate_limited", "send_timeouts", "frames_in", "frames_sent", "dropped_frames", "bytes_sent",
-                  "encode_errors", "control_sent", "control_dropped", "render_errors"):
+                  "encode_errors", "control_sent", "control_dropped", "render_errors", "clients_gone",
+                  "client_errors", "server_errors"):
             self.extra.setdefault(k, 0)
         self._zctx_sync = zctx  # the shadow does not own it: keep it alive
         self.zctx = zmq.asyncio.Context.shadow(zctx.underlying)
@@ -121,6 +143,9 @@ class ViewServer:
     async def start(self) -> str:
         from aiohttp import web
 
+        self._filter = _OneLine(self.extra)
+        for name in ("aiohttp.server", "aiohttp.web", "aiohttp.websocket", "aiohttp.internal"):
+            logging.getLogger(name).addFilter(self._filter)
         self._dealer = self.zctx.socket(zmq.DEALER)
         self._dealer.setsockopt(zmq.LINGER, 0)
         self._dealer.setsockopt(zmq.SNDHWM, 1000)
@@ -222,7 +247,11 @@ class ViewServer:
             return self._refuse("refused_full", 503, f"{lim.max_clients} clients already (serve.limits.max_clients)")
         ws = web.WebSocketResponse(max_msg_size=lim.max_message_bytes, compress=False, heartbeat=20.0,
                                    timeout=lim.send_timeout_s)
-        await ws.prepare(request)
+        try:
+            await ws.prepare(request)
+        except (ConnectionError, asyncio.TimeoutError):  # it left during the handshake
+            _count(self.extra, "clients_gone")
+            return web.Response(status=400, text="gone\n")  # aiohttp drops it quietly (the peer is gone)
         view = f"w{self.extra['clients_total']}-{secrets.token_hex(4)}"
         c = ViewClient(view, ws, self.sc.width, self.sc.height, tokens=lim.max_messages_per_s * 2)
         self.clients[view] = c
@@ -253,6 +282,11 @@ class ViewServer:
                     _count(self.extra, "bad_messages")
                     reason = f"bad message: {ws.exception()}"
                     break
+        except (ConnectionError, asyncio.TimeoutError):  # the client went away mid-message
+            _count(self.extra, "clients_gone")
+        except Exception as exc:  # noqa: BLE001 - one client's fault never reaches the others
+            _count(self.extra, "client_errors")
+            reason = f"{type(exc).__name__}: {exc}"
         finally:
             writer.cancel()
             if reason:
