@@ -47,6 +47,10 @@ MAX_MESSAGES_PER_TURN = 256
 MOVING_S = 0.25
 #: How often every connected view server gets a ``stats`` message.
 STATS_S = 1.0
+#: While views are watched (and no window is open) the main view is drawn at most this
+#: often: its picture is read only for PNGs, picks and saves (those redraw it on demand),
+#: so the render stage's frames go to the views.
+MAIN_WHILE_VIEWED_S = 0.5
 SIZE_RANGE = (16, 4096)
 
 
@@ -106,6 +110,7 @@ class ViewHub:
         self._main_frames0 = 0
         self._view_frames0 = 0
         self.draw_ms_ema = 0.0
+        self.t_main = 0.0  # when the main view was last drawn
 
     @classmethod
     def open(cls, ctx, cfg, channels: list[str], **stage_api) -> Optional["ViewHub"]:
@@ -258,23 +263,33 @@ class ViewHub:
         self._counters()
 
     # ------------------------------------------------------------------ drawing
+    def main_rests(self, window) -> bool:
+        """True when the main view skips this handoff: views that can take a frame draw it
+        instead (in :meth:`handoff`, which uploads the data), and main was drawn lately."""
+        return (window is None and bool(self.views) and any(v.credit > 0 for v in self.views.values())
+                and time.monotonic() - self.t_main < MAIN_WHILE_VIEWED_S)
+
     def handoff(self, frame: FrameInput, main_drew: bool, stage) -> None:
-        """A handoff (its slab still held): keep it for drawing between handoffs; tiers that
-        read the slab at every draw draw their views now, then main again (its picture is
-        the one PNGs, picks and saves read)."""
-        if self._unconsumed and not main_drew:
-            stage.full_upload = True  # dirty ranges that nobody drew: the next draw takes all
+        """A handoff (its slab still held): keep it for drawing between handoffs. Views draw
+        now when main did not take the new data (it rests) or when the tier reads the slab
+        at every draw; after those, main draws again (its picture is the one PNGs, picks
+        and saves read)."""
+        if main_drew:
+            self.t_main = time.monotonic()
         sig = (frame.head, frame.size, tuple(np.round(frame.origin, 9)))
         if frame.dirty is None or frame.dirty or sig != self._data_sig:
             self.data_gen += 1
         self._data_sig = sig
         self._unconsumed = not main_drew and frame.dirty != []
         self.last_frame = frame
-        if not self.views or stage.renderer.keeps_data:
+        if not self.views or (stage.renderer.keeps_data and not self._unconsumed):
             return
         drew = self._draw_all(stage, frame)
         if drew and main_drew and stage.view.last is not None:
             self.restore_main(stage)
+        if self._unconsumed:  # new data nobody drew before its slab goes back: the next frame takes all
+            self._unconsumed = False
+            stage.full_upload = True
 
     def restore_main(self, stage) -> None:
         """Draw main's picture again (from the data already uploaded) when a view's is in
@@ -440,8 +455,8 @@ class ViewHub:
         self._t_stats = now
         main = int(self.ctx.counters.extra.get("frames", 0))
         vf = self.totals["view_frames"]
-        fps = (main - self._main_frames0) / dt if dt > 0 else 0.0
         vfps = (vf - self._view_frames0) / dt if dt > 0 else 0.0
+        fps = (main - self._main_frames0) / dt + vfps if dt > 0 else 0.0  # every picture the stage drew
         self._main_frames0, self._view_frames0 = main, vf
         self._counters()
         drops = {k: v for k, v in self.ctx.counters.drops.items() if v}
