@@ -29,7 +29,7 @@ import numpy as np
 import zmq
 
 from . import control
-from .base import FrameInput, RenderError
+from .base import FrameInput, RenderError, merge_ranges
 from .control import ControlError
 
 __all__ = ["ViewHub", "MAX_CREDIT", "MAX_VIEWS"]
@@ -104,6 +104,9 @@ class ViewHub:
         self.data_gen = 0
         self._data_sig: Any = None
         self._unconsumed = False  # last_frame's dirty ranges not drawn by anyone yet
+        #: dirty ranges of handoffs nobody drew (None = all): a later slab holds those slots'
+        #: newer contents, so the next draw takes them from there
+        self._carry: Any = []
         self.clobbered = False  # the renderer's target holds a view's picture, not main's
         self.totals = {"view_frames": 0, "view_skipped_no_credit": 0, "view_bytes": 0, "view_uploaded_bytes": 0}
         self._t_stats = time.monotonic()
@@ -263,11 +266,21 @@ class ViewHub:
         self._counters()
 
     # ------------------------------------------------------------------ drawing
-    def main_rests(self, window) -> bool:
-        """True when the main view skips this handoff: views that can take a frame draw it
-        instead (in :meth:`handoff`, which uploads the data), and main was drawn lately."""
-        return (window is None and bool(self.views) and any(v.credit > 0 for v in self.views.values())
-                and time.monotonic() - self.t_main < MAIN_WHILE_VIEWED_S)
+    def _take_carry(self, frame: FrameInput) -> None:
+        if self._carry == []:
+            return
+        if self._carry is None or frame.dirty is None:
+            frame.dirty = None
+        else:
+            frame.dirty = merge_ranges(list(self._carry) + list(frame.dirty), frame.capacity)
+        self._carry = []
+
+    def main_rests(self, window, frame: FrameInput) -> bool:
+        """True when the main view skips this handoff (views are open, no window, and main
+        was drawn lately): the views draw it instead (:meth:`handoff`). Also gives ``frame``
+        the dirty ranges of earlier handoffs that nobody drew."""
+        self._take_carry(frame)
+        return window is None and bool(self.views) and time.monotonic() - self.t_main < MAIN_WHILE_VIEWED_S
 
     def handoff(self, frame: FrameInput, main_drew: bool, stage) -> None:
         """A handoff (its slab still held): keep it for drawing between handoffs. Views draw
@@ -276,6 +289,8 @@ class ViewHub:
         and saves read)."""
         if main_drew:
             self.t_main = time.monotonic()
+        else:
+            self._take_carry(frame)
         sig = (frame.head, frame.size, tuple(np.round(frame.origin, 9)))
         if frame.dirty is None or frame.dirty or sig != self._data_sig:
             self.data_gen += 1
@@ -287,9 +302,9 @@ class ViewHub:
         drew = self._draw_all(stage, frame)
         if drew and main_drew and stage.view.last is not None:
             self.restore_main(stage)
-        if self._unconsumed:  # new data nobody drew before its slab goes back: the next frame takes all
+        if self._unconsumed:  # new data nobody drew before its slab goes back: the next draw takes it
             self._unconsumed = False
-            stage.full_upload = True
+            self._carry = None if frame.dirty is None else list(frame.dirty)
 
     def restore_main(self, stage) -> None:
         """Draw main's picture again (from the data already uploaded) when a view's is in
