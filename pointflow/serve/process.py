@@ -4,6 +4,8 @@ stops the render stage). An asyncio loop in the main thread runs the web server
 from __future__ import annotations
 
 import asyncio
+import dataclasses
+import os
 import sys
 
 
@@ -30,6 +32,10 @@ async def _run(ctx) -> None:
 
     sc = ctx.cfg.serve
     token = run_token(ctx.info.run_dir, sc.token)
+    port_file = os.path.join(ctx.info.run_dir, "serve-port")
+    if sc.port == 0 and ctx.info.restart_count > 0 and os.path.exists(port_file):
+        with open(port_file) as f:  # a restarted server keeps the URL the user has open
+            sc = dataclasses.replace(sc, port=int(f.read().strip() or 0))
     srv = ViewServer(sc, views_endpoint=ctx.endpoints.views,
                      playback_endpoints=_playback_endpoints(ctx.cfg, ctx.endpoints.playback), token=token,
                      zctx=ctx.zmq, counters=ctx.counters, spans=ctx.spans,
@@ -42,6 +48,8 @@ async def _run(ctx) -> None:
         ctx.fail_run(f"serve: cannot listen on {sc.host}:{sc.port}: {exc.strerror or exc} "
                      "(set serve.port, or --serve [HOST:]PORT; 0 = any free port)")
         return
+    with open(port_file, "w") as f:
+        f.write(str(srv.port))
     if ctx.info.restart_count == 0:
         print(f"view: {url}", file=sys.stderr, flush=True)
     else:

@@ -427,7 +427,7 @@ class ViewServer:
         self._bytes["jpeg" if enc.mime == "image/jpeg" else "png"].append(len(enc.data))
         seq = int(head.get("seq", 0))
         if self.spans is not None:
-            self.spans.record((hash(c.view) << 20) ^ seq or 1, "view_encode", t0, t1, len(enc.data))
+            self.spans.record((hash(c.view) << 20) ^ seq or 1, "view_encode", t0, t1, int(head.get("points") or 0))
         if c.closed:
             return
         if seq <= c.last_sent_seq:  # an older frame finished after a newer one

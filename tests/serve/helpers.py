@@ -77,8 +77,10 @@ def ws_connect(base: str, *, token: str | None = TOKEN, origin: str | None = "sa
         headers["Cookie"] = f"pointflow_view={token}"
     if origin == "same":
         origin = base
-    return connect(base.replace("http://", "ws://") + "/ws", additional_headers=headers, origin=origin,
-                   max_size=2 ** 24, open_timeout=20, **kw)
+    ws = connect(base.replace("http://", "ws://") + "/ws", additional_headers=headers, origin=origin,
+                 max_size=2 ** 24, open_timeout=20, **kw)
+    ws.pending_legacy_warning = False  # websockets >= 17.1 asks for `with`; the tests close each one
+    return ws
 
 
 def read_until(ws, pred, timeout: float = 60.0):

@@ -140,3 +140,45 @@ def test_two_tabs_keep_their_own_cameras(browser, pipe):
     assert st["clients"] >= 2
     for p in (a, b):
         p.context.close()
+
+
+def _scans(path: str, n: int) -> str:
+    d = os.path.join(path, "scans")
+    os.makedirs(d, exist_ok=True)
+    for i in range(n):
+        g = np.arange(200, dtype=float)
+        np.savez(os.path.join(d, f"s{i:03d}.npz"), x=np.full(200, float(i)), y=g / 20, z=np.sin(g / 10),
+                 intensity=np.full(200, float(i), np.float32))
+    return d
+
+
+def test_timeline_pauses_and_seeks_a_replay(browser, tmp_path):
+    n, rate = 40, 10.0  # 4 s of recording, looped
+    src = {"transport": "file", "name": "rec", "options": {"path": _scans(str(tmp_path), n), "rate": rate}}
+    with Pipeline.from_dict(config(src, playback={"loop": True}), out_dir=str(tmp_path)) as pipe:
+        page = _open(browser, pipe)
+        assert page.locator("#timeline").is_visible()
+        page.wait_for_function("window.pointflowView.playback() !== null", timeout=30000)
+        assert page.evaluate("window.pointflowView.playback().paused") is False
+        page.click("#play")  # pause
+        page.wait_for_function("window.pointflowView.playback() && window.pointflowView.playback().paused",
+                               timeout=30000)
+        st = pipe.playback()["rec"]
+        assert st["paused"]
+        pipe.wait(0.5)
+        src_in = pipe.stats()["stages"]["rec"]["points_out"]
+        pipe.wait(1.5)
+        assert pipe.stats()["stages"]["rec"]["points_out"] == src_in, "the paused replay still sends"
+        # seek to the middle with the slider (as a user's drag ends: a change event)
+        page.evaluate("""() => { const s = document.getElementById('seek'); s.value = '500';
+                                 s.dispatchEvent(new Event('change')); }""")
+        pipe.wait(20, until=lambda: pipe.playback()["rec"]["seeks"] >= 1)
+        st = pipe.playback()["rec"]
+        assert st["seeks"] >= 1 and st["paused"]
+        index0 = st["index"]
+        page.click("#play")  # play: the replay goes on from the middle
+        pipe.wait(30, until=lambda: pipe.playback()["rec"]["index"] != index0)
+        st = pipe.playback()["rec"]
+        assert not st["paused"]
+        assert n // 2 - 1 <= st["index"] <= n - 1 and st["position_s"] >= 0.45 * st["duration_s"], st
+        page.context.close()

@@ -7,6 +7,8 @@ import os
 import re
 import subprocess
 import sys
+import time
+import urllib.error
 
 import pytest
 
@@ -117,3 +119,64 @@ def test_cli_prints_the_view_line_and_it_opens(tmp_path):
         p.terminate()
         p.communicate(timeout=60)
     assert p.returncode == 0
+
+
+def test_a_killed_view_server_comes_back_on_the_same_url(pipe):
+    """A fault in the web server ends only its stage: the supervisor restarts it on the same
+    port with the same token, and the render stage never noticed."""
+    import signal
+
+    base = base_url(pipe)
+    st = serve_stats(pipe)
+    r0 = pipe.stats()["stages"]["render"]
+    os.kill(st["pid"], signal.SIGKILL)
+    pipe.wait(60, until=lambda: serve_stats(pipe).get("restarts", 0) >= 1 and serve_stats(pipe).get("alive")
+              and serve_stats(pipe).get("pid") != st["pid"])
+    assert serve_stats(pipe)["restarts"] >= 1
+    code = None
+    end = time.monotonic() + 60
+    while time.monotonic() < end:
+        try:
+            code, body, _ = http_get(base + "/", {"Cookie": f"pointflow_view={TOKEN}"})
+            break
+        except OSError:
+            pipe.wait(0.5)
+    assert code == 200, "the restarted view server is not on the same URL"
+    with ws_connect(base) as ws:
+        assert '"hello"' in ws.recv(timeout=20)
+    r1 = pipe.stats()["stages"]["render"]
+    assert r1["restarts"] == r0["restarts"] and r1["pid"] == r0["pid"]
+
+
+def test_tls(tmp_path):
+    """serve.tls: https and wss with the certificate of `pointflow keys NAME --tls`; the
+    cookie is Secure."""
+    import ssl
+
+    from pointflow.remote.tls import make_certificate
+
+    make_certificate("view", tmp_path, hosts=["127.0.0.1", "localhost"])
+    cfg = config(synthetic_source(), serve={"tls": {"cert": str(tmp_path / "view.pem"),
+                                                    "key": str(tmp_path / "view-key.pem")}})
+    with Pipeline.from_dict(cfg, out_dir=str(tmp_path / "out")) as p:
+        port = base_url(p).rsplit(":", 1)[1]
+        ctx = ssl.create_default_context(cafile=str(tmp_path / "ca.pem"))
+        import urllib.request
+
+        class NoRedirect(urllib.request.HTTPRedirectHandler):
+            def redirect_request(self, *a, **k):
+                return None
+
+        opener = urllib.request.build_opener(urllib.request.HTTPSHandler(context=ctx), NoRedirect)
+        try:
+            opener.open(f"https://127.0.0.1:{port}/?token={TOKEN}", timeout=20)
+            raise AssertionError("expected a redirect")
+        except urllib.error.HTTPError as e:
+            assert e.code == 303 and "Secure" in e.headers["Set-Cookie"]
+        with pytest.raises(OSError):  # plain http on the TLS port gets nowhere
+            urllib.request.urlopen(f"http://127.0.0.1:{port}/?token={TOKEN}", timeout=10).read()
+        from websockets.sync.client import connect
+
+        with connect(f"wss://127.0.0.1:{port}/ws", ssl=ctx, origin=f"https://127.0.0.1:{port}",
+                     additional_headers={"Cookie": f"pointflow_view={TOKEN}"}, open_timeout=20) as ws:
+            assert '"hello"' in ws.recv(timeout=20)

@@ -27,7 +27,12 @@
     ws = new WebSocket(`${proto}//${location.host}/ws`);
     ws.binaryType = "arraybuffer";
     ws.onopen = () => { statusEl.textContent = "waiting for the first frame…"; };
-    ws.onclose = (e) => { statusEl.textContent = `disconnected (${e.code}${e.reason ? ": " + e.reason : ""}) — reload to reconnect`; };
+    ws.onclose = (e) => {
+      // the view server restarted or the link dropped: try again; a refusal (bad message) stays closed
+      const again = ![1003, 1008, 1009].includes(e.code);
+      statusEl.textContent = `disconnected (${e.code}${e.reason ? ": " + e.reason : ""})` + (again ? " — reconnecting…" : " — reload to reconnect");
+      if (again) setTimeout(connect, 1000);
+    };
     ws.onmessage = (e) => {
       if (typeof e.data === "string") onJson(JSON.parse(e.data)); else onFrame(e.data);
     };
@@ -94,6 +99,8 @@
       fillOptions($("color_by"), m.color_by || ["z"]);
       fillOptions($("colormap"), m.colormaps || ["turbo"]);
       send({ cmd: "resize", ...viewSize() });
+      const c = lastState && lastState.camera;  // a reconnect keeps the camera the user had
+      if (c && c.mode === "fixed" && c.eye && c.target) control({ cmd: "camera", eye: c.eye, target: c.target, up: c.up, fov_deg: c.fov_deg });
       control({ cmd: "view_state" });
       if (m.replays && m.replays.length) { $("timeline").hidden = false; playback({}); }
     } else if (m.type === "reply") { applyState(m.state || m); }
