@@ -69,7 +69,7 @@ class View:
     drawn_key: Any = None
     changed_t: float = 0.0
     sent_moving: bool = False
-    last_image: Optional[bytes] = None
+    last_image: Optional[np.ndarray] = None
     last_header: dict = field(default_factory=dict)
     waiting: bool = False  # a change is waiting for credit (counted once per change)
 
@@ -387,16 +387,16 @@ class ViewHub:
                "version": v.ctl.state.version, "points": int(self.last_frame.size), "frame_ms": round(ms, 3),
                "t_ns": time.monotonic_ns()}
         self.draw_ms_ema = ms if not self.draw_ms_ema else 0.9 * self.draw_ms_ema + 0.1 * ms
-        data = img.tobytes()
+        data = np.ascontiguousarray(img)  # read_image's own copy: sent without another (zmq copy=False)
         if not self._send(v.peer, hdr, data):
             return True
         v.last_image, v.last_header = data, hdr
         v.sent_moving = moving
         v.credit -= 1
         v.frames += 1
-        v.bytes_sent += len(data)
+        v.bytes_sent += data.nbytes
         self.totals["view_frames"] += 1
-        self.totals["view_bytes"] += len(data)
+        self.totals["view_bytes"] += data.nbytes
         return True
 
     def _resend_still(self) -> None:
@@ -410,9 +410,9 @@ class ViewHub:
                     v.sent_moving = False
                     v.credit -= 1
                     v.frames += 1
-                    v.bytes_sent += len(v.last_image)
+                    v.bytes_sent += v.last_image.nbytes
                     self.totals["view_frames"] += 1
-                    self.totals["view_bytes"] += len(v.last_image)
+                    self.totals["view_bytes"] += v.last_image.nbytes
 
     def _pick(self, v: View, x: float, y: float, pr: float, req, stage, ring) -> None:
         """Draw the view's picture (from the data uploaded) and pick in it."""
@@ -441,7 +441,7 @@ class ViewHub:
         self._send(v.peer, {"type": "pick", "view": v.id, "req": req, "point": point, "source": source})
 
     # ------------------------------------------------------------------ sending, stats
-    def _send(self, peer: bytes, header: dict, payload: bytes = b"") -> bool:
+    def _send(self, peer: bytes, header: dict, payload: Any = b"") -> bool:
         try:
             self.sock.send_multipart([peer, json.dumps(header).encode(), payload], zmq.NOBLOCK, copy=False)
             return True
