@@ -397,6 +397,8 @@ def main(ctx: StageContext) -> None:
                 camera = window.camera if window is not None else view.camera(frame)
                 if camera is None:  # nothing to frame yet
                     continue
+                if stage.hub is not None and stage.hub.main_rests(window, frame):
+                    continue  # views are watched: they draw this handoff (render/views.py)
                 if view.unchanged(frame, camera, renderer):  # the same picture again: not drawn
                     view.skipped += 1
                     c.extra["frames_skipped_unchanged"] = view.skipped

@@ -29,7 +29,7 @@ import numpy as np
 import zmq
 
 from . import control
-from .base import FrameInput, RenderError
+from .base import FrameInput, RenderError, merge_ranges
 from .control import ControlError
 
 __all__ = ["ViewHub", "MAX_CREDIT", "MAX_VIEWS"]
@@ -47,6 +47,10 @@ MAX_MESSAGES_PER_TURN = 256
 MOVING_S = 0.25
 #: How often every connected view server gets a ``stats`` message.
 STATS_S = 1.0
+#: While views are watched (and no window is open) the main view is drawn at most this
+#: often: its picture is read only for PNGs, picks and saves (those redraw it on demand),
+#: so the render stage's frames go to the views.
+MAIN_WHILE_VIEWED_S = 0.5
 SIZE_RANGE = (16, 4096)
 
 
@@ -65,7 +69,7 @@ class View:
     drawn_key: Any = None
     changed_t: float = 0.0
     sent_moving: bool = False
-    last_image: Optional[bytes] = None
+    last_image: Optional[np.ndarray] = None
     last_header: dict = field(default_factory=dict)
     waiting: bool = False  # a change is waiting for credit (counted once per change)
 
@@ -100,12 +104,16 @@ class ViewHub:
         self.data_gen = 0
         self._data_sig: Any = None
         self._unconsumed = False  # last_frame's dirty ranges not drawn by anyone yet
+        #: dirty ranges of handoffs nobody drew (None = all): a later slab holds those slots'
+        #: newer contents, so the next draw takes them from there
+        self._carry: Any = []
         self.clobbered = False  # the renderer's target holds a view's picture, not main's
         self.totals = {"view_frames": 0, "view_skipped_no_credit": 0, "view_bytes": 0, "view_uploaded_bytes": 0}
         self._t_stats = time.monotonic()
         self._main_frames0 = 0
         self._view_frames0 = 0
         self.draw_ms_ema = 0.0
+        self.t_main = 0.0  # when the main view was last drawn
 
     @classmethod
     def open(cls, ctx, cfg, channels: list[str], **stage_api) -> Optional["ViewHub"]:
@@ -258,23 +266,45 @@ class ViewHub:
         self._counters()
 
     # ------------------------------------------------------------------ drawing
+    def _take_carry(self, frame: FrameInput) -> None:
+        if self._carry == []:
+            return
+        if self._carry is None or frame.dirty is None:
+            frame.dirty = None
+        else:
+            frame.dirty = merge_ranges(list(self._carry) + list(frame.dirty), frame.capacity)
+        self._carry = []
+
+    def main_rests(self, window, frame: FrameInput) -> bool:
+        """True when the main view skips this handoff (views are open, no window, and main
+        was drawn lately): the views draw it instead (:meth:`handoff`). Also gives ``frame``
+        the dirty ranges of earlier handoffs that nobody drew."""
+        self._take_carry(frame)
+        return window is None and bool(self.views) and time.monotonic() - self.t_main < MAIN_WHILE_VIEWED_S
+
     def handoff(self, frame: FrameInput, main_drew: bool, stage) -> None:
-        """A handoff (its slab still held): keep it for drawing between handoffs; tiers that
-        read the slab at every draw draw their views now, then main again (its picture is
-        the one PNGs, picks and saves read)."""
-        if self._unconsumed and not main_drew:
-            stage.full_upload = True  # dirty ranges that nobody drew: the next draw takes all
+        """A handoff (its slab still held): keep it for drawing between handoffs. Views draw
+        now when main did not take the new data (it rests) or when the tier reads the slab
+        at every draw; after those, main draws again (its picture is the one PNGs, picks
+        and saves read)."""
+        if main_drew:
+            self.t_main = time.monotonic()
+        else:
+            self._take_carry(frame)
         sig = (frame.head, frame.size, tuple(np.round(frame.origin, 9)))
         if frame.dirty is None or frame.dirty or sig != self._data_sig:
             self.data_gen += 1
         self._data_sig = sig
         self._unconsumed = not main_drew and frame.dirty != []
         self.last_frame = frame
-        if not self.views or stage.renderer.keeps_data:
+        if not self.views or (stage.renderer.keeps_data and not self._unconsumed):
             return
         drew = self._draw_all(stage, frame)
         if drew and main_drew and stage.view.last is not None:
             self.restore_main(stage)
+        if self._unconsumed:  # new data nobody drew before its slab goes back: the next draw takes it
+            self._unconsumed = False
+            self._carry = None if frame.dirty is None else list(frame.dirty)
 
     def restore_main(self, stage) -> None:
         """Draw main's picture again (from the data already uploaded) when a view's is in
@@ -357,16 +387,16 @@ class ViewHub:
                "version": v.ctl.state.version, "points": int(self.last_frame.size), "frame_ms": round(ms, 3),
                "t_ns": time.monotonic_ns()}
         self.draw_ms_ema = ms if not self.draw_ms_ema else 0.9 * self.draw_ms_ema + 0.1 * ms
-        data = img.tobytes()
+        data = np.ascontiguousarray(img)  # read_image's own copy: sent without another (zmq copy=False)
         if not self._send(v.peer, hdr, data):
             return True
         v.last_image, v.last_header = data, hdr
         v.sent_moving = moving
         v.credit -= 1
         v.frames += 1
-        v.bytes_sent += len(data)
+        v.bytes_sent += data.nbytes
         self.totals["view_frames"] += 1
-        self.totals["view_bytes"] += len(data)
+        self.totals["view_bytes"] += data.nbytes
         return True
 
     def _resend_still(self) -> None:
@@ -380,9 +410,9 @@ class ViewHub:
                     v.sent_moving = False
                     v.credit -= 1
                     v.frames += 1
-                    v.bytes_sent += len(v.last_image)
+                    v.bytes_sent += v.last_image.nbytes
                     self.totals["view_frames"] += 1
-                    self.totals["view_bytes"] += len(v.last_image)
+                    self.totals["view_bytes"] += v.last_image.nbytes
 
     def _pick(self, v: View, x: float, y: float, pr: float, req, stage, ring) -> None:
         """Draw the view's picture (from the data uploaded) and pick in it."""
@@ -411,7 +441,7 @@ class ViewHub:
         self._send(v.peer, {"type": "pick", "view": v.id, "req": req, "point": point, "source": source})
 
     # ------------------------------------------------------------------ sending, stats
-    def _send(self, peer: bytes, header: dict, payload: bytes = b"") -> bool:
+    def _send(self, peer: bytes, header: dict, payload: Any = b"") -> bool:
         try:
             self.sock.send_multipart([peer, json.dumps(header).encode(), payload], zmq.NOBLOCK, copy=False)
             return True
@@ -440,8 +470,8 @@ class ViewHub:
         self._t_stats = now
         main = int(self.ctx.counters.extra.get("frames", 0))
         vf = self.totals["view_frames"]
-        fps = (main - self._main_frames0) / dt if dt > 0 else 0.0
         vfps = (vf - self._view_frames0) / dt if dt > 0 else 0.0
+        fps = (main - self._main_frames0) / dt + vfps if dt > 0 else 0.0  # every picture the stage drew
         self._main_frames0, self._view_frames0 = main, vf
         self._counters()
         drops = {k: v for k, v in self.ctx.counters.drops.items() if v}

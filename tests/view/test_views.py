@@ -243,3 +243,57 @@ def test_pick_in_a_view_names_the_source(tmp_path):
             assert p["point"] is None and p["source"] is None
         finally:
             cl.close()
+
+
+def _stream_config(tier: str) -> dict:
+    r = {"size": [W, H], "point_size": 2, "color_by": "intensity", "output": {"every_n_frames": 100000}}
+    r.update(TIERS[tier])
+    return {"sources": [{"transport": "api", "name": "api"}], "ring": {"max_points": 20000},
+            "cadence": {"target_hz": 30}, "render": r}
+
+
+def _batches():
+    g = np.stack(np.meshgrid(np.arange(0, 20, 0.25), np.arange(0, 20, 0.25)), -1).reshape(-1, 2)
+    pts = np.column_stack([g, np.where(g[:, 0] >= 10.0, 3.0, 0.0)]).astype(np.float32)
+    return [(pts[i:i + 640], np.arange(i, i + 640, dtype=np.float32)) for i in range(0, len(pts), 640)]
+
+
+def test_data_no_one_drew_while_main_rests_reaches_the_view_later(tmp_path):
+    """Main rests while a view is open (drawn every 0.5 s), and the view takes no frames:
+    the handoffs nobody drew carry their dirty ranges to the next draw. The picture at the
+    end must be the one a run without views draws (nothing lost)."""
+    pics = []
+    for with_view in (True, False):
+        with Pipeline.from_dict(_stream_config("cpu-compute"), out_dir=str(tmp_path)) as pipe:
+            cl = ViewClient(pipe._sup.endpoints.views) if with_view else None
+            try:
+                if cl:
+                    cl.send(view="s", cmd="open", width=W, height=H, req=1)
+                    cl.send(view="s", cmd="camera", req=2, **TOP)
+                    cl.reply("s", 2)
+                for pos, inten in _batches():
+                    pipe.send(pos, source="api", intensity=inten)
+                    if cl:  # a client that takes no frames: main rests, nobody draws most handoffs
+                        cl.drain(0.1)
+                    else:
+                        time.sleep(0.1)
+                pipe.wait(60, until=lambda: pipe.stats()["accounting"]["ring_written"] >= 6400)
+                if cl:
+                    time.sleep(1.0)  # the last handoffs
+                    cl.send(view="s", cmd="credit", n=0)
+                    cl.drain(0.5)
+                    cl.send(view="s", cmd="zoom", factor=1.0, req=3)  # a no-op: the version stays
+                    cl.send(view="s", cmd="orbit", azimuth_deg=0.0, req=4)
+                    r = cl.reply("s", 4)
+                    cl.send(view="s", cmd="credit", n=1)
+                    h, img = cl.frame("s", r["version"])
+                    pics.append(img[..., :3].copy())
+                else:
+                    pipe.camera(**{k: TOP[k] for k in ("eye", "target", "up", "fov_deg")})
+                    time.sleep(1.0)
+                    pics.append(np.asarray(Image.open(pipe.save_frame(str(tmp_path / "ref.png"))))[..., :3])
+            finally:
+                if cl:
+                    cl.close()
+    assert np.array_equal(pics[0], pics[1]), \
+        f"{int((pics[0] != pics[1]).any(-1).sum())} pixels differ from a run without views"
