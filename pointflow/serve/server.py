@@ -88,6 +88,9 @@ class ViewClient:
     granted: int = 0
     #: Frames received from render and not yet acked by the page (encoding, queued, sent).
     in_flight: int = 0
+    #: Frames written to the client's socket and not yet acked: only these can be acked (a
+    #: client that acks without reading gets no more frames once its socket is full).
+    unacked: int = 0
     queue: collections.deque = field(default_factory=collections.deque)
     wake: asyncio.Event = field(default_factory=asyncio.Event)
     last_sent_seq: int = -1
@@ -124,7 +127,7 @@ class ViewServer:
         for k in ("clients", "clients_total", "refused_token", "refused_origin", "refused_full", "bad_messages",
                   "rate_limited", "send_timeouts", "frames_in", "frames_sent", "dropped_frames", "bytes_sent",
                   "encode_errors", "control_sent", "control_dropped", "render_errors", "clients_gone",
-                  "client_errors", "server_errors"):
+                  "client_errors", "server_errors", "bogus_acks"):
             self.extra.setdefault(k, 0)
         self._zctx_sync = zctx  # the shadow does not own it: keep it alive
         self.zctx = zmq.asyncio.Context.shadow(zctx.underlying)
@@ -332,9 +335,12 @@ class ViewServer:
         if req is not None and (isinstance(req, bool) or not isinstance(req, int)):
             raise BadMessage("'req' must be an integer")
         if cmd == "ack":  # the page has shown a frame: it may take another
-            if c.in_flight > 0:
-                c.in_flight -= 1
-            self._grant(c)
+            if c.unacked > 0:
+                c.unacked -= 1
+                c.in_flight = max(0, c.in_flight - 1)
+                self._grant(c)
+            else:
+                _count(self.extra, "bogus_acks")
         elif cmd == "resize":
             w, h = msg.get("width"), msg.get("height")
             mx = self.sc.limits.max_view_px
@@ -502,6 +508,7 @@ class ViewServer:
                 except (ConnectionError, RuntimeError):
                     return
                 c.last_sent_seq = seq
+                c.unacked += 1
                 c.frames_sent += 1
                 c.bytes_sent += len(data)
                 c.sizes.append(len(data))
