@@ -1,13 +1,15 @@
 """Hostile clients against the view server (issue 32): does the render stage, and a good
 client beside them, keep its frame rate?
 
-One pipeline (a synthetic lidar streaming into the cpu tier, a view server). Phases of
+One pipeline (a synthetic lidar streaming 50k points/s into the compiled cpu raster, 320x240,
+a view server). Phases of
 ``--seconds`` each, interleaved ``quiet, hostile, quiet, hostile, ...``:
 
 * ``quiet`` — one good client (the page's protocol: it acks each frame it takes);
-* ``hostile`` — the same good client, plus ``--never-read`` clients that ask for frames
-  ("ack") and never read one, plus ``--garbage`` clients that connect, send garbage or an
-  oversized message and are thrown out, over and over.
+* ``hostile`` — the same good client, plus ``--never-read`` clients that open a view and
+  never read (nor ack) a frame, ``--liars`` that keep saying "ack" without reading (they
+  look like fast viewers until their socket buffer is full), and ``--garbage`` clients per
+  tick that connect, send garbage or an oversized message and are thrown out, over and over.
 
 Measured per phase: the render stage's pictures per second (its own ``frames`` plus the
 views' frames), and the good client's frames per second. Ratios hostile/quiet, medians over
@@ -37,9 +39,10 @@ TOKEN = "bench-token-0123456789abcdef"
 
 
 def _cfg() -> dict:
-    return {"source": {"transport": "synthetic", "name": "lidar", "options": {"scan_hz": 10, "points_per_scan": 20000}},
-            "ring": {"max_points": 200000}, "cadence": {"target_hz": 30},
-            "render": {"backend": "cpu", "size": [320, 240], "output": {"every_n_frames": 1000000}},
+    return {"source": {"transport": "synthetic", "name": "lidar", "options": {"scan_hz": 10, "points_per_scan": 5000}},
+            "ring": {"max_points": 50000}, "cadence": {"target_hz": 30},
+            "render": {"backend": "cpu", "raster": "compute", "size": [320, 240],
+                       "output": {"every_n_frames": 1000000}},
             "serve": {"port": 0, "token": TOKEN, "width": 320, "height": 240,
                       "limits": {"send_timeout_s": 5.0, "max_messages_per_s": 100.0}}}
 
@@ -97,14 +100,19 @@ def _masked(data: bytes, opcode: int = 1) -> bytes:
 
 
 class Hostile(threading.Thread):
-    def __init__(self, base: str, never_read: int, garbage: int):
+    def __init__(self, base: str, never_read: int, liars: int, garbage: int):
         super().__init__(daemon=True)
-        self.base, self.never_read, self.garbage = base, never_read, garbage
+        self.base, self.never_read, self.liars, self.garbage = base, never_read, liars, garbage
         self.stop = False
 
     def run(self) -> None:
-        stuck = []
+        stuck, silent = [], []
         for _ in range(self.never_read):
+            try:
+                silent.append(_raw(self.base))
+            except OSError:
+                pass
+        for _ in range(self.liars):
             try:
                 stuck.append(_raw(self.base))
             except OSError:
@@ -131,7 +139,7 @@ class Hostile(threading.Thread):
                 except OSError:
                     pass
             time.sleep(0.05)
-        for s in stuck:
+        for s in stuck + silent:
             s.close()
 
 
@@ -140,8 +148,10 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--seconds", type=float, default=8.0)
     ap.add_argument("--never-read", type=int, default=10)
+    ap.add_argument("--liars", type=int, default=0)
     ap.add_argument("--garbage", type=int, default=5)
-    ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "serve_hostile.json"))
+    ap.add_argument("--out", default=None, help="default bench/results/serve_hostile.json "
+                    "(serve_hostile_liars.json with --liars)")
     a = ap.parse_args()
     up0 = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
     runs: dict[str, list[dict]] = {"quiet": [], "hostile": []}
@@ -150,10 +160,12 @@ def main() -> None:
         base = f"http://127.0.0.1:{pipe.stats()['stages']['serve']['port']}"
         good = Good(base)
         good.start()
-        pipe.wait(5)
+        # warm-up: the compiled raster compiles (or loads its cache) on the render stage's first frames
+        pipe.wait(120, until=lambda: good.frames >= 20)
+        pipe.wait(2)
         for _ in range(a.rounds):
             for phase in ("quiet", "hostile"):
-                h = Hostile(base, a.never_read, a.garbage) if phase == "hostile" else None
+                h = Hostile(base, a.never_read, a.liars, a.garbage) if phase == "hostile" else None
                 if h:
                     h.start()
                     pipe.wait(1.0)  # let them connect
@@ -172,15 +184,16 @@ def main() -> None:
     up1 = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
     med = {p: {k: round(statistics.median(r[k] for r in v), 2) for k in v[0]} for p, v in runs.items()}
     out = {"uptime_before": up0, "uptime_after": up1, "rounds": a.rounds, "seconds": a.seconds,
-           "never_read": a.never_read, "garbage_per_tick": a.garbage, "runs": runs, "median": med,
+           "never_read": a.never_read, "liars": a.liars, "garbage_per_tick": a.garbage, "runs": runs, "median": med,
            "ratio_render": round(med["hostile"]["render_pictures_per_s"] / max(1e-9, med["quiet"]["render_pictures_per_s"]), 3),
            "ratio_good_client": round(med["hostile"]["good_client_fps"] / max(1e-9, med["quiet"]["good_client_fps"]), 3),
            "serve_counts": {k: st.get(k) for k in ("bad_messages", "rate_limited", "send_timeouts", "dropped_frames",
                                                    "clients_total", "refused_full")}}
     print(json.dumps({k: out[k] for k in ("median", "ratio_render", "ratio_good_client", "serve_counts")}, indent=1))
     print(up0, up1, sep="\n")
-    Path(a.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(a.out).write_text(json.dumps(out, indent=1))
+    path = Path(a.out or Path(__file__).parent / "results" / f"serve_hostile{'_liars' if a.liars else ''}.json")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(out, indent=1))
 
 
 if __name__ == "__main__":

@@ -27,6 +27,7 @@ import json
 import logging
 import os
 import secrets
+import socket as socketlib
 import ssl
 import struct
 import time
@@ -250,6 +251,12 @@ class ViewServer:
             return self._refuse("refused_full", 503, f"{lim.max_clients} clients already (serve.limits.max_clients)")
         ws = web.WebSocketResponse(max_msg_size=lim.max_message_bytes, compress=False, heartbeat=20.0,
                                    timeout=lim.send_timeout_s)
+        sock = request.transport.get_extra_info("socket") if request.transport is not None else None
+        if sock is not None:  # bounded: a client that stops reading holds at most this much
+            try:
+                sock.setsockopt(socketlib.SOL_SOCKET, socketlib.SO_SNDBUF, lim.socket_buffer_bytes)
+            except OSError:
+                pass
         try:
             await ws.prepare(request)
         except (ConnectionError, asyncio.TimeoutError):  # it left during the handshake
