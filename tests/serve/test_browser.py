@@ -182,3 +182,30 @@ def test_timeline_pauses_and_seeks_a_replay(browser, tmp_path):
         assert not st["paused"]
         assert n // 2 - 1 <= st["index"] <= n - 1 and st["position_s"] >= 0.45 * st["duration_s"], st
         page.context.close()
+
+
+def test_keyboard_and_style_controls(browser, pipe):
+    page = _open(browser, pipe)
+    _settle(page)
+    page.locator("#view").focus()
+    v0 = page.evaluate("window.pointflowView.state().version")
+    page.keyboard.press("ArrowLeft")  # orbit
+    page.wait_for_function(f"window.pointflowView.state().version > {v0}", timeout=30000)
+    assert page.evaluate("window.pointflowView.state().camera.mode") == "fixed"
+    page.keyboard.press("f")  # fit: the camera follows the data again
+    page.wait_for_function("window.pointflowView.state().camera.mode === 'auto'", timeout=30000)
+    _settle(page)
+    before = canvas_pixels(page)
+    page.select_option("#colormap", "grayscale")
+    page.wait_for_function("window.pointflowView.state().style.colormap === 'grayscale'", timeout=30000)
+    _settle(page)
+    after = canvas_pixels(page)
+    lit = after.max(axis=2) > 60
+    assert lit.sum() > 500
+    # grayscale: the lit pixels are grey (r = g = b within JPEG/PNG rounding); turbo's were not
+    spread = (after.max(axis=2).astype(int) - after.min(axis=2))[lit]
+    assert np.median(spread) <= 6, np.median(spread)
+    assert (np.abs(after.astype(int) - before.astype(int)).max(axis=2) > 40).mean() > 0.01
+    page.select_option("#colormap", "turbo")  # the style is the pipeline's: put it back for the others
+    page.wait_for_function("window.pointflowView.state().style.colormap === 'turbo'", timeout=30000)
+    page.context.close()
