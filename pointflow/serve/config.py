@@ -39,6 +39,9 @@ class ServeLimits:
     queue_frames: int = field(default=2, metadata=check(Bound(1, 16)))
     #: A send to a client that takes longer than this closes it (a client that never reads).
     send_timeout_s: float = field(default=10.0, metadata=check(positive))
+    #: The kernel's send buffer per client (SO_SNDBUF): what a client that stops reading can
+    #: hold before its sends block (and it is closed after send_timeout_s).
+    socket_buffer_bytes: int = field(default=262144, metadata=check(Bound(16384, 1 << 26)))
     #: The largest view a client may ask for (pixels per side).
     max_view_px: int = field(default=4096, metadata=check(Bound(16, 16384)))
 

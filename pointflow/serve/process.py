@@ -8,6 +8,24 @@ import dataclasses
 import os
 import sys
 
+from ..runtime.kinds import StageKind, register_stage_kind
+
+
+def wanted(cfg) -> bool:
+    """A run has a view server with a ``serve:`` block (or ``--serve``)."""
+    return cfg.serve is not None
+
+
+#: Nothing connects to it, so it may start late; it stops with ingest (wave 1), before the
+#: render stage, so its views are closed while render still answers.
+KIND = register_stage_kind(StageKind(
+    name="serve", main="pointflow.serve.process:main", start_order=40, stop_wave=1,
+    counters=("clients_total", "refused_token", "refused_origin", "refused_full", "bad_messages", "rate_limited",
+              "send_timeouts", "frames_in", "frames_sent", "dropped_frames", "bytes_sent", "encode_errors",
+              "control_sent", "control_dropped", "render_errors", "clients_gone", "client_errors", "server_errors",
+              "bogus_acks"),
+    wanted="pointflow.serve.process:wanted"))
+
 
 def _playback_endpoints(cfg, base: str) -> dict[str, str]:
     """Replaying sources (file, rosbag) -> their playback endpoints (as Pipeline.playback)."""

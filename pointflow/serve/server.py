@@ -27,6 +27,7 @@ import json
 import logging
 import os
 import secrets
+import socket as socketlib
 import ssl
 import struct
 import time
@@ -53,6 +54,27 @@ CONTROL = ("camera", "orbit", "pan", "zoom", "fit", "follow", "style", "visible"
 PLAYBACK_KEYS = ("paused", "seek_s", "seek_fraction", "step", "rate", "loop", "hold")
 
 
+class _OneLine(logging.Filter):
+    """aiohttp's own error logs (a client that vanished mid-request) become one counted
+    line without a traceback: no traceback reaches the user, and a hostile client cannot
+    flood the log (the first 10, then every 1000th)."""
+
+    def __init__(self, extra: dict):
+        super().__init__()
+        self.extra = extra
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.levelno < logging.WARNING:
+            return True
+        _count(self.extra, "server_errors")
+        n = self.extra["server_errors"]
+        if record.exc_info and record.exc_info[1] is not None:
+            e = record.exc_info[1]
+            record.msg, record.args = f"{record.getMessage()}: {type(e).__name__}: {e} ({n} so far)", ()
+            record.exc_info, record.exc_text = None, None
+        return n <= 10 or n % 1000 == 0
+
+
 class BadMessage(ValueError):
     """A client message that is not one of the page's (closes that client, counted)."""
 
@@ -67,6 +89,9 @@ class ViewClient:
     granted: int = 0
     #: Frames received from render and not yet acked by the page (encoding, queued, sent).
     in_flight: int = 0
+    #: Frames written to the client's socket and not yet acked: only these can be acked (a
+    #: client that acks without reading gets no more frames once its socket is full).
+    unacked: int = 0
     queue: collections.deque = field(default_factory=collections.deque)
     wake: asyncio.Event = field(default_factory=asyncio.Event)
     last_sent_seq: int = -1
@@ -102,7 +127,8 @@ class ViewServer:
         self.extra: dict[str, Any] = counters.extra if counters is not None else {}
         for k in ("clients", "clients_total", "refused_token", "refused_origin", "refused_full", "bad_messages",
                   "rate_limited", "send_timeouts", "frames_in", "frames_sent", "dropped_frames", "bytes_sent",
-                  "encode_errors", "control_sent", "control_dropped", "render_errors"):
+                  "encode_errors", "control_sent", "control_dropped", "render_errors", "clients_gone",
+                  "client_errors", "server_errors", "bogus_acks"):
             self.extra.setdefault(k, 0)
         self._zctx_sync = zctx  # the shadow does not own it: keep it alive
         self.zctx = zmq.asyncio.Context.shadow(zctx.underlying)
@@ -121,6 +147,9 @@ class ViewServer:
     async def start(self) -> str:
         from aiohttp import web
 
+        self._filter = _OneLine(self.extra)
+        for name in ("aiohttp.server", "aiohttp.web", "aiohttp.websocket", "aiohttp.internal"):
+            logging.getLogger(name).addFilter(self._filter)
         self._dealer = self.zctx.socket(zmq.DEALER)
         self._dealer.setsockopt(zmq.LINGER, 0)
         self._dealer.setsockopt(zmq.SNDHWM, 1000)
@@ -222,7 +251,17 @@ class ViewServer:
             return self._refuse("refused_full", 503, f"{lim.max_clients} clients already (serve.limits.max_clients)")
         ws = web.WebSocketResponse(max_msg_size=lim.max_message_bytes, compress=False, heartbeat=20.0,
                                    timeout=lim.send_timeout_s)
-        await ws.prepare(request)
+        sock = request.transport.get_extra_info("socket") if request.transport is not None else None
+        if sock is not None:  # bounded: a client that stops reading holds at most this much
+            try:
+                sock.setsockopt(socketlib.SOL_SOCKET, socketlib.SO_SNDBUF, lim.socket_buffer_bytes)
+            except OSError:
+                pass
+        try:
+            await ws.prepare(request)
+        except (ConnectionError, asyncio.TimeoutError):  # it left during the handshake
+            _count(self.extra, "clients_gone")
+            return web.Response(status=400, text="gone\n")  # aiohttp drops it quietly (the peer is gone)
         view = f"w{self.extra['clients_total']}-{secrets.token_hex(4)}"
         c = ViewClient(view, ws, self.sc.width, self.sc.height, tokens=lim.max_messages_per_s * 2)
         self.clients[view] = c
@@ -253,6 +292,11 @@ class ViewServer:
                     _count(self.extra, "bad_messages")
                     reason = f"bad message: {ws.exception()}"
                     break
+        except (ConnectionError, asyncio.TimeoutError):  # the client went away mid-message
+            _count(self.extra, "clients_gone")
+        except Exception as exc:  # noqa: BLE001 - one client's fault never reaches the others
+            _count(self.extra, "client_errors")
+            reason = f"{type(exc).__name__}: {exc}"
         finally:
             writer.cancel()
             if reason:
@@ -298,9 +342,12 @@ class ViewServer:
         if req is not None and (isinstance(req, bool) or not isinstance(req, int)):
             raise BadMessage("'req' must be an integer")
         if cmd == "ack":  # the page has shown a frame: it may take another
-            if c.in_flight > 0:
-                c.in_flight -= 1
-            self._grant(c)
+            if c.unacked > 0:
+                c.unacked -= 1
+                c.in_flight = max(0, c.in_flight - 1)
+                self._grant(c)
+            else:
+                _count(self.extra, "bogus_acks")
         elif cmd == "resize":
             w, h = msg.get("width"), msg.get("height")
             mx = self.sc.limits.max_view_px
@@ -468,6 +515,7 @@ class ViewServer:
                 except (ConnectionError, RuntimeError):
                     return
                 c.last_sent_seq = seq
+                c.unacked += 1
                 c.frames_sent += 1
                 c.bytes_sent += len(data)
                 c.sizes.append(len(data))

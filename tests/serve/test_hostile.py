@@ -8,6 +8,7 @@ import base64
 import json
 import os
 import socket
+import struct
 import time
 
 import pytest
@@ -29,7 +30,10 @@ def pipe(tmp_path_factory):
 
 
 def _render_frames(pipe) -> int:
-    return pipe.stats()["stages"]["render"].get("frames", 0)
+    """Pictures the render stage drew: its own view's and the served views' (its own view
+    rests while served views are open)."""
+    r = pipe.stats()["stages"]["render"]
+    return r.get("frames", 0) + r.get("view_frames", 0)
 
 
 def _good_client(base):
@@ -87,9 +91,38 @@ def test_bad_messages_close_that_client_only(pipe):
     err = read_until(good, lambda m: isinstance(m, dict) and m.get("type") == "error")
     assert err["req"] == 7 and err["key"] == "zoom.factor"
     _frames_keep_coming(good)
+    pipe.wait(10, until=lambda: _render_frames(pipe) > f0)  # counts come with heartbeats
     assert _render_frames(pipe) > f0
     good.close()
     assert pipe.stats()["stages"]["serve"]["restarts"] == 0
+    assert serve_stats(pipe).get("server_errors", 0) == 0 and serve_stats(pipe).get("client_errors", 0) == 0
+
+
+def _hit_and_run(base: str, payload: bytes, reset: bool) -> None:
+    """Connect, send, and leave at once (before the server's answer)."""
+    s = socket.create_connection(tuple(base.rsplit("//", 1)[1].split(":")) and
+                                 (base.rsplit("//", 1)[1].split(":")[0], int(base.rsplit(":", 1)[1])))
+    key = base64.b64encode(os.urandom(16)).decode()
+    s.sendall((f"GET /ws HTTP/1.1\r\nHost: x\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+               f"Sec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\nCookie: pointflow_view={TOKEN}\r\n\r\n"
+               ).encode() + payload)
+    if reset:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))  # a reset, not a goodbye
+    s.close()
+
+
+def test_clients_that_leave_at_once(pipe):
+    base = base_url(pipe)
+    good = _good_client(base)
+    e0 = serve_stats(pipe).get("server_errors", 0)
+    for i in range(60):
+        _hit_and_run(base, _masked("garbage" * (i % 3)) if i % 2 else b"", reset=i % 4 < 2)
+    _frames_keep_coming(good)
+    pipe.wait(20, until=lambda: serve_stats(pipe).get("clients", 0) == 1)
+    assert serve_stats(pipe)["clients"] == 1
+    good.close()
+    pipe.wait(1.0)
+    assert serve_stats(pipe).get("server_errors", 0) == e0, "the web server logged an error for a client"
 
 
 def test_a_flood_is_cut_off(pipe):
@@ -184,9 +217,10 @@ def test_fifty_clients_at_once_and_nothing_leaks(pipe):
         assert serve_stats(pipe)["clients"] == 50
         for ws in clients:  # every one of them gets pictures
             read_until(ws, is_frame, timeout=120)
-        assert _render_frames(pipe) > f0, "the render stage stopped drawing its own view"
-        rnd = pipe.stats()["stages"]["render"]
-        assert rnd.get("views_open", 0) == 50
+        pipe.wait(10, until=lambda: _render_frames(pipe) > f0)
+        assert _render_frames(pipe) > f0, "the render stage stopped drawing"
+        pipe.wait(30, until=lambda: pipe.stats()["stages"]["render"].get("views_open", 0) == 50)
+        assert pipe.stats()["stages"]["render"].get("views_open", 0) == 50  # counts come with heartbeats
     finally:
         for ws in clients:
             ws.close()
