@@ -28,6 +28,7 @@ from typing import Any, Optional
 import numpy as np
 import zmq
 
+from ..chunk import new_trace_id
 from . import control
 from .base import FrameInput, RenderError, merge_ranges
 from .control import ControlError
@@ -355,6 +356,7 @@ class ViewHub:
     def _render(self, v: View, stage, cam) -> tuple[np.ndarray, float]:
         r = stage.renderer
         t0 = time.perf_counter()
+        t0_ns = time.monotonic_ns()
         if not r.resize(v.width, v.height):
             v.width, v.height = r.width, r.height  # the tier draws one size: the client scales
         try:
@@ -364,6 +366,8 @@ class ViewHub:
         finally:
             r.resize(*self.cfg.render.size)
         self.clobbered = True
+        # one "view_draw" slice per view frame in the profile trace (draw + read-back)
+        self.ctx.spans.record(new_trace_id(), "view_draw", t0_ns, time.monotonic_ns(), int(self.last_frame.size))
         return img, (time.perf_counter() - t0) * 1e3
 
     def _draw(self, v: View, stage, cam, key, now: float) -> bool:

@@ -243,6 +243,13 @@ def test_pick_in_a_view_names_the_source(tmp_path):
             assert p["point"] is None and p["source"] is None
         finally:
             cl.close()
+        # each view frame is a "view_draw" slice of the profile trace
+        from pointflow.profiling.report import write_profile
+
+        stats = pipe.stop()
+        write_profile(str(tmp_path / "prof"), pipe.collector, stats)
+        doc = json.loads((tmp_path / "prof" / "trace.json").read_text())
+        assert any(e.get("name") == "view_draw" for e in doc["traceEvents"])
 
 
 def _stream_config(tier: str) -> dict:
