@@ -136,8 +136,16 @@ def test_two_tabs_keep_their_own_cameras(browser, pipe):
     assert _lit(ia) > 500 and _lit(ib) > 100
     diff = (np.abs(ia.astype(int) - ib.astype(int)).max(axis=2) > 40).mean()
     assert diff > 0.05, "the two tabs show the same picture"
+    pipe.wait(10, until=lambda: len(serve_stats(pipe).get("views", {})) >= 2)  # counts come with heartbeats
     st = serve_stats(pipe)
     assert st["clients"] >= 2
+    per_view = list(st["views"].values())
+    assert len(per_view) >= 2 and all(v["frames"] > 0 and v["bytes_per_frame"] > 0 for v in per_view), per_view
+    assert st["png_bytes_mean"] > 0 and st["encode_ms_mean"] > 0
+    # the page's stats line: points, frames/s, drops, sources
+    page_stats = a.locator("#stats")
+    a.wait_for_function("document.getElementById('stats').textContent.includes('points 6401')", timeout=30000)
+    assert "drops" in page_stats.inner_text() and "sources scene" in page_stats.inner_text()
     for p in (a, b):
         p.context.close()
 
