@@ -115,6 +115,17 @@ def test_click_on_the_known_point_shows_its_coordinates(browser, pipe):
         page.wait_for_function("window.pointflowView.lastPick !== null", timeout=30000)
     assert "distance 0.000" in page.locator("#info").inner_text()
     page.context.close()
+    # a phone: a tap picks too
+    phone = _open(browser, pipe, touch=True)
+    _camera(phone, eye=[KNOWN[0], KNOWN[1], 30.0], target=list(KNOWN), up=[0.0, 1.0, 0.0])
+    _settle(phone)
+    pbox = phone.locator("#view").bounding_box()
+    phone.evaluate("window.pointflowView.lastPick = null")
+    phone.touchscreen.tap(pbox["x"] + pbox["width"] / 2 + dx, pbox["y"] + pbox["height"] / 2 + dy)
+    phone.wait_for_function("window.pointflowView.lastPick !== null", timeout=30000)
+    tapped = phone.evaluate("window.pointflowView.lastPick")
+    assert tapped["point"] is not None and np.allclose(tapped["point"]["position"], KNOWN, atol=1e-4)
+    phone.context.close()
 
 
 def _camera(page, **cam):
