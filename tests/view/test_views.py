@@ -304,3 +304,37 @@ def test_data_no_one_drew_while_main_rests_reaches_the_view_later(tmp_path):
                     cl.close()
     assert np.array_equal(pics[0], pics[1]), \
         f"{int((pics[0] != pics[1]).any(-1).sum())} pixels differ from a run without views"
+
+
+def test_a_restarted_render_stage_asks_for_its_views_again(tmp_path):
+    """The render stage dies (SIGKILL) and its standby takes over: it knows no views, says
+    ``unknown view`` to the first message of one, and the client's open brings it back."""
+    import signal
+
+    files = _scene(str(tmp_path))
+    with Pipeline.from_dict(_config(files, "cpu-compute"), out_dir=str(tmp_path)) as pipe:
+        _loaded(pipe, 80 * 80)
+        cl = ViewClient(pipe._sup.endpoints.views)
+        try:
+            cl.send(view="r", cmd="open", width=W, height=H, req=1)
+            cl.send(view="r", cmd="credit", n=2)
+            cl.frame("r")
+            pid = pipe.stats()["stages"]["render"]["pid"]
+            os.kill(pid, signal.SIGKILL)
+            pipe.wait(90, until=lambda: pipe.stats()["stages"]["render"].get("pid") not in (None, pid)
+                      and pipe.stats()["stages"]["render"].get("restarts", 0) >= 1)
+            err = None
+            for i in range(120):  # until the new stage answers (its ROUTER is bound anew)
+                cl.send(view="r", cmd="view_state", req=100 + i)
+                cl.drain(0.5)
+                err = next((m for m in cl.msgs if m.get("req", 0) >= 100 and m["type"] == "error"), None)
+                if err:
+                    break
+            assert err is not None and err["key"] == "view" and "unknown view" in err["error"], cl.msgs[-3:]
+            n = len(cl.frames["r"])
+            cl.send(view="r", cmd="open", width=W, height=H, req=2)
+            cl.send(view="r", cmd="credit", n=2)
+            cl.wait(lambda: len(cl.frames["r"]) > n, what="a frame from the new render stage")
+            assert pipe.running
+        finally:
+            cl.close()
