@@ -519,7 +519,7 @@ class LodFile:
         if self._meta["kind"] == "las":
             from .lasrec import las_points
 
-            return las_points(recs.copy(), self.point_format, self.scales, self.offsets)
+            return las_points(recs, self.point_format, self.scales, self.offsets)
         out = {"positions": np.column_stack([recs["x"], recs["y"], recs["z"]]).astype(np.float64)}
         for name in self.channels:
             out[name] = recs[name].copy()
