@@ -574,6 +574,15 @@ class LodFile:
         else:
             self.channels = [n for n in self._dtype.names if n not in ("x", "y", "z")]
 
+    @property
+    def bytes_per_point(self) -> int:
+        """Bytes a decoded point takes: positions (3 float64) and each channel."""
+        from .lasrec import LAS_CHANNEL_BYTES
+
+        if self._meta["kind"] == "las":
+            return 24 + sum(LAS_CHANNEL_BYTES[c] for c in self.channels)
+        return 24 + sum(self._dtype.fields[c][0].itemsize for c in self.channels)
+
     def spacing(self, depth: int) -> float:
         return self.cube_side / (1 << depth) / self.grid
 
