@@ -98,6 +98,9 @@ class _Input:
     def positions(self, recs: np.ndarray) -> np.ndarray:
         raise NotImplementedError
 
+    def chunk_bounds(self, recs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return self.bounds  # PLY/PCD bounds come from the points themselves
+
     def codes(self, recs: np.ndarray, lo: np.ndarray, side: float) -> np.ndarray:
         from .kernels import morton_codes
 
@@ -150,6 +153,11 @@ class _LasInput(_Input):
         from .lasrec import las_positions
 
         return las_positions(recs, self.scales, self.offsets)
+
+    def chunk_bounds(self, recs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        lo = np.array([recs[f].min() for f in ("X", "Y", "Z")], np.float64) * self.scales + self.offsets
+        hi = np.array([recs[f].max() for f in ("X", "Y", "Z")], np.float64) * self.scales + self.offsets
+        return np.minimum(lo, hi), np.maximum(lo, hi)  # a negative scale swaps them
 
     def codes(self, recs: np.ndarray, lo: np.ndarray, side: float) -> np.ndarray:
         from .kernels import morton_codes_int
@@ -282,6 +290,14 @@ def gather(recs: np.ndarray, perm: np.ndarray) -> np.ndarray:
     return recs.view(np.dtype((np.void, recs.dtype.itemsize)))[perm].view(recs.dtype)
 
 
+class _WrongBounds(Exception):
+    """The header's bounds do not hold the points (seen: their real bounds)."""
+
+    def __init__(self, lo: np.ndarray, hi: np.ndarray):
+        super().__init__("points outside the header's bounds")
+        self.lo, self.hi = lo, hi
+
+
 class _Builder:
     def __init__(self, inp: _Input, tmp: str, progress: Callable[[int, int], None]):
         from . import kernels
@@ -346,6 +362,7 @@ class _Builder:
         counts: dict[int, int] = {}
         shift = np.uint64(3 * (k.DMAX - l0))
         seen = 0
+        lo_seen, hi_seen = np.full(3, np.inf), np.full(3, -np.inf)
         try:
             for recs in _read_ahead(inp.chunks()):
                 if not recs.shape[0]:
@@ -353,6 +370,8 @@ class _Builder:
                 seen += recs.shape[0]
                 if seen > n:
                     raise MapError(inp.path, f"holds more points than its header's {n}")
+                clo, chi = inp.chunk_bounds(recs)
+                lo_seen, hi_seen = np.minimum(lo_seen, clo), np.maximum(hi_seen, chi)
                 cell = (self.codes(recs) >> shift).astype(np.int64)
                 perm, starts = k.bucket_order(cell, 8 ** l0)
                 recs = gather(recs, perm)
@@ -370,6 +389,9 @@ class _Builder:
                 fh.close()
         if seen != n:
             raise MapError(inp.path, f"header promises {n} points, the file holds {seen} (truncated?)")
+        tol = float(np.max(np.abs(getattr(inp, "scales", np.zeros(3))))) + 1e-9
+        if n and (np.any(lo_seen < inp.bounds[0] - tol) or np.any(hi_seen > inp.bounds[1] + tol)):
+            raise _WrongBounds(lo_seen, hi_seen)
         pend_recs, pend_codes = [], []
         for c in sorted(counts):
             r, cd = self.cell(os.path.join(spill_dir, f"c{c}.bin"), l0, counts[c])
@@ -475,9 +497,20 @@ def build_index(path: str, out_dir: str, progress=None) -> None:
     os.makedirs(tmp)
     try:
         ident = file_identity(path, inp.header_bytes)
-        b = _Builder(inp, tmp, progress)
         t0 = time.monotonic()
-        b.run()
+        try:
+            b = _Builder(inp, tmp, progress)
+            b.run()
+        except _WrongBounds as wb:
+            b.data.close()
+            log.warning("%s: its header's bounds %s..%s do not hold all its points (they span %s..%s): "
+                        "indexing it again with the points' own bounds", path, inp.bounds[0].tolist(),
+                        inp.bounds[1].tolist(), wb.lo.tolist(), wb.hi.tolist())
+            shutil.rmtree(tmp, ignore_errors=True)
+            os.makedirs(tmp)
+            inp.bounds = (wb.lo, wb.hi)
+            b = _Builder(inp, tmp, progress)
+            b.run()
         nodes = b.node_table()
         if int(nodes["count"].sum()) != inp.count:
             raise MapError(path, f"index build placed {int(nodes['count'].sum())} of {inp.count} points")

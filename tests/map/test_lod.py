@@ -195,3 +195,20 @@ def test_loads_from_many_threads_agree(tmp_path):
             got = list(ex.map(m.load, keys))
         for k, d in zip(keys, got):
             assert np.array_equal(d["gps_time"], m.load(k)["gps_time"])
+
+
+def test_header_bounds_that_do_not_hold_the_points(tmp_path, caplog):
+    """A writer that left the header's bounds at zero: indexed again with the points' own
+    bounds (a warning), and still exactly the file's points."""
+    import struct
+
+    path = write_las(str(tmp_path / "t.las"), 30_000, seed=16)
+    with open(path, "r+b") as f:
+        f.seek(179)
+        f.write(struct.pack("<6d", 0, 0, 0, 0, 0, 0))  # max x, min x, max y, min y, max z, min z
+    with caplog.at_level(logging.WARNING, logger="pointflow.map.lod"):
+        with open_map(path, cache_dir=str(tmp_path / "c"), progress=False) as m:
+            check_exact(m, path)
+            assert len(m.keys()) > 2
+            assert max(m.node(k).count for k in m.keys()) <= lod.LEAF_MAX + 128 ** 2
+    assert any("bounds" in r.getMessage() and path in r.getMessage() for r in caplog.records)
