@@ -479,11 +479,33 @@ def index_dir(path: str, cache_dir: Optional[str] = None) -> str:
     return os.path.join(cache_dir or default_cache_dir(), f"{hashlib.sha1(real.encode()).hexdigest()[:16]}-{name}")
 
 
+def _remove_orphans(out_dir: str) -> None:
+    """Half-built indexes (``<dir>.tmp-<pid>-...``, ``<dir>.old-<pid>-...``) of builds killed
+    before they could clean up: removed when their process is gone."""
+    import glob
+
+    for d in glob.glob(glob.escape(out_dir) + ".tmp-*") + glob.glob(glob.escape(out_dir) + ".old-*"):
+        try:
+            pid = int(d.rsplit(".", 1)[1].split("-")[1])
+        except (IndexError, ValueError):
+            continue
+        try:
+            os.kill(pid, 0)
+            continue  # still building (or another process now has its pid: left for later)
+        except ProcessLookupError:
+            pass
+        except PermissionError:
+            continue
+        log.info("removing %s, left by a build that was killed", d)
+        shutil.rmtree(d, ignore_errors=True)
+
+
 def build_index(path: str, out_dir: str, progress=None) -> None:
     """Build the index of ``path`` into ``out_dir`` (replaced atomically)."""
     inp = _open_input(path)
     parent = os.path.dirname(out_dir)
     os.makedirs(parent, exist_ok=True)
+    _remove_orphans(out_dir)
     need = int(inp.count * inp.dtype.itemsize * 1.1) + (64 << 20)
     free = shutil.disk_usage(parent).free
     if need > free:

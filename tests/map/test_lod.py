@@ -212,3 +212,30 @@ def test_header_bounds_that_do_not_hold_the_points(tmp_path, caplog):
             assert len(m.keys()) > 2
             assert max(m.node(k).count for k in m.keys()) <= lod.LEAF_MAX + 128 ** 2
     assert any("bounds" in r.getMessage() and path in r.getMessage() for r in caplog.records)
+
+
+def test_a_build_killed_midway_leaves_nothing_behind(tmp_path):
+    """SIGKILL during the build (no cleanup runs): the next open removes the half-built
+    folder and builds the index whole."""
+    import glob
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    path = write_las(str(tmp_path / "t.laz"), 1_500_000, seed=17)
+    cache = str(tmp_path / "cache")
+    code = f"from pointflow.map import open_map; open_map({path!r}, cache_dir={cache!r}, progress=False)"
+    proc = subprocess.Popen([sys.executable, "-c", code])
+    try:
+        deadline = time.monotonic() + 120
+        while not glob.glob(os.path.join(cache, "*.tmp-*", "spill", "*")) and time.monotonic() < deadline:
+            assert proc.poll() is None, "the build ended before it could be killed"
+            time.sleep(0.05)
+        proc.send_signal(signal.SIGKILL)
+    finally:
+        proc.wait(30)
+    assert glob.glob(os.path.join(cache, "*.tmp-*")), "no half-built index to clean up"
+    with open_map(path, cache_dir=cache, progress=False) as m:
+        assert m.point_count == 1_500_000
+    assert os.listdir(cache) == [os.path.basename(m.files[0].dir)]
