@@ -76,7 +76,7 @@ def laspy_read(path: str) -> tuple[float, int]:
     import laspy
 
     from pointflow.ingest.formats import _laz_backend
-    from pointflow.map.lod import CHUNK_POINTS
+    from pointflow.map.inputs import CHUNK_POINTS
 
     t = time.perf_counter()
     n = 0
@@ -87,7 +87,7 @@ def laspy_read(path: str) -> tuple[float, int]:
 
 
 def index_build(path: str, cache: str) -> tuple[float, dict]:
-    from pointflow.map.lod import build_index, index_dir
+    from pointflow.map.build import build_index, index_dir
 
     shutil.rmtree(cache, ignore_errors=True)
     out = index_dir(path, cache)

@@ -8,8 +8,7 @@ import os
 import numpy as np
 import pytest
 
-from pointflow.map import MapError, open_map
-from pointflow.map import lod
+from pointflow.map import build, inputs, open_map
 
 from .mapfiles import all_nodes, laspy_points, write_las, write_pcd, write_ply
 
@@ -43,9 +42,10 @@ def test_every_node_is_exactly_the_files_points(tmp_path, ext):
 
 def test_many_cells_and_splits_stay_exact(tmp_path, monkeypatch):
     """The big-file path (spill files per cell, a cell split again) on a small file."""
-    monkeypatch.setattr(lod, "CELL_TARGET", 2_000)
-    monkeypatch.setattr(lod, "MAX_CELL", 6_000)
-    monkeypatch.setattr(lod, "CHUNK_POINTS", 7_000)
+    monkeypatch.setattr(build, "CELL_TARGET", 2_000)
+    monkeypatch.setattr(build, "MAX_CELL", 6_000)
+    monkeypatch.setattr(build, "CHUNK_POINTS", 7_000)
+    monkeypatch.setattr(inputs, "CHUNK_POINTS", 7_000)
     path = write_las(str(tmp_path / "t.laz"), 50_000, seed=2)
     with open_map(path, cache_dir=str(tmp_path / "cache"), progress=False) as m:
         check_exact(m, path)
@@ -96,14 +96,14 @@ def test_index_of_another_version_is_rebuilt_with_a_warning(tmp_path, caplog):
     with open_map(path, cache_dir=cache, progress=False) as m:
         meta_path = os.path.join(m.files[0].dir, "meta.json")
     meta = json.load(open(meta_path))
-    meta["version"] = lod.INDEX_VERSION + 99
+    meta["version"] = build.INDEX_VERSION + 99
     json.dump(meta, open(meta_path, "w"))
     with caplog.at_level(logging.WARNING, logger="pointflow.map.lod"):
         with open_map(path, cache_dir=cache, progress=False) as m:
             check_exact(m, path)
     msgs = [r.getMessage() for r in caplog.records]
     assert any("version" in s and path in s for s in msgs), msgs
-    assert json.load(open(meta_path))["version"] == lod.INDEX_VERSION
+    assert json.load(open(meta_path))["version"] == build.INDEX_VERSION
 
 
 def test_damaged_index_is_rebuilt(tmp_path, caplog):
@@ -206,11 +206,11 @@ def test_header_bounds_that_do_not_hold_the_points(tmp_path, caplog):
     with open(path, "r+b") as f:
         f.seek(179)
         f.write(struct.pack("<6d", 0, 0, 0, 0, 0, 0))  # max x, min x, max y, min y, max z, min z
-    with caplog.at_level(logging.WARNING, logger="pointflow.map.lod"):
+    with caplog.at_level(logging.WARNING, logger="pointflow.map.build"):
         with open_map(path, cache_dir=str(tmp_path / "c"), progress=False) as m:
             check_exact(m, path)
             assert len(m.keys()) > 2
-            assert max(m.node(k).count for k in m.keys()) <= lod.LEAF_MAX + 128 ** 2
+            assert max(m.node(k).count for k in m.keys()) <= build.LEAF_MAX + 128 ** 2
     assert any("bounds" in r.getMessage() and path in r.getMessage() for r in caplog.records)
 
 
