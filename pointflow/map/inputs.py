@@ -104,8 +104,8 @@ def table_dtype(channels: dict[str, np.ndarray], pos_dtype=np.float64) -> np.dty
 
 
 class _TableInput(_Input):
-    """PLY/PCD through the project's readers (pointflow.ingest.formats): read whole, then
-    indexed in chunks. Their readers hold the file in memory (a LAS/LAZ build does not)."""
+    """PCD and ASCII PLY through the project's readers (pointflow.ingest.formats): read whole,
+    then indexed in chunks. These readers hold the file in memory (LAS/LAZ and binary PLY do not)."""
 
     def __init__(self, path: str, fmt: str):
         from pointflow.ingest import formats
@@ -138,6 +138,90 @@ class _TableInput(_Input):
         return np.column_stack([recs["x"], recs["y"], recs["z"]]).astype(np.float64)
 
 
+class _PlyStream(_Input):
+    """A binary PLY indexed in chunks, as LAS is: memory holds a chunk, not the file. plyfile
+    parses the header (its memory map gives the vertex dtype and where the data starts); the
+    chunks are then plain reads, so a file cut short while indexing is an error, not a SIGBUS.
+    Fields map to positions and channels exactly as the project's PLY reader maps them
+    (``formats._split_fields``), one chunk at a time."""
+
+    @classmethod
+    def open(cls, path: str):
+        """None where this cannot stream the file (no plyfile, ASCII, list properties, float
+        colours whose scale depends on all values): the whole-file reader takes it then."""
+        try:
+            import plyfile
+        except ImportError:
+            return None
+        from pointflow.ingest import formats
+
+        try:
+            ply = plyfile.PlyData.read(path, mmap="r")
+            if ply.text or not ply.elements or ply.elements[0].name != "vertex":
+                return None
+            data = ply.elements[0].data
+        except Exception:  # noqa: BLE001 - a malformed file: the project's reader names what is wrong
+            return None
+        if not isinstance(data, np.memmap) or data.dtype.names is None:
+            return None
+        lower = {n.lower(): n for n in data.dtype.names}
+        for trio in formats._RGB_NAMES:
+            if all(t in lower for t in trio) and any(data.dtype[lower[t]].kind == "f" for t in trio):
+                return None
+        dtype, offset, count = data.dtype, int(data.offset), int(data.shape[0])
+        del data, ply  # no mapping is kept: see the class docstring
+        return cls(path, dtype, offset, count)
+
+    def __init__(self, path: str, file_dtype: np.dtype, offset: int, count: int):
+        from pointflow.ingest import formats
+
+        self.path, self._file_dtype, self._offset, self.count = path, file_dtype, offset, count
+        self._names = file_dtype.names
+        try:
+            _, ch = self._fields(self._read(0, min(1, count)))
+        except formats.FormatError as exc:
+            raise MapError(path, str(exc).split(": ", 1)[-1]) from None
+        self.dtype = table_dtype(ch, np.float64)
+        lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+        for a in range(0, self.count, CHUNK_POINTS):
+            part = self._read(a, min(CHUNK_POINTS, self.count - a))
+            pos = np.column_stack([np.asarray(part[self._lower[k]], np.float64) for k in ("x", "y", "z")])
+            bad = ~np.isfinite(pos).all(axis=1)
+            if bad.any():
+                raise MapError(path, f"{int(bad.sum())} points have a NaN or infinite coordinate")
+            lo, hi = np.minimum(lo, pos.min(axis=0)), np.maximum(hi, pos.max(axis=0))
+        self.bounds = (lo, hi) if self.count else (np.zeros(3), np.zeros(3))
+        self.header_bytes = 65536
+
+    def _read(self, start: int, n: int) -> np.ndarray:
+        part = np.fromfile(self.path, self._file_dtype, count=n, offset=self._offset + start * self._file_dtype.itemsize)
+        if part.shape[0] != n:
+            raise MapError(self.path, f"PLY promises {self.count} vertices, the file ends after {start + part.shape[0]}")
+        return part
+
+    @property
+    def _lower(self) -> dict:
+        return {n.lower(): n for n in self._names}
+
+    def _fields(self, part: np.ndarray):
+        from pointflow.ingest import formats
+
+        return formats._split_fields(self.path, self._names,
+                                     lambda nm: part[nm].astype(part.dtype[nm].newbyteorder("=")))
+
+    def chunks(self) -> Iterator[np.ndarray]:
+        for a in range(0, self.count, CHUNK_POINTS):
+            pos, ch = self._fields(self._read(a, min(CHUNK_POINTS, self.count - a)))
+            rec = np.empty(pos.shape[0], self.dtype)
+            rec["x"], rec["y"], rec["z"] = pos[:, 0], pos[:, 1], pos[:, 2]
+            for k, v in ch.items():
+                rec[k] = v
+            yield rec
+
+    def positions(self, recs: np.ndarray) -> np.ndarray:
+        return np.column_stack([recs["x"], recs["y"], recs["z"]]).astype(np.float64)
+
+
 def map_format(path: str) -> str:
     ext = os.path.splitext(path)[1].lower().lstrip(".")
     if ext not in LOD_FORMATS:
@@ -147,7 +231,13 @@ def map_format(path: str) -> str:
 
 def open_input(path: str) -> _Input:
     fmt = map_format(path)
-    return _LasInput(path) if fmt in ("las", "laz") else _TableInput(path, fmt)
+    if fmt in ("las", "laz"):
+        return _LasInput(path)
+    if fmt == "ply":
+        stream = _PlyStream.open(path)
+        if stream is not None:
+            return stream
+    return _TableInput(path, fmt)
 
 
 def file_identity(path: str, header_bytes: int) -> dict:

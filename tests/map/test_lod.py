@@ -239,3 +239,49 @@ def test_a_build_killed_midway_leaves_nothing_behind(tmp_path):
     with open_map(path, cache_dir=cache, progress=False) as m:
         assert m.point_count == 1_500_000
     assert os.listdir(cache) == [os.path.basename(m.files[0].dir)]
+
+
+@pytest.mark.parametrize("kind", ["binary_big_endian", "ascii"])
+def test_ply_big_endian_and_ascii(tmp_path, kind):
+    import plyfile
+
+    path = str(tmp_path / "t.ply")
+    pos, ch = write_ply(path, 8_000, seed=18)
+    ply = plyfile.PlyData.read(path, mmap=False)
+    plyfile.PlyData(ply.elements, text=kind == "ascii", byte_order=">" if kind != "ascii" else "=").write(path)
+    with open_map(path, cache_dir=str(tmp_path / "cache"), progress=False) as m:
+        got, _ = all_nodes(m)
+    og, ow = np.lexsort(got["positions"].T[::-1]), np.lexsort(pos.T[::-1])
+    assert np.array_equal(got["positions"][og], pos[ow])
+    assert np.array_equal(got["rgb"][og], ch["rgb"][ow])
+    assert np.array_equal(got["intensity"][og], ch["intensity"][ow])
+
+
+def test_binary_ply_streams_without_holding_the_file(tmp_path, monkeypatch):
+    """A binary PLY is memory-mapped and indexed in chunks: the build's Python heap stays far
+    below the file's size (the whole-file readers would hold all of it)."""
+    import tracemalloc
+
+    monkeypatch.setattr(inputs, "CHUNK_POINTS", 20_000)
+    monkeypatch.setattr(build, "CHUNK_POINTS", 20_000)
+    monkeypatch.setattr(build, "CELL_TARGET", 20_000)
+    monkeypatch.setattr(build, "MAX_CELL", 60_000)
+    # a coarser node grid: the cells' root points (held until the top is built, at most
+    # cells x 128^2 for a flat map: a bound of its own, not the file's size) stay small here
+    monkeypatch.setattr(build, "GRID_BITS", 3)
+    monkeypatch.setattr(build, "LEAF_MAX", 5_000)
+    write_ply(str(tmp_path / "warm.ply"), 1_000, seed=20)  # numba's first calls allocate; not the build's
+    build.build_index(str(tmp_path / "warm.ply"), str(tmp_path / "cache" / "w"), progress=False)
+    path = str(tmp_path / "big.ply")
+    pos, _ = write_ply(path, 400_000, seed=19)
+    size = os.path.getsize(path)
+    tracemalloc.start()
+    try:
+        build.build_index(path, str(tmp_path / "cache" / "x"), progress=False)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < size / 2, (peak, size)
+    with open_map(path, cache_dir=str(tmp_path / "cache2"), progress=False) as m:
+        got, _ = all_nodes(m)
+    assert np.array_equal(np.sort(got["positions"][:, 0]), np.sort(pos[:, 0]))
