@@ -132,3 +132,13 @@ def test_a_node_bigger_than_the_cache_is_not_kept():
     assert c.get("a") is None
     small = {"positions": np.zeros((10, 3))}
     assert c.put("b", small) and c.bytes_used == 240
+
+
+def test_truncated_binary_ply(tmp_path):
+    from .mapfiles import write_ply
+
+    p = str(tmp_path / "t.ply")
+    write_ply(p, 5_000)
+    data = open(p, "rb").read()
+    open(p, "wb").write(data[: len(data) * 2 // 3])
+    expect_map_error(p, "PLY promises 5000 vertices", cache_dir=str(tmp_path / "c"))
