@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import pytest
+from pointflow.runtime.testing import free_port as free_tcp_port
 
 # PointField datatype -> numpy type (sensor_msgs/PointField constants)
 NP = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
@@ -115,9 +116,3 @@ def wait_for(pred, timeout=30.0, interval=0.05):
     return pred()
 
 
-def free_tcp_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]

@@ -2,10 +2,10 @@
 from __future__ import annotations
 
 import os
-import socket
 import time
 
 import psutil
+from pointflow.runtime.testing import free_port as free_tcp_port
 
 SHM = "/dev/shm"
 
@@ -24,12 +24,6 @@ def assert_segments_gone(stats: dict) -> None:
     assert len(segs) == 3, segs
     left = [s for s in segs if os.path.exists(os.path.join(SHM, s))]
     assert not left, f"leaked shared-memory segments: {left}"
-
-
-def free_tcp_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def small_config(**over) -> dict:
