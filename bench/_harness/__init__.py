@@ -215,8 +215,7 @@ def run_json(args: Sequence[str], root: Path | str | None = None, **kw: Any) -> 
     """Run ``python ARGS`` (against ``root``'s pointflow when given) and parse its stdout as
     JSON: one measurement in a fresh process."""
     env = checkout_env(root) if root is not None else None
-    p = subprocess.run([sys.executable, *map(str, args)], capture_output=True, text=True, env=env,
-                       cwd=str(root) if root is not None else None, **kw)
+    p = subprocess.run([sys.executable, *map(str, args)], capture_output=True, text=True, env=env, **kw)
     if p.returncode:
         raise RuntimeError(f"{' '.join(map(str, args))} failed ({p.returncode}): {p.stderr[-2000:]}")
     return json.loads(p.stdout)
