@@ -247,9 +247,8 @@ def chart(res: dict, path: str) -> None:
     ax.set_title(f"Sweep error vs cost: {ev['data'][:48]}\n{ev['motion']}", fontsize=9)
     ax.legend(fontsize=7.5, loc="lower left")
     ax.grid(True, which="both", alpha=0.3)
-    m = res["machine"]
-    fig.text(0.99, 0.01, f"{m['host'][:20]}, {m['cores']} cores, numpy {np.__version__}, load {m['loadavg_before'][0]}",
-             ha="right", fontsize=6.5, color="#555")
+    fig.text(0.99, 0.01, f"{H.machine_line(res['machine'])}, numpy {np.__version__}", ha="right", fontsize=6.5,
+             color="#555")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
 

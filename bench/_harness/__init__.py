@@ -131,6 +131,14 @@ def machine_done(d: dict[str, Any]) -> dict[str, Any]:
     return d
 
 
+def machine_line(d: dict[str, Any]) -> str:
+    """A :func:`machine` description in one line, for a chart's corner."""
+    load = f"load {d['loadavg_before'][0]:.1f}"
+    if "loadavg_after" in d:
+        load += f" -> {d['loadavg_after'][0]:.1f}"
+    return f"{d['host'][:20]} ({d['cores']} CPUs), {load}" + (f", {d['adapter']}" if d.get("adapter") else "")
+
+
 # ----------------------------------------------------------------------------- timing
 def median_ms(fn: Callable[[], Any], reps: int, warm: int = 1) -> tuple[float, list[float]]:
     """(median, every sample) of ``fn``'s wall time in ms over ``reps`` calls after ``warm``."""

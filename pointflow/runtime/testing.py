@@ -193,3 +193,15 @@ class LineProc:
     def send(self, text: str) -> None:
         self.p.stdin.write(text)
         self.p.stdin.flush()
+
+    def close(self) -> None:
+        """Close its stdin (it exits), wait; kill it if it does not."""
+        try:
+            self.p.stdin.close()
+        except OSError:
+            pass
+        try:
+            self.p.wait(10)
+        except subprocess.TimeoutExpired:
+            self.p.kill()
+            self.p.wait(5)
