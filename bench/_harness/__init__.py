@@ -219,11 +219,20 @@ def checkout_env(root: Path | str, **extra: str) -> dict[str, str]:
     return dict(os.environ, PYTHONPATH=str(Path(root).resolve()), POINTFLOW_DATA=str(DATA), **extra)
 
 
+def _child(args: Sequence[str], root: Path | str | None) -> dict[str, Any]:
+    """argv, env and cwd of a child that imports ``root``'s pointflow: run from ``root`` (so
+    ``python -c``/``-m``, whose first path entry is the working folder, find it too) with a
+    script named by its absolute path."""
+    argv = [str(Path(a).resolve()) if i == 0 and Path(str(a)).is_file() else str(a) for i, a in enumerate(args)]
+    if root is None:
+        return {"args": [sys.executable, *argv]}
+    return {"args": [sys.executable, *argv], "env": checkout_env(root), "cwd": str(root)}
+
+
 def run_json(args: Sequence[str], root: Path | str | None = None, **kw: Any) -> Any:
     """Run ``python ARGS`` (against ``root``'s pointflow when given) and parse its stdout as
     JSON: one measurement in a fresh process."""
-    env = checkout_env(root) if root is not None else None
-    p = subprocess.run([sys.executable, *map(str, args)], capture_output=True, text=True, env=env, **kw)
+    p = subprocess.run(**_child(args, root), capture_output=True, text=True, **kw)
     if p.returncode:
         raise RuntimeError(f"{' '.join(map(str, args))} failed ({p.returncode}): {p.stderr[-2000:]}")
     return json.loads(p.stdout)
@@ -234,9 +243,7 @@ class Worker:
     checkouts can be timed batch by batch, each set up once)."""
 
     def __init__(self, args: Sequence[str], root: Path | str | None = None):
-        env = checkout_env(root) if root is not None else None
-        self.p = subprocess.Popen([sys.executable, *map(str, args)], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                                  text=True, env=env)
+        self.p = subprocess.Popen(**_child(args, root), stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
 
     def ask(self, line: str) -> Any:
         assert self.p.stdin and self.p.stdout
