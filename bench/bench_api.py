@@ -175,7 +175,7 @@ def pipeline_bench(repeats: int, points: int, sizes) -> dict:
             clouds = _clouds(n, k)
             res = {"send": [], "wire": [], "rerun": []}
             for r in range(repeats):
-                order = ["send", "wire", "rerun"] if r % 2 == 0 else ["rerun", "wire", "send"]
+                order = H.order(["send", "wire", "rerun"], r)
                 for name in order:
                     if name == "send":
                         res[name].append(run_send(p, clouds))
@@ -291,7 +291,7 @@ def handoff_bench(repeats: int) -> dict:
     for n, k in ((100_000, 200), (1_000_000, 30)):
         res = {"zmq_zero_copy": [], "zmq_copy": [], "shm": []}
         for r in range(repeats):
-            for kind in (["zmq_zero_copy", "zmq_copy", "shm"] if r % 2 == 0 else ["shm", "zmq_copy", "zmq_zero_copy"]):
+            for kind in H.order(["zmq_zero_copy", "zmq_copy", "shm"], r):
                 res[kind].append(handoff({"zmq_zero_copy": "zmq", "zmq_copy": "zmq_copy", "shm": "shm"}[kind], n, k, tmp))
         med = {kk: statistics.median(v) for kk, v in res.items()}
         out[str(n)] = {"clouds": k, "points_per_s": res, "median": med}

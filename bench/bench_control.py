@@ -99,8 +99,7 @@ def run(kind: str, args, tmp: str) -> dict:
 
 
 def chart(res: dict, path: Path) -> None:
-    plt = H.pyplot()
-    if plt is None:
+    if (plt := H.pyplot()) is None:
         return
 
     fig, axes = plt.subplots(1, len(res["runs"]), figsize=(5.2 * len(res["runs"]), 3.6))

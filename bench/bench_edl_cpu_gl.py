@@ -50,10 +50,7 @@ def measure(tier: str, frame, cam, size, rounds: int) -> dict:
     try:
         for r in rs.values():  # warm-up: uploads, shader compiles, allocations
             frame_ms(r, frame, cam)
-        ts: dict[str, list[float]] = {"off": [], "on": []}
-        for i in range(rounds):
-            for k in (("off", "on") if i % 2 == 0 else ("on", "off")):
-                ts[k].append(frame_ms(rs[k], frame, cam))
+        ts = H.interleave({k: (lambda k=k: frame_ms(rs[k], frame, cam)) for k in ("off", "on")}, rounds)
     finally:
         for r in rs.values():
             r.close()
@@ -74,12 +71,9 @@ def pass_cost(tier: str, size, rounds: int, frame, cam) -> dict:
     empty = dataclasses.replace(frame, size=0)
     rs = {k: make(tier, dataclasses.replace(base, edl=EdlConfig(enabled=k == "on")), frame.size) for k in ("off", "on")}
     try:
-        ts: dict[str, list[float]] = {"off": [], "on": []}
         for r in rs.values():
             frame_ms(r, empty, cam)
-        for i in range(rounds):
-            for k in (("off", "on") if i % 2 == 0 else ("on", "off")):
-                ts[k].append(frame_ms(rs[k], empty, cam))
+        ts = H.interleave({k: (lambda k=k: frame_ms(rs[k], empty, cam)) for k in ("off", "on")}, rounds)
     finally:
         for r in rs.values():
             r.close()

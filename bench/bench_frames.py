@@ -205,7 +205,7 @@ def pipeline(points: int, rounds: int) -> dict:
         runs = {"off": IngestRun(2_000_000, None), "on": IngestRun(2_000_000, FRAMES_ON)}
         try:
             for i in range(rounds):  # interleaved, alternating which goes first
-                for k in (("off", "on") if i % 2 == 0 else ("on", "off")):
+                for k in H.order(("off", "on"), i):
                     runs[k].measure(n, count, "lidar", stamp0=T0)
                     rates[k].append(runs[k].hb_rate)  # until the heartbeat that shows every point
                     cpu[k].append(runs[k].cpu_rate)
@@ -226,8 +226,7 @@ def pipeline(points: int, rounds: int) -> dict:
 
 # ----------------------------------------------------------------------------- chart
 def chart(res: dict, path: str) -> None:
-    plt = H.pyplot()
-    if plt is None:
+    if (plt := H.pyplot()) is None:
         return
 
     ev = res["error_vs_cost"]

@@ -57,7 +57,7 @@ def main() -> None:
     runs = []
     machine = H.machine()
     for r in range(a.rounds):
-        for raster in (("quads", "compute") if r % 2 == 0 else ("compute", "quads")):
+        for raster in H.order(("quads", "compute"), r):
             res = run_once(raster, a.seconds, a.warmup)
             runs.append(res)
             print(f"  round {r + 1} {raster:8}: {res['fps']:6.2f} frames/s ({res['frames']} frames in "
@@ -76,7 +76,7 @@ def compare_auto(a) -> None:
     runs = []
     machine = H.machine()
     for r in range(a.rounds):
-        for k in (list(kinds) if r % 2 == 0 else list(kinds)[::-1]):
+        for k in H.order(list(kinds), r):
             backend, raster = kinds[k]
             res = run_once(raster, a.seconds, a.warmup, backend=backend)
             res["kind"] = k

@@ -187,8 +187,7 @@ def bytes_per_point(chunks: list, tmp: str) -> dict:
 
 
 def plot(res: dict, path: str) -> None:
-    plt = H.pyplot()
-    if plt is None:
+    if (plt := H.pyplot()) is None:
         return
     fig, ax = plt.subplots(1, 3, figsize=(14, 4.2))
     p = res["pipeline"]["realtime"]

@@ -176,6 +176,22 @@ def role_send(args) -> None:
     print(json.dumps({"sent_points": n_sent, "bytes": bytes_out}), flush=True)
 
 
+def _receive_all(t) -> tuple[int, float | None, float]:
+    """Open a receiving transport, say ``ready``, take chunks until the sender's ledger says
+    it ended: (points, time of the first chunk, time of the end)."""
+    t.open()
+    print("ready", flush=True)
+    n, t0 = 0, None
+    for c in t.chunks():
+        if c is not None:
+            if t0 is None:
+                t0 = time.perf_counter()
+            n += c.n
+        if t.ledger.ended:
+            break
+    return n, t0, time.perf_counter()
+
+
 def role_recv(args) -> None:
     import zmq
 
@@ -209,17 +225,7 @@ def role_recv(args) -> None:
             opts.update(insecure=False, curve_secret_key=args.keys + "/viewer.key_secret",
                         curve_authorized_keys=args.keys + "/clients")
         t = ZmqTransport(ZmqTransport.validate_options(opts, "bench", "."), "bench")
-        t.open()
-        print("ready", flush=True)
-        n, t0 = 0, None
-        for c in t.chunks():
-            if c is not None:
-                if t0 is None:
-                    t0 = time.perf_counter()
-                n += c.n
-            if t.ledger.ended:
-                break
-        t1 = time.perf_counter()
+        n, t0, t1 = _receive_all(t)
         t._poll_monitor()
         result = {"points": n, "seconds": t1 - t0, "lost": t.counters.get("lost_in_transit", 0)}
         t.close()
@@ -330,17 +336,7 @@ def zenoh_or_fanout_recv(args) -> None:
         # socket does, so every mode here is lossless and paced by its slowest part
         opts = {"key": "bench/**", "zenoh": z, "queue_chunks": 64, "backpressure": True}
     t = T(T.validate_options(opts, "bench", "."), "bench")
-    t.open()
-    print("ready", flush=True)
-    n, t0 = 0, None
-    for c in t.chunks():
-        if c is not None:
-            if t0 is None:
-                t0 = time.perf_counter()
-            n += c.n
-        if t.ledger.ended:
-            break
-    t1 = time.perf_counter()
+    n, t0, t1 = _receive_all(t)
     result = {"points": n, "seconds": (t1 - t0) if t0 else float("nan"), "lost": t.counters.get("lost_in_transit", 0),
               "receive_queue_full": t.counters.get("receive_queue_full", 0), "link_sent": t.counters.get("link_sent", 0)}
     t.close()
@@ -533,8 +529,7 @@ def zenoh_pass(args) -> int:
 def zenoh_chart(out: dict, path: str) -> None:
     """Paired ratios per round against the issue's targets, absolute medians beside the
     ZeroMQ baseline, and the fan-out's bytes on the sensor's link."""
-    plt = H.pyplot()
-    if plt is None:
+    if (plt := H.pyplot()) is None:
         return
     d = list(out["summary"])[-1]
     runs = out["runs"][d]
@@ -576,8 +571,7 @@ def zenoh_chart(out: dict, path: str) -> None:
 # --------------------------------------------------------------------------- chart
 def chart(out: dict, path: str) -> None:
     """Throughput and bytes/point per mode, one panel per link and data set."""
-    plt = H.pyplot()
-    if plt is None:
+    if (plt := H.pyplot()) is None:
         return
     panels = [(p, d) for p, ds in out["summary"].items() for d in ds]
     fig, axes = plt.subplots(2, len(panels), figsize=(4.2 * len(panels), 6.5), squeeze=False)

@@ -174,7 +174,7 @@ def run(sizes: list[int], reps: dict[int, int], cpu_max: int, cpu_compute: bool 
             a = state["head"]
             b = min(a + step, n)
             state["head"] = b % n
-            order = list(METHODS) if i % 2 == 0 else list(reversed(METHODS))
+            order = _harness.order(METHODS, i)
             for m in order:
                 t0 = time.perf_counter()
                 tick(m, a, b)
@@ -274,7 +274,7 @@ def _race(adapter, f: FrameInput, cam: Camera, cfg: RenderConfig, n: int, reps: 
     ts: dict[str, list[float]] = {m: [] for m in METHODS}
     try:
         for i in range(reps + 1):
-            for m in (METHODS if i % 2 == 0 else METHODS[::-1]):
+            for m in _harness.order(METHODS, i):
                 t0 = time.perf_counter()
                 rs[m].render(f, cam)
                 rs[m].read_image()
@@ -286,17 +286,20 @@ def _race(adapter, f: FrameInput, cam: Camera, cfg: RenderConfig, n: int, reps: 
     return {f"{m}_ms": float(np.median(v)) for m, v in ts.items()}
 
 
+def _tiled_scene(n: int) -> tuple[Any, str, FrameInput, Camera]:
+    """(adapter, scene name, frame, camera) of the main benchmark's scene at n points."""
+    adapter, _why = select_adapter()
+    base, inten0, scene = base_cloud()
+    world, inten = tiled(base, inten0, n)
+    return adapter, scene, make_frame(world, inten), camera_for(world)
+
+
 def raster_crossover(n: int, sizes_px: list[float], counts: list[int], reps: int) -> dict[str, Any]:
     """Compute vs quads frame time (interleaved, medians) over point sizes at n points and over
     point counts at 2 px: ``max_compute_point_px`` = the largest size up to which compute was
     faster at every size; ``min_compute_points_per_pixel`` = the smallest count from which it
     was faster at every larger count, per target pixel (its resolve pass is per pixel)."""
-    adapter, why = select_adapter()
-    base, inten0, scene = base_cloud()
-    world, inten = tiled(base, inten0, n)
-    f = make_frame(world, inten)
-    cam = camera_for(world)
-    del world
+    adapter, scene, f, cam = _tiled_scene(n)
     out, best, ok = [], 0.0, True
     for s in sizes_px:
         cfg = RenderConfig(size=[W, H], color_by="intensity", point_size=float(s), gpu_timestamps=False)
@@ -337,12 +340,7 @@ def edl_cost(n: int, reps: int) -> dict[str, Any]:
     and frame as the main benchmark: 1% of the ring rewritten per frame, output =
     read_image), the four renderers interleaved frame by frame in rotating order."""
     from pointflow.config import EdlConfig
-    adapter, why = select_adapter()
-    base, inten0, scene = base_cloud()
-    world, inten = tiled(base, inten0, n)
-    f = make_frame(world, inten)
-    cam = camera_for(world)
-    del world
+    adapter, scene, f, cam = _tiled_scene(n)
     cfg = RenderConfig(size=[W, H], color_by="intensity", colormap="turbo", point_size=2.0, gpu_timestamps=False)
     keys = [(m, e) for m in METHODS for e in (False, True)]
     rs = {k: WgpuRenderer(replace(cfg, raster=k[0], edl=EdlConfig(enabled=k[1])), n, ["intensity"],
@@ -511,14 +509,29 @@ def cpu_raster(sizes: list[int], reps: dict[int, int]) -> dict[str, Any]:
             "measured_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "command": _harness.command()}
 
 
+def _frame_time_axes(res: dict[str, Any], figsize: tuple[float, float]):
+    """(figure, axes, rows, point counts) of a frame time vs points chart; None without matplotlib."""
+    if (plt := _harness.pyplot()) is None:
+        return None
+    fig, ax = plt.subplots(figsize=figsize)
+    return fig, ax, res["rows"], [r["points"] for r in res["rows"]]
+
+
+def _save_frame_time_chart(fig, ax, path: Path, **legend: Any) -> None:
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(**legend)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    import matplotlib.pyplot as plt
+
+    plt.close(fig)
+
+
 def cpu_raster_chart(res: dict[str, Any], path: Path) -> None:
     """Frame time per method against points (log-log), ratios to wgpu compute and the floor noted."""
-    plt = _harness.pyplot()
-    if plt is None:
+    if (got := _frame_time_axes(res, (7.2, 4.6))) is None:
         return
-    rows = res["rows"]
-    n = [r["points"] for r in rows]
-    fig, ax = plt.subplots(figsize=(7.2, 4.6))
+    fig, ax, rows, n = got
     series = [("wgpu_compute_ms", "o-", "wgpu compute method on " + str(res.get("adapter") or "?").split(" (")[0]),
               ("cpu_compute_ms", "*-", f"cpu compiled raster, {res['threads']} threads (split by points)"),
               ("cpu_compute_1thread_ms", "v:", "cpu compiled raster, 1 thread"),
@@ -537,11 +550,7 @@ def cpu_raster_chart(res: dict[str, Any], path: Path) -> None:
     ax.set_ylabel("median frame time, ms (interleaved)")
     ax.set_title(f"{res['size'][0]}x{res['size'][1]}, 2 px, turbo by intensity, 1% dirty per frame; "
                  f"{res.get('machine', {}).get('cores', res.get('cpu_count'))} cores", fontsize=9)
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=7.5, loc="upper left")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    _save_frame_time_chart(fig, ax, path, fontsize=7.5, loc="upper left")
 
 
 def table(res: dict[str, Any]) -> str:
@@ -567,12 +576,9 @@ def table(res: dict[str, Any]) -> str:
 
 
 def chart(res: dict[str, Any], path: Path) -> None:
-    plt = _harness.pyplot()
-    if plt is None:
+    if (got := _frame_time_axes(res, (7, 4.5))) is None:
         return
-    rows = res["rows"]
-    n = [r["points"] for r in rows]
-    fig, ax = plt.subplots(figsize=(7, 4.5))
+    fig, ax, rows, n = got
     ax.loglog(n, [r["compute_ms"] for r in rows], "o-", label="wgpu tier, compute method (fused tests + atomics)")
     ax.loglog(n, [r["quads_ms"] for r in rows], "d-", label="wgpu tier, quads method (cull + compaction + draw)")
     ax.loglog(n, [r["floor_ms"] for r in rows], "s--", label="bare-wgpu floor (2 px instanced quads)")
@@ -582,11 +588,7 @@ def chart(res: dict[str, Any], path: Path) -> None:
     ax.set_xlabel("points")
     ax.set_ylabel("median frame time, ms")
     ax.set_title(f"frame = upload 1% + cull + raster + readback, {W}x{H}\n{res['adapter']}", fontsize=9)
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    _save_frame_time_chart(fig, ax, path, fontsize=8)
 
 
 def main(argv: Optional[list[str]] = None) -> int:

@@ -34,31 +34,8 @@ from pointflow.ring import PointRing, SlabPair, SlabWriter
 
 def best_time(fn, min_batch_s: float, repeats: int) -> float:
     """Best per-call time over `repeats` batches of at least `min_batch_s` each."""
-    fn()  # warm up
-    best = float("inf")
-    for _ in range(repeats):
-        reps = 0
-        t0 = time.perf_counter()
-        while True:
-            fn()
-            reps += 1
-            dt = time.perf_counter() - t0
-            if dt >= min_batch_s and reps >= 2:
-                break
-        best = min(best, dt / reps)
-    return best
+    return min(H.per_call(fn, repeats, min_batch_s, warm=1))
 
-
-def batch_time(fn, min_batch_s: float) -> float:
-    """Per-call time over one batch of at least `min_batch_s` (and 2 calls)."""
-    reps = 0
-    t0 = time.perf_counter()
-    while True:
-        fn()
-        reps += 1
-        dt = time.perf_counter() - t0
-        if dt >= min_batch_s and reps >= 2:
-            return dt / reps
 
 
 def interleaved_times(fns: dict, min_batch_s: float, repeats: int) -> dict[str, list[float]]:
@@ -68,7 +45,7 @@ def interleaved_times(fns: dict, min_batch_s: float, repeats: int) -> dict[str, 
     out = {k: [] for k in fns}
     for _ in range(repeats):
         for k, fn in fns.items():
-            out[k].append(batch_time(fn, min_batch_s))
+            out[k].append(H.batch_time(fn, min_batch_s))
     return out
 
 

@@ -259,8 +259,7 @@ def bench_replay(repeats: int, messages: int, small_points: int, large_points: i
 
 def plot(res: dict, path: str) -> None:
     """bench/results/ros.png: decode vs floor, replay rates (matplotlib, the plot extra)."""
-    plt = H.pyplot()
-    if plt is None:
+    if (plt := H.pyplot()) is None:
         return
     d = res["decode"]["mpoints_per_s"]
     fig, (a, b) = plt.subplots(1, 2, figsize=(10, 3.6))

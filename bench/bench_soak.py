@@ -191,20 +191,16 @@ def chaos(args) -> None:
                 frozen = None
             if t >= next_kill and frozen is None:
                 next_kill += args.kill_every
-                live = [n for n in STAGES if samples[-1]["ready"].get(n)]
-                if live:
-                    name = rng.choice(live)
-                    pid = stages[name]["pid"]
+                if live := _live_stage(rng, samples, stages):
+                    name, pid = live
                     os.kill(pid, signal.SIGKILL)
                     kills.append({"t": round(t, 2), "stage": name, "pid": pid, "frames": st["frames"],
                                   "standby": stages[name].get("standby_pid")})
                     print(f"{t:7.1f} s  SIGKILL {name} (pid {pid})", flush=True)
             if t >= next_freeze and frozen is None:
                 next_freeze += args.freeze_every
-                live = [n for n in STAGES if samples[-1]["ready"].get(n)]
-                if live:
-                    name = rng.choice(live)
-                    pid = stages[name]["pid"]
+                if live := _live_stage(rng, samples, stages):
+                    name, pid = live
                     os.kill(pid, signal.SIGSTOP)
                     frozen = (pid, t + args.freeze_s)
                     freezes.append({"t": round(t, 2), "stage": name, "pid": pid, "seconds": args.freeze_s})
@@ -226,6 +222,15 @@ def chaos(args) -> None:
     time.sleep(1.0)
     args.machine = machine
     _chaos_report(args, cfg, samples, kills, freezes, final, segments, run_dir, pids_seen, warm)
+
+
+def _live_stage(rng, samples, stages) -> tuple[str, int] | None:
+    """A stage (name, pid) chosen at random among those the last sample saw ready."""
+    live = [n for n in STAGES if samples[-1]["ready"].get(n)]
+    if not live:
+        return None
+    name = rng.choice(live)
+    return name, stages[name]["pid"]
 
 
 def _first(samples, t_from, pred):
@@ -367,8 +372,7 @@ def _chaos_report(args, cfg, samples, kills, freezes, final, segments, run_dir, 
 
 
 def _chaos_chart(path, samples, kills, freezes, names, args) -> None:
-    plt = H.pyplot()
-    if plt is None:
+    if (plt := H.pyplot()) is None:
         return
     t = np.array([s["t"] for s in samples])
     f = np.array([s["frames"] for s in samples], dtype=float)

@@ -220,8 +220,7 @@ def chart(rows: list[dict], path: Path) -> None:
     method family), no connecting lines; the Pareto front (nothing else is both faster and
     closer to the reference) as a step line with its points ringed and labelled; legends
     outside the panels."""
-    plt = H.pyplot()
-    if plt is None:
+    if (plt := H.pyplot()) is None:
         return
     import matplotlib.ticker
     from matplotlib.lines import Line2D

@@ -152,22 +152,23 @@ def median_ms(fn: Callable[[], Any], reps: int, warm: int = 1) -> tuple[float, l
     return statistics.median(ts), ts
 
 
+def batch_time(fn: Callable[[], Any], min_s: float) -> float:
+    """Seconds per call over one batch of at least ``min_s`` (and two calls)."""
+    reps, t0 = 0, time.perf_counter()
+    while True:
+        fn()
+        reps += 1
+        d = time.perf_counter() - t0
+        if d >= min_s and reps >= 2:
+            return d / reps
+
+
 def per_call(fn: Callable[[], Any], batches: int = 7, min_s: float = 0.05, warm: int = 50) -> list[float]:
-    """Seconds per call of a fast ``fn``: ``batches`` batches, each at least ``min_s`` long
-    (and two calls), after ``warm`` calls; one figure per batch."""
+    """Seconds per call of a fast ``fn``: ``batches`` batches (:func:`batch_time`), after
+    ``warm`` calls; one figure per batch."""
     for _ in range(warm):
         fn()
-    out = []
-    for _ in range(batches):
-        reps, t0 = 0, time.perf_counter()
-        while True:
-            fn()
-            reps += 1
-            d = time.perf_counter() - t0
-            if d >= min_s and reps >= 2:
-                break
-        out.append(d / reps)
-    return out
+    return [batch_time(fn, min_s) for _ in range(batches)]
 
 
 def cpu_seconds(ps) -> float:

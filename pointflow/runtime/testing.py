@@ -26,7 +26,7 @@ from ..config import PipelineConfig, load_config, new_run_dir
 from ..ring import PointRing
 from .stage import RunInfo, stage_main
 
-__all__ = ["free_port", "rig_ring", "decode_spans", "StageRig", "LineProc"]
+__all__ = ["free_port", "wait_for", "rig_ring", "decode_spans", "StageRig", "LineProc"]
 
 
 def free_port(host: str = "127.0.0.1") -> int:
@@ -34,6 +34,18 @@ def free_port(host: str = "127.0.0.1") -> int:
     with socket.socket() as s:
         s.bind((host, 0))
         return s.getsockname()[1]
+
+
+def wait_for(pred: Callable[[], Any], timeout: float = 30.0, interval: float = 0.05) -> Any:
+    """``pred()``'s first true value, polled every ``interval`` s for up to ``timeout`` s; its
+    last value (false) when time ran out (the caller asserts on it)."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        v = pred()
+        if v:
+            return v
+        time.sleep(interval)
+    return pred()
 
 
 def rig_ring(cfg: PipelineConfig, channels: Sequence[str] | None = None) -> PointRing:

@@ -5,7 +5,9 @@ import os
 import time
 
 import psutil
-from pointflow.runtime.testing import free_port as free_tcp_port
+
+from pointflow.runtime import testing
+from pointflow.runtime.testing import free_port as free_tcp_port  # noqa: F401  (tests import it here)
 
 SHM = "/dev/shm"
 
@@ -65,10 +67,4 @@ def _alive(pid: int) -> bool:
 
 
 def wait_for(pred, timeout=30.0, interval=0.1):
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        v = pred()
-        if v:
-            return v
-        time.sleep(interval)
-    return pred()
+    return testing.wait_for(pred, timeout, interval)
