@@ -93,15 +93,15 @@ def test_checkout_env_points_a_child_at_that_checkout(tmp_path, monkeypatch):
 
 def test_driver_runs_without_sys_path_help(tmp_path):
     """Converted drivers run as ``python bench/<script>.py`` (the harness found beside them) and
-    write their result with the machine description (bench_cadence.py on a tiny budget)."""
+    write their result with the machine description (bench_ring.py on its smallest budget)."""
     out = tmp_path / "ring.json"
     env = dict(os.environ, PYTHONPATH=str(REPO))
     p = subprocess.run([sys.executable, str(BENCH / "ab_ring_push.py"), "--help"], capture_output=True, text=True,
                        env=env, timeout=120)
     assert p.returncode == 0 and "checkout A" in p.stdout, p.stderr
-    p = subprocess.run([sys.executable, str(BENCH / "bench_cadence.py"), "--seconds", "0.3", "--rates", "60",
-                        "--out", str(out)], capture_output=True, text=True, env=env, timeout=240)
+    p = subprocess.run([sys.executable, str(BENCH / "bench_ring.py"), "--quick", "--repeats", "1", "--out", str(out)],
+                       capture_output=True, text=True, env=env, timeout=240)
     assert p.returncode == 0, p.stderr[-2000:]
     res = json.loads(out.read_text())
     assert res["machine"]["cores"] == os.cpu_count() and "loadavg_after" in res["machine"]
-    assert {r["mode"] for r in res["rows"]} == {"ticker", "naive"}
+    assert res["command"].startswith("bench/bench_ring.py") and res["ingest"] and res["snapshot"]
