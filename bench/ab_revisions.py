@@ -70,7 +70,8 @@ def compare(base: list[float], head: list[float], lower_better: bool) -> dict[st
     return {"base": base, "head": head, "base_spread": b, "head_spread": h,
             "head_over_base": h["median"] / b["median"] if b["median"] else None,
             "run_to_run_spread": run_to_run, "lower_is_better": lower_better,
-            "within_spread": abs(h["median"] - b["median"]) <= run_to_run}
+            # one round has no spread to judge by
+            "within_spread": abs(h["median"] - b["median"]) <= run_to_run if min(b["n"], h["n"]) > 1 else None}
 
 
 @contextlib.contextmanager
@@ -134,7 +135,8 @@ def main(argv: list[str] | None = None) -> int:
     for b, figs in res["benches"].items():
         for k, c in figs.items():
             print(f"{b + ' ' + k:<34}{c['base_spread']['median']:>12.4g}{c['head_spread']['median']:>12.4g}"
-                  f"{c['head_over_base'] or float('nan'):>10.3f}  {'yes' if c['within_spread'] else 'NO'}"
+                  f"{c['head_over_base'] or float('nan'):>10.3f}  "
+                  f"{ {True: 'yes', False: 'NO', None: 'n/a (one round)'}[c['within_spread']]}"
                   f" (spread {c['run_to_run_spread']:.3g})")
     print(f"load: {res['machine']['uptime_before']} -> {res['machine']['uptime_after']}")
     H.write_result(a.out, res)
