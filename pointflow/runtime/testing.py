@@ -106,19 +106,23 @@ class StageRig:
         self._sockets.append(s)
         return s
 
+    def on_control(self, m: dict[str, Any]) -> None:
+        """One control message: a heartbeat's stats become ``last``; a stage error raises
+        AssertionError with the stage's message (a rig of more stages overrides this)."""
+        if m.get("type") == "heartbeat":
+            self.last = m["stats"]
+        elif m.get("type") == "error":
+            raise AssertionError(f"{m.get('stage', self.kind)} stage failed:\n" + m["message"])
+
     def poll(self, timeout_ms: int = 100) -> dict[str, Any]:
-        """Read what the stage sent (heartbeats, errors, spans); the latest stats. A stage
-        error raises AssertionError with the stage's message."""
+        """Read what the stage sent (control messages, spans); the latest stats."""
         if self.control.poll(timeout_ms):
             while True:
                 try:
                     m = json.loads(self.control.recv(zmq.NOBLOCK))
                 except zmq.Again:
                     break
-                if m.get("type") == "heartbeat":
-                    self.last = m["stats"]
-                elif m.get("type") == "error":
-                    raise AssertionError(f"{self.kind} stage failed:\n" + m["message"])
+                self.on_control(m)
         while True:
             try:
                 frames = self.trace.recv_multipart(zmq.NOBLOCK)
