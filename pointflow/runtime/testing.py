@@ -7,6 +7,7 @@ its own process. Tests drive it through its sockets; ``bench/`` times it.
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import multiprocessing as mp
 import os
@@ -22,11 +23,11 @@ from typing import Any, Callable, Sequence
 import numpy as np
 import zmq
 
-from ..config import PipelineConfig, load_config, new_run_dir
-from ..ring import PointRing
+from ..config import load_config, new_run_dir
+from ..ring.config import build_ring
 from .stage import RunInfo, stage_main
 
-__all__ = ["free_port", "wait_for", "rig_ring", "decode_spans", "StageRig", "LineProc"]
+__all__ = ["free_port", "wait_for", "decode_spans", "StageRig", "LineProc"]
 
 
 def free_port(host: str = "127.0.0.1") -> int:
@@ -48,16 +49,6 @@ def wait_for(pred: Callable[[], Any], timeout: float = 30.0, interval: float = 0
     return pred()
 
 
-def rig_ring(cfg: PipelineConfig, channels: Sequence[str] | None = None) -> PointRing:
-    """The ring a rig's stage writes, built from ``cfg.ring`` as the supervisor builds it.
-    The one place the rig turns the ring section into a ring (switch to the ring package's
-    builder here when it has one)."""
-    imp = "importance" if (cfg.ring.importance_field or cfg.ring.eviction == "importance") else None
-    return PointRing(cfg.ring.max_points, channels=list(channels) if channels is not None else cfg.ring_channels(),
-                     eviction=cfg.ring.eviction, importance_field=imp,
-                     classification_weights=cfg.ring.classification_weights)
-
-
 def decode_spans(frames) -> list:
     """[trace_id, event, t0, t1, n] rows from a span batch (v1 JSON or v2 binary)."""
     head = json.loads(frames[0])
@@ -70,7 +61,8 @@ def decode_spans(frames) -> list:
 class StageRig:
     """One live stage (``kind``, ``ingest`` by default) in a spawned process, plus the rig's
     ends of its control and trace sockets; ``last`` is its latest heartbeat's stats and
-    ``spans`` the span rows it sent. Use as a context manager or call :meth:`close`."""
+    ``spans`` the span rows it sent. The ring and slabs come from the ring package's builder,
+    as the supervisor's do. Use as a context manager or call :meth:`close`."""
 
     def __init__(self, cfg: dict, kind: str = "ingest", *, name: str | None = None,
                  ring_channels: Sequence[str] | None = None, root: str | None = None,
@@ -78,7 +70,8 @@ class StageRig:
         self.cfg_dict = cfg
         self.cfg = load_config(cfg)
         self.kind = kind
-        self.ring = rig_ring(self.cfg, ring_channels)
+        channels = list(ring_channels) if ring_channels is not None else self.cfg.ring_channels()
+        self.ring, self.slabs = build_ring(self.cfg.ring, channels)
         self.run_dir = new_run_dir()
         self.endpoints = self.cfg.resolved_endpoints(self.run_dir)
         self.zctx = zmq.Context()
@@ -88,7 +81,7 @@ class StageRig:
         self.trace.bind(self.endpoints.trace)
         self._sockets = [self.control, self.trace]
         info = RunInfo(run_dir=self.run_dir, endpoints=self.endpoints, ring_name=self.ring.name,
-                       slab_names=("", ""), out_dir=None, supervisor_pid=os.getpid(),
+                       slab_names=tuple(self.slabs.names), out_dir=None, supervisor_pid=os.getpid(),
                        **({} if log_level is None else {"log_level": log_level}))
         self.proc = mp.get_context("spawn").Process(
             target=stage_main, args=(name or kind, kind, cfg, root or os.getcwd(), info), daemon=True)
@@ -160,7 +153,10 @@ class StageRig:
         for s in self._sockets:
             s.close(linger=0)
         self.zctx.term()
-        self.ring.close()
+        for shm in (self.slabs, self.ring):
+            shm.close()
+            with contextlib.suppress(FileNotFoundError):
+                shm.unlink()
         shutil.rmtree(self.run_dir, ignore_errors=True)
 
     def __enter__(self) -> "StageRig":
