@@ -116,7 +116,7 @@ def machine(adapter: str | None = None, **extra: Any) -> dict[str, Any]:
         "loadavg_before": [round(x, 2) for x in os.getloadavg()], "uptime_before": uptime(),
         "shared": "the machine is shared with other work; the load averages say how busy it was",
     }
-    if pf and not Path(pf).resolve().is_relative_to(ROOT):
+    if "pointflow" in sys.modules and pf and not Path(pf).resolve().is_relative_to(ROOT):  # this process measures it
         print(f"note: measuring pointflow from {pf}, not this checkout ({ROOT}); set PYTHONPATH={ROOT} "
               "to measure this one", file=sys.stderr)
     d.update(extra)
