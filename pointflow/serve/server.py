@@ -109,6 +109,8 @@ class ViewClient:
     sizes: collections.deque = field(default_factory=lambda: collections.deque(maxlen=60))
     sent_t: collections.deque = field(default_factory=lambda: collections.deque(maxlen=120))
     closed: bool = False
+    #: A playback request of this client is waiting for the sources (one at a time).
+    playback_busy: bool = False
 
 
 def _count(c: dict, key: str, n: int = 1) -> None:
@@ -369,7 +371,12 @@ class ViewServer:
                 raise BadMessage("pick: x and y must be numbers (pixels of the view)")
             self._to_render(c.view, "pick", x=float(x), y=float(y), req=req)
         elif cmd == "playback":
-            asyncio.ensure_future(self._playback(c, msg))
+            if c.playback_busy:  # one at a time per client: no pile of sockets waiting on an ended replay
+                self._send_json(c, {"type": "error", "req": req, "key": "playback",
+                                    "error": "the previous playback request is still waiting for the sources"})
+            else:
+                c.playback_busy = True
+                asyncio.ensure_future(self._playback(c, msg))
         else:
             raise BadMessage(f"unknown cmd {cmd[:40]!r}")
 
@@ -402,6 +409,12 @@ class ViewServer:
 
     # ------------------------------------------------------------------ playback (the timeline)
     async def _playback(self, c: ViewClient, msg: dict) -> None:
+        try:
+            await self._playback_request(c, msg)
+        finally:
+            c.playback_busy = False
+
+    async def _playback_request(self, c: ViewClient, msg: dict) -> None:
         req = msg.pop("req", None)
         source = msg.pop("source", None)
         bad = sorted(set(msg) - set(PLAYBACK_KEYS))
