@@ -278,8 +278,8 @@ class ViewServer:
         try:
             self._to_render(view, "open", width=c.width, height=c.height)
             self._send_json(c, {"type": "hello", "view": view, "sources": self.sources,
-                                      "replays": sorted(self.playback_endpoints), "max_in_flight": MAX_IN_FLIGHT,
-                                      "color_by": self.color_by, "colormaps": self.colormaps})
+                                "replays": sorted(self.playback_endpoints), "max_in_flight": MAX_IN_FLIGHT,
+                                "color_by": self.color_by, "colormaps": self.colormaps})
             async for msg in ws:
                 if msg.type == WSMsgType.TEXT:
                     try:
@@ -420,12 +420,12 @@ class ViewServer:
         bad = sorted(set(msg) - set(PLAYBACK_KEYS))
         if bad:
             self._send_json(c, {"type": "error", "req": req, "key": f"playback.{bad[0]}",
-                                      "error": f"unknown argument; playback takes {', '.join(PLAYBACK_KEYS)}"})
+                                "error": f"unknown argument; playback takes {', '.join(PLAYBACK_KEYS)}"})
             return
         targets = {n: e for n, e in self.playback_endpoints.items() if source is None or n == source}
         if not targets:
             self._send_json(c, {"type": "error", "req": req, "key": "playback.source",
-                                      "error": "no replaying source" + (f" named {source!r}" if source else "")})
+                                "error": "no replaying source" + (f" named {source!r}" if source else "")})
             return
         out: dict[str, Any] = {}
         for name, ep in targets.items():
