@@ -17,13 +17,17 @@ from typing import Any, ClassVar, Literal, Optional, Union
 
 import yaml
 
+from .cadence.config import CadenceConfig, PolicyConfig
 from .frames.config import FramesConfig, check_frames
+from .ingest.config import IngestConfig, SourceConfig
 from .ingest.playback import PlaybackConfig, check_playback
 from .ingest.transports import resolve_transport
 from .record.config import RecordConfig, check_record
 from .remote.options import SendConfig, check_send, is_loopback_endpoint
-from .remote.router import RouterConfig, check_router
+from .remote.zenoh_options import RouterConfig, check_router
+from .profiling.config import TracingConfig
 from .ring.config import RingConfig, check_ring
+from .runtime.config import SupervisorConfig
 from .typed import Bound, ConfigError, Each, Length, check, check_keys, dataclass_schema, load_dataclass
 from .typed import at_least_one, endpoint, non_negative, positive
 
@@ -31,50 +35,6 @@ __all__ = ["ConfigError", "PipelineConfig", "load_config", "json_schema", "new_r
 
 
 # --------------------------------------------------------------------------- sections
-@dataclass
-class SourceConfig:
-    """One source process. ``transport`` is a built-in name, an entry-point name from the
-    ``pointflow.transports`` group, or ``package.module:Class``."""
-
-    transport: str
-    name: str = ""
-    options: dict[str, Any] = field(default_factory=dict)
-    #: True when the source runs elsewhere (another program or machine sending the wire
-    #: format to ``endpoints.ingest``); the supervisor does not start it.
-    external: bool = False
-    #: The coordinate frame of this source's clouds when its data carry none (docs/frames.md).
-    frame_id: Optional[str] = None
-
-
-@dataclass
-class IngestConfig:
-    max_chunk_points: int = field(default=5_000_000, metadata=check(at_least_one))
-    coalesce_points: int = field(default=20_000, metadata=check(at_least_one))
-    queue_max_batches: int = field(default=64, metadata=check(at_least_one))
-    receive_hwm: int = field(default=256, metadata=check(at_least_one))
-    adaptive_thinning: bool = False
-
-
-@dataclass
-class PolicyConfig:
-    tier: Literal["auto", "L", "M", "H"] = "auto"
-    mode: Literal["eco", "balanced", "max_throughput", "custom"] = "balanced"
-    point_budget_cap: Optional[int] = field(default=None, metadata=check(at_least_one))
-    update_cadence_min_ms: Optional[float] = field(default=None, metadata=check(non_negative))
-    legacy: bool = False
-    #: The view cap: budget <= this multiple of the viewport's pixel count.
-    points_per_pixel: float = field(default=4.0, metadata=check(positive))
-
-
-@dataclass
-class CadenceConfig:
-    target_hz: float = field(default=60.0, metadata=check(positive))
-    adaptive: bool = False
-    #: Hand over a new snapshot only once the renderer has finished the last one, so a slow
-    #: renderer always draws the newest data instead of one queued a frame ago.
-    latest_only: bool = True
-
-
 @dataclass
 class CameraConfig:
     """``position``/``target`` in world coordinates; ``auto`` frames the ring's contents."""
@@ -176,39 +136,6 @@ class EndpointsConfig:
     view_transforms: Optional[str] = field(default=None, metadata=check(endpoint))
     #: Allow these (unencrypted) endpoints on a non-loopback tcp:// address.
     insecure: bool = False
-
-
-@dataclass
-class TracingConfig:
-    enabled: bool = True
-    #: Spans are sent in batches of this many (or every flush interval).
-    batch: int = field(default=256, metadata=check(at_least_one))
-    flush_ms: float = field(default=100.0, metadata=check(positive))
-
-
-@dataclass
-class SupervisorConfig:
-    heartbeat_ms: float = field(default=200.0, metadata=check(positive))
-    #: A stage process silent for this long (no heartbeat or pulse) is considered hung if
-    #: the kernel says it is not running either: stopped (SIGSTOP), or asleep without using
-    #: CPU. A silent stage that wants the CPU or uses it is starved, not hung, on a loaded
-    #: machine, and is kept up to stall_after_ms (docs/reliability.md).
-    hung_after_ms: float = field(default=800.0, metadata=check(positive))
-    #: A stage whose main loop has not come round for this long is considered stuck
-    #: (generous: one frame of a software rasteriser can take a second or more).
-    stall_after_ms: float = field(default=30000.0, metadata=check(positive))
-    #: A silent stage whose main thread never slept and used this much CPU since it went
-    #: silent spins in a call that holds the GIL (its pulse thread cannot talk): hung.
-    #: CPU time, not wall time, so a loaded machine does not trigger it.
-    stuck_cpu_ms: float = field(default=3000.0, metadata=check(positive))
-    #: Grace period before a new stage's first heartbeat (imports, GPU device creation).
-    startup_timeout_ms: float = field(default=30000.0, metadata=check(positive))
-    max_restarts: int = field(default=3, metadata=check(non_negative))
-    restart_backoff_ms: float = field(default=200.0, metadata=check(non_negative))
-    #: Keep a prepared standby process for each render, cadence, ingest and source stage:
-    #: interpreter started, modules imported, the renderer's device created and warmed up,
-    #: so a restart only hands it its run info.
-    standby: bool = True
 
 
 @dataclass
