@@ -118,7 +118,8 @@ LAYERS = {
     # the loader assembles (ring/config.py and frames/config.py sit in their own layer)
     "pointflow.record.config": 2, "pointflow.ingest.config": 2, "pointflow.ingest.playback": 2,
     "pointflow.cadence.config": 2, "pointflow.runtime.config": 2, "pointflow.remote.options": 2, "pointflow.remote.keys": 2,
-    "pointflow.remote.zenoh_options": 2, "pointflow.render.control": 2, "pointflow.render.camera": 2,
+    "pointflow.remote.zenoh_options": 2, "pointflow.render.config": 2, "pointflow.render.control": 2,
+    "pointflow.render.camera": 2,
     "pointflow.render.colormap": 2,
     # the loader, the schema, the top-level assembly
     "pointflow.config": 3,
