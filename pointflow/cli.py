@@ -201,7 +201,7 @@ def _send(args) -> int:
 def _router(args) -> int:
     """``pointflow router``: run the config's Zenoh router (docs/remote.md) until
     ``--duration``, Ctrl-C or SIGTERM, printing its sessions every ``stats_every_s``."""
-    from .remote.router import router_summary
+    from .remote.router_process import router_summary
     from .runtime.pipeline import Pipeline
 
     cfg = load_config(args.file)

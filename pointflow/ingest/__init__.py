@@ -1,7 +1,7 @@
 """Getting points in: the source stage, the ingest stage (the ring's only writer) and
 the readers and decoders they use.
 
-* :mod:`.source`: the source stage (one transport in its own process, pushing chunks);
+* :mod:`.source_process`: the source stage (one transport in its own process, pushing chunks);
   :mod:`.transports`: the adapter API (:class:`~.transports.Transport`), the built-ins and
   plugin resolution (:func:`~.transports.resolve_transport`);
 * :mod:`.process`: the ingest stage and :class:`Ingestor` (decode, validate, convert,

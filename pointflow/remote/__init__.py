@@ -8,11 +8,11 @@ One module per concept:
   the ZAP authenticator and the count of refused handshakes), :mod:`.transit` (points lost
   in transit, from the per-source link sequence); compression and quantisation of the
   frames are the wire format's (:mod:`pointflow.codec`);
-* the sending host (``pointflow send``): :mod:`.send_stage` (the sender stage, which picks
+* the sending host (``pointflow send``): :mod:`.process` (the sender stage, which picks
   the engine), :mod:`.sender` (the ZeroMQ engine's sender), :mod:`.zenoh_sender` (the
   Zenoh engine's);
 * Zenoh: :mod:`.zenoh_options` (the ``zenoh:`` block, opening a session),
-  :mod:`.router` (``pointflow router``, a supervised Zenoh router stage),
+  :mod:`.router_process` (``pointflow router``, a supervised Zenoh router stage),
   :mod:`.zenoh_log` (refused TLS handshakes, read from the engine's log),
   :mod:`.tls` (``pointflow keys --tls``: a CA and host certificates).
 

@@ -107,7 +107,7 @@ def _wait_subscribers(ctx, snd: ZenohLinkSender, wait_s: float) -> bool:
 
 
 def main(ctx) -> None:
-    """Stage loop for ``send.engine: zenoh`` (chosen by :func:`pointflow.remote.send_stage.main`)."""
+    """Stage loop for ``send.engine: zenoh`` (chosen by :func:`pointflow.remote.process.main`)."""
     s = ctx.cfg.send
     z = s.zenoh
     pull = ctx.zmq.socket(zmq.PULL)

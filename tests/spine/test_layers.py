@@ -117,7 +117,8 @@ LAYERS = {
     # config sections of the packages above the loader, each owned by its package, which
     # the loader assembles (ring/config.py and frames/config.py sit in their own layer)
     "pointflow.record.config": 2, "pointflow.ingest.config": 2, "pointflow.ingest.playback": 2,
-    "pointflow.cadence.config": 2, "pointflow.runtime.config": 2, "pointflow.remote.options": 2, "pointflow.remote.keys": 2,
+    "pointflow.cadence.config": 2, "pointflow.runtime.config": 2, "pointflow.map.config": 2,
+    "pointflow.serve.config": 2, "pointflow.remote.options": 2, "pointflow.remote.keys": 2,
     "pointflow.remote.zenoh_options": 2, "pointflow.render.config": 2, "pointflow.render.control": 2,
     "pointflow.render.camera": 2,
     "pointflow.render.colormap": 2,
@@ -128,7 +129,9 @@ LAYERS = {
     "pointflow.runtime.rundir": 4, "pointflow.runtime.console": 4,
     # the stages
     "pointflow.ingest": 5, "pointflow.cadence": 5, "pointflow.render": 5, "pointflow.record": 5,
-    "pointflow.remote": 5,
+    "pointflow.remote": 5, "pointflow.serve": 5,
+    # the map library reads files with ingest's readers; its stage draws through render
+    "pointflow.map": 5,
     # running them: lifecycle, accounting, liveness, the Python API
     "pointflow.runtime": 6,
     # faces: the command line, the client, quick views, the package itself

@@ -20,7 +20,7 @@ from ..runtime.kinds import StageKind, register_stage_kind
 from .zenoh_options import RouterConfig, ZenohOpenError, open_session
 
 #: ``pointflow router``: this one stage, no ring; connections counted over its restarts.
-KIND = register_stage_kind(StageKind(name="router", main="pointflow.remote.router:main", start_order=35, stop_wave=1,
+KIND = register_stage_kind(StageKind(name="router", main="pointflow.remote.router_process:main", start_order=35, stop_wave=1,
                                      roles=("router",),
                                      counters=("sessions_opened", "sessions_closed", "refused_connections")))
 
