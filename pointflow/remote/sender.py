@@ -26,8 +26,8 @@ import zmq
 
 from .. import wire
 from ..chunk import ChunkError, PointChunk
-from ..runtime.stage import take_messages
 from ..codec import Compressor
+from ..runtime.stage import take_messages
 from .security import LinkSecurity
 
 #: On stop, take the sources' last chunks until the PULL socket is quiet this long.
