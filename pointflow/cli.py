@@ -99,7 +99,6 @@ def _playback_flags(cfg, args) -> None:
 
 def _run(args, profile: bool = False) -> int:
     from .runtime.pipeline import Pipeline
-    from .runtime.supervisor import PipelineFailed
 
     cfg = load_config(args.file)
     if not cfg.sources:  # a file with only a router: block
@@ -123,34 +122,13 @@ def _run(args, profile: bool = False) -> int:
     if args.backend:
         os.environ["POINTFLOW_BACKEND"] = args.backend
     pipe = Pipeline(cfg, out_dir=out_dir)
-    stop = _Stop()
-    old = {s: signal.signal(s, stop) for s in (signal.SIGINT, signal.SIGTERM)}
     tty = sys.stderr.isatty() and not args.quiet
-    code = 0
     if not args.quiet:  # at once: starting the stages takes seconds (interpreters, imports, GPU device)
         print(starting_line(cfg), file=sys.stderr, flush=True)
-    pipe.start()
-    t_end = None if args.duration is None else _T0 + args.duration  # from the command's start (--help)
-    last_print = 0.0
-    try:
-        while not stop.flag and not pipe.stop_requested and (t_end is None or time.monotonic() < t_end):
-            pipe.poll(0.05)
-            now = time.monotonic()
-            if not args.quiet and now - last_print >= (0.5 if tty else 5.0):
-                last_print = now
-                line = summary_line(pipe.stats())
-                sys.stderr.write(("\r\033[K" + line) if tty else line + "\n")
-                sys.stderr.flush()
-    except PipelineFailed:  # the supervisor printed why, once
-        code = 2
-    finally:
-        if tty:
-            sys.stderr.write("\n")
-        for s, h in old.items():
-            signal.signal(s, h)
-        stats = pipe.stop()
-    if stop.signal is not None:
-        log.info("stopped by %s", signal.Signals(stop.signal).name)
+    stats, code, signum = _serve(pipe, args, 0.5 if tty else 5.0, summary_line, done=lambda: pipe.stop_requested,
+                                 tty=tty, at_once=True)
+    if signum is not None:
+        log.info("stopped by %s", signal.Signals(signum).name)
     print(summary_line(stats))
     print(f"frames and stats.json in {os.path.abspath(out_dir)}")
     if cfg.record is not None:
@@ -166,28 +144,34 @@ def _run(args, profile: bool = False) -> int:
     return code
 
 
-def _serve(pipe, args, every_s: float, summary, done=lambda: False) -> tuple[dict, int, "int | None"]:
+def _serve(pipe, args, every_s: float, summary, done=lambda: False, tty: bool = False,
+           at_once: bool = False) -> tuple[dict, int, "int | None"]:
     """Start ``pipe`` and poll it until Ctrl-C/SIGTERM, ``--duration`` (from the command's
-    start) or ``done()``, printing ``summary(stats)`` every ``every_s`` unless ``--quiet``.
-    The signal handlers are restored and the pipeline stopped however it ends. Returns the
-    final stats, the exit code (2 when the pipeline failed) and the signal that stopped it."""
+    start) or ``done()``, printing ``summary(stats)`` every ``every_s`` unless ``--quiet``
+    (the first ``at_once``; on a terminal, ``tty``, as one line written over). The signal
+    handlers are restored and the pipeline stopped however it ends. Returns the final
+    stats, the exit code (2 when the pipeline failed) and the signal that stopped it."""
     from .runtime.supervisor import PipelineFailed
 
     stop = _Stop()
     old = {s: signal.signal(s, stop) for s in (signal.SIGINT, signal.SIGTERM)}
     code = 0
     pipe.start()
-    t_end = None if args.duration is None else _T0 + args.duration
-    last_print = time.monotonic()
+    t_end = None if args.duration is None else _T0 + args.duration  # from the command's start (--help)
+    last_print = 0.0 if at_once else time.monotonic()
     try:
         while not stop.flag and not done() and (t_end is None or time.monotonic() < t_end):
             pipe.poll(0.05)
             if not args.quiet and time.monotonic() - last_print >= every_s:
                 last_print = time.monotonic()
-                print(summary(pipe.stats()), file=sys.stderr, flush=True)
+                line = summary(pipe.stats())
+                sys.stderr.write(("\r\033[K" + line) if tty else line + "\n")
+                sys.stderr.flush()
     except PipelineFailed:  # the supervisor printed why, once
         code = 2
     finally:
+        if tty:
+            sys.stderr.write("\n")
         for s, h in old.items():
             signal.signal(s, h)
         stats = pipe.stop()
@@ -226,7 +210,7 @@ def _send(args) -> int:
 def _router(args) -> int:
     """``pointflow router``: run the config's Zenoh router (docs/remote.md) until
     ``--duration``, Ctrl-C or SIGTERM, printing its sessions every ``stats_every_s``."""
-    from .remote.router import router_summary
+    from .remote.router_process import router_summary
     from .runtime.pipeline import Pipeline
 
     cfg = load_config(args.file)

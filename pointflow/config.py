@@ -13,149 +13,33 @@ import stat
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, ClassVar, Literal, Optional, Union
+from typing import Any, Optional
 
 import yaml
 
+from .cadence.config import CadenceConfig, PolicyConfig
 from .frames.config import FramesConfig, check_frames
+from .ingest.config import IngestConfig, SourceConfig
 from .ingest.playback import PlaybackConfig, check_playback
 from .ingest.transports import resolve_transport
 from .record.config import RecordConfig, check_record
 from .serve.config import ServeConfig, check_serve
 from .remote.options import SendConfig, check_send, is_loopback_endpoint
-from .remote.router import RouterConfig, check_router
+from .remote.zenoh_options import RouterConfig, check_router
+from .profiling.config import TracingConfig
+from .render.config import CameraConfig, EdlConfig, OutputConfig, RenderConfig, check_render
 from .ring.config import RingConfig, check_ring
-from .typed import Bound, ConfigError, Each, Length, check, check_keys, dataclass_schema, load_dataclass
-from .typed import at_least_one, endpoint, non_negative, positive
+from .runtime.config import SupervisorConfig
+from .typed import ConfigError, check, check_keys, dataclass_schema, endpoint, load_dataclass
 
-__all__ = ["ConfigError", "PipelineConfig", "load_config", "json_schema", "new_run_dir"]
+__all__ = ["ConfigError", "PipelineConfig", "load_config", "json_schema", "new_run_dir",
+           # the sections, each defined in its package, assembled here
+           "SourceConfig", "RingConfig", "IngestConfig", "CadenceConfig", "PolicyConfig", "RenderConfig", "CameraConfig",
+           "OutputConfig", "EdlConfig", "EndpointsConfig", "TracingConfig", "SupervisorConfig", "SendConfig",
+           "FramesConfig", "RecordConfig", "RouterConfig", "PlaybackConfig"]
 
 
 # --------------------------------------------------------------------------- sections
-@dataclass
-class SourceConfig:
-    """One source process. ``transport`` is a built-in name, an entry-point name from the
-    ``pointflow.transports`` group, or ``package.module:Class``."""
-
-    transport: str
-    name: str = ""
-    options: dict[str, Any] = field(default_factory=dict)
-    #: True when the source runs elsewhere (another program or machine sending the wire
-    #: format to ``endpoints.ingest``); the supervisor does not start it.
-    external: bool = False
-    #: The coordinate frame of this source's clouds when its data carry none (docs/frames.md).
-    frame_id: Optional[str] = None
-
-
-@dataclass
-class IngestConfig:
-    max_chunk_points: int = field(default=5_000_000, metadata=check(at_least_one))
-    coalesce_points: int = field(default=20_000, metadata=check(at_least_one))
-    queue_max_batches: int = field(default=64, metadata=check(at_least_one))
-    receive_hwm: int = field(default=256, metadata=check(at_least_one))
-    adaptive_thinning: bool = False
-
-
-@dataclass
-class PolicyConfig:
-    tier: Literal["auto", "L", "M", "H"] = "auto"
-    mode: Literal["eco", "balanced", "max_throughput", "custom"] = "balanced"
-    point_budget_cap: Optional[int] = field(default=None, metadata=check(at_least_one))
-    update_cadence_min_ms: Optional[float] = field(default=None, metadata=check(non_negative))
-    legacy: bool = False
-    #: The view cap: budget <= this multiple of the viewport's pixel count.
-    points_per_pixel: float = field(default=4.0, metadata=check(positive))
-
-
-@dataclass
-class CadenceConfig:
-    target_hz: float = field(default=60.0, metadata=check(positive))
-    adaptive: bool = False
-    #: Hand over a new snapshot only once the renderer has finished the last one, so a slow
-    #: renderer always draws the newest data instead of one queued a frame ago.
-    latest_only: bool = True
-
-
-@dataclass
-class CameraConfig:
-    """``position``/``target`` in world coordinates; ``auto`` frames the ring's contents."""
-
-    #: The cross-option rule of _check_semantics, for the JSON Schema too.
-    json_schema_extra: ClassVar[dict] = {"if": {"properties": {"mode": {"const": "fixed"}}, "required": ["mode"]},
-                                         "then": {"required": ["position", "target"]}}
-
-    mode: Literal["auto", "fixed", "orbit"] = "auto"
-    position: Optional[list[float]] = field(default=None, metadata=check(Length(3), message="must be [x, y, z]"))
-    target: Optional[list[float]] = field(default=None, metadata=check(Length(3), message="must be [x, y, z]"))
-    up: list[float] = field(default_factory=lambda: [0.0, 0.0, 1.0], metadata=check(Length(3), message="must be [x, y, z]"))
-    fov_deg: float = field(default=60.0, metadata=check(Bound(0, 180, lo_open=True, hi_open=True)))
-    near: float = field(default=0.1, metadata=check(positive))
-    far: float = field(default=10_000.0, metadata=check(positive))
-    #: Degrees per second the auto/orbit camera turns around the scene (0 = still).
-    orbit_deg_per_s: float = 0.0
-    #: Elevation of the auto camera above the horizontal, degrees.
-    elevation_deg: float = 35.0
-
-
-@dataclass
-class OutputConfig:
-    dir: Optional[str] = "out"
-    every_n_frames: int = field(default=30, metadata=check(at_least_one))
-    #: Keep at most this many PNG files (oldest removed); 0 = all.
-    keep_last: int = field(default=0, metadata=check(non_negative))
-
-
-@dataclass
-class EdlConfig:
-    """Eye-dome lighting: darkens a pixel by how far its 8 neighbours lie in front of it in
-    log2 depth (Potree's EDL; docs/render-tiers.md, "Eye-dome lighting"). Same formula in every tier."""
-
-    enabled: bool = False
-    #: Multiplies the 300 of ``shade = exp(-300 * strength * response)``; 0 = no darkening.
-    strength: float = field(default=1.0, metadata=check(non_negative))
-    #: Distance of the 8 neighbours in pixels (rounded per direction to whole pixels).
-    radius_px: float = field(default=1.4, metadata=check(at_least_one))
-
-
-@dataclass
-class RenderConfig:
-    backend: Literal["auto", "wgpu", "gl", "cpu"] = "auto"
-    size: list[int] = field(default_factory=lambda: [1280, 720], metadata=check(
-        Length(2), Each(Bound(1, 16384)), message="must be [width, height] with each in 1..16384"))
-    color_by: Optional[str] = "intensity"
-    colormap: Literal["turbo", "viridis", "grayscale"] = "turbo"
-    #: ``auto`` or ``[lo, hi]``.
-    color_range: Union[Literal["auto"], list[float]] = field(
-        default="auto", metadata=check(Length(2), message="must be 'auto' or [lo, hi] with lo < hi"))
-    color: list[float] = field(default_factory=lambda: [1.0, 1.0, 1.0], metadata=check(
-        Length(3, 4), Each(Bound(0.0, 1.0)), message="must be 3 or 4 numbers in [0, 1]"))
-    background: list[float] = field(default_factory=lambda: [0.02, 0.02, 0.05], metadata=check(
-        Length(3, 4), Each(Bound(0.0, 1.0)), message="must be 3 or 4 numbers in [0, 1]"))
-    point_size: float = field(default=2.0, metadata=check(positive))
-    point_size_space: Literal["screen", "world"] = "screen"
-    point_shape: Literal["square", "round"] = "square"
-    camera: CameraConfig = field(default_factory=CameraConfig)
-    time_window_ms: float = field(default=0.0, metadata=check(non_negative))
-    lod_stride: int = field(default=1, metadata=check(at_least_one))
-    importance_sampling: bool = False
-    power_preference: Literal["high-performance", "low-power"] = "high-performance"
-    output: OutputConfig = field(default_factory=OutputConfig)
-    window: bool = False
-    pick_radius: int = field(default=8, metadata=check(non_negative))
-    pick_strategy: Literal["nearest", "highest_importance", "recent_first"] = "nearest"
-    #: Below this many points ``auto`` uses the cpu tier; ``auto`` reads the measured value.
-    cpu_crossover_points: Union[Literal["auto"], int] = field(
-        default="auto", metadata=check(non_negative, message="must be >= 0 or 'auto'"))
-    gpu_timestamps: bool = True
-    #: wgpu tier: ``compute`` (atomic per-pixel keys), ``quads`` (instanced-quad draw) or
-    #: ``auto`` (compute where it measured faster; see docs/render-wgpu.md). cpu tier:
-    #: ``compute`` (compiled, numba) or ``reference`` (float64 numpy; also what an explicit
-    #: ``backend: cpu`` with ``auto`` draws); docs/render-tiers.md.
-    raster: Literal["auto", "compute", "quads", "reference"] = "auto"
-    #: Eye-dome lighting (depth cue for clouds without normals); off by default.
-    edl: EdlConfig = field(default_factory=EdlConfig)
-
-
 @dataclass
 class EndpointsConfig:
     """ZeroMQ endpoints of the links between stages; ``None`` = ``ipc://`` in the run dir."""
@@ -179,39 +63,6 @@ class EndpointsConfig:
     views: Optional[str] = field(default=None, metadata=check(endpoint))
     #: Allow these (unencrypted) endpoints on a non-loopback tcp:// address.
     insecure: bool = False
-
-
-@dataclass
-class TracingConfig:
-    enabled: bool = True
-    #: Spans are sent in batches of this many (or every flush interval).
-    batch: int = field(default=256, metadata=check(at_least_one))
-    flush_ms: float = field(default=100.0, metadata=check(positive))
-
-
-@dataclass
-class SupervisorConfig:
-    heartbeat_ms: float = field(default=200.0, metadata=check(positive))
-    #: A stage process silent for this long (no heartbeat or pulse) is considered hung if
-    #: the kernel says it is not running either: stopped (SIGSTOP), or asleep without using
-    #: CPU. A silent stage that wants the CPU or uses it is starved, not hung, on a loaded
-    #: machine, and is kept up to stall_after_ms (docs/reliability.md).
-    hung_after_ms: float = field(default=800.0, metadata=check(positive))
-    #: A stage whose main loop has not come round for this long is considered stuck
-    #: (generous: one frame of a software rasteriser can take a second or more).
-    stall_after_ms: float = field(default=30000.0, metadata=check(positive))
-    #: A silent stage whose main thread never slept and used this much CPU since it went
-    #: silent spins in a call that holds the GIL (its pulse thread cannot talk): hung.
-    #: CPU time, not wall time, so a loaded machine does not trigger it.
-    stuck_cpu_ms: float = field(default=3000.0, metadata=check(positive))
-    #: Grace period before a new stage's first heartbeat (imports, GPU device creation).
-    startup_timeout_ms: float = field(default=30000.0, metadata=check(positive))
-    max_restarts: int = field(default=3, metadata=check(non_negative))
-    restart_backoff_ms: float = field(default=200.0, metadata=check(non_negative))
-    #: Keep a prepared standby process for each render, cadence, ingest and source stage:
-    #: interpreter started, modules imported, the renderer's device created and warmed up,
-    #: so a restart only hands it its run info.
-    standby: bool = True
 
 
 @dataclass
@@ -289,17 +140,7 @@ class PipelineConfig:
 def _check_semantics(cfg: PipelineConfig) -> None:
     # Single-option bounds are declared on the fields (check(...)) and reach the JSON
     # Schema; only what relates two values is checked here.
-    r = cfg.render
-    if isinstance(r.color_range, list) and not r.color_range[0] < r.color_range[1]:
-        raise ConfigError("render.color_range", f"must be 'auto' or [lo, hi] with lo < hi, got {r.color_range!r}")
-    c = r.camera
-    if c.near >= c.far:
-        raise ConfigError("render.camera.near", f"must be less than camera.far ({c.far}), got {c.near}")
-    if c.mode == "fixed" and (c.position is None or c.target is None):
-        raise ConfigError("render.camera.position", "camera.mode fixed needs position and target")
-    if r.backend == "wgpu" and r.raster == "reference":
-        raise ConfigError("render.raster", "'reference' is a method of the cpu tier; backend wgpu takes auto, "
-                          "compute or quads (or use backend: cpu)")
+    check_render(cfg.render)
     if not cfg.sources and cfg.router is None:
         raise ConfigError("sources", "at least one source is required")
     if cfg.router is not None:

@@ -57,7 +57,7 @@ def encode(chunk: PointChunk, *, link: dict | None = None, compressor: Any = Non
     arrays packed into one (docs/wire-format.md "Packed chunks"), unless ``pack`` is False.
     A link may add a ``link`` header object (per-source link sequence, see
     :mod:`pointflow.remote.transit`), compress the data frames (a
-    :class:`pointflow.remote.codec.Compressor`) and quantise positions to ``resolution``;
+    :class:`pointflow.codec.Compressor`) and quantise positions to ``resolution``;
     without those the output is the plain format, byte for byte."""
     if link is not None or compressor is not None or resolution:
         return _encode_link(chunk, link, compressor, resolution)
@@ -211,7 +211,7 @@ def _header_json(h: dict) -> bytes:
 
 def _encode_link(chunk: PointChunk, link: dict | None, compressor: Any, resolution: float | None) -> list[Any]:
     """The encoded form (docs/wire-format.md, "Encoded chunks")."""
-    from .remote import codec
+    from . import codec
 
     pos = np.ascontiguousarray(chunk.positions)
     n = int(pos.shape[0])
@@ -318,7 +318,7 @@ def _frame_spec(dtype_name: Any, shape: Sequence[int], what: str) -> tuple[np.dt
 def _array(frame, dtype_name: Any, shape: Sequence[int], what: str, codec: Any = None, shuffled: bool = False) -> np.ndarray:
     dt, _, expected = _frame_spec(dtype_name, shape, what)
     if codec is not None:
-        from .remote.codec import decompress
+        from .codec import decompress
 
         buf = memoryview(decompress(_buf(frame), codec, expected, dt.itemsize, shuffled))
     else:
@@ -503,7 +503,7 @@ def decode_message(frames: Sequence[Any], max_points: int | None = None) -> tupl
         raise ChunkError("bad_dtype", f"positions must be float32 or float64 (or int32 with origin and resolution), got {pos_meta.get('dtype')!r}")
     positions = _array(frames[1], pos_meta["dtype"], [n, 3], "positions", codec, shuffled)
     if quantised:
-        from .remote.codec import dequantise
+        from .codec import dequantise
 
         positions = dequantise(positions, pos_meta.get("origin"), pos_meta.get("resolution"))
     channels: dict[str, np.ndarray] = {}

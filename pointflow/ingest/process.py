@@ -42,6 +42,7 @@ from ..frames import message as transforms
 from ..frames.kernels import Placed
 from ..ring.config import IMPORTANCE_SLOT, importance_values
 from ..runtime.kinds import StageKind, register_stage_kind
+from ..runtime.stage import RateLimitedLog, recv_frames, take_messages  # noqa: F401 - recv_frames: bench/ab_ingest.py
 from .jsonchunk import parse_json_chunk
 
 #: Per-reason log lines at most this often (seconds).
@@ -60,7 +61,6 @@ KIND = register_stage_kind(StageKind(
               "unreported_written"),
     accounting="pointflow.runtime.accounting:ingest_identities"))
 
-LOG_EVERY_S = 5.0
 #: On stop, drain the ingest socket until it is quiet this long, for at most STOP_GRACE_S.
 STOP_QUIET_S = 0.15
 STOP_GRACE_S = 1.5
@@ -92,25 +92,6 @@ class _Batch:
     #: (frames step, static chain or a big cloud; positions are then as sent and lo/hi bound
     #: the placed coordinates), or None: positions already placed.
     xf: Any = None
-
-
-class RateLimitedLog:
-    """Logs the first defect of each reason, then a summary at most every ``every_s``."""
-
-    def __init__(self, log: logging.Logger, every_s: float = LOG_EVERY_S):
-        self.log = log
-        self.every_s = every_s
-        self._last: dict[str, float] = {}
-        self._since: collections.Counter[str] = collections.Counter()
-
-    def __call__(self, reason: str, message: str) -> None:
-        now = time.monotonic()
-        self._since[reason] += 1
-        if now - self._last.get(reason, -1e9) >= self.every_s:
-            n = self._since.pop(reason)
-            self._last[reason] = now
-            more = f" ({n - 1} more since last report)" if n > 1 else ""
-            self.log.warning("rejected chunk [%s]: %s%s", reason, message, more)
 
 
 class Ingestor:
@@ -470,22 +451,6 @@ def _to_dtype(name: str, arr: np.ndarray, dt: np.dtype) -> np.ndarray:
     return arr.astype(dt)
 
 
-def recv_frames(sock, flags: int = zmq.NOBLOCK) -> list:
-    """One multipart message as ``zmq.Frame`` objects (raises ``zmq.Again`` when none waits).
-
-    ``recv_multipart`` asks the socket for RCVMORE after every part (a getsockopt through
-    pyzmq's option enum, ~1 us each); a received Frame already knows whether more follow.
-    Frames rather than bytes: no copy of the data, and for the 1k-point chunks of a busy
-    link about half the cost of ``recv_multipart(copy=True)`` (docs/ingest.md)."""
-    recv = sock.recv
-    f = recv(flags, copy=False)
-    parts = [f]
-    while f.more:
-        f = recv(flags, copy=False)
-        parts.append(f)
-    return parts
-
-
 def prepare(cfg, info, log) -> None:
     """A standby's head start (:data:`KIND`'s ``prepare``): with ``frames.fixed`` set, import numba and
     load the compiled transform now (0.5-1 s of CPU), not when the stage is needed."""
@@ -524,32 +489,21 @@ def main(ctx) -> None:
     poller.register(sock, zmq.POLLIN)
     # Drain at most this many messages before pushing, so a burst cannot starve the ring.
     burst = max(1, icfg.queue_max_batches)
+
+    def take() -> None:
+        take_messages(sock, ing.receive, burst)
+        ing.flush()
+
     try:
         while ctx.running:
             ctx.beat()
             if not poller.poll(0 if ing.queue else 50):
                 ing.flush()
                 continue
-            for _ in range(burst):
-                try:
-                    frames = recv_frames(sock)
-                except zmq.Again:
-                    break
-                ing.receive(frames)
-            ing.flush()
-        # Stopping (all stages get SIGTERM together): keep taking messages until the link
-        # has been quiet for STOP_QUIET_S (at most STOP_GRACE_S), so chunks the sources sent
-        # before they exited still reach the ring and the counts on both sides agree.
-        end = time.monotonic() + STOP_GRACE_S
-        while time.monotonic() < end and poller.poll(int(STOP_QUIET_S * 1000)):
-            for _ in range(burst):
-                try:
-                    frames = recv_frames(sock)
-                except zmq.Again:
-                    break
-                ing.receive(frames)
-            ing.flush()
-            ctx.beat()
+            take()
+        # Stopping: chunks the sources sent before they exited still reach the ring, so
+        # the counts on both sides agree.
+        ctx.drain_until_quiet(sock, take, STOP_QUIET_S, STOP_GRACE_S)
         ing.finish_frames()
         ing.flush()
     finally:

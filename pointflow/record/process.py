@@ -33,6 +33,7 @@ from .. import wire
 from ..chunk import ChunkError
 from ..frames import message as transforms
 from ..runtime.kinds import StageKind, register_stage_kind
+from ..runtime.stage import RateLimitedLog, take_messages
 from .encode import Layout, Scratch, encode_pointcloud2, encode_tf, layout_key
 from .files import RecordingFiles
 
@@ -73,8 +74,6 @@ class Recorder:
         self.failed: str | None = None
         self.last_log_ns = 0
         self.keep = set(rc.channels) if rc.channels is not None else None
-        from ..ingest.process import RateLimitedLog
-
         self._warn = RateLimitedLog(log)
         #: (parent, child) -> the newest static transform (``frames.static`` first)
         self.static: dict[tuple[str, str], transforms.Transform] = {}
@@ -251,27 +250,13 @@ def main(ctx) -> None:
     # counters of files written by earlier incarnations are carried by the supervisor
     ctx.on_beat.append(lambda: ctx.counters.extra.update(rec.stats()))
 
-    def take(limit: int) -> int:
-        got = 0
-        for _ in range(limit):
-            try:
-                frames = sock.recv_multipart(zmq.NOBLOCK, copy=False)
-            except zmq.Again:
-                break
-            rec.add_frames(frames)
-            got += 1
-        return got
-
     try:
         while ctx.running:
             ctx.beat()
             if sock.poll(50, zmq.POLLIN):
-                take(16)
+                take_messages(sock, rec.add_frames, 16)
             rec.flush()
-        end = time.monotonic() + STOP_GRACE_S
-        while time.monotonic() < end and sock.poll(int(STOP_QUIET_S * 1000), zmq.POLLIN):
-            take(64)
-            ctx.beat()
+        ctx.drain_until_quiet(sock, lambda: take_messages(sock, rec.add_frames, 64), STOP_QUIET_S, STOP_GRACE_S)
         rec.close()
     finally:
         ctx.counters.extra.update(rec.stats())

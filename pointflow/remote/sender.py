@@ -26,7 +26,8 @@ import zmq
 
 from .. import wire
 from ..chunk import ChunkError, PointChunk
-from .codec import Compressor
+from ..codec import Compressor
+from ..runtime.stage import take_messages
 from .security import LinkSecurity
 
 #: On stop, take the sources' last chunks until the PULL socket is quiet this long.
@@ -156,26 +157,21 @@ def _wait_subscribers(ctx, sock, want: int, wait_s: float) -> int:
 def take_from_sources(ctx, pull, add, limit: int) -> int:
     """Up to ``limit`` chunks the local sources sent, each handed to ``add``; a malformed one
     is counted (``rejected_messages``) and logged. Both engines' senders take this way."""
-    got = 0
-    for _ in range(limit):
-        try:
-            frames = pull.recv_multipart(zmq.NOBLOCK, copy=False)
-        except zmq.Again:
-            break
-        got += 1
+    def one(frames) -> None:
         try:
             chunk = wire.decode(frames)
         except ChunkError as exc:  # a local source sent something broken: count it
             ctx.counters.extra["rejected_messages"] = ctx.counters.extra.get("rejected_messages", 0) + 1
             ctx.log.warning("dropped a malformed message from a source: %s", exc)
-            continue
+            return
         ctx.counters.points_in += chunk.n
         add(chunk)
-    return got
+
+    return take_messages(pull, one, limit)
 
 
 def main(ctx) -> None:
-    """Stage loop of the ZeroMQ engine (:mod:`.send_stage` picks it)."""
+    """Stage loop of the ZeroMQ engine (:mod:`.process` picks it)."""
     s = ctx.cfg.send
     pull = ctx.zmq.socket(zmq.PULL)
     pull.setsockopt(zmq.RCVHWM, 64)
@@ -239,12 +235,12 @@ def main(ctx) -> None:
             if not room and snd.queue:
                 out.poll(10, zmq.POLLOUT)
         # stopping: the sources were stopped first; take what they sent, then flush
-        end = time.monotonic() + STOP_GRACE_S
-        while time.monotonic() < end and pull.poll(int(STOP_QUIET_S * 1000), zmq.POLLIN):
+        def drain() -> None:
             _take(256 if not s.backpressure else max(1, s.queue_chunks - snd.queued_chunks))
             if not snd.pump():
                 out.poll(20, zmq.POLLOUT)
-            ctx.beat()
+
+        ctx.drain_until_quiet(pull, drain, STOP_QUIET_S, STOP_GRACE_S)
         snd.sync(end=True)
         end = time.monotonic() + FLUSH_S
         while snd.queue and time.monotonic() < end:

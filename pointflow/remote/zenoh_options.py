@@ -1,5 +1,6 @@
 """The ``zenoh:`` block shared by every end of a Zenoh link: ``send: {engine: zenoh}``, the
-``zenoh`` and ``ros2_zenoh`` source transports and ``pointflow router``.
+``zenoh`` and ``ros2_zenoh`` source transports and ``pointflow router`` (whose ``router:``
+block, :class:`RouterConfig`, is one too).
 
 Zenoh (https://zenoh.io) is the engine between hosts: peers, clients that connect to
 routers, routers that fan out and cross networks, TLS with mutual authentication. This
@@ -21,7 +22,7 @@ import re
 from dataclasses import field
 from typing import TYPE_CHECKING, Any, Literal, Optional
 
-from ..typed import ConfigError, Each, Prefix, check
+from ..typed import ConfigError, Each, Prefix, check, positive
 
 if TYPE_CHECKING:  # zenoh is imported where a session opens: a config check needs no engine
     import zenoh
@@ -203,3 +204,26 @@ def open_session(o: ZenohOptions) -> "zenoh.Session":
         where = ", ".join([f"listen {x}" for x in o.listen] + [f"connect {x}" for x in o.connect]) or "no endpoints"
         why = re.sub(r"\s+at /\S+\.rs:\d+\.?", "", str(exc))  # the engine's source locations: no help here
         raise ZenohOpenError(f"zenoh session ({o.mode}; {where}) did not open: {why}") from None
+
+
+#: Where a router listens when the config names no endpoint: this host only.
+DEFAULT_LISTEN = ("tcp/127.0.0.1:7447",)
+
+
+@dataclasses.dataclass
+class RouterConfig(ZenohOptions):
+    """``router:`` block: the Zenoh router ``pointflow router`` runs (docs/remote.md).
+
+    ``listen`` defaults to tcp/127.0.0.1:7447; ``connect`` names other routers to mesh with."""
+
+    mode: Literal["router"] = "router"
+    #: ``pointflow router`` prints the connected sessions this often (each session that
+    #: opens, closes or is refused is logged when it happens).
+    stats_every_s: float = field(default=5.0, metadata=check(positive))
+
+
+def check_router(r: RouterConfig, path: str, base_dir: str) -> None:
+    """Fill the default endpoint and run the checks every Zenoh end runs."""
+    if not r.listen:
+        r.listen = list(DEFAULT_LISTEN)
+    check_zenoh(r, path, base_dir)

@@ -107,7 +107,7 @@ def _wait_subscribers(ctx, snd: ZenohLinkSender, wait_s: float) -> bool:
 
 
 def main(ctx) -> None:
-    """Stage loop for ``send.engine: zenoh`` (chosen by :func:`pointflow.remote.send_stage.main`)."""
+    """Stage loop for ``send.engine: zenoh`` (chosen by :func:`pointflow.remote.process.main`)."""
     s = ctx.cfg.send
     z = s.zenoh
     pull = ctx.zmq.socket(zmq.PULL)
@@ -152,11 +152,7 @@ def main(ctx) -> None:
                 next_sync = time.monotonic() + s.sync_every_s
             snd.pump()
         # stopping: the sources were stopped first; take what they sent, then flush
-        end = time.monotonic() + STOP_GRACE_S
-        while time.monotonic() < end and pull.poll(int(STOP_QUIET_S * 1000), zmq.POLLIN):
-            _take(256)
-            snd.pump()
-            ctx.beat()
+        ctx.drain_until_quiet(pull, lambda: (_take(256), snd.pump()), STOP_QUIET_S, STOP_GRACE_S)
         snd.sync(end=True)
         end = time.monotonic() + FLUSH_S
         while snd.queue and time.monotonic() < end:

@@ -21,7 +21,7 @@ from typing import Any, ClassVar, Optional
 
 import numpy as np
 
-from ..config import RenderConfig
+from .config import RenderConfig
 from .camera import Camera
 
 #: A half-open range of ring slots.

@@ -22,7 +22,7 @@ from typing import Any, Optional
 
 import numpy as np
 
-from ..config import RenderConfig
+from .config import RenderConfig
 from .base import FrameInput, FrameStats, Renderer
 from .camera import Camera
 from .rules import (apply_shade, drawn_attributes, edl_offsets, edl_shade, footprint_box, in_pick_circle,

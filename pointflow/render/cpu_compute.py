@@ -26,7 +26,7 @@ from typing import Any, Optional
 
 import numpy as np
 
-from ..config import RenderConfig
+from .config import RenderConfig
 from . import colormap, cpu_kernels
 from .base import FrameInput, FrameStats, Renderer, RenderError, merge_ranges
 from .camera import Camera

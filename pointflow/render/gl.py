@@ -32,7 +32,7 @@ from typing import Any, Optional
 
 import numpy as np
 
-from ..config import RenderConfig
+from .config import RenderConfig
 from .base import FrameInput, FrameStats, Renderer, RenderError
 from .camera import Camera
 from .rules import (EDL_NEIGHBOURS, EDL_SCALE, MAX_POINT_PX, drawn_attributes, edl_offsets, in_pick_circle,

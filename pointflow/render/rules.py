@@ -14,7 +14,7 @@ from typing import Optional
 
 import numpy as np
 
-from ..config import RenderConfig
+from .config import RenderConfig
 from . import colormap
 from .base import FrameInput
 from .camera import Camera

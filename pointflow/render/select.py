@@ -26,7 +26,7 @@ import os
 from pathlib import Path
 from typing import Callable, Optional
 
-from ..config import RenderConfig
+from .config import RenderConfig
 from . import calibration
 from .base import Renderer, RenderError
 

@@ -14,13 +14,17 @@ colour, the importance field, extras, the recording's, ``source_index``).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal, NamedTuple, Optional, Sequence
+from typing import TYPE_CHECKING, Literal, NamedTuple, Optional, Sequence
 
 from ..typed import ConfigError, at_least_one, check, non_negative
 
 #: The ring's own importance values (a slot array, not a channel of the data), written by
 #: ingest from the configured ``importance_field``.
 IMPORTANCE_SLOT = "importance"
+
+if TYPE_CHECKING:
+    from .ring import PointRing
+    from .slabs import SlabPair
 
 
 @dataclass
@@ -87,8 +91,8 @@ def check_ring_space(ring: RingConfig, channels: Sequence[str], note: str = "") 
 
 
 class BuiltRing(NamedTuple):
-    ring: "PointRing"  # noqa: F821 - imported lazily
-    slabs: "SlabPair"  # noqa: F821
+    ring: PointRing
+    slabs: SlabPair
 
 
 def build_ring(ring: RingConfig, channels: Sequence[str], *, check_space: bool = True) -> BuiltRing:

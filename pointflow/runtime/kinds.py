@@ -29,13 +29,13 @@ from typing import Any, Callable
 #: The one registration place: modules that declare the built-in kinds (each calls
 #: :func:`register_stage_kind` when imported). Strings, imported on the first lookup.
 KIND_MODULES: tuple[str, ...] = (
-    "pointflow.ingest.source",
+    "pointflow.ingest.source_process",
     "pointflow.ingest.process",
     "pointflow.cadence.process",
     "pointflow.render.process",
     "pointflow.record.process",
-    "pointflow.remote.send_stage",
-    "pointflow.remote.router",
+    "pointflow.remote.process",
+    "pointflow.remote.router_process",
     "pointflow.serve.process",
 )
 

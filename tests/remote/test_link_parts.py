@@ -13,7 +13,7 @@ import pytest
 from pointflow import wire
 from pointflow.chunk import ChunkError, PointChunk
 from pointflow.config import ConfigError, load_config
-from pointflow.remote.codec import Compressor
+from pointflow.codec import Compressor
 from pointflow.remote.keys import create_keypair
 from pointflow.remote.options import is_loopback_endpoint
 from pointflow.remote.transit import TransitLedger

@@ -294,7 +294,7 @@ def test_single_buffer_framing_round_trip_and_defects():
     with a link header) to the same chunk; a body that does not add up is rejected."""
     from pointflow import wire
     from pointflow.chunk import ChunkError, PointChunk
-    from pointflow.remote.codec import Compressor
+    from pointflow.codec import Compressor
 
     rng = np.random.default_rng(3)
     c = PointChunk(positions=rng.uniform(-50, 50, (5000, 3)), source_id="lidar",

@@ -32,7 +32,8 @@ def _imports(path: Path, mod: str, known: set[str]) -> set[str]:
                 prefix = ".".join(base + ([node.module] if node.module else []))
             else:
                 prefix = node.module or ""
-            names = [prefix] + [f"{prefix}.{a.name}" for a in node.names]
+            # ``from . import x`` imports the module x, not the package's face
+            names = ([] if node.module is None and node.level else [prefix]) + [f"{prefix}.{a.name}" for a in node.names]
         else:
             continue
         for n in names:
@@ -104,3 +105,54 @@ def test_no_render_tier_imports_another_tier():
     assert not offenders, sorted(offenders)
     assert "pointflow.render.rules" in g["pointflow.render.cpu"] and "pointflow.render.rules" in g["pointflow.render.gl"]
     assert "pointflow.render.rules" in g["pointflow.render.wgpu_tier.reference"]
+
+
+# Layers, low to high: a module imports its own layer or lower ones. Most specific prefix
+# wins; a module not named takes its package's layer.
+LAYERS = {
+    # the bottom: the typed loader, the chunk, its wire format and codecs
+    "pointflow.typed": 0, "pointflow._lazy": 0, "pointflow.chunk": 0, "pointflow.codec": 0, "pointflow.wire": 0,
+    # shared data structures
+    "pointflow.ring": 1, "pointflow.frames": 1, "pointflow.profiling": 1,
+    # config sections of the packages above the loader, each owned by its package, which
+    # the loader assembles (ring/config.py and frames/config.py sit in their own layer)
+    "pointflow.record.config": 2, "pointflow.ingest.config": 2, "pointflow.ingest.playback": 2,
+    "pointflow.cadence.config": 2, "pointflow.runtime.config": 2, "pointflow.map.config": 2,
+    "pointflow.serve.config": 2, "pointflow.remote.options": 2, "pointflow.remote.keys": 2,
+    "pointflow.remote.zenoh_options": 2, "pointflow.render.config": 2, "pointflow.render.control": 2,
+    "pointflow.render.camera": 2,
+    "pointflow.render.colormap": 2,
+    # the loader, the schema, the top-level assembly
+    "pointflow.config": 3,
+    # what a stage is and what every stage process shares
+    "pointflow.runtime.kinds": 4, "pointflow.runtime.stage": 4, "pointflow.runtime.launch": 4,
+    "pointflow.runtime.rundir": 4, "pointflow.runtime.console": 4,
+    # the stages
+    "pointflow.ingest": 5, "pointflow.cadence": 5, "pointflow.render": 5, "pointflow.record": 5,
+    "pointflow.remote": 5, "pointflow.serve": 5,
+    # the map library reads files with ingest's readers; its stage draws through render
+    "pointflow.map": 5,
+    # running them: lifecycle, accounting, liveness, the Python API
+    "pointflow.runtime": 6,
+    # faces: the command line, the client, quick views, the package itself
+    "pointflow.client": 7, "pointflow.quickshow": 7, "pointflow.cli": 7, "pointflow": 7,
+}
+#: The one import upward: the config loader resolves transports (the registry) to check
+#: their options with their own schema.
+UPWARD_ALLOWED = {("pointflow.config", "pointflow.ingest.transports")}
+
+
+def _layer(mod: str) -> int:
+    m = mod
+    while m not in LAYERS:
+        m = m.rpartition(".")[0]
+    return LAYERS[m]
+
+
+def test_no_module_imports_a_layer_above_it():
+    """Imports run one way (issue 27): no module imports a package above it, other than
+    the config loader's transport registry."""
+    g = _graph()
+    bad = sorted((m, d) for m, deps in g.items() for d in deps
+                 if d != "pointflow" and _layer(d) > _layer(m) and (m, d) not in UPWARD_ALLOWED)
+    assert not bad, "upward imports: " + ", ".join(f"{m} -> {d}" for m, d in bad)

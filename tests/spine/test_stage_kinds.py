@@ -43,6 +43,19 @@ def test_builtin_kinds_and_roles():
         stage_kind("nope")
 
 
+def test_stage_entry_files_are_named_one_way():
+    """A kind's loop lives in its package's process.py, or <kind>_process.py for a second
+    stage in the same package, and that file declares the kind (issue 27.4)."""
+    import importlib
+
+    for kind in stage_kinds().values():
+        mod = kind.main.partition(":")[0]
+        if not mod.startswith("pointflow."):
+            continue
+        assert mod.rpartition(".")[2] in ("process", f"{kind.name}_process"), kind
+        assert getattr(importlib.import_module(mod), "KIND", None) == kind, f"{mod} does not declare {kind.name}"
+
+
 def test_a_taken_name_is_refused():
     with pytest.raises(ValueError, match="stage kind 'render' is already registered"):
         register_stage_kind(StageKind(name="render", main="elsewhere:main"))

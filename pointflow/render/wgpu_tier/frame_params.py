@@ -5,7 +5,7 @@ import math
 
 import numpy as np
 
-from ...config import RenderConfig
+from ..config import RenderConfig
 from ..base import FrameInput
 from ..camera import Camera
 from .layout import NO_BUDGET, PARAMS_DTYPE, ColourMode, Flag

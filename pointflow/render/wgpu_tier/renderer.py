@@ -29,7 +29,7 @@ from typing import Any, Optional
 
 import numpy as np
 
-from ...config import RenderConfig
+from ..config import RenderConfig
 from .. import colormap
 from ..base import FrameInput, FrameStats, Range, Renderer, RenderError, merge_ranges
 from ..camera import Camera

@@ -7,7 +7,7 @@ from ..runtime.kinds import StageKind, register_stage_kind
 #: ``pointflow send``: binds the socket the sources push to, so they start once it
 #: reported in (a short replay is not over before anyone listens).
 KIND = register_stage_kind(StageKind(
-    name="sender", main="pointflow.remote.send_stage:main", start_order=35, stop_wave=1, roles=("send",),
+    name="sender", main="pointflow.remote.process:main", start_order=35, stop_wave=1, roles=("send",),
     await_ready=True, counters=("rejected_messages",), accounting="pointflow.runtime.accounting:send_identities"))
 
 

@@ -26,7 +26,7 @@ from .transports.base import InputUnreadable
 #: One stage per configured source (not ``external``, not an in-process ``api`` source);
 #: started last and stopped first, in ``pointflow run`` and ``pointflow send``.
 KIND = register_stage_kind(StageKind(
-    name="source", main="pointflow.ingest.source:main", start_order=90, stop_wave=0, standby=True,
+    name="source", main="pointflow.ingest.source_process:main", start_order=90, stop_wave=0, standby=True,
     roles=("pipeline", "send"),
     counters=("chunks_out", "reconnects",
               # a link source (docs/remote.md; remote/transit.py): its ledger starts again in a

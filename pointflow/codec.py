@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from ..chunk import ChunkError
+from .chunk import ChunkError
 
 CODECS = ("lz4", "zstd")
 #: Quantised offsets must fit int32 with room to spare.

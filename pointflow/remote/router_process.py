@@ -12,46 +12,22 @@ and refused; refused TLS handshakes are read from the engine's log
 """
 from __future__ import annotations
 
-import dataclasses
 import threading
 import time
-from dataclasses import field
-from typing import Any, Literal
+from typing import Any
 
 from ..runtime.kinds import StageKind, register_stage_kind
-from ..typed import check, positive
-from .zenoh_options import ZenohOpenError, ZenohOptions, check_zenoh, open_session
+from .zenoh_options import RouterConfig, ZenohOpenError, open_session
 
 #: ``pointflow router``: this one stage, no ring; connections counted over its restarts.
-KIND = register_stage_kind(StageKind(name="router", main="pointflow.remote.router:main", start_order=35, stop_wave=1,
+KIND = register_stage_kind(StageKind(name="router", main="pointflow.remote.router_process:main", start_order=35, stop_wave=1,
                                      roles=("router",),
                                      counters=("sessions_opened", "sessions_closed", "refused_connections")))
 
-#: Where a router listens when the config names no endpoint: this host only.
-DEFAULT_LISTEN = ("tcp/127.0.0.1:7447",)
 #: At most this many sessions are listed in the stats (all are counted).
 MAX_LISTED = 64
 #: A restarted router may find its port still held for a moment: retry opening this long.
 OPEN_RETRY_S = 5.0
-
-
-@dataclasses.dataclass
-class RouterConfig(ZenohOptions):
-    """``router:`` block: the Zenoh router ``pointflow router`` runs (docs/remote.md).
-
-    ``listen`` defaults to tcp/127.0.0.1:7447; ``connect`` names other routers to mesh with."""
-
-    mode: Literal["router"] = "router"
-    #: ``pointflow router`` prints the connected sessions this often (each session that
-    #: opens, closes or is refused is logged when it happens).
-    stats_every_s: float = field(default=5.0, metadata=check(positive))
-
-
-def check_router(r: RouterConfig, path: str, base_dir: str) -> None:
-    """Fill the default endpoint and run the checks every Zenoh end runs."""
-    if not r.listen:
-        r.listen = list(DEFAULT_LISTEN)
-    check_zenoh(r, path, base_dir)
 
 
 class SessionTable:
