@@ -130,6 +130,8 @@ LAYERS = {
     # the stages
     "pointflow.ingest": 5, "pointflow.cadence": 5, "pointflow.render": 5, "pointflow.record": 5,
     "pointflow.remote": 5, "pointflow.serve": 5,
+    # the notebook view: a client of the render stage's views, beside the view server
+    "pointflow.notebook": 5,
     # the map library reads files with ingest's readers; its stage draws through render
     "pointflow.map": 5,
     # running them: lifecycle, accounting, liveness, the Python API
