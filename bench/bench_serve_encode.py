@@ -19,10 +19,11 @@ import argparse
 import io
 import json
 import statistics
-import subprocess
 import threading
 import time
 from pathlib import Path
+
+import _harness as harness
 
 import numpy as np
 
@@ -115,7 +116,8 @@ def main() -> None:
     ap.add_argument("--sizes", default="800x600,1280x720")
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "serve_encode.json"))
     a = ap.parse_args()
-    up0 = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
+    mach = harness.machine()
+    up0 = mach["uptime_before"]
     encs = encoders()
     res: dict = {}
     for size in a.sizes.split(","):
@@ -137,11 +139,12 @@ def main() -> None:
         for k, v in res[size].items():
             print(f"{size:9s} {k:20s} {v['encode_ms_p50']:7.2f} ms  {v['bytes'] / 1024:7.1f} KB  "
                   f"2 threads x{v['two_threads_speedup']}")
-    up1 = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
+    harness.machine_done(mach)
+    up1 = mach["uptime_after"]
     print(up0, up1, sep="\n")
-    Path(a.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(a.out).write_text(json.dumps({"uptime_before": up0, "uptime_after": up1, "repeats": a.repeats,
-                                       "results": res}, indent=1))
+    harness.write_result(a.out, {"command": harness.command(), "machine": mach,
+                                 "uptime_before": up0, "uptime_after": up1,
+                                 "repeats": a.repeats, "results": res}, indent=1)
 
 
 if __name__ == "__main__":

@@ -27,11 +27,12 @@ import os
 import socket
 import statistics
 import struct
-import subprocess
 import tempfile
 import threading
 import time
 from pathlib import Path
+
+import _harness as harness
 
 from pointflow import Pipeline
 
@@ -153,7 +154,8 @@ def main() -> None:
     ap.add_argument("--out", default=None, help="default bench/results/serve_hostile.json "
                     "(serve_hostile_liars.json with --liars)")
     a = ap.parse_args()
-    up0 = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
+    mach = harness.machine()
+    up0 = mach["uptime_before"]
     runs: dict[str, list[dict]] = {"quiet": [], "hostile": []}
     with tempfile.TemporaryDirectory() as d, Pipeline.from_dict(_cfg(), out_dir=d) as pipe:
         pipe.wait(60, until=lambda: pipe.stats()["stages"].get("serve", {}).get("port"))
@@ -181,9 +183,11 @@ def main() -> None:
         st = pipe.stats()["stages"]["serve"]
         good.stop = True
         good.ws.close()
-    up1 = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
+    harness.machine_done(mach)
+    up1 = mach["uptime_after"]
     med = {p: {k: round(statistics.median(r[k] for r in v), 2) for k in v[0]} for p, v in runs.items()}
-    out = {"uptime_before": up0, "uptime_after": up1, "rounds": a.rounds, "seconds": a.seconds,
+    out = {"command": harness.command(), "machine": mach, "uptime_before": up0, "uptime_after": up1,
+           "rounds": a.rounds, "seconds": a.seconds,
            "never_read": a.never_read, "liars": a.liars, "garbage_per_tick": a.garbage, "runs": runs, "median": med,
            "ratio_render": round(med["hostile"]["render_pictures_per_s"] / max(1e-9, med["quiet"]["render_pictures_per_s"]), 3),
            "ratio_good_client": round(med["hostile"]["good_client_fps"] / max(1e-9, med["quiet"]["good_client_fps"]), 3),
@@ -192,8 +196,7 @@ def main() -> None:
     print(json.dumps({k: out[k] for k in ("median", "ratio_render", "ratio_good_client", "serve_counts")}, indent=1))
     print(up0, up1, sep="\n")
     path = Path(a.out or Path(__file__).parent / "results" / f"serve_hostile{'_liars' if a.liars else ''}.json")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(out, indent=1))
+    harness.write_result(path, out, indent=1)
 
 
 if __name__ == "__main__":

@@ -26,10 +26,11 @@ import inspect
 import json
 import socket
 import statistics
-import subprocess
 import threading
 import time
 from pathlib import Path
+
+import _harness as harness
 
 import websockets
 
@@ -174,13 +175,16 @@ def main() -> None:
             names.append(n)
         except ImportError:
             print(f"{n}: not installed, skipped")
-    up0 = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
+    mach = harness.machine()
+    up0 = mach["uptime_before"]
     runs: dict[str, list[dict]] = {n: [] for n in names}
     for r in range(a.rounds):
         for n in names:
             runs[n].append(one_round(n, a.handshakes, a.messages))
-    up1 = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
-    out = {"uptime_before": up0, "uptime_after": up1, "payload_bytes": len(PAYLOAD), "rounds": a.rounds,
+    harness.machine_done(mach)
+    up1 = mach["uptime_after"]
+    out = {"command": harness.command(), "machine": mach, "uptime_before": up0, "uptime_after": up1,
+           "payload_bytes": len(PAYLOAD), "rounds": a.rounds,
            "results": {}}
     for n in names:
         med = {k: round(statistics.median(x[k] for x in runs[n]), 3) for k in runs[n][0]}
@@ -189,8 +193,7 @@ def main() -> None:
         print(f"{n:18s} handshake p50 {med['handshake_ms_p50']:.2f} ms p90 {med['handshake_ms_p90']:.2f} ms  "
               f"{med['messages_per_s']:.0f} msg/s {med['mb_per_s']:.0f} MB/s  server {med['server_code_lines']} lines")
     print(up0, "\n", up1, sep="")
-    Path(a.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(a.out).write_text(json.dumps(out, indent=1))
+    harness.write_result(a.out, out, indent=1)
 
 
 if __name__ == "__main__":

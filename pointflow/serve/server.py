@@ -47,6 +47,8 @@ log = logging.getLogger("pointflow.serve")
 
 #: Frames of one view between credit and display (jupyter_rfb's "at most two in flight").
 MAX_IN_FLIGHT = 2
+#: JSON messages waiting for one client (replies, picks, stats); beyond, the oldest is dropped.
+MAX_TEXTS = 256
 #: The page's files: nothing else is ever served.
 STATIC = {"index.html": "text/html", "view.js": "text/javascript", "view.css": "text/css"}
 #: Control messages the page may send on to the render stage (render/control.py).
@@ -93,6 +95,8 @@ class ViewClient:
     #: client that acks without reading gets no more frames once its socket is full).
     unacked: int = 0
     queue: collections.deque = field(default_factory=collections.deque)
+    #: JSON messages (replies, picks, stats) waiting for the writer, sent before frames.
+    texts: collections.deque = field(default_factory=collections.deque)
     wake: asyncio.Event = field(default_factory=asyncio.Event)
     last_sent_seq: int = -1
     #: token bucket for the client's messages
@@ -105,6 +109,8 @@ class ViewClient:
     sizes: collections.deque = field(default_factory=lambda: collections.deque(maxlen=60))
     sent_t: collections.deque = field(default_factory=lambda: collections.deque(maxlen=120))
     closed: bool = False
+    #: A playback request of this client is waiting for the sources (one at a time).
+    playback_busy: bool = False
 
 
 def _count(c: dict, key: str, n: int = 1) -> None:
@@ -128,7 +134,7 @@ class ViewServer:
         for k in ("clients", "clients_total", "refused_token", "refused_origin", "refused_full", "bad_messages",
                   "rate_limited", "send_timeouts", "frames_in", "frames_sent", "dropped_frames", "bytes_sent",
                   "encode_errors", "control_sent", "control_dropped", "render_errors", "clients_gone",
-                  "client_errors", "server_errors", "bogus_acks"):
+                  "client_errors", "server_errors", "bogus_acks", "dropped_messages"):
             self.extra.setdefault(k, 0)
         self._zctx_sync = zctx  # the shadow does not own it: keep it alive
         self.zctx = zmq.asyncio.Context.shadow(zctx.underlying)
@@ -271,9 +277,9 @@ class ViewServer:
         reason = ""
         try:
             self._to_render(view, "open", width=c.width, height=c.height)
-            await self._send_json(c, {"type": "hello", "view": view, "sources": self.sources,
-                                      "replays": sorted(self.playback_endpoints), "max_in_flight": MAX_IN_FLIGHT,
-                                      "color_by": self.color_by, "colormaps": self.colormaps})
+            self._send_json(c, {"type": "hello", "view": view, "sources": self.sources,
+                                "replays": sorted(self.playback_endpoints), "max_in_flight": MAX_IN_FLIGHT,
+                                "color_by": self.color_by, "colormaps": self.colormaps})
             async for msg in ws:
                 if msg.type == WSMsgType.TEXT:
                     try:
@@ -365,7 +371,12 @@ class ViewServer:
                 raise BadMessage("pick: x and y must be numbers (pixels of the view)")
             self._to_render(c.view, "pick", x=float(x), y=float(y), req=req)
         elif cmd == "playback":
-            asyncio.ensure_future(self._playback(c, msg))
+            if c.playback_busy:  # one at a time per client: no pile of sockets waiting on an ended replay
+                self._send_json(c, {"type": "error", "req": req, "key": "playback",
+                                    "error": "the previous playback request is still waiting for the sources"})
+            else:
+                c.playback_busy = True
+                asyncio.ensure_future(self._playback(c, msg))
         else:
             raise BadMessage(f"unknown cmd {cmd[:40]!r}")
 
@@ -385,27 +396,36 @@ class ViewServer:
         except zmq.Again:
             _count(self.extra, "control_dropped")
 
-    async def _send_json(self, c: ViewClient, msg: dict) -> None:
-        if c.closed or c.ws.closed:
+    def _send_json(self, c: ViewClient, msg: dict) -> None:
+        """Queue a JSON message for the client's writer: never waits, so one slow client
+        cannot hold up the others (a bounded queue; beyond it the oldest goes, counted)."""
+        if c.closed:
             return
-        try:
-            await asyncio.wait_for(c.ws.send_str(json.dumps(msg)), self.sc.limits.send_timeout_s)
-        except (asyncio.TimeoutError, ConnectionError, RuntimeError):
-            pass
+        if len(c.texts) >= MAX_TEXTS:
+            c.texts.popleft()
+            _count(self.extra, "dropped_messages")
+        c.texts.append(json.dumps(msg))
+        c.wake.set()
 
     # ------------------------------------------------------------------ playback (the timeline)
     async def _playback(self, c: ViewClient, msg: dict) -> None:
+        try:
+            await self._playback_request(c, msg)
+        finally:
+            c.playback_busy = False
+
+    async def _playback_request(self, c: ViewClient, msg: dict) -> None:
         req = msg.pop("req", None)
         source = msg.pop("source", None)
         bad = sorted(set(msg) - set(PLAYBACK_KEYS))
         if bad:
-            await self._send_json(c, {"type": "error", "req": req, "key": f"playback.{bad[0]}",
-                                      "error": f"unknown argument; playback takes {', '.join(PLAYBACK_KEYS)}"})
+            self._send_json(c, {"type": "error", "req": req, "key": f"playback.{bad[0]}",
+                                "error": f"unknown argument; playback takes {', '.join(PLAYBACK_KEYS)}"})
             return
         targets = {n: e for n, e in self.playback_endpoints.items() if source is None or n == source}
         if not targets:
-            await self._send_json(c, {"type": "error", "req": req, "key": "playback.source",
-                                      "error": "no replaying source" + (f" named {source!r}" if source else "")})
+            self._send_json(c, {"type": "error", "req": req, "key": "playback.source",
+                                "error": "no replaying source" + (f" named {source!r}" if source else "")})
             return
         out: dict[str, Any] = {}
         for name, ep in targets.items():
@@ -420,7 +440,7 @@ class ViewServer:
                     out[name] = {"error": "no answer (the replay has ended or is restarting)", "key": "source"}
             finally:
                 sock.close(0)
-        await self._send_json(c, {"type": "playback", "req": req, "sources": out})
+        self._send_json(c, {"type": "playback", "req": req, "sources": out})
 
     # ------------------------------------------------------------------ from render
     async def _from_render(self) -> None:
@@ -454,7 +474,7 @@ class ViewServer:
                 c.in_flight = 0
                 self._grant(c, again=True)
             else:
-                await self._send_json(c, head)
+                self._send_json(c, head)
 
     async def _encode(self, c: ViewClient, head: dict, frame) -> None:
         loop = asyncio.get_running_loop()
@@ -498,22 +518,28 @@ class ViewServer:
         self._grant(c)
 
     async def _writer(self, c: ViewClient) -> None:
-        """Sends the client's queued frames; a send stuck past ``send_timeout_s`` (a client
-        that never reads) closes that client only."""
+        """Sends the client's queued messages and frames (messages first); a send stuck past
+        ``send_timeout_s`` (a client that never reads) closes that client only."""
         while not c.closed:
             await c.wake.wait()
             c.wake.clear()
-            while c.queue and not c.closed:
-                seq, data = c.queue.popleft()
+            while (c.texts or c.queue) and not c.closed:
+                text = c.texts.popleft() if c.texts else None
+                if text is None:
+                    seq, data = c.queue.popleft()
                 try:
-                    await asyncio.wait_for(c.ws.send_bytes(data), self.sc.limits.send_timeout_s)
+                    send = c.ws.send_str(text) if text is not None else c.ws.send_bytes(data)
+                    await asyncio.wait_for(send, self.sc.limits.send_timeout_s)
                 except asyncio.TimeoutError:
                     _count(self.extra, "send_timeouts")
-                    log.warning("client %s closed: it took no frame for %.0f s", c.view, self.sc.limits.send_timeout_s)
+                    self._warn(f"client {c.view} closed: it took nothing for {self.sc.limits.send_timeout_s:g} s "
+                               f"({self.extra['send_timeouts']} so far)", self.extra["send_timeouts"])
                     asyncio.ensure_future(self._drop_client(c, 1008, "too slow"))
                     return
                 except (ConnectionError, RuntimeError):
                     return
+                if text is not None:
+                    continue
                 c.last_sent_seq = seq
                 c.unacked += 1
                 c.frames_sent += 1
@@ -534,7 +560,7 @@ class ViewServer:
             for c in list(self.clients.values()):
                 if c.in_flight == 0:  # nothing on its way: say the credit again (a lost one must not stall)
                     self._grant(c, again=True)
-                await self._send_json(c, {"type": "stats", "points": rs.get("points"), "fps": rs.get("fps"),
+                self._send_json(c, {"type": "stats", "points": rs.get("points"), "fps": rs.get("fps"),
                                           "sources": rs.get("sources", self.sources),
                                           "view": self.view_stats(c), "clients": len(self.clients)})
 

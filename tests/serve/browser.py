@@ -32,9 +32,10 @@ def launch(pw):
                               args=["--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage"])
 
 
-def new_page(browser, w: int = 640, h: int = 520):
+def new_page(browser, w: int = 640, h: int = 520, touch: bool = False):
     # bypass_csp: the page's own CSP forbids eval, which playwright's wait_for_function uses
-    ctx = browser.new_context(viewport={"width": w, "height": h}, bypass_csp=True, device_scale_factor=1)
+    ctx = browser.new_context(viewport={"width": w, "height": h}, bypass_csp=True, device_scale_factor=1,
+                              has_touch=touch)
     page = ctx.new_page()
     errors: list[str] = []
     page.on("pageerror", lambda e: errors.append(str(e)))

@@ -115,6 +115,17 @@ def test_click_on_the_known_point_shows_its_coordinates(browser, pipe):
         page.wait_for_function("window.pointflowView.lastPick !== null", timeout=30000)
     assert "distance 0.000" in page.locator("#info").inner_text()
     page.context.close()
+    # a phone: a tap picks too
+    phone = _open(browser, pipe, touch=True)
+    _camera(phone, eye=[KNOWN[0], KNOWN[1], 30.0], target=list(KNOWN), up=[0.0, 1.0, 0.0])
+    _settle(phone)
+    pbox = phone.locator("#view").bounding_box()
+    phone.evaluate("window.pointflowView.lastPick = null")
+    phone.touchscreen.tap(pbox["x"] + pbox["width"] / 2 + dx, pbox["y"] + pbox["height"] / 2 + dy)
+    phone.wait_for_function("window.pointflowView.lastPick !== null", timeout=30000)
+    tapped = phone.evaluate("window.pointflowView.lastPick")
+    assert tapped["point"] is not None and np.allclose(tapped["point"]["position"], KNOWN, atol=1e-4)
+    phone.context.close()
 
 
 def _camera(page, **cam):
@@ -136,8 +147,16 @@ def test_two_tabs_keep_their_own_cameras(browser, pipe):
     assert _lit(ia) > 500 and _lit(ib) > 100
     diff = (np.abs(ia.astype(int) - ib.astype(int)).max(axis=2) > 40).mean()
     assert diff > 0.05, "the two tabs show the same picture"
+    pipe.wait(10, until=lambda: len(serve_stats(pipe).get("views", {})) >= 2)  # counts come with heartbeats
     st = serve_stats(pipe)
     assert st["clients"] >= 2
+    per_view = list(st["views"].values())
+    assert len(per_view) >= 2 and all(v["frames"] > 0 and v["bytes_per_frame"] > 0 for v in per_view), per_view
+    assert st["png_bytes_mean"] > 0 and st["encode_ms_mean"] > 0
+    # the page's stats line: points, frames/s, drops, sources
+    page_stats = a.locator("#stats")
+    a.wait_for_function("document.getElementById('stats').textContent.includes('points 6401')", timeout=30000)
+    assert "drops" in page_stats.inner_text() and "sources scene" in page_stats.inner_text()
     for p in (a, b):
         p.context.close()
 
@@ -182,3 +201,30 @@ def test_timeline_pauses_and_seeks_a_replay(browser, tmp_path):
         assert not st["paused"]
         assert n // 2 - 1 <= st["index"] <= n - 1 and st["position_s"] >= 0.45 * st["duration_s"], st
         page.context.close()
+
+
+def test_keyboard_and_style_controls(browser, pipe):
+    page = _open(browser, pipe)
+    _settle(page)
+    page.locator("#view").focus()
+    v0 = page.evaluate("window.pointflowView.state().version")
+    page.keyboard.press("ArrowLeft")  # orbit
+    page.wait_for_function(f"window.pointflowView.state().version > {v0}", timeout=30000)
+    assert page.evaluate("window.pointflowView.state().camera.mode") == "fixed"
+    page.keyboard.press("f")  # fit: the camera follows the data again
+    page.wait_for_function("window.pointflowView.state().camera.mode === 'auto'", timeout=30000)
+    _settle(page)
+    before = canvas_pixels(page)
+    page.select_option("#colormap", "grayscale")
+    page.wait_for_function("window.pointflowView.state().style.colormap === 'grayscale'", timeout=30000)
+    _settle(page)
+    after = canvas_pixels(page)
+    lit = after.max(axis=2) > 60
+    assert lit.sum() > 500
+    # grayscale: the lit pixels are grey (r = g = b within JPEG/PNG rounding); turbo's were not
+    spread = (after.max(axis=2).astype(int) - after.min(axis=2))[lit]
+    assert np.median(spread) <= 6, np.median(spread)
+    assert (np.abs(after.astype(int) - before.astype(int)).max(axis=2) > 40).mean() > 0.01
+    page.select_option("#colormap", "turbo")  # the style is the pipeline's: put it back for the others
+    page.wait_for_function("window.pointflowView.state().style.colormap === 'turbo'", timeout=30000)
+    page.context.close()

@@ -180,3 +180,24 @@ def test_tls(tmp_path):
         with connect(f"wss://127.0.0.1:{port}/ws", ssl=ctx, origin=f"https://127.0.0.1:{port}",
                      additional_headers={"Cookie": f"pointflow_view={TOKEN}"}, open_timeout=20) as ws:
             assert '"hello"' in ws.recv(timeout=20)
+
+
+def test_one_client_too_many_is_refused(tmp_path):
+    from websockets.exceptions import InvalidStatus
+
+    cfg = config(synthetic_source(), serve={"limits": {"max_clients": 2}})
+    with Pipeline.from_dict(cfg, out_dir=str(tmp_path)) as p:
+        base = base_url(p)
+        a, b = ws_connect(base), ws_connect(base)
+        for ws in (a, b):
+            assert '"hello"' in ws.recv(timeout=20)
+        with pytest.raises(InvalidStatus) as exc:
+            ws_connect(base)
+        assert exc.value.response.status_code == 503 and "serve.limits.max_clients" in exc.value.response.body.decode()
+        a.close()
+        p.wait(20, until=lambda: serve_stats(p).get("clients", 2) < 2)
+        with ws_connect(base) as c:  # a place came free
+            assert '"hello"' in c.recv(timeout=20)
+        b.close()
+        p.wait(10, until=lambda: serve_stats(p).get("refused_full", 0) >= 1)
+        assert serve_stats(p)["refused_full"] == 1

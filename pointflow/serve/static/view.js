@@ -107,7 +107,10 @@
     else if (m.type === "pick") {
       const cb = pendingPicks.get(m.req); pendingPicks.delete(m.req);
       window.pointflowView.lastPick = m; showPick(m.point, m.source);
-    } else if (m.type === "error") { info.textContent = `refused: ${m.key ? m.key + ": " : ""}${m.error}`; info.hidden = false; }
+    } else if (m.type === "error") {
+      if (m.key === "playback") return;  // the once-a-second timeline poll while a request waits
+      info.textContent = `refused: ${m.key ? m.key + ": " : ""}${m.error}`; info.hidden = false;
+    }
     else if (m.type === "stats") { showStats(m); }
     else if (m.type === "playback") { onPlayback(m); }
   }
