@@ -27,11 +27,9 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import queue
 import random
 import struct
-import subprocess
 import tempfile
 import threading
 import time
@@ -39,17 +37,11 @@ from pathlib import Path
 
 import numpy as np
 
+import _harness  # sets XDG_RUNTIME_DIR before pointflow is imported
 from pointflow import Pipeline
 
-RESULTS = Path(__file__).resolve().parent / "results"
+RESULTS = _harness.RESULTS
 TOKEN = "bench-views-token-0123456789"
-
-
-def _uptime() -> str:
-    try:
-        return subprocess.run(["uptime"], capture_output=True, text=True, timeout=5).stdout.strip()
-    except (OSError, subprocess.SubprocessError):
-        return "?"
 
 
 def _scene(path: str, n: int) -> str:
@@ -253,12 +245,10 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
-    os.environ.setdefault("XDG_RUNTIME_DIR", f"/tmp/pointflow-xdg-{os.getuid()}")
-    os.makedirs(os.environ["XDG_RUNTIME_DIR"], mode=0o700, exist_ok=True)
     size = tuple(int(v) for v in args.size.split("x"))
     phases, phase_s, repeats = (2, 3.0, 20) if args.quick else (4, 5.0, 60)
-    out = {"backend": args.backend, "machine": {"cpus": os.cpu_count(), "platform": platform.platform()},
-           "uptime_before": _uptime(), "client": "websockets client, each frame acknowledged on arrival "
+    mach = _harness.machine(command=_harness.command())
+    out = {"backend": args.backend, "machine": mach, "uptime_before": mach["uptime_before"], "client": "websockets client, each frame acknowledged on arrival "
            "(no browser decode or paint)"}
     with tempfile.TemporaryDirectory() as tmp:
         for key, fn in (("one_view", lambda d: one_view(d, args.points, size, args.backend, phases, phase_s)),
@@ -273,27 +263,21 @@ def main() -> None:
             out[key] = fn(d)
             out[key]["seconds"] = round(time.monotonic() - t, 1)
             print(key, json.dumps({k: v for k, v in out[key].items() if not isinstance(v, list)}), flush=True)
-    out["uptime_after"] = _uptime()
+    _harness.machine_done(mach)
+    out["uptime_after"] = mach["uptime_after"]
     ov, dr = out["one_view"], out["drag"]
     fps = ov["client_fps_median"]
     jb = ov["jpeg_bytes_median"] or 0.0
     out["bytes"] = {"moving_jpeg_bytes": jb, "still_png_bytes": dr["png_bytes_median"],
                     "link_mbit_s_at_client_fps": jb * fps * 8 / 1e6,
                     "link_mbit_s_at_30fps": jb * 30 * 8 / 1e6}
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    path = Path(args.out) if args.out else RESULTS / f"views-{args.backend}.json"
-    path.write_text(json.dumps(out, indent=1))
-    print("wrote", path)
+    path = _harness.write_result(Path(args.out) if args.out else RESULTS / f"views-{args.backend}.json", out, 1)
     _chart(out, path.with_suffix(".png"))
 
 
 def _chart(out: dict, path: Path) -> None:
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
+    plt = _harness.pyplot()
+    if plt is None:
         return
     fig, ax = plt.subplots(1, 2, figsize=(10, 3.6))
     ov, o8, fv = out["one_view"], out["one_view_800x600"], out["four_views"]

@@ -149,10 +149,24 @@ def test_widget_shows_the_live_view_and_a_drag_turns_it(lab):
             page.wait_for_selector(".jp-Notebook .jp-Cell .cm-content", timeout=120000)
             # the kernel is up when the toolbar's status says idle
             page.wait_for_selector(".jp-Notebook-ExecutionIndicator[data-status='idle']", timeout=120000)
-            page.click(".jp-Notebook .jp-Cell .cm-content")
-            page.keyboard.press("Shift+Enter")
+            # run the cell (Ctrl+Enter); a kernel that was not quite connected yet may drop the
+            # request, so run it again until the prompt says it runs or ran ([*] or [1])
+            prompt = page.locator(".jp-Notebook .jp-Cell .jp-InputPrompt").first
+            for _ in range(6):
+                page.click(".jp-Notebook .jp-Cell .cm-content")
+                page.keyboard.press("Control+Enter")
+                end = time.monotonic() + 15
+                while time.monotonic() < end and prompt.inner_text().strip() in ("[ ]:", ""):
+                    time.sleep(0.25)
+                if prompt.inner_text().strip() not in ("[ ]:", ""):
+                    break
             canvas = page.locator("canvas.pf-canvas")
-            canvas.wait_for(timeout=120000)
+            try:
+                canvas.wait_for(timeout=120000)
+            except Exception:
+                page.screenshot(path=str(d / "lab.png"))
+                out = page.locator(".jp-OutputArea").all_inner_texts()
+                pytest.fail(f"the widget did not appear; cell output: {out!r}; screenshot {d / 'lab.png'}")
             page.wait_for_function("() => Number(document.querySelector('canvas.pf-canvas').dataset.frames || 0) >= 1",
                                    timeout=120000)
             time.sleep(1.0)  # the still (PNG) frame after the first
