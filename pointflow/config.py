@@ -21,6 +21,7 @@ from .frames.config import FramesConfig, check_frames
 from .ingest.playback import PlaybackConfig, check_playback
 from .ingest.transports import resolve_transport
 from .record.config import RecordConfig, check_record
+from .map.config import MapConfig, check_map
 from .remote.options import SendConfig, check_send, is_loopback_endpoint
 from .remote.router import RouterConfig, check_router
 from .typed import Bound, ConfigError, Each, Length, check, check_keys, dataclass_schema, load_dataclass
@@ -185,6 +186,10 @@ class EndpointsConfig:
     #: Transforms for a camera that follows a frame (only with ``frames.fixed``): PULL bound
     #: by render, every source PUSHes the transforms it sends ingest here too.
     view_transforms: Optional[str] = field(default=None, metadata=check(endpoint))
+    #: Map stage <-> render (only with ``map:``; docs/map.md): map region versions (PULL bound
+    #: by render) and the render stage's cameras and acknowledgements (PULL bound by the map stage).
+    map: Optional[str] = field(default=None, metadata=check(endpoint))
+    map_camera: Optional[str] = field(default=None, metadata=check(endpoint))
     #: Allow these (unencrypted) endpoints on a non-loopback tcp:// address.
     insecure: bool = False
 
@@ -240,6 +245,8 @@ class PipelineConfig:
     frames: FramesConfig = field(default_factory=FramesConfig)
     #: Record what ingest accepted to MCAP (docs/record.md); also ``pointflow run --record PATH``.
     record: Optional[RecordConfig] = None
+    #: A big static cloud drawn with the live points (docs/map.md): the map stage serves it.
+    map: Optional[MapConfig] = None
     #: The Zenoh router ``pointflow router`` runs (docs/remote.md); a file may hold only this.
     router: Optional[RouterConfig] = None
     #: How replaying sources (file, rosbag) start: ``start``, ``rate``, ``loop``, ``paused``
@@ -282,6 +289,7 @@ class PipelineConfig:
             trace=e.trace or d("trace"), render_commands=e.render_commands or d("render-commands"),
             record=e.record or d("record"), playback=e.playback or d("playback"),
             view_transforms=e.view_transforms or d("view-transforms"),
+            map=e.map or d("map"), map_camera=e.map_camera or d("map-camera"),
         )
 
     def to_dict(self) -> dict:
@@ -336,12 +344,14 @@ def _check_semantics(cfg: PipelineConfig) -> None:
             raise ConfigError(f"sources[{i}].frame_id", "must be a frame name or null")
     if cfg.record is not None:
         check_record(cfg.record, "record")
+    if cfg.map is not None:
+        check_map(cfg.map, "map", cfg.base_dir)
     e = cfg.endpoints
     check_playback(cfg.playback, "playback")
     if cfg.view is not None:
         _apply_view(cfg)
     for key in ("ingest", "frames", "release", "control", "trace", "render_commands", "record", "playback",
-                "view_transforms"):
+                "view_transforms", "map", "map_camera"):
         ep = getattr(e, key)
         if ep and not e.insecure and not is_loopback_endpoint(ep):
             raise ConfigError(f"endpoints.{key}", f"{ep} is reachable from other hosts and the links between "

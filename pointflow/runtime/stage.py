@@ -52,6 +52,7 @@ STAGE_MAINS: dict[str, str] = {
     "sender": "pointflow.remote.send_stage:main",
     "recorder": "pointflow.record.process:main",
     "router": "pointflow.remote.router:main",
+    "map": "pointflow.map.stage:main",
 }
 
 

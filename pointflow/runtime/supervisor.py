@@ -277,6 +277,8 @@ class Supervisor:
         log.info("ring %s: %d points, channels %s, eviction %s; slabs %s", self.ring.name, cfg.ring.max_points,
                  cfg.ring_channels() or "[]", cfg.ring.eviction, " ".join(self.slabs.names))
         order = [("render", "render", -1), ("cadence", "cadence", -1), ("ingest", "ingest", -1)]
+        if cfg.map is not None:  # the map stage (docs/map.md): after render, which binds what it connects to
+            order.insert(1, ("map", "map", -1))
         if cfg.record is not None:  # binds the socket ingest sends its copies to: before ingest
             order.insert(2, ("recorder", "recorder", -1))
         order += [(s.name, "source", i) for i, s in enumerate(cfg.sources) if not s.external and not _in_process(s)]
@@ -753,7 +755,7 @@ class Supervisor:
                     log.exception("closing api source %s", st.name)
         sources = [st for st in self.stages.values() if st.kind == "source"]
         waves = [sources, [self.stages[n] for n in ("ingest", "sender", "router") if n in self.stages],
-                 [self.stages[n] for n in ("cadence", "render", "recorder") if n in self.stages]]
+                 [self.stages[n] for n in ("cadence", "render", "recorder", "map") if n in self.stages]]
         for wave in waves:
             for st in wave:
                 p = st.process
