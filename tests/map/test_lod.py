@@ -1,0 +1,172 @@
+"""The level-of-detail index: every node is exactly the file's points, built once, rebuilt on change."""
+from __future__ import annotations
+
+import json
+import logging
+import os
+
+import numpy as np
+import pytest
+
+from pointflow.map import MapError, open_map
+from pointflow.map import lod
+
+from .mapfiles import all_nodes, laspy_points, write_las, write_pcd, write_ply
+
+
+def check_exact(source, path):
+    """Union of all nodes == laspy's read of the file (every channel), no point twice, each
+    point inside its node's cube."""
+    got, loads = all_nodes(source)
+    want = laspy_points(path)
+    assert got["positions"].shape == want["positions"].shape
+    assert np.array_equal(got["gps_time"], np.arange(want["gps_time"].shape[0], dtype=np.float64)), "duplicates or losses"
+    for name in want:
+        assert np.array_equal(got[name], want[name]), name
+        assert got[name].dtype == want[name].dtype or name == "rgb", (name, got[name].dtype, want[name].dtype)
+    for key, d in loads:
+        n = source.node(key)
+        assert d["positions"].shape[0] == n.count > 0
+        assert np.all(d["positions"] >= n.lo - 1e-6) and np.all(d["positions"] <= n.hi + 1e-6), key
+
+
+@pytest.mark.parametrize("ext", ["las", "laz"])
+def test_every_node_is_exactly_the_files_points(tmp_path, ext):
+    path = write_las(str(tmp_path / f"t.{ext}"), 60_000, seed=1)
+    with open_map(path, cache_dir=str(tmp_path / "cache"), progress=False) as m:
+        assert m.point_count == 60_000
+        assert {"intensity", "classification", "gps_time", "rgb"} <= set(m.channels)
+        check_exact(m, path)
+        depths = {k[1] for k in m.keys()}
+        assert max(depths) >= 1 and len(m.keys()) > 2  # 60 k points > one leaf: a real tree
+
+
+def test_many_cells_and_splits_stay_exact(tmp_path, monkeypatch):
+    """The big-file path (spill files per cell, a cell split again) on a small file."""
+    monkeypatch.setattr(lod, "CELL_TARGET", 2_000)
+    monkeypatch.setattr(lod, "MAX_CELL", 6_000)
+    monkeypatch.setattr(lod, "CHUNK_POINTS", 7_000)
+    path = write_las(str(tmp_path / "t.laz"), 50_000, seed=2)
+    with open_map(path, cache_dir=str(tmp_path / "cache"), progress=False) as m:
+        check_exact(m, path)
+        meta = json.load(open(os.path.join(m.files[0].dir, "meta.json")))
+        assert meta["count"] == 50_000
+
+
+def test_inner_nodes_are_a_spread_out_subset(tmp_path):
+    path = write_las(str(tmp_path / "t.laz"), 80_000, seed=3)
+    with open_map(path, cache_dir=str(tmp_path / "cache"), progress=False) as m:
+        root = m.root_keys()[0]
+        pts = m.load(root)["positions"]
+        assert 0 < pts.shape[0] < 80_000 // 2
+        lo, hi = m.bounds
+        span = (pts.max(axis=0) - pts.min(axis=0))[:2] / (hi - lo)[:2]
+        assert np.all(span > 0.95), span  # the root covers the whole map, not a corner
+        # one point per cell of the root's 128^3 grid
+        f = m.files[0]
+        cells = np.floor((pts - f.cube_lo) / f.cube_side * 128).astype(np.int64)
+        assert np.unique(cells, axis=0).shape[0] == pts.shape[0]
+        # children of an inner node exist and each child key is inside its parent
+        kids = m.children(root)
+        assert kids and all(k[1] == 1 for k in kids)
+
+
+def test_index_is_built_once_and_rebuilt_when_the_file_changes(tmp_path, caplog):
+    path = write_las(str(tmp_path / "t.laz"), 30_000, seed=4)
+    cache = str(tmp_path / "cache")
+    calls = []
+    open_map(path, cache_dir=cache, progress=lambda d, t: calls.append((d, t))).close()
+    assert calls and calls[-1] == (30_000, 30_000)
+    calls.clear()
+    with open_map(path, cache_dir=cache, progress=lambda d, t: calls.append((d, t))) as m:
+        assert not calls  # reused
+        assert len(os.listdir(cache)) == 1
+    write_las(path, 31_000, seed=5)  # a changed file
+    with caplog.at_level(logging.WARNING, logger="pointflow.map.lod"):
+        with open_map(path, cache_dir=cache, progress=lambda d, t: calls.append((d, t))) as m:
+            assert m.point_count == 31_000 and calls
+            check_exact(m, path)
+    assert any("changed" in r.getMessage() and path in r.getMessage() for r in caplog.records)
+    assert len(os.listdir(cache)) == 1  # replaced, no leftovers
+
+
+def test_index_of_another_version_is_rebuilt_with_a_warning(tmp_path, caplog):
+    path = write_las(str(tmp_path / "t.las"), 5_000, seed=6)
+    cache = str(tmp_path / "cache")
+    with open_map(path, cache_dir=cache, progress=False) as m:
+        meta_path = os.path.join(m.files[0].dir, "meta.json")
+    meta = json.load(open(meta_path))
+    meta["version"] = lod.INDEX_VERSION + 99
+    json.dump(meta, open(meta_path, "w"))
+    with caplog.at_level(logging.WARNING, logger="pointflow.map.lod"):
+        with open_map(path, cache_dir=cache, progress=False) as m:
+            check_exact(m, path)
+    msgs = [r.getMessage() for r in caplog.records]
+    assert any("version" in s and path in s for s in msgs), msgs
+    assert json.load(open(meta_path))["version"] == lod.INDEX_VERSION
+
+
+def test_damaged_index_is_rebuilt(tmp_path, caplog):
+    path = write_las(str(tmp_path / "t.las"), 5_000, seed=7)
+    cache = str(tmp_path / "cache")
+    with open_map(path, cache_dir=cache, progress=False) as m:
+        pts = os.path.join(m.files[0].dir, "points.bin")
+    with open(pts, "r+b") as f:
+        f.truncate(1000)
+    with caplog.at_level(logging.WARNING, logger="pointflow.map.lod"):
+        with open_map(path, cache_dir=cache, progress=False) as m:
+            check_exact(m, path)
+    assert any("points.bin" in r.getMessage() for r in caplog.records)
+
+
+def test_ply_written_by_plyfile(tmp_path):
+    path = str(tmp_path / "t.ply")
+    pos, ch = write_ply(path, 30_000, seed=8)
+    with open_map(path, cache_dir=str(tmp_path / "cache"), progress=False) as m:
+        assert m.point_count == 30_000 and set(m.channels) >= {"rgb", "intensity"}
+        got, _ = all_nodes(m)
+    order_got = np.lexsort(got["positions"].T[::-1])
+    order_want = np.lexsort(pos.T[::-1])
+    assert np.array_equal(got["positions"][order_got], pos[order_want])
+    assert np.array_equal(got["rgb"][order_got], ch["rgb"][order_want])
+    assert np.array_equal(got["intensity"][order_got], ch["intensity"][order_want])
+
+
+def test_pcd(tmp_path):
+    path = str(tmp_path / "t.pcd")
+    pos, ch = write_pcd(path, 25_000, seed=9)
+    with open_map(path, cache_dir=str(tmp_path / "cache"), progress=False) as m:
+        got, _ = all_nodes(m)
+    og, ow = np.lexsort(got["positions"].T[::-1]), np.lexsort(pos.T[::-1])
+    assert np.array_equal(got["positions"][og], pos[ow].astype(np.float64))
+    assert np.array_equal(got["intensity"][og], ch["intensity"][ow])
+
+
+def test_progress_line_on_stderr(tmp_path, capfd):
+    path = write_las(str(tmp_path / "t.laz"), 20_000, seed=10)
+    open_map(path, cache_dir=str(tmp_path / "cache")).close()
+    err = capfd.readouterr().err
+    assert "map: indexing t.laz" in err and "100%" in err and "points/s" in err
+
+
+def test_default_cache_dir_follows_xdg(tmp_path, monkeypatch):
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    path = write_las(str(tmp_path / "t.las"), 2_000, seed=11)
+    with open_map(path, progress=False) as m:
+        assert m.files[0].dir.startswith(str(tmp_path / "xdg" / "pointflow" / "map"))
+
+
+def test_empty_and_tiny_files(tmp_path):
+    path = write_las(str(tmp_path / "one.las"), 1, seed=12)
+    with open_map(path, cache_dir=str(tmp_path / "c"), progress=False) as m:
+        assert m.point_count == 1 and len(m.keys()) == 1
+        check_exact(m, path)
+
+
+def test_two_files_one_map(tmp_path):
+    a = write_las(str(tmp_path / "a.laz"), 10_000, seed=13)
+    b = write_las(str(tmp_path / "b.las"), 12_000, seed=14)
+    with open_map([a, b], cache_dir=str(tmp_path / "c"), progress=False) as m:
+        assert m.point_count == 22_000 and len(m.root_keys()) == 2
+        assert {m.source_name(k) for k in m.root_keys()} == {"a.laz", "b.las"}
+        assert sum(m.node(k).count for k in m.keys()) == 22_000
