@@ -46,9 +46,16 @@ class _Opener(threading.Thread):
     def run(self) -> None:
         from . import open_map
 
+        last = [-1]
+
+        def progress(done: int, total: int) -> None:  # one log line per tenth of an index build
+            tenth = int(10 * done / max(total, 1))
+            if tenth != last[0]:
+                last[0] = tenth
+                self.log.info("map index: %d of %d points (%d%%)", done, total, 10 * tenth)
+
         try:
-            self.source = open_map(self.mc.paths(), cache_dir=self.mc.cache_dir,
-                                   progress=lambda line: self.log.info("%s", line))
+            self.source = open_map(self.mc.paths(), cache_dir=self.mc.cache_dir, progress=progress)
         except BaseException as exc:  # noqa: BLE001 - reported by the stage loop
             self.error = exc
 
@@ -208,7 +215,7 @@ class Server:
         slots, self.free = self.free[:n], self.free[n:]
         r = self.region
         r.positions[slots] = pos
-        r.file[slots] = int(data.get("file_index", getattr(self.src.node(key), "file_index", 0)) or 0)
+        r.file[slots] = int(key[0])  # the file index of the node (map keys: file, depth, x, y, z)
         ranges = {}
         for name, arr in r.channel.items():
             v = data.get(name)
@@ -216,6 +223,8 @@ class Server:
                 arr[slots] = 0 if arr.dtype.kind == "u" else np.nan
                 continue
             v = np.asarray(v)
+            if name == "rgb" and v.dtype.itemsize > 1:  # 16-bit LAS colour, as the ring takes it
+                v = np.right_shift(v.astype(np.uint16, copy=False), 8)
             arr[slots] = v.reshape(arr[slots].shape).astype(arr.dtype, copy=False)
             if arr.ndim == 1 and n:
                 fv = np.asarray(arr[slots], np.float64)
@@ -260,9 +269,8 @@ class Server:
         c.points_out = points  # points the render stage has (a gauge, restated on restart)
         lm = sorted(self.load_ms)
         c.extra.update(map_nodes=len(self.published), map_points=points, map_version=self.version,
-                       map_cache_bytes=int(getattr(self.cache, "bytes_used", 0)),
-                       map_cache_hits=int(getattr(self.cache, "hits", 0)),
-                       map_cache_misses=int(getattr(self.cache, "misses", 0)),
+                       map_cache_bytes=int(self.cache.bytes_used), map_cache_hits=int(self.cache.hits),
+                       map_cache_misses=int(self.cache.misses),
                        map_load_ms_p50=round(lm[len(lm) // 2], 2) if lm else None,
                        map_load_ms_max=round(lm[-1], 2) if lm else None)
 
@@ -327,7 +335,7 @@ def main(ctx) -> None:
                 src = opener.source
                 chans = kept_channels(cfg, mc, list(getattr(src, "channels", [])))
                 region = mr.MapRegion.create(ctx.info.run_dir, mc.point_budget, chans)
-                server = Server(ctx, src, region, files)
+                server = Server(ctx, src, region, list(src.paths))
                 server.ctx_push = push
                 c.extra.update(map_ready=True, map_open_s=round(time.monotonic() - t_start, 3))
                 ctx.log.info("map open: %s (%d points, channels %s)", ", ".join(files), int(src.point_count),
