@@ -1,0 +1,123 @@
+"""A live source and a map in one pipeline (real processes, files written by laspy, cpu tier):
+both drawn in one frame, picking finds each and names its source, the map's points are
+exactly the file's, the accounting is exact for both; a broken map file is a one-line error
+and the live part goes on."""
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from pointflow import Pipeline
+from pointflow.render.camera import Camera, project_to_pixels
+
+from .mapfiles import ORIGIN, laspy_points, write_las
+
+W, H = 200, 150
+N_MAP = 20_000
+#: straight down over the middle of the 400 x 400 m tile
+EYE = ORIGIN + [200.0, 200.0, 600.0]
+TARGET = ORIGIN + [200.0, 200.0, 0.0]
+UP = [0.0, 1.0, 0.0]
+BG = np.round(np.array([0.02, 0.02, 0.05]) * 255).astype(np.uint8)
+
+
+def _live(path: str) -> tuple[str, np.ndarray]:
+    """A 40 x 40 m plane of live points floating 60 m above the tile's middle."""
+    g = np.stack(np.meshgrid(np.arange(0, 40, 1.0), np.arange(0, 40, 1.0)), -1).reshape(-1, 2)
+    pts = np.column_stack([g + ORIGIN[:2] + 180, np.full(len(g), ORIGIN[2] + 60)])
+    f = os.path.join(path, "live.npz")
+    np.savez(f, x=pts[:, 0], y=pts[:, 1], z=pts[:, 2])
+    return f, pts
+
+
+def _config(live: str, map_path: str, **map_opts) -> dict:
+    return {"source": {"transport": "file", "name": "scanner", "options": {"path": live, "realtime": False}},
+            "ring": {"max_points": 4000},
+            "render": {"backend": "cpu", "size": [W, H], "point_size": 2, "color_by": "z",
+                       "output": {"every_n_frames": 100000}},
+            "map": {"path": map_path, "point_budget": 50_000, **map_opts}}
+
+
+def _px(p) -> tuple[int, int]:
+    cam = Camera(eye=EYE, target=TARGET, up=UP, fov_deg=60.0)
+    px, py, _, _ = project_to_pixels(np.asarray([p], np.float64) - TARGET, cam.view_proj(W, H, TARGET), W, H)
+    return int(px[0]), int(py[0])
+
+
+def test_live_and_map_in_one_pipeline(tmp_path):
+    las = write_las(str(tmp_path / "tile.las"), N_MAP, seed=1)
+    live, live_pts = _live(str(tmp_path))
+    truth = laspy_points(las)
+    with Pipeline.from_dict(_config(live, las), out_dir=str(tmp_path)) as pipe:
+        render = lambda: pipe.stats()["stages"]["render"]  # noqa: E731
+        pipe.wait(120, until=lambda: render().get("map_points", 0) >= N_MAP and render()["points_in"] > 0)
+        assert render()["map_points"] == N_MAP, "the whole map (budget above its points) reached the renderer"
+        pipe.camera(eye=list(EYE), target=list(TARGET), up=UP, fov_deg=60.0)
+        img = np.asarray(Image.open(pipe.save_frame(str(tmp_path / "both.png"))))[..., :3]
+
+        # both kinds drawn: the live plane in the middle, the map around it
+        cx, cy = _px(live_pts.mean(axis=0))
+        assert not (img[cy, cx] == BG).all()
+        corner = ORIGIN + [60.0, 60.0, 0.0]
+        mx, my = _px(corner)
+        assert not (img[my - 3:my + 4, mx - 3:mx + 4] == BG).all(axis=-1).all()
+
+        # picking: a live point named by its source, a map point by its file, exact world position
+        p = pipe.pick(cx, cy)
+        assert p is not None and p["source"] == "scanner"
+        assert np.min(np.linalg.norm(live_pts - p["position"], axis=1)) < 1e-3
+        p = pipe.pick(mx, my)
+        assert p is not None and p["source"] == f"map: {las}"
+        d = np.linalg.norm(truth["positions"] - p["position"], axis=1)
+        i = int(np.argmin(d))
+        assert d[i] < 1e-9, "a picked map point is one of the file's points, in float64"
+        assert np.linalg.norm(np.asarray(p["position"])[:2] - corner[:2]) < 10
+
+        # accounting: the live points exactly, the map's points exactly
+        st = pipe.stats()
+        acc = st["accounting"]
+        assert acc["ingest_received"] == acc["ingest_written"] == len(live_pts)
+        assert acc["ring_agrees"] and acc["sources_balanced"]
+        m = st["stages"]["map"]
+        assert m["map_points"] == st["stages"]["render"]["map_points"] == N_MAP
+        assert m["map_point_count"] == N_MAP and m["map_error"] is None
+        assert m["points_in"] >= N_MAP  # read from the file (each node once while cached)
+        assert m["map_nodes"] >= 1 and m["map_cache_bytes"] > 0 and m["map_load_ms_p50"] is not None
+
+
+def test_a_broken_map_file_is_named_and_the_live_part_goes_on(tmp_path):
+    las = write_las(str(tmp_path / "tile.las"), N_MAP, seed=2)
+    with open(las, "r+b") as f:  # cut the file in the middle of its points
+        f.truncate(os.path.getsize(las) // 2)
+    live, live_pts = _live(str(tmp_path))
+    with Pipeline.from_dict(_config(live, las), out_dir=str(tmp_path)) as pipe:
+        pipe.wait(120, until=lambda: pipe.stats()["stages"]["map"].get("map_error") is not None
+                  and pipe.stats()["stages"]["render"]["points_in"] >= len(live_pts))
+        st = pipe.stats()
+        m = st["stages"]["map"]
+        assert m["map_error"] and las in m["map_error"], m["map_error"]
+        assert "\n" not in m["map_error"]
+        assert m["drops"].get("map_error") == 1 and m["restarts"] == 0
+        assert st["stages"]["render"].get("map_points", 0) == 0
+        assert st["accounting"]["ingest_written"] == len(live_pts)
+        pipe.camera(eye=list(EYE), target=list(TARGET), up=UP, fov_deg=60.0)
+        cx, cy = _px(live_pts.mean(axis=0))
+        p = pipe.pick(cx, cy)
+        assert p is not None and p["source"] == "scanner"
+
+
+@pytest.mark.parametrize("bad", ["map.path", "map.point_budget"])
+def test_a_bad_map_block_is_refused_at_load_naming_the_key(tmp_path, bad):
+    from pointflow.config import ConfigError, load_config
+
+    live, _ = _live(str(tmp_path))
+    cfg = _config(live, str(tmp_path / "missing.las"))
+    if bad == "map.point_budget":
+        cfg["map"]["path"] = write_las(str(tmp_path / "t.las"), 10)
+        cfg["map"]["point_budget"] = 0
+    with pytest.raises(ConfigError) as e:
+        load_config(cfg)
+    assert str(e.value).startswith(bad)
