@@ -81,6 +81,7 @@ class Server:
         self.node_ranges: dict[Any, dict[str, tuple[float, float]]] = {}
         self.bad_nodes: set = set()
         self.cameras: list[dict] = []
+        self.cap: dict[Any, int] = {}  # nodes drawn in part (a root bigger than the budget)
         self.want: list = []
         self.want_stale = True
         self.version = 0
@@ -137,12 +138,13 @@ class Server:
         from . import select_nodes
 
         loaded = set(self.published)
-        lists = []
+        lists, views = [], []
         for v in self._camera_list():
             cam = Camera(eye=v["eye"], target=v["target"], up=v["up"], fov_deg=v["fov_deg"], near=v["near"],
                          far=v["far"])
             w, h = int(v["width"]), int(v["height"])
-            lists.append(list(select_nodes(self.src, cam.view_proj(w, h), (w, h), cam.eye, self.budget, loaded)))
+            views.append((cam.view_proj(w, h), (w, h), cam.eye))
+            lists.append(list(select_nodes(self.src, *views[-1], self.budget, loaded)))
         merged, seen, total = [], set(), 0
         for i in range(max((len(x) for x in lists), default=0)):
             for lst in lists:
@@ -153,6 +155,13 @@ class Server:
                     seen.add(lst[i])
                     merged.append(lst[i])
                     total += n
+        self.cap = {}
+        if not merged:  # every root in view holds more than the budget: a spread subset of them
+            roots = [k for k in self.src.root_keys() if k not in self.bad_nodes
+                     and any(k in select_nodes(self.src, v, wh, e, 1 << 62, ()) for v, wh, e in views)]
+            for k in roots:
+                self.cap[k] = self.budget // len(roots)
+            merged = roots
         self.want = merged
         self.want_stale = False
 
@@ -189,7 +198,7 @@ class Server:
         for key in todo:
             if time.monotonic_ns() > deadline_ns and (self.set_ranges or self.cleared_ranges):
                 break
-            n = int(self.src.node(key).count)
+            n = min(int(self.src.node(key).count), self.cap.get(key, 1 << 62))
             if n > self.free.size:
                 break  # slots come back when the render stage acknowledges what was cleared
             try:
@@ -199,7 +208,7 @@ class Server:
                 self.ctx.counters.drop("map_node_error", 1)
                 self.ctx.log.error("map node %s not loaded: %s", key, _error_line(exc))
                 continue
-            self._place(key, data)
+            self._place(key, data, self.cap.get(key))
             self.ctx.beat()
         busy = any(k not in self.published for k in self.want if k not in self.bad_nodes)
         if self.set_ranges or self.cleared_ranges or self.full_next:
@@ -209,8 +218,12 @@ class Server:
             self.ctx.counters.extra["map_refine_ms"] = round(self.refine_ms, 1)
         return busy
 
-    def _place(self, key, data: dict) -> None:
+    def _place(self, key, data: dict, cap: Optional[int] = None) -> None:
         pos = np.asarray(data["positions"], np.float64)
+        take = None
+        if cap is not None and cap < pos.shape[0]:  # a root bigger than the budget: evenly spread
+            take = np.linspace(0, pos.shape[0] - 1, cap).astype(np.int64)
+            pos = pos[take]
         n = pos.shape[0]
         slots, self.free = self.free[:n], self.free[n:]
         r = self.region
@@ -222,7 +235,7 @@ class Server:
             if v is None:
                 arr[slots] = 0 if arr.dtype.kind == "u" else np.nan
                 continue
-            v = np.asarray(v)
+            v = np.asarray(v) if take is None else np.asarray(v)[take]
             if name == "rgb" and v.dtype.itemsize > 1:  # 16-bit LAS colour, as the ring takes it
                 v = np.right_shift(v.astype(np.uint16, copy=False), 8)
             arr[slots] = v.reshape(arr[slots].shape).astype(arr.dtype, copy=False)
