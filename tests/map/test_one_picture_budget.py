@@ -67,6 +67,9 @@ class Harness:
         stage has nothing left to load and the layer holds its last version."""
         self.layer.publish([("main", camera, W, H)])
         end = time.monotonic() + timeout_s
+        while not self.server.cameras or self.server.cameras[0]["eye"] != [float(v) for v in camera.eye]:
+            assert self.pull.poll(int(timeout_s * 1000)), "the camera never reached the map stage"
+            self.server.on_message(mr.decode(self.pull.recv()))
         while time.monotonic() < end:
             while self.pull.poll(0):
                 self.server.on_message(mr.decode(self.pull.recv()))
