@@ -249,6 +249,16 @@ class MapLayer:
         self._last_cams = cams
         self._send({"type": "cameras", "views": cams})
 
+    def publish_stage(self, stage) -> None:
+        """The render stage's views: main (the window's camera or the last drawn), then the
+        view server's views (render/views.py), each with the camera it last drew."""
+        main = stage.window.camera if getattr(stage, "window", None) is not None else stage.view.last
+        views = [("main", main, stage.view.cfg.render.size[0], stage.view.cfg.render.size[1])]
+        hub = getattr(stage, "hub", None)
+        for vid, v in (getattr(hub, "views", None) or {}).items():
+            views.append((str(vid), getattr(v.ctl, "last", None), int(v.width), int(v.height)))
+        self.publish(views)
+
     # ------------------------------------------------------------------ picking, stats
     def is_map_slot(self, slot) -> bool:
         return slot is not None and int(slot) >= self.ring_cap

@@ -368,6 +368,8 @@ def main(ctx: StageContext) -> None:
     try:
         while ctx.running:
             ctx.beat()
+            if maplayer is not None:  # where every view looks, to the map stage (sent when it changed)
+                maplayer.publish_stage(stage)
             stage.window, stage.frames = window, frames - base
             _serve_commands(commands, stage, ring, ctx)
             renderer = stage.renderer
@@ -421,7 +423,6 @@ def main(ctx: StageContext) -> None:
                     view.last = camera
                     if maplayer is not None:
                         maplayer.drawn()
-                        maplayer.publish([("main", camera, renderer.width, renderer.height)])
                 except ValueError as exc:  # a malformed frame (tiers check their input): skip it, counted
                     ctx.log.error("frame %d rejected by the %s tier: %s", h.seq, renderer.tier, exc)
                     c.drop("bad_frame", 1)
