@@ -87,6 +87,14 @@ def test_live_and_map_in_one_pipeline(tmp_path):
         assert m["points_in"] >= N_MAP  # read from the file (each node once while cached)
         assert m["map_nodes"] >= 1 and m["map_cache_bytes"] > 0 and m["map_load_ms_p50"] is not None
 
+        # the profile shows the map: nodes, points drawn, cache use, load latency (its own spans)
+        from pointflow.profiling.report import build_profile, format_table
+
+        prof = build_profile(pipe.collector, st)
+        assert prof["map"]["points_drawn"] == N_MAP and prof["map"]["map_nodes"] == m["map_nodes"]
+        assert prof["stages"]["map_load"]["count"] >= 1
+        assert f"{N_MAP:,} points drawn" in format_table(prof)
+
 
 def test_a_broken_map_file_is_named_and_the_live_part_goes_on(tmp_path):
     las = write_las(str(tmp_path / "tile.las"), N_MAP, seed=2)
