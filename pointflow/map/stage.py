@@ -288,6 +288,19 @@ class Server:
                        map_load_ms_max=round(lm[-1], 2) if lm else None)
 
 
+def accounting(stages: dict, ring=None) -> dict:
+    """``stats()["accounting"]`` for the map (docs/map.md): the points the map stage holds in
+    the region (``map_points_held``, the sum of its published nodes) and the points the render
+    stage took into its map slots (``map_points_drawn``); ``map_agrees`` compares them when
+    both have reported the same version (None while a version is in flight)."""
+    m, r = stages.get("map") or {}, stages.get("render") or {}
+    held, drawn = m.get("map_points"), r.get("map_points")
+    same = m.get("map_version") is not None and m.get("map_version") == r.get("map_version")
+    return {"map_file_points": m.get("map_point_count"), "map_points_loaded": m.get("points_in", 0),
+            "map_points_held": held, "map_points_drawn": drawn,
+            "map_agrees": (held == drawn) if same else None, "map_error": m.get("map_error")}
+
+
 def _sweep_regions(run_dir: str) -> None:
     """Remove the regions of map stages that died (a restarted stage makes a new one; a
     render stage still mapping the old one keeps its pages until it lets go)."""

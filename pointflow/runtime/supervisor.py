@@ -934,6 +934,10 @@ class Supervisor:
                 acc["lost_before_ingest"] = acc["sources_sent"] - acc["ingest_received"]
         if "recorder" in stages:
             acc.update(self._record_accounting(ing, stages["recorder"]))
+        if "map" in stages:  # the map layer (docs/map.md)
+            from ..map.stage import accounting as map_accounting
+
+            acc.update(map_accounting(stages, self.ring))
         link = [v for v in sources if "transport_link_sent" in v]
         if link:
             # zmq sources fed by `pointflow send` (docs/remote.md): what the senders sent

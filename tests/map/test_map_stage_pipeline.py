@@ -81,6 +81,8 @@ def test_live_and_map_in_one_pipeline(tmp_path):
         acc = st["accounting"]
         assert acc["ingest_received"] == acc["ingest_written"] == len(live_pts)
         assert acc["ring_agrees"] and acc["sources_balanced"]
+        assert acc["map_file_points"] == acc["map_points_held"] == acc["map_points_drawn"] == N_MAP
+        assert acc["map_agrees"] is True and acc["map_error"] is None
         m = st["stages"]["map"]
         assert m["map_points"] == st["stages"]["render"]["map_points"] == N_MAP
         assert m["map_point_count"] == N_MAP and m["map_error"] is None
