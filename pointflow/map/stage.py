@@ -107,6 +107,9 @@ class Server:
                 self.want_stale = True
                 self.t_camera_ns = time.monotonic_ns()
                 self.refine_ms = None
+                c = self.ctx.counters.extra
+                c["map_camera_moves"] = c.get("map_camera_moves", 0) + 1
+                c["map_refine_ms"] = None
         elif t == "ack":
             self.acked = max(self.acked, int(msg.get("version", -1)))
             keep = []
