@@ -114,3 +114,43 @@ def assign_levels(codes, l_start, l_stop, leaf_max, grid_bits, out):
             if out[k] < 0:
                 out[k] = l_stop
     return out
+
+
+@numba.njit(cache=True, nogil=True)
+def morton_codes_int(X, Y, Z, scales, offsets, lo, side):
+    """Codes straight from LAS integer coordinates (X * scale + offset, as laspy scales them),
+    without the (n, 3) float64 positions in between."""
+    n = X.shape[0]
+    out = np.empty(n, np.uint64)
+    scale = float(1 << DMAX) / side
+    top = (1 << DMAX) - 1
+    for i in range(n):
+        c = np.uint64(0)
+        for a in range(3):
+            raw = X[i] if a == 0 else (Y[i] if a == 1 else Z[i])
+            v = raw * scales[a] + offsets[a]
+            q = int((v - lo[a]) * scale) if v > lo[a] else 0
+            if q > top:
+                q = top
+            c |= _spread(np.uint64(q)) << np.uint64(2 - a)
+        out[i] = c
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def bucket_order(keys, nbuckets):
+    """A stable counting sort: the permutation that orders ``keys`` (ints in [0, nbuckets)) and
+    the start of each bucket in it (``nbuckets + 1`` entries)."""
+    n = keys.shape[0]
+    starts = np.zeros(nbuckets + 1, np.int64)
+    for i in range(n):
+        starts[keys[i] + 1] += 1
+    for b in range(nbuckets):
+        starts[b + 1] += starts[b]
+    pos = starts[:-1].copy()
+    perm = np.empty(n, np.int64)
+    for i in range(n):
+        k = keys[i]
+        perm[pos[k]] = i
+        pos[k] += 1
+    return perm, starts

@@ -24,11 +24,11 @@ def las_points(array: np.ndarray, point_format, scales, offsets) -> dict[str, np
     dims = set(point_format.dimension_names)
     out = {"positions": np.column_stack([np.asarray(pts.x, np.float64), np.asarray(pts.y, np.float64),
                                          np.asarray(pts.z, np.float64)]),
-           "intensity": np.asarray(pts.intensity, np.uint16),
-           "classification": np.asarray(pts.classification, np.uint8),
-           "return_number": np.asarray(pts.return_number, np.uint8)}
+           "intensity": np.array(pts.intensity, np.uint16),
+           "classification": np.array(pts.classification, np.uint8),
+           "return_number": np.array(pts.return_number, np.uint8)}
     if "gps_time" in dims:
-        out["gps_time"] = np.asarray(pts.gps_time, np.float64)
+        out["gps_time"] = np.array(pts.gps_time, np.float64)
     if {"red", "green", "blue"} <= dims:
         out["rgb"] = np.column_stack([np.asarray(pts.red), np.asarray(pts.green),
                                       np.asarray(pts.blue)]).astype(np.uint16)

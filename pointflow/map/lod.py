@@ -98,6 +98,11 @@ class _Input:
     def positions(self, recs: np.ndarray) -> np.ndarray:
         raise NotImplementedError
 
+    def codes(self, recs: np.ndarray, lo: np.ndarray, side: float) -> np.ndarray:
+        from .kernels import morton_codes
+
+        return morton_codes(np.ascontiguousarray(self.positions(recs)), lo, side)
+
 
 def _las_error(path: str, exc: BaseException) -> MapError:
     return MapError(path, f"not a valid LAS/LAZ file ({type(exc).__name__}: {' '.join(str(exc).split())})")
@@ -145,6 +150,11 @@ class _LasInput(_Input):
         from .lasrec import las_positions
 
         return las_positions(recs, self.scales, self.offsets)
+
+    def codes(self, recs: np.ndarray, lo: np.ndarray, side: float) -> np.ndarray:
+        from .kernels import morton_codes_int
+
+        return morton_codes_int(recs["X"], recs["Y"], recs["Z"], self.scales, self.offsets, lo, side)
 
 
 def table_dtype(channels: dict[str, np.ndarray], pos_dtype=np.float64) -> np.dtype:
@@ -220,6 +230,58 @@ def _header_bytes_of(path: str) -> int:
 
 
 # --------------------------------------------------------------------------- build
+def _read_ahead(chunks: Iterator[np.ndarray], depth: int = 2) -> Iterator[np.ndarray]:
+    """The chunks, read (LAZ: decompressed, lazrs releases the GIL) by a thread up to ``depth``
+    chunks ahead of the indexing, so on two cores the two overlap. An error in the reader is
+    raised here; leaving early stops the reader."""
+    import queue
+    import threading
+
+    q: queue.Queue = queue.Queue(depth)
+    stop = threading.Event()
+    end = object()
+
+    def work() -> None:
+        try:
+            for c in chunks:
+                while not stop.is_set():
+                    try:
+                        q.put(c, timeout=0.1)
+                        break
+                    except queue.Full:
+                        continue
+                if stop.is_set():
+                    return
+            q.put(end)
+        except BaseException as exc:  # noqa: BLE001 - handed to the consumer
+            q.put(exc)
+
+    t = threading.Thread(target=work, name="map-index-read", daemon=True)
+    t.start()
+    try:
+        while True:
+            item = q.get()
+            if item is end:
+                return
+            if isinstance(item, BaseException):
+                raise item
+            yield item
+    finally:
+        stop.set()
+        while t.is_alive():
+            try:
+                q.get_nowait()
+            except queue.Empty:
+                pass
+            t.join(0.05)
+
+
+def gather(recs: np.ndarray, perm: np.ndarray) -> np.ndarray:
+    """``recs[perm]`` through a field-less view: numpy gathers plain void items with one copy
+    each, structured ones field by field (about 10x slower for LAS records)."""
+    return recs.view(np.dtype((np.void, recs.dtype.itemsize)))[perm].view(recs.dtype)
+
+
 class _Builder:
     def __init__(self, inp: _Input, tmp: str, progress: Callable[[int, int], None]):
         from . import kernels
@@ -244,14 +306,26 @@ class _Builder:
         self.progress(min(self.done_units // 2, total - 1), total)  # 100% once, when the index is in place
 
     def codes(self, recs: np.ndarray) -> np.ndarray:
-        return self.k.morton_codes(np.ascontiguousarray(self.inp.positions(recs)), self.lo, self.side)
+        return self.inp.codes(recs, self.lo, self.side)
+
+    def place(self, recs: np.ndarray, codes: np.ndarray, order: Optional[np.ndarray], l_start: int, l_stop: int,
+              leaf_max: int) -> tuple[np.ndarray, np.ndarray]:
+        """Give the points (``codes`` sorted, ``recs`` in ``order``) their depths, write every
+        node deeper than ``l_start``, return the points of depth ``l_start`` (recs, codes).
+        One gather of the records: by (depth, code), the order the nodes are written in."""
+        lvl = self.k.assign_levels(codes, l_start, l_stop, leaf_max, GRID_BITS, np.full(codes.shape[0], -1, np.int8))
+        by_depth = np.argsort(lvl, kind="stable")  # int8: a radix sort; codes stay sorted within a depth
+        perm = by_depth if order is None else order[by_depth]
+        recs, codes, lvl = gather(recs, perm), codes[by_depth], lvl[by_depth]
+        n_top = int(np.searchsorted(lvl, l_start, side="right"))
+        self.write_nodes(recs[n_top:], codes[n_top:], lvl[n_top:])
+        return recs[:n_top].copy(), codes[:n_top].copy()
 
     def write_nodes(self, recs: np.ndarray, codes: np.ndarray, lvl: np.ndarray) -> None:
-        """Write points grouped by node: order by (depth, code), one run per node."""
+        """Write points already in (depth, code) order, one run per node."""
         if not recs.shape[0]:
             return
-        order = np.argsort(lvl, kind="stable")  # codes are sorted already: (depth, code) order
-        recs, codes, lvl = recs[order], codes[order], lvl[order].astype(np.int64)
+        lvl = lvl.astype(np.int64)
         prefix = codes >> (np.uint64(3) * (np.uint64(self.k.DMAX) - lvl.astype(np.uint64)))
         cut = np.flatnonzero((lvl[1:] != lvl[:-1]) | (prefix[1:] != prefix[:-1])) + 1
         starts = np.concatenate([[0], cut])
@@ -273,18 +347,18 @@ class _Builder:
         shift = np.uint64(3 * (k.DMAX - l0))
         seen = 0
         try:
-            for recs in inp.chunks():
+            for recs in _read_ahead(inp.chunks()):
                 if not recs.shape[0]:
                     continue
                 seen += recs.shape[0]
                 if seen > n:
                     raise MapError(inp.path, f"holds more points than its header's {n}")
-                cell = (self.codes(recs) >> shift).astype(np.uint16)
-                order = np.argsort(cell, kind="stable")
-                cell, recs = cell[order], recs[order]
-                cut = np.flatnonzero(cell[1:] != cell[:-1]) + 1
-                for a, b in zip(np.concatenate([[0], cut]), np.concatenate([cut, [cell.shape[0]]])):
-                    c = int(cell[a])
+                cell = (self.codes(recs) >> shift).astype(np.int64)
+                perm, starts = k.bucket_order(cell, 8 ** l0)
+                recs = gather(recs, perm)
+                for c in np.flatnonzero(np.diff(starts)):
+                    a, b = int(starts[c]), int(starts[c + 1])
+                    c = int(c)
                     fh = files.get(c)
                     if fh is None:
                         fh = files[c] = open(os.path.join(spill_dir, f"c{c}.bin"), "wb")
@@ -303,8 +377,11 @@ class _Builder:
             pend_codes.append(cd)
         if pend_recs:
             recs, codes = np.concatenate(pend_recs), np.concatenate(pend_codes)
-            lvl = k.assign_levels(codes, 0, l0, -1, GRID_BITS, np.full(codes.shape[0], -1, np.int8))
-            self.write_nodes(recs, codes, lvl)
+            if l0 == 0:
+                self.write_nodes(recs, codes, np.zeros(codes.shape[0], np.int8))
+            else:
+                recs, codes = self.place(recs, codes, None, 0, l0, -1)
+                self.write_nodes(recs, codes, np.zeros(codes.shape[0], np.int8))
         self.data.close()
 
     def cell(self, spill: str, level: int, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -318,12 +395,9 @@ class _Builder:
             raise MapError(self.inp.path, f"index build: spill file {spill} holds {recs.shape[0]} of {n} points")
         codes = self.codes(recs)
         order = np.argsort(codes)
-        recs, codes = recs[order], codes[order]
-        lvl = k.assign_levels(codes, level, k.DMAX + 1, LEAF_MAX, GRID_BITS, np.full(n, -1, np.int8))
-        top = lvl == level
-        self.write_nodes(recs[~top], codes[~top], lvl[~top])
+        out = self.place(recs, codes[order], order, level, k.DMAX + 1, LEAF_MAX)
         self._tick(n)
-        return recs[top], codes[top]
+        return out
 
     def split(self, spill: str, level: int, n: int) -> tuple[np.ndarray, np.ndarray]:
         k = self.k
@@ -349,10 +423,7 @@ class _Builder:
                 os.unlink(f"{base}_{i}.bin")
         recs = np.concatenate([p[0] for p in pend])
         codes = np.concatenate([p[1] for p in pend])
-        lvl = k.assign_levels(codes, level, level + 1, -1, GRID_BITS, np.full(codes.shape[0], -1, np.int8))
-        top = lvl == level
-        self.write_nodes(recs[~top], codes[~top], lvl[~top])
-        return recs[top], codes[top]
+        return self.place(recs, codes, None, level, level + 1, -1)
 
     def node_table(self) -> np.ndarray:
         dt = np.dtype([("d", np.int8), ("x", np.int32), ("y", np.int32), ("z", np.int32),
@@ -519,7 +590,7 @@ class LodFile:
         if self._meta["kind"] == "las":
             from .lasrec import las_points
 
-            return las_points(recs.copy(), self.point_format, self.scales, self.offsets)
+            return las_points(recs, self.point_format, self.scales, self.offsets)
         out = {"positions": np.column_stack([recs["x"], recs["y"], recs["z"]]).astype(np.float64)}
         for name in self.channels:
             out[name] = recs[name].copy()

@@ -170,3 +170,28 @@ def test_two_files_one_map(tmp_path):
         assert m.point_count == 22_000 and len(m.root_keys()) == 2
         assert {m.source_name(k) for k in m.root_keys()} == {"a.laz", "b.las"}
         assert sum(m.node(k).count for k in m.keys()) == 22_000
+
+
+def test_morton_codes_give_each_depths_cell():
+    from pointflow.map import kernels
+
+    rng = np.random.default_rng(5)
+    lo, side = np.array([10.0, -5.0, 100.0]), 64.0
+    pos = lo + rng.uniform(0, side, (5000, 3))
+    codes = kernels.morton_codes(pos, lo, side)
+    for d in (0, 1, 3, 7, 21):
+        xyz = kernels.decode_prefixes(codes >> np.uint64(3 * (kernels.DMAX - d)))
+        want = np.floor((pos - lo) / side * (1 << d)).astype(np.int64)
+        assert np.array_equal(xyz, np.minimum(want, (1 << d) - 1)), d
+
+
+def test_loads_from_many_threads_agree(tmp_path):
+    from concurrent.futures import ThreadPoolExecutor
+
+    path = write_las(str(tmp_path / "t.laz"), 60_000, seed=15)
+    with open_map(path, cache_dir=str(tmp_path / "cache"), progress=False) as m:
+        keys = m.keys() * 4
+        with ThreadPoolExecutor(4) as ex:
+            got = list(ex.map(m.load, keys))
+        for k, d in zip(keys, got):
+            assert np.array_equal(d["gps_time"], m.load(k)["gps_time"])
