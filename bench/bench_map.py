@@ -135,7 +135,7 @@ def first_picture_and_refine(map_path, live, lo, hi, cache_dir, budget: int) -> 
             moves0 = pipe.stats()["stages"]["map"].get("map_camera_moves", 0)
             ta = time.monotonic()
             pipe.camera(eye=[float(v) for v in eye], target=[float(v) for v in target], up=[0, 0, 1])
-            done = lambda s: (s["stages"]["map"].get("map_camera_moves", 0) > moves0  # noqa: E731
+            done = lambda s: (s["stages"]["map"].get("map_camera_moves", 0) != moves0  # noqa: E731
                               and s["stages"]["map"].get("map_refine_ms") is not None
                               and s["stages"]["map"].get("map_version") == s["stages"]["render"].get("map_version"))
             s = _poll(pipe, done, 30)

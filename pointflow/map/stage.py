@@ -64,6 +64,49 @@ def _error_line(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {exc}" if not isinstance(exc, ValueError) else str(exc)
 
 
+#: Nodes the loader thread is asked for ahead of placing them.
+LOADS_IN_FLIGHT = 4
+
+
+class _Loader(threading.Thread):
+    """Reads nodes (through the cache) in its own thread: ``ask(key)``; results in ``done`` as
+    ``(key, data, error, t0_ns, t1_ns, from_cache)``. ``MapSource.load`` and the cache are
+    thread-safe."""
+
+    def __init__(self, source, cache):
+        super().__init__(name="pointflow-map-load", daemon=True)
+        import queue
+
+        self.src, self.cache = source, cache
+        self.q: "queue.Queue" = queue.Queue()
+        self.done: deque = deque()
+
+    def ask(self, key) -> None:
+        self.q.put(key)
+
+    def stop(self) -> None:
+        self.q.put(None)
+
+    def run(self) -> None:
+        while True:
+            key = self.q.get()
+            if key is None:
+                return
+            t0 = time.monotonic_ns()
+            data = self.cache.get(key)
+            cached = data is not None
+            err = None
+            if data is None:
+                try:
+                    data = self.src.load(key)
+                    self.cache.put(key, data)
+                except ValueError as exc:
+                    err = exc
+                except Exception as exc:  # noqa: BLE001 - named by the stage loop, the stage goes on
+                    err = exc
+            self.done.append((key, data, err, t0, time.monotonic_ns(), cached))
+
+
 class Server:
     """Selection, loading and slot bookkeeping of one open map."""
 
@@ -90,6 +133,10 @@ class Server:
         self.set_ranges: list = []
         self.cleared_ranges: list = []
         self.load_ms: deque[float] = deque(maxlen=256)
+        self.inflight: set = set()
+        self.ready: dict[Any, dict] = {}
+        self.loader = _Loader(source, self.cache)
+        self.loader.start()
         self.t_camera_ns = 0
         self.t_refined_ns = 0
         self.refine_ms: Optional[float] = None
@@ -169,26 +216,32 @@ class Server:
         self.want_stale = False
 
     # ------------------------------------------------------------------ loading
-    def _node_points(self, key) -> Optional[dict]:
-        data = self.cache.get(key)
-        if data is not None:
-            return data
-        t0 = time.monotonic_ns()
-        data = self.src.load(key)
-        t1 = time.monotonic_ns()
-        self.load_ms.append((t1 - t0) / 1e6)
-        n = int(len(data["positions"]))
-        self.ctx.counters.points_in += n
-        self.ctx.counters.extra["map_nodes_loaded"] = self.ctx.counters.extra.get("map_nodes_loaded", 0) + 1
+    def _collect(self) -> None:
+        """Take what the loader finished: count it, trace it, keep it for placing."""
         from ..chunk import new_trace_id
 
-        self.ctx.spans.record(new_trace_id(), "map_load", t0, t1, n)
-        self.cache.put(key, data)
-        return data
+        c = self.ctx.counters
+        while self.loader.done:
+            key, data, err, t0, t1, cached = self.loader.done.popleft()
+            self.inflight.discard(key)
+            if err is not None:  # MapError: a broken node, named; the rest of the map goes on
+                self.bad_nodes.add(key)
+                c.drop("map_node_error", 1)
+                self.ctx.log.error("map node %s not loaded: %s", key, _error_line(err))
+                continue
+            if not cached:
+                n = int(len(data["positions"]))
+                self.load_ms.append((t1 - t0) / 1e6)
+                c.points_in += n
+                c.extra["map_nodes_loaded"] = c.extra.get("map_nodes_loaded", 0) + 1
+                self.ctx.spans.record(new_trace_id(), "map_load", t0, t1, n)
+            self.ready[key] = data
 
     def step(self, deadline_ns: int) -> bool:
-        """Clear what no view wants, load wanted nodes until the deadline; publish a version
-        when anything changed. True while nodes are still to load."""
+        """Clear what no view wants, ask the loader for wanted nodes (coarse first, a few in
+        flight), place what it finished until the deadline; publish a version when anything
+        changed. True while nodes are still to load. Loads run in the loader thread, so a slow
+        read (or a kernel compiled on first use) never keeps this loop from beating."""
         if self.want_stale:
             self.select()
         want = set(self.want)
@@ -197,22 +250,27 @@ class Server:
             self.node_ranges.pop(key, None)
             self.cleared_ranges += mr.runs(slots)
             self.pending_free.append((self.version + 1, slots))
-        todo = [k for k in self.want if k not in self.published]
+        for key in [k for k in self.ready if k not in want]:
+            del self.ready[key]  # left the view while it loaded (it stays in the cache)
+        todo = [k for k in self.want if k not in self.published and k not in self.bad_nodes]
+        for key in todo:
+            if len(self.inflight) >= LOADS_IN_FLIGHT:
+                break
+            if key not in self.inflight and key not in self.ready:
+                self.inflight.add(key)
+                self.loader.ask(key)
+        self._collect()
         for key in todo:
             if time.monotonic_ns() > deadline_ns and (self.set_ranges or self.cleared_ranges):
                 break
-            n = min(int(self.src.node(key).count), self.cap.get(key, 1 << 62))
+            data = self.ready.get(key)
+            if data is None:
+                continue
+            n = min(int(len(data["positions"])), self.cap.get(key, 1 << 62))
             if n > self.free.size:
                 break  # slots come back when the render stage acknowledges what was cleared
-            try:
-                data = self._node_points(key)
-            except ValueError as exc:  # MapError: a broken node, named; the rest of the map goes on
-                self.bad_nodes.add(key)
-                self.ctx.counters.drop("map_node_error", 1)
-                self.ctx.log.error("map node %s not loaded: %s", key, _error_line(exc))
-                continue
+            del self.ready[key]
             self._place(key, data, self.cap.get(key))
-            self.ctx.beat()
         busy = any(k not in self.published for k in self.want if k not in self.bad_nodes)
         if self.set_ranges or self.cleared_ranges or self.full_next:
             self._publish()
@@ -220,6 +278,9 @@ class Server:
             self.refine_ms = (time.monotonic_ns() - self.t_camera_ns) / 1e6
             self.ctx.counters.extra["map_refine_ms"] = round(self.refine_ms, 1)
         return busy
+
+    def close(self) -> None:
+        self.loader.stop()
 
     def _place(self, key, data: dict, cap: Optional[int] = None) -> None:
         pos = np.asarray(data["positions"], np.float64)
@@ -370,7 +431,7 @@ def main(ctx) -> None:
                 ctx.log.info("map open: %s (%d points, channels %s)", ", ".join(files), int(src.point_count),
                              [ch[0] for ch in chans] or "none")
             busy = server.step(time.monotonic_ns() + int(mc.load_slice_ms * 1e6))
-            timeout = 0 if busy else 50
+            timeout = 5 if busy else 50
             if pull.poll(timeout, zmq.POLLIN):
                 while pull.poll(0, zmq.POLLIN):
                     msg = mr.decode(pull.recv())
@@ -379,6 +440,8 @@ def main(ctx) -> None:
                     else:
                         server.on_message(msg)
     finally:
+        if server is not None:
+            server.close()
         pull.close(0)
         push.close(0)
         if region is not None:

@@ -98,6 +98,7 @@ class MapLayer:
         if self.region is None or self.region.path != msg["region"] or self.region.channels != chans:
             if self.region is not None:
                 self.region.close()
+            self._last_cams = None  # a (new) map stage: tell it where the views look again
             self.region = mr.MapRegion.attach(msg["region"], int(msg["slots"]), chans)
             if self.region.slots != self.slots:
                 raise ValueError(f"map region has {self.region.slots} slots, expected {self.slots}")

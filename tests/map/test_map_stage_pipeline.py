@@ -119,6 +119,36 @@ def test_a_broken_map_file_is_named_and_the_live_part_goes_on(tmp_path):
         assert p is not None and p["source"] == "scanner"
 
 
+def test_a_killed_map_stage_is_restarted_and_the_map_comes_back(tmp_path):
+    """SIGKILL the map stage: the supervisor restarts it, the new one makes a new region, the
+    render stage takes it (and resends its camera), the map is whole again; the live part
+    never stopped; the dead stage's region file is gone."""
+    import glob
+    import signal
+
+    las = write_las(str(tmp_path / "tile.las"), N_MAP, seed=3)
+    live, live_pts = _live(str(tmp_path))
+    with Pipeline.from_dict(_config(live, las), out_dir=str(tmp_path)) as pipe:
+        render = lambda: pipe.stats()["stages"]["render"]  # noqa: E731
+        pipe.wait(120, until=lambda: render().get("map_points", 0) >= N_MAP)
+        m = pipe.stats()["stages"]["map"]
+        old_region = glob.glob(os.path.join(pipe._sup.run_dir, f"map-region-{m['pid']}-*"))
+        assert len(old_region) == 1
+        os.kill(m["pid"], signal.SIGKILL)
+        pipe.wait(120, until=lambda: pipe.stats()["stages"]["map"].get("restarts", 0) >= 1
+                  and pipe.stats()["stages"]["map"].get("map_version") is not None
+                  and pipe.stats()["accounting"].get("map_agrees") is True)
+        st = pipe.stats()
+        assert st["stages"]["map"]["restarts"] == 1 and st["stages"]["map"]["pid"] != m["pid"]
+        assert st["accounting"]["map_points_drawn"] == st["accounting"]["map_points_held"] == N_MAP
+        assert not os.path.exists(old_region[0])
+        assert st["accounting"]["ingest_written"] == len(live_pts)
+        pipe.camera(eye=list(EYE), target=list(TARGET), up=UP, fov_deg=60.0)
+        corner = ORIGIN + [60.0, 60.0, 0.0]
+        p = pipe.pick(*_px(corner))
+        assert p is not None and p["source"] == f"map: {las}"
+
+
 @pytest.mark.parametrize("bad", ["map.path", "map.point_budget"])
 def test_a_bad_map_block_is_refused_at_load_naming_the_key(tmp_path, bad):
     from pointflow.config import ConfigError, load_config

@@ -90,6 +90,7 @@ class Harness:
         return self.renderer.read_image()
 
     def close(self):
+        self.server.close()
         self.renderer.close()
         self.layer.close()
         self.pull.close(0)
