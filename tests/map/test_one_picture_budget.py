@@ -62,10 +62,11 @@ class Harness:
         self.server.ctx_push = self.push
         self.renderer = CpuRenderer(RenderConfig(size=(W, H), color_by="z", point_size=2.0), self.layer.capacity, [])
 
-    def settle(self, camera: Camera, timeout_s: float = 60.0) -> None:
-        """The render stage's camera to the map stage, then messages both ways until the map
-        stage has nothing left to load and the layer holds its last version."""
-        self.layer.publish([("main", camera, W, H)])
+    def settle(self, camera: Camera, timeout_s: float = 60.0, more=()) -> None:
+        """The render stage's cameras to the map stage (main, then ``more`` views), then
+        messages both ways until the map stage has nothing left to load and the layer holds
+        its last version."""
+        self.layer.publish([("main", camera, W, H), *more])
         end = time.monotonic() + timeout_s
         while not self.server.cameras or self.server.cameras[0]["eye"] != [float(v) for v in camera.eye]:
             assert self.pull.poll(int(timeout_s * 1000)), "the camera never reached the map stage"
@@ -183,3 +184,30 @@ def Image_save(img: np.ndarray, path: str) -> None:
     from PIL import Image
 
     Image.fromarray(img, "RGBA").save(path)
+
+
+def test_every_view_gets_its_nodes_main_first(tile):
+    """Two views over opposite corners (the main view and a view server's): the map stage
+    holds the coarse nodes each view wants, within one budget, and the main view's list is
+    served first when the budget cannot hold both."""
+    from pointflow.map import select_nodes
+
+    d, path, truth = tile
+    tmp = tempfile.mkdtemp(dir=d)
+    budget = 70_000
+    h = Harness(path, budget, tmp)
+    try:
+        a = Camera(eye=ORIGIN + [30.0, 30.0, 60.0], target=ORIGIN + [60.0, 60.0, 0.0], near=0.5, far=800.0)
+        b = Camera(eye=ORIGIN + [370.0, 370.0, 60.0], target=ORIGIN + [340.0, 340.0, 0.0], near=0.5, far=800.0)
+        h.settle(a, more=[("v1", b, W, H)])
+        assert [v["view"] for v in h.server.cameras] == ["main", "v1"]
+        held = set(h.server.published)
+        alone = {n: select_nodes(h.src, c.view_proj(W, H), (W, H), c.eye, budget) for n, c in (("a", a), ("b", b))}
+        # the lists are merged round-robin, the main view's node first in each round
+        assert set(alone["a"][:3]) <= held, "the main view's coarse nodes"
+        assert set(alone["b"][:2]) <= held, "the other view's coarse nodes"
+        assert sum(int(s.size) for s in h.server.published.values()) <= budget
+        only_a, only_b = set(alone["a"]) - set(alone["b"]), set(alone["b"]) - set(alone["a"])
+        assert only_a & held and only_b & held, "each view refined near its own corner"
+    finally:
+        h.close()
