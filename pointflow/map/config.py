@@ -7,7 +7,7 @@ import os
 from dataclasses import dataclass, field
 from typing import Optional, Union
 
-from ..typed import ConfigError, at_least_one, check, positive
+from ..typed import ConfigError, Length, at_least_one, check, positive
 
 
 @dataclass
@@ -15,8 +15,8 @@ class MapConfig:
     """``map:``: the files, how many of their points a frame may draw, how much decoded data
     the map stage keeps."""
 
-    #: One file or a list of files (relative to the config file's folder).
-    path: Union[str, list[str]] = ""
+    #: One file or a list of files (relative to the config file's folder); required.
+    path: Union[str, list[str]] = field(metadata=check(Length(1, 4096)))
     #: Points drawn from the map at most (Potree's default is 1 M): nodes are chosen by their
     #: projected size, coarse first, until their points reach this. Also the number of extra
     #: slots the render stage draws after the ring's.
