@@ -118,7 +118,7 @@ class Server:
         self.mc = mc
         self.budget = int(mc.point_budget)
         self.cache = NodeCache(int(mc.cache_mb * 2 ** 20))
-        self.free = np.arange(region.slots, dtype=np.int64)  # slots nobody holds, ascending
+        self.free = np.arange(region.slots, dtype=np.int32)  # slots nobody holds, ascending (4 B a slot)
         self.pending_free: list[tuple[int, np.ndarray]] = []  # (version that cleared them, slots)
         self.published: dict[Any, np.ndarray] = {}  # node key -> its slots
         self.node_ranges: dict[Any, dict[str, tuple[float, float]]] = {}
