@@ -352,7 +352,7 @@ class Server:
                        map_load_ms_max=round(lm[-1], 2) if lm else None)
 
 
-def accounting(stages: dict, ring=None) -> dict:
+def accounting(stages: dict, ring=None, cfg=None) -> dict:
     """``stats()["accounting"]`` for the map (docs/map.md): the points the map stage holds in
     the region (``map_points_held``, the sum of its published nodes) and the points the render
     stage took into its map slots (``map_points_drawn``); ``map_agrees`` compares them when
@@ -363,6 +363,11 @@ def accounting(stages: dict, ring=None) -> dict:
     return {"map_file_points": m.get("map_point_count"), "map_points_loaded": m.get("points_in", 0),
             "map_points_held": held, "map_points_drawn": drawn,
             "map_agrees": (held == drawn) if same else None, "map_error": m.get("map_error")}
+
+
+def wanted(cfg) -> bool:
+    """A run has the map stage when its config has a ``map:`` block."""
+    return getattr(cfg, "map", None) is not None
 
 
 def _sweep_regions(run_dir: str) -> None:
