@@ -118,7 +118,8 @@ class Server:
         self.mc = mc
         self.budget = int(mc.point_budget)
         self.cache = NodeCache(int(mc.cache_mb * 2 ** 20))
-        self.free = np.arange(region.slots, dtype=np.int32)  # slots nobody holds, ascending (4 B a slot)
+        self.free = np.ones(region.slots, bool)  # slots nobody holds (a mask: freeing is O(n), not a merge)
+        self.n_free = int(region.slots)
         self.pending_free: list[tuple[int, np.ndarray]] = []  # (version that cleared them, slots)
         self.published: dict[Any, np.ndarray] = {}  # node key -> its slots
         self.node_ranges: dict[Any, dict[str, tuple[float, float]]] = {}
@@ -162,7 +163,8 @@ class Server:
             keep = []
             for v, slots in self.pending_free:
                 if v <= self.acked:
-                    self.free = np.union1d(self.free, slots)
+                    self.free[slots] = True
+                    self.n_free += int(slots.size)
                 else:
                     keep.append((v, slots))
             self.pending_free = keep
@@ -267,7 +269,7 @@ class Server:
             if data is None:
                 continue
             n = min(int(len(data["positions"])), self.cap.get(key, 1 << 62))
-            if n > self.free.size:
+            if n > self.n_free:
                 break  # slots come back when the render stage acknowledges what was cleared
             del self.ready[key]
             self._place(key, data, self.cap.get(key))
@@ -289,7 +291,9 @@ class Server:
             take = np.linspace(0, pos.shape[0] - 1, cap).astype(np.int64)
             pos = pos[take]
         n = pos.shape[0]
-        slots, self.free = self.free[:n], self.free[n:]
+        slots = np.flatnonzero(self.free)[:n].astype(np.int32)  # the lowest free slots, ascending
+        self.free[slots] = False
+        self.n_free -= n
         r = self.region
         r.positions[slots] = pos
         r.file[slots] = int(key[0])  # the file index of the node (map keys: file, depth, x, y, z)
