@@ -161,3 +161,41 @@ def test_a_bad_map_block_is_refused_at_load_naming_the_key(tmp_path, bad):
     with pytest.raises(ConfigError) as e:
         load_config(cfg)
     assert str(e.value).startswith(bad)
+
+
+def test_a_copc_map_in_a_pipeline(tmp_path):
+    """A COPC file (copc-lib's writer) is read through its own hierarchy: the whole map (budget
+    above its points) reaches the renderer, coloured by intensity with the live points, and a
+    pick names it."""
+    pytest.importorskip("copclib")
+    from .mapfiles import write_copc
+
+    copc = write_copc(str(tmp_path / "tile.copc.laz"), N_MAP, seed=5)
+    live, live_pts = _live(str(tmp_path))
+    cfg = _config(live, copc)
+    cfg["render"]["color_by"] = "intensity"
+    cfg["ring"]["extra_channels"] = ["intensity"]
+    with Pipeline.from_dict(cfg, out_dir=str(tmp_path)) as pipe:
+        # a view of the whole tile: every node is in it (the auto camera frames the 1st-99th
+        # percentile box, and a node wholly outside the view is rightly not loaded)
+        pipe.wait(60, until=lambda: pipe.stats()["stages"]["render"].get("map_points", 0) > 0)
+        pipe.camera(eye=list(EYE), target=list(TARGET), up=UP, fov_deg=60.0)
+        # what this view reaches in the file's hierarchy (a node whose parent is not in a COPC
+        # hierarchy is not reached from the root; the test writer makes a few such nodes)
+        from pointflow.map import open_map, select_nodes
+
+        with open_map(copc) as m:
+            cam = Camera(eye=EYE, target=TARGET, up=UP, fov_deg=60.0)
+            reach = sum(m.node(k).count for k in select_nodes(m, cam.view_proj(W, H), (W, H), cam.eye, 1 << 40))
+        assert reach > 0.99 * N_MAP
+        pipe.wait(120, until=lambda: pipe.stats()["stages"]["render"].get("map_points", 0) >= reach)
+        st = pipe.stats()
+        assert st["accounting"]["map_points_drawn"] == st["accounting"]["map_points_held"] == reach
+        assert st["accounting"]["map_file_points"] == N_MAP
+        p = pipe.pick(*_px(ORIGIN + [60.0, 60.0, 0.0]))
+        assert p is not None and p["source"] == f"map: {copc}"
+        assert "intensity" in p["channels"]
+        truth = laspy_points(copc)
+        i = int(np.argmin(np.linalg.norm(truth["positions"] - p["position"], axis=1)))
+        assert np.linalg.norm(truth["positions"][i] - p["position"]) < 1e-9
+        assert p["channels"]["intensity"] == float(truth["intensity"][i])
