@@ -298,15 +298,10 @@ def _validate(args) -> int:
 def _check_ring_space(cfg) -> int:
     """The shared-memory check ``run`` makes before it starts anything (same message); the
     bytes the ring and its two slabs need."""
-    from .ring import RingLayout
-    from .ring.layout import as_channel_specs
-    from .ring.space import RingSpaceError, check_shm_space
+    from .ring.config import check_ring_space
 
-    try:
-        return check_shm_space(RingLayout(cfg.ring.max_points, as_channel_specs(cfg.ring_channels())))
-    except RingSpaceError as exc:
-        raise ConfigError("ring.max_points", f"{exc} (checked on this machine, where `pointflow run` "
-                                             "would refuse it)") from None
+    return check_ring_space(cfg.ring, cfg.ring_channels(),
+                            note=" (checked on this machine, where `pointflow run` would refuse it)")
 
 
 def _info(args) -> int:

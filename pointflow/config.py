@@ -24,6 +24,7 @@ from .record.config import RecordConfig, check_record
 from .map.config import MapConfig, check_map
 from .remote.options import SendConfig, check_send, is_loopback_endpoint
 from .remote.router import RouterConfig, check_router
+from .ring.config import RingConfig, check_ring
 from .typed import Bound, ConfigError, Each, Length, check, check_keys, dataclass_schema, load_dataclass
 from .typed import at_least_one, endpoint, non_negative, positive
 
@@ -44,18 +45,6 @@ class SourceConfig:
     external: bool = False
     #: The coordinate frame of this source's clouds when its data carry none (docs/frames.md).
     frame_id: Optional[str] = None
-
-
-@dataclass
-class RingConfig:
-    max_points: int = field(default=1_000_000, metadata=check(at_least_one))
-    eviction: Literal["drop_oldest", "drop_newest", "importance"] = "drop_oldest"
-    #: A channel name, ``auto`` (intensity if present, else the first channel), or none.
-    importance_field: Optional[str] = None
-    max_staleness_ms: float = field(default=0.0, metadata=check(non_negative))
-    classification_weights: Optional[dict[int, float]] = None
-    #: Extra channels to keep beyond those the render config uses.
-    extra_channels: list[str] = field(default_factory=list)
 
 
 @dataclass
@@ -317,8 +306,7 @@ def _check_semantics(cfg: PipelineConfig) -> None:
         raise ConfigError("sources", "at least one source is required")
     if cfg.router is not None:
         check_router(cfg.router, "router", cfg.base_dir)
-    if cfg.ring.eviction == "importance" and not cfg.ring.importance_field and not cfg.ring.classification_weights:
-        cfg.ring.importance_field = "auto"
+    check_ring(cfg.ring)
     seen = set()
     named = {s.name for s in cfg.sources if s.name}
     for i, s in enumerate(cfg.sources):

@@ -22,11 +22,15 @@ import numpy as np
 import zmq
 
 from ..config import PipelineConfig
+from ..runtime.kinds import StageKind, register_stage_kind
 from .messages import ControlMessageError, FrameTime, Hello, Idle, decode_control
 from .policy import HardwareInfo, PolicyDecision, detect_hardware, resolve_policy, tick_interval_ms
 from .ticker import Clock, Sleep, Tick, Ticker
 
 #: Smoothing factor of the renderer frame-time EMA (adaptive mode).
+KIND = register_stage_kind(StageKind(name="cadence", main="pointflow.cadence.process:main", start_order=20,
+                                    stop_wave=2, standby=True, counters=("published",)))
+
 FRAME_EMA_ALPHA = 0.15
 #: latest_only: publish anyway when the renderer has shown no progress for this long, or
 #: for 10 of its slowest recent frames if that is longer (a renderer that keeps its slab

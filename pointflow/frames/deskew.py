@@ -83,6 +83,14 @@ UNITS = {"ns": 1.0, "us": 1e3, "s": 1e9}
 TIME_FIELDS = tuple(CONVENTIONS)
 
 
+def time_fields(frames_cfg) -> list[str]:
+    """Per-point time fields ingest's deskew reads with this ``frames:`` block (kept by a
+    source whatever the ring holds); none without deskew."""
+    if not frames_cfg.fixed or frames_cfg.deskew == "off":
+        return []
+    return [frames_cfg.deskew.field] if not isinstance(frames_cfg.deskew, str) else list(TIME_FIELDS)
+
+
 def pick(channels: dict[str, np.ndarray], setting) -> Optional[TimeField]:
     """The time field to use for a cloud with these channels (None: no deskew).
 

@@ -40,9 +40,26 @@ from .. import wire
 from ..chunk import ChunkError, PointChunk
 from ..frames import message as transforms
 from ..frames.kernels import Placed
+from ..ring.config import IMPORTANCE_SLOT, importance_values
+from ..runtime.kinds import StageKind, register_stage_kind
 from .jsonchunk import parse_json_chunk
 
 #: Per-reason log lines at most this often (seconds).
+#: The ring's only writer: starts after what it sends to (render, cadence, the recorder),
+#: stops after the sources and before the cadence, so it drains what they sent.
+KIND = register_stage_kind(StageKind(
+    name="ingest", main="pointflow.ingest.process:main", prepare="pointflow.ingest.process:prepare",
+    start_order=30, stop_wave=1, standby=True,
+    counters=("messages_in", "chunks_accepted", "transform_messages", "rejected_messages", "ring_evicted",
+              "ring_pushes",
+              # its copies for the recording (record/tap.py, docs/record.md)
+              "record_offered", "record_sent", "record_dropped", "record_messages_sent",
+              "record_transforms_sent", "record_transforms_dropped",
+              # points a killed ingest wrote into the ring but never reported (reconciled from
+              # the ring's own counter, runtime/accounting.py)
+              "unreported_written"),
+    accounting="pointflow.runtime.accounting:ingest_identities"))
+
 LOG_EVERY_S = 5.0
 #: On stop, drain the ingest socket until it is quiet this long, for at most STOP_GRACE_S.
 STOP_QUIET_S = 0.15
@@ -118,9 +135,10 @@ class Ingestor:
         self._warn = RateLimitedLog(self.log)
         self.specs = {c.name: c for c in ring.channels}
         self._dtypes = {c.name: np.dtype(c.dtype) for c in ring.channels}  # not rebuilt per chunk
-        # The supervisor creates the ring with importance_field="importance" when the config
-        # asks for importance; ingest resolves the configured field into that value.
-        self._imp_key = ring.importance_field if ring.importance_field == "importance" and "importance" not in self.specs else None
+        # A config that ranks points has a ring with its own importance array
+        # (ring/config.py, importance_slot); ingest fills it from the configured field.
+        self._imp_key = IMPORTANCE_SLOT if ring.importance_field == IMPORTANCE_SLOT and IMPORTANCE_SLOT not in self.specs \
+            else None
         self.importance_source = importance_field
         self.queue: collections.deque[_Batch] = collections.deque()
         self.rejected: collections.Counter[str] = collections.Counter()
@@ -314,26 +332,10 @@ class Ingestor:
                 raise ChunkError("bad_channel_shape", f"channel {name!r} must have shape ({n}, {spec.width}), got {arr.shape}")
             out[name] = _to_dtype(name, arr, self._dtypes[name])
         if self._imp_key is not None:
-            src = self._importance_values(chunk)
+            src = importance_values(self.importance_source, chunk.channels)
             if src is not None:
                 out[self._imp_key] = src
         return chunk.positions, out
-
-    def _importance_values(self, chunk: PointChunk) -> np.ndarray | None:
-        f = self.importance_source
-        if not f:
-            return None
-        if f == "auto":
-            if "intensity" in chunk.channels:
-                f = "intensity"
-            else:
-                f = next((k for k, v in chunk.channels.items() if v.ndim == 1 or v.shape[1] == 1), None)
-                if f is None:
-                    return None
-        arr = chunk.channels.get(f)
-        if arr is None or (arr.ndim == 2 and arr.shape[1] != 1):
-            return None
-        return np.asarray(arr, dtype=np.float32).reshape(-1)
 
     def _thin_step(self) -> int:
         now = time.monotonic()
@@ -485,7 +487,7 @@ def recv_frames(sock, flags: int = zmq.NOBLOCK) -> list:
 
 
 def prepare(cfg, info, log) -> None:
-    """A standby's head start (``STAGE_PREPARE``): with ``frames.fixed`` set, import numba and
+    """A standby's head start (:data:`KIND`'s ``prepare``): with ``frames.fixed`` set, import numba and
     load the compiled transform now (0.5-1 s of CPU), not when the stage is needed."""
     if cfg.frames is not None and cfg.frames.fixed:
         from ..frames import compiled
@@ -494,7 +496,7 @@ def prepare(cfg, info, log) -> None:
 
 
 def main(ctx) -> None:
-    """Stage loop (``pointflow.runtime.stage.STAGE_MAINS['ingest']``)."""
+    """Stage loop (:data:`KIND`)."""
     from ..ring import PointRing
 
     icfg = ctx.cfg.ingest
@@ -508,7 +510,7 @@ def main(ctx) -> None:
         from ..record.tap import RecordTap
 
         # the ring-internal importance values are not a channel of the data
-        internal = () if any(c.name == "importance" for c in ring.channels) else ("importance",)
+        internal = () if any(c.name == IMPORTANCE_SLOT for c in ring.channels) else (IMPORTANCE_SLOT,)
         tap = RecordTap(ctx.zmq, ctx.endpoints.record, ctx.cfg.record.queue_messages, ctx.cfg.record.channels,
                         exclude=internal)
     ing = Ingestor(ring, max_chunk_points=icfg.max_chunk_points, coalesce_points=icfg.coalesce_points,

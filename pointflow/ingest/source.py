@@ -18,9 +18,23 @@ from .. import wire
 from ..chunk import new_trace_id
 from ..frames import message as tfmsg
 from ..frames.deskew import TIME_FIELDS
+from ..runtime.kinds import StageKind, register_stage_kind
 from . import playback
 from .transports import resolve_transport
 from .transports.base import InputUnreadable
+
+#: One stage per configured source (not ``external``, not an in-process ``api`` source);
+#: started last and stopped first, in ``pointflow run`` and ``pointflow send``.
+KIND = register_stage_kind(StageKind(
+    name="source", main="pointflow.ingest.source:main", start_order=90, stop_wave=0, standby=True,
+    roles=("pipeline", "send"),
+    counters=("chunks_out", "reconnects",
+              # a link source (docs/remote.md; remote/transit.py): its ledger starts again in a
+              # restarted process
+              "transport_link_sent", "transport_link_received", "transport_lost_in_transit",
+              "transport_lost_chunks", "transport_joined_after",
+              # a zenoh link source: arrived but dropped by its own bounded queue, dead senders
+              "transport_receive_queue_full", "transport_receive_queue_full_chunks", "transport_senders_lost")))
 
 #: How long a live source waits for room in the send queue before dropping a chunk.
 LIVE_SEND_WAIT_MS = 100
@@ -45,7 +59,7 @@ def _send(ctx, sock, frames, lossless: bool) -> bool:
 
 
 def main(ctx) -> None:
-    """Stage loop (``pointflow.runtime.stage.STAGE_MAINS['source']``)."""
+    """Stage loop (:data:`KIND`)."""
     idx = ctx.info.source_index if ctx.info.source_index >= 0 else 0
     scfg = ctx.cfg.sources[idx]
     cls = resolve_transport(scfg.transport)

@@ -150,6 +150,13 @@ class CopcFile:
         rec = PackedPointRecord.from_buffer(raw, self.point_format)
         return las_points(rec.array, self.point_format, self.scales, self.offsets)
 
+    @property
+    def bytes_per_point(self) -> int:
+        """Bytes a decoded point takes: positions (3 float64) and each channel."""
+        from .lasrec import LAS_CHANNEL_BYTES
+
+        return 24 + sum(LAS_CHANNEL_BYTES[c] for c in self.channels)
+
     def spacing(self, depth: int) -> float:
         return self.root_spacing / (1 << depth)
 

@@ -5,6 +5,10 @@ from __future__ import annotations
 import numpy as np
 
 
+#: Bytes per point of each decoded LAS channel (see :func:`las_points`).
+LAS_CHANNEL_BYTES = {"intensity": 2, "classification": 1, "return_number": 1, "gps_time": 8, "rgb": 6}
+
+
 def las_channel_names(point_format) -> list[str]:
     dims = set(point_format.dimension_names)
     names = ["intensity", "classification", "return_number"]

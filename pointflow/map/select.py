@@ -42,7 +42,7 @@ def select_nodes(source, view_proj, viewport, eye, budget: int, loaded: Optional
     points would be closer than ``min_spacing_px`` on screen are not refined. Among nodes of
     equal priority those in ``loaded`` come first (no reload for a tie)."""
     vp = np.asarray(view_proj, np.float64).reshape(4, 4)
-    w_px, h_px = float(viewport[0]), float(viewport[1])
+    h_px = float(viewport[1])
     focal = 0.5 * h_px * float(np.linalg.norm(vp[1, :3]))  # P[1][1] * h / 2 for proj @ rigid view
     eye = np.asarray(eye, np.float64)
     shift = np.zeros(3) if origin is None else np.asarray(origin, np.float64)

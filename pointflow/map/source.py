@@ -68,6 +68,19 @@ class MapSource:
         i, *k = key
         return self.files[i].load(tuple(k))
 
+    def decoded_bytes(self, key: Key) -> int:
+        """About how many bytes ``load(key)`` returns (positions float64 + the channels)."""
+        return self.node(key).count * self.files[key[0]].bytes_per_point
+
+    def check_cache(self, max_bytes: int) -> None:
+        """A node bigger than the whole node cache could be loaded but never kept (it would be
+        read again for every picture): a :class:`MapError` naming the file and the node."""
+        for key in self.keys():
+            size = self.decoded_bytes(key)
+            if size > max_bytes:
+                raise MapError(self.paths[key[0]], f"node {list(key[1:])} decodes to {size / 2**20:.1f} MiB, more than "
+                                                   f"the whole node cache ({max_bytes / 2**20:.1f} MiB): raise cache_mb")
+
     def source_name(self, key: Key) -> str:
         return os.path.basename(self.paths[key[0]])
 

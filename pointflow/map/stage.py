@@ -19,8 +19,16 @@ from typing import Any, Optional
 import numpy as np
 import zmq
 
+from ..runtime.kinds import StageKind, register_stage_kind
 from . import region as mr
 from .config import MapConfig
+
+#: Starts after the render stage (it binds the map endpoint this stage connects to) and
+#: before the cadence; stops with the render stage. Running totals: its reads and moves.
+KIND = register_stage_kind(StageKind(
+    name="map", main="pointflow.map.stage:main", start_order=15, stop_wave=2,
+    counters=("map_nodes_loaded", "map_camera_moves", "map_cache_hits", "map_cache_misses", "map_versions"),
+    accounting="pointflow.map.stage:accounting", wanted="pointflow.map.stage:wanted"))
 
 #: Default viewport of the first selection, before the render stage sent a camera.
 FIRST_VIEWPORT = (1280, 720)
@@ -347,7 +355,8 @@ class Server:
         self.full_next = False
         self.set_ranges, self.cleared_ranges = [], []
         c = self.ctx.counters
-        c.points_out = points  # points the render stage has (a gauge, restated on restart)
+        c.points_out += sum(int(b) - int(a) for a, b in set_r)  # points handed to the render stage, in all
+        c.extra["map_versions"] = c.extra.get("map_versions", 0) + 1
         lm = sorted(self.load_ms)
         c.extra.update(map_nodes=len(self.published), map_points=points, map_version=self.version,
                        map_cache_bytes=int(self.cache.bytes_used), map_cache_hits=int(self.cache.hits),

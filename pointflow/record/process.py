@@ -32,10 +32,29 @@ import zmq
 from .. import wire
 from ..chunk import ChunkError
 from ..frames import message as transforms
+from ..runtime.kinds import StageKind, register_stage_kind
 from .encode import Layout, Scratch, encode_pointcloud2, encode_tf, layout_key
 from .files import RecordingFiles
 
 #: On stop, take what ingest sent until the socket is quiet this long (at most STOP_GRACE_S).
+def wanted(cfg) -> bool:
+    """A run records with a ``record:`` block (or ``--record``); its path is checked (and
+    its directory made) before anything starts: ConfigError naming ``record.path``."""
+    if cfg.record is None:
+        return False
+    from .config import prepare_record_path
+
+    prepare_record_path(cfg.record)
+    return True
+
+
+#: Binds the socket ingest sends its copies to: starts before ingest; stops last, after it
+#: took what ingest sent.
+KIND = register_stage_kind(StageKind(
+    name="recorder", main="pointflow.record.process:main", start_order=25, stop_wave=2,
+    counters=("record_messages", "record_files", "record_bytes", "record_transforms", "rejected_messages"),
+    accounting="pointflow.runtime.accounting:record_identities", wanted="pointflow.record.process:wanted"))
+
 STOP_QUIET_S = 0.2
 STOP_GRACE_S = 3.0
 
@@ -222,7 +241,7 @@ def recorded_static(path: str) -> list[transforms.Transform]:
 
 
 def main(ctx) -> None:
-    """Stage loop (``pointflow.runtime.stage.STAGE_MAINS['recorder']``)."""
+    """Stage loop (:data:`KIND`)."""
     rc = ctx.cfg.record
     sock = ctx.zmq.socket(zmq.PULL)
     sock.setsockopt(zmq.RCVHWM, rc.queue_messages)

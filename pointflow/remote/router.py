@@ -18,8 +18,14 @@ import time
 from dataclasses import field
 from typing import Any, Literal
 
+from ..runtime.kinds import StageKind, register_stage_kind
 from ..typed import check, positive
 from .zenoh_options import ZenohOpenError, ZenohOptions, check_zenoh, open_session
+
+#: ``pointflow router``: this one stage, no ring; connections counted over its restarts.
+KIND = register_stage_kind(StageKind(name="router", main="pointflow.remote.router:main", start_order=35, stop_wave=1,
+                                     roles=("router",),
+                                     counters=("sessions_opened", "sessions_closed", "refused_connections")))
 
 #: Where a router listens when the config names no endpoint: this host only.
 DEFAULT_LISTEN = ("tcp/127.0.0.1:7447",)

@@ -175,7 +175,7 @@ def take_from_sources(ctx, pull, add, limit: int) -> int:
 
 
 def main(ctx) -> None:
-    """Stage loop (``pointflow.runtime.stage.STAGE_MAINS['sender']``)."""
+    """Stage loop of the ZeroMQ engine (:mod:`.send_stage` picks it)."""
     s = ctx.cfg.send
     pull = ctx.zmq.socket(zmq.PULL)
     pull.setsockopt(zmq.RCVHWM, 64)

@@ -134,7 +134,10 @@ void main() {
         vec2 n = texelFetch(u_logz, q, 0).xy;
         if (n.y != 0.0) sum += max(0.0, d.x - n.x);
     }
-    f_color = vec4(c.rgb * exp(-u_k * sum), c.a);
+    // rounded here as the reference rounds (floor(c * shade + 0.5) in 8-bit steps), so the
+    // framebuffer's own float -> unorm8 conversion (which rounds differently on NVIDIA than on
+    // Mesa) only ever sees exact k/255 values
+    f_color = vec4(floor(c.rgb * 255.0 * exp(-u_k * sum) + 0.5) / 255.0, c.a);
 }
 """
 

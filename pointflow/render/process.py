@@ -19,6 +19,7 @@ import zmq
 from ..ring import PointRing
 from ..ring.handoff import SlabReader
 from ..ring.slabs import SlabPair
+from ..runtime.kinds import StageKind, register_stage_kind
 from ..runtime.stage import StageContext
 from .base import FrameInput, RenderError, Renderer
 from . import control
@@ -654,7 +655,7 @@ def _control(req: dict, stage: _Stage, ctx) -> dict:
 
 
 def prepare(cfg, info, log) -> Optional[Renderer]:
-    """A standby renderer's head start (:data:`pointflow.runtime.stage.STAGE_PREPARE`):
+    """A standby renderer's head start (:data:`KIND`'s ``prepare``):
     create the device and draw the warm-up frame while the renderer it may replace still
     runs. On an idle 2-core machine with lavapipe this is 1.2-1.4 s of device creation and
     0.5-1.2 s of warm-up that a restart no longer waits for."""
@@ -671,6 +672,12 @@ def prepare(cfg, info, log) -> Optional[Renderer]:
     finally:
         slabs.close()
         ring.close()
+
+
+#: Started first (it binds what the cadence pushes handoffs to), stopped last.
+KIND = register_stage_kind(StageKind(name="render", main="pointflow.render.process:main",
+                                     prepare="pointflow.render.process:prepare", start_order=10, stop_wave=2,
+                                     standby=True, counters=("frames", "pngs", "uploaded_bytes")))
 
 
 def _warm_up(renderer: Renderer, slabs: SlabPair, capacity: int, log) -> None:

@@ -75,9 +75,10 @@ class StageProcess:
             pass
 
 
-def spawn_stage(name: str, kind: str, cfg_dict: dict, base_dir: str, info, standby: bool = False) -> StageProcess:
+def spawn_stage(name: str, kind, cfg_dict: dict, base_dir: str, info, standby: bool = False) -> StageProcess:
     """Start ``stage_main(name, kind, cfg_dict, base_dir, info)`` in a new interpreter; with
-    ``standby`` it prepares and then waits for :meth:`StageProcess.activate`."""
+    ``standby`` it prepares and then waits for :meth:`StageProcess.activate`. ``kind`` is the
+    :class:`~pointflow.runtime.kinds.StageKind` record (or its name)."""
     payload = pickle.dumps((name, kind, cfg_dict, base_dir, info, standby), protocol=pickle.HIGHEST_PROTOCOL)
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join(p for p in (_PKG_PARENT, env.get("PYTHONPATH", "")) if p)

@@ -17,6 +17,7 @@ waits (for the GPU, a socket, the ring) and lets the pulse through long before t
 from __future__ import annotations
 
 import os
+import time
 from dataclasses import dataclass
 from typing import Optional
 
@@ -77,3 +78,132 @@ def activity(pid: int) -> Optional[Activity]:
     return Activity(stopped=all(s in ("T", "t") for s in states),
                     runnable=any(s in ("R", "D") for s in states), cpu_s=max(cpu, run_ns / 1e9),
                     main_awake=main_state == "R", main_cpu_s=main_ns / 1e9)
+
+
+# ---------------------------------------------------------------------- hang judgement
+#: When several stages are silent at once, one counts as hung only after this many
+#: times ``supervisor.hung_after_ms`` (at most ``stall_after_ms``).
+STALLED_HUNG_FACTOR = 5
+#: A stage that has not reported in within ``supervisor.startup_timeout_ms`` but is still
+#: starting (using the CPU, or waiting for one) is kept up to this many times the timeout
+#: (and at least ``supervisor.stall_after_ms``).
+STARTUP_LOAD_FACTOR = 4
+
+
+def hang_reason(st, now: int, sup, stages) -> Optional[str]:
+    """Why the live stage ``st`` (the supervisor's record of it) counts as hung now, or
+    None while it does not: it did not report in within ``startup_timeout_ms`` and is not
+    still starting, it has been silent past ``hung_after_ms`` and is not merely starved,
+    or its loop has not come round for ``stall_after_ms``. ``sup`` is the ``supervisor:``
+    config, ``stages`` all the supervisor's stage records. May update ``st``'s marks."""
+    limit_ms = sup.hung_after_ms if st.ready else sup.startup_timeout_ms
+    silent = (now - st.last_seen_ns) > limit_ms * 1e6
+    if silent and st.ready:
+        silent = silence_is_hang(st, now, limit_ms, sup, stages)
+    elif silent:
+        silent = start_is_stuck(st, now, limit_ms, sup)
+    stalled = st.ready and (now - st.last_progress_ns) > sup.stall_after_ms * 1e6
+    if not st.ready and silent:
+        return f"did not start: no heartbeat within {(now - st.started_ns) / 1e6:.0f} ms"
+    if silent:
+        return f"hung: no heartbeat for {(now - st.last_seen_ns) / 1e6:.0f} ms{st.hang_note}"
+    if stalled:
+        return f"stuck: its loop has not come round for {(now - st.last_progress_ns) / 1e6:.0f} ms"
+    return None
+
+
+def silence_is_hang(st, now: int, limit_ms: float, sup, stages) -> bool:
+    """A stage silent for ``limit_ms``: hung, or starved of CPU on a loaded machine?
+    The kernel says (:func:`activity`). Starved (a thread waiting to run or for the
+    disk, or CPU time used since the silence began): not hung, however long, up to
+    ``stall_after_ms``. Frozen (SIGSTOP): hung now. Asleep without using any CPU for
+    half of ``limit_ms`` (at least 250 ms) of watching: hung (a deadlock). The last two
+    only when the other stages talk, or after a longer silence when they do not (the
+    machine, or this process, stalled)."""
+    quiet = now - st.last_seen_ns
+    if quiet > sup.stall_after_ms * 1e6:
+        return True
+    act = activity(st.pid)
+    if act is None:
+        return False  # it ended: its exit code tells why, next round
+    st.hang_note = ""
+    if _spins_holding_the_gil(st, act, sup):
+        return True
+    mark = st.silence_mark
+    if mark is None or mark[0] < st.last_seen_ns:  # this silence just began
+        st.silence_mark = (now, act, False)
+        if not act.stopped:
+            return False
+    else:
+        t0, before, counted = mark
+        if act.running_since(before, (now - t0) / 1e9):  # starved, not hung: watch afresh
+            if not counted:
+                st.starved += 1
+            st.silence_mark = (now, act, True)
+            return False
+        if not act.stopped and now - t0 < max(limit_ms * 1e6 / 2, 250e6):
+            return False  # asleep, not watched long enough yet
+    if _silent_alone(st, stages, limit_ms):
+        return True
+    # others went quiet too: the machine (or this process) stalled; only a longer
+    # silence counts then
+    return quiet > max(limit_ms, min(sup.stall_after_ms, STALLED_HUNG_FACTOR * limit_ms)) * 1e6
+
+
+def start_is_stuck(st, now: int, limit_ms: float, sup) -> bool:
+    """Not reported in within ``startup_timeout_ms``: stuck, or still starting on a
+    loaded machine? A fresh interpreter importing numpy, ZeroMQ and wgpu took 13-32 s to
+    start a pipeline at load 14-18 on 2 cores; killing it there only starts the same
+    work again. Still starting (it used at least 2% of a CPU since the last look, or a
+    thread waits for one): kept, up to ``STARTUP_LOAD_FACTOR`` x the timeout (at least
+    ``stall_after_ms``). Frozen (SIGSTOP), or asleep without using the CPU for a second
+    of watching: did not start."""
+    if now - st.started_ns > max(STARTUP_LOAD_FACTOR * limit_ms, sup.stall_after_ms) * 1e6:
+        return True
+    act = activity(st.pid)
+    if act is None:
+        return False  # it ended: its exit code tells why, next round
+    if act.stopped:
+        return True
+    mark = st.silence_mark
+    if mark is None or mark[0] < st.started_ns:  # first look past the timeout
+        st.silence_mark = (now, act, False)
+        return False
+    t0, before, _ = mark
+    if act.running_since(before, (now - t0) / 1e9):
+        st.silence_mark = (now, act, True)
+        return False
+    return now - t0 >= 1e9
+
+
+def _spins_holding_the_gil(st, act: Activity, sup) -> bool:
+    """Silent, yet its main thread has been on (or waiting for) a CPU at every look and
+    used ``stuck_cpu_ms`` of CPU: it spins in a call that holds the GIL, so its pulse
+    thread cannot talk. Counted in CPU time, not wall time, so load does not trigger it;
+    a starved stage's main thread gets little CPU, and a healthy one sleeps (and lets
+    the pulse through) long before."""
+    mark = st.busy_mark
+    if mark is None or mark[0] != st.last_seen_ns:
+        st.busy_mark = (st.last_seen_ns, act.main_cpu_s, act.main_awake)
+        return False
+    awake = mark[2] and act.main_awake
+    st.busy_mark = (mark[0], mark[1], awake)
+    used_s = act.main_cpu_s - mark[1]
+    if awake and used_s * 1000.0 >= sup.stuck_cpu_ms:
+        st.hang_note = (f"; its main thread ran {used_s:.1f} s of CPU and never slept: "
+                        "stuck in a call that holds the GIL")
+        return True
+    return False
+
+
+def _silent_alone(st, stages, limit_ms: float) -> bool:
+    """True when every other live stage was heard from within the last half
+    ``limit_ms``: the rest of the pipeline is running while ``st`` is not (a frozen or
+    hung process). When several stages went silent together, the machine (or this
+    process) stalled: at load 15-20 on 2 cores three healthy stages went quiet for
+    0.9-1.9 s at once while the fourth still talked, and killing them only made it
+    worse."""
+    now = time.monotonic_ns()
+    others = [o.last_seen_ns for o in stages
+              if o is not st and o.ready and not o.dead and o.process is not None and o.process.exitcode is None]
+    return all(now - t <= limit_ms * 1e6 / 2 for t in others)

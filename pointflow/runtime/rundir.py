@@ -14,8 +14,10 @@ import re
 import shutil
 import stat
 import tempfile
+from dataclasses import asdict
 
 from ..ring.sweep import pid_alive
+from ..typed import ConfigError
 
 #: The names :func:`pointflow.config.new_run_dir` gives; group 1 is the supervisor's pid.
 RUN_DIR_RE = re.compile(r"pointflow-(\d+)-[0-9a-f]{8}")
@@ -108,3 +110,17 @@ def ensure_runtime_dir() -> str | None:
         os.chmod(path, 0o700)
     os.environ["XDG_RUNTIME_DIR"] = path
     return path
+
+
+#: sizeof(sockaddr_un.sun_path) - 1 on Linux: the longest ipc:// path ZeroMQ can bind.
+IPC_PATH_MAX = 107
+
+
+def check_socket_paths(endpoints) -> None:
+    """ConfigError naming the endpoint whose ``ipc://`` socket path is too long to bind."""
+    for key, ep in asdict(endpoints).items():
+        sock = ep[len("ipc://"):] if isinstance(ep, str) and ep.startswith("ipc://") else ""
+        if len(sock.encode()) > IPC_PATH_MAX:
+            raise ConfigError(f"endpoints.{key}", f"socket path {sock} has {len(sock.encode())} bytes, a Unix "
+                                                  f"socket allows {IPC_PATH_MAX}; set XDG_RUNTIME_DIR (or the "
+                                                  "endpoint) to a shorter path")

@@ -1,8 +1,8 @@
 """What every stage process shares: start-up, stop signals, heartbeats, stats, spans.
 
 The supervisor starts each stage with :func:`stage_main` in a fresh (spawned) process.
-The stage's own loop lives in a ``main(ctx: StageContext)`` function (see
-:data:`STAGE_MAINS`) and must call ``ctx.beat()`` at least every ~100 ms and return
+The stage's own loop lives in a ``main(ctx: StageContext)`` function (its kind's
+:attr:`~pointflow.runtime.kinds.StageKind.main`, :mod:`pointflow.runtime.kinds`) and must call ``ctx.beat()`` at least every ~100 ms and return
 when ``ctx.running`` turns false.
 
 Control messages (stage PUSH → supervisor PULL on ``endpoints.control``), JSON, one frame:
@@ -34,26 +34,8 @@ import zmq
 
 from ..config import EndpointsConfig, PipelineConfig, load_config
 from ..profiling.spans import SpanEmitter
+from .kinds import StageKind, resolve, stage_kind
 
-#: kind -> "module:function" that a standby runs before it is needed (see
-#: :func:`prepare_stage`): ``fn(cfg, info, log) -> object`` handed to the stage as
-#: ``ctx.prepared``. Kinds not listed only import their module.
-STAGE_PREPARE: dict[str, str] = {
-    "render": "pointflow.render.process:prepare",
-    "ingest": "pointflow.ingest.process:prepare",
-}
-
-#: kind -> "module:function" of the stage loop.
-STAGE_MAINS: dict[str, str] = {
-    "source": "pointflow.ingest.source:main",
-    "ingest": "pointflow.ingest.process:main",
-    "cadence": "pointflow.cadence.process:main",
-    "render": "pointflow.render.process:main",
-    "sender": "pointflow.remote.send_stage:main",
-    "recorder": "pointflow.record.process:main",
-    "router": "pointflow.remote.router:main",
-    "map": "pointflow.map.stage:main",
-}
 
 
 @dataclass
@@ -110,7 +92,7 @@ class StageContext:
         self._control.connect(info.endpoints.control)
         self.spans = SpanEmitter(self.zmq, info.endpoints.trace, name, cfg.tracing.batch,
                                  cfg.tracing.flush_ms, cfg.tracing.enabled)
-        #: What a standby prepared before it was activated (:data:`STAGE_PREPARE`), or None.
+        #: What a standby prepared before it was activated (:attr:`StageKind.prepare`), or None.
         self.prepared: Any = None
         #: Called with no arguments on each heartbeat; may add to ``counters.extra``.
         self.on_beat: list[Callable[[], None]] = []
@@ -240,43 +222,48 @@ def _setup_logging(name: str, info: RunInfo) -> None:
     setup_logging(info.log_level, f"%(asctime)s {name}[%(process)d] %(levelname)s %(message)s")
 
 
-def prepare_stage(name: str, kind: str, cfg_dict: dict, base_dir: str, info: RunInfo) -> Any:
+def _kind(kind: str | StageKind) -> StageKind:
+    """The supervisor hands the record itself, so a stage process imports only its own
+    module; a name (a test starting a stage directly) is looked up."""
+    return kind if isinstance(kind, StageKind) else stage_kind(kind)
+
+
+def prepare_stage(name: str, kind: str | StageKind, cfg_dict: dict, base_dir: str, info: RunInfo) -> Any:
     """A standby's head start, before it is needed: import the stage's module and run its
-    :data:`STAGE_PREPARE` hook. Nothing here binds a socket or talks to the supervisor (the
+    kind's ``prepare`` hook. Nothing here binds a socket or talks to the supervisor (the
     incarnation it replaces may still be alive). Returns what the hook returned (None when
     it failed: the stage then does the work itself)."""
     _setup_logging(name, info)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     log = logging.getLogger(f"pointflow.{name}")
     try:
-        importlib.import_module(STAGE_MAINS[kind].partition(":")[0])
-        hook = STAGE_PREPARE.get(kind)
-        if hook is None:
+        k = _kind(kind)
+        importlib.import_module(k.main.partition(":")[0])
+        if k.prepare is None:
             return None
-        mod_name, _, fn_name = hook.partition(":")
         cfg = load_config(cfg_dict, base_dir=base_dir)
-        return getattr(importlib.import_module(mod_name), fn_name)(cfg, info, log)
+        return resolve(k.prepare)(cfg, info, log)
     except Exception as exc:  # noqa: BLE001 - the activated stage does it again and reports
         log.warning("standby %s: preparing failed (%s); the stage will start from scratch", name, exc)
         return None
 
 
-def stage_main(name: str, kind: str, cfg_dict: dict, base_dir: str, info: RunInfo, prepared: Any = None) -> None:
-    """Process entry point (target of the supervisor's ``Process``)."""
+def stage_main(name: str, kind: str | StageKind, cfg_dict: dict, base_dir: str, info: RunInfo,
+               prepared: Any = None) -> None:
+    """Process entry point (:mod:`.launch` runs it in a fresh interpreter)."""
     _die_with_parent()
     _setup_logging(name, info)
     # Ctrl-C reaches the whole process group; only the supervisor reacts to it and then
     # stops the stages in order.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     cfg = load_config(cfg_dict, base_dir=base_dir)
-    ctx = StageContext(name, kind, cfg, info)
+    k = _kind(kind)
+    ctx = StageContext(name, k.name, cfg, info)
     ctx.prepared = prepared
     signal.signal(signal.SIGTERM, lambda *_: ctx.stop())
-    mod_name, _, fn_name = STAGE_MAINS[kind].partition(":")
     code = 0
     try:
-        fn = getattr(importlib.import_module(mod_name), fn_name)
-        fn(ctx)
+        resolve(k.main)(ctx)
         if ctx._running:  # returned on its own
             ctx._send({"type": "done"})
     except Exception as exc:  # noqa: BLE001 - report, then exit non-zero

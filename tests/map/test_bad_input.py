@@ -132,3 +132,66 @@ def test_a_node_bigger_than_the_cache_is_not_kept():
     assert c.get("a") is None
     small = {"positions": np.zeros((10, 3))}
     assert c.put("b", small) and c.bytes_used == 240
+
+
+def test_truncated_binary_ply(tmp_path):
+    from .mapfiles import write_ply
+
+    p = str(tmp_path / "t.ply")
+    write_ply(p, 5_000)
+    data = open(p, "rb").read()
+    open(p, "wb").write(data[: len(data) * 2 // 3])
+    expect_map_error(p, "PLY promises 5000 vertices", cache_dir=str(tmp_path / "c"))
+
+
+def test_copc_with_random_damage_is_a_map_error_or_reads(tmp_path):
+    """Bytes flipped in the hierarchy, the info VLR or a node's chunk: opening and loading
+    every node either works or raises MapError; nothing else escapes (lazrs panics included)."""
+    p = write_copc(str(tmp_path / "t.copc.laz"), 4_000, seed=5)
+    off, size = _root_page(p)
+    clean = open(p, "rb").read()
+    info_at = clean.index(b"copc\0") - 2 + 54
+    rng = np.random.default_rng(7)
+    outcomes = {"ok": 0, "MapError": 0}
+    for i in range(40):
+        b = bytearray(clean)
+        region = (off, off + size) if i % 3 == 0 else (info_at, info_at + 160) if i % 3 == 1 else (1000, off)
+        for q in rng.integers(region[0], region[1], 1 + i % 4):
+            b[q] ^= int(rng.integers(1, 256))
+        path = tmp_path / f"d{i}.copc.laz"
+        path.write_bytes(bytes(b))
+        try:
+            with open_map(str(path), progress=False) as m:
+                for k in m.keys():
+                    m.load(k)
+            outcomes["ok"] += 1
+        except MapError as exc:
+            assert "\n" not in str(exc) and str(path) in str(exc)
+            outcomes["MapError"] += 1
+    assert outcomes["MapError"] > 0, outcomes
+
+
+@pytest.mark.parametrize("ext", ["laz", "ply"])
+def test_laz_and_ply_with_random_damage_are_a_map_error_or_read(tmp_path, ext):
+    from .mapfiles import write_ply
+
+    p = str(tmp_path / f"t.{ext}")
+    write_las(p, 3_000, seed=6) if ext == "laz" else write_ply(p, 3_000, seed=6)
+    clean = open(p, "rb").read()
+    rng = np.random.default_rng(8)
+    errors = 0
+    for i in range(30):
+        b = bytearray(clean)
+        top = len(b) if i % 2 else min(len(b), 600)  # the header, or anywhere
+        for q in rng.integers(0, top, 1 + i % 4):
+            b[q] ^= int(rng.integers(1, 256))
+        path = tmp_path / f"d{i}.{ext}"
+        path.write_bytes(bytes(b))
+        try:
+            with open_map(str(path), cache_dir=str(tmp_path / "c"), progress=False) as m:
+                for k in m.keys():
+                    m.load(k)
+        except MapError as exc:
+            assert "\n" not in str(exc) and str(path) in str(exc)
+            errors += 1
+    assert errors > 0

@@ -22,6 +22,7 @@ def test_copc_nodes_are_the_files_nodes_and_points(tmp_path):
         # the same keys and counts as laspy's reader of the hierarchy
         with laspy.CopcReader.open(path) as r:
             for key, d in loads:
+                assert m.decoded_bytes(key) == sum(a.nbytes for a in d.values())
                 _, depth, x, y, z = key
                 assert depth <= 3
                 pts = r.query(level=depth, bounds=laspy.copc.Bounds(m.node(key).lo, m.node(key).hi))

@@ -8,8 +8,7 @@ import os
 import numpy as np
 import pytest
 
-from pointflow.map import MapError, open_map
-from pointflow.map import lod
+from pointflow.map import build, inputs, open_map
 
 from .mapfiles import all_nodes, laspy_points, write_las, write_pcd, write_ply
 
@@ -43,9 +42,10 @@ def test_every_node_is_exactly_the_files_points(tmp_path, ext):
 
 def test_many_cells_and_splits_stay_exact(tmp_path, monkeypatch):
     """The big-file path (spill files per cell, a cell split again) on a small file."""
-    monkeypatch.setattr(lod, "CELL_TARGET", 2_000)
-    monkeypatch.setattr(lod, "MAX_CELL", 6_000)
-    monkeypatch.setattr(lod, "CHUNK_POINTS", 7_000)
+    monkeypatch.setattr(build, "CELL_TARGET", 2_000)
+    monkeypatch.setattr(build, "MAX_CELL", 6_000)
+    monkeypatch.setattr(build, "CHUNK_POINTS", 7_000)
+    monkeypatch.setattr(inputs, "CHUNK_POINTS", 7_000)
     path = write_las(str(tmp_path / "t.laz"), 50_000, seed=2)
     with open_map(path, cache_dir=str(tmp_path / "cache"), progress=False) as m:
         check_exact(m, path)
@@ -96,14 +96,14 @@ def test_index_of_another_version_is_rebuilt_with_a_warning(tmp_path, caplog):
     with open_map(path, cache_dir=cache, progress=False) as m:
         meta_path = os.path.join(m.files[0].dir, "meta.json")
     meta = json.load(open(meta_path))
-    meta["version"] = lod.INDEX_VERSION + 99
+    meta["version"] = build.INDEX_VERSION + 99
     json.dump(meta, open(meta_path, "w"))
     with caplog.at_level(logging.WARNING, logger="pointflow.map.lod"):
         with open_map(path, cache_dir=cache, progress=False) as m:
             check_exact(m, path)
     msgs = [r.getMessage() for r in caplog.records]
     assert any("version" in s and path in s for s in msgs), msgs
-    assert json.load(open(meta_path))["version"] == lod.INDEX_VERSION
+    assert json.load(open(meta_path))["version"] == build.INDEX_VERSION
 
 
 def test_damaged_index_is_rebuilt(tmp_path, caplog):
@@ -195,3 +195,93 @@ def test_loads_from_many_threads_agree(tmp_path):
             got = list(ex.map(m.load, keys))
         for k, d in zip(keys, got):
             assert np.array_equal(d["gps_time"], m.load(k)["gps_time"])
+
+
+def test_header_bounds_that_do_not_hold_the_points(tmp_path, caplog):
+    """A writer that left the header's bounds at zero: indexed again with the points' own
+    bounds (a warning), and still exactly the file's points."""
+    import struct
+
+    path = write_las(str(tmp_path / "t.las"), 30_000, seed=16)
+    with open(path, "r+b") as f:
+        f.seek(179)
+        f.write(struct.pack("<6d", 0, 0, 0, 0, 0, 0))  # max x, min x, max y, min y, max z, min z
+    with caplog.at_level(logging.WARNING, logger="pointflow.map.build"):
+        with open_map(path, cache_dir=str(tmp_path / "c"), progress=False) as m:
+            check_exact(m, path)
+            assert len(m.keys()) > 2
+            assert max(m.node(k).count for k in m.keys()) <= build.LEAF_MAX + 128 ** 2
+    assert any("bounds" in r.getMessage() and path in r.getMessage() for r in caplog.records)
+
+
+def test_a_build_killed_midway_leaves_nothing_behind(tmp_path):
+    """SIGKILL during the build (no cleanup runs): the next open removes the half-built
+    folder and builds the index whole."""
+    import glob
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    path = write_las(str(tmp_path / "t.laz"), 1_500_000, seed=17)
+    cache = str(tmp_path / "cache")
+    code = f"from pointflow.map import open_map; open_map({path!r}, cache_dir={cache!r}, progress=False)"
+    proc = subprocess.Popen([sys.executable, "-c", code])
+    try:
+        deadline = time.monotonic() + 120
+        while not glob.glob(os.path.join(cache, "*.tmp-*", "spill", "*")) and time.monotonic() < deadline:
+            assert proc.poll() is None, "the build ended before it could be killed"
+            time.sleep(0.05)
+        proc.send_signal(signal.SIGKILL)
+    finally:
+        proc.wait(30)
+    assert glob.glob(os.path.join(cache, "*.tmp-*")), "no half-built index to clean up"
+    with open_map(path, cache_dir=cache, progress=False) as m:
+        assert m.point_count == 1_500_000
+    assert os.listdir(cache) == [os.path.basename(m.files[0].dir)]
+
+
+@pytest.mark.parametrize("kind", ["binary_big_endian", "ascii"])
+def test_ply_big_endian_and_ascii(tmp_path, kind):
+    import plyfile
+
+    path = str(tmp_path / "t.ply")
+    pos, ch = write_ply(path, 8_000, seed=18)
+    ply = plyfile.PlyData.read(path, mmap=False)
+    plyfile.PlyData(ply.elements, text=kind == "ascii", byte_order=">" if kind != "ascii" else "=").write(path)
+    with open_map(path, cache_dir=str(tmp_path / "cache"), progress=False) as m:
+        got, _ = all_nodes(m)
+    og, ow = np.lexsort(got["positions"].T[::-1]), np.lexsort(pos.T[::-1])
+    assert np.array_equal(got["positions"][og], pos[ow])
+    assert np.array_equal(got["rgb"][og], ch["rgb"][ow])
+    assert np.array_equal(got["intensity"][og], ch["intensity"][ow])
+
+
+def test_binary_ply_streams_without_holding_the_file(tmp_path, monkeypatch):
+    """A binary PLY is memory-mapped and indexed in chunks: the build's Python heap stays far
+    below the file's size (the whole-file readers would hold all of it)."""
+    import tracemalloc
+
+    monkeypatch.setattr(inputs, "CHUNK_POINTS", 20_000)
+    monkeypatch.setattr(build, "CHUNK_POINTS", 20_000)
+    monkeypatch.setattr(build, "CELL_TARGET", 20_000)
+    monkeypatch.setattr(build, "MAX_CELL", 60_000)
+    # a coarser node grid: the cells' root points (held until the top is built, at most
+    # cells x 128^2 for a flat map: a bound of its own, not the file's size) stay small here
+    monkeypatch.setattr(build, "GRID_BITS", 3)
+    monkeypatch.setattr(build, "LEAF_MAX", 5_000)
+    write_ply(str(tmp_path / "warm.ply"), 1_000, seed=20)  # numba's first calls allocate; not the build's
+    build.build_index(str(tmp_path / "warm.ply"), str(tmp_path / "cache" / "w"), progress=False)
+    path = str(tmp_path / "big.ply")
+    pos, _ = write_ply(path, 400_000, seed=19)
+    size = os.path.getsize(path)
+    tracemalloc.start()
+    try:
+        build.build_index(path, str(tmp_path / "cache" / "x"), progress=False)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < size / 2, (peak, size)
+    with open_map(path, cache_dir=str(tmp_path / "cache2"), progress=False) as m:
+        got, _ = all_nodes(m)
+    assert np.array_equal(np.sort(got["positions"][:, 0]), np.sort(pos[:, 0]))

@@ -128,3 +128,15 @@ def test_memory_bounded_while_flying_over_a_file_20x_the_cache(tmp_path):
         # what stays allocated is the cache; the peak adds one node being decoded (and its raw bytes)
         assert current - base <= cache.max_bytes + 256 * 1024, (current - base, cache.max_bytes)
         assert peak - base <= cache.max_bytes + 4 * biggest + 1024 * 1024, (peak - base, cache.max_bytes)
+
+
+def test_decoded_bytes_match_loads_and_a_too_small_cache_is_named(big):
+    from pointflow.map import MapError
+
+    for k in big.keys()[:5]:
+        assert big.decoded_bytes(k) == node_bytes(big.load(k))
+    biggest = max(big.decoded_bytes(k) for k in big.keys())
+    big.check_cache(biggest)
+    with pytest.raises(MapError, match="more than the whole node cache") as ei:
+        big.check_cache(biggest - 1)
+    assert big.paths[0] in str(ei.value)

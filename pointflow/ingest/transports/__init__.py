@@ -59,6 +59,17 @@ def resolve_transport(spec: str) -> type[Transport]:
     raise ConfigError("", f"unknown transport {spec!r}; expected one of {', '.join(known)} or 'package.module:Class'")
 
 
+def runs_in_process(spec: str) -> bool:
+    """A transport that lives in the process holding the pipeline (``api``: fed by
+    ``Pipeline.send``), which the supervisor keeps in its stage table instead of starting."""
+    if spec == "api":
+        return True
+    try:
+        return bool(getattr(resolve_transport(spec), "in_process", False))
+    except Exception:  # noqa: BLE001 - the config loader already checked it resolves
+        return False
+
+
 def available_transports() -> dict[str, str]:
     """name -> where it comes from, for ``pointflow info``."""
     out = {n: "built-in" for n in BUILTINS}
@@ -67,4 +78,4 @@ def available_transports() -> dict[str, str]:
     return out
 
 
-__all__ = ["Transport", "NoOptions", "resolve_transport", "available_transports", "BUILTINS", "ENTRY_POINT_GROUP"]
+__all__ = ["Transport", "NoOptions", "resolve_transport", "runs_in_process", "available_transports", "BUILTINS", "ENTRY_POINT_GROUP"]
