@@ -193,6 +193,92 @@ def frame_times(map_path, live_b: str, live, cache_dir, budget: int, seconds: fl
             "ratio_map_over_ring": round(med["map"] / med["ring"], 3) if med["map"] and med["ring"] else None}
 
 
+def frame_times_inprocess(map_path, cache_dir, budget: int, frames: int, backend: str, tmp: str) -> dict:
+    """The same comparison in one process, frame by frame interleaved (A B A B ...), so the
+    machine's load swings hit both alike: the render stage's map layer composing a live scan
+    (its slots dirty every frame) with B map points, drawn by the tier, against one ring
+    holding the same B points and the live scan (only the live slots dirty). Same tier class,
+    same size, same camera; medians."""
+    import logging
+    import types
+
+    import zmq
+
+    from pointflow.config import EndpointsConfig, RenderConfig
+    from pointflow.map import open_map, select_nodes
+    from pointflow.map import region as mr
+    from pointflow.render.base import FrameInput
+    from pointflow.render.camera import Camera
+    from pointflow.render.maplayer import MapLayer
+    from pointflow.render.select import select_renderer
+
+    src = open_map(map_path, cache_dir=cache_dir, progress=False)
+    lo, hi = src.bounds
+    cam = Camera.fit(lo, hi, aspect=16 / 9)
+    keys = select_nodes(src, cam.view_proj(960, 540), (960, 540), cam.eye, budget)
+    pts = np.concatenate([src.load(k)["positions"] for k in keys])
+    src.close()
+    scan = np.load(sorted((DATA / "ouster_osf_8beam").glob("*.npz"))[0])["xyz"].astype(np.float64) / 0.3048
+    live = scan + (lo + hi) / 2 + [0, 0, 150.0]
+    L, B = live.shape[0], pts.shape[0]
+    origin = np.round((lo + hi) / 2, 3)
+    ep = EndpointsConfig(map=f"ipc://{tmp}/bm.sock", map_camera=f"ipc://{tmp}/bmc.sock")
+    zctx = zmq.Context.instance()
+    cfg = types.SimpleNamespace(map=types.SimpleNamespace(point_budget=budget), sources=[types.SimpleNamespace(name="l")])
+    layer = MapLayer(cfg, types.SimpleNamespace(zmq=zctx, endpoints=ep, log=logging.getLogger("bench")), 20_000)
+    reg = mr.MapRegion.create(tmp, budget, [])
+    reg.positions[:B] = pts
+    push = zctx.socket(zmq.PUSH)
+    push.connect(ep.map)
+    push.send(mr.encode({"type": "version", "version": 1, "full": True, "region": reg.path, "slots": budget,
+                         "channels": [], "files": [map_path], "origin": list(origin), "set": [[0, B]], "cleared": [],
+                         "points": B, "nodes": len(keys), "channel_ranges": {}}))
+    while layer.version < 1:
+        layer.poll()
+        time.sleep(0.01)
+
+    def ring_frame(cap: int, world: np.ndarray, dirty) -> FrameInput:
+        pos = np.full((cap, 3), np.nan, np.float32)
+        pos[:world.shape[0]] = (world - origin).astype(np.float32)
+        return FrameInput(positions=pos, importance=np.ones(cap, np.float32), t_ingest_ms=np.zeros(cap), channels={},
+                          head=0, size=world.shape[0], capacity=cap, origin=origin, now_ms=0.0, dirty=dirty)
+
+    be, _, raster = backend.partition(":")  # "cpu:compute" = the cpu tier's compiled raster
+    rc = RenderConfig(backend=be, raster=raster or "auto", size=(960, 540), color_by="z")
+    a, _ = select_renderer(rc, layer.capacity, [])
+    b = type(a)(a.cfg, B + L, [])
+    live_frame = ring_frame(20_000, live, None)
+    both = ring_frame(B + L, np.concatenate([live, pts]), None)
+    ta, tb = [], []
+    for i in range(frames + 2):  # two warm-up frames each (full uploads), then only the live slots change
+        t0 = time.perf_counter()
+        f = layer.compose(live_frame)
+        a.render(f, cam)
+        layer.drawn()
+        if hasattr(a, "finish"):
+            a.finish()
+        t1 = time.perf_counter()
+        b.render(both, cam)
+        if hasattr(b, "finish"):
+            b.finish()
+        t2 = time.perf_counter()
+        live_frame.dirty, both.dirty = [(0, L)], [(0, L)]
+        if i >= 2:
+            ta.append((t1 - t0) * 1e3)
+            tb.append((t2 - t1) * 1e3)
+    tier = a.info().get("tier")
+    info = a.info()
+    a.close()
+    b.close()
+    layer.close()
+    push.close(0)
+    reg.close()
+    ma, mb = float(np.median(ta)), float(np.median(tb))
+    return {"backend": backend, "tier": tier, "tier_info": str(info)[:200], "map_points": B, "live_points": L, "frames": frames,
+            "map_ms_median": round(ma, 3), "ring_ms_median": round(mb, 3), "ratio_map_over_ring": round(ma / mb, 3),
+            "map_ms": [round(x, 2) for x in ta], "ring_ms": [round(x, 2) for x in tb]}
+
+
 def ring_points(n: int, lo, hi, out_dir: str) -> str:
     """B live points over the same area (a file replayed at once: the ring of B points)."""
     import laspy
@@ -242,6 +328,10 @@ def main() -> None:
     ap.add_argument("--budget", type=int, default=500_000)
     ap.add_argument("--seconds", type=float, default=8.0)
     ap.add_argument("--repeats", type=int, default=2)
+    ap.add_argument("--frames", type=int, default=15, help="frames per side of the in-process comparison")
+    ap.add_argument("--backends", default="cpu:compute,wgpu",
+                    help="tiers of the in-process comparison (backend[:raster])")
+    ap.add_argument("--only-inprocess", action="store_true")
     ap.add_argument("--out", default=str(RESULTS / "map.json"))
     a = ap.parse_args()
     os.environ.setdefault("XDG_RUNTIME_DIR", "/tmp/xdg")
@@ -261,8 +351,20 @@ def main() -> None:
     res["map"]["index_build_s"] = round(time.monotonic() - t, 2)
     print("index built:", res["map"], flush=True)
     live = live_scan(tmp, (lo + hi) / 2)
+    if a.only_inprocess:
+        res["frame_time_inprocess"] = [frame_times_inprocess(path, cache_dir, a.budget, a.frames, be, tmp)
+                                       for be in a.backends.split(",")]
+        for r in res["frame_time_inprocess"]:
+            print("frame time in process:", {k: v for k, v in r.items() if k not in ("map_ms", "ring_ms")})
+        res["machine"]["uptime_after"] = _uptime()
+        Path(a.out).write_text(json.dumps(res, indent=1, default=str))
+        return
     res["first_picture"] = first_picture_and_refine(path, live, lo, hi, cache_dir, a.budget)
     print("first picture / refine:", json.dumps(res["first_picture"]), flush=True)
+    res["frame_time_inprocess"] = [frame_times_inprocess(path, cache_dir, a.budget, a.frames, be, tmp)
+                                   for be in a.backends.split(",")]
+    for r in res["frame_time_inprocess"]:
+        print("frame time in process:", {k: v for k, v in r.items() if k not in ("map_ms", "ring_ms")}, flush=True)
     live_b = ring_points(a.budget, lo, hi, tmp)
     res["frame_time"] = frame_times(path, live_b, live, cache_dir, a.budget, a.seconds, a.repeats)
     print("frame time:", json.dumps(res["frame_time"]["median_ms"]), res["frame_time"]["ratio_map_over_ring"],
