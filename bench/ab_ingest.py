@@ -26,12 +26,14 @@ import subprocess
 import sys
 import tempfile
 
-BENCH = os.path.join(os.path.dirname(os.path.abspath(__file__)), "bench_ingest.py")
+import _harness as H
+
+BENCH = str(H.BENCH / "bench_ingest.py")
 
 
-def loop_worker(root: str) -> dict[str, float]:
-    """us of process time per chunk for the ingest loop body of the checkout at ``root``."""
-    sys.path.insert(0, root)
+def loop_worker() -> dict[str, float]:
+    """us of process time per chunk for the ingest loop body of the checkout this process
+    imports (``PYTHONPATH``, set by the driver)."""
     import time
 
     import numpy as np
@@ -86,12 +88,11 @@ def loop_worker(root: str) -> dict[str, float]:
 
 
 def loop_main(roots: dict[str, str], rounds: int) -> int:
+    runs = H.interleave({k: (lambda root=root: H.run_json([__file__, root, root, "--loop-worker"], root))
+                         for k, root in roots.items()}, rounds)
     res: dict[str, dict[str, list[float]]] = {k: {} for k in roots}
-    for i in range(rounds):
-        order = list(roots.items()) if i % 2 == 0 else list(reversed(roots.items()))
-        for k, root in order:
-            o = json.loads(subprocess.run([sys.executable, __file__, root, root, "--loop-worker"], capture_output=True,
-                                          text=True, check=True, cwd=root).stdout)
+    for k, outs in runs.items():
+        for o in outs:
             for n, v in o.items():
                 res[k].setdefault(n, []).append(v)
     for n in res["A"]:
@@ -112,26 +113,25 @@ def main() -> int:
     args, bench_args = ap.parse_known_args()  # the rest (after --) goes to bench_ingest.py
     bench_args = [a for a in bench_args if a != "--"]
     if args.loop_worker:
-        print(json.dumps(loop_worker(args.a)))
+        print(json.dumps(loop_worker()))
         return 0
     roots = {"A": os.path.abspath(args.a), "B": os.path.abspath(args.b)}
     if args.loop:
         return loop_main(roots, args.rounds)
-    rows: dict[str, list[dict]] = {"A": [], "B": []}
     with tempfile.TemporaryDirectory() as tmp:
-        for i in range(args.rounds):
-            order = list(roots.items()) if i % 2 == 0 else list(reversed(roots.items()))
-            for k, root in order:
-                out = os.path.join(tmp, f"{k}{i}.json")
-                # cwd and PYTHONPATH put this checkout's pointflow first (before the editable install)
-                env = dict(os.environ, PYTHONPATH=root)
-                subprocess.run([sys.executable, BENCH, "--no-replay", "--out", out, *bench_args], cwd=root, env=env,
-                               check=True, stdout=subprocess.DEVNULL)
-                with open(out) as f:
-                    res = json.load(f)
-                rows[k].append(res)
-                line = "  ".join(f"{r['chunk_points']}: {r['of_raw']:.0%} (legacy {r['of_raw_legacy']:.0%})" for r in res["rows"])
-                print(f"round {i} {k}: of raw {line}   load {res['machine']['loadavg_at_start'][0]:.1f}", flush=True)
+        def one(k: str, root: str) -> dict:
+            out = os.path.join(tmp, "out.json")
+            # cwd and PYTHONPATH put this checkout's pointflow first (before the editable install)
+            subprocess.run([sys.executable, BENCH, "--no-replay", "--out", out, *bench_args], cwd=root,
+                           env=H.checkout_env(root), check=True, stdout=subprocess.DEVNULL)
+            with open(out) as f:
+                return json.load(f)
+
+        def show(i: int, k: str, res: dict) -> None:
+            line = "  ".join(f"{r['chunk_points']}: {r['of_raw']:.0%} (legacy {r['of_raw_legacy']:.0%})" for r in res["rows"])
+            print(f"round {i} {k}: of raw {line}   load {res['machine']['loadavg_before'][0]:.1f}", flush=True)
+
+        rows = H.interleave({k: (lambda k=k, root=root: one(k, root)) for k, root in roots.items()}, args.rounds, show)
     sizes = [r["chunk_points"] for r in rows["A"][0]["rows"]]
     for n in sizes:
         for key in ("of_raw", "of_raw_legacy", "ingest_pts_per_cpu_s"):

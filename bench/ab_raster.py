@@ -14,23 +14,22 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import statistics
-import subprocess
 import sys
 import time
 from typing import Any
 
+import _harness as H
+
 METHODS = ("quads", "compute")
 
 
-def worker(root: str) -> None:
-    sys.path.insert(0, os.path.abspath(root))
-    import pointflow  # noqa: F401  (the checkout under test, before bench_render adds this one)
-    sys.path.insert(1, os.path.dirname(os.path.abspath(__file__)))
+def worker() -> None:
+    """Answers setup/run/quit lines for the checkout this process imports (``PYTHONPATH``)."""
     from dataclasses import replace
 
-    import bench_render as B
+    import pointflow
+    from _harness import scenes as B
     from pointflow.config import RenderConfig
     from pointflow.render.wgpu_tier import WgpuRenderer, select_adapter
     adapter, _ = select_adapter()
@@ -73,32 +72,10 @@ def worker(root: str) -> None:
         r.close()
 
 
-class Worker:
-    def __init__(self, root: str):
-        self.p = subprocess.Popen([sys.executable, __file__, "--worker", root], stdin=subprocess.PIPE,
-                                  stdout=subprocess.PIPE, text=True)
-
-    def ask(self, line: str) -> Any:
-        assert self.p.stdin and self.p.stdout
-        self.p.stdin.write(line + "\n")
-        self.p.stdin.flush()
-        out = self.p.stdout.readline()
-        if not out:
-            raise RuntimeError(f"worker died on {line!r}")
-        return json.loads(out)
-
-    def close(self) -> None:
-        try:
-            self.ask("quit")
-        except Exception:
-            pass
-        self.p.wait(timeout=60)
-
-
 def main(argv=None) -> int:
     args = sys.argv[1:] if argv is None else argv
     if args[:1] == ["--worker"]:
-        worker(args[1])
+        worker()
         return 0
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("a", help="checkout A (the baseline), a directory holding pointflow/")
@@ -108,7 +85,8 @@ def main(argv=None) -> int:
     ap.add_argument("--frames", type=int, default=3, help="frames per batch")
     ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
-    ws = {"A": Worker(a.a), "B": Worker(a.b)}
+    ws = {k: H.Worker([os.path.abspath(__file__), "--worker", root], root) for k, root in (("A", a.a), ("B", a.b))}
+    machine = H.machine()
     rows = []
     try:
         for n in a.sizes:
@@ -118,7 +96,7 @@ def main(argv=None) -> int:
                 ratios: list[float] = []
                 for i in range(a.rounds):
                     med = {}
-                    for k in ("AB" if i % 2 == 0 else "BA"):
+                    for k in H.order("AB", i):
                         t = ws[k].ask(f"run {m} {a.frames}")
                         ts[k] += t
                         med[k] = statistics.median(x[0] for x in t)
@@ -142,11 +120,9 @@ def main(argv=None) -> int:
         for w in ws.values():
             w.close()
     if a.out:
-        res = {"a": os.path.abspath(a.a), "b": os.path.abspath(a.b), "rows": rows, "platform": platform.platform(),
-               "cpu_count": os.cpu_count(), "measured_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-               "command": "bench/ab_raster.py " + " ".join(argv if argv is not None else sys.argv[1:])}
-        with open(a.out, "w") as fh:
-            json.dump(res, fh, indent=1)
+        res = {"a": os.path.abspath(a.a), "b": os.path.abspath(a.b), "rows": rows, "machine": H.machine_done(machine),
+               "measured_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "command": H.command()}
+        H.write_result(a.out, res, indent=1)
     return 0
 
 

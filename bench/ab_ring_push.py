@@ -13,13 +13,13 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
-import subprocess
 import sys
-import time
+
+import _harness as H
 
 
-def worker(root: str) -> dict[str, list[float]]:
-    sys.path.insert(0, root)
+def worker() -> dict[str, list[float]]:
+    """Seconds per push, per batch, of the checkout this process imports (``PYTHONPATH``)."""
     import numpy as np
 
     from pointflow.ring import PointRing
@@ -35,22 +35,7 @@ def worker(root: str) -> dict[str, list[float]]:
             pos = pos.astype(np.float32)
         imp = rng.random(n).astype(np.float32)
 
-        def f():
-            r.push(pos, importance=imp)
-
-        for _ in range(50):
-            f()
-        ts = []
-        for _ in range(7):
-            reps, t0 = 0, time.perf_counter()
-            while True:
-                f()
-                reps += 1
-                d = time.perf_counter() - t0
-                if d >= 0.05 and reps >= 2:
-                    break
-            ts.append(d / reps)
-        out[dt] = ts
+        out[dt] = H.per_call(lambda: r.push(pos, importance=imp))
         r.close()
     # the same through ingest's Ingestor (convert, non-finite check, queue, push), float32 chunks
     from pointflow.chunk import PointChunk
@@ -65,19 +50,7 @@ def worker(root: str) -> dict[str, list[float]]:
         ing.add_chunk(PointChunk(positions=pos32, channels={}))
         ing.flush()
 
-    for _ in range(50):
-        g()
-    ts = []
-    for _ in range(7):
-        reps, t0 = 0, time.perf_counter()
-        while True:
-            g()
-            reps += 1
-            d = time.perf_counter() - t0
-            if d >= 0.05 and reps >= 2:
-                break
-        ts.append(d / reps)
-    out["ingest_f32"] = ts
+    out["ingest_f32"] = H.per_call(g)
     r.close()
     return out
 
@@ -90,15 +63,14 @@ def main() -> int:
     ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.worker:
-        print(json.dumps(worker(args.a)))
+        print(json.dumps(worker()))
         return 0
     roots = {"A": args.a, "B": args.b}
     res: dict[str, dict[str, list[float]]] = {k: {"f64": [], "f32": [], "ingest_f32": []} for k in roots}
-    for i in range(args.rounds):
-        order = list(roots.items()) if i % 2 == 0 else list(reversed(roots.items()))
-        for k, root in order:
-            o = json.loads(subprocess.run([sys.executable, __file__, root, root, "--worker"], capture_output=True,
-                                          text=True, check=True).stdout)
+    runs = H.interleave({k: (lambda root=root: H.run_json([__file__, root, root, "--worker"], root))
+                         for k, root in roots.items()}, args.rounds)
+    for k, outs in runs.items():
+        for o in outs:
             for d in o:
                 res[k][d] += o[d]
     for d in ("f64", "f32", "ingest_f32"):

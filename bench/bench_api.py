@@ -28,9 +28,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import json
 import multiprocessing as mp
-import os
 import statistics
 import subprocess
 import sys
@@ -40,16 +38,9 @@ import time
 import numpy as np
 import zmq
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-sys.path.insert(0, ROOT)
+import _harness as H
+
 SIZES = (1_000, 10_000, 100_000)
-
-
-def _uptime() -> str:
-    try:
-        return subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
-    except OSError:
-        return ""
 
 
 def _rerun():
@@ -184,7 +175,7 @@ def pipeline_bench(repeats: int, points: int, sizes) -> dict:
             clouds = _clouds(n, k)
             res = {"send": [], "wire": [], "rerun": []}
             for r in range(repeats):
-                order = ["send", "wire", "rerun"] if r % 2 == 0 else ["rerun", "wire", "send"]
+                order = H.order(["send", "wire", "rerun"], r)
                 for name in order:
                     if name == "send":
                         res[name].append(run_send(p, clouds))
@@ -300,7 +291,7 @@ def handoff_bench(repeats: int) -> dict:
     for n, k in ((100_000, 200), (1_000_000, 30)):
         res = {"zmq_zero_copy": [], "zmq_copy": [], "shm": []}
         for r in range(repeats):
-            for kind in (["zmq_zero_copy", "zmq_copy", "shm"] if r % 2 == 0 else ["shm", "zmq_copy", "zmq_zero_copy"]):
+            for kind in H.order(["zmq_zero_copy", "zmq_copy", "shm"], r):
                 res[kind].append(handoff({"zmq_zero_copy": "zmq", "zmq_copy": "zmq_copy", "shm": "shm"}[kind], n, k, tmp))
         med = {kk: statistics.median(v) for kk, v in res.items()}
         out[str(n)] = {"clouds": k, "points_per_s": res, "median": med}
@@ -316,18 +307,15 @@ def main() -> None:
                     help="points per run and size (three times that for 100k-point clouds)")
     ap.add_argument("--sizes", default=",".join(map(str, SIZES)))
     ap.add_argument("--handoff", action="store_true")
-    ap.add_argument("--out", default=os.path.join(ROOT, "bench", "results", "api.json"))
+    ap.add_argument("--out", default=str(H.RESULTS / "api.json"))
     a = ap.parse_args()
-    result = {"uptime_before": _uptime(), "cpus": os.cpu_count(), "repeats": a.repeats, "points_per_run": a.points}
+    result = {"machine": H.machine(), "command": H.command(), "repeats": a.repeats, "points_per_run": a.points}
     result["pipeline"] = pipeline_bench(a.repeats, a.points, [int(s) for s in a.sizes.split(",")])
     if a.handoff:
         result["handoff"] = handoff_bench(max(3, a.repeats // 2))
-    result["uptime_after"] = _uptime()
-    print(result["uptime_before"], "->", result["uptime_after"])
-    os.makedirs(os.path.dirname(a.out), exist_ok=True)
-    with open(a.out, "w") as f:
-        json.dump(result, f, indent=2)
-    print("wrote", a.out)
+    m = H.machine_done(result["machine"])
+    print(m["uptime_before"], "->", m["uptime_after"])
+    H.write_result(a.out, result)
 
 
 if __name__ == "__main__":

@@ -15,17 +15,13 @@ within 1 % of target; p99 jitter <= 2 ms at 60 Hz idle.
 from __future__ import annotations
 
 import argparse
-import json
 import multiprocessing as mp
 import os
-import platform
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+import _harness as H
 
 RING_POINTS = 1_000_000
 CHUNK = 20_000
@@ -191,9 +187,10 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=5.0)
     ap.add_argument("--rates", default="30,60,120")
-    ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "cadence.json"))
+    ap.add_argument("--out", default=str(H.RESULTS / "cadence.json"))
     args = ap.parse_args()
-    tmp = os.environ.get("XDG_RUNTIME_DIR", "/tmp")
+    tmp = os.environ["XDG_RUNTIME_DIR"]
+    machine = H.machine()
     rows = []
     for load in (False, True):
         for hz in [float(x) for x in args.rates.split(",")]:
@@ -221,12 +218,9 @@ def main() -> None:
     loads = [r["ingest_points_per_s"] for r in rows if r["load"] == "ingest"]
     if loads:
         print(f"ingest load: median {np.median(loads) / 1e6:.1f} M points/s pushed into the ring")
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps({
+    H.write_result(args.out, {
         "benchmark": "cadence", "seconds_per_case": args.seconds, "ring_points": RING_POINTS, "chunk": CHUNK,
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
-        "rows": rows}, indent=1))
-    print(f"wrote {args.out}")
+        "machine": H.machine_done(machine), "command": H.command(), "rows": rows}, indent=1)
 
 
 if __name__ == "__main__":

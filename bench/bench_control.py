@@ -24,33 +24,18 @@ Writes ``bench/results/control.json`` and ``bench/results/control.png``.
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import platform
 import random
-import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-os.environ.setdefault("XDG_RUNTIME_DIR", "/tmp/xdg")
-os.makedirs(os.environ["XDG_RUNTIME_DIR"], exist_ok=True)
+import _harness as H
+from pointflow import Pipeline
 
-from pointflow import Pipeline  # noqa: E402
-
-RESULTS = ROOT / "bench" / "results"
-
-
-def _uptime() -> str:
-    try:
-        return subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
-    except OSError:
-        return ""
+RESULTS = H.RESULTS
 
 
 def _terrain(n: int, path: str) -> str:
@@ -114,10 +99,8 @@ def run(kind: str, args, tmp: str) -> dict:
 
 
 def chart(res: dict, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    if (plt := H.pyplot()) is None:
+        return
 
     fig, axes = plt.subplots(1, len(res["runs"]), figsize=(5.2 * len(res["runs"]), 3.6))
     for ax, r in zip(np.atleast_1d(axes), res["runs"]):
@@ -131,7 +114,7 @@ def chart(res: dict, path: Path) -> None:
         ax.set_xlabel("ms")
         ax.set_ylabel("fraction of turns")
         ax.legend(fontsize=7, loc="lower right")
-    fig.suptitle(f"control latency, {res['machine']}", fontsize=9)
+    fig.suptitle(f"control latency, {H.machine_line(res['machine'])}", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
 
@@ -145,7 +128,7 @@ def main() -> None:
     ap.add_argument("--runs", nargs="+", default=["idle", "live"], choices=["idle", "live"])
     ap.add_argument("--out", default=str(RESULTS / "control.json"))
     args = ap.parse_args()
-    res = {"machine": f"{platform.node()} ({os.cpu_count()} CPUs)", "uptime_before": _uptime(), "runs": [],
+    res = {"machine": H.machine(), "command": H.command(), "runs": [],
            "args": {k: v for k, v in vars(args).items() if k != "out"}}
     with tempfile.TemporaryDirectory() as tmp:
         for kind in args.runs:
@@ -155,10 +138,8 @@ def main() -> None:
                   f"({r['p50_in_frames']:.2f} frames), p99 {r['latency_ms_p99']:.1f} ms ({r['p99_in_frames']:.2f} frames), "
                   f"target {'met' if r['target_met'] else 'MISSED'}; per turn / its own frame: p50 "
                   f"{r['turn_in_own_frames_p50']:.2f}, p99 {r['turn_in_own_frames_p99']:.2f}", flush=True)
-    res["uptime_after"] = _uptime()
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(res, indent=1))
+    H.machine_done(res["machine"])
+    out = H.write_result(args.out, res, indent=1)
     chart(res, out.with_suffix(".png"))
     print(f"wrote {out} and {out.with_suffix('.png')}")
 

@@ -15,27 +15,17 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
-import os
-import platform
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "bench"))
-os.environ.setdefault("XDG_RUNTIME_DIR", "/tmp/xdg")
-os.makedirs(os.environ["XDG_RUNTIME_DIR"], exist_ok=True)
+import _harness as H
+from _harness.scenes import scene_autzen, scene_demo, scene_dense
+from pointflow.config import EdlConfig, RenderConfig
+from pointflow.render.cpu import CpuRenderer
 
-from bench_tiers import scene_autzen, scene_demo, scene_dense  # noqa: E402
-
-from pointflow.config import EdlConfig, RenderConfig  # noqa: E402
-from pointflow.render.cpu import CpuRenderer  # noqa: E402
-
-RESULTS = ROOT / "bench" / "results"
+RESULTS = H.RESULTS
 
 
 def make(tier: str, cfg: RenderConfig, n: int):
@@ -60,10 +50,7 @@ def measure(tier: str, frame, cam, size, rounds: int) -> dict:
     try:
         for r in rs.values():  # warm-up: uploads, shader compiles, allocations
             frame_ms(r, frame, cam)
-        ts: dict[str, list[float]] = {"off": [], "on": []}
-        for i in range(rounds):
-            for k in (("off", "on") if i % 2 == 0 else ("on", "off")):
-                ts[k].append(frame_ms(rs[k], frame, cam))
+        ts = H.interleave({k: (lambda k=k: frame_ms(rs[k], frame, cam)) for k in ("off", "on")}, rounds)
     finally:
         for r in rs.values():
             r.close()
@@ -84,12 +71,9 @@ def pass_cost(tier: str, size, rounds: int, frame, cam) -> dict:
     empty = dataclasses.replace(frame, size=0)
     rs = {k: make(tier, dataclasses.replace(base, edl=EdlConfig(enabled=k == "on")), frame.size) for k in ("off", "on")}
     try:
-        ts: dict[str, list[float]] = {"off": [], "on": []}
         for r in rs.values():
             frame_ms(r, empty, cam)
-        for i in range(rounds):
-            for k in (("off", "on") if i % 2 == 0 else ("on", "off")):
-                ts[k].append(frame_ms(rs[k], empty, cam))
+        ts = H.interleave({k: (lambda k=k: frame_ms(rs[k], empty, cam)) for k in ("off", "on")}, rounds)
     finally:
         for r in rs.values():
             r.close()
@@ -128,6 +112,7 @@ def main(argv=None) -> int:
     size = tuple(int(v) for v in a.size.split("x"))
     aspect = size[0] / size[1]
     want = a.scenes.split(",")
+    machine = H.machine(numpy=np.__version__)
     scenes = {"demo": scene_demo(aspect, 300_000)}
     if "dense_1m" in want:
         scenes["dense_1m"] = scene_dense(aspect, 1_000_000)
@@ -148,12 +133,9 @@ def main(argv=None) -> int:
     for tier in a.tiers.split(","):
         passes[tier] = pass_cost(tier, size, 3 * a.rounds, frame, cam)
         print(f"EDL pass alone at {size[0]}x{size[1]}, {tier}: {passes[tier]['edl_pass_ms']:.1f} ms")
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    out = {"edl_pass": passes, "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "python": platform.python_version(),
-                       "numpy": np.__version__},
+    out = {"edl_pass": passes, "machine": H.machine_done(machine), "command": H.command(),
            "size": list(size), "edl": dataclasses.asdict(EdlConfig(enabled=True)), "rows": rows}
-    (RESULTS / "edl_cpu_gl.json").write_text(json.dumps(out, indent=1))
-    print(f"wrote {RESULTS / 'edl_cpu_gl.json'}")
+    H.write_result(RESULTS / "edl_cpu_gl.json", out, indent=1)
     if a.pictures:
         pics = {k: v for k, v in scenes.items() if k in ("demo", "autzen")}
         pictures(pics, (960, 540))

@@ -31,24 +31,16 @@ import argparse
 import glob
 import json
 import math
-import multiprocessing as mp
 import os
-import platform
 import statistics
-import sys
 import time
 
 import numpy as np
-import zmq
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-sys.path.insert(0, ROOT)
-sys.path.insert(0, os.path.join(ROOT, "bench"))
-from bench_ingest import FRAMES_ON, _IngestRun, cpu_seconds  # noqa: E402  (the shared ingest-stage harness)
-#: ../shared/data of a clone next to the shared folder (a worktree one level deeper looks further up)
-DATA = next((d for d in (os.path.join(ROOT, "..", "shared", "data", "ouster_os1_128"),
-                         os.path.join(ROOT, "..", "..", "shared", "data", "ouster_os1_128")) if os.path.isdir(d)),
-            os.path.join(ROOT, "..", "shared", "data", "ouster_os1_128"))
+import _harness as H
+from _harness.ingest import FRAMES_ON, IngestRun
+
+DATA = str(H.DATA / "ouster_os1_128")
 N = 131_072
 SEC = 1_000_000_000
 T0 = 1_700_000_000 * SEC
@@ -204,58 +196,6 @@ def error_vs_cost(reps: int) -> dict:
 
 
 # ----------------------------------------------------------------------------- pipeline
-def _producer(endpoint: str, n: int, count: int, go, ready) -> None:
-    from pointflow import wire
-    from pointflow.chunk import PointChunk
-
-    rng = np.random.default_rng(1)
-    pos = rng.uniform(-100, 100, (n, 3)).astype(np.float32)
-    inten = rng.uniform(0, 255, n).astype(np.float32)
-    ctx = zmq.Context()
-    s = ctx.socket(zmq.PUSH)
-    s.setsockopt(zmq.SNDHWM, 64)
-    s.connect(endpoint)
-    ready.set()
-    go.wait()
-    for i in range(count):
-        wire.send(s, PointChunk(positions=pos, channels={"intensity": inten}, source_id="bench", seq=i, trace_id=0,
-                                stamp_ns=T0 + i * 1000, frame_id="lidar"))
-    s.close(linger=-1)
-    ctx.term()
-
-
-class IngestRun(_IngestRun):
-    """bench_ingest.py's real ingest stage (stage_main in its own process), with or without
-    frames, fed chunks that carry a frame id."""
-
-    def measure(self, n: int, count: int) -> float:
-        ctx = mp.get_context("spawn")
-        go, ready = ctx.Event(), ctx.Event()
-        while not self.last:
-            self.stats(200)
-        before = self.last.get("points_out", 0) + sum(self.last.get("drops", {}).values())
-        prod = ctx.Process(target=_producer, args=(self.ep.ingest, n, count, go, ready))
-        prod.start()
-        ready.wait(60)
-        time.sleep(0.1)
-        c0 = cpu_seconds(self.ps)
-        go.set()
-        t0 = time.perf_counter()
-        target = before + n * count
-        while True:
-            s = self.stats(5)
-            if s.get("points_out", 0) + sum(s.get("drops", {}).values()) >= target:
-                break
-        dt = time.perf_counter() - t0
-        c1 = cpu_seconds(self.ps)
-        prod.join()
-        # points per CPU-second of the ingest process: its own cost, steadier than the rate on
-        # a machine whose other load comes and goes (includes its idle polling: a lower bound)
-        self.cpu_rate = n * count / max(1e-9, c1 - c0)
-        return n * count / dt
-
-
-
 def pipeline(points: int, rounds: int) -> dict:
     out = {}
     for n in (10_000, 1_000):
@@ -265,8 +205,9 @@ def pipeline(points: int, rounds: int) -> dict:
         runs = {"off": IngestRun(2_000_000, None), "on": IngestRun(2_000_000, FRAMES_ON)}
         try:
             for i in range(rounds):  # interleaved, alternating which goes first
-                for k in (("off", "on") if i % 2 == 0 else ("on", "off")):
-                    rates[k].append(runs[k].measure(n, count))
+                for k in H.order(("off", "on"), i):
+                    runs[k].measure(n, count, "lidar", stamp0=T0)
+                    rates[k].append(runs[k].hb_rate)  # until the heartbeat that shows every point
                     cpu[k].append(runs[k].cpu_rate)
         finally:
             finals = {k: r.close() for k, r in runs.items()}
@@ -285,10 +226,8 @@ def pipeline(points: int, rounds: int) -> dict:
 
 # ----------------------------------------------------------------------------- chart
 def chart(res: dict, path: str) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    if (plt := H.pyplot()) is None:
+        return
 
     ev = res["error_vs_cost"]
     fig, ax = plt.subplots(figsize=(7.5, 4.6))
@@ -307,7 +246,8 @@ def chart(res: dict, path: str) -> None:
     ax.set_title(f"Sweep error vs cost: {ev['data'][:48]}\n{ev['motion']}", fontsize=9)
     ax.legend(fontsize=7.5, loc="lower left")
     ax.grid(True, which="both", alpha=0.3)
-    fig.text(0.99, 0.01, res["machine"], ha="right", fontsize=6.5, color="#555")
+    fig.text(0.99, 0.01, f"{H.machine_line(res['machine'])}, numpy {np.__version__}", ha="right", fontsize=6.5,
+             color="#555")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
 
@@ -318,11 +258,10 @@ def main() -> None:
     ap.add_argument("--pipeline-points", type=int, default=3_000_000)
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--skip-pipeline", action="store_true")
-    ap.add_argument("--out", default=os.path.join(ROOT, "bench", "results", "frames.json"))
+    ap.add_argument("--out", default=str(H.RESULTS / "frames.json"))
     a = ap.parse_args()
-    res = {"machine": f"{platform.node()[:20]}, {os.cpu_count()} cores, numpy {np.__version__}",
-           "command": "python bench/bench_frames.py " + " ".join(sys.argv[1:]),
-           "openblas_threads": os.environ.get("OPENBLAS_NUM_THREADS", "default"), "loadavg_start": os.getloadavg()}
+    res = {"machine": H.machine(numpy=np.__version__), "command": H.command(),
+           "openblas_threads": os.environ.get("OPENBLAS_NUM_THREADS", "default")}
     res["micro"] = micro(a.reps)
     print(json.dumps(res["micro"], indent=1))
     res["error_vs_cost"] = error_vs_cost(max(5, a.reps // 3))
@@ -330,12 +269,9 @@ def main() -> None:
     if not a.skip_pipeline:
         res["pipeline"] = pipeline(a.pipeline_points, a.rounds)
         print(json.dumps(res["pipeline"], indent=1))
-    res["loadavg_end"] = os.getloadavg()
-    os.makedirs(os.path.dirname(a.out), exist_ok=True)
-    with open(a.out, "w") as f:
-        json.dump(res, f, indent=1)
+    H.machine_done(res["machine"])
+    H.write_result(a.out, res, indent=1)
     chart(res, os.path.splitext(a.out)[0] + ".png")
-    print("wrote", a.out)
 
 
 if __name__ == "__main__":

@@ -25,51 +25,24 @@ against pointflow: 10-15 % of a 10k-chunk run.
 from __future__ import annotations
 
 import argparse
-import json
 import multiprocessing as mp
 import os
 import shutil
 import statistics
-import sys
 import time
 
 import numpy as np
 import zmq
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-DATA = os.path.join(ROOT, "..", "shared", "data")
+import _harness as H
+from _harness.ingest import FRAMES_ON, IngestRun
+from _harness.ingest import chunk as _chunk
+
+DATA = str(H.DATA)
 SIZES = (1_000, 10_000, 100_000)
-#: ``frames.fixed`` with a static chain: every chunk placed in the fixed frame at ingest
-#: (the issue-20 target with frames on: >= 0.85 of the frames-off figure)
-FRAMES_ON = {"fixed": "odom", "static": [{"parent": "odom", "child": "lidar", "translation": [3.0, -2.0, 1.7],
-                                          "rpy_deg": [1.0, 2.0, 30.0]}]}
-
-
-def _chunk(n: int, seed: int):
-    rng = np.random.default_rng(seed)
-    return rng.uniform(-100, 100, (n, 3)).astype(np.float32), rng.uniform(0, 255, n).astype(np.float32)
 
 
 # ----------------------------------------------------------------------------- producers
-def _wire_producer(endpoint: str, n: int, count: int, go, ready=None, frame_id: str = "") -> None:
-    from pointflow import wire
-    from pointflow.chunk import PointChunk
-
-    pos, inten = _chunk(n, 1)
-    ctx = zmq.Context()
-    s = ctx.socket(zmq.PUSH)
-    s.setsockopt(zmq.SNDHWM, 64)
-    s.connect(endpoint)
-    if ready is not None:
-        ready.set()
-    go.wait()
-    for i in range(count):
-        wire.send(s, PointChunk(positions=pos, channels={"intensity": inten}, source_id="bench", seq=i, trace_id=0,
-                                frame_id=frame_id))
-    s.close(linger=-1)
-    ctx.term()
-
-
 def _raw_producer(endpoint: str, n: int, count: int, go, ready) -> None:
     pos, inten = _chunk(n, 1)
     ctx = zmq.Context()
@@ -182,118 +155,6 @@ def _rates(points: int, t_go: float, t_first: float, t_end: float) -> tuple[floa
     return points / (t_end - t_go), points / (t_end - t_first)
 
 
-def cpu_seconds(ps) -> float:
-    """CPU time of a process, all its threads (ZeroMQ's I/O thread included): from the
-    scheduler's ns counters (/proc/PID/task/*/schedstat) where there are any, else psutil's
-    (10 ms ticks: too coarse for a 0.1 s measurement)."""
-    try:
-        tot = 0
-        base = f"/proc/{ps.pid}/task"
-        for tid in os.listdir(base):
-            with open(f"{base}/{tid}/schedstat") as f:
-                tot += int(f.read().split()[0])
-        return tot / 1e9
-    except (OSError, ValueError, IndexError):
-        c = ps.cpu_times()
-        return c.user + c.system
-
-
-class _IngestRun:
-    """The real ingest stage in its own process, fed by a producer process (bench_frames.py
-    runs it with a ``frames:`` block too)."""
-
-    def __init__(self, cap: int, frames: dict | None = None):
-        from pointflow.config import load_config, new_run_dir
-        from pointflow.ring import PointRing
-        from pointflow.runtime.stage import RunInfo, stage_main
-
-        self.cfg_dict = {"source": {"transport": "synthetic"}, "ring": {"max_points": cap},
-                         "render": {"color_by": "intensity", "output": {"dir": None}},
-                         "tracing": {"enabled": False}, "supervisor": {"heartbeat_ms": 20}}
-        if frames:
-            self.cfg_dict["frames"] = frames
-        cfg = load_config(self.cfg_dict)
-        self.ring = PointRing(cap, channels=cfg.ring_channels())
-        self.run_dir = new_run_dir()
-        self.ep = cfg.resolved_endpoints(self.run_dir)
-        self.zctx = zmq.Context()
-        self.control = self.zctx.socket(zmq.PULL)
-        self.control.bind(self.ep.control)
-        self.trace = self.zctx.socket(zmq.PULL)
-        self.trace.bind(self.ep.trace)
-        info = RunInfo(run_dir=self.run_dir, endpoints=self.ep, ring_name=self.ring.name, slab_names=("", ""),
-                       out_dir=None, supervisor_pid=os.getpid(), log_level=40)
-        self.proc = mp.get_context("spawn").Process(target=stage_main, args=("ingest", "ingest", self.cfg_dict, ROOT, info))
-        self.proc.start()
-        self.last: dict = {}
-        import psutil
-
-        self.ps = psutil.Process(self.proc.pid)
-        #: points per CPU-second of the ingest process in the last measure() (its own cost,
-        #: independent of how busy the shared machine is)
-        self.cpu_rate = 0.0
-
-    def stats(self, timeout_ms=100) -> dict:
-        if self.control.poll(timeout_ms):
-            while True:
-                try:
-                    m = json.loads(self.control.recv(zmq.NOBLOCK))
-                except zmq.Again:
-                    break
-                if m.get("type") == "heartbeat":
-                    self.last = m["stats"]
-        return self.last
-
-    def measure(self, n: int, count: int, frame_id: str = "") -> float:
-        ctx = mp.get_context("spawn")
-        go, ready = ctx.Event(), ctx.Event()
-        before = self.stats(2000).get("points_out", 0)
-        while not self.last:
-            before = self.stats(200).get("points_out", 0)
-        prod = ctx.Process(target=_wire_producer, args=(self.ep.ingest, n, count, go, ready, frame_id), daemon=True)
-        prod.start()
-        ready.wait(60)
-        time.sleep(0.1)
-        from pointflow.ring.ring import I_LAST_PUSH_NS, I_TOTAL_WRITTEN
-
-        st = self.ring._st  # the ring's shared header (read-only here; an int64 read is atomic)
-        w0 = int(st[I_TOTAL_WRITTEN])
-        c0 = cpu_seconds(self.ps)
-        t_go = time.perf_counter()
-        go.set()
-        # ends: the time of the ring push that completed the count (the ring's header keeps the
-        # CLOCK_MONOTONIC time of its last push, taken as that push starts: one push, well
-        # under 1 ms, early), and when a heartbeat shows every point accounted for (up to a
-        # heartbeat interval later: the way this bench timed pointflow before)
-        t_ring = t_hb = None
-        target = before + n * count
-        deadline = time.monotonic() + 600
-        while time.monotonic() < deadline and t_hb is None:
-            s = self.stats(5)
-            now = time.perf_counter()
-            if t_ring is None and int(st[I_TOTAL_WRITTEN]) - w0 >= n * count:
-                t_ring = int(st[I_LAST_PUSH_NS]) / 1e9  # perf_counter is CLOCK_MONOTONIC too
-            if s.get("points_out", 0) + sum(s.get("drops", {}).values()) >= target:
-                t_hb = now
-        c1 = cpu_seconds(self.ps)
-        prod.join()
-        self.cpu_rate = n * count / max(1e-9, c1 - c0)
-        #: the heartbeat-timed rate of the last measure()
-        self.hb_rate = n * count / (t_hb - t_go)
-        return n * count / ((t_ring or t_hb) - t_go)
-
-    def close(self) -> dict:
-        self.proc.terminate()
-        self.proc.join(10)
-        final = self.stats(300)
-        for s in (self.control, self.trace):
-            s.close(linger=0)
-        self.zctx.term()
-        self.ring.close()
-        shutil.rmtree(self.run_dir, ignore_errors=True)
-        return final
-
-
 def run_replay(path: str, label: str, extra: dict) -> dict:
     """End to end: file source process -> ingest process -> ring, as fast as ingest takes."""
     from pointflow import Pipeline
@@ -321,18 +182,15 @@ def main() -> None:
     ap.add_argument("--sizes", default=",".join(map(str, SIZES)), help="chunk sizes, comma-separated")
     ap.add_argument("--no-replay", action="store_true", help="skip the end-to-end replays")
     ap.add_argument("--no-frames", action="store_true", help="skip the run with frames.fixed set")
-    ap.add_argument("--out", default=os.path.join(ROOT, "bench", "results", "ingest.json"), help="results JSON")
+    ap.add_argument("--out", default=str(H.RESULTS / "ingest.json"), help="results JSON")
     args = ap.parse_args()
-    os.environ.setdefault("XDG_RUNTIME_DIR", "/tmp")
     from pointflow.config import new_run_dir
 
     cap = 2_000_000
-    results = {"machine": {"cpus": os.cpu_count(), "python": sys.version.split()[0],
-                           "loadavg_at_start": os.getloadavg()},
-               "command": " ".join(["bench/bench_ingest.py"] + sys.argv[1:]), "rows": [], "replay": []}
+    results = {"machine": H.machine(), "command": H.command(), "rows": [], "replay": []}
     run_dir = new_run_dir()
-    ing = _IngestRun(cap)
-    ing_fr = None if args.no_frames else _IngestRun(cap, FRAMES_ON)
+    ing = IngestRun(cap)
+    ing_fr = None if args.no_frames else IngestRun(cap, FRAMES_ON)
     try:
         ing.measure(10_000, 2 * cap // 10_000)  # warm-up: every ring page touched once
         if ing_fr is not None:
@@ -414,10 +272,8 @@ def main() -> None:
         for r in results["replay"]:
             print(f"replay {r['what']:<28} {r['points']:>9,} points in {r['seconds_incl_startup']:.2f} s "
                   f"(incl. pipeline start-up), ingest stored {r['points_out']:,}", flush=True)
-    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-    with open(args.out, "w") as f:
-        json.dump(results, f, indent=2)
-    print(f"wrote {args.out}")
+    H.machine_done(results["machine"])
+    H.write_result(args.out, results)
 
 
 if __name__ == "__main__":

@@ -20,16 +20,14 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import statistics
-import sys
 import tempfile
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from pointflow import Pipeline  # noqa: E402
-from pointflow.profiling.report import build_profile, format_table  # noqa: E402
+import _harness as H
+from _harness.pipeline import stats_window
+from pointflow import Pipeline
+from pointflow.profiling.report import build_profile, format_table
 
 
 def latency_config(backend: str, size: list[int], ring: int, raster: str = "auto") -> dict:
@@ -147,23 +145,6 @@ def run_latency(seconds: float, backend: str, size: list[int], ring: int, out_di
     }
 
 
-def stats_window(cfg: dict, seconds: float, warmup_s: float, what: str) -> tuple[dict, dict]:
-    """Run ``cfg`` and sample stats after a warm-up and again ``seconds`` later; the
-    pipeline is stopped either way and a failed run ends the benchmark."""
-    pipe = Pipeline.from_dict(cfg, out_dir=tempfile.mkdtemp(prefix="pf-bench-"))
-    pipe.start()
-    try:
-        pipe.wait(warmup_s)
-        s0 = pipe.stats()
-        pipe.wait(seconds)
-        s1 = pipe.stats()
-    finally:
-        stats = pipe.stop()
-    if stats.get("failure"):
-        raise SystemExit(f"{what} pipeline failed: {stats['failure']}")
-    return s0, s1
-
-
 def run_throughput(seconds: float, tracing: bool, warmup_s: float = 3.0) -> float:
     """Points/s through ingest, measured between two stats samples after a warm-up (the
     source computes its cached scans first)."""
@@ -263,6 +244,7 @@ def main() -> None:
     args = ap.parse_args()
     size = [int(v) for v in args.size.split("x")]
     out_dir = tempfile.mkdtemp(prefix="pf-bench-lat-")
+    machine = H.machine()
     print("== end-to-end latency (100k-point scans at 10 Hz, cadence 60 Hz)")
     lat = run_latency(args.seconds, args.backend, size, args.ring, out_dir, args.raster, args.skip_s, args.spans_out)
     if args.latency_only:
@@ -270,9 +252,8 @@ def main() -> None:
         print(f"raster {args.raster} ({lat['raster_used']}): send -> frame p50 {s.get('p50')} ms, p99 {s.get('p99')} ms; "
               f"frame p50/p99 {lat['frame_ms'].get('p50')} / {lat['frame_ms'].get('p99')} ms; "
               f"p99 / (2 x frame p99 + tick) = {lat['ratio_p99_to_loaded_target']} (load {lat['loadavg'][0]:.1f})")
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(json.dumps({"benchmark": "latency", "latency": lat}, indent=1, default=str))
-        print(f"wrote {args.out}")
+        H.write_result(args.out, {"benchmark": "latency", "latency": lat, "machine": H.machine_done(machine),
+                                  "command": H.command()}, indent=1)
         return
     print("\n== tracing overhead, hot path (ingest per-chunk work, spans through ZeroMQ to a collector)")
     hot = tracing_hot_path()
@@ -311,10 +292,8 @@ def main() -> None:
            "tracing": {"seconds_each": args.tp_seconds, "off_points_per_s": off, "on_points_per_s": on,
                        "median_off": med_off, "median_on": med_on, "ratio_on_off": round(med_on / med_off, 4)
                        if med_off else None, "overhead_pct": round(overhead, 2)},
-           "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()}}
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(res, indent=1, default=str))
-    print(f"wrote {args.out}")
+           "machine": H.machine_done(machine), "command": H.command()}
+    H.write_result(args.out, res, indent=1)
 
 
 if __name__ == "__main__":

@@ -16,19 +16,15 @@ what ``auto`` drew before it existed, ``backend: wgpu, raster: compute`` (issue 
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import platform
 import statistics
-import sys
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+import yaml
 
-import yaml  # noqa: E402
+import _harness as H
+from _harness.pipeline import stats_window
 
-from bench_latency import stats_window  # noqa: E402 - same folder
+ROOT = H.ROOT
 
 
 def run_once(raster: str, seconds: float, warmup_s: float, backend: str = "auto") -> dict:
@@ -52,15 +48,16 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=8.0)
     ap.add_argument("--warmup", type=float, default=12.0, help="fills the 1M ring (1M points/s)")
     ap.add_argument("--rounds", type=int, default=2)
-    ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "pipeline_raster.json"))
+    ap.add_argument("--out", default=str(H.RESULTS / "pipeline_raster.json"))
     ap.add_argument("--auto", action="store_true",
                     help="backend: auto against backend: wgpu, raster: compute (bench/results/pipeline_auto.json)")
     a = ap.parse_args()
     if a.auto:
         return compare_auto(a)
     runs = []
+    machine = H.machine()
     for r in range(a.rounds):
-        for raster in (("quads", "compute") if r % 2 == 0 else ("compute", "quads")):
+        for raster in H.order(("quads", "compute"), r):
             res = run_once(raster, a.seconds, a.warmup)
             runs.append(res)
             print(f"  round {r + 1} {raster:8}: {res['fps']:6.2f} frames/s ({res['frames']} frames in "
@@ -68,39 +65,30 @@ def main() -> None:
     med = {m: statistics.median(x["fps"] for x in runs if x["raster"] == m) for m in ("quads", "compute")}
     print(f"median frames/s: quads {med['quads']:.2f}, compute {med['compute']:.2f} "
           f"(x{med['compute'] / max(med['quads'], 1e-9):.2f})")
-    Path(a.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(a.out).write_text(json.dumps({"config": "configs/demo.yaml (1M ring, 1280x720, 2 px, intensity)",
-                                       "runs": runs, "median_fps": med,
-                                       "machine": {"cpus": os.cpu_count(), "platform": platform.platform()}},
-                                      indent=1))
-    print(f"wrote {a.out}")
+    H.write_result(a.out, {"config": "configs/demo.yaml (1M ring, 1280x720, 2 px, intensity)", "runs": runs,
+                           "median_fps": med, "machine": H.machine_done(machine), "command": H.command()}, indent=1)
 
 
 def compare_auto(a) -> None:
     """``backend: auto`` (today's selection) against ``wgpu`` + ``compute`` (before issue 29),
     alternating per round so both see the same load."""
-    import subprocess
     kinds = {"auto": ("auto", "auto"), "wgpu_compute": ("wgpu", "compute")}
     runs = []
-    load = {"before": subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()}
+    machine = H.machine()
     for r in range(a.rounds):
-        for k in (list(kinds) if r % 2 == 0 else list(kinds)[::-1]):
+        for k in H.order(list(kinds), r):
             backend, raster = kinds[k]
             res = run_once(raster, a.seconds, a.warmup, backend=backend)
             res["kind"] = k
             runs.append(res)
             print(f"  round {r + 1} {k:13}: {res['fps']:6.2f} frames/s ({res['frames']} frames in "
                   f"{res['seconds']:.1f} s; tier {res['tier']}, raster {res['raster_used']})", flush=True)
-    load["after"] = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
     med = {k: statistics.median(x["fps"] for x in runs if x["kind"] == k) for k in kinds}
     print(f"median frames/s: backend auto {med['auto']:.2f}, wgpu compute {med['wgpu_compute']:.2f} "
           f"(x{med['auto'] / max(med['wgpu_compute'], 1e-9):.2f})")
-    out = Path(a.out if a.out != str(ROOT / "bench" / "results" / "pipeline_raster.json")
-               else ROOT / "bench" / "results" / "pipeline_auto.json")
-    out.write_text(json.dumps({"config": "configs/demo.yaml (1M ring, 1280x720, 2 px, intensity)", "runs": runs,
-                               "median_fps": med, "load": load,
-                               "machine": {"cpus": os.cpu_count(), "platform": platform.platform()}}, indent=1))
-    print(f"wrote {out}")
+    out = Path(a.out if a.out != str(H.RESULTS / "pipeline_raster.json") else H.RESULTS / "pipeline_auto.json")
+    H.write_result(out, {"config": "configs/demo.yaml (1M ring, 1280x720, 2 px, intensity)", "runs": runs,
+                         "median_fps": med, "machine": H.machine_done(machine), "command": H.command()}, indent=1)
 
 
 if __name__ == "__main__":

@@ -26,14 +26,14 @@ import json
 import logging
 import os
 import statistics
-import sys
 import tempfile
 import time
 
 import numpy as np
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-sys.path.insert(0, ROOT)
+import _harness as H
+
+ROOT = str(H.ROOT)
 
 
 def _demo_cfg(record: str | None, realtime: bool, npz: str) -> dict:
@@ -187,12 +187,7 @@ def bytes_per_point(chunks: list, tmp: str) -> dict:
 
 
 def plot(res: dict, path: str) -> None:
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
+    if (plt := H.pyplot()) is None:
         return
     fig, ax = plt.subplots(1, 3, figsize=(14, 4.2))
     p = res["pipeline"]["realtime"]
@@ -217,7 +212,7 @@ def plot(res: dict, path: str) -> None:
     ax[2].set_title("bytes per point")
     cmd = res["command"] + (f" (pipeline: {res['pipeline_command']})" if res.get("pipeline_command", res["command"])
                             != res["command"] else "")
-    fig.suptitle(f"{res['machine']['label']}; {cmd}", fontsize=9)
+    fig.suptitle(f"{H.machine_line(res['machine'])}, cpu render tier; {cmd}", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
 
@@ -231,10 +226,7 @@ def main() -> None:
                     "(keeps the pipeline figures of the last full run in record.json)")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
-    os.environ.setdefault("XDG_RUNTIME_DIR", tempfile.gettempdir())
-    res: dict = {"machine": {"label": "2-core shared VM, lavapipe, cpu render tier", "cpus": os.cpu_count(),
-                             "python": sys.version.split()[0], "numpy": np.__version__},
-                 "command": "python bench/bench_record.py " + " ".join(sys.argv[1:])}
+    res: dict = {"machine": H.machine(numpy=np.__version__), "command": H.command()}
     with tempfile.TemporaryDirectory(dir=os.path.join(ROOT, "out") if os.path.isdir(os.path.join(ROOT, "out")) else None) as tmp:
         chunks = demo_chunks(100)
         res["recorder"] = recorder_vs_floor(chunks, max(3, args.repeats + 2), tmp)
@@ -249,7 +241,7 @@ def main() -> None:
         modes = [("realtime", True)] + ([] if args.skip_fast else [("as_fast_as_possible", False)])
         if args.skip_pipeline:
             modes = []
-            with open(os.path.join(ROOT, "bench", "results", "record.json")) as f:
+            with open(H.RESULTS / "record.json") as f:
                 old = json.load(f)
             res["pipeline"] = old["pipeline"]
             res["pipeline_command"] = old.get("pipeline_command", old["command"])
@@ -266,11 +258,9 @@ def main() -> None:
             missed = [r["record_dropped"] + r["recorder_dropped"] for r in runs["with"]]
             print(f"pipeline {mode}: ingest {wo / 1e6:.3f} M/s without, {wi / 1e6:.3f} M/s with recording: cost "
                   f"{(1 - wi / wo) * 100:.1f}% (target <= 10%); recording missed {missed} points")
-    res["machine"]["loadavg_at_end"] = os.getloadavg()
-    os.makedirs(os.path.join(ROOT, "bench", "results"), exist_ok=True)
-    with open(os.path.join(ROOT, "bench", "results", "record.json"), "w") as f:
-        json.dump(res, f, indent=1, default=float)
-    plot(res, os.path.join(ROOT, "bench", "results", "record.png"))
+    H.machine_done(res["machine"])
+    H.write_result(H.RESULTS / "record.json", res, indent=1)
+    plot(res, str(H.RESULTS / "record.png"))
 
 
 if __name__ == "__main__":

@@ -60,11 +60,9 @@ import time
 
 import numpy as np
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-sys.path.insert(0, ROOT)
-#: ../shared/data beside the checkout (or two levels up, for a git worktree under wt/)
-DATA = next((d for d in (os.path.join(ROOT, "..", "shared", "data"), os.path.join(ROOT, "..", "..", "shared", "data"))
-             if os.path.isdir(d)), os.path.join(ROOT, "..", "shared", "data"))
+import _harness as H
+
+DATA = str(H.DATA)
 CHUNK = 10_000
 PORT = 47411
 MODES = {
@@ -178,6 +176,22 @@ def role_send(args) -> None:
     print(json.dumps({"sent_points": n_sent, "bytes": bytes_out}), flush=True)
 
 
+def _receive_all(t) -> tuple[int, float | None, float]:
+    """Open a receiving transport, say ``ready``, take chunks until the sender's ledger says
+    it ended: (points, time of the first chunk, time of the end)."""
+    t.open()
+    print("ready", flush=True)
+    n, t0 = 0, None
+    for c in t.chunks():
+        if c is not None:
+            if t0 is None:
+                t0 = time.perf_counter()
+            n += c.n
+        if t.ledger.ended:
+            break
+    return n, t0, time.perf_counter()
+
+
 def role_recv(args) -> None:
     import zmq
 
@@ -211,17 +225,7 @@ def role_recv(args) -> None:
             opts.update(insecure=False, curve_secret_key=args.keys + "/viewer.key_secret",
                         curve_authorized_keys=args.keys + "/clients")
         t = ZmqTransport(ZmqTransport.validate_options(opts, "bench", "."), "bench")
-        t.open()
-        print("ready", flush=True)
-        n, t0 = 0, None
-        for c in t.chunks():
-            if c is not None:
-                if t0 is None:
-                    t0 = time.perf_counter()
-                n += c.n
-            if t.ledger.ended:
-                break
-        t1 = time.perf_counter()
+        n, t0, t1 = _receive_all(t)
         t._poll_monitor()
         result = {"points": n, "seconds": t1 - t0, "lost": t.counters.get("lost_in_transit", 0)}
         t.close()
@@ -332,17 +336,7 @@ def zenoh_or_fanout_recv(args) -> None:
         # socket does, so every mode here is lossless and paced by its slowest part
         opts = {"key": "bench/**", "zenoh": z, "queue_chunks": 64, "backpressure": True}
     t = T(T.validate_options(opts, "bench", "."), "bench")
-    t.open()
-    print("ready", flush=True)
-    n, t0 = 0, None
-    for c in t.chunks():
-        if c is not None:
-            if t0 is None:
-                t0 = time.perf_counter()
-            n += c.n
-        if t.ledger.ended:
-            break
-    t1 = time.perf_counter()
+    n, t0, t1 = _receive_all(t)
     result = {"points": n, "seconds": (t1 - t0) if t0 else float("nan"), "lost": t.counters.get("lost_in_transit", 0),
               "receive_queue_full": t.counters.get("receive_queue_full", 0), "link_sent": t.counters.get("link_sent", 0)}
     t.close()
@@ -475,7 +469,7 @@ def zenoh_pass(args) -> int:
     hop = Hop()
     runs: dict = {d: {m: [] for m in modes} for d in datasets}
     fan: dict = {"fanout-zmq": [], "fanout-zenoh": []}
-    load_before = os.getloadavg()
+    machine = H.machine()
     try:
         for r in range(args.rounds):
             for d in datasets:
@@ -525,26 +519,17 @@ def zenoh_pass(args) -> int:
         print(f"fan-out to 4 viewers, {m:13s}: the sensor's link carried {x['wire_bytes_over_payload_median']:.2f}x "
               f"the payload; every viewer got every point: {x['every_viewer_got_everything']}")
     out = {"chunk_points": CHUNK, "seconds_per_run": args.seconds, "rounds": args.rounds,
-           "fanout_chunks": args.fanout_chunks, "machine": f"{os.cpu_count()} cores, shared with other jobs",
-           "loadavg_before": load_before, "loadavg_after": os.getloadavg(),
+           "fanout_chunks": args.fanout_chunks, "machine": H.machine_done(machine), "command": H.command(),
            "summary": summary, "fanout": fsum, "runs": runs, "fanout_runs": fan}
-    os.makedirs(os.path.join(ROOT, "bench", "results"), exist_ok=True)
-    with open(os.path.join(ROOT, "bench", "results", "remote_zenoh.json"), "w") as f:
-        json.dump(out, f, indent=2)
-    zenoh_chart(out, os.path.join(ROOT, "bench", "results", "remote_zenoh.png"))
-    print("wrote bench/results/remote_zenoh.json and remote_zenoh.png")
+    H.write_result(H.RESULTS / "remote_zenoh.json", out)
+    zenoh_chart(out, str(H.RESULTS / "remote_zenoh.png"))
     return 0
 
 
 def zenoh_chart(out: dict, path: str) -> None:
     """Paired ratios per round against the issue's targets, absolute medians beside the
     ZeroMQ baseline, and the fan-out's bytes on the sensor's link."""
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
+    if (plt := H.pyplot()) is None:
         return
     d = list(out["summary"])[-1]
     runs = out["runs"][d]
@@ -576,7 +561,7 @@ def zenoh_chart(out: dict, path: str) -> None:
     ax.set_title("fan-out to 4 viewers")
     ax.set_ylabel("bytes on the sensor's veth / payload")
     fig.suptitle(f"Zenoh engine vs ZeroMQ, {CHUNK // 1000}k-point chunks, three network namespaces, {out['rounds']} "
-                 f"interleaved rounds (shared 2-core VM, load {out['loadavg_before'][0]:.1f}-{out['loadavg_after'][0]:.1f})",
+                 f"interleaved rounds ({H.machine_line(out['machine'])})",
                  fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=90)
@@ -586,12 +571,7 @@ def zenoh_chart(out: dict, path: str) -> None:
 # --------------------------------------------------------------------------- chart
 def chart(out: dict, path: str) -> None:
     """Throughput and bytes/point per mode, one panel per link and data set."""
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
+    if (plt := H.pyplot()) is None:
         return
     panels = [(p, d) for p, ds in out["summary"].items() for d in ds]
     fig, axes = plt.subplots(2, len(panels), figsize=(4.2 * len(panels), 6.5), squeeze=False)
@@ -697,12 +677,12 @@ def main() -> int:
         role_recv(args)
         return 0
     if args.chart_only and args.zenoh:
-        with open(os.path.join(ROOT, "bench", "results", "remote_zenoh.json")) as f:
-            zenoh_chart(json.load(f), os.path.join(ROOT, "bench", "results", "remote_zenoh.png"))
+        with open(H.RESULTS / "remote_zenoh.json") as f:
+            zenoh_chart(json.load(f), str(H.RESULTS / "remote_zenoh.png"))
         return 0
     if args.chart_only:
-        with open(os.path.join(ROOT, "bench", "results", "remote.json")) as f:
-            chart(json.load(f), os.path.join(ROOT, "bench", "results", "remote.png"))
+        with open(H.RESULTS / "remote.json") as f:
+            chart(json.load(f), str(H.RESULTS / "remote.png"))
         return 0
     if os.geteuid() != 0 or not subprocess.run(["sh", "-c", "command -v ip"], capture_output=True).returncode == 0:
         print("bench_remote needs root and iproute2 (ip netns); skipped", file=sys.stderr)
@@ -712,6 +692,8 @@ def main() -> int:
     import tempfile
 
     from pointflow.remote.keys import create_keypair
+
+    machine = H.machine()
 
     keys = tempfile.mkdtemp(prefix="pf-bench-keys-")
     create_keypair("viewer", keys)
@@ -763,12 +745,9 @@ def main() -> int:
                       f"{s['points_per_s_median'] * s['bytes_per_point'] / 1e6:7.1f} {s['throughput_vs_plain_median']:9.2f} "
                       f"{s['bytes_per_point']:8.2f} {s['bytes_per_point'] / plain_b:9.2f}")
     out = {"chunk_points": CHUNK, "seconds_per_run": args.seconds, "rounds": args.rounds, "rate": args.rate,
-           "machine": f"{os.cpu_count()} cores, shared with other jobs", "summary": summary, "runs": runs}
-    os.makedirs(os.path.join(ROOT, "bench", "results"), exist_ok=True)
-    with open(os.path.join(ROOT, "bench", "results", "remote.json"), "w") as f:
-        json.dump(out, f, indent=2)
-    chart(out, os.path.join(ROOT, "bench", "results", "remote.png"))
-    print("wrote bench/results/remote.json and remote.png")
+           "machine": H.machine_done(machine), "command": H.command(), "summary": summary, "runs": runs}
+    H.write_result(H.RESULTS / "remote.json", out)
+    chart(out, str(H.RESULTS / "remote.png"))
     return 0
 
 

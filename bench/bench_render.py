@@ -29,10 +29,7 @@ Writes ``bench/results/render.json`` and ``bench/results/render.png``.
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import platform
-import sys
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -40,78 +37,15 @@ from typing import Any, Callable, Optional
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-os.environ.setdefault("XDG_RUNTIME_DIR", "/tmp/xdg")
-os.makedirs(os.environ["XDG_RUNTIME_DIR"], exist_ok=True)
+import _harness
+from _harness import median_ms
+from _harness.scenes import H, W, base_cloud, camera_for, make_frame, tiled
+from pointflow.config import RenderConfig
+from pointflow.render.base import FrameInput
+from pointflow.render.camera import Camera
+from pointflow.render.wgpu_tier import WgpuRenderer, select_adapter
 
-from pointflow.config import RenderConfig  # noqa: E402
-from pointflow.render.base import FrameInput  # noqa: E402
-from pointflow.render.camera import Camera  # noqa: E402
-from pointflow.render.wgpu_tier import WgpuRenderer, select_adapter  # noqa: E402
-
-RESULTS = ROOT / "bench" / "results"
-#: ../shared/data beside the checkout (or beside the worktrees' parent); $POINTFLOW_DATA overrides
-DATA = Path(os.environ["POINTFLOW_DATA"]) if os.environ.get("POINTFLOW_DATA") else next(
-    (p for p in (ROOT.parent / "shared" / "data", ROOT.parents[1] / "shared" / "data") if p.is_dir()),
-    ROOT.parent / "shared" / "data")
-W, H = 1280, 720
-
-
-# ----------------------------------------------------------------------------- scene
-def base_cloud() -> tuple[np.ndarray, np.ndarray, str]:
-    """(world xyz float64, intensity float32, name)."""
-    laz = DATA / "autzen_trim.laz"
-    if laz.exists():
-        try:
-            import laspy
-            las = laspy.read(str(laz))
-            xyz = np.column_stack([las.x, las.y, las.z]).astype(np.float64)
-            return xyz, np.asarray(las.intensity, np.float32), "autzen_trim.laz (tiled)"
-        except Exception as e:  # pragma: no cover - data/laspy problems fall back
-            print(f"could not read {laz}: {e}; using a synthetic terrain")
-    rng = np.random.default_rng(0)
-    xy = rng.uniform(0, 1000, size=(110_000, 2))
-    z = 20 * np.sin(xy[:, 0] / 90) * np.cos(xy[:, 1] / 120) + rng.normal(0, 0.5, len(xy))
-    return np.column_stack([xy, z]), (z - z.min()).astype(np.float32), "synthetic terrain"
-
-
-def tiled(base: np.ndarray, inten: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """n points: copies of the base cloud on a square grid of tiles (each tile jittered)."""
-    m = len(base)
-    k = int(np.ceil(n / m))
-    side = int(np.ceil(np.sqrt(k)))
-    ext = base.max(0) - base.min(0)
-    reps = np.arange(k)
-    shift = np.column_stack([(reps % side) * ext[0], (reps // side) * ext[1], np.zeros(k)])
-    idx = np.arange(n)
-    pts = base[idx % m] + shift[idx // m]
-    return pts, inten[idx % m]
-
-
-def make_frame(world: np.ndarray, inten: np.ndarray) -> FrameInput:
-    n = len(world)
-    org = np.floor(world.min(0))
-    lo, hi = float(inten.min()), float(inten.max())
-    return FrameInput(positions=(world - org).astype(np.float32), importance=inten.copy(),
-                      t_ingest_ms=np.zeros(n), channels={"intensity": inten.copy()}, head=0, size=n, capacity=n,
-                      origin=org, now_ms=0.0, channel_ranges={"intensity": (lo, hi), "importance": (lo, hi)})
-
-
-def camera_for(world: np.ndarray) -> Camera:
-    lo, hi = world.min(0), world.max(0)
-    return Camera.fit(lo, hi, aspect=W / H)
-
-
-def median_ms(fn: Callable[[], Any], reps: int, warm: int = 1) -> tuple[float, list[float]]:
-    for _ in range(warm):
-        fn()
-    ts = []
-    for _ in range(reps):
-        t0 = time.perf_counter()
-        fn()
-        ts.append((time.perf_counter() - t0) * 1e3)
-    return float(np.median(ts)), ts
+RESULTS = _harness.RESULTS
 
 
 # ----------------------------------------------------------------------------- floor
@@ -195,6 +129,7 @@ def run(sizes: list[int], reps: dict[int, int], cpu_max: int, cpu_compute: bool 
     adapter, why = select_adapter()
     if adapter is None:
         raise SystemExit(f"no wgpu adapter: {why}")
+    machine = _harness.machine(adapter.summary)
     base, inten0, scene = base_cloud()
     cfg = RenderConfig(size=[W, H], color_by="intensity", colormap="turbo", point_size=2.0, gpu_timestamps=True)
     rows = []
@@ -239,7 +174,7 @@ def run(sizes: list[int], reps: dict[int, int], cpu_max: int, cpu_compute: bool 
             a = state["head"]
             b = min(a + step, n)
             state["head"] = b % n
-            order = list(METHODS) if i % 2 == 0 else list(reversed(METHODS))
+            order = _harness.order(METHODS, i)
             for m in order:
                 t0 = time.perf_counter()
                 tick(m, a, b)
@@ -330,7 +265,7 @@ def run(sizes: list[int], reps: dict[int, int], cpu_max: int, cpu_compute: bool 
               f"err vs cpu {row.get('compute_image_error_vs_cpu', float('nan')):.2e}", flush=True)
         del f
     return {"scene": scene, "size": [W, H], "adapter": adapter.summary, "adapter_choice": why,
-            "platform": platform.platform(), "cpu_count": os.cpu_count(), "rows": rows, **extra}
+            "machine": _harness.machine_done(machine), "rows": rows, **extra}
 
 
 def _race(adapter, f: FrameInput, cam: Camera, cfg: RenderConfig, n: int, reps: int) -> dict[str, float]:
@@ -339,7 +274,7 @@ def _race(adapter, f: FrameInput, cam: Camera, cfg: RenderConfig, n: int, reps: 
     ts: dict[str, list[float]] = {m: [] for m in METHODS}
     try:
         for i in range(reps + 1):
-            for m in (METHODS if i % 2 == 0 else METHODS[::-1]):
+            for m in _harness.order(METHODS, i):
                 t0 = time.perf_counter()
                 rs[m].render(f, cam)
                 rs[m].read_image()
@@ -351,17 +286,20 @@ def _race(adapter, f: FrameInput, cam: Camera, cfg: RenderConfig, n: int, reps: 
     return {f"{m}_ms": float(np.median(v)) for m, v in ts.items()}
 
 
+def _tiled_scene(n: int) -> tuple[Any, str, FrameInput, Camera]:
+    """(adapter, scene name, frame, camera) of the main benchmark's scene at n points."""
+    adapter, _why = select_adapter()
+    base, inten0, scene = base_cloud()
+    world, inten = tiled(base, inten0, n)
+    return adapter, scene, make_frame(world, inten), camera_for(world)
+
+
 def raster_crossover(n: int, sizes_px: list[float], counts: list[int], reps: int) -> dict[str, Any]:
     """Compute vs quads frame time (interleaved, medians) over point sizes at n points and over
     point counts at 2 px: ``max_compute_point_px`` = the largest size up to which compute was
     faster at every size; ``min_compute_points_per_pixel`` = the smallest count from which it
     was faster at every larger count, per target pixel (its resolve pass is per pixel)."""
-    adapter, why = select_adapter()
-    base, inten0, scene = base_cloud()
-    world, inten = tiled(base, inten0, n)
-    f = make_frame(world, inten)
-    cam = camera_for(world)
-    del world
+    adapter, scene, f, cam = _tiled_scene(n)
     out, best, ok = [], 0.0, True
     for s in sizes_px:
         cfg = RenderConfig(size=[W, H], color_by="intensity", point_size=float(s), gpu_timestamps=False)
@@ -394,7 +332,7 @@ def raster_crossover(n: int, sizes_px: list[float], counts: list[int], reps: int
             "by_points": by_count, "max_compute_point_px": best, "min_compute_points": from_n,
             "min_compute_points_per_pixel": round(from_n / (W * H), 6),
             "measured_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-            "platform": platform.platform(), "cpu_count": os.cpu_count()}
+            "machine": _harness.machine_done(_harness.machine(adapter.summary))}
 
 
 def edl_cost(n: int, reps: int) -> dict[str, Any]:
@@ -402,12 +340,7 @@ def edl_cost(n: int, reps: int) -> dict[str, Any]:
     and frame as the main benchmark: 1% of the ring rewritten per frame, output =
     read_image), the four renderers interleaved frame by frame in rotating order."""
     from pointflow.config import EdlConfig
-    adapter, why = select_adapter()
-    base, inten0, scene = base_cloud()
-    world, inten = tiled(base, inten0, n)
-    f = make_frame(world, inten)
-    cam = camera_for(world)
-    del world
+    adapter, scene, f, cam = _tiled_scene(n)
     cfg = RenderConfig(size=[W, H], color_by="intensity", colormap="turbo", point_size=2.0, gpu_timestamps=False)
     keys = [(m, e) for m in METHODS for e in (False, True)]
     rs = {k: WgpuRenderer(replace(cfg, raster=k[0], edl=EdlConfig(enabled=k[1])), n, ["intensity"],
@@ -437,8 +370,8 @@ def edl_cost(n: int, reps: int) -> dict[str, Any]:
             r.close()
     out: dict[str, Any] = {"points": n, "size": [W, H], "repeats": reps, "adapter": adapter.summary, "scene": scene,
                            "edl": {"strength": 1.0, "radius_px": 1.4}, "measured_at": time.strftime(
-                               "%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "platform": platform.platform(),
-                           "cpu_count": os.cpu_count()}
+                               "%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+                           "machine": _harness.machine_done(_harness.machine(adapter.summary))}
     for m in METHODS:
         off, on = np.asarray(ts[(m, False)]), np.asarray(ts[(m, True)])
         out[m] = {"off_ms": float(np.median(off)), "on_ms": float(np.median(on)),
@@ -465,8 +398,7 @@ def cpu_raster(sizes: list[int], reps: dict[int, int]) -> dict[str, Any]:
 
     from pointflow.render import cpu_kernels
     from pointflow.render.cpu_compute import CHUNKS_PER_THREAD, TUNE_FRAMES, CpuComputeRenderer
-    import subprocess
-    load = {"before": subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()}
+    machine = _harness.machine()
     adapter, why = select_adapter()
     base, inten0, scene = base_cloud()
     cfg = RenderConfig(size=[W, H], color_by="intensity", colormap="turbo", point_size=2.0, gpu_timestamps=False)
@@ -573,19 +505,33 @@ def cpu_raster(sizes: list[int], reps: dict[int, int]) -> dict[str, Any]:
             "adapter_type": adapter.info.get("adapter_type", "") if adapter else None, "adapter_choice": why,
             "numba": numba.__version__, "threads": threads, "rows": rows,
             "faster_up_to_points": lim, "speedup": sp,
-            "load": {**load, "after": subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()},
-            "measured_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "platform": platform.platform(),
-            "cpu_count": os.cpu_count(), "command": "bench/bench_render.py --cpu-raster"}
+            "machine": _harness.machine_done({**machine, "adapter": adapter.summary if adapter else None}),
+            "measured_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "command": _harness.command()}
+
+
+def _frame_time_axes(res: dict[str, Any], figsize: tuple[float, float]):
+    """(figure, axes, rows, point counts) of a frame time vs points chart; None without matplotlib."""
+    if (plt := _harness.pyplot()) is None:
+        return None
+    fig, ax = plt.subplots(figsize=figsize)
+    return fig, ax, res["rows"], [r["points"] for r in res["rows"]]
+
+
+def _save_frame_time_chart(fig, ax, path: Path, **legend: Any) -> None:
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(**legend)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    import matplotlib.pyplot as plt
+
+    plt.close(fig)
 
 
 def cpu_raster_chart(res: dict[str, Any], path: Path) -> None:
     """Frame time per method against points (log-log), ratios to wgpu compute and the floor noted."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    rows = res["rows"]
-    n = [r["points"] for r in rows]
-    fig, ax = plt.subplots(figsize=(7.2, 4.6))
+    if (got := _frame_time_axes(res, (7.2, 4.6))) is None:
+        return
+    fig, ax, rows, n = got
     series = [("wgpu_compute_ms", "o-", "wgpu compute method on " + str(res.get("adapter") or "?").split(" (")[0]),
               ("cpu_compute_ms", "*-", f"cpu compiled raster, {res['threads']} threads (split by points)"),
               ("cpu_compute_1thread_ms", "v:", "cpu compiled raster, 1 thread"),
@@ -603,12 +549,8 @@ def cpu_raster_chart(res: dict[str, Any], path: Path) -> None:
     ax.set_xlabel("points")
     ax.set_ylabel("median frame time, ms (interleaved)")
     ax.set_title(f"{res['size'][0]}x{res['size'][1]}, 2 px, turbo by intensity, 1% dirty per frame; "
-                 f"{res.get('cpu_count')} cores", fontsize=9)
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=7.5, loc="upper left")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+                 f"{res.get('machine', {}).get('cores', res.get('cpu_count'))} cores", fontsize=9)
+    _save_frame_time_chart(fig, ax, path, fontsize=7.5, loc="upper left")
 
 
 def table(res: dict[str, Any]) -> str:
@@ -634,12 +576,9 @@ def table(res: dict[str, Any]) -> str:
 
 
 def chart(res: dict[str, Any], path: Path) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    rows = res["rows"]
-    n = [r["points"] for r in rows]
-    fig, ax = plt.subplots(figsize=(7, 4.5))
+    if (got := _frame_time_axes(res, (7, 4.5))) is None:
+        return
+    fig, ax, rows, n = got
     ax.loglog(n, [r["compute_ms"] for r in rows], "o-", label="wgpu tier, compute method (fused tests + atomics)")
     ax.loglog(n, [r["quads_ms"] for r in rows], "d-", label="wgpu tier, quads method (cull + compaction + draw)")
     ax.loglog(n, [r["floor_ms"] for r in rows], "s--", label="bare-wgpu floor (2 px instanced quads)")
@@ -649,11 +588,7 @@ def chart(res: dict[str, Any], path: Path) -> None:
     ax.set_xlabel("points")
     ax.set_ylabel("median frame time, ms")
     ax.set_title(f"frame = upload 1% + cull + raster + readback, {W}x{H}\n{res['adapter']}", fontsize=9)
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    _save_frame_time_chart(fig, ax, path, fontsize=8)
 
 
 def main(argv: Optional[list[str]] = None) -> int:
@@ -683,26 +618,26 @@ def main(argv: Optional[list[str]] = None) -> int:
         sizes = a.sizes or [100_000, 1_000_000, 4_000_000]
         res = cpu_raster(sizes, {100_000: 15, 1_000_000: 15, 4_000_000: 5} if not a.quick else {})
         path = Path(a.out) if a.out != str(RESULTS / "render.json") else RESULTS / "cpu_raster.json"
-        path.write_text(json.dumps(res, indent=2))
+        _harness.write_result(path, res)
         cpu_raster_chart(res, path.with_suffix(".png"))
         if a.install:
             from pointflow.render import calibration
             keep = {k: res[k] for k in ("faster_up_to_points", "speedup", "adapter", "adapter_type", "scene",
-                                        "size", "threads", "measured_at", "platform", "cpu_count", "command")}
+                                        "size", "threads", "measured_at", "machine", "command")}
             print(f"installed {calibration.install('cpu_raster.json', keep)}")
         print(f"faster_up_to_points = {res['faster_up_to_points']}, wgpu/cpu speedup {res['speedup']}; wrote {path}")
         return 0
     if a.edl:
         res = edl_cost(1_000_000, 15 if not a.quick else 6)
         path = RESULTS / "edl.json"
-        path.write_text(json.dumps(res, indent=2))
+        _harness.write_result(path, res)
         print(f"wrote {path}")
         return 0
     if a.raster_crossover:
         res = raster_crossover(1_000_000, [1, 2, 3, 4, 6, 8, 12, 16, 24, 32],
                                [1_000, 3_000, 10_000, 30_000, 100_000, 300_000], 5)
         path = RESULTS / "raster_crossover.json"
-        path.write_text(json.dumps(res, indent=2))
+        _harness.write_result(path, res)
         if a.install:
             from pointflow.render import calibration
             print(f"installed {calibration.install('raster_crossover.json', res)}")
@@ -716,9 +651,7 @@ def main(argv: Optional[list[str]] = None) -> int:
     t0 = time.perf_counter()
     res = run(sizes, reps, a.cpu_max, a.with_cpu_compute)
     res["bench_seconds"] = time.perf_counter() - t0
-    out = Path(a.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(res, indent=2))
+    out = _harness.write_result(a.out, res)
     chart(res, out.with_suffix(".png"))
     print(table(res))
     print(f"wrote {out} and {out.with_suffix('.png')} in {res['bench_seconds']:.0f} s")

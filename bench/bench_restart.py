@@ -12,22 +12,17 @@ bench/results/restart.json.
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import platform
 import signal
 import statistics
-import sys
 import time
-from pathlib import Path
 
 import yaml
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+import _harness as H
+from pointflow import Pipeline
 
-from pointflow import Pipeline  # noqa: E402
-
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = H.ROOT
 
 
 def one_run(stage: str, standby: bool, kills: int, gap: float) -> list[dict]:
@@ -68,9 +63,9 @@ def main() -> None:
     ap.add_argument("--kills", type=int, default=3, help="kills per run")
     ap.add_argument("--rounds", type=int, default=2, help="runs per (stage, standby) pair, alternated")
     ap.add_argument("--gap", type=float, default=12.0)
-    ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "restart.json"))
+    ap.add_argument("--out", default=str(H.RESULTS / "restart.json"))
     args = ap.parse_args()
-    os.environ.setdefault("XDG_RUNTIME_DIR", "/tmp")
+    machine = H.machine()
     rows: list[dict] = []
     for r in range(args.rounds):
         for stage in args.stages.split(","):
@@ -88,11 +83,8 @@ def main() -> None:
     print(f"\n{'stage, standby':24s} {'kills':>5s} {'report-in s (median)':>21s} {'next frame s (median)':>22s} {'max':>6s}")
     for k, v in summary.items():
         print(f"{k:24s} {v['kills']:5d} {v['median_ready_s']:21.2f} {v['median_frame_s']:22.2f} {v['max_frame_s']:6.2f}")
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps({"benchmark": "restart", "summary": summary, "kills": rows,
-                                          "machine": {"cpus": os.cpu_count(), "platform": platform.platform(),
-                                                      "note": "2-core shared VM, lavapipe"}}, indent=1))
-    print(f"wrote {args.out}")
+    H.write_result(args.out, {"benchmark": "restart", "summary": summary, "kills": rows,
+                              "machine": H.machine_done(machine), "command": H.command()}, indent=1)
 
 
 if __name__ == "__main__":

@@ -23,47 +23,19 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import statistics
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from pointflow.ring import PointRing, SlabPair, SlabWriter  # noqa: E402
+import _harness as H
+from pointflow.ring import PointRing, SlabPair, SlabWriter
 
 
 def best_time(fn, min_batch_s: float, repeats: int) -> float:
     """Best per-call time over `repeats` batches of at least `min_batch_s` each."""
-    fn()  # warm up
-    best = float("inf")
-    for _ in range(repeats):
-        reps = 0
-        t0 = time.perf_counter()
-        while True:
-            fn()
-            reps += 1
-            dt = time.perf_counter() - t0
-            if dt >= min_batch_s and reps >= 2:
-                break
-        best = min(best, dt / reps)
-    return best
+    return min(H.per_call(fn, repeats, min_batch_s, warm=1))
 
-
-def batch_time(fn, min_batch_s: float) -> float:
-    """Per-call time over one batch of at least `min_batch_s` (and 2 calls)."""
-    reps = 0
-    t0 = time.perf_counter()
-    while True:
-        fn()
-        reps += 1
-        dt = time.perf_counter() - t0
-        if dt >= min_batch_s and reps >= 2:
-            return dt / reps
 
 
 def interleaved_times(fns: dict, min_batch_s: float, repeats: int) -> dict[str, list[float]]:
@@ -73,7 +45,7 @@ def interleaved_times(fns: dict, min_batch_s: float, repeats: int) -> dict[str, 
     out = {k: [] for k in fns}
     for _ in range(repeats):
         for k, fn in fns.items():
-            out[k].append(batch_time(fn, min_batch_s))
+            out[k].append(H.batch_time(fn, min_batch_s))
     return out
 
 
@@ -188,12 +160,13 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="fewer/shorter repeats")
     ap.add_argument("--repeats", type=int, default=None)
-    ap.add_argument("--out", default=str(Path(__file__).resolve().parent / "results" / "ring.json"))
+    ap.add_argument("--out", default=str(H.RESULTS / "ring.json"))
     args = ap.parse_args(argv)
     repeats = args.repeats or (5 if args.quick else 9)
     batch_s = 0.03 if args.quick else 0.08
     rng = np.random.default_rng(0)
-    load0 = os.getloadavg()
+    machine = H.machine(numpy=np.__version__)
+    load0 = machine["loadavg_before"]
     rows = []
     for cap in (100_000, 1_000_000):
         rows += bench_ingest(cap, (1_000, 10_000, 100_000), repeats, batch_s, rng)
@@ -219,14 +192,11 @@ def main(argv=None) -> int:
     print("targets:", json.dumps({k: round(v, 3) for k, v in targets.items()}))
     out = {
         "benchmark": "ring", "time": time.strftime("%Y-%m-%dT%H:%M:%S"),
-        "machine": {"platform": platform.platform(), "python": platform.python_version(),
-                    "numpy": np.__version__, "cpus": os.cpu_count()},
+        "machine": H.machine_done(machine), "command": H.command(),
         "repeats": repeats, "statistic": "ingest: medians of interleaved batches; snapshot: best of repeats",
         "loadavg_at_start": load0, "ingest": rows, "snapshot": snap, "targets": targets,
     }
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(out, indent=2))
-    print("wrote", args.out)
+    H.write_result(args.out, out)
     return 0
 
 

@@ -31,14 +31,15 @@ import json
 import os
 import shutil
 import statistics
-import sys
 import tempfile
 import time
 
 import numpy as np
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-DATA = os.path.join(ROOT, "..", "shared", "data", "ouster_os1_128")
+import _harness as H
+
+ROOT = str(H.ROOT)
+DATA = str(H.DATA / "ouster_os1_128")
 N = 131_072
 STEP = 48
 FIELDS = [("x", 0, 7), ("y", 4, 7), ("z", 8, 7), ("intensity", 16, 7), ("t", 20, 6), ("reflectivity", 24, 4),
@@ -258,11 +259,7 @@ def bench_replay(repeats: int, messages: int, small_points: int, large_points: i
 
 def plot(res: dict, path: str) -> None:
     """bench/results/ros.png: decode vs floor, replay rates (matplotlib, the plot extra)."""
-    try:
-        import matplotlib
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
+    if (plt := H.pyplot()) is None:
         return
     d = res["decode"]["mpoints_per_s"]
     fig, (a, b) = plt.subplots(1, 2, figsize=(10, 3.6))
@@ -296,14 +293,12 @@ def main() -> None:
     ap.add_argument("--skip-replay", action="store_true")
     ap.add_argument("--plot-only", action="store_true", help="redraw ros.png from ros.json")
     args = ap.parse_args()
-    out_dir = os.path.join(ROOT, "bench", "results")
+    out_dir = str(H.RESULTS)
     if args.plot_only:
         with open(os.path.join(out_dir, "ros.json")) as f:
             plot(json.load(f), os.path.join(out_dir, "ros.png"))
         return
-    os.environ.setdefault("XDG_RUNTIME_DIR", "/tmp")
-    res = {"machine": {"cpus": os.cpu_count(), "python": sys.version.split()[0], "numpy": np.__version__,
-                       "loadavg_at_start": os.getloadavg()}}
+    res = {"machine": H.machine(numpy=np.__version__), "command": H.command()}
     res["decode"] = d = bench_decode(args.repeats, args.inner)
     print(f"decode, {N:,} points x {STEP} B ({d['data']}): ms/message (median of {args.repeats})")
     for k, v in d["ms_per_message"].items():
@@ -322,10 +317,8 @@ def main() -> None:
                 line += (f"  time in decoder {r['decode_share_of_replay'][k] * 100:.1f}%, "
                          f"in rosbags' deserialiser {r['deserialize_share_of_replay'][k] * 100:.1f}%")
             print(line)
-    res["machine"]["loadavg_at_end"] = os.getloadavg()
-    os.makedirs(out_dir, exist_ok=True)
-    with open(os.path.join(out_dir, "ros.json"), "w") as f:
-        json.dump(res, f, indent=2)
+    H.machine_done(res["machine"])
+    H.write_result(os.path.join(out_dir, "ros.json"), res)
     plot(res, os.path.join(out_dir, "ros.png"))
 
 

@@ -1,7 +1,7 @@
 """ROS 2 over rmw_zenoh: Ouster-size PointCloud2 through a Zenoh router into the ``ros2_zenoh``
 transport, against the engine alone in the same run.
 
-A router process and a publisher process behaving as rmw_zenoh's (``tests/ingest/rmw_zenoh_pub.py``)
+A router process and a publisher process behaving as rmw_zenoh's (``pointflow/ingest/rmw_zenoh_pub.py``)
 send ``--messages`` clouds of 131,072 points (48-byte points, 6.3 MB of CDR each) as fast as
 Zenoh takes them. Two receivers, interleaved over ``--repeats``:
 
@@ -26,22 +26,17 @@ import json
 import os
 import pickle
 import statistics
-import sys
 import tempfile
 import threading
 import time
 
 import numpy as np
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-sys.path[:0] = [ROOT, os.path.join(ROOT, "tests")]
-
-from ingest import rmw_zenoh_pub as P  # noqa: E402
-from ingest.test_ros2_zenoh import Proc  # noqa: E402
-from ingest.test_transports import free_port  # noqa: E402
-
-from pointflow.ingest import rmw_zenoh as rz  # noqa: E402
-from pointflow.ingest.transports import resolve_transport  # noqa: E402
+import _harness as H
+from pointflow.ingest import rmw_zenoh as rz
+from pointflow.ingest import rmw_zenoh_pub as P
+from pointflow.ingest.transports import resolve_transport
+from pointflow.runtime.testing import LineProc, free_port
 
 TOPIC = "/ouster/points"
 N_POINTS = 131_072
@@ -74,7 +69,7 @@ def ouster_payload(seed: int = 0) -> bytes:
 def run_once(kind: str, loc: str, spec_path: str, n: int) -> dict:
     import zenoh
 
-    pub = Proc([spec_path])
+    pub = LineProc(["-m", P.__name__, spec_path])
     pub.wait_line("READY")
     arrivals: list[float] = []
     done_t: list[float] = []
@@ -144,11 +139,12 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--messages", type=int, default=30)
     ap.add_argument("--reliable", action="store_true", help="a reliable publisher (default: best effort, as sensor QoS)")
-    ap.add_argument("--out", default=os.path.join(ROOT, "bench", "results", "ros2_zenoh.json"))
+    ap.add_argument("--out", default=str(H.RESULTS / "ros2_zenoh.json"))
     a = ap.parse_args()
+    machine = H.machine()
     payload = ouster_payload()
     loc = f"tcp/127.0.0.1:{free_port()}"
-    router = Proc(["--router", loc])
+    router = LineProc(["-m", P.__name__, "--router", loc])
     router.wait_line("READY")
     tmp = tempfile.mkdtemp(prefix="bench-ros2-zenoh-")
     spec_path = os.path.join(tmp, "spec.pickle")
@@ -158,7 +154,7 @@ def main() -> None:
     rows = []
     try:
         for r in range(a.repeats):
-            for kind in (("engine", "transport") if r % 2 == 0 else ("transport", "engine")):
+            for kind in H.order(("engine", "transport"), r):
                 row = run_once(kind, loc, spec_path, a.messages)
                 row["repeat"] = r
                 rows.append(row)
@@ -169,12 +165,10 @@ def main() -> None:
         os.rmdir(tmp)
     med = {k: statistics.median([x["msgs_per_s"] for x in rows if x["kind"] == k and "msgs_per_s" in x])
            for k in ("engine", "transport")}
-    res = {"machine": "2-core shared VM (load average during the run in 'load')", "load": os.getloadavg(),
+    res = {"machine": H.machine_done(machine), "command": H.command(),
            "payload_bytes": len(payload), "points": N_POINTS, "messages": a.messages, "reliable": a.reliable,
            "median_msgs_per_s": med, "ratio_transport_vs_engine": med["transport"] / med["engine"], "runs": rows}
-    os.makedirs(os.path.dirname(os.path.abspath(a.out)), exist_ok=True)
-    with open(a.out, "w") as f:
-        json.dump(res, f, indent=1)
+    H.write_result(a.out, res, indent=1)
     print(f"engine {med['engine']:.1f} msg/s, transport {med['transport']:.1f} msg/s "
           f"({med['transport'] * N_POINTS / 1e6:.1f} Mpoints/s), ratio {res['ratio_transport_vs_engine']:.2f}")
 

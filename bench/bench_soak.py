@@ -38,17 +38,16 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import random
 import signal
 import time
-from pathlib import Path
 
 import numpy as np
 
+import _harness as H
 from pointflow import Pipeline
 
-RESULTS = Path(__file__).resolve().parent / "results"
+RESULTS = H.RESULTS
 
 
 def main() -> None:
@@ -67,7 +66,7 @@ def main() -> None:
     if args.minutes is not None:
         chaos(args)
         return
-    os.environ.setdefault("XDG_RUNTIME_DIR", "/tmp")
+    machine = H.machine()
     cfg = {
         "source": {"transport": "synthetic",
                    "options": {"points_per_scan": 100_000, "realtime": False, "cache_scans": 4}},
@@ -106,14 +105,13 @@ def main() -> None:
     rate = (last["ingest_in"] - first["ingest_in"]) / secs if secs > 0 else 0.0
     out = {
         "benchmark": "soak", "seconds": args.seconds, "warmup_s": args.warmup, "ring_points": args.ring,
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform()},
+        "machine": H.machine_done(machine), "command": H.command(),
         "ingest_points_per_s": round(rate), "ring_turnovers": round((last["ingest_in"] - first["ingest_in"]) / args.ring, 1),
         "rss_mb_early_median": early, "rss_mb_late_median": late, "rss_mb_peak": peak,
         "rss_growth_ratio_late_vs_early": growth, "accounting": final.get("accounting"), "frames": final.get("frames"),
         "samples": samples,
     }
-    RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "soak.json").write_text(json.dumps(out, indent=2))
+    H.write_result(RESULTS / "soak.json", out)
     print(f"soak: {secs:.0f} s after a {args.warmup:.0f} s warm-up, {rate / 1e6:.1f} M points/s into a "
           f"{args.ring:,}-point ring ({out['ring_turnovers']} turnovers), {out['frames']} frames")
     print(f"{'stage':10s} {'early median MB':>16s} {'late median MB':>15s} {'peak MB':>8s} {'late/early':>10s}")
@@ -122,7 +120,6 @@ def main() -> None:
     acc = final.get("accounting") or {}
     print(f"accounting: ingest balanced {acc.get('ingest_balanced')}, ring agrees {acc.get('ring_agrees')}, "
           f"lost before ingest {acc.get('lost_before_ingest')}")
-    print(f"wrote {RESULTS / 'soak.json'}")
 
 
 STAGES = ("source", "ingest", "cadence", "render")
@@ -143,9 +140,8 @@ def _alive(pid: int) -> bool:
 def chaos(args) -> None:
     import yaml
 
-    os.environ.setdefault("XDG_RUNTIME_DIR", "/tmp")
     rng = random.Random(args.seed)
-    root = Path(__file__).resolve().parents[1]
+    root = H.ROOT
     cfg = yaml.safe_load((root / "configs" / "demo.yaml").read_text())
     cfg["render"]["output"] = {"dir": None}
     cfg["supervisor"] = {"max_restarts": 100_000}
@@ -158,7 +154,7 @@ def chaos(args) -> None:
     import subprocess
     import sys
 
-    load_start = os.getloadavg()
+    machine = H.machine(busy_loops=args.busy_loops, nice=os.nice(0))
     busy = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(args.busy_loops)]
     pipe = Pipeline.from_dict(cfg, out_dir=None)
     try:
@@ -195,20 +191,16 @@ def chaos(args) -> None:
                 frozen = None
             if t >= next_kill and frozen is None:
                 next_kill += args.kill_every
-                live = [n for n in STAGES if samples[-1]["ready"].get(n)]
-                if live:
-                    name = rng.choice(live)
-                    pid = stages[name]["pid"]
+                if live := _live_stage(rng, samples, stages):
+                    name, pid = live
                     os.kill(pid, signal.SIGKILL)
                     kills.append({"t": round(t, 2), "stage": name, "pid": pid, "frames": st["frames"],
                                   "standby": stages[name].get("standby_pid")})
                     print(f"{t:7.1f} s  SIGKILL {name} (pid {pid})", flush=True)
             if t >= next_freeze and frozen is None:
                 next_freeze += args.freeze_every
-                live = [n for n in STAGES if samples[-1]["ready"].get(n)]
-                if live:
-                    name = rng.choice(live)
-                    pid = stages[name]["pid"]
+                if live := _live_stage(rng, samples, stages):
+                    name, pid = live
                     os.kill(pid, signal.SIGSTOP)
                     frozen = (pid, t + args.freeze_s)
                     freezes.append({"t": round(t, 2), "stage": name, "pid": pid, "seconds": args.freeze_s})
@@ -228,8 +220,17 @@ def chaos(args) -> None:
     pids_seen.update(v["pid"] for v in final["stages"].values() if v.get("pid"))
     pids_seen.update(v["standby_pid"] for v in final["stages"].values() if v.get("standby_pid"))
     time.sleep(1.0)
-    args.load_start = load_start
+    args.machine = machine
     _chaos_report(args, cfg, samples, kills, freezes, final, segments, run_dir, pids_seen, warm)
+
+
+def _live_stage(rng, samples, stages) -> tuple[str, int] | None:
+    """A stage (name, pid) chosen at random among those the last sample saw ready."""
+    live = [n for n in STAGES if samples[-1]["ready"].get(n)]
+    if not live:
+        return None
+    name = rng.choice(live)
+    return name, stages[name]["pid"]
 
 
 def _first(samples, t_from, pred):
@@ -309,18 +310,12 @@ def _chaos_report(args, cfg, samples, kills, freezes, final, segments, run_dir, 
         "run_dir_removed": not (run_dir and os.path.exists(run_dir)),
         "no_process_left": not leftover_procs,
     }
-    try:
-        load = os.getloadavg()
-    except OSError:
-        load = None
     out = {
         "benchmark": "soak_chaos", "minutes": args.minutes, "kill_every_s": args.kill_every,
         "freeze_every_s": args.freeze_every, "freeze_s": args.freeze_s, "seed": args.seed, "warmup_s": warm,
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(),
-                    "loadavg_at_start": getattr(args, "load_start", None), "loadavg_at_end": load,
-                    "load1_min_max": [min(s["load1"] for s in samples), max(s["load1"] for s in samples)],
-                    "busy_loops": args.busy_loops, "nice": os.nice(0),
-                    "note": "2-core shared VM (other sessions' tests and benchmarks running), lavapipe"},
+        "machine": {**H.machine_done(args.machine),
+                    "load1_min_max": [min(s["load1"] for s in samples), max(s["load1"] for s in samples)]},
+        "command": H.command(),
         "config": cfg, "checks": checks, "passed": all(checks.values()),
         "kills": kills, "freezes": freezes, "events": events,
         "frames_total": final.get("frames"), "frames_per_s": round(final.get("frames", 0) / max(1.0, samples[-1]["t"]), 2),
@@ -377,12 +372,7 @@ def _chaos_report(args, cfg, samples, kills, freezes, final, segments, run_dir, 
 
 
 def _chaos_chart(path, samples, kills, freezes, names, args) -> None:
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
+    if (plt := H.pyplot()) is None:
         return
     t = np.array([s["t"] for s in samples])
     f = np.array([s["frames"] for s in samples], dtype=float)

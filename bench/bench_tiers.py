@@ -23,114 +23,22 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import sys
 import time
 from pathlib import Path
-from typing import Callable, Optional
+from typing import Optional
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-os.environ.setdefault("XDG_RUNTIME_DIR", "/tmp/xdg")
-os.makedirs(os.environ["XDG_RUNTIME_DIR"], exist_ok=True)
+import _harness as H
+from _harness.scenes import scene_autzen, scene_demo, scene_dense, scene_ouster
+from pointflow.config import RenderConfig
+from pointflow.render.base import FrameInput, Renderer
+from pointflow.render.camera import Camera
+from pointflow.render.cpu import CpuRenderer
+from pointflow.render.rules import importance_range_for_budget
 
-from pointflow.config import RenderConfig  # noqa: E402
-from pointflow.render.base import FrameInput, Renderer  # noqa: E402
-from pointflow.render.camera import Camera  # noqa: E402
-from pointflow.render.cpu import CpuRenderer  # noqa: E402
-from pointflow.render.rules import importance_range_for_budget  # noqa: E402
-
-RESULTS = ROOT / "bench" / "results"
-DATA = Path(os.environ.get("POINTFLOW_DATA", ROOT.parent / "shared" / "data"))  # the real recordings
-
-
-# ----------------------------------------------------------------------------- scenes
-def _frame(world: np.ndarray, intensity: np.ndarray, *, origin=None, t_ms=None, rgb=None,
-           importance=None) -> FrameInput:
-    """A full ring (capacity = n) in logical order; positions float32 offsets from origin."""
-    n = world.shape[0]
-    org = np.floor(world.min(axis=0)) if origin is None else np.asarray(origin, np.float64)
-    inten = np.asarray(intensity, np.float32)
-    t = np.linspace(0.0, 10_000.0, n) if t_ms is None else np.asarray(t_ms, np.float64)
-    ch = {"intensity": inten}
-    if rgb is not None:
-        ch["rgb"] = rgb
-    lo, hi = float(np.nanmin(inten)), float(np.nanmax(inten))
-    imp = inten if importance is None else np.asarray(importance, np.float32)
-    return FrameInput(positions=(world - org).astype(np.float32), importance=imp, t_ingest_ms=t, channels=ch,
-                      head=0, size=n, capacity=n, origin=org, now_ms=float(t.max()),
-                      channel_ranges={"intensity": (lo, hi), "importance": (float(imp.min()), float(imp.max()))})
-
-
-def _fit(world: np.ndarray, aspect: float, **kw) -> Camera:
-    lo, hi = np.percentile(world, 1, axis=0), np.percentile(world, 99, axis=0)
-    return Camera.fit(lo, hi, aspect=aspect, **kw)
-
-
-def scene_demo(aspect: float, n_target: int) -> tuple[FrameInput, Camera, str]:
-    """The demo: the synthetic town swept by the simulated lidar (as configs/demo.yaml)."""
-    from pointflow.ingest.transports.synthetic import SyntheticTransport
-
-    opts = SyntheticTransport.validate_options({"realtime": False, "points_per_scan": 100_000,
-                                                "scans": max(1, n_target // 100_000)}, "bench")
-    tr = SyntheticTransport(opts, "bench")
-    tr.open()
-    pos, inten = [], []
-    for ch in tr.chunks():
-        if ch is None:
-            continue
-        pos.append(np.asarray(ch.positions, np.float64))
-        inten.append(np.asarray(ch.channels["intensity"], np.float32))
-    tr.close()
-    world, it = np.concatenate(pos), np.concatenate(inten)
-    # ingest time: scans arrive at 10 Hz, in order
-    t = np.linspace(0, 100.0 * len(pos) / 10, len(world))
-    return _frame(world, it, t_ms=t), _fit(world, aspect, elevation_deg=30), f"synthetic town, {len(world):,} pts"
-
-
-def scene_dense(aspect: float, n: int) -> tuple[FrameInput, Camera, str]:
-    """A dense static scan: rolling terrain with buildings, evenly sampled."""
-    rng = np.random.default_rng(0)
-    xy = rng.uniform(-60, 60, (n, 2))
-    z = 2.5 * np.sin(xy[:, 0] / 9) * np.cos(xy[:, 1] / 11)
-    for cx, cy, h in ((10, -5, 9), (-25, 20, 14), (30, 30, 6), (-20, -30, 11)):
-        m = (np.abs(xy[:, 0] - cx) < 7) & (np.abs(xy[:, 1] - cy) < 7)
-        z[m] += h
-    world = np.column_stack([xy, z])
-    inten = ((z - z.min()) / (np.ptp(z) + 1e-9)).astype(np.float32)
-    return _frame(world, inten), _fit(world, aspect), f"dense static scan, {n:,} pts"
-
-
-def scene_autzen(aspect: float) -> Optional[tuple[FrameInput, Camera, str]]:
-    path = DATA / "autzen_trim.laz"
-    if not path.exists():
-        return None
-    import laspy
-
-    las = laspy.read(str(path))
-    world = np.column_stack([las.x, las.y, las.z]).astype(np.float64)
-    inten = np.asarray(las.intensity, np.float32)
-    return _frame(world, inten), _fit(world, aspect, elevation_deg=45), f"autzen_trim.laz (georeferenced), {len(world):,} pts"
-
-
-def scene_ouster(aspect: float) -> Optional[tuple[FrameInput, Camera, str]]:
-    files = sorted((DATA / "ouster_os1_128").glob("*.npz"))
-    if not files:
-        return None
-    pos, refl = [], []
-    for f in files:
-        d = np.load(f)
-        pos.append(d["xyz"].astype(np.float64))
-        refl.append(d["reflectivity"].astype(np.float32))
-    world, inten = np.concatenate(pos), np.concatenate(refl)
-    ok = np.isfinite(world).all(axis=1) & (np.abs(world) < 80).all(axis=1)
-    world, inten = world[ok], inten[ok]
-    t = np.repeat(np.arange(len(files)) * 100.0, [int(o.sum()) for o in np.split(ok, np.cumsum([len(p) for p in pos])[:-1])])
-    cam = Camera(eye=[-25, -18, 14], target=[5, 0, 0], near=0.5, far=200, fov_deg=60)
-    return _frame(world, inten, t_ms=t), cam, f"Ouster OS1-128, {len(files)} scans, {len(world):,} pts"
+RESULTS = H.RESULTS
 
 
 # ----------------------------------------------------------------------------- tiers & methods
@@ -312,9 +220,8 @@ def chart(rows: list[dict], path: Path) -> None:
     method family), no connecting lines; the Pareto front (nothing else is both faster and
     closer to the reference) as a step line with its points ringed and labelled; legends
     outside the panels."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    if (plt := H.pyplot()) is None:
+        return
     import matplotlib.ticker
     from matplotlib.lines import Line2D
 
@@ -406,6 +313,7 @@ def main(argv=None) -> int:
     tiers = [t for t in a.tiers.split(",") if t]
     aspect = size[0] / size[1]
     RESULTS.mkdir(parents=True, exist_ok=True)
+    machine = H.machine(numpy=np.__version__)
     scenes = {"demo": scene_demo(aspect, 100_000 if a.quick else 300_000),
               "dense": scene_dense(aspect, 150_000 if a.quick else 400_000)}
     if not a.quick:
@@ -422,13 +330,12 @@ def main(argv=None) -> int:
         done = {(r["tier"], r["scene"]) for r in rows}
         old["rows"] = [r for r in old["rows"] if (r["tier"], r["scene"]) not in done] + rows
         old.setdefault("merged", []).append({"tiers": tiers, "at": stamp, "scenes": list(scenes),
-                                             "machine": {"platform": platform.platform(), "cpus": os.cpu_count()}})
+                                             "machine": H.machine_done(machine)})
         (RESULTS / "tiers.json").write_text(json.dumps(old, indent=1))
         chart(old["rows"], RESULTS / "tiers.png")
         print(f"\nmerged {tiers} into {RESULTS / 'tiers.json'}; wrote {RESULTS / 'tiers.png'}")
         return 0
-    out = {"machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "python": platform.python_version(),
-                       "numpy": np.__version__},
+    out = {"machine": machine, "command": H.command(),
            "size": list(size), "repeats": a.repeats, "reference": "cpu tier, every point, float64 projection",
            "rows": rows}
     if a.skip_crossover and (RESULTS / "tiers.json").exists():
@@ -438,6 +345,7 @@ def main(argv=None) -> int:
     if not a.skip_crossover:
         sizes = [1_000, 10_000, 30_000, 100_000, 300_000] if a.quick else [1_000, 3_000, 10_000, 30_000, 100_000, 300_000, 1_000_000]
         xo = crossover_runs(tiers, (1280, 720), sizes, a.repeats)
+        H.machine_done(machine)
         out["crossover"] = xo
         blob = json.dumps({"crossover_points": xo["crossover_points"], "verdict": xo["verdict"],
                            "measured": time.strftime("%Y-%m-%d"), "machine": out["machine"]}, indent=1)
@@ -448,7 +356,8 @@ def main(argv=None) -> int:
             p.parent.mkdir(parents=True, exist_ok=True)
             p.write_text(blob)
             print(f"crossover written to {p}")
-    (RESULTS / "tiers.json").write_text(json.dumps(out, indent=1))
+    H.machine_done(machine)
+    H.write_result(RESULTS / "tiers.json", out, indent=1)
     chart(rows, RESULTS / "tiers.png")
     print(f"\nwrote {RESULTS / 'tiers.json'}, {RESULTS / 'tiers.png'}")
     return 0

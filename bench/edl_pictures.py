@@ -8,28 +8,21 @@ saved side by side as docs/img/edl_demo.png and docs/img/edl_autzen.png.
 """
 from __future__ import annotations
 
-import os
-import sys
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-os.environ.setdefault("XDG_RUNTIME_DIR", "/tmp/xdg")
-os.makedirs(os.environ["XDG_RUNTIME_DIR"], exist_ok=True)
+import _harness
+from pointflow.config import EdlConfig, RenderConfig
+from pointflow.render.base import FrameInput
+from pointflow.render.camera import Camera
+from pointflow.render.process import write_png
+from pointflow.render.wgpu_tier import WgpuRenderer
 
-from pointflow.config import EdlConfig, RenderConfig  # noqa: E402
-from pointflow.render.base import FrameInput  # noqa: E402
-from pointflow.render.camera import Camera  # noqa: E402
-from pointflow.render.process import write_png  # noqa: E402
-from pointflow.render.wgpu_tier import WgpuRenderer  # noqa: E402
-
+ROOT = _harness.ROOT
 OUT = ROOT / "docs" / "img"
-#: ../shared/data beside the checkout (or beside the worktrees' parent)
-DATA = next((p for p in (ROOT.parent / "shared" / "data", ROOT.parents[1] / "shared" / "data") if p.is_dir()),
-            ROOT.parent / "shared" / "data")
+DATA = _harness.DATA
 W, H = 800, 450
 
 

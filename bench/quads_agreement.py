@@ -10,24 +10,15 @@ Run it from another checkout (``PYTHONPATH=<checkout>``) to compare code version
 from __future__ import annotations
 
 import dataclasses
-import json
-import os
-import platform
 import sys
-from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent
-sys.path.insert(0, str(ROOT))
-os.environ.setdefault("XDG_RUNTIME_DIR", "/tmp/xdg")
-os.makedirs(os.environ["XDG_RUNTIME_DIR"], exist_ok=True)
-
-from bench_tiers import scene_autzen  # noqa: E402
-
-from pointflow.config import EdlConfig, RenderConfig  # noqa: E402
-from pointflow.render.cpu import CpuRenderer  # noqa: E402
-from pointflow.render.wgpu_tier import WgpuRenderer  # noqa: E402
+import _harness
+from _harness.scenes import scene_autzen
+from pointflow.config import EdlConfig, RenderConfig
+from pointflow.render.cpu import CpuRenderer
+from pointflow.render.wgpu_tier import WgpuRenderer
 
 W, H = 480, 320
 
@@ -41,6 +32,7 @@ def _img(r, frame, cam) -> np.ndarray:
 
 
 def main() -> int:
+    machine = _harness.machine()
     scene = scene_autzen(W / H)
     if scene is None:
         print("autzen_trim.laz not found (set POINTFLOW_DATA)")
@@ -58,10 +50,9 @@ def main() -> int:
             rows.append(row)
             print(f"{m:8s} edl={'on ' if edl else 'off'}  differ {row['differ']:.4%}  "
                   f"> 1 step {row['beyond_one_step']:.4%}")
-    out = ROOT / "results" / "quads_agreement.json"
-    out.write_text(json.dumps({"scene": desc, "size": [W, H], "point_size": 2, "color_by": "z",
-                               "host": platform.node(), "rows": rows}, indent=1) + "\n")
-    print(f"wrote {out}")
+    _harness.write_result(_harness.RESULTS / "quads_agreement.json",
+                          {"scene": desc, "size": [W, H], "point_size": 2, "color_by": "z",
+                           "machine": _harness.machine_done(machine), "rows": rows}, indent=1)
     return 0
 
 

@@ -16,16 +16,9 @@ import pytest
 
 from pointflow import Pipeline
 from pointflow.remote.keys import create_keypair
+from pointflow.runtime.testing import free_port as _free_port
 
 from .helpers import REPO, api_config, known_clouds, run_script
-
-
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture

@@ -15,7 +15,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import zmq
 
 from pointflow.runtime.stage import RunInfo, stage_main
 
@@ -286,21 +285,15 @@ class SourceIngest(IngestStage):
                                                    daemon=True)
         self.src.start()
 
-    def poll(self, timeout_ms: int = 100) -> None:
-        if self.control.poll(timeout_ms):
-            while True:
-                try:
-                    m = json.loads(self.control.recv(zmq.NOBLOCK))
-                except zmq.Again:
-                    break
-                if m.get("type") == "heartbeat":
-                    self.stage_stats[m["stage"]] = m["stats"]
-                    if m["stage"] == "ingest":
-                        self.last = m["stats"]
-                elif m.get("type") == "done":
-                    self.done.add(m["stage"])
-                elif m.get("type") == "error":
-                    raise AssertionError(f"{m.get('stage')} stage failed:\n" + m["message"])
+    def on_control(self, m: dict) -> None:
+        if m.get("type") == "heartbeat":
+            self.stage_stats[m["stage"]] = m["stats"]
+            if m["stage"] == "ingest":
+                self.last = m["stats"]
+        elif m.get("type") == "done":
+            self.done.add(m["stage"])
+        else:
+            super().on_control(m)
 
     def wait_ingest(self, pred, timeout: float = 60.0) -> dict:
         return self.wait_stats(pred, timeout)

@@ -1,16 +1,14 @@
 """``ros2_zenoh``: live ROS 2 over rmw_zenoh without ROS. Real processes throughout: a Zenoh
-router, a publisher that behaves as rmw_zenoh's (``rmw_zenoh_pub.py``: its keys, attachments,
+router, a publisher that behaves as rmw_zenoh's (``pointflow/ingest/rmw_zenoh_pub.py``: its keys, attachments,
 liveliness tokens, transient-local cache, Humble and buffer-aware Rolling modes), and the real
 source and ingest stages feeding a ring (or ``pointflow run``)."""
 from __future__ import annotations
 
 import os
 import pickle
-import queue
 import struct
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
@@ -22,66 +20,22 @@ pytest.importorskip("rosbags", reason="rosbags comes with the ros extra: pip ins
 
 from pointflow.config import ConfigError, load_config  # noqa: E402
 from pointflow.ingest import rmw_zenoh as rz  # noqa: E402
+from pointflow.ingest import rmw_zenoh_pub as P  # noqa: E402
+from pointflow.runtime.testing import LineProc, free_port  # noqa: E402
 
 from . import ros_util as ru  # noqa: E402
-from . import rmw_zenoh_pub as P  # noqa: E402
 from .stage_util import base_config  # noqa: E402
-from .test_transports import free_port  # noqa: E402
 
-PUB = str(Path(__file__).with_name("rmw_zenoh_pub.py"))
+PUB = P.__name__  # run with -m
 TOPIC = "/ouster/points"
 REPO = Path(__file__).resolve().parents[2]
 
 
-class Proc:
-    """A helper process whose stdout lines are read on a thread; stdin closed = it exits."""
+class Proc(LineProc):
+    """The publisher (or router) as a helper process whose stdout lines are read on a thread."""
 
     def __init__(self, args: list[str]):
-        self.p = subprocess.Popen([sys.executable, PUB, *args], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                                  stderr=subprocess.PIPE, text=True)
-        self.lines: queue.Queue = queue.Queue()
-        self.seen: list[str] = []
-        threading.Thread(target=self._read, daemon=True).start()
-
-    def _read(self) -> None:
-        for line in self.p.stdout:
-            self.lines.put(line.rstrip("\n"))
-
-    def wait_line(self, prefix: str, timeout: float = 30.0) -> str:
-        for line in self.seen:
-            if line.startswith(prefix):
-                self.seen.remove(line)
-                return line
-        end = time.monotonic() + timeout
-        while True:
-            try:
-                line = self.lines.get(timeout=max(0.01, end - time.monotonic()))
-            except queue.Empty:
-                raise AssertionError(f"no {prefix!r} line from {self.p.args} within {timeout} s; "
-                                     f"seen {self.seen}; stderr: {self._stderr()}") from None
-            if line.startswith(prefix):
-                return line
-            self.seen.append(line)
-
-    def _stderr(self) -> str:
-        if self.p.poll() is None:
-            return "(running)"
-        return self.p.stderr.read()[-2000:]
-
-    def send(self, text: str) -> None:
-        self.p.stdin.write(text)
-        self.p.stdin.flush()
-
-    def close(self) -> None:
-        try:
-            self.p.stdin.close()
-        except OSError:
-            pass
-        try:
-            self.p.wait(10)
-        except subprocess.TimeoutExpired:
-            self.p.kill()
-            self.p.wait(5)
+        super().__init__(["-m", PUB, *args])
 
 
 @pytest.fixture

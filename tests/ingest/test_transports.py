@@ -17,12 +17,7 @@ from pointflow.config import ConfigError, load_config
 from pointflow.ingest.jsonchunk import chunk_to_json
 from pointflow.ingest.quantised import AttributeRange, encode_quantised
 from pointflow.ingest.transports import resolve_transport
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+from pointflow.runtime.testing import free_port
 
 
 def make(name, options, sid="t"):

@@ -9,6 +9,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import pytest
 
+from pointflow.runtime.testing import free_port as free_tcp_port  # noqa: F401  (tests import it here)
+from pointflow.runtime.testing import wait_for  # noqa: F401  (tests import it here)
+
 # PointField datatype -> numpy type (sensor_msgs/PointField constants)
 NP = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
 
@@ -105,19 +108,5 @@ def require_root(what: str) -> None:
         pytest.skip(f"{what} needs root")
 
 
-def wait_for(pred, timeout=30.0, interval=0.05):
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        v = pred()
-        if v:
-            return v
-        time.sleep(interval)
-    return pred()
 
 
-def free_tcp_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]

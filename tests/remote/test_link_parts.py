@@ -17,6 +17,7 @@ from pointflow.remote.codec import Compressor
 from pointflow.remote.keys import create_keypair
 from pointflow.remote.options import is_loopback_endpoint
 from pointflow.remote.transit import TransitLedger
+from pointflow.runtime.testing import free_port as _free_port
 
 
 def _zmq_cfg(**opts):
@@ -207,14 +208,6 @@ def test_sender_queue_drops_oldest_data_never_syncs():
     finally:
         sock.close(0)
         ctx.term()
-
-
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.mark.parametrize("client", ["no-curve", "wrong-server-key"])

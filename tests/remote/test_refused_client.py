@@ -14,12 +14,7 @@ from pointflow.profiling.report import live_summary
 from pointflow.remote.keys import create_keypair
 from pointflow.remote.options import SendConfig
 from pointflow.remote.security import LinkSecurity
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+from pointflow.runtime.testing import free_port as _free_port
 
 
 @pytest.mark.parametrize("case", ["key-not-authorized", "wrong-server-key"])

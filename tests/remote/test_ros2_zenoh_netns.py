@@ -1,6 +1,6 @@
 """ROS 2 over rmw_zenoh across hosts (docs/ros.md, "A robot on another host"): Linux network
 namespaces joined by veth pairs (netns.py), as the other link tests. The robot's publisher
-(tests/ingest/rmw_zenoh_pub.py: an rmw_zenoh session, listening on its own loopback only, as
+(pointflow/ingest/rmw_zenoh_pub.py: an rmw_zenoh session, listening on its own loopback only, as
 rmw_zenoh's DEFAULT_RMW_ZENOH_SESSION_CONFIG does) reaches the viewers only through a router on
 another host configured as rmw_zenohd is (``peers_failover_brokering: false``); the viewers
 cannot reach the robot at all. Run as root; under CI=true they must run.
@@ -21,15 +21,16 @@ import pytest
 pytest.importorskip("zenoh", reason="eclipse-zenoh comes with the remote extra: pip install 'pointflow[remote]'")
 pytest.importorskip("rosbags", reason="rosbags comes with the ros extra: pip install 'pointflow[ros]'")
 
-from ingest import rmw_zenoh_pub as P  # noqa: E402
 from ingest import ros_util as ru  # noqa: E402
+
+from pointflow.ingest import rmw_zenoh_pub as P  # noqa: E402
 
 from .helpers import wait_for  # noqa: E402
 from .netns import REPO, Net  # noqa: E402
 
 PORT = 7447
 TOPIC = "/ouster/points"
-PUB = str(REPO / "tests/ingest/rmw_zenoh_pub.py")
+PUB = P.__name__  # run with -m
 PROBE = str(REPO / "tests/remote/ros2_zenoh_probe.py")
 
 
@@ -45,14 +46,14 @@ def test_a_peer_viewer_behind_the_robots_router_gets_every_cloud_and_says_why(ne
     rt_vp, _ = net.link(rt, vp)           # ... from each viewer
     rt_vc, _ = net.link(rt, vc)
     # the router reads stdin until it closes: give it a pipe that stays open while it runs
-    net.spawn(rt, "sh", "-c", f"sleep infinity | {sys.executable} {PUB} --router tcp/0.0.0.0:{PORT}", log="router.log")
+    net.spawn(rt, "sh", "-c", f"sleep infinity | {sys.executable} -m {PUB} --router tcp/0.0.0.0:{PORT}", log="router.log")
     wait_for(lambda: "READY" in net.log("router.log"), 60, "the router", lambda: net.log("router.log"))
     clouds = [ru.cloud_padded(k, n=50 + k) for k in range(6)]
     spec = {"connect": f"tcp/{rt_robot}:{PORT}", "mode": mode, "advertise": [(TOPIC, P.PC2)],
             "script": [("put", TOPIC, P.cdr_cloud(c)) for c in clouds], "min_subscribers": 2,
             "go_at_once": True, "linger_s": 300}
     (net.workdir / "spec.pickle").write_bytes(pickle.dumps(spec))
-    net.spawn(robot, sys.executable, PUB, str(net.workdir / "spec.pickle"), log="robot.log")
+    net.spawn(robot, sys.executable, "-m", PUB, str(net.workdir / "spec.pickle"), log="robot.log")
     wait_for(lambda: "READY" in net.log("robot.log"), 60, "the robot's publisher", lambda: net.log("robot.log"))
     # the docs' cross-host example, as written, and the client it turns into
     peer = start_probe(net, vp, {"mode": "peer", "connect": [f"tcp/{rt_vp}:{PORT}"], "insecure": True}, "peer")

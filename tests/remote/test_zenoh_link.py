@@ -7,7 +7,6 @@ from __future__ import annotations
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -17,18 +16,13 @@ import numpy as np
 import pytest
 
 from pointflow.config import load_config
+from pointflow.runtime.testing import free_port as _port
 from pointflow.typed import ConfigError
 
 from .helpers import assert_exact, synthetic_source, wait_for
 
 zenoh = pytest.importorskip("zenoh", reason="eclipse-zenoh comes with the remote extra: pip install 'pointflow[remote]'")
 REPO = Path(__file__).resolve().parents[2]
-
-
-def _port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 class Loop:

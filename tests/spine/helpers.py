@@ -2,10 +2,12 @@
 from __future__ import annotations
 
 import os
-import socket
 import time
 
 import psutil
+
+from pointflow.runtime import testing
+from pointflow.runtime.testing import free_port as free_tcp_port  # noqa: F401  (tests import it here)
 
 SHM = "/dev/shm"
 
@@ -24,12 +26,6 @@ def assert_segments_gone(stats: dict) -> None:
     assert len(segs) == 3, segs
     left = [s for s in segs if os.path.exists(os.path.join(SHM, s))]
     assert not left, f"leaked shared-memory segments: {left}"
-
-
-def free_tcp_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def small_config(**over) -> dict:
@@ -71,10 +67,4 @@ def _alive(pid: int) -> bool:
 
 
 def wait_for(pred, timeout=30.0, interval=0.1):
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        v = pred()
-        if v:
-            return v
-        time.sleep(interval)
-    return pred()
+    return testing.wait_for(pred, timeout, interval)

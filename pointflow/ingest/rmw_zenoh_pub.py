@@ -1,5 +1,5 @@
 """A ROS 2 publisher that behaves as rmw_zenoh's does on the wire, for the ``ros2_zenoh`` tests
-(there is no ROS 2 here). Written from ros2/rmw_zenoh's released sources with the
+and benchmarks (there is no ROS 2 here; shipped in the package so bench/ need not import tests/). Written from ros2/rmw_zenoh's released sources with the
 ``eclipse-zenoh`` package and rosbags' CDR serialiser:
 
 * a node token ``@ros2_lv/<domain>/<zid>/<nid>/<nid>/NN/%/%/<node>`` and, per topic, a publisher
@@ -21,8 +21,8 @@
   modes publish when the test says ``go`` on stdin, ``rolling`` when its topics have a
   subscription (a test convenience for the non-buffer topics).
 
-Run as ``python rmw_zenoh_pub.py SPEC.pickle`` (a publisher) or ``python rmw_zenoh_pub.py --router
-LOCATOR`` (a Zenoh router, as ``rmw_zenohd`` is). It prints ``READY`` once declared,
+Run as ``python -m pointflow.ingest.rmw_zenoh_pub SPEC.pickle`` (a publisher) or ``python -m
+pointflow.ingest.rmw_zenoh_pub --router LOCATOR`` (a Zenoh router, as ``rmw_zenohd`` is). It prints ``READY`` once declared,
 ``MATCHED <token>`` for each subscription token of its topics, ``PATH cpu <token>`` or ``PATH gid
 <hex> <token>`` when a buffer-aware topic serves a subscription, ``SENT <topic> <n>`` when a topic's
 script is done, and exits when stdin closes.
@@ -38,8 +38,7 @@ import time
 import zenoh
 import zenoh.ext
 
-sys.path.insert(0, str(__import__("pathlib").Path(__file__).resolve().parents[2]))
-from pointflow.ingest import rmw_zenoh as rz  # noqa: E402
+from . import rmw_zenoh as rz
 
 PC2 = "sensor_msgs/msg/PointCloud2"
 _OUT = threading.Lock()
