@@ -20,8 +20,8 @@ timed runs. Live: an Ouster OS-1-128 scan replayed at 10 Hz above the map. Measu
 
 The machine is shared with other engineers (2 cores): ``uptime`` is written before and after.
 
-    PYTHONPATH=. .venv/bin/python bench/bench_map.py              # ~3-5 min on 2 cores
-    PYTHONPATH=. .venv/bin/python bench/bench_map.py --tiles 3 --repeats 1   # quicker
+    PYTHONPATH=$PWD .venv/bin/python bench/bench_map.py             # ~10 min on 2 cores
+    PYTHONPATH=$PWD .venv/bin/python bench/bench_map.py --tiles 2 --budget 200000 --only-inprocess  # quicker
 
 Writes ``bench/results/map.json``.
 """
@@ -30,28 +30,16 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
-import subprocess
 import tempfile
 import time
-from pathlib import Path
 
 import numpy as np
 
+import _harness as H
 from pointflow import Pipeline
 
-ROOT = Path(__file__).resolve().parents[1]
-RESULTS = ROOT / "bench" / "results"
-DATA = ROOT.parent / "shared" / "data"
-if not DATA.exists():
-    DATA = Path("/work/shared/data")
-
-
-def _uptime() -> str:
-    try:
-        return subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
-    except OSError:
-        return ""
+RESULTS = H.RESULTS
+DATA = H.DATA
 
 
 def mosaic(tiles: int, out: str) -> tuple[str, np.ndarray, np.ndarray]:
@@ -334,11 +322,8 @@ def main() -> None:
     ap.add_argument("--only-inprocess", action="store_true")
     ap.add_argument("--out", default=str(RESULTS / "map.json"))
     a = ap.parse_args()
-    os.environ.setdefault("XDG_RUNTIME_DIR", "/tmp/xdg")
-    os.makedirs(os.environ["XDG_RUNTIME_DIR"], exist_ok=True)
     tmp = tempfile.mkdtemp(prefix="bench-map-")
-    res: dict = {"machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "uptime_before": _uptime()},
-                 "args": vars(a)}
+    res: dict = {"machine": H.machine(command=H.command()), "args": vars(a)}
     t = time.monotonic()
     path, lo, hi = mosaic(a.tiles, os.path.join(tmp, f"autzen_{a.tiles}x{a.tiles}.laz"))
     res["map"] = {"file": os.path.basename(path), "points": 110_000 * a.tiles ** 2,
@@ -356,8 +341,7 @@ def main() -> None:
                                        for be in a.backends.split(",")]
         for r in res["frame_time_inprocess"]:
             print("frame time in process:", {k: v for k, v in r.items() if k not in ("map_ms", "ring_ms")})
-        res["machine"]["uptime_after"] = _uptime()
-        Path(a.out).write_text(json.dumps(res, indent=1, default=str))
+        H.write_result(a.out, {**res, "machine": H.machine_done(res["machine"])})
         return
     res["first_picture"] = first_picture_and_refine(path, live, lo, hi, cache_dir, a.budget)
     print("first picture / refine:", json.dumps(res["first_picture"]), flush=True)
@@ -371,10 +355,8 @@ def main() -> None:
           flush=True)
     res["rss"] = rss_flight(path, live, lo, hi, cache_dir, a.budget, 16.0)
     print("rss:", {k: v for k, v in res["rss"].items() if k != "samples"}, flush=True)
-    res["machine"]["uptime_after"] = _uptime()
-    Path(a.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(a.out).write_text(json.dumps(res, indent=1, default=str))
-    print("wrote", a.out)
+    H.machine_done(res["machine"])
+    H.write_result(a.out, res)
 
 
 if __name__ == "__main__":
