@@ -27,6 +27,10 @@ from ..map import region as mr
 from .base import FrameInput, merge_ranges
 
 
+#: The map stage hears of a moving camera at most this often.
+CAMERA_PERIOD_S = 0.1
+
+
 class MapLayer:
     """Receives map versions, composes the combined frame, publishes the cameras, names
     picked map points. Everything here runs between frames and copies only what changed."""
@@ -62,6 +66,7 @@ class MapLayer:
         self.bad_messages = 0
         self.t_version_ns = 0
         self._last_cams = None
+        self._t_cams = 0.0
         self._undrawn: Optional[list] = []  # dirty ranges of a composed frame not drawn (None = all)
         self.hello()
 
@@ -243,11 +248,17 @@ class MapLayer:
     # ------------------------------------------------------------------ render -> map stage
     def publish(self, views: list) -> None:
         """Tell the map stage where the views look: ``[(name, camera, width, height), ...]``,
-        the main view first. Sent only when a camera changed."""
+        the main view first. Sent when a camera changed, at most every
+        :data:`CAMERA_PERIOD_S` while it keeps moving (an orbiting camera would otherwise make
+        the map stage select again for every frame); the render loop calls this each turn, so
+        the last camera of a move goes out within a period."""
         cams = [mr.camera_dict(n, c, w, h) for n, c, w, h in views if c is not None]
         if not cams or cams == self._last_cams:
             return
-        self._last_cams = cams
+        now = time.monotonic()
+        if now - self._t_cams < CAMERA_PERIOD_S:
+            return
+        self._last_cams, self._t_cams = cams, now
         self._send({"type": "cameras", "views": cams})
 
     def publish_stage(self, stage) -> None:
