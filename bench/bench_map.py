@@ -267,6 +267,74 @@ def frame_times_inprocess(map_path, cache_dir, budget: int, frames: int, backend
             "map_ms": [round(x, 2) for x in ta], "ring_ms": [round(x, 2) for x in tb]}
 
 
+def error_vs_budget(map_path, cache_dir, budgets: list, frames: int, out_png: str) -> dict:
+    """Image error and frame time against the point budget, on the real map: the nodes
+    select_nodes gives for a view low over the mosaic (as the map stage chooses them), drawn
+    by the cpu tier's compiled raster; error = share of pixels that differ from drawing every
+    point of the file; frame time = median over ``frames`` frames. Writes a chart."""
+    from pointflow.config import RenderConfig
+    from pointflow.map import open_map, select_nodes
+    from pointflow.render.base import FrameInput
+    from pointflow.render.camera import Camera
+    from pointflow.render.select import select_renderer
+
+    src = open_map(map_path, cache_dir=cache_dir, progress=False)
+    lo, hi = src.bounds
+    c = (lo + hi) / 2
+    span = float(np.max(hi - lo))
+    cam = Camera(eye=c + [0.0, -0.55 * span, 0.25 * span], target=c + [0, 0.05 * span, 0], up=[0, 0, 1],
+                 near=span * 1e-3, far=span * 3)
+    w, h = 960, 540
+    origin = np.round(c, 3)
+    rc = RenderConfig(backend="cpu", raster="compute", size=(w, h), color_by="z")
+
+    def draw(pts: np.ndarray):
+        n = pts.shape[0]
+        r, _ = select_renderer(rc, n, [])
+        f = FrameInput(positions=(pts - origin).astype(np.float32), importance=np.ones(n, np.float32),
+                       t_ingest_ms=np.zeros(n), channels={}, head=0, size=n, capacity=n, origin=origin,
+                       now_ms=0.0, dirty=None, channel_ranges={})
+        r.render(f, cam)
+        times = []
+        for _ in range(frames):
+            f.dirty = []
+            t0 = time.perf_counter()
+            r.render(f, cam)
+            times.append((time.perf_counter() - t0) * 1e3)
+        img = r.read_image()
+        r.close()
+        return img, float(np.median(times))
+
+    every = np.concatenate([src.load(k)["positions"] for k in src.keys()])
+    full, full_ms = draw(every)
+    rows = []
+    for b in budgets:
+        keys = select_nodes(src, cam.view_proj(w, h), (w, h), cam.eye, b)
+        pts = np.concatenate([src.load(k)["positions"] for k in keys]) if keys else np.zeros((0, 3))
+        img, ms = draw(pts) if len(pts) else (np.zeros_like(full), 0.0)
+        rows.append({"budget": b, "points": int(len(pts)), "nodes": len(keys),
+                     "pixels_differing": round(float((img != full).any(axis=-1).mean()), 4), "frame_ms": round(ms, 2)})
+        print("budget", rows[-1], flush=True)
+    src.close()
+    plt = H.pyplot()
+    if plt is not None:
+        fig, ax = plt.subplots(figsize=(7, 4))
+        xs = [r["points"] for r in rows]
+        ax.plot(xs, [100 * r["pixels_differing"] for r in rows], "o-", color="C0")
+        ax.set_xscale("log")
+        ax.set_xlabel("map points drawn (point budget)")
+        ax.set_ylabel("pixels differing from every point (%)", color="C0")
+        ax2 = ax.twinx()
+        ax2.plot(xs, [r["frame_ms"] for r in rows], "s--", color="C1")
+        ax2.axhline(full_ms, color="C1", lw=0.8, ls=":")
+        ax2.set_ylabel("frame time, cpu compiled raster (ms)", color="C1")
+        ax.set_title(f"{os.path.basename(map_path)} ({len(every):,} points): error and frame time by budget",
+                     fontsize=9)
+        fig.tight_layout()
+        fig.savefig(out_png, dpi=110)
+    return {"all_points": int(len(every)), "all_frame_ms": round(full_ms, 2), "rows": rows, "chart": out_png}
+
+
 def ring_points(n: int, lo, hi, out_dir: str) -> str:
     """B live points over the same area (a file replayed at once: the ring of B points)."""
     import laspy
@@ -320,6 +388,7 @@ def main() -> None:
     ap.add_argument("--backends", default="cpu:compute,wgpu",
                     help="tiers of the in-process comparison (backend[:raster])")
     ap.add_argument("--only-inprocess", action="store_true")
+    ap.add_argument("--only-error", action="store_true", help="only image error and frame time by budget")
     ap.add_argument("--out", default=str(RESULTS / "map.json"))
     a = ap.parse_args()
     tmp = tempfile.mkdtemp(prefix="bench-map-")
@@ -336,6 +405,11 @@ def main() -> None:
     res["map"]["index_build_s"] = round(time.monotonic() - t, 2)
     print("index built:", res["map"], flush=True)
     live = live_scan(tmp, (lo + hi) / 2)
+    budgets = [25_000, 50_000, 100_000, 200_000, 400_000, 1_000_000, 2_000_000]
+    if a.only_error:
+        res["error_vs_budget"] = error_vs_budget(path, cache_dir, budgets, a.frames, str(RESULTS / "map_budget.png"))
+        H.write_result(a.out, {**res, "machine": H.machine_done(res["machine"])})
+        return
     if a.only_inprocess:
         res["frame_time_inprocess"] = [frame_times_inprocess(path, cache_dir, a.budget, a.frames, be, tmp)
                                        for be in a.backends.split(",")]
