@@ -334,6 +334,9 @@ def _check_semantics(cfg: PipelineConfig) -> None:
         check_record(cfg.record, "record")
     if cfg.map is not None:
         check_map(cfg.map, "map", cfg.base_dir)
+        for i, src in enumerate(cfg.sources):
+            if src.name == "map":  # the stage table is keyed by name
+                raise ConfigError(f"sources[{i}].name", "'map' is the map stage's name: call the source otherwise")
     e = cfg.endpoints
     check_playback(cfg.playback, "playback")
     if cfg.view is not None:

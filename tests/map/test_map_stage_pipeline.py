@@ -199,3 +199,14 @@ def test_a_copc_map_in_a_pipeline(tmp_path):
         i = int(np.argmin(np.linalg.norm(truth["positions"] - p["position"], axis=1)))
         assert np.linalg.norm(truth["positions"][i] - p["position"]) < 1e-9
         assert p["channels"]["intensity"] == float(truth["intensity"][i])
+
+
+def test_a_source_may_not_take_the_map_stage_name(tmp_path):
+    from pointflow.config import ConfigError, load_config
+
+    live, _ = _live(str(tmp_path))
+    cfg = _config(live, write_las(str(tmp_path / "t.las"), 10))
+    cfg["source"]["name"] = "map"
+    with pytest.raises(ConfigError) as e:
+        load_config(cfg)
+    assert str(e.value).startswith("sources[0].name")
