@@ -109,6 +109,15 @@ def _run(args, profile: bool = False) -> int:
         from .record.config import with_record_path
 
         cfg = with_record_path(cfg, args.record)
+    if getattr(args, "serve", None):
+        from .serve.config import with_serve
+
+        try:
+            cfg = with_serve(cfg, args.serve)
+        except ValueError as exc:
+            if isinstance(exc, ConfigError):
+                raise
+            raise ConfigError("--serve", str(exc).removeprefix("--serve: ")) from None
     _playback_flags(cfg, args)
     out_dir = _out_dir(args.out or cfg.render.output.dir or "out")
     if args.backend:
@@ -388,6 +397,8 @@ def build_parser() -> argparse.ArgumentParser:
         r.add_argument("-q", "--quiet", action="store_true", help="no live progress line")
         r.add_argument("--record", metavar="FILE.mcap", default=None,
                        help="record what ingest accepts to this MCAP file (docs/record.md)")
+        r.add_argument("--serve", metavar="[HOST:]PORT", default=None,
+                       help="serve the live view to a browser (docs/views.md); prints the view: URL to open")
         r.add_argument("--start", default=None, metavar="SECONDS|PCT%",
                        help="replays (file, rosbag) start here: seconds into the recording, or e.g. 25%%")
         r.add_argument("--rate", type=float, default=None, help="replays run this many times as fast as recorded")

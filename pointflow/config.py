@@ -22,6 +22,7 @@ from .ingest.playback import PlaybackConfig, check_playback
 from .ingest.transports import resolve_transport
 from .record.config import RecordConfig, check_record
 from .map.config import MapConfig, check_map
+from .serve.config import ServeConfig, check_serve
 from .remote.options import SendConfig, check_send, is_loopback_endpoint
 from .remote.router import RouterConfig, check_router
 from .ring.config import RingConfig, check_ring
@@ -179,6 +180,8 @@ class EndpointsConfig:
     #: by render) and the render stage's cameras and acknowledgements (PULL bound by the map stage).
     map: Optional[str] = field(default=None, metadata=check(endpoint))
     map_camera: Optional[str] = field(default=None, metadata=check(endpoint))
+    #: The view server's views (only with ``serve:``): ROUTER bound by render, DEALER of the view server.
+    views: Optional[str] = field(default=None, metadata=check(endpoint))
     #: Allow these (unencrypted) endpoints on a non-loopback tcp:// address.
     insecure: bool = False
 
@@ -244,6 +247,8 @@ class PipelineConfig:
     #: A view to start from (``Pipeline.save_view`` writes one): ``camera`` (fit, or
     #: eye/target/up/fov_deg) and ``style``; applied over ``render`` at load (render/control.py).
     view: Optional[dict[str, Any]] = None
+    #: The view server (docs/views.md): a page and a WebSocket; also ``pointflow run --serve [HOST:]PORT``.
+    serve: Optional[ServeConfig] = None
     #: Where the YAML came from (for relative paths in options); not a YAML key.
     base_dir: str = field(default=".", metadata={"internal": True})
 
@@ -279,6 +284,7 @@ class PipelineConfig:
             record=e.record or d("record"), playback=e.playback or d("playback"),
             view_transforms=e.view_transforms or d("view-transforms"),
             map=e.map or d("map"), map_camera=e.map_camera or d("map-camera"),
+            views=e.views or d("views"),
         )
 
     def to_dict(self) -> dict:
@@ -337,12 +343,14 @@ def _check_semantics(cfg: PipelineConfig) -> None:
         for i, src in enumerate(cfg.sources):
             if src.name == "map":  # the stage table is keyed by name
                 raise ConfigError(f"sources[{i}].name", "'map' is the map stage's name: call the source otherwise")
+    if cfg.serve is not None:
+        check_serve(cfg.serve, "serve", cfg.base_dir)
     e = cfg.endpoints
     check_playback(cfg.playback, "playback")
     if cfg.view is not None:
         _apply_view(cfg)
     for key in ("ingest", "frames", "release", "control", "trace", "render_commands", "record", "playback",
-                "view_transforms", "map", "map_camera"):
+                "view_transforms", "views", "map", "map_camera"):
         ep = getattr(e, key)
         if ep and not e.insecure and not is_loopback_endpoint(ep):
             raise ConfigError(f"endpoints.{key}", f"{ep} is reachable from other hosts and the links between "

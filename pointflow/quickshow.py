@@ -4,8 +4,9 @@
 (or a sequence of clouds) and shows it with the best view this machine has, tried in the
 order of :data:`VIEWS`:
 
-1. ``notebook``: inside a Jupyter kernel, once a notebook view is registered
-   (:func:`register_view`; none ships yet: the views issue adds it here);
+1. ``notebook``: inside a Jupyter kernel with the notebook extra
+   (``pip install 'pointflow[notebook]'``): a live widget (:mod:`pointflow.notebook`)
+   that keeps the pipeline running until the widget is closed;
 2. ``window``: a display (``DISPLAY``/``WAYLAND_DISPLAY``) and the window extra
    (``pip install pointflow[window]``): an interactive window, until it is closed;
 3. ``png``: anywhere else, one frame written to a PNG whose path is printed and returned.
@@ -35,6 +36,8 @@ class View:
     show: Callable[..., Any]
     #: render config this view needs (merged over show's defaults)
     render: Optional[dict] = None
+    #: the view keeps the pipeline running after show returns (it stops it itself)
+    keeps_running: bool = False
 
 
 def in_notebook() -> bool:
@@ -92,13 +95,27 @@ def _show_png(p, total: int, path: Optional[str], timeout_s: float) -> str:
     return out
 
 
-def _show_notebook_missing(p, total, path, timeout_s):  # pragma: no cover - the hook's placeholder
-    raise NotImplementedError
+def _notebook_available() -> bool:
+    from .notebook import available
+
+    return in_notebook() and available()
+
+
+def _show_notebook(p, total: int, path: Optional[str], timeout_s: float) -> None:
+    """The live widget, displayed; it owns the pipeline (closing the widget stops it)."""
+    from IPython.display import display
+
+    from .notebook import LiveView
+
+    _wait_drawn(p, total, timeout_s)
+    w, h = p.cfg.render.size
+    display(LiveView(p, width=w, height=h, owns_pipeline=True))
 
 
 #: Tried in order; the first available one shows. A notebook view registers itself here
 #: with :func:`register_view` (first in the list).
 VIEWS: list[View] = [
+    View("notebook", _notebook_available, _show_notebook, keeps_running=True),
     View("window", _window_available, _show_window, render={"window": True}),
     View("png", lambda: True, _show_png),
 ]
@@ -162,12 +179,16 @@ def show(positions: Any, *, path: Optional[str] = None, color_by: Optional[str] 
                        "render": render, "tracing": {"enabled": False}, "cadence": {"target_hz": 10}})
     p = Pipeline(cfg, out_dir="")
     p.start()
+    kept = False
     try:
         for pos, chans in clouds:
             p.send(pos, source="show", **chans)
-        return chosen.show(p, total, path, timeout_s)
+        out = chosen.show(p, total, path, timeout_s)
+        kept = chosen.keeps_running
+        return out
     finally:
-        p.stop()
+        if not kept:
+            p.stop()
 
 
 __all__ = ["show", "register_view", "View", "VIEWS", "in_notebook"]

@@ -11,6 +11,8 @@ ldconfig -p 2>/dev/null | grep -q 'libEGL_mesa' || need+=(libegl-mesa0)
 command -v Xvfb >/dev/null 2>&1 || need+=(xvfb)
 # ip netns / veth / tc netem for the network-namespace link tests (tests/remote)
 command -v ip >/dev/null 2>&1 || need+=(iproute2)
+# a real browser for the view server's page (tests/serve; playwright drives it, executable_path)
+[ -x /usr/bin/chromium ] || need+=(chromium)
 [ ${#need[@]} -eq 0 ] && exit 0
 if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
     echo "installing system packages: ${need[*]}" >&2

@@ -84,6 +84,9 @@ class RenderError(RuntimeError):
 
 class Renderer(ABC):
     tier: ClassVar[str] = ""
+    #: True when the tier keeps its own copy of the ring (uploaded by dirty ranges): it can
+    #: draw again with ``frame.dirty == []`` after the slab went back (render/views.py).
+    keeps_data: ClassVar[bool] = False
 
     def __init__(self, cfg: RenderConfig, capacity: int, channels: list[str]):
         self.cfg = cfg
@@ -108,6 +111,12 @@ class Renderer(ABC):
         frame, in place; False when the tier cannot (it caches them in pipelines), and the
         render stage builds a new renderer of the same tier instead (render/control.py)."""
         return False
+
+    def resize(self, width: int, height: int) -> bool:
+        """Draw the next frames at ``width`` x ``height`` (a view of another size,
+        render/views.py); False when the tier cannot (the view then gets the tier's size).
+        Tiers that can keep one target per size, so switching back costs nothing."""
+        return (int(width), int(height)) == (self.width, self.height)
 
     def info(self) -> dict[str, Any]:
         return {"tier": self.tier}

@@ -53,6 +53,22 @@ class CpuRenderer(Renderer):
         self.nonfinite_total = 0
         self.frames = 0
 
+    def resize(self, width: int, height: int) -> bool:
+        """A target per size (image and slot map), kept for switching back."""
+        size = (int(width), int(height))
+        if size == (self.width, self.height):
+            return True
+        targets = self.__dict__.setdefault("_targets", {})
+        targets[(self.width, self.height)] = (self._image, self._slot_at, self._last)
+        if size in targets:
+            self._image, self._slot_at, self._last = targets[size]
+        else:
+            self._image = np.empty((size[1], size[0], 4), np.uint8)
+            self._image[:] = self._bg
+            self._slot_at, self._last = np.full(size[0] * size[1], -1, np.int64), {}
+        self.width, self.height = size
+        return True
+
     def restyle(self, cfg: RenderConfig) -> bool:
         """Every style field is read per frame except EDL's offsets and the background."""
         self.cfg = cfg

@@ -57,6 +57,7 @@ class CpuComputeRenderer(Renderer):
 
     tier = "cpu"
     raster = "compute"
+    keeps_data = True
 
     def __init__(self, cfg: RenderConfig, capacity: int, channels: list[str]):
         super().__init__(cfg, capacity, channels)
@@ -181,7 +182,7 @@ class CpuComputeRenderer(Renderer):
         """The key buffers for this frame's thread count: one (bands) or one per thread."""
         self.threads = T = max(1, int(self._k_numba().get_num_threads())) if threads is None else threads
         nb = 1 if self.bands else T
-        if self._keys.shape[0] != nb:
+        if self._keys.shape != (nb, self.width * self.height):
             self._keys = np.empty((nb, self.width * self.height), np.uint64)
         return self._keys
 
@@ -347,6 +348,25 @@ class CpuComputeRenderer(Renderer):
                           extra={"removed_nonfinite": nonfinite, "nonfinite_total": self.nonfinite_total,
                                  "occupied": size, "threads": T, "raster": "compute",
                                  "split": "bands" if self.bands else "points"})
+
+    def resize(self, width: int, height: int) -> bool:
+        """A target per size (image, EDL depth, key buffers), kept for switching back; the
+        ring copy is shared, so a view of another size uploads nothing."""
+        size = (int(width), int(height))
+        if size == (self.width, self.height):
+            return True
+        targets = self.__dict__.setdefault("_targets", {})
+        targets[(self.width, self.height)] = (self._img, self._logz, self._keys, self._last_ring)
+        if size in targets:
+            self._img, self._logz, self._keys, self._last_ring = targets[size]
+        else:
+            W, H = size
+            self._img = np.empty((H, W), np.uint32)
+            self._img[:] = self._bg
+            self._logz = np.zeros(H * W if self._edl is not None else 1, np.float64)
+            self._keys, self._last_ring = np.empty((0, H * W), np.uint64), (0, 1)
+        self.width, self.height = size
+        return True
 
     # ---------------------------------------------------------------- outputs
     def read_image(self) -> np.ndarray:

@@ -162,23 +162,14 @@ class GlRenderer(Renderer):
             raise RenderError(f"no EGL OpenGL 3.3 context: {type(exc).__name__}: {exc}") from exc
         try:
             ctx = self.ctx
-            W, H = self.width, self.height
-            mx = ctx.info.get("GL_MAX_RENDERBUFFER_SIZE", 16384)
-            if W > mx or H > mx:
-                raise RenderError(f"viewport {W}x{H} exceeds GL_MAX_RENDERBUFFER_SIZE {mx}")
             edl = cfg.edl.enabled
-            self._color = ctx.texture((W, H), 4) if edl else ctx.renderbuffer((W, H), 4)
-            self._ids = ctx.renderbuffer((W, H), 4)  # slot + 1 as 4 little-endian bytes
-            self._depth = ctx.depth_renderbuffer((W, H))
-            extra = [ctx.texture((W, H), 2, dtype="f4")] if edl else []
-            self.fbo = ctx.framebuffer(color_attachments=[self._color, self._ids, *extra],
-                                       depth_attachment=self._depth)
-            self._ids_fbo = ctx.framebuffer(color_attachments=[self._ids])
+            targets = self._make_targets(edl_pass=False)
+            self._set_targets(targets)
             define = "#version 330\n#define EDL 1\n" if edl else "#version 330\n"
             self.prog = ctx.program(
                 vertex_shader=_VERT.replace("MAX_PX", f"{MAX_POINT_PX:.1f}").replace("#version 330\n", define),
                 fragment_shader=_FRAG.replace("#version 330\n", define))
-            self._edl = self._edl_pass(extra[0]) if edl else None
+            self._edl = self._edl_pass(self._logz_tex) if edl else None
         except RenderError:
             self.ctx.release()
             raise
@@ -193,6 +184,48 @@ class GlRenderer(Renderer):
         self.nonfinite_total = 0
         self.frames = 0
         self._clear()
+
+    def _make_targets(self, edl_pass: bool = True) -> tuple:
+        """The framebuffers for the current size (colour, ids, depth, EDL pass)."""
+        ctx = self.ctx
+        W, H = self.width, self.height
+        mx = ctx.info.get("GL_MAX_RENDERBUFFER_SIZE", 16384)
+        if W > mx or H > mx:
+            raise RenderError(f"viewport {W}x{H} exceeds GL_MAX_RENDERBUFFER_SIZE {mx}")
+        edl = self.cfg.edl.enabled
+        color = ctx.texture((W, H), 4) if edl else ctx.renderbuffer((W, H), 4)
+        ids = ctx.renderbuffer((W, H), 4)  # slot + 1 as 4 little-endian bytes
+        depth = ctx.depth_renderbuffer((W, H))
+        extra = [ctx.texture((W, H), 2, dtype="f4")] if edl else []
+        fbo = ctx.framebuffer(color_attachments=[color, ids, *extra], depth_attachment=depth)
+        ids_fbo = ctx.framebuffer(color_attachments=[ids])
+        self._logz_tex = extra[0] if edl else None
+        return color, ids, depth, fbo, ids_fbo, (self._edl_pass(extra[0]) if edl and edl_pass else None), {}
+
+    def _set_targets(self, t: tuple) -> None:
+        self._color, self._ids, self._depth, self.fbo, self._ids_fbo, self._edl, self._last = t
+
+    def resize(self, width: int, height: int) -> bool:
+        """A set of framebuffers per size, kept for switching back (render/views.py). The gl
+        tier uploads the drawn points every frame anyway, so a view of another size costs
+        its own upload as any gl frame does."""
+        size, old = (int(width), int(height)), (self.width, self.height)
+        if size == old:
+            return True
+        targets = self.__dict__.setdefault("_targets", {})
+        targets[old] = (self._color, self._ids, self._depth, self.fbo, self._ids_fbo, self._edl, self._last)
+        self.width, self.height = size
+        if size in targets:
+            self._set_targets(targets[size])
+            return True
+        try:
+            self._set_targets(self._make_targets())
+        except Exception:  # noqa: BLE001 - e.g. over GL_MAX_RENDERBUFFER_SIZE: the view gets the tier's size
+            self.width, self.height = old
+            self._set_targets(targets[old])
+            return False
+        self._clear()
+        return True
 
     def _edl_pass(self, logz) -> dict[str, Any]:
         """The EDL post pass: program, empty vertex array, output target."""

@@ -344,6 +344,12 @@ def main(ctx: StageContext) -> None:
         tf_in.bind(ctx.endpoints.view_transforms)
         view.follow = FollowFrame(cfg.frames.fixed, tf_in)
     stage = _Stage(renderer=renderer, view=view, capacity=capacity, channels=channels, maplayer=maplayer)
+    from .views import ViewHub  # the view server's views (render/views.py)
+
+    stage.hub = ViewHub.open(ctx, cfg, channels, view_cls=ViewController, shared_control=_control,
+                             point_dict=point_to_dict)
+    if stage.hub is not None:
+        poller.register(stage.hub.sock, zmq.POLLIN)
     if ctx.info.restart_count:
         _restore_view(ctx, view, stage)
         renderer = stage.renderer
@@ -373,6 +379,8 @@ def main(ctx: StageContext) -> None:
                 maplayer.publish_stage(stage)
             stage.window, stage.frames = window, frames - base
             _serve_commands(commands, stage, ring, ctx)
+            if stage.hub is not None:
+                stage.hub.service(stage, ring)
             renderer = stage.renderer
             if window is not None:
                 window.process_events()
@@ -388,6 +396,7 @@ def main(ctx: StageContext) -> None:
             h, slab_view = got
             tick_s = float(h.extra.get("interval_ms") or 0.0) / 1000.0
             drew = False
+            frame = None
             try:  # the slab is read only inside this block and goes back in its finally, the one place
                 t0 = time.monotonic_ns()
                 frame = frame_from_slab(h, slab_view, t0, ring_cap)
@@ -399,6 +408,8 @@ def main(ctx: StageContext) -> None:
                 camera = window.camera if window is not None else view.camera(frame)
                 if camera is None:  # nothing to frame yet
                     continue
+                if stage.hub is not None and stage.hub.main_rests(window, frame):
+                    continue  # views are watched: they draw this handoff (render/views.py)
                 if view.unchanged(frame, camera, renderer):  # the same picture again: not drawn
                     view.skipped += 1
                     c.extra["frames_skipped_unchanged"] = view.skipped
@@ -442,6 +453,8 @@ def main(ctx: StageContext) -> None:
                     c.drop("render_error", 1)
                     continue
             finally:
+                if stage.hub is not None and frame is not None:
+                    stage.hub.handoff(frame, drew, stage)
                 reader.release(h.slab)
                 t_free = time.monotonic_ns()
                 if not drew:  # ready for the next handoff at once
@@ -489,6 +502,8 @@ def main(ctx: StageContext) -> None:
         commands.close(0)
         if maplayer is not None:
             maplayer.close()
+        if stage.hub is not None:
+            stage.hub.close()
         if view.follow is not None:
             view.follow.sock.close(0)
         if frames and out_dir:
@@ -543,6 +558,7 @@ class _Stage:
     capacity: int
     channels: list
     window: Any = None
+    hub: Any = None  # the views of a view server (render/views.py)
     frames: int = 0
     maplayer: Any = None  # render/maplayer.py with a ``map:`` block
     #: The next frame uploads the whole slab (a renderer built since the last frame).
@@ -558,6 +574,8 @@ def _serve_commands(sock, stage: _Stage, ring, ctx) -> None:
         try:
             req = json.loads(sock.recv())
             cmd = req.get("cmd") if isinstance(req, dict) else None
+            if cmd in ("pick", "save") and stage.hub is not None:
+                stage.hub.restore_main(stage)  # a view's picture may be in the target
             renderer = stage.renderer
             if cmd == "pick":
                 slot = renderer.pick(float(req["x"]), float(req["y"]), float(req.get("pixel_ratio", 1.0)))

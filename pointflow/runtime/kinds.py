@@ -37,6 +37,7 @@ KIND_MODULES: tuple[str, ...] = (
     "pointflow.remote.send_stage",
     "pointflow.remote.router",
     "pointflow.map.stage",
+    "pointflow.serve.process",
 )
 
 #: The roles of the command line: ``pointflow run`` (and ``Pipeline``), ``pointflow send``,

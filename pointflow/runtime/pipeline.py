@@ -294,6 +294,15 @@ class Pipeline:
             return self._sup.stats()
         return self._final or {}
 
+    def show(self, width: int = 640, height: int = 400):
+        """A live view of this (started) pipeline in a notebook: an anywidget with its own
+        camera (``pip install 'pointflow[notebook]'``; docs/views.md). Show it as a cell's value."""
+        from ..notebook import LiveView, available
+
+        if not available():
+            raise RuntimeError("Pipeline.show needs the notebook extra: pip install 'pointflow[notebook]'")
+        return LiveView(self, width=width, height=height)
+
     @property
     def supervisor(self) -> Optional[Supervisor]:
         return self._sup

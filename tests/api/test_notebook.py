@@ -2,6 +2,7 @@
 by jupyter_client as a notebook front end drives it) (issue 28, items 1 and 5)."""
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 
@@ -24,6 +25,8 @@ def _run(kc, code: str, timeout: float = 180) -> str:
         kind, content = msg["msg_type"], msg["content"]
         if kind == "stream":
             out.append(content["text"])
+        elif kind == "display_data":
+            out.extend(f"DISPLAY {mime}\n" for mime in content["data"])
         elif kind == "error":
             pytest.fail("kernel error: " + "\n".join(content["traceback"])[-3000:])
         elif kind == "status" and content["execution_state"] == "idle":
@@ -55,9 +58,16 @@ print("WRITTEN", stats["accounting"]["ring_written"], stats["stages"]["api"]["po
 """)
         assert "IN_NOTEBOOK True" in out
         assert "WRITTEN 10000 10000" in out
-        # no notebook view is registered yet: show falls back to the PNG
+        # with the notebook extra, show displays the live widget (pointflow.notebook)
+        if importlib.util.find_spec("anywidget") is not None:
+            out = _run(kc, """
+r = pointflow.show(np.random.default_rng(0).normal(size=(2000, 3)), size=(96, 64))
+print("RETURNED", r)
+""")
+            assert "DISPLAY application/vnd.jupyter.widget-view+json" in out and "RETURNED None" in out, out
+        # the PNG view, asked for by name
         out = _run(kc, """
-path = pointflow.show(np.random.default_rng(0).normal(size=(2000, 3)), path="nb.png", size=(96, 64))
+path = pointflow.show(np.random.default_rng(0).normal(size=(2000, 3)), path="nb.png", size=(96, 64), view="png")
 print("PNG", path)
 """)
         assert f"PNG {tmp_path / 'nb.png'}" in out and (tmp_path / "nb.png").stat().st_size > 0

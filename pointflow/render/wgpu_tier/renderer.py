@@ -55,6 +55,7 @@ class WgpuRenderer(Renderer):
     """GPU tier on wgpu. ``info()`` reports the adapter, limits, caps and timestamp support."""
 
     tier = "wgpu"
+    keeps_data = True
 
     def __init__(self, cfg: RenderConfig, capacity: int, channels: list[str], *,
                  adapter: Any = None, naive_float32: Optional[bool] = None,
@@ -199,12 +200,45 @@ class WgpuRenderer(Renderer):
             self._ts_resolve = self._buf(32, BU.QUERY_RESOLVE | BU.COPY_SRC, "ts-resolve")
             self._ts_read = [self._buf(32, BU.MAP_READ | BU.COPY_DST, f"ts-read{s}") for s in range(2)]
         self._qs = qs
-        gpu = Gpu(wgpu=wgpu, device=dev, cfg=self.cfg, width=self.width, height=self.height,
-                  capacity=cap, cmode=int(self._cmode), naive_float32=self.naive_float32, key64=self._key64,
-                  max_groups=self._max_groups, row_bytes=self._row_bytes, sets=self._sets, params=self._params,
-                  state=self._state, rng=self._rng, dargs=self._dargs, lut=self._lut, timestamps=qs,
-                  chunks=list(self._chunk_table), max_segments=nseg)
-        self._method = self._method_cls(gpu)
+        self._method = self._make_method()
+
+    def _make_method(self) -> RasterMethod:
+        """The raster method for the current size (its pipelines and size-bound buffers)."""
+        gpu = Gpu(wgpu=self._wgpu, device=self.device, cfg=self.cfg, width=self.width, height=self.height,
+                  capacity=self.render_capacity, cmode=int(self._cmode), naive_float32=self.naive_float32,
+                  key64=self._key64, max_groups=self._max_groups, row_bytes=self._row_bytes, sets=self._sets,
+                  params=self._params, state=self._state, rng=self._rng, dargs=self._dargs, lut=self._lut,
+                  timestamps=self._qs, chunks=list(self._chunk_table), max_segments=self._nseg)
+        return self._method_cls(gpu)
+
+    def resize(self, width: int, height: int) -> bool:
+        """A target per size (the raster method's image and key buffers, the readback), kept
+        for switching back; the ring's buffers are shared, so another size uploads nothing.
+        The first draw at a new size builds its pipelines (lavapipe: some 100 ms)."""
+        size = (int(width), int(height))
+        if size == (self.width, self.height):
+            return True
+        targets = self.__dict__.setdefault("_targets", {})
+        old = (self.width, self.height)
+        targets[old] = (self._method, self._readback, self._row_bytes)
+        if size in targets:
+            self._method, self._readback, self._row_bytes = targets[size]
+            self.width, self.height = size
+            return True
+        if size[0] * size[1] * 8 > int(self._limits.get("max-storage-buffer-binding-size", 2 ** 27)):
+            return False  # the compute method's key buffer would not fit one binding
+        self.width, self.height = size
+        self._row_bytes = (size[0] * 4 + 255) // 256 * 256
+        try:
+            BU = self._wgpu.BufferUsage
+            self._readback = self._buf(self._row_bytes * size[1], BU.MAP_READ | BU.COPY_DST, "readback")
+            self._method = self._make_method()
+        except Exception as e:  # noqa: BLE001 - e.g. a key buffer over the device's limit
+            log.warning("wgpu tier cannot draw at %dx%d (%s); views get %dx%d", *size, e, *old)
+            self.width, self.height = old
+            self._method, self._readback, self._row_bytes = targets[old]
+            return False
+        return True
 
     # ------------------------------------------------------------------ upload
     def _upload(self, frame: FrameInput, s: int) -> int:

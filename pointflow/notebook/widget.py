@@ -1,0 +1,200 @@
+"""The notebook view: one view of a running pipeline's render stage as an anywidget.
+
+The widget is a client of the view protocol (docs/views.md), like the view server: a zmq
+DEALER on the render stage's ``endpoints.views``, opening a view of its own with its own
+camera. Frames travel to the browser over the widget's comm (the kernel's own channel), not
+over a port of their own: that works wherever the notebook works (JupyterLab, Notebook,
+VS Code, a remote kernel behind a proxy) and exposes nothing new on the network. A thread
+of the kernel receives the frames, encodes them as the view server does (JPEG while moving,
+PNG when still: :mod:`pointflow.serve.encode`) and sends each with ``Widget.send``; the
+browser acknowledges each frame drawn, and at most two are in flight (the render stage
+draws for this view only when the widget can take a frame).
+"""
+from __future__ import annotations
+
+import json
+import pathlib
+import queue
+import secrets
+import threading
+import time
+from typing import Any, Optional
+
+import anywidget
+import traitlets
+import zmq
+
+from ..render.colormap import NAMES as COLORMAPS
+from ..serve.encode import encode_frame
+
+__all__ = ["LiveView"]
+
+STATIC = pathlib.Path(__file__).parent / "static"
+MAX_IN_FLIGHT = 2
+#: Control messages the widget's page may send on (the render stage checks each).
+CONTROL = ("camera", "orbit", "pan", "zoom", "fit", "follow", "style", "visible", "view_state")
+
+
+class LiveView(anywidget.AnyWidget):
+    """A live view of ``pipeline`` (started, with the render stage's ``endpoints.views``)."""
+
+    _esm = STATIC / "widget.js"
+    _css = STATIC / "widget.css"
+    width = traitlets.Int(640).tag(sync=True)
+    height = traitlets.Int(400).tag(sync=True)
+    color_by_options = traitlets.List(traitlets.Unicode()).tag(sync=True)
+    colormaps = traitlets.List(traitlets.Unicode()).tag(sync=True)
+
+    def __init__(self, pipeline, *, width: int = 640, height: int = 400, owns_pipeline: bool = False):
+        sup = pipeline.supervisor
+        if sup is None or not pipeline.running:
+            raise RuntimeError("LiveView: start the pipeline first (Pipeline.start())")
+        cfg = pipeline.cfg
+        chans = [c for c in cfg.ring_channels() if c != "source_index"] + ["z", "ingest_time", "none"]
+        super().__init__(width=int(width), height=int(height), color_by_options=chans, colormaps=list(COLORMAPS))
+        self.pipeline = pipeline
+        self.owns_pipeline = owns_pipeline
+        self.view_id = f"nb-{secrets.token_hex(4)}"
+        self.endpoint = sup.endpoints.views
+        #: counters (also for tests): frames from render, frames acknowledged by the browser
+        self.frames_received = 0
+        self.frames_acked = 0
+        self.bytes_sent = 0
+        self.last_encode_ms = 0.0
+        self.last_pick: Optional[dict] = None
+        self._inbox: "queue.SimpleQueue[dict]" = queue.SimpleQueue()
+        self._stop = threading.Event()
+        self.on_msg(self._on_browser)
+        self._thread = threading.Thread(target=self._run, name=f"pointflow-view-{self.view_id}", daemon=True)
+        self._thread.start()
+
+    # ------------------------------------------------------------------ browser -> kernel
+    def _on_browser(self, _widget, content: Any, _buffers) -> None:
+        if isinstance(content, dict):
+            self._inbox.put(content)
+
+    # ------------------------------------------------------------------ the link to render
+    def _run(self) -> None:
+        sock = zmq.Context.instance().socket(zmq.DEALER)
+        sock.setsockopt(zmq.LINGER, 0)
+        sock.connect(self.endpoint)
+        link = _Link(self, sock)
+        try:
+            link.open()
+            while not self._stop.is_set():
+                link.browser()
+                if sock.poll(20):
+                    link.render(sock.recv_multipart())
+                link.keepalive()
+            link.send(cmd="close")
+        except zmq.ZMQError:  # the context went away with the kernel
+            pass
+        finally:
+            sock.close(0)
+
+    def close(self) -> None:
+        """Close the view (and the pipeline, when :func:`pointflow.show` started it for this widget)."""
+        self._stop.set()
+        self._thread.join(timeout=2.0)
+        super().close()
+        if self.owns_pipeline:
+            self.pipeline.stop()
+
+
+class _Link:
+    """The widget thread's state: credit (two less the frames not yet shown), the view's size."""
+
+    def __init__(self, w: LiveView, sock):
+        self.w, self.sock = w, sock
+        self.in_flight: dict[int, float] = {}  # seq -> when sent to the browser
+        self.granted = -1
+        self.req = 0
+        self.t_ping = 0.0
+        self.enc_ms: list[float] = []
+        self.sizes: list[int] = []
+        self.acks: list[float] = []  # when the browser drew each frame (the last 2 s)
+
+    def send(self, **msg) -> None:
+        try:
+            self.sock.send(json.dumps({"view": self.w.view_id, **msg}).encode(), zmq.NOBLOCK)
+        except zmq.Again:
+            pass
+
+    def open(self) -> None:
+        self.send(cmd="open", width=self.w.width, height=self.w.height)
+        self.send(cmd="view_state", req=self._req())
+        self.grant()
+
+    def _req(self) -> int:
+        self.req += 1
+        return self.req
+
+    def grant(self, again: bool = False) -> None:
+        now = time.monotonic()
+        for seq, t in list(self.in_flight.items()):  # a frame the browser never drew (output cleared)
+            if now - t > 10.0:
+                del self.in_flight[seq]
+        n = max(0, MAX_IN_FLIGHT - len(self.in_flight))
+        if n != self.granted or again:
+            self.granted = n
+            self.send(cmd="credit", n=n)
+
+    def keepalive(self) -> None:
+        now = time.monotonic()
+        if now - self.t_ping > 1.0:
+            self.t_ping = now
+            self.grant(again=True)  # also re-grants after a render stage restart
+
+    def browser(self) -> None:
+        while True:
+            try:
+                m = self.w._inbox.get_nowait()
+            except queue.Empty:
+                return
+            kind = m.get("type")
+            if kind == "ack":
+                if self.in_flight.pop(m.get("seq"), None) is not None:
+                    self.w.frames_acked += 1
+                    now = time.monotonic()
+                    self.acks = [t for t in self.acks if now - t < 2.0] + [now]
+                self.grant()
+            elif kind == "hello":  # a (new) display of the widget: it has drawn nothing yet
+                self.in_flight.clear()
+                self.send(cmd="view_state", req=self._req())
+                self.grant(again=True)
+            elif kind == "control" and isinstance(m.get("msg"), dict) and m["msg"].get("cmd") in CONTROL:
+                self.send(**{k: v for k, v in m["msg"].items() if k not in ("view", "req")}, req=self._req())
+            elif kind == "pick":
+                self.send(cmd="pick", x=m.get("x"), y=m.get("y"), req=self._req())
+
+    def render(self, parts: list) -> None:
+        if len(parts) != 2:
+            return
+        head = json.loads(parts[0])
+        kind = head.get("type")
+        w = self.w
+        if kind == "frame":
+            w.frames_received += 1
+            self.granted = max(0, self.granted - 1)
+            enc = encode_frame(parts[1], head["width"], head["height"], bool(head.get("moving")))
+            self.enc_ms = (self.enc_ms + [enc.encode_ms])[-60:]
+            self.sizes = (self.sizes + [len(enc.data)])[-60:]
+            w.last_encode_ms = enc.encode_ms
+            w.bytes_sent += len(enc.data)
+            self.in_flight[head["seq"]] = time.monotonic()
+            w.send({"type": "frame", "seq": head["seq"], "mime": enc.mime, "version": head.get("version"),
+                    "width": head["width"], "height": head["height"], "moving": head.get("moving")}, [enc.data])
+        elif kind == "error" and head.get("key") == "view" and "unknown view" in str(head.get("error")):
+            self.in_flight.clear()  # the render stage restarted: open the view again
+            self.open()
+        elif kind == "stats":
+            n = len(self.sizes)
+            w.send({"type": "stats", "points": head.get("points"), "fps": head.get("fps"),
+                    "view_fps": round(len([t for t in self.acks if time.monotonic() - t < 2.0]) / 2.0, 1),
+                    "bytes_per_frame": sum(self.sizes) / n if n else 0,
+                    "encode_ms": round(sum(self.enc_ms) / len(self.enc_ms), 2) if self.enc_ms else 0,
+                    "sources": head.get("sources", [])})
+        elif kind in ("reply", "pick", "error"):
+            if kind == "pick":
+                w.last_pick = head
+            w.send(head)

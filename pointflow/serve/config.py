@@ -1,0 +1,134 @@
+"""The ``serve:`` block (and ``pointflow run --serve [HOST:]PORT``): where the view server
+listens and what it allows. Only :mod:`pointflow.typed` is imported here, so
+``pointflow.config`` can hold a :class:`ServeConfig` without an import cycle.
+
+Safe by default: loopback only; a random token is required (docs/views.md). A non-loopback
+address needs TLS (``tls.cert`` and ``tls.key``, e.g. from ``pointflow keys NAME --tls``) or
+an explicit ``insecure: true``; otherwise the config is refused at load, naming the key."""
+from __future__ import annotations
+
+import ipaddress
+import os
+import re
+from dataclasses import dataclass, field
+from typing import Optional
+
+from ..typed import Bound, ConfigError, at_least_one, check, positive
+
+
+@dataclass
+class ServeTlsConfig:
+    """PEM files (``pointflow keys NAME --tls`` writes ``NAME.pem`` and ``NAME-key.pem``)."""
+
+    cert: str = ""
+    key: str = ""
+
+
+@dataclass
+class ServeLimits:
+    """Bounds on what one client may cost (each breach is counted in ``stats()``)."""
+
+    #: Clients at once; one more is refused (HTTP 503) and counted ``refused_full``.
+    max_clients: int = field(default=64, metadata=check(at_least_one))
+    #: A WebSocket message from a client larger than this closes that client (``bad_message``).
+    max_message_bytes: int = field(default=16384, metadata=check(Bound(256, 1 << 20)))
+    #: Messages per second a client may send (a 2 s burst is allowed); beyond it the
+    #: client is closed (``rate_limited``).
+    max_messages_per_s: float = field(default=200.0, metadata=check(positive))
+    #: Encoded frames waiting for one client; a newer frame replaces the oldest (``dropped_frames``).
+    queue_frames: int = field(default=2, metadata=check(Bound(1, 16)))
+    #: A send to a client that takes longer than this closes it (a client that never reads).
+    send_timeout_s: float = field(default=10.0, metadata=check(positive))
+    #: The kernel's send buffer per client (SO_SNDBUF): what a client that stops reading can
+    #: hold before its sends block (and it is closed after send_timeout_s).
+    socket_buffer_bytes: int = field(default=262144, metadata=check(Bound(16384, 1 << 26)))
+    #: The largest view a client may ask for (pixels per side).
+    max_view_px: int = field(default=4096, metadata=check(Bound(16, 16384)))
+
+
+@dataclass
+class ServeConfig:
+    """``serve:``: the view server stage (pointflow/serve/, docs/views.md)."""
+
+    #: Address to listen on; ``127.0.0.1`` (loopback) unless told otherwise.
+    host: str = "127.0.0.1"
+    #: TCP port; 0 = any free port (the ``view:`` line says which).
+    port: int = field(default=8765, metadata=check(Bound(0, 65535)))
+    #: The access token; null = a random one per run (printed once in the ``view:`` URL).
+    token: Optional[str] = None
+    tls: Optional[ServeTlsConfig] = None
+    #: Listen on a non-loopback address without TLS (anyone on the path can watch and steer).
+    insecure: bool = False
+    #: Extra origins (``https://host:port``) whose pages may open the WebSocket; the page's
+    #: own origin is always allowed.
+    allowed_origins: list[str] = field(default_factory=list)
+    #: Size of a new view when the page does not say (it sends its own size).
+    width: int = field(default=800, metadata=check(Bound(16, 16384)))
+    height: int = field(default=600, metadata=check(Bound(16, 16384)))
+    #: JPEG quality of moving frames (still frames are PNG, lossless).
+    jpeg_quality: int = field(default=80, metadata=check(Bound(1, 100)))
+    #: Threads that encode frames (off the render loop; the encoders release the GIL).
+    encode_threads: int = field(default=2, metadata=check(Bound(1, 32)))
+    limits: ServeLimits = field(default_factory=ServeLimits)
+
+
+_TOKEN = re.compile(r"^[A-Za-z0-9_-]{16,128}$")
+
+
+def is_loopback_host(host: str) -> bool:
+    h = host.strip("[]")
+    if h == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(h).is_loopback
+    except ValueError:
+        return False  # a host name or "0.0.0.0": reachable from elsewhere
+
+
+def check_serve(sc: ServeConfig, path: str, base_dir: str = ".") -> None:
+    """Load-time checks; resolves the TLS paths against ``base_dir`` (in place)."""
+    if not sc.host or not sc.host.strip():
+        raise ConfigError(f"{path}.host", "must be an address to listen on, e.g. 127.0.0.1")
+    if sc.token is not None and not _TOKEN.match(sc.token):
+        raise ConfigError(f"{path}.token", "must be 16-128 letters, digits, '-' or '_' (or null for a random one)")
+    if sc.tls is not None:
+        for k in ("cert", "key"):
+            p = getattr(sc.tls, k)
+            if not p:
+                raise ConfigError(f"{path}.tls.{k}", "must name a PEM file (pointflow keys NAME --tls writes them)")
+            p = p if os.path.isabs(p) else os.path.normpath(os.path.join(base_dir, p))
+            setattr(sc.tls, k, p)
+            if not os.path.isfile(p):
+                raise ConfigError(f"{path}.tls.{k}", f"no such file: {p}")
+    if sc.tls is None and not sc.insecure and not is_loopback_host(sc.host):
+        raise ConfigError(f"{path}.insecure", f"{sc.host} is reachable from other hosts and the view server would "
+                          "send the picture and take control unencrypted; give serve.tls.cert and serve.tls.key "
+                          "(pointflow keys NAME --tls writes them) or set serve.insecure: true")
+    for i, o in enumerate(sc.allowed_origins):
+        if not re.match(r"^https?://[^/\s]+$", o):
+            raise ConfigError(f"{path}.allowed_origins[{i}]", f"expected scheme://host[:port], got {o!r}")
+
+
+def parse_serve_arg(text: str) -> tuple[Optional[str], int]:
+    """``--serve [HOST:]PORT`` -> (host or None, port); ValueError with a one-line reason."""
+    host, sep, port = text.rpartition(":")
+    try:
+        p = int(port)
+    except ValueError:
+        raise ValueError(f"--serve: expected [HOST:]PORT, got {text!r}") from None
+    if not 0 <= p <= 65535:
+        raise ValueError(f"--serve: port {p} is not in 0..65535")
+    return (host.strip("[]") or None) if sep else None, p
+
+
+def with_serve(cfg, arg: str):
+    """The config with ``--serve [HOST:]PORT`` applied over its ``serve:`` block (checked)."""
+    import dataclasses
+
+    host, port = parse_serve_arg(arg)
+    sc = dataclasses.replace(cfg.serve) if cfg.serve is not None else ServeConfig()
+    sc.port = port
+    if host is not None:
+        sc.host = host
+    check_serve(sc, "serve", cfg.base_dir)
+    return dataclasses.replace(cfg, serve=sc)

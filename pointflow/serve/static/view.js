@@ -1,0 +1,234 @@
+// pointflow view: the live frame of one view, steered by the control messages of
+// render/control.py over one WebSocket (docs/views.md). Frames arrive as binary messages
+// [u32 header length][JSON header][JPEG or PNG]; each one drawn is acknowledged ("ack"),
+// which lets the server send the next (at most two in flight).
+"use strict";
+(function () {
+  const $ = (id) => document.getElementById(id);
+  const canvas = $("view"), g = canvas.getContext("2d"), statusEl = $("status"), info = $("info");
+  const ORBIT_DEG_PER_PX = 0.4, ZOOM_PER_NOTCH = 1.15;
+  let ws = null, req = 1, frame = { width: 0, height: 0 }, hello = null, state0 = null;
+  let lastState = null, drawing = Promise.resolve(), measureA = null, pendingPicks = new Map();
+  let shown = 0, shownT = [], playbackState = null, seeking = false;
+  window.pointflowView = { frames: () => shown, state: () => lastState, lastPick: null, playback: () => playbackState };
+
+  function send(msg) { if (ws && ws.readyState === 1) ws.send(JSON.stringify(msg)); }
+  function control(msg) { msg.req = req++; send(msg); return msg.req; }
+  window.pointflowView.control = control;
+
+  function viewSize() {
+    const r = canvas.getBoundingClientRect(), dpr = window.devicePixelRatio || 1;
+    return { width: Math.max(16, Math.min(4096, Math.round(r.width * dpr))),
+             height: Math.max(16, Math.min(4096, Math.round(r.height * dpr))) };
+  }
+
+  function connect() {
+    const proto = location.protocol === "https:" ? "wss:" : "ws:";
+    ws = new WebSocket(`${proto}//${location.host}/ws`);
+    ws.binaryType = "arraybuffer";
+    ws.onopen = () => { statusEl.textContent = "waiting for the first frame…"; };
+    ws.onclose = (e) => {
+      // the view server restarted or the link dropped: try again; a refusal (bad message) stays closed
+      const again = ![1003, 1008, 1009].includes(e.code);
+      statusEl.textContent = `disconnected (${e.code}${e.reason ? ": " + e.reason : ""})` + (again ? " — reconnecting…" : " — reload to reconnect");
+      if (again) setTimeout(connect, 1000);
+    };
+    ws.onmessage = (e) => {
+      if (typeof e.data === "string") onJson(JSON.parse(e.data)); else onFrame(e.data);
+    };
+  }
+
+  function onFrame(buf) {
+    const n = new DataView(buf).getUint32(0);
+    const head = JSON.parse(new TextDecoder().decode(new Uint8Array(buf, 4, n)));
+    const blob = new Blob([new Uint8Array(buf, 4 + n)], { type: head.mime });
+    drawing = drawing.then(() => createImageBitmap(blob)).then((bmp) => {
+      if (canvas.width !== bmp.width || canvas.height !== bmp.height) { canvas.width = bmp.width; canvas.height = bmp.height; }
+      g.drawImage(bmp, 0, 0);
+      bmp.close();
+      frame = head; shown++;
+      const now = performance.now(); shownT.push(now); while (shownT.length && now - shownT[0] > 2000) shownT.shift();
+      statusEl.textContent = "";
+      canvas.dataset.frames = String(shown);
+      canvas.dataset.mime = head.mime;
+    }).catch(() => {}).then(() => send({ cmd: "ack" }));
+  }
+
+  function fmt(v) { return typeof v === "number" ? (Math.abs(v) >= 1e4 || (v !== 0 && Math.abs(v) < 1e-3) ? v.toExponential(3) : v.toFixed(3)) : String(v); }
+
+  function showPick(p, source) {
+    if (!p) { info.textContent = "no point there"; info.hidden = false; return; }
+    const pos = p.position || [];
+    let text = `x ${fmt(pos[0])}\ny ${fmt(pos[1])}\nz ${fmt(pos[2])}`;
+    if (source) text += `\nsource ${source}`;
+    for (const [k, v] of Object.entries(p.channels || {})) text += `\n${k} ${fmt(v)}`;
+    if ($("mode").value === "measure") {
+      if (!measureA) { measureA = pos; text = "measure: first point\n" + text + "\n(click the second)"; }
+      else {
+        const d = Math.hypot(pos[0] - measureA[0], pos[1] - measureA[1], pos[2] - measureA[2]);
+        text = `distance ${fmt(d)}\nfrom ${measureA.map(fmt).join(", ")}\nto   ${pos.map(fmt).join(", ")}`;
+        measureA = null;
+        canvas.dataset.distance = String(d);
+      }
+    }
+    info.textContent = text; info.hidden = false;
+    info.dataset.position = JSON.stringify(pos);
+  }
+
+  function fillOptions(sel, names, value) {
+    sel.innerHTML = "";
+    for (const n of names) { const o = document.createElement("option"); o.value = o.textContent = n; sel.appendChild(o); }
+    if (value != null) sel.value = value;
+  }
+
+  function applyState(s) {
+    lastState = s;
+    if (!s || !s.style) return;
+    if (!state0) state0 = s;
+    const st = s.style;
+    const cb = st.color_by == null ? "none" : st.color_by;
+    if (hello && ![...$("color_by").options].some((o) => o.value === cb)) fillOptions($("color_by"), [...hello.color_by, cb], cb);
+    $("color_by").value = cb; $("colormap").value = st.colormap;
+    $("point_size").value = st.point_size; $("edl").checked = !!st.edl;
+    $("follow").value = (s.camera && s.camera.follow) || "";
+  }
+
+  function onJson(m) {
+    if (m.type === "hello") {
+      hello = m;
+      fillOptions($("color_by"), m.color_by || ["z"]);
+      fillOptions($("colormap"), m.colormaps || ["turbo"]);
+      send({ cmd: "resize", ...viewSize() });
+      const c = lastState && lastState.camera;  // a reconnect keeps the camera the user had
+      if (c && c.mode === "fixed" && c.eye && c.target) control({ cmd: "camera", eye: c.eye, target: c.target, up: c.up, fov_deg: c.fov_deg });
+      control({ cmd: "view_state" });
+      if (m.replays && m.replays.length) { $("timeline").hidden = false; playback({}); }
+    } else if (m.type === "reply") { applyState(m.state || m); }
+    else if (m.type === "pick") {
+      const cb = pendingPicks.get(m.req); pendingPicks.delete(m.req);
+      window.pointflowView.lastPick = m; showPick(m.point, m.source);
+    } else if (m.type === "error") {
+      if (m.key === "playback") return;  // the once-a-second timeline poll while a request waits
+      info.textContent = `refused: ${m.key ? m.key + ": " : ""}${m.error}`; info.hidden = false;
+    }
+    else if (m.type === "stats") { showStats(m); }
+    else if (m.type === "playback") { onPlayback(m); }
+  }
+
+  function showStats(m) {
+    const v = m.view || {};
+    const parts = [`points ${m.points ?? "–"}`, `render ${m.fps ?? "–"} fps`, `view ${v.fps ?? 0} fps`,
+      `drops ${v.drops ?? 0}`, `${Math.round((v.bytes_per_frame || 0) / 1024)} KB/frame`, `encode ${v.encode_ms ?? 0} ms`];
+    if (m.sources) parts.push(`sources ${Array.isArray(m.sources) ? m.sources.join(", ") : JSON.stringify(m.sources)}`);
+    $("stats").textContent = parts.join(" · ");
+  }
+
+  // ---------------------------------------------------------------- timeline
+  function playback(args) { control({ cmd: "playback", ...args }); }
+  function onPlayback(m) {
+    const states = Object.values(m.sources || {}).map((r) => r.state).filter(Boolean);
+    if (!states.length) return;
+    const s = states[0]; playbackState = s;
+    $("play").textContent = s.paused ? "Play" : "Pause";
+    $("loop").checked = !!s.loop;
+    $("position").textContent = `${s.position_s.toFixed(1)}${s.duration_s ? " / " + s.duration_s.toFixed(1) : ""} s`;
+    if (!seeking && s.duration_s) $("seek").value = String(Math.round(1000 * s.position_s / s.duration_s));
+    $("timeline").dataset.paused = String(s.paused);
+  }
+  $("play").onclick = () => playback({ paused: !(playbackState && playbackState.paused) });
+  $("seek").oninput = () => { seeking = true; };
+  $("seek").onchange = () => { seeking = false; playback({ seek_fraction: Number($("seek").value) / 1000 }); };
+  $("rate").onchange = () => playback({ rate: Number($("rate").value) });
+  $("loop").onchange = () => playback({ loop: $("loop").checked });
+  setInterval(() => { if (!$("timeline").hidden) playback({}); }, 1000);
+
+  // ---------------------------------------------------------------- controls
+  $("fit").onclick = () => control({ cmd: "fit" });
+  $("reset").onclick = () => {
+    control({ cmd: "fit" });
+    if (state0) control({ cmd: "style", ...state0.style });
+  };
+  $("color_by").onchange = () => control({ cmd: "style", color_by: $("color_by").value });
+  $("colormap").onchange = () => control({ cmd: "style", colormap: $("colormap").value });
+  $("point_size").onchange = () => control({ cmd: "style", point_size: Number($("point_size").value) });
+  $("edl").onchange = () => control({ cmd: "style", edl: $("edl").checked });
+  $("follow").onchange = () => control({ cmd: "follow", frame: $("follow").value.trim() || null });
+
+  // drags are summed and sent at most once per animation frame (the rate limit stays far away)
+  let acc = { orbit: [0, 0], pan: [0, 0], zoom: 0 }, scheduled = false;
+  function flush() {
+    scheduled = false;
+    const h = Math.max(1, canvas.getBoundingClientRect().height);
+    if (acc.orbit[0] || acc.orbit[1]) control({ cmd: "orbit", azimuth_deg: -acc.orbit[0] * ORBIT_DEG_PER_PX, elevation_deg: acc.orbit[1] * ORBIT_DEG_PER_PX });
+    if (acc.pan[0] || acc.pan[1]) control({ cmd: "pan", right: -acc.pan[0] / h, up: acc.pan[1] / h });
+    if (acc.zoom) control({ cmd: "zoom", factor: Math.pow(ZOOM_PER_NOTCH, acc.zoom) });
+    acc = { orbit: [0, 0], pan: [0, 0], zoom: 0 };
+  }
+  function later() { if (!scheduled) { scheduled = true; requestAnimationFrame(flush); } }
+
+  function pickAt(clientX, clientY) {
+    const r = canvas.getBoundingClientRect();
+    const x = (clientX - r.left) * (canvas.width / r.width), y = (clientY - r.top) * (canvas.height / r.height);
+    const id = control({ cmd: "pick", x, y });
+    pendingPicks.set(id, true);
+  }
+
+  let drag = null;
+  canvas.addEventListener("pointerdown", (e) => {
+    canvas.setPointerCapture(e.pointerId); canvas.focus();
+    drag = { x: e.clientX, y: e.clientY, x0: e.clientX, y0: e.clientY, moved: false,
+             pan: e.button === 2 || e.shiftKey, id: e.pointerId };
+  });
+  canvas.addEventListener("pointermove", (e) => {
+    if (!drag || e.pointerId !== drag.id || touches.size > 1) return;
+    const dx = e.clientX - drag.x, dy = e.clientY - drag.y;
+    drag.x = e.clientX; drag.y = e.clientY;
+    if (Math.hypot(e.clientX - drag.x0, e.clientY - drag.y0) > 4) drag.moved = true;
+    if (!drag.moved) return;
+    const k = drag.pan ? acc.pan : acc.orbit; k[0] += dx; k[1] += dy; later();
+  });
+  canvas.addEventListener("pointerup", (e) => {
+    if (drag && e.pointerId === drag.id && !drag.moved && e.button === 0 && touches.size <= 1) pickAt(e.clientX, e.clientY);
+    drag = null;
+  });
+  canvas.addEventListener("contextmenu", (e) => e.preventDefault());
+  canvas.addEventListener("wheel", (e) => { e.preventDefault(); acc.zoom += e.deltaY < 0 ? 1 : -1; later(); }, { passive: false });
+
+  // two fingers: pinch zooms, moving both pans
+  const touches = new Map(); let pinch = null;
+  canvas.addEventListener("pointerdown", (e) => { if (e.pointerType === "touch") touches.set(e.pointerId, [e.clientX, e.clientY]); });
+  canvas.addEventListener("pointermove", (e) => {
+    if (e.pointerType !== "touch" || !touches.has(e.pointerId)) return;
+    touches.set(e.pointerId, [e.clientX, e.clientY]);
+    if (touches.size !== 2) { pinch = null; return; }
+    const [a, b] = [...touches.values()];
+    const d = Math.hypot(a[0] - b[0], a[1] - b[1]), c = [(a[0] + b[0]) / 2, (a[1] + b[1]) / 2];
+    if (pinch) {
+      if (pinch.d > 0 && d > 0) acc.zoom += Math.log(d / pinch.d) / Math.log(ZOOM_PER_NOTCH);
+      acc.pan[0] += c[0] - pinch.c[0]; acc.pan[1] += c[1] - pinch.c[1]; later();
+    }
+    pinch = { d, c };
+  });
+  const untouch = (e) => { touches.delete(e.pointerId); pinch = null; };
+  canvas.addEventListener("pointerup", untouch); canvas.addEventListener("pointercancel", untouch);
+
+  canvas.addEventListener("keydown", (e) => {
+    const step = 20;
+    const k = { ArrowLeft: [-step, 0], ArrowRight: [step, 0], ArrowUp: [0, -step], ArrowDown: [0, step] }[e.key];
+    if (k) { const t = e.shiftKey ? acc.pan : acc.orbit; t[0] += k[0]; t[1] += k[1]; later(); }
+    else if (e.key === "+" || e.key === "=") { acc.zoom += 1; later(); }
+    else if (e.key === "-") { acc.zoom -= 1; later(); }
+    else if (e.key === "f") $("fit").click();
+    else if (e.key === "r") $("reset").click();
+    else if (e.key === " " && !$("timeline").hidden) $("play").click();
+    else return;
+    e.preventDefault();
+  });
+
+  let resizeTimer = null;
+  window.addEventListener("resize", () => {
+    clearTimeout(resizeTimer);
+    resizeTimer = setTimeout(() => send({ cmd: "resize", ...viewSize() }), 150);
+  });
+  connect();
+})();
