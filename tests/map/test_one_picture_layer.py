@@ -272,3 +272,31 @@ def test_range_helpers():
     assert occupied_ranges(3, 0, 10) == []
     assert xor_ranges([(0, 5)], [(2, 7)]) == [(0, 2), (5, 7)]
     assert mr.runs(np.array([1, 2, 3, 7, 9, 10])) == [(1, 4), (7, 8), (9, 11)]
+
+
+def test_the_render_stage_publishes_every_views_camera_main_first(tmp_ipc):
+    """``publish_stage`` sends the main view's camera and the view server's views' (the hub of
+    render/views.py), main first; an unchanged set is not sent again."""
+    cfg, ctx = _ctx(tmp_ipc, 10)
+    layer = MapLayer(cfg, ctx, 10)
+    side = MapSide(tmp_ipc, 10, ctx)
+    try:
+        a = Camera(eye=[0.0, -10.0, 5.0], target=[0.0, 0.0, 0.0])
+        b = Camera(eye=[3.0, -10.0, 5.0], target=[1.0, 0.0, 0.0])
+        view = types.SimpleNamespace(last=a, cfg=types.SimpleNamespace(render=types.SimpleNamespace(size=(640, 360))))
+        hub = types.SimpleNamespace(views={"tab1": types.SimpleNamespace(ctl=types.SimpleNamespace(last=b),
+                                                                          width=300, height=200)})
+        stage = types.SimpleNamespace(window=None, view=view, hub=hub, renderer=None)
+        layer.publish_stage(stage)
+        cams = [m for m in side.messages() if m["type"] == "cameras"]
+        assert len(cams) == 1
+        views = cams[0]["views"]
+        assert [v["view"] for v in views] == ["main", "tab1"]
+        assert (views[0]["width"], views[0]["height"], views[1]["width"], views[1]["height"]) == (640, 360, 300, 200)
+        assert np.allclose(views[1]["eye"], b.eye)
+        time.sleep(0.15)
+        layer.publish_stage(stage)  # nothing moved: nothing sent
+        assert not [m for m in side.messages(timeout_s=0.5) if m["type"] == "cameras"]
+    finally:
+        layer.close()
+        side.close()
