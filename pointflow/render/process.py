@@ -420,7 +420,7 @@ def main(ctx: StageContext) -> None:
                         from .window import PointWindow
 
                         window = PointWindow(renderer, camera, title=f"pointflow: {cfg.name}",
-                                             on_pick=lambda slot, x, y: _print_pick(ring, slot, x, y),
+                                             on_pick=lambda slot, x, y: _print_pick(ring, slot, x, y, maplayer),
                                              on_control=lambda msg: _window_control(view, msg, window, ctx))
                         c.extra["window"] = True
                         ctx.log.info("window open on display %s", os.environ.get("DISPLAY"))
@@ -543,10 +543,13 @@ def point_to_dict(rec) -> Optional[dict]:
             "importance": float(getattr(rec, "importance", 1.0))}
 
 
-def _print_pick(ring, slot, x, y) -> None:
-    rec = ring.get_point(slot) if slot is not None else None
-    print(f"pick ({x:.0f}, {y:.0f}): {point_to_dict(rec) if rec is not None else 'nothing within the pick radius'}",
-          flush=True)
+def _print_pick(ring, slot, x, y, maplayer=None) -> None:
+    if maplayer is not None:  # a map point, or a live one, named by its source
+        p = maplayer.pick_reply(ring, slot, point_to_dict)["point"]
+    else:
+        rec = ring.get_point(slot) if slot is not None else None
+        p = point_to_dict(rec) if rec is not None else None
+    print(f"pick ({x:.0f}, {y:.0f}): {p if p is not None else 'nothing within the pick radius'}", flush=True)
 
 
 @dataclasses.dataclass
