@@ -210,3 +210,28 @@ def test_a_source_may_not_take_the_map_stage_name(tmp_path):
     with pytest.raises(ConfigError) as e:
         load_config(cfg)
     assert str(e.value).startswith("sources[0].name")
+
+
+def test_a_restarted_render_stage_gets_the_whole_map_again(tmp_path):
+    """SIGKILL the render stage: its standby takes over (a renderer already sized for the ring
+    and the map slots), says hello, and the map stage sends everything again."""
+    import signal
+
+    las = write_las(str(tmp_path / "tile.las"), N_MAP, seed=6)
+    live, live_pts = _live(str(tmp_path))
+    with Pipeline.from_dict(_config(live, las), out_dir=str(tmp_path)) as pipe:
+        st = lambda: pipe.stats()["stages"]  # noqa: E731
+        pipe.wait(120, until=lambda: st()["render"].get("map_points", 0) >= N_MAP)
+        pid = st()["render"]["pid"]
+        os.kill(pid, signal.SIGKILL)
+        pipe.wait(120, until=lambda: st()["render"].get("restarts", 0) >= 1 and st()["render"]["pid"] != pid
+                  and st()["render"].get("map_points", 0) >= N_MAP and pipe.stats()["accounting"].get("map_agrees"))
+        s = pipe.stats()
+        assert s["stages"]["render"]["restarts"] == 1 and s["stages"]["map"]["restarts"] == 0
+        assert s["accounting"]["map_points_drawn"] == s["accounting"]["map_points_held"] == N_MAP
+        pipe.camera(eye=list(EYE), target=list(TARGET), up=UP, fov_deg=60.0)
+        p = pipe.pick(*_px(ORIGIN + [60.0, 60.0, 0.0]))
+        assert p is not None and p["source"] == f"map: {las}"
+        cx, cy = _px(live_pts.mean(axis=0))
+        p = pipe.pick(cx, cy)
+        assert p is not None and p["source"] == "scanner"
