@@ -53,7 +53,8 @@ def test_live_and_map_in_one_pipeline(tmp_path):
     truth = laspy_points(las)
     with Pipeline.from_dict(_config(live, las), out_dir=str(tmp_path)) as pipe:
         render = lambda: pipe.stats()["stages"]["render"]  # noqa: E731
-        pipe.wait(120, until=lambda: render().get("map_points", 0) >= N_MAP and render()["points_in"] > 0)
+        pipe.wait(120, until=lambda: render().get("map_points", 0) >= N_MAP and render()["points_in"] > 0
+                  and pipe.stats()["accounting"]["ingest_written"] == len(live_pts))
         assert render()["map_points"] == N_MAP, "the whole map (budget above its points) reached the renderer"
         pipe.camera(eye=list(EYE), target=list(TARGET), up=UP, fov_deg=60.0)
         img = np.asarray(Image.open(pipe.save_frame(str(tmp_path / "both.png"))))[..., :3]
@@ -105,6 +106,7 @@ def test_a_broken_map_file_is_named_and_the_live_part_goes_on(tmp_path):
     live, live_pts = _live(str(tmp_path))
     with Pipeline.from_dict(_config(live, las), out_dir=str(tmp_path)) as pipe:
         pipe.wait(120, until=lambda: pipe.stats()["stages"]["map"].get("map_error") is not None
+                  and pipe.stats()["accounting"]["ingest_written"] == len(live_pts)
                   and pipe.stats()["stages"]["render"]["points_in"] >= len(live_pts))
         st = pipe.stats()
         m = st["stages"]["map"]
@@ -137,7 +139,8 @@ def test_a_killed_map_stage_is_restarted_and_the_map_comes_back(tmp_path):
         os.kill(m["pid"], signal.SIGKILL)
         pipe.wait(120, until=lambda: pipe.stats()["stages"]["map"].get("restarts", 0) >= 1
                   and pipe.stats()["stages"]["map"].get("map_version") is not None
-                  and pipe.stats()["accounting"].get("map_agrees") is True)
+                  and pipe.stats()["accounting"].get("map_agrees") is True
+                  and pipe.stats()["accounting"]["ingest_written"] == len(live_pts))
         st = pipe.stats()
         assert st["stages"]["map"]["restarts"] == 1 and st["stages"]["map"]["pid"] != m["pid"]
         assert st["accounting"]["map_points_drawn"] == st["accounting"]["map_points_held"] == N_MAP
