@@ -93,6 +93,7 @@ def test_live_and_map_in_one_pipeline(tmp_path):
         # the profile shows the map: nodes, points drawn, cache use, load latency (its own spans)
         from pointflow.profiling.report import build_profile, format_table
 
+        pipe.wait(60, until=lambda: "map_load" in build_profile(pipe.collector, st)["stages"])  # spans in batches
         prof = build_profile(pipe.collector, st)
         assert prof["map"]["points_drawn"] == N_MAP and prof["map"]["map_nodes"] == m["map_nodes"]
         assert prof["stages"]["map_load"]["count"] >= 1
