@@ -54,7 +54,8 @@ def test_live_and_map_in_one_pipeline(tmp_path):
     with Pipeline.from_dict(_config(live, las), out_dir=str(tmp_path)) as pipe:
         render = lambda: pipe.stats()["stages"]["render"]  # noqa: E731
         pipe.wait(120, until=lambda: render().get("map_points", 0) >= N_MAP and render()["points_in"] > 0
-                  and pipe.stats()["accounting"]["ingest_written"] == len(live_pts))
+                  and pipe.stats()["accounting"]["ingest_written"] == len(live_pts)
+                  and pipe.stats()["accounting"].get("map_agrees") is True)  # both stages reported
         assert render()["map_points"] == N_MAP, "the whole map (budget above its points) reached the renderer"
         pipe.camera(eye=list(EYE), target=list(TARGET), up=UP, fov_deg=60.0)
         img = np.asarray(Image.open(pipe.save_frame(str(tmp_path / "both.png"))))[..., :3]
@@ -77,7 +78,9 @@ def test_live_and_map_in_one_pipeline(tmp_path):
         assert d[i] < 1e-9, "a picked map point is one of the file's points, in float64"
         assert np.linalg.norm(np.asarray(p["position"])[:2] - corner[:2]) < 10
 
-        # accounting: the live points exactly, the map's points exactly
+        # accounting: the live points exactly, the map's points exactly (once both stages
+        # reported the same map version: the camera above may have made a new one)
+        pipe.wait(60, until=lambda: pipe.stats()["accounting"].get("map_agrees") is True)
         st = pipe.stats()
         acc = st["accounting"]
         assert acc["ingest_received"] == acc["ingest_written"] == len(live_pts)
@@ -193,7 +196,8 @@ def test_a_copc_map_in_a_pipeline(tmp_path):
             cam = Camera(eye=EYE, target=TARGET, up=UP, fov_deg=60.0)
             reach = sum(m.node(k).count for k in select_nodes(m, cam.view_proj(W, H), (W, H), cam.eye, 1 << 40))
         assert reach > 0.99 * N_MAP
-        pipe.wait(120, until=lambda: pipe.stats()["stages"]["render"].get("map_points", 0) >= reach)
+        pipe.wait(120, until=lambda: pipe.stats()["stages"]["render"].get("map_points", 0) >= reach
+                  and pipe.stats()["accounting"].get("map_agrees") is True)
         st = pipe.stats()
         assert st["accounting"]["map_points_drawn"] == st["accounting"]["map_points_held"] == reach
         assert st["accounting"]["map_file_points"] == N_MAP
