@@ -23,6 +23,7 @@ from .ingest.config import IngestConfig, SourceConfig
 from .ingest.playback import PlaybackConfig, check_playback
 from .ingest.transports import resolve_transport
 from .record.config import RecordConfig, check_record
+from .map.config import MapConfig, check_map
 from .serve.config import ServeConfig, check_serve
 from .remote.options import SendConfig, check_send, is_loopback_endpoint
 from .remote.zenoh_options import RouterConfig, check_router
@@ -59,6 +60,10 @@ class EndpointsConfig:
     #: Transforms for a camera that follows a frame (only with ``frames.fixed``): PULL bound
     #: by render, every source PUSHes the transforms it sends ingest here too.
     view_transforms: Optional[str] = field(default=None, metadata=check(endpoint))
+    #: Map stage <-> render (only with ``map:``; docs/map.md): map region versions (PULL bound
+    #: by render) and the render stage's cameras and acknowledgements (PULL bound by the map stage).
+    map: Optional[str] = field(default=None, metadata=check(endpoint))
+    map_camera: Optional[str] = field(default=None, metadata=check(endpoint))
     #: The view server's views (only with ``serve:``): ROUTER bound by render, DEALER of the view server.
     views: Optional[str] = field(default=None, metadata=check(endpoint))
     #: Allow these (unencrypted) endpoints on a non-loopback tcp:// address.
@@ -83,6 +88,8 @@ class PipelineConfig:
     frames: FramesConfig = field(default_factory=FramesConfig)
     #: Record what ingest accepted to MCAP (docs/record.md); also ``pointflow run --record PATH``.
     record: Optional[RecordConfig] = None
+    #: A big static cloud drawn with the live points (docs/map.md): the map stage serves it.
+    map: Optional[MapConfig] = None
     #: The Zenoh router ``pointflow router`` runs (docs/remote.md); a file may hold only this.
     router: Optional[RouterConfig] = None
     #: How replaying sources (file, rosbag) start: ``start``, ``rate``, ``loop``, ``paused``
@@ -127,6 +134,7 @@ class PipelineConfig:
             trace=e.trace or d("trace"), render_commands=e.render_commands or d("render-commands"),
             record=e.record or d("record"), playback=e.playback or d("playback"),
             view_transforms=e.view_transforms or d("view-transforms"),
+            map=e.map or d("map"), map_camera=e.map_camera or d("map-camera"),
             views=e.views or d("views"),
         )
 
@@ -171,6 +179,11 @@ def _check_semantics(cfg: PipelineConfig) -> None:
             raise ConfigError(f"sources[{i}].frame_id", "must be a frame name or null")
     if cfg.record is not None:
         check_record(cfg.record, "record")
+    if cfg.map is not None:
+        check_map(cfg.map, "map", cfg.base_dir)
+        for i, src in enumerate(cfg.sources):
+            if src.name == "map":  # the stage table is keyed by name
+                raise ConfigError(f"sources[{i}].name", "'map' is the map stage's name: call the source otherwise")
     if cfg.serve is not None:
         check_serve(cfg.serve, "serve", cfg.base_dir)
     e = cfg.endpoints
@@ -178,7 +191,7 @@ def _check_semantics(cfg: PipelineConfig) -> None:
     if cfg.view is not None:
         _apply_view(cfg)
     for key in ("ingest", "frames", "release", "control", "trace", "render_commands", "record", "playback",
-                "view_transforms", "views"):
+                "view_transforms", "views", "map", "map_camera"):
         ep = getattr(e, key)
         if ep and not e.insecure and not is_loopback_endpoint(ep):
             raise ConfigError(f"endpoints.{key}", f"{ep} is reachable from other hosts and the links between "

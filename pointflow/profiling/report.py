@@ -135,7 +135,16 @@ def build_profile(collector: SpanCollector | SpanTable | None, stats: Optional[d
     if cad:
         out["cadence"] = {k: cad.get(k) for k in ("target_hz", "achieved_hz", "publish_hz", "jitter_ms", "skipped",
                                                   "interval_ms", "budget") if k in cad}
+    mp = (stats.get("stages") or {}).get("map") or {}
+    if mp:  # the map layer (docs/map.md): what the map stage holds, what the render stage draws
+        out["map"] = {k: mp.get(k) for k in MAP_KEYS}
+        out["map"]["points_drawn"] = ((stats.get("stages") or {}).get("render") or {}).get("map_points")
     return out
+
+
+#: The map stage's stats the profile shows (docs/map.md).
+MAP_KEYS = ("map_nodes", "map_points", "map_nodes_loaded", "map_cache_bytes", "map_cache_mb", "map_cache_hits",
+            "map_cache_misses", "map_load_ms_p50", "map_load_ms_max", "map_open_s", "map_refine_ms", "map_error")
 
 
 # --------------------------------------------------------------------------- trace.json
@@ -312,6 +321,12 @@ def format_table(profile: dict[str, Any]) -> str:
         lines.append(f"cadence: target {_f(cad.get('target_hz'), '.1f')} Hz, achieved {_f(cad.get('achieved_hz'), '.2f')} Hz, "
                      f"published {_f(cad.get('publish_hz'), '.2f')} Hz, jitter p50 {_f(j.get('p50'), '.3f')} / "
                      f"p99 {_f(j.get('p99'), '.3f')} / max {_f(j.get('max'), '.3f')} ms, skipped {cad.get('skipped') or {}}")
+    mp = profile.get("map")
+    if mp:
+        lines.append(f"map: {mp.get('map_nodes') or 0} nodes, {mp.get('points_drawn') or 0:,} points drawn, "
+                     f"{mp.get('map_nodes_loaded') or 0} node loads (load p50 {_f(mp.get('map_load_ms_p50'))} / "
+                     f"max {_f(mp.get('map_load_ms_max'))} ms), cache {_f((mp.get('map_cache_bytes') or 0) / 2**20, '.1f')}"
+                     f" of {_f(mp.get('map_cache_mb'), '.0f')} MB" + (f", error: {mp['map_error']}" if mp.get("map_error") else ""))
     coll = profile.get("collector") or {}
     if coll.get("dropped") or coll.get("bad_batches"):
         lines.append(f"span collector: {coll.get('dropped', 0)} spans over the memory cap, "
@@ -346,6 +361,9 @@ def live_summary(stats: dict) -> str:
         skipped = sum((cad.get("skipped") or {}).values())
         parts.append(f"cadence={cad.get('achieved_hz', 0) or 0:.1f}Hz"
                      + (f" p99jit={j:.2f}ms" if j is not None else "") + (f" skip={skipped}" if skipped else ""))
+    mp = st.get("map") or {}
+    if mp:
+        parts.append(f"map={_n(ren.get('map_points', 0) or 0)}" if not mp.get("map_error") else "map=error")
     parts.append(f"drops={_n(drops)}")
     # points the ring pushed out to make room (a file bigger than the ring loses its start here)
     parts.append(f"evicted={_n(sum(s.get('ring_evicted', 0) or 0 for s in st.values()))}")

@@ -309,8 +309,14 @@ def main(ctx: StageContext) -> None:
     cfg = ctx.cfg
     ring = PointRing.attach(ctx.info.ring_name)
     slabs = SlabPair.attach(ctx.info.slab_names)
-    capacity = ring.layout.capacity
+    capacity = ring_cap = ring.layout.capacity
     channels = [c.name for c in ring.layout.channels]
+    maplayer = None
+    if getattr(cfg, "map", None) is not None:  # map points as extra slots after the ring's (docs/map.md)
+        from .maplayer import MapLayer
+
+        maplayer = MapLayer(cfg, ctx, ring_cap)
+        capacity = maplayer.capacity
     ready = ctx.zmq.socket(zmq.PULL)
     ready.setsockopt(zmq.LINGER, 0)
     ready.bind(ctx.endpoints.frames)
@@ -337,7 +343,7 @@ def main(ctx: StageContext) -> None:
         tf_in.setsockopt(zmq.RCVHWM, 256)
         tf_in.bind(ctx.endpoints.view_transforms)
         view.follow = FollowFrame(cfg.frames.fixed, tf_in)
-    stage = _Stage(renderer=renderer, view=view, capacity=capacity, channels=channels)
+    stage = _Stage(renderer=renderer, view=view, capacity=capacity, channels=channels, maplayer=maplayer)
     from .views import ViewHub  # the view server's views (render/views.py)
 
     stage.hub = ViewHub.open(ctx, cfg, channels, view_cls=ViewController, shared_control=_control,
@@ -369,6 +375,8 @@ def main(ctx: StageContext) -> None:
     try:
         while ctx.running:
             ctx.beat()
+            if maplayer is not None:  # where every view looks, to the map stage (sent when it changed)
+                maplayer.publish_stage(stage)
             stage.window, stage.frames = window, frames - base
             _serve_commands(commands, stage, ring, ctx)
             if stage.hub is not None:
@@ -391,10 +399,12 @@ def main(ctx: StageContext) -> None:
             frame = None
             try:  # the slab is read only inside this block and goes back in its finally, the one place
                 t0 = time.monotonic_ns()
-                frame = frame_from_slab(h, slab_view, t0, capacity)
+                frame = frame_from_slab(h, slab_view, t0, ring_cap)
                 if stage.full_upload:  # a new renderer: everything in the slab is new to it
                     frame.dirty = None
                     stage.full_upload = False
+                if maplayer is not None:
+                    frame = maplayer.compose(frame)
                 camera = window.camera if window is not None else view.camera(frame)
                 if camera is None:  # nothing to frame yet
                     continue
@@ -410,7 +420,7 @@ def main(ctx: StageContext) -> None:
                         from .window import PointWindow
 
                         window = PointWindow(renderer, camera, title=f"pointflow: {cfg.name}",
-                                             on_pick=lambda slot, x, y: _print_pick(ring, slot, x, y),
+                                             on_pick=lambda slot, x, y: _print_pick(ring, slot, x, y, maplayer),
                                              on_control=lambda msg: _window_control(view, msg, window, ctx))
                         c.extra["window"] = True
                         ctx.log.info("window open on display %s", os.environ.get("DISPLAY"))
@@ -423,6 +433,8 @@ def main(ctx: StageContext) -> None:
                         fs = renderer.render(frame, camera)
                     drew = True
                     view.last = camera
+                    if maplayer is not None:
+                        maplayer.drawn()
                 except ValueError as exc:  # a malformed frame (tiers check their input): skip it, counted
                     ctx.log.error("frame %d rejected by the %s tier: %s", h.seq, renderer.tier, exc)
                     c.drop("bad_frame", 1)
@@ -469,7 +481,10 @@ def main(ctx: StageContext) -> None:
             c.extra["drawn_count"] = h.count  # points in the ring when the last frame was drawn
             if fs.drawn is not None:
                 c.points_out += fs.drawn
-            c.extra["nonfinite_skipped"] = max(0, int(getattr(renderer, "nonfinite_total", 0)) - view.mask.hidden_draws)
+            c.extra["nonfinite_skipped"] = max(0, int(getattr(renderer, "nonfinite_total", 0)) - view.mask.hidden_draws
+                                               - (maplayer.padding_draws if maplayer is not None else 0))
+            if maplayer is not None:
+                c.extra.update(maplayer.stats())
             if view.mask.hidden_draws:
                 c.extra["hidden_skipped"] = view.mask.hidden_draws  # point-draws of hidden sources
             c.extra.update(frames=frames - base, frame_ms_ema=round(ema, 3), last_frame_ms=round(ms, 3),
@@ -485,6 +500,8 @@ def main(ctx: StageContext) -> None:
         if window is not None:
             window.close()
         commands.close(0)
+        if maplayer is not None:
+            maplayer.close()
         if stage.hub is not None:
             stage.hub.close()
         if view.follow is not None:
@@ -526,10 +543,13 @@ def point_to_dict(rec) -> Optional[dict]:
             "importance": float(getattr(rec, "importance", 1.0))}
 
 
-def _print_pick(ring, slot, x, y) -> None:
-    rec = ring.get_point(slot) if slot is not None else None
-    print(f"pick ({x:.0f}, {y:.0f}): {point_to_dict(rec) if rec is not None else 'nothing within the pick radius'}",
-          flush=True)
+def _print_pick(ring, slot, x, y, maplayer=None) -> None:
+    if maplayer is not None:  # a map point, or a live one, named by its source
+        p = maplayer.pick_reply(ring, slot, point_to_dict)["point"]
+    else:
+        rec = ring.get_point(slot) if slot is not None else None
+        p = point_to_dict(rec) if rec is not None else None
+    print(f"pick ({x:.0f}, {y:.0f}): {p if p is not None else 'nothing within the pick radius'}", flush=True)
 
 
 @dataclasses.dataclass
@@ -543,6 +563,7 @@ class _Stage:
     window: Any = None
     hub: Any = None  # the views of a view server (render/views.py)
     frames: int = 0
+    maplayer: Any = None  # render/maplayer.py with a ``map:`` block
     #: The next frame uploads the whole slab (a renderer built since the last frame).
     full_upload: bool = False
 
@@ -561,7 +582,10 @@ def _serve_commands(sock, stage: _Stage, ring, ctx) -> None:
             renderer = stage.renderer
             if cmd == "pick":
                 slot = renderer.pick(float(req["x"]), float(req["y"]), float(req.get("pixel_ratio", 1.0)))
-                rep = {"point": point_to_dict(ring.get_point(slot)) if slot is not None else None}
+                if stage.maplayer is not None:  # a map point, or a live one with its source named
+                    rep = stage.maplayer.pick_reply(ring, slot, point_to_dict)
+                else:
+                    rep = {"point": point_to_dict(ring.get_point(slot)) if slot is not None else None}
             elif cmd == "save":
                 path = str(req["path"])
                 os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
@@ -659,7 +683,9 @@ def prepare(cfg, info, log) -> Optional[Renderer]:
     ring = PointRing.attach(info.ring_name)
     slabs = SlabPair.attach(info.slab_names)
     try:
-        capacity = ring.layout.capacity
+        from ..map.config import map_slots
+
+        capacity = ring.layout.capacity + map_slots(cfg)  # a map's slots follow the ring's
         renderer = _select(cfg, capacity, [c.name for c in ring.layout.channels], log)
         log.debug("standby render tier: %s", renderer.info())
         _warm_up(renderer, slabs, capacity, log)
@@ -684,10 +710,11 @@ def _warm_up(renderer: Renderer, slabs: SlabPair, capacity: int, log) -> None:
     try:
         v = slabs.slab_view(0)
         n = min(1024, capacity)
-        chans = {k: np.zeros_like(a) for k, a in v.channels.items()}
+        z = lambda a: np.zeros((capacity,) + a.shape[1:], a.dtype)  # noqa: E731 - capacity may exceed the slab's
+        chans = {k: z(a) for k, a in v.channels.items()}
         ranges = {k: (0.0, 1.0) for k, a in chans.items() if a.ndim == 1 and a.dtype.kind == "f"}
-        frame = FrameInput(positions=np.zeros_like(v.positions), importance=np.ones_like(v.importance),
-                           t_ingest_ms=np.zeros_like(v.t_ingest_ms), channels=chans, head=0, size=n,
+        frame = FrameInput(positions=z(v.positions), importance=z(v.importance) + 1,
+                           t_ingest_ms=z(v.t_ingest_ms), channels=chans, head=0, size=n,
                            capacity=capacity, origin=np.zeros(3), now_ms=0.0, channel_ranges=ranges,
                            dirty=[(0, n)], seq=0)
         renderer.render(frame, Camera.fit(np.full(3, -1.0), np.ones(3), aspect=16 / 9))

@@ -36,6 +36,7 @@ KIND_MODULES: tuple[str, ...] = (
     "pointflow.record.process",
     "pointflow.remote.process",
     "pointflow.remote.router_process",
+    "pointflow.map.process",
     "pointflow.serve.process",
 )
 

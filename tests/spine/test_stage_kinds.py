@@ -30,8 +30,9 @@ def probe(monkeypatch):
 
 def test_builtin_kinds_and_roles():
     kinds = stage_kinds()
-    assert {"source", "ingest", "cadence", "render", "recorder", "sender", "router"} <= set(kinds)
-    assert [k.name for k in role_kinds("pipeline")] == ["render", "cadence", "recorder", "ingest", "serve", "source"]
+    assert {"source", "ingest", "cadence", "render", "recorder", "sender", "router", "map"} <= set(kinds)
+    assert [k.name for k in role_kinds("pipeline")] == ["render", "map", "cadence", "recorder", "ingest", "serve",
+                                                       "source"]
     assert [k.name for k in role_kinds("send")] == ["sender", "source"]
     assert [k.name for k in role_kinds("router")] == ["router"]
     # upstream stops first: sources, then ingest / sender / router, then the rest

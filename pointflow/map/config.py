@@ -1,0 +1,66 @@
+"""The ``map:`` block: a big static cloud (COPC, LAS/LAZ, PLY, PCD) served by the map stage
+and drawn in the same frame as the live ring (docs/map.md). Only :mod:`pointflow.typed` is
+imported here, so ``pointflow.config`` can hold a :class:`MapConfig` without an import cycle."""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from typing import Optional, Union
+
+from ..typed import ConfigError, Length, at_least_one, check, positive
+
+
+@dataclass
+class MapConfig:
+    """``map:``: the files, how many of their points a frame may draw, how much decoded data
+    the map stage keeps."""
+
+    #: One file or a list of files (relative to the config file's folder); required.
+    path: Union[str, list[str]] = field(metadata=check(Length(1, 4096)))
+    #: Points drawn from the map at most (Potree's default is 1 M): nodes are chosen by their
+    #: projected size, coarse first, until their points reach this. Also the number of extra
+    #: slots the render stage draws after the ring's.
+    point_budget: int = field(default=1_000_000, metadata=check(at_least_one))
+    #: Decoded nodes kept in the map stage's memory (least recently used go first).
+    cache_mb: float = field(default=512.0, metadata=check(positive))
+    #: Channels of the map to keep besides x, y, z; null = those the render stage uses
+    #: (``color_by``, the ring's channels) that the file has.
+    channels: Optional[list[str]] = None
+    #: Where level-of-detail indexes are kept; null = the user cache directory.
+    cache_dir: Optional[str] = None
+    #: Milliseconds the map stage spends loading before it hands over what it has (a
+    #: camera move is shown refined step by step, coarse first).
+    load_slice_ms: float = field(default=100.0, metadata=check(positive))
+
+    def paths(self) -> list[str]:
+        return [self.path] if isinstance(self.path, str) else list(self.path)
+
+
+def check_map(mc: MapConfig, path: str, base_dir: str = ".") -> None:
+    """Load-time checks: at least one file, each one there (resolved against the config's
+    folder, in place). A file that is there but broken is the map stage's error, at run time,
+    and the live part of the pipeline goes on."""
+    paths = mc.paths()
+    if not paths or any(not isinstance(p, str) for p in paths):
+        raise ConfigError(f"{path}.path", "must name a map file (COPC, LAS, LAZ, PLY or PCD) or a list of them")
+    out = []
+    for i, p in enumerate(paths):
+        key = f"{path}.path" if isinstance(mc.path, str) else f"{path}.path[{i}]"
+        if not p.strip():
+            raise ConfigError(key, "is empty")
+        full = p if os.path.isabs(p) else os.path.normpath(os.path.join(base_dir, os.path.expanduser(p)))
+        if not os.path.isfile(full):
+            raise ConfigError(key, f"no such file: {full}")
+        out.append(full)
+    if len(set(out)) != len(out):
+        raise ConfigError(f"{path}.path", "names the same file twice")
+    mc.path = out[0] if isinstance(mc.path, str) else out
+    for i, c in enumerate(mc.channels or []):
+        if c in ("x", "y", "z"):
+            raise ConfigError(f"{path}.channels[{i}]", "x, y, z are always kept; list only channels")
+
+
+def map_slots(cfg) -> int:
+    """Extra slots the render stage draws after the ring's (0 without a map)."""
+    mc = getattr(cfg, "map", None)
+    return int(mc.point_budget) if mc is not None else 0
