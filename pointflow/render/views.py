@@ -434,6 +434,11 @@ class ViewHub:
         finally:
             r.resize(*self.cfg.render.size)
             self.clobbered = True
+        if stage.maplayer is not None:  # a map point is named "map: <file>", a live one by its source
+            rep = stage.maplayer.pick_reply(ring, slot, self.api["point_dict"])
+            self._send(v.peer, {"type": "pick", "view": v.id, "req": req, "point": rep.get("point"),
+                                "source": rep.get("source")})
+            return
         point = self.api["point_dict"](ring.get_point(slot)) if slot is not None else None
         source = None
         if point is not None:

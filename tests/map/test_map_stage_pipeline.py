@@ -244,3 +244,37 @@ def test_a_restarted_render_stage_gets_the_whole_map_again(tmp_path):
         cx, cy = _px(live_pts.mean(axis=0))
         p = pipe.pick(cx, cy)
         assert p is not None and p["source"] == "scanner"
+
+
+def test_a_pick_in_a_served_view_names_map_and_live_points(tmp_path):
+    """A view of the view server (a DEALER on the render stage's views endpoint) picks a map
+    point, named ``map: <file>`` at the file's exact position, and a live one, named by its
+    source: the same answers as the main view's pick."""
+    from view.test_views import ViewClient  # tests/ is on the path (rootdir)
+
+    las = write_las(str(tmp_path / "tile.las"), N_MAP, seed=3)
+    live, live_pts = _live(str(tmp_path))
+    truth = laspy_points(las)
+    with Pipeline.from_dict(_config(live, las), out_dir=str(tmp_path)) as pipe:
+        render = lambda: pipe.stats()["stages"]["render"]  # noqa: E731
+        pipe.wait(120, until=lambda: render().get("map_points", 0) >= N_MAP and render()["points_in"] > 0)
+        cl = ViewClient(pipe._sup.endpoints.views)
+        try:
+            cl.send(view="m", cmd="open", width=W, height=H, req=1)
+            cl.send(view="m", cmd="camera", req=2, eye=list(EYE), target=list(TARGET), up=UP, fov_deg=60.0)
+            r = cl.reply("m", 2)
+            cl.send(view="m", cmd="credit", n=2)
+            cl.frame("m", r["version"], timeout_s=120)
+            mx, my = _px(ORIGIN + [60.0, 60.0, 0.0])
+            cl.send(view="m", cmd="pick", x=float(mx), y=float(my), req=3)
+            p = cl.reply("m", 3)
+            assert p["source"] == f"map: {las}", p
+            d = np.linalg.norm(truth["positions"] - p["point"]["position"], axis=1)
+            assert d.min() < 1e-9, "the picked map point is one of the file's points, in float64"
+            cx, cy = _px(live_pts.mean(axis=0))
+            cl.send(view="m", cmd="pick", x=float(cx), y=float(cy), req=4)
+            p = cl.reply("m", 4)
+            assert p["source"] == "scanner", p
+            assert np.min(np.linalg.norm(live_pts - p["point"]["position"], axis=1)) < 1e-3
+        finally:
+            cl.close()
