@@ -21,12 +21,9 @@ Writes ``bench/results/serve_hostile.json``.
 from __future__ import annotations
 
 import argparse
-import base64
 import json
-import os
 import socket
 import statistics
-import struct
 import tempfile
 import threading
 import time
@@ -35,6 +32,7 @@ from pathlib import Path
 import _harness as harness
 
 from pointflow import Pipeline
+from pointflow.serve.testing import masked_frame, raw_websocket
 
 TOKEN = "bench-token-0123456789abcdef"
 
@@ -81,23 +79,10 @@ class Good(threading.Thread):
 
 
 def _raw(base: str) -> socket.socket:
-    host, port = base.rsplit("//", 1)[1].split(":")
-    s = socket.socket()
-    s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
-    s.connect((host, int(port)))
-    key = base64.b64encode(os.urandom(16)).decode()
-    s.sendall((f"GET /ws HTTP/1.1\r\nHost: {host}:{port}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
-               f"Sec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\nCookie: pointflow_view={TOKEN}\r\n\r\n").encode())
-    s.settimeout(0.2)
-    return s
+    return raw_websocket(base, TOKEN, wait_upgrade=False, timeout=0.2)
 
 
-def _masked(data: bytes, opcode: int = 1) -> bytes:
-    mask = os.urandom(4)
-    n = len(data)
-    head = bytes([0x80 | opcode]) + (bytes([0x80 | n]) if n < 126 else bytes([0x80 | 126]) + struct.pack(">H", n)
-                                     if n < 65536 else bytes([0x80 | 127]) + struct.pack(">Q", n))
-    return head + mask + bytes(b ^ mask[i % 4] for i, b in enumerate(data))
+_masked = masked_frame
 
 
 class Hostile(threading.Thread):

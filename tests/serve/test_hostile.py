@@ -14,6 +14,7 @@ import time
 import pytest
 
 from pointflow import Pipeline
+from pointflow.serve.testing import masked_frame, raw_websocket
 
 from .helpers import TOKEN, base_url, config, is_frame, read_until, serve_stats, synthetic_source, ws_connect
 
@@ -144,24 +145,10 @@ def test_a_flood_is_cut_off(pipe):
 
 def _raw_ws(base: str) -> socket.socket:
     """A WebSocket opened by hand, with a tiny receive buffer, that will never read."""
-    host, port = base.rsplit("//", 1)[1].split(":")
-    s = socket.socket()
-    s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
-    s.connect((host, int(port)))
-    key = base64.b64encode(os.urandom(16)).decode()
-    s.sendall((f"GET /ws HTTP/1.1\r\nHost: {host}:{port}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
-               f"Sec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\nCookie: pointflow_view={TOKEN}\r\n\r\n").encode())
-    head = b""
-    while b"\r\n\r\n" not in head:
-        head += s.recv(1)
-    assert b" 101 " in head.split(b"\r\n")[0], head
-    return s
+    return raw_websocket(base, TOKEN)
 
 
-def _masked(text: str) -> bytes:
-    data = text.encode()
-    mask = os.urandom(4)
-    return bytes([0x81, 0x80 | len(data)]) + mask + bytes(b ^ mask[i % 4] for i, b in enumerate(data))
+_masked = masked_frame
 
 
 def test_a_client_that_never_reads(pipe):
