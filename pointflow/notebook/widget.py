@@ -38,7 +38,8 @@ CONTROL = ("camera", "orbit", "pan", "zoom", "fit", "follow", "style", "visible"
 class LiveView(anywidget.AnyWidget):
     """A live view of ``pipeline`` (started, with the render stage's ``endpoints.views``)."""
 
-    _esm = STATIC / "widget.js"
+    #: the page's gestures (one file for both) and the widget's own module
+    _esm = (STATIC.parent.parent / "serve" / "static" / "gestures.js").read_text() + "\n" + (STATIC / "widget.js").read_text()
     _css = STATIC / "widget.css"
     width = traitlets.Int(640).tag(sync=True)
     height = traitlets.Int(400).tag(sync=True)

@@ -50,7 +50,8 @@ MAX_IN_FLIGHT = 2
 #: JSON messages waiting for one client (replies, picks, stats); beyond, the oldest is dropped.
 MAX_TEXTS = 256
 #: The page's files: nothing else is ever served.
-STATIC = {"index.html": "text/html", "view.js": "text/javascript", "view.css": "text/css"}
+STATIC = {"index.html": "text/html", "gestures.js": "text/javascript", "view.js": "text/javascript",
+          "view.css": "text/css"}
 #: Control messages the page may send on to the render stage (render/control.py).
 CONTROL = ("camera", "orbit", "pan", "zoom", "fit", "follow", "style", "visible", "view_state")
 PLAYBACK_KEYS = ("paused", "seek_s", "seek_fraction", "step", "rate", "loop", "hold")

@@ -3,7 +3,6 @@
 // shift- or right-drag pans, the wheel zooms, a click picks, f fits). Frames come from the
 // kernel as custom messages with one buffer (JPEG while moving, PNG when still); each one
 // drawn is acknowledged, which lets the kernel ask for the next (at most two in flight).
-const ORBIT_DEG_PER_PX = 0.4, ZOOM_PER_NOTCH = 1.15;
 
 function el(tag, attrs = {}, parent = null) {
   const e = document.createElement(tag);
@@ -94,50 +93,9 @@ function render({ model, el: root }) {
   size.onchange = () => control({ cmd: "style", point_size: Number(size.value) });
   edl.onchange = () => control({ cmd: "style", edl: edl.checked });
 
-  // drags are summed and sent at most once per animation frame
-  let acc = { orbit: [0, 0], pan: [0, 0], zoom: 0 }, scheduled = false;
-  function flush() {
-    scheduled = false;
-    const h = Math.max(1, canvas.getBoundingClientRect().height);
-    if (acc.orbit[0] || acc.orbit[1]) control({ cmd: "orbit", azimuth_deg: -acc.orbit[0] * ORBIT_DEG_PER_PX, elevation_deg: acc.orbit[1] * ORBIT_DEG_PER_PX });
-    if (acc.pan[0] || acc.pan[1]) control({ cmd: "pan", right: -acc.pan[0] / h, up: acc.pan[1] / h });
-    if (acc.zoom) control({ cmd: "zoom", factor: Math.pow(ZOOM_PER_NOTCH, acc.zoom) });
-    acc = { orbit: [0, 0], pan: [0, 0], zoom: 0 };
-  }
-  const later = () => { if (!scheduled) { scheduled = true; requestAnimationFrame(flush); } };
-
-  let drag = null;
-  canvas.addEventListener("pointerdown", (e) => {
-    canvas.setPointerCapture(e.pointerId); canvas.focus();
-    drag = { x: e.clientX, y: e.clientY, x0: e.clientX, y0: e.clientY, moved: false, pan: e.button === 2 || e.shiftKey, id: e.pointerId };
-  });
-  canvas.addEventListener("pointermove", (e) => {
-    if (!drag || e.pointerId !== drag.id) return;
-    const dx = e.clientX - drag.x, dy = e.clientY - drag.y;
-    drag.x = e.clientX; drag.y = e.clientY;
-    if (Math.hypot(e.clientX - drag.x0, e.clientY - drag.y0) > 4) drag.moved = true;
-    if (!drag.moved) return;
-    const k = drag.pan ? acc.pan : acc.orbit; k[0] += dx; k[1] += dy; later();
-  });
-  canvas.addEventListener("pointerup", (e) => {
-    if (drag && e.pointerId === drag.id && !drag.moved && e.button === 0) {
-      const r = canvas.getBoundingClientRect();
-      send({ type: "pick", x: (e.clientX - r.left) * (canvas.width / r.width), y: (e.clientY - r.top) * (canvas.height / r.height) });
-    }
-    drag = null;
-  });
-  canvas.addEventListener("contextmenu", (e) => e.preventDefault());
-  canvas.addEventListener("wheel", (e) => { e.preventDefault(); acc.zoom += e.deltaY < 0 ? 1 : -1; later(); }, { passive: false });
-  canvas.addEventListener("keydown", (e) => {
-    const step = 20;
-    const k = { ArrowLeft: [-step, 0], ArrowRight: [step, 0], ArrowUp: [0, -step], ArrowDown: [0, step] }[e.key];
-    if (k) { const t = e.shiftKey ? acc.pan : acc.orbit; t[0] += k[0]; t[1] += k[1]; later(); }
-    else if (e.key === "+" || e.key === "=") { acc.zoom += 1; later(); }
-    else if (e.key === "-") { acc.zoom -= 1; later(); }
-    else if (e.key === "f") fit.click();
-    else return;
-    e.preventDefault(); e.stopPropagation();  // keep the notebook's own shortcuts out of it
-  });
+  // drags, wheel, pinch and keys: the page's gestures.js, prepended to this module by widget.py
+  pointflowGestures(canvas, control, (x, y) => send({ type: "pick", x, y }),
+                    (e) => { if (e.key !== "f") return false; fit.click(); return true; });
 
   send({ type: "hello" });
   return () => { alive = false; model.off("msg:custom", onMsg); };

@@ -6,7 +6,6 @@
 (function () {
   const $ = (id) => document.getElementById(id);
   const canvas = $("view"), g = canvas.getContext("2d"), statusEl = $("status"), info = $("info");
-  const ORBIT_DEG_PER_PX = 0.4, ZOOM_PER_NOTCH = 1.15;
   let ws = null, req = 1, frame = { width: 0, height: 0 }, hello = null, state0 = null;
   let lastState = null, drawing = Promise.resolve(), measureA = null, pendingPicks = new Map();
   let shown = 0, shownT = [], playbackState = null, seeking = false;
@@ -154,75 +153,13 @@
   $("edl").onchange = () => control({ cmd: "style", edl: $("edl").checked });
   $("follow").onchange = () => control({ cmd: "follow", frame: $("follow").value.trim() || null });
 
-  // drags are summed and sent at most once per animation frame (the rate limit stays far away)
-  let acc = { orbit: [0, 0], pan: [0, 0], zoom: 0 }, scheduled = false;
-  function flush() {
-    scheduled = false;
-    const h = Math.max(1, canvas.getBoundingClientRect().height);
-    if (acc.orbit[0] || acc.orbit[1]) control({ cmd: "orbit", azimuth_deg: -acc.orbit[0] * ORBIT_DEG_PER_PX, elevation_deg: acc.orbit[1] * ORBIT_DEG_PER_PX });
-    if (acc.pan[0] || acc.pan[1]) control({ cmd: "pan", right: -acc.pan[0] / h, up: acc.pan[1] / h });
-    if (acc.zoom) control({ cmd: "zoom", factor: Math.pow(ZOOM_PER_NOTCH, acc.zoom) });
-    acc = { orbit: [0, 0], pan: [0, 0], zoom: 0 };
-  }
-  function later() { if (!scheduled) { scheduled = true; requestAnimationFrame(flush); } }
-
-  function pickAt(clientX, clientY) {
-    const r = canvas.getBoundingClientRect();
-    const x = (clientX - r.left) * (canvas.width / r.width), y = (clientY - r.top) * (canvas.height / r.height);
-    const id = control({ cmd: "pick", x, y });
-    pendingPicks.set(id, true);
-  }
-
-  let drag = null;
-  canvas.addEventListener("pointerdown", (e) => {
-    canvas.setPointerCapture(e.pointerId); canvas.focus();
-    drag = { x: e.clientX, y: e.clientY, x0: e.clientX, y0: e.clientY, moved: false,
-             pan: e.button === 2 || e.shiftKey, id: e.pointerId };
-  });
-  canvas.addEventListener("pointermove", (e) => {
-    if (!drag || e.pointerId !== drag.id || touches.size > 1) return;
-    const dx = e.clientX - drag.x, dy = e.clientY - drag.y;
-    drag.x = e.clientX; drag.y = e.clientY;
-    if (Math.hypot(e.clientX - drag.x0, e.clientY - drag.y0) > 4) drag.moved = true;
-    if (!drag.moved) return;
-    const k = drag.pan ? acc.pan : acc.orbit; k[0] += dx; k[1] += dy; later();
-  });
-  canvas.addEventListener("pointerup", (e) => {
-    if (drag && e.pointerId === drag.id && !drag.moved && e.button === 0 && touches.size <= 1) pickAt(e.clientX, e.clientY);
-    drag = null;
-  });
-  canvas.addEventListener("contextmenu", (e) => e.preventDefault());
-  canvas.addEventListener("wheel", (e) => { e.preventDefault(); acc.zoom += e.deltaY < 0 ? 1 : -1; later(); }, { passive: false });
-
-  // two fingers: pinch zooms, moving both pans
-  const touches = new Map(); let pinch = null;
-  canvas.addEventListener("pointerdown", (e) => { if (e.pointerType === "touch") touches.set(e.pointerId, [e.clientX, e.clientY]); });
-  canvas.addEventListener("pointermove", (e) => {
-    if (e.pointerType !== "touch" || !touches.has(e.pointerId)) return;
-    touches.set(e.pointerId, [e.clientX, e.clientY]);
-    if (touches.size !== 2) { pinch = null; return; }
-    const [a, b] = [...touches.values()];
-    const d = Math.hypot(a[0] - b[0], a[1] - b[1]), c = [(a[0] + b[0]) / 2, (a[1] + b[1]) / 2];
-    if (pinch) {
-      if (pinch.d > 0 && d > 0) acc.zoom += Math.log(d / pinch.d) / Math.log(ZOOM_PER_NOTCH);
-      acc.pan[0] += c[0] - pinch.c[0]; acc.pan[1] += c[1] - pinch.c[1]; later();
-    }
-    pinch = { d, c };
-  });
-  const untouch = (e) => { touches.delete(e.pointerId); pinch = null; };
-  canvas.addEventListener("pointerup", untouch); canvas.addEventListener("pointercancel", untouch);
-
-  canvas.addEventListener("keydown", (e) => {
-    const step = 20;
-    const k = { ArrowLeft: [-step, 0], ArrowRight: [step, 0], ArrowUp: [0, -step], ArrowDown: [0, step] }[e.key];
-    if (k) { const t = e.shiftKey ? acc.pan : acc.orbit; t[0] += k[0]; t[1] += k[1]; later(); }
-    else if (e.key === "+" || e.key === "=") { acc.zoom += 1; later(); }
-    else if (e.key === "-") { acc.zoom -= 1; later(); }
-    else if (e.key === "f") $("fit").click();
+  // drags, wheel, pinch and keys: gestures.js (shared with the notebook widget)
+  pointflowGestures(canvas, control, (x, y) => { pendingPicks.set(control({ cmd: "pick", x, y }), true); }, (e) => {
+    if (e.key === "f") $("fit").click();
     else if (e.key === "r") $("reset").click();
     else if (e.key === " " && !$("timeline").hidden) $("play").click();
-    else return;
-    e.preventDefault();
+    else return false;
+    return true;
   });
 
   let resizeTimer = null;
