@@ -133,6 +133,25 @@ def _las_error(path: str, exc: BaseException) -> FormatError:
     return FormatError(path, f"not a valid LAS/LAZ file ({type(exc).__name__}: {' '.join(str(exc).split())})")
 
 
+def las_record_channels(pts, dims: set, copy: bool = False) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Positions (float64, laspy's own scaling) and the channels pointflow keeps of laspy
+    points (intensity, classification, return_number, gps_time and rgb when the format has
+    them). ``copy``: channels own their memory instead of viewing the records (a cache that
+    counts bytes must not keep a whole record array alive through one channel)."""
+    arr = np.array if copy else np.asarray
+    pos = np.column_stack([np.asarray(pts.x, np.float64), np.asarray(pts.y, np.float64),
+                           np.asarray(pts.z, np.float64)])
+    ch: dict[str, np.ndarray] = {"intensity": arr(pts.intensity, np.uint16),
+                                 "classification": arr(pts.classification, np.uint8),
+                                 "return_number": arr(pts.return_number, np.uint8)}
+    if "gps_time" in dims:
+        ch["gps_time"] = arr(pts.gps_time, np.float64)
+    if {"red", "green", "blue"} <= dims:
+        ch["rgb"] = np.column_stack([np.asarray(pts.red), np.asarray(pts.green),
+                                     np.asarray(pts.blue)]).astype(np.uint16)
+    return pos, ch
+
+
 def iter_las(path: str, chunk_points: int) -> Iterator[tuple[np.ndarray, dict]]:
     """LAS/LAZ in pieces of ``chunk_points`` (laspy's chunk iterator: big files stream).
     A malformed file (header or points) raises :class:`FormatError`, never laspy's own errors."""
@@ -144,17 +163,7 @@ def iter_las(path: str, chunk_points: int) -> Iterator[tuple[np.ndarray, dict]]:
             _check_las_header(path, f.header)
             dims = set(f.header.point_format.dimension_names)
             for pts in f.chunk_iterator(chunk_points):
-                pos = np.column_stack([np.asarray(pts.x, np.float64), np.asarray(pts.y, np.float64),
-                                       np.asarray(pts.z, np.float64)])
-                ch: dict[str, np.ndarray] = {"intensity": np.asarray(pts.intensity, np.uint16),
-                                             "classification": np.asarray(pts.classification, np.uint8),
-                                             "return_number": np.asarray(pts.return_number, np.uint8)}
-                if "gps_time" in dims:
-                    ch["gps_time"] = np.asarray(pts.gps_time, np.float64)
-                if {"red", "green", "blue"} <= dims:
-                    ch["rgb"] = np.column_stack([np.asarray(pts.red), np.asarray(pts.green),
-                                                 np.asarray(pts.blue)]).astype(np.uint16)
-                yield pos, ch
+                yield las_record_channels(pts, dims)
     except FormatError:
         raise
     except BaseException as exc:

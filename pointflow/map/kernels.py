@@ -22,6 +22,15 @@ def _spread(v):
     return v
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _axis_bits(v, lo, scale, top, a):
+    """Axis ``a``'s bits of a Morton code: the cell of ``v`` along it (clamped to the cube)."""
+    q = int((v - lo) * scale) if v > lo else 0
+    if q > top:
+        q = top
+    return _spread(np.uint64(q)) << np.uint64(2 - a)
+
+
 @numba.njit(cache=True, nogil=True)
 def morton_codes(pos, lo, side):
     """Codes of (n, 3) float64 positions in the cube [lo, lo + side); outside points clamp."""
@@ -32,10 +41,7 @@ def morton_codes(pos, lo, side):
     for i in range(n):
         c = np.uint64(0)
         for a in range(3):
-            q = int((pos[i, a] - lo[a]) * scale) if pos[i, a] > lo[a] else 0
-            if q > top:
-                q = top
-            c |= _spread(np.uint64(q)) << np.uint64(2 - a)
+            c |= _axis_bits(pos[i, a], lo[a], scale, top, a)
         out[i] = c
     return out
 
@@ -128,11 +134,7 @@ def morton_codes_int(X, Y, Z, scales, offsets, lo, side):
         c = np.uint64(0)
         for a in range(3):
             raw = X[i] if a == 0 else (Y[i] if a == 1 else Z[i])
-            v = raw * scales[a] + offsets[a]
-            q = int((v - lo[a]) * scale) if v > lo[a] else 0
-            if q > top:
-                q = top
-            c |= _spread(np.uint64(q)) << np.uint64(2 - a)
+            c |= _axis_bits(raw * scales[a] + offsets[a], lo[a], scale, top, a)
         out[i] = c
     return out
 

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..ingest.formats import las_record_channels
+
 
 #: Bytes per point of each decoded LAS channel (see :func:`las_points`).
 LAS_CHANNEL_BYTES = {"intensity": 2, "classification": 1, "return_number": 1, "gps_time": 8, "rgb": 6}
@@ -25,18 +27,8 @@ def las_points(array: np.ndarray, point_format, scales, offsets) -> dict[str, np
     from laspy import ScaleAwarePointRecord
 
     pts = ScaleAwarePointRecord(array, point_format, np.asarray(scales), np.asarray(offsets))
-    dims = set(point_format.dimension_names)
-    out = {"positions": np.column_stack([np.asarray(pts.x, np.float64), np.asarray(pts.y, np.float64),
-                                         np.asarray(pts.z, np.float64)]),
-           "intensity": np.array(pts.intensity, np.uint16),
-           "classification": np.array(pts.classification, np.uint8),
-           "return_number": np.array(pts.return_number, np.uint8)}
-    if "gps_time" in dims:
-        out["gps_time"] = np.array(pts.gps_time, np.float64)
-    if {"red", "green", "blue"} <= dims:
-        out["rgb"] = np.column_stack([np.asarray(pts.red), np.asarray(pts.green),
-                                      np.asarray(pts.blue)]).astype(np.uint16)
-    return out
+    pos, ch = las_record_channels(pts, set(point_format.dimension_names), copy=True)
+    return {"positions": pos, **ch}
 
 
 def las_positions(array: np.ndarray, scales, offsets) -> np.ndarray:
