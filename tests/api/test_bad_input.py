@@ -120,7 +120,7 @@ def test_show_argument_errors():
         _clouds([xyz, xyz[:, :2]], {})
     with pytest.raises(SendError, match=r"color_by: 'speed' is not among the channels given \(intensity\)"):
         pointflow.show(xyz, color_by="speed", intensity=np.ones(10, np.float32))
-    with pytest.raises(ValueError, match="view: expected one of window, png, got 'holo'"):
+    with pytest.raises(ValueError, match=r"view: expected one of (notebook, )?window, png, got 'holo'"):
         pointflow.show(xyz, view="holo")
 
 
