@@ -22,20 +22,13 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import shutil
 import statistics
-import subprocess
 import time
 
 import numpy as np
 
-
-def _uptime() -> str:
-    try:
-        return subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
-    except OSError:
-        return "?"
+import _harness as harness
 
 
 def data_dir() -> str:
@@ -101,11 +94,9 @@ def index_build(path: str, cache: str) -> tuple[float, dict]:
 
 
 def chart(res: dict, png: str) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = harness.pyplot()
+    if plt is None:
+        return
     fig, ax = plt.subplots(figsize=(7, 3.6))
     reads = [r["points_per_s"] / 1e6 for r in res["runs"] if r["what"] == "laspy_read"]
     builds = [r["points_per_s"] / 1e6 for r in res["runs"] if r["what"] == "index_build"]
@@ -140,12 +131,12 @@ def main() -> None:
     path = a.input or tiled_laz(os.path.join(a.workdir, f"autzen_tiled_{a.points}.laz"), a.points)
     made_s = time.perf_counter() - t
     cache = os.path.join(a.workdir, "cache")
-    res = {"bench": "map_index", "machine": f"{platform.node()} ({os.cpu_count()} CPUs)",
+    res = {"bench": "map_index", "command": harness.command(), "machine": harness.machine(),
            "input": path, "input_bytes": os.path.getsize(path),
            "input_note": None if a.input else "copies of the real autzen_trim.laz (110,000 points) on a grid of tiles",
-           "uptime_before": _uptime(), "runs": []}
-    print(f"input {path} ({res['input_bytes'] / 1e6:.0f} MB, made/checked in {made_s:.0f} s); {res['uptime_before']}",
-          flush=True)
+           "runs": []}
+    print(f"input {path} ({res['input_bytes'] / 1e6:.0f} MB, made/checked in {made_s:.0f} s); "
+          f"{res['machine']['uptime_before']}", flush=True)
     for r in range(a.repeats):
         order = ("laspy_read", "index_build") if r % 2 == 0 else ("index_build", "laspy_read")
         for what in order:
@@ -167,15 +158,10 @@ def main() -> None:
     res["index_build_points_per_s_median"] = med["index_build"]
     res["ratio_median"] = med["index_build"] / med["laspy_read"]
     res["target"] = 0.5
-    res["uptime_after"] = _uptime()
-    os.makedirs(os.path.dirname(a.out), exist_ok=True)
-    with open(a.out, "w") as f:
-        json.dump(res, f, indent=1)
-    try:
-        chart(res, os.path.splitext(a.out)[0] + ".png")
-    except ImportError:
-        pass
-    print(f"ratio build/read (medians) {res['ratio_median']:.2f} (target >= 0.5); {res['uptime_after']}")
+    harness.machine_done(res["machine"])
+    harness.write_result(a.out, res, indent=1)
+    chart(res, os.path.splitext(a.out)[0] + ".png")
+    print(f"ratio build/read (medians) {res['ratio_median']:.2f} (target >= 0.5); {res['machine']['uptime_after']}")
 
 
 if __name__ == "__main__":
