@@ -175,7 +175,7 @@ def test_a_copc_map_in_a_pipeline(tmp_path):
     """A COPC file (copc-lib's writer) is read through its own hierarchy: the whole map (budget
     above its points) reaches the renderer, coloured by intensity with the live points, and a
     pick names it."""
-    pytest.importorskip("copclib")
+    pytest.importorskip("copclib", reason="copclib (copc-lib's COPC writer) comes with the test extra: pip install 'pointflow[test]'")
     from .mapfiles import write_copc
 
     copc = write_copc(str(tmp_path / "tile.copc.laz"), N_MAP, seed=5)
