@@ -1,4 +1,4 @@
-"""``pointflow`` command line: run, profile, validate, info, schema, send, router, keys."""
+"""``pointflow`` command line: run, profile, validate, info, schema, warm, send, router, keys."""
 from __future__ import annotations
 
 import argparse
@@ -392,6 +392,7 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--verbose", action="store_true", help="print the resolved config")
     sub.add_parser("info", help="list render backends, adapters and transports")
     sub.add_parser("schema", help="print the JSON Schema of the pipeline YAML (for editors)")
+    sub.add_parser("warm", help="compile the numba loops (cpu raster, frames) for this machine, ahead of the first run")
     snd = sub.add_parser("send", help="run only the sources of a config and publish them on its send: endpoint")
     snd.add_argument("file", help="YAML with sources and a send: section")
     snd.add_argument("--duration", type=float, default=None, help=DURATION_HELP + "; default: until the sources end or Ctrl-C")
@@ -485,6 +486,10 @@ def _main(argv: Optional[list[str]] = None) -> int:
             from .record.inspect import inspect_main
 
             return inspect_main(args.file, args.recover)
+        if args.cmd == "warm":
+            from .jitcache import warm_all
+
+            return 0 if warm_all(lambda line: print(f"warm: {line}", flush=True)) else 1
         if args.cmd == "schema":
             from .config import json_schema
 

@@ -9,12 +9,13 @@ if not os.environ.get("XDG_RUNTIME_DIR"):
 
 
 def pytest_sessionstart(session):
-    """Compile the cpu tier's numba loops once, into numba's disk cache: on a fresh clone a
-    render stage choosing the compiled cpu raster (``backend: auto`` over a software adapter)
-    would otherwise compile them inside its start-up grace period; later loads take ~0.5 s."""
+    """Compile pointflow's numba loops once, into numba's disk cache (``pointflow warm``): a
+    stage whose loops are not cached draws (or places points) without them while a compiler
+    fills the cache beside it, and the tests of the compiled paths want them from the start.
+    ~20 s the first time on a machine, a fraction of a second after."""
     try:
-        from pointflow.render import cpu_kernels
+        from pointflow.jitcache import warm_all
 
-        cpu_kernels.load()
+        warm_all(lambda line: None)
     except Exception:  # noqa: BLE001 - no numba: the reference tier draws, nothing to warm
         pass

@@ -12,10 +12,13 @@ cases; tests/ring/test_transform_push.py and tests/frames/test_compiled.py compa
 Loaded on first use (:func:`load`), not at import: importing numba and loading the cached
 machine code costs about 0.5-1 s of CPU, which only a pipeline with ``frames.fixed`` should
 pay (ingest's ``prepare`` does it in a standby, before it is needed). The compiled code is
-cached on disk (``cache=True``: numba's own locations, ``NUMBA_CACHE_DIR`` first); when no
-cache location is writable it compiles without one, and when numba is missing or fails, the
-caller falls back to the numpy path (:func:`pointflow.frames.kernels.rigid`): same results,
-slower. ``POINTFLOW_NO_NUMBA=1`` forces that fallback (tests compare both).
+cached on disk (``cache=True``: numba's own locations, ``NUMBA_CACHE_DIR`` first;
+``pointflow warm`` fills it ahead). Compiling takes 2-3 s on an idle 2-core machine, so a
+cache that does not hold the loops yet is filled by a compiler process of its own
+(:mod:`pointflow.jitcache`) while the caller uses the numpy path
+(:func:`pointflow.frames.kernels.rigid`: same results, slower), until the loops are cached;
+with no writable cache location, or numba missing or failing, numpy it stays.
+``POINTFLOW_NO_NUMBA=1`` forces that fallback (tests compare both).
 """
 from __future__ import annotations
 
@@ -124,11 +127,89 @@ def _compile(cache: bool) -> Callable:
     return Kernels(rigid, rigid, table, nodes)  # one loop, float32 or float64 out
 
 
+def compile_all(dispatchers_only: bool = False) -> list:
+    """The compile-ahead target (:mod:`pointflow.jitcache`, ``pointflow warm``): compile every
+    signature into numba's disk cache; returns dispatchers of the three loops (made lazily:
+    ``dispatchers_only`` compiles nothing) for :func:`pointflow.jitcache.state`."""
+    import numba
+
+    if not dispatchers_only:
+        _compile(cache=True)
+    return [numba.njit(cache=True, nogil=True, boundscheck=False)(f) for f in (_rigid_into, _table_into_f64, _nodes_into_f64)]
+
+
+#: how often a load() that waits for the background compiler looks again
+_POLL_S = 0.5
+_pending: Optional[str] = None  # the cache directory a background compiler fills
+_next_look = 0.0
+
+
+def _first_load() -> Optional[Kernels]:
+    """The first :func:`load`: the cached loops when numba's cache holds them; else None now
+    (numpy draws the same points, slower) and a compiler fills the cache in a process of its
+    own (:mod:`pointflow.jitcache`), so ingest never waits for it."""
+    global _pending
+    from .. import jitcache
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ds = compile_all(dispatchers_only=True)
+        st = jitcache.state(ds)
+        if st == jitcache.READY:
+            try:
+                return _compile(cache=True)
+            except Exception as exc:  # noqa: BLE001 - e.g. the cache went away since: compile here
+                log.info("frames: compiled transform without a disk cache (%s: %s)", type(exc).__name__, exc)
+                return _compile(cache=False)
+        where = jitcache.cache_dir(ds)
+        if st == jitcache.UNWRITABLE or where is None:
+            log.warning("frames: numba cannot cache the compiled transform (no writable location; set "
+                        "NUMBA_CACHE_DIR and run `pointflow warm`); using numpy")
+            return None
+        if not jitcache.compiling(where):
+            jitcache.start_compiler("pointflow.frames.compiled:compile_all", where)
+        log.info("frames: compiling the transform loops in the background (first run on this machine); "
+                 "numpy meanwhile")
+        _pending = where
+        return None
+
+
+def _look_again() -> Optional[Kernels]:
+    """While the background compiler works: None; then the compiled loops (or None for good)."""
+    global _pending, _next_look, _kernel
+    import time
+
+    from .. import jitcache
+
+    now = time.monotonic()
+    if now < _next_look or _pending is None:
+        return None
+    _next_look = now + _POLL_S
+    if jitcache.compiling(_pending):
+        return None
+    where, _pending = _pending, None
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        if jitcache.state(compile_all(dispatchers_only=True)) != jitcache.READY:
+            res = jitcache.last_result(where) or {}
+            log.warning("frames: the transform loops could not be compiled (%s); using numpy",
+                        res.get("message", "no result"))
+            return None
+        _kernel = _compile(cache=True)
+    log.info("frames: transform loops compiled; using them from now on")
+    return _kernel
+
+
 def load() -> Optional[Kernels]:
-    """The compiled loops (:class:`Kernels`), or None (numpy fallback).
-    The first call imports numba and loads (or compiles and caches) the machine code."""
+    """The compiled loops (:class:`Kernels`), or None (numpy fallback: not compiled yet, or
+    not available). The first call imports numba and loads the cached machine code, or
+    starts compiling it beside the caller (:func:`_first_load`); later calls pick the loops
+    up once compiled."""
     global _kernel, _tried
     if _tried:
+        if _kernel is None and _pending is not None:
+            with _lock:
+                return _look_again() if _kernel is None else _kernel
         return _kernel
     with _lock:
         if _tried:
@@ -137,13 +218,7 @@ def load() -> Optional[Kernels]:
             _tried = True
             return None
         try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")  # a cache that cannot be written is not the user's problem
-                try:
-                    _kernel = _compile(cache=True)
-                except Exception as exc:  # noqa: BLE001 - e.g. no writable cache location
-                    log.info("frames: compiled transform without a disk cache (%s: %s)", type(exc).__name__, exc)
-                    _kernel = _compile(cache=False)
+            _kernel = _first_load()
         except Exception as exc:  # noqa: BLE001 - numba missing or broken: numpy does the same, slower
             log.warning("frames: compiled transform unavailable (%s: %s); using numpy", type(exc).__name__, exc)
             _kernel = None

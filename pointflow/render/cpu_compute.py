@@ -401,3 +401,18 @@ class CpuComputeRenderer(Renderer):
                 "frames_per_thread_count": {str(t): n for t, n in sorted(self.frames_at.items())},
                 "threads": int(cpu_kernels.numba.get_num_threads()), "numba": cpu_kernels.numba.__version__,
                 "deterministic": True}
+
+
+#: the compile-ahead target (``python -m pointflow.jitcache``, ``pointflow warm``)
+COMPILE_TARGET = "pointflow.render.cpu_compute:compile_all"
+
+
+def compile_all(dispatchers_only: bool = False) -> list:
+    """Compile every loop a render stage runs (a renderer with eye-dome lighting draws its
+    warm-up frame: every kernel of :data:`cpu_kernels.REQUIRED`) into numba's disk cache;
+    returns the dispatchers. ``dispatchers_only``: compile nothing, only return them."""
+    if not dispatchers_only and cpu_kernels.load() is not None:
+        from .config import EdlConfig
+
+        CpuComputeRenderer(RenderConfig(size=[64, 36], edl=EdlConfig(enabled=True)), 16, ["intensity"]).close()
+    return cpu_kernels.dispatchers()

@@ -10,8 +10,11 @@ writes its own key buffer, and the per-pixel resolve takes the minimum over the 
 frustum test run in float64 like the numpy reference; colours follow ``colormap.lut_index``
 in float32.
 
-:func:`load` imports numba and compiles (or loads from the disk cache) on first use; it
-returns None when numba is missing or ``POINTFLOW_NO_NUMBA=1``.
+:func:`load` imports numba and makes the dispatchers (each loop compiles, or loads from the
+disk cache, on its first call); it returns None when numba is missing or
+``POINTFLOW_NO_NUMBA=1``. :func:`cache_state` says whether the first calls would compile:
+the render stage then draws with another tier while :mod:`pointflow.jitcache` compiles
+them in a process of its own (``pointflow warm`` does it ahead).
 """
 from __future__ import annotations
 
@@ -614,6 +617,33 @@ def _compile(cache: bool) -> Kernels:
         out[name[1:]] = nb.njit(parallel=True, **opts)(g[name])
     out["resolve_scalar_1"] = nb.njit(**opts)(g["_resolve_scalar"])  # one thread: prange runs as range
     return Kernels(**out)
+
+
+#: the loops a render stage runs (``floor`` is the benchmark's bare floor): all cached = ready
+REQUIRED = ("raster", "select", "thin", "cap", "resolve", "edl", "resolve_scalar_1")
+
+
+def dispatchers() -> list:
+    """The dispatchers of :data:`REQUIRED` (creating them compiles nothing), or [] without numba."""
+    k = load()
+    return [getattr(k, n) for n in REQUIRED] if k is not None else []
+
+
+def cache_state() -> str:
+    """Whether the loops can start without compiling (:func:`pointflow.jitcache.state`):
+    ``ready``, ``missing`` (a compile is due), ``unwritable`` (numba has nowhere to cache
+    them), or ``unavailable`` (numba missing or off)."""
+    from .. import jitcache
+
+    ds = dispatchers()
+    return jitcache.state(ds) if ds else "unavailable"
+
+
+def cache_dir() -> Optional[str]:
+    """Where numba caches the loops (``NUMBA_CACHE_DIR`` first), or None."""
+    from .. import jitcache
+
+    return jitcache.cache_dir(dispatchers())
 
 
 def disabled() -> Optional[str]:

@@ -369,6 +369,10 @@ def main(ctx: StageContext) -> None:
     ema = None
     c = ctx.counters
     c.extra.update(frames=0, tier=renderer.tier, pngs=0, frame_ms_ema=0.0, tier_info=renderer.info())
+    from .rasterswitch import RasterSwitch
+
+    switch = RasterSwitch(renderer, ctx.log)  # compiles the cpu raster beside the stage, if due
+    c.extra.update(switch.stats())
     tracing = cfg.tracing.enabled
     t_free = t_idle = time.monotonic_ns()  # when the last frame ended / the last idle message went
     tick_s = 0.0  # the cadence's interval, from its handoffs
@@ -378,6 +382,7 @@ def main(ctx: StageContext) -> None:
             if maplayer is not None:  # where every view looks, to the map stage (sent when it changed)
                 maplayer.publish_stage(stage)
             stage.window, stage.frames = window, frames - base
+            _switch_raster(switch, stage, window, ctx)
             _serve_commands(commands, stage, ring, ctx)
             if stage.hub is not None:
                 stage.hub.service(stage, ring)
@@ -450,6 +455,8 @@ def main(ctx: StageContext) -> None:
                         window.renderer = renderer
                     c.extra["tier"] = renderer.tier
                     c.extra["tier_info"] = renderer.info()
+                    switch.follow(renderer)
+                    c.extra.update(switch.stats())
                     c.drop("render_error", 1)
                     continue
             finally:
@@ -515,6 +522,19 @@ def main(ctx: StageContext) -> None:
         reader.release()
         slabs.close()
         ring.close()
+
+
+def _switch_raster(switch, stage: "_Stage", window, ctx) -> None:
+    """Between two frames: take the compiled cpu raster once its loops are compiled."""
+    new = switch.poll(stage.renderer, stage.capacity, stage.channels)
+    if new is not None:
+        stage.renderer.close()
+        stage.renderer = new
+        stage.full_upload = True
+        if window is not None:
+            window.renderer = new
+        ctx.counters.extra.update(tier=new.tier, tier_info=new.info())
+    ctx.counters.extra.update(switch.stats())
 
 
 def _gpu_spans(ctx, fs, t0: int) -> None:

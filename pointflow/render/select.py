@@ -15,6 +15,10 @@ nothing works.
 - The cpu tier has two raster methods (:func:`cpu_method`): ``compute`` (compiled, numba,
   :mod:`.cpu_compute`) and ``reference`` (float64 numpy, :mod:`.cpu`). Without numba, or
   with ``POINTFLOW_NO_NUMBA=1``, ``compute`` falls back to the reference with one log line.
+- The compiled method is taken only when its loops are already in numba's disk cache
+  (``cpu_kernels.cache_state()``): a render stage never waits for the compiler. Otherwise
+  the next candidate draws (``compiled_pending`` set on it) and the render stage compiles
+  in the background and switches (:mod:`.rasterswitch`).
 - :func:`fallback_after` gives the next tier when one raises ``RenderError`` mid-run.
 """
 from __future__ import annotations
@@ -219,9 +223,38 @@ def _describe(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {exc}".strip().rstrip(":")
 
 
+#: while the compiled raster compiles, the tiers tried first (env POINTFLOW_RASTER_MEANWHILE,
+#: e.g. ``wgpu,gl,cpu``; bench/bench_first_picture.py measures the choice)
+MEANWHILE = ("cpu",)
+ENV_MEANWHILE = "POINTFLOW_RASTER_MEANWHILE"
+
+
+def _unless_compiling(tiers: list[str], lines: list[str]) -> tuple[list[str], Optional[str]]:
+    """``tiers`` without "cpu-compute" when its loops are not in numba's disk cache (then the
+    stage would wait for the compiler), and why: ``missing`` or ``unwritable``; else unchanged."""
+    from . import cpu_kernels
+
+    state = cpu_kernels.cache_state()
+    if state not in ("missing", "unwritable"):
+        return tiers, None
+    lines.append("cpu-compute: not yet: " + (
+        "its loops are not compiled on this machine; they compile in the background"
+        if state == "missing" else
+        f"numba cannot cache its loops here ({cpu_kernels.cache_dir() or 'no writable location'}; "
+        "set NUMBA_CACHE_DIR to a writable directory and run `pointflow warm`)"))
+    rest = [t for t in tiers if t != "cpu-compute"]
+    env = os.environ.get(ENV_MEANWHILE, "").strip()
+    meanwhile = [t.strip() for t in env.split(",")] if env else MEANWHILE
+    first = [t for t in meanwhile if t in rest]
+    return first + [t for t in rest if t not in first], state
+
+
 def _try(tiers: list[str], cfg: RenderConfig, capacity: int, channels: list[str], lines: list[str],
          make: Optional[Callable[[str], type[Renderer]]] = None) -> Renderer:
     first: Optional[tuple[str, BaseException]] = None
+    pending = None  # the compiled cpu raster's loops are not in numba's cache yet
+    if "cpu-compute" in tiers and make is None:
+        tiers, pending = _unless_compiling(tiers, lines)
     for tier in tiers:
         try:
             cls = (make or _load_class)(tier)
@@ -234,7 +267,9 @@ def _try(tiers: list[str], cfg: RenderConfig, capacity: int, channels: list[str]
             lines.append(f"{tier}: skipped: {_describe(exc)}")
             first = first or (tier, exc)
             continue
-        lines.append(f"{r.tier}: chosen" + (" (compiled raster)" if tier == "cpu-compute" else ""))
+        r.compiled_pending = pending  # type: ignore[attr-defined]  # render/process.py: compile, then switch
+        lines.append(f"{r.tier}: chosen" + (" (compiled raster)" if tier == "cpu-compute" else "")
+                     + (" meanwhile" if pending == "missing" else ""))
         if getattr(r, "raster", None) and tier != "cpu-compute":  # the wgpu tier's raster method and why
             lines.append(f"{tier}: raster method {r.raster} ({getattr(r, '_raster_why', '')})")
         for line in lines:
