@@ -118,7 +118,10 @@ def main() -> None:
             b.kill()
             b.wait()
         shutil.rmtree(warm_cache, ignore_errors=True)
-    med = lambda case, k: statistics.median(r[case][k] for r in rounds if r[case][k] is not None)  # noqa: E731
+    def med(case: str, k: str):
+        v = [r[case][k] for r in rounds if r[case][k] is not None]
+        return statistics.median(v) if v else None
+
     summary = {c: {"first_png_s": med(c, "first_png_s"), "frames": med(c, "frames")} for c in ("warm", "empty", "second")}
     summary["second_started_compiled"] = all(r["second"]["switched_after_s"] is None
                                              and r["second"]["raster_at_end"] == "compiled" for r in rounds)

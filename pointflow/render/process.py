@@ -528,6 +528,7 @@ def _switch_raster(switch, stage: "_Stage", window, ctx) -> None:
     """Between two frames: take the compiled cpu raster once its loops are compiled."""
     new = switch.poll(stage.renderer, stage.capacity, stage.channels)
     if new is not None:
+        switch.switched_at_frame = stage.frames
         stage.renderer.close()
         stage.renderer = new
         stage.full_upload = True

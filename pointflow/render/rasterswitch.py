@@ -9,7 +9,9 @@ renderer when the cache holds every loop. The stage swaps it in between two fram
 
 The state shows in the render stage's stats as ``raster``: ``compiled`` (the compiled raster
 draws), ``compiling`` (it will; ``raster_meanwhile`` names the tier drawing until then),
-``reference`` (the float64 numpy raster draws, nothing on its way) or ``gpu`` (a GPU tier).
+``reference`` (the float64 numpy raster draws, nothing on its way) or ``gpu`` (a GPU tier);
+after a switch ``raster_switched_after_s`` (since the stage started) and
+``raster_switched_at_frame`` (frames drawn before it).
 """
 from __future__ import annotations
 
@@ -38,6 +40,7 @@ class RasterSwitch:
         self.where: Optional[str] = None
         self.proc: Any = None
         self.switched_after_s: Optional[float] = None
+        self.switched_at_frame = 0  # frames drawn before the switch (the stage sets it)
         self._next = 0.0
         pending = getattr(renderer, "compiled_pending", None)
         self.raster = raster_of(renderer)
@@ -74,11 +77,13 @@ class RasterSwitch:
                       "compiler pid %d); drawing with %s meanwhile", self.where, self.proc.pid, renderer.tier)
 
     def stats(self) -> dict:
-        d: dict[str, Any] = {"raster": self.raster}
-        if self.raster == "compiling":
-            d["raster_meanwhile"] = self.meanwhile
+        compiling = self.raster == "compiling"
+        d: dict[str, Any] = {"raster": self.raster, "raster_meanwhile": self.meanwhile if compiling else None}
+        if self.proc is not None:
+            d["raster_compiler_pid"] = self.proc.pid
         if self.switched_after_s is not None:
             d["raster_switched_after_s"] = round(self.switched_after_s, 2)
+            d["raster_switched_at_frame"] = self.switched_at_frame
         return d
 
     def follow(self, renderer: Renderer) -> None:

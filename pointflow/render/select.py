@@ -225,7 +225,7 @@ def _describe(exc: BaseException) -> str:
 
 #: while the compiled raster compiles, the tiers tried first (env POINTFLOW_RASTER_MEANWHILE,
 #: e.g. ``wgpu,gl,cpu``; bench/bench_first_picture.py measures the choice)
-MEANWHILE = ("cpu",)
+MEANWHILE = ("wgpu", "gl", "cpu")
 ENV_MEANWHILE = "POINTFLOW_RASTER_MEANWHILE"
 
 
