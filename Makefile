@@ -4,6 +4,8 @@ PYTHON ?= python3
 VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
+# numba's loops compiled for this machine (`pointflow warm`): again when their source changes
+WARMED := $(VENV)/.warmed
 DURATION ?= 10
 export XDG_RUNTIME_DIR ?= /tmp/pointflow-xdg-$(shell id -u)
 
@@ -15,19 +17,23 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install -q -e '.[test]'
 	@touch $@
 
+# compile ahead, where the set-up already waits: the demo then starts with the compiled raster
+$(WARMED): $(STAMP) pointflow/render/cpu_kernels.py pointflow/frames/compiled.py
+	@$(BIN)/pointflow warm && touch $@ || echo "warm: not cached (see above); runs draw with another tier while it compiles"
+
 system-deps:
 	@bash scripts/install-system-deps.sh
 
 $(XDG_RUNTIME_DIR):
 	@mkdir -p -m 700 $@
 
-run: $(STAMP) system-deps | $(XDG_RUNTIME_DIR)
+run: $(STAMP) $(WARMED) system-deps | $(XDG_RUNTIME_DIR)
 	$(BIN)/pointflow run configs/demo.yaml --duration $(DURATION) --out out --record out/demo.mcap
 
-test: $(STAMP) system-deps | $(XDG_RUNTIME_DIR)
+test: $(STAMP) $(WARMED) system-deps | $(XDG_RUNTIME_DIR)
 	$(BIN)/python -m pytest -q
 
-bench: $(STAMP) system-deps | $(XDG_RUNTIME_DIR)
+bench: $(STAMP) $(WARMED) system-deps | $(XDG_RUNTIME_DIR)
 	for b in bench/bench_*.py; do $(BIN)/python $$b || exit 1; done
 
 clean:
