@@ -112,6 +112,8 @@ def test_no_render_tier_imports_another_tier():
 LAYERS = {
     # the bottom: the typed loader, the chunk, its wire format and codecs
     "pointflow.typed": 0, "pointflow._lazy": 0, "pointflow.chunk": 0, "pointflow.codec": 0, "pointflow.wire": 0,
+    # numba's cache of the compiled loops (render and frames use it; imports nothing of pointflow)
+    "pointflow.jitcache": 0,
     # shared data structures
     "pointflow.ring": 1, "pointflow.frames": 1, "pointflow.profiling": 1,
     # config sections of the packages above the loader, each owned by its package, which
