@@ -110,8 +110,7 @@ def start_compiler(target: str, where: str) -> subprocess.Popen:
     env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
     return subprocess.Popen([sys.executable, "-m", "pointflow.jitcache", target], env=env,
                             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                            start_new_session=True, close_fds=True,
-                            preexec_fn=lambda: os.nice(COMPILER_NICE))
+                            start_new_session=True, close_fds=True)
 
 
 def _save_data_first(self, key, data) -> None:
@@ -209,6 +208,10 @@ def main(argv: Optional[list[str]] = None) -> int:
     if len(args) != 1 or ":" not in args[0]:
         print("usage: python -m pointflow.jitcache MODULE:FUNCTION", file=sys.stderr)
         return 2
+    try:
+        os.nice(COMPILER_NICE)  # here, not in a preexec_fn: the stage starting it has threads
+    except OSError:
+        pass
     res = run(args[0])
     return 0 if res["ok"] else 1
 
