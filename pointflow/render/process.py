@@ -471,7 +471,8 @@ def main(ctx: StageContext) -> None:
                 renderer.finish()  # frame_done means the GPU work is complete
             view.drawn()
             frames += 1
-            png = out_dir is not None and frames % out.every_n_frames == 0
+            # the first frame drawn, then every n-th: a picture as soon as there is one
+            png = out_dir is not None and (frames % out.every_n_frames == 0 or frames == base + 1)
             if png:
                 img = renderer.read_image()
                 write_png(os.path.join(out_dir, f"frame_{frames:06d}.png"), img)
