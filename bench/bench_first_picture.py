@@ -8,15 +8,13 @@ the cases alternated:
 
 * ``warm``: a numba cache filled ahead (``pointflow warm``): the compiled raster from the
   first frame; the same-run baseline.
-* ``empty``: a fresh ``NUMBA_CACHE_DIR``: the render stage draws with the tier it takes
-  meanwhile and compiles in the background;
-* ``second``: the next run on that same cache once its compiler has finished (started
-  with the compiled raster? ``raster`` at the first heartbeat is in stats.json's events
-  only as the switch time, so this reads ``raster_switched_after_s``: absent = compiled
-  from the start).
+* ``empty:<tiers>``: a fresh ``NUMBA_CACHE_DIR``: the render stage draws with the tier it
+  takes meanwhile (``POINTFLOW_RASTER_MEANWHILE=<tiers>``, one case per ``--meanwhile``
+  value) and compiles in the background; frames also as a ratio to ``warm``'s;
+* ``second``: the next run on the first empty case's cache once its compiler has finished
+  (started with the compiled raster: no ``raster_switched_after_s`` in its stats.json).
 
 ``--busy N`` runs N busy loops (``while True: pass`` processes) for the whole measurement.
-``--meanwhile`` names the tiers tried while compiling (``POINTFLOW_RASTER_MEANWHILE``).
 Writes bench/results/first_picture.json.
 """
 from __future__ import annotations
@@ -89,7 +87,9 @@ def main() -> None:
     ap.add_argument("--busy", type=int, default=0, help="busy loops beside the runs")
     ap.add_argument("--rounds", type=int, default=1)
     ap.add_argument("--seconds", type=int, default=10, help="--duration of each run")
-    ap.add_argument("--meanwhile", default=None, help="tiers drawing while compiling (e.g. wgpu,gl,cpu)")
+    ap.add_argument("--meanwhile", nargs="+", default=["default"],
+                    help="one empty-cache case per value: the tiers drawing while compiling (e.g. wgpu,gl,cpu or "
+                         "cpu; default: the shipped order); the first one is also run a second time")
     ap.add_argument("--out", default=str(H.RESULTS / "first_picture.json"))
     a = ap.parse_args()
     mach = H.machine(busy_loops=a.busy)
@@ -97,36 +97,43 @@ def main() -> None:
     subprocess.run([sys.executable, "-m", "pointflow.cli", "warm"], env=dict(os.environ, NUMBA_CACHE_DIR=warm_cache),
                    cwd=ROOT, check=True, stdout=subprocess.DEVNULL)
     busy = _busy(a.busy)
+    cases = ["warm"] + [f"empty:{m}" for m in a.meanwhile]
     rounds = []
     try:
         for i in range(a.rounds):
             rnd: dict = {}
-            for case in H.order(["warm", "empty"], i):
+            for case in H.order(cases, i):
+                m = case.partition(":")[2]
+                mw = None if m in ("", "default") else m
                 if case == "warm":
-                    rnd["warm"] = one_run(warm_cache, a.seconds, a.meanwhile)
+                    rnd[case] = one_run(warm_cache, a.seconds, None)
                 else:
                     cache = tempfile.mkdtemp(prefix="pf-numba-empty-")
-                    rnd["empty"] = one_run(cache, a.seconds, a.meanwhile)
-                    rnd["empty"]["compiler_done_after_run_s"] = round(_wait_compiler(cache), 1)
-                    rnd["second"] = one_run(cache, a.seconds, a.meanwhile)
+                    rnd[case] = one_run(cache, a.seconds, mw)
+                    rnd[case]["compiler_done_after_run_s"] = round(_wait_compiler(cache), 1)
+                    if case == cases[1]:
+                        rnd["second"] = one_run(cache, a.seconds, mw)
                     shutil.rmtree(cache, ignore_errors=True)
-                print(case, rnd[case], rnd.get("second") if case == "empty" else "", flush=True)
-            rnd["frames_ratio_empty_to_warm"] = round(rnd["empty"]["frames"] / max(rnd["warm"]["frames"], 1), 3)
+                print(f"round {i} {case}: {rnd[case]}", flush=True)
+            for case in cases[1:]:
+                rnd[case]["frames_ratio_to_warm"] = round(rnd[case]["frames"] / max(rnd["warm"]["frames"], 1), 3)
+            print(f"round {i} second: {rnd['second']}  ({H.uptime()})", flush=True)
             rounds.append(rnd)
     finally:
         for b in busy:
             b.kill()
             b.wait()
         shutil.rmtree(warm_cache, ignore_errors=True)
+
     def med(case: str, k: str):
-        v = [r[case][k] for r in rounds if r[case][k] is not None]
+        v = [r[case][k] for r in rounds if r[case].get(k) is not None]
         return statistics.median(v) if v else None
 
-    summary = {c: {"first_png_s": med(c, "first_png_s"), "frames": med(c, "frames")} for c in ("warm", "empty", "second")}
+    summary = {c: {k: med(c, k) for k in ("first_png_s", "frames", "frames_ratio_to_warm")} for c in cases + ["second"]}
     summary["second_started_compiled"] = all(r["second"]["switched_after_s"] is None
                                              and r["second"]["raster_at_end"] == "compiled" for r in rounds)
     res = {"command": H.command(), "machine": H.machine_done(mach), "busy_loops": a.busy, "seconds": a.seconds,
-           "meanwhile": a.meanwhile or "default", "rounds": rounds, "summary": summary}
+           "cases": cases, "rounds": rounds, "summary": summary}
     path = H.write_result(a.out, res)
     print(json.dumps(summary), "->", path)
 

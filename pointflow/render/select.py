@@ -229,20 +229,20 @@ MEANWHILE = ("wgpu", "gl", "cpu")
 ENV_MEANWHILE = "POINTFLOW_RASTER_MEANWHILE"
 
 
-def _unless_compiling(tiers: list[str], lines: list[str]) -> tuple[list[str], Optional[str]]:
-    """``tiers`` without "cpu-compute" when its loops are not in numba's disk cache (then the
-    stage would wait for the compiler), and why: ``missing`` or ``unwritable``; else unchanged."""
+def _unless_compiling(rest: list[str], lines: list[str]) -> tuple[list[str], Optional[str]]:
+    """When the compiled raster's loops are not in numba's disk cache (the stage would wait
+    for the compiler): the tiers after it, :data:`MEANWHILE` first, and why (``missing`` or
+    ``unwritable``); else ``(rest, None)``: take it."""
     from . import cpu_kernels
 
     state = cpu_kernels.cache_state()
     if state not in ("missing", "unwritable"):
-        return tiers, None
+        return rest, None
     lines.append("cpu-compute: not yet: " + (
         "its loops are not compiled on this machine; they compile in the background"
         if state == "missing" else
         f"numba cannot cache its loops here ({cpu_kernels.cache_dir() or 'no writable location'}; "
         "set NUMBA_CACHE_DIR to a writable directory and run `pointflow warm`)"))
-    rest = [t for t in tiers if t != "cpu-compute"]
     env = os.environ.get(ENV_MEANWHILE, "").strip()
     meanwhile = [t.strip() for t in env.split(",")] if env else MEANWHILE
     first = [t for t in meanwhile if t in rest]
@@ -253,9 +253,13 @@ def _try(tiers: list[str], cfg: RenderConfig, capacity: int, channels: list[str]
          make: Optional[Callable[[str], type[Renderer]]] = None) -> Renderer:
     first: Optional[tuple[str, BaseException]] = None
     pending = None  # the compiled cpu raster's loops are not in numba's cache yet
-    if "cpu-compute" in tiers and make is None:
-        tiers, pending = _unless_compiling(tiers, lines)
-    for tier in tiers:
+    todo = list(tiers)
+    while todo:
+        tier = todo.pop(0)
+        if tier == "cpu-compute" and make is None:  # looked at only when reached (numba's import)
+            todo, pending = _unless_compiling(todo, lines)
+            if pending:
+                continue
         try:
             cls = (make or _load_class)(tier)
         except (ImportError, AttributeError) as exc:
