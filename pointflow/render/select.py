@@ -138,6 +138,12 @@ def cpu_summary() -> str:
             lim = data.get("faster_up_to_points")
             upto = "at every size measured" if lim is None else f"up to {int(lim):,} points"
             comp = f"compiled raster (numba); auto prefers it over a software wgpu adapter {upto} ({where})"
+    if not off and cpu_kernels.available():
+        st = cpu_kernels.cache_state()
+        comp += {"ready": f"; compiled for this machine ({cpu_kernels.cache_dir()})",
+                 "missing": f"; not compiled for this machine yet ({cpu_kernels.cache_dir()}): `pointflow warm`, or the "
+                            "first run compiles it in the background",
+                 "unwritable": "; numba has no writable cache location: set NUMBA_CACHE_DIR"}.get(st, "")
     return f"reference (numpy, float64); {comp}"
 
 
