@@ -63,6 +63,8 @@ class RasterSwitch:
         if self.where is None:
             return
         self.raster = "compiling"
+        if cpu_kernels.cache_state() == jitcache.READY:  # compiled since (a standby's renderer): switch at once
+            return
         if jitcache.compiling(self.where):
             self.log.info("render: raster kernels are being compiled by another run (%s); drawing with %s meanwhile",
                           self.where, renderer.tier)
