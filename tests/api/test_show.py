@@ -94,3 +94,46 @@ print("RETURNED", pointflow.show(np.random.default_rng(0).normal(size=(3000, 3))
                 proc.wait()
     assert proc.returncode == 0, (err + rest)[-3000:]
     assert "RETURNED None" in out
+
+
+def test_the_png_is_drawn_in_process_and_is_the_render_stages_picture(tmp_path):
+    """Issue 36.5: a PNG show starts no stage (no supervisor is even imported), and its picture
+    is the one the render stage's cpu reference draws of the same cloud through a pipeline."""
+    from pointflow import Pipeline
+
+    p = run_script(tmp_path, """
+import sys
+import numpy as np
+import pointflow
+xyz = np.random.default_rng(5).normal(size=(4000, 3)) * [3, 2, 1] + [1e5, -2e5, 30]   # georeferenced
+print(pointflow.show(xyz, intensity=np.abs(xyz[:, 2] - 30), path="a.png", size=(160, 120), view="png"))
+print("SUPERVISOR", "pointflow.runtime.supervisor" in sys.modules)
+""")
+    a = str(tmp_path / "a.png")
+    assert p.stdout.split("\n")[:3] == [a, a, "SUPERVISOR False"], p.stdout  # printed, returned
+    xyz = np.random.default_rng(5).normal(size=(4000, 3)) * [3, 2, 1] + [1e5, -2e5, 30]
+    cfg = qs.show_config(len(xyz), ["intensity"], "intensity", (160, 120),
+                         {"backend": "cpu", "raster": "reference"})
+    cfg.supervisor.standby = False
+    with Pipeline(cfg, out_dir="") as pipe:
+        pipe.send(xyz, source="show", intensity=np.abs(xyz[:, 2] - 30))
+        qs._show_png(pipe, len(xyz), str(tmp_path / "b.png"), 120)
+    a, b = (np.asarray(Image.open(tmp_path / f).convert("RGB"), dtype=int) for f in ("a.png", "b.png"))
+    assert (np.abs(a - a[0, 0]).sum(axis=2) > 30).sum() > 500  # the cloud is drawn
+    assert np.array_equal(a, b)
+
+
+def test_a_pipeline_with_no_source_takes_send():
+    """Issue 36.5: ``Pipeline.from_dict`` with no source, and ``Pipeline()``, imply one ``api``
+    source named ``api``: ``send`` works without declaring it."""
+    from pointflow import Pipeline
+
+    assert [(s.name, s.transport) for s in Pipeline().cfg.sources] == [("api", "api")]
+    cfg = {"ring": {"max_points": 10_000}, "cadence": {"target_hz": 5}, "tracing": {"enabled": False},
+           "render": {"backend": "cpu", "size": [32, 24], "output": {"dir": None}}, "supervisor": {"standby": False}}
+    xyz = np.random.default_rng(0).normal(size=(1000, 3)).astype(np.float32)
+    with Pipeline.from_dict(cfg) as p:
+        assert p.send(xyz) == 1000
+        p.wait(None, until=lambda: p.stats()["accounting"].get("ingest_written", 0) >= 1000)
+        st = p.stats()
+    assert st["stages"]["api"]["points_out"] == 1000 and st["accounting"]["ingest_written"] == 1000, st["accounting"]
