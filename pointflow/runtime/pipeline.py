@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any, Optional, Union
 
 from ..config import PipelineConfig, load_config
-from .supervisor import PipelineFailed, Supervisor
+from .supervisor import PipelineFailed, Supervisor, planned_stages
 
 log = logging.getLogger("pointflow")
 
@@ -65,19 +65,34 @@ class Pipeline:
         return cls(load_config(with_api_source(data), base_dir=base_dir), out_dir=out_dir)
 
     # ------------------------------------------------------------------ lifecycle
-    def start(self) -> "Pipeline":
+    def start(self, wait: bool = True) -> "Pipeline":
+        """Start every stage; return once each has reported in (``wait``, the default: then
+        ``wait(5)`` is five seconds of a running pipeline), or at once after spawning them
+        (``wait=False``: :attr:`starting` says when they are all in; ``send`` works already,
+        its clouds wait in ingest's socket)."""
         if self._sup is not None and self._sup.started:
             raise RuntimeError("pipeline already running")
         self._final = None
         self._sup = Supervisor(self.cfg, out_dir=self.out_dir, role=self.role)
         atexit.register(self.stop)
         try:
-            self._sup.start()
+            self._sup.start(wait)
         except BaseException:
             self._sup.stop()
             self._sup._release()
             raise
         return self
+
+    @property
+    def starting(self) -> bool:
+        """Started, and some stage has not reported in yet (within ``supervisor.startup_timeout_ms``)."""
+        return self._sup is not None and self._sup.starting()
+
+    def stages(self) -> list[str]:
+        """The stages this pipeline runs (or would), in start order."""
+        if self._sup is not None:
+            return list(self._sup.stages)
+        return planned_stages(self.cfg, self.role)
 
     @property
     def running(self) -> bool:

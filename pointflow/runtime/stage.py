@@ -314,14 +314,21 @@ def stage_main(name: str, kind: str | StageKind, cfg_dict: dict, base_dir: str, 
     # Ctrl-C reaches the whole process group; only the supervisor reacts to it and then
     # stops the stages in order.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    t_imports = time.monotonic_ns()
     cfg = load_config(cfg_dict, base_dir=base_dir)
     k = _kind(kind)
+    loop = resolve(k.main)  # the stage's own module (its tier's libraries come later, in its loop)
+    t_module = time.monotonic_ns()
     ctx = StageContext(name, k.name, cfg, info)
     ctx.prepared = prepared
     signal.signal(signal.SIGTERM, lambda *_: ctx.stop())
+    # where this stage's start went, before its loop sets up (``stats()["stages"][s]["startup_ms"]``)
+    ctx._send({"type": "starting", "marks_ns": {"main": info.extra.get("t_main_ns", t_imports),
+                                                "runtime": t_imports, "module": t_module,
+                                                "context": time.monotonic_ns()}})
     code = 0
     try:
-        resolve(k.main)(ctx)
+        loop(ctx)
         if ctx._running:  # returned on its own
             ctx._send({"type": "done"})
     except Exception as exc:  # noqa: BLE001 - report, then exit non-zero

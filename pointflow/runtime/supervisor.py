@@ -41,6 +41,24 @@ log = logging.getLogger("pointflow.supervisor")
 SOURCE = "source"
 
 
+def wanted_kinds(cfg: PipelineConfig, role: str) -> list[StageKind]:
+    """The kinds ``role`` runs with ``cfg``, in start order. A kind's check of its config (an
+    unwritable recording path) raises here, before anything starts."""
+    return [k for k in role_kinds(role) if k.wanted is None or resolve(k.wanted)(cfg)]
+
+
+def planned_stages(cfg: PipelineConfig, role: str = "pipeline") -> list[str]:
+    """The stages a run of ``cfg`` has, in start order (every source that is not
+    ``external``, the ``api`` ones included): what ``pointflow run`` says it is starting."""
+    names: list[str] = []
+    for k in wanted_kinds(cfg, role):
+        if k.name == SOURCE:
+            names.extend(s.name for s in cfg.sources if not s.external)
+        else:
+            names.append(k.name)
+    return names
+
+
 class PipelineFailed(RuntimeError):
     """A stage kept failing past its restart limit; the pipeline was stopped."""
 
@@ -87,12 +105,15 @@ class Supervisor:
         self._thread: Optional[threading.Thread] = None
         self._halt = threading.Event()      # set by stop(): the thread stops the stages and exits
         self._up = threading.Event()        # the thread started the stages (or failed to)
+        self._reported = threading.Event()  # a stage reported in, failed or finished (wait_started)
         self._start_exc: Optional[BaseException] = None
         self._stop_timeout = 5.0
         self._shut = False
 
     # ------------------------------------------------------------------ start
-    def start(self) -> None:
+    def start(self, wait: bool = True) -> None:
+        """Create the ring and the run directory, spawn the stages; with ``wait``, return once
+        they have reported in (:meth:`wait_started`), without, once they are spawned."""
         from ..ring.config import check_ring_space
         from ..ring.sweep import sweep_orphans
         from .rundir import check_socket_paths, sweep_run_dirs
@@ -104,9 +125,7 @@ class Supervisor:
                         len(stale), ", ".join(stale))
         for d in sweep_run_dirs():
             log.warning("removed %s, the socket directory of a pipeline that was killed", d)
-        # the kinds this role runs with this config (a kind's check of its config, e.g. an
-        # unwritable recording path, raises here: nothing started yet)
-        self.kinds = [k for k in role_kinds(self.role) if k.wanted is None or resolve(k.wanted)(cfg)]
+        self.kinds = wanted_kinds(cfg, self.role)
         self.uses_ring = any(k.name == RING_WRITER for k in self.kinds)  # no writer (send, router): no ring
         check_ring_space(cfg.ring, cfg.ring_channels())  # before anything is created
         self.run_dir = new_run_dir()
@@ -133,7 +152,7 @@ class Supervisor:
         if self.uses_ring:
             self._create_ring()
         self._add_stages()
-        self._go()
+        self._go(wait)
 
     def _create_ring(self) -> None:
         from ..ring.config import build_ring
@@ -183,12 +202,10 @@ class Supervisor:
                      name, os.getpid(), src.o.backpressure)
             return src
 
-    def _go(self) -> None:
-        """Start the supervision thread; it starts the stages. Returns once every stage has
-        reported in (a busy machine can take seconds to start a few interpreters), a stage
-        failed past its restart limit, or ``supervisor.startup_timeout_ms`` passed; so
-        ``wait(5)`` afterwards is five seconds of a running pipeline. Raises what starting
-        the stages raised."""
+    def _go(self, wait: bool = True) -> None:
+        """Start the supervision thread; it starts the stages. With ``wait``, returns once
+        every stage has reported in (:meth:`wait_started`); without, once they are spawned.
+        Raises what starting the stages raised."""
         self._t_start = time.monotonic()
         self.started = True
         self._thread = threading.Thread(target=self._supervise, name="pointflow-supervisor", daemon=True)
@@ -196,12 +213,35 @@ class Supervisor:
         self._up.wait()
         if self._start_exc is not None:
             raise self._start_exc
-        end = time.monotonic() + self.cfg.supervisor.startup_timeout_ms / 1000
-        while time.monotonic() < end and self.failure is None and self._thread.is_alive():
-            with self._lock:
-                if all(st.ready or st.failed or st.finished for st in self.stages.values()):
-                    break
-            time.sleep(0.02)
+        if wait:
+            self.wait_started()
+
+    def starting(self) -> bool:
+        """Still starting: some stage has not reported in (nor failed or finished), no stage
+        failed the run, and ``supervisor.startup_timeout_ms`` has not passed since the start."""
+        if not self.started or self.failure is not None or self._thread is None or not self._thread.is_alive():
+            return False
+        if time.monotonic() - self._t_start >= self.cfg.supervisor.startup_timeout_ms / 1000:
+            return False
+        with self._lock:
+            return not all(st.ready or st.failed or st.finished for st in self.stages.values())
+
+    def wait_started(self, timeout_s: Optional[float] = None) -> bool:
+        """Wait until :meth:`starting` is over (every stage reported in, a failure, or the
+        startup timeout: a busy machine can take seconds to start a few interpreters), or
+        ``timeout_s``; so ``wait(5)`` afterwards is five seconds of a running pipeline. Woken
+        by each stage's first heartbeat, not by a timer. True when it is over."""
+        end = None if timeout_s is None else time.monotonic() + timeout_s
+        while True:
+            self._reported.clear()
+            if not self.starting():
+                return True
+            left = self._t_start + self.cfg.supervisor.startup_timeout_ms / 1000 - time.monotonic()
+            if end is not None:
+                if end <= time.monotonic():
+                    return False
+                left = min(left, end - time.monotonic())
+            self._reported.wait(max(0.0, min(left, 0.25)))  # 0.25: a thread that died sets nothing
 
     def _supervise(self) -> None:
         """The supervision thread: start the stages, watch them until stop(), stop them."""
@@ -261,6 +301,7 @@ class Supervisor:
         st.started_ns = st.last_seen_ns = st.last_progress_ns = time.monotonic_ns()
         st.restart_at_ns = 0
         st.ready = False
+        st.ready_ns, st.marks = 0, {}
         st.watch(p.pid)
         log.debug("started %s (pid %d)", st.name, p.pid)
 
@@ -303,6 +344,11 @@ class Supervisor:
         now = time.monotonic_ns()
         st.last_seen_ns = now
         kind = msg.get("type")
+        if kind == "starting":  # the stage's startup marks; it reports in with its first heartbeat
+            marks = msg.get("marks_ns")
+            if isinstance(marks, dict):
+                st.marks = {k: v for k, v in marks.items() if isinstance(v, int)}
+            return
         if kind == "pulse":
             if st.ready:
                 age = msg.get("loop_age_ms", 0)
@@ -310,6 +356,8 @@ class Supervisor:
             return
         if not st.ready:
             self._t_last_ready = time.monotonic()
+            st.ready_ns = now
+            self._reported.set()
         st.ready = True
         st.last_progress_ns = now
         if kind == "heartbeat":
@@ -321,6 +369,7 @@ class Supervisor:
             st.last_error = str(msg.get("message", ""))
             st.failed = True
             self.failure = f"stage {st.name}: {st.last_error}"
+            self._reported.set()
             log.error("%s", self.failure)
             self.events.append({"stage": st.name, "pid": st.pid, "reason": st.last_error, "action": "stop",
                                 "t": round(time.monotonic() - self._t_start, 3)})
@@ -329,6 +378,7 @@ class Supervisor:
             log.debug("%s reported: %s", st.name, st.last_error)
         elif kind == "done":
             st.finished = True
+            self._reported.set()
             if msg.get("stop_pipeline"):
                 self.stop_requested = f"{st.name}: {msg.get('reason', 'asked to stop')}"
                 log.info("stop requested by %s", self.stop_requested)
@@ -415,6 +465,7 @@ class Supervisor:
             log.error(msg)
             st.failed = True
             self.failure = msg
+            self._reported.set()
             ev["action"] = "stop"
             self.events.append(ev)
             return
