@@ -55,13 +55,19 @@ def test_a_registered_view_is_tried_first():
     assert not qs.in_notebook()
 
 
+@pytest.mark.timeout(900)
 def test_show_opens_a_window_where_there_is_a_display(tmp_path):
     """Under Xvfb: a window opens (the render stage says so); Ctrl-C returns None and the
-    pipeline stops cleanly."""
+    pipeline stops cleanly. The guarantee is that it happens, not how fast: on a loaded
+    2-core machine starting four interpreters and a window takes tens of seconds, so the
+    test waits on the script's own lines (read by a thread: a silent script cannot block
+    the wait) up to bounds far above what a loaded machine takes, never a fixed sleep."""
     import os
+    import queue
     import signal
     import subprocess
     import sys
+    import threading
     import time
 
     from gpu_util import xvfb_display
@@ -79,20 +85,39 @@ print("RETURNED", pointflow.show(np.random.default_rng(0).normal(size=(3000, 3))
         env = dict(os.environ, DISPLAY=display, PYTHONPATH=str(REPO))
         proc = subprocess.Popen([sys.executable, str(script)], cwd=tmp_path, env=env, stdout=subprocess.PIPE,
                                 stderr=subprocess.PIPE, text=True)
+        lines: queue.Queue = queue.Queue()
+        reader = threading.Thread(target=lambda: [lines.put(ln) for ln in proc.stderr] + [lines.put(None)], daemon=True)
+        reader.start()
+        err = []
         try:
-            err = ""
-            end = time.monotonic() + 120
-            while time.monotonic() < end and "window open" not in err and proc.poll() is None:
-                line = proc.stderr.readline()
-                err += line
-            assert "pointflow.show: window open; close it to return" in err, err[-3000:]
+            end = time.monotonic() + 600  # the window opens once every stage started: tens of s under load
+            while time.monotonic() < end:
+                try:
+                    ln = lines.get(timeout=1.0)
+                except queue.Empty:
+                    continue
+                if ln is None:
+                    break
+                err.append(ln)
+                if "window open" in ln:
+                    break
+            assert any("pointflow.show: window open; close it to return" in ln for ln in err), "".join(err)[-3000:]
             proc.send_signal(signal.SIGINT)
-            out, rest = proc.communicate(timeout=60)
+            out = proc.stdout.read()  # until it exits: the stages stopped in waves, 5 s each at most
+            proc.wait(timeout=240)
         finally:
             if proc.poll() is None:
                 proc.kill()
                 proc.wait()
-    assert proc.returncode == 0, (err + rest)[-3000:]
+        reader.join(10)
+        while True:
+            try:
+                ln = lines.get_nowait()
+            except queue.Empty:
+                break
+            if ln is not None:
+                err.append(ln)
+    assert proc.returncode == 0, "".join(err)[-3000:]
     assert "RETURNED None" in out
 
 
