@@ -52,6 +52,13 @@ class RunInfo:
     restart_count: int = 0
     log_level: int = logging.INFO
     extra: dict[str, Any] = field(default_factory=dict)
+    #: The process that must stay the stage's parent: the supervisor (0), or the fork
+    #: server that forked it (:mod:`.forkserver`); the stage stops when it goes.
+    parent_pid: int = 0
+
+    @property
+    def parent(self) -> int:
+        return self.parent_pid or self.supervisor_pid
 
 
 class StageCounters:
@@ -173,7 +180,7 @@ class StageContext:
 
     @property
     def running(self) -> bool:
-        if self._running and os.getppid() != self.info.supervisor_pid:
+        if self._running and os.getppid() != self.info.parent:
             self.log.error("supervisor (pid %d) is gone; stopping", self.info.supervisor_pid)
             self._running = False
         return self._running
@@ -340,7 +347,7 @@ def stage_main(name: str, kind: str | StageKind, cfg_dict: dict, base_dir: str, 
         code = 1
     finally:
         ctx.close()
-        if os.getppid() != info.supervisor_pid:
+        if os.getppid() != info.parent:
             # the supervisor was killed and could not unlink its segments: do it for it
             from ..ring.sweep import sweep_orphans
 

@@ -109,6 +109,7 @@ class Supervisor:
         self._start_exc: Optional[BaseException] = None
         self._stop_timeout = 5.0
         self._shut = False
+        self._forks = None  # the fork server of the first start (supervisor.fork_server)
 
     # ------------------------------------------------------------------ start
     def start(self, wait: bool = True) -> None:
@@ -264,7 +265,20 @@ class Supervisor:
     def _spawn_all(self) -> None:
         """Start the stages in start order; after a kind that binds what a short replay must
         not miss (``await_ready``: the sender, which sources push to), wait for its first
-        heartbeat before starting the next."""
+        heartbeat before starting the next. With ``supervisor.fork_server`` they are forked
+        from a fork server that imported their modules once (:mod:`.forkserver`)."""
+        if self.cfg.supervisor.fork_server and any(st.local is None for st in self.stages.values()):
+            from .forkserver import ForkServer
+
+            try:
+                self._forks = ForkServer(sorted({stage_kind(st.kind).main.partition(":")[0]
+                                                 for st in self.stages.values() if st.local is None}))
+            except OSError as exc:
+                log.warning("no fork server (%s): starting each stage as a new interpreter", exc)
+                self._forks = None
+            if self._forks is not None and not self._forks.ready:
+                log.warning("the fork server did not start: starting each stage as a new interpreter")
+                self._forks = None
         for st in list(self.stages.values()):
             if st.local is not None:
                 continue
@@ -285,6 +299,7 @@ class Supervisor:
     def _spawn(self, st: StageProc) -> None:
         # a restarted renderer numbers its frames on from where the last one stopped
         info = self._run_info(st, frames_base=int((st.carried or {}).get("frames", 0)))
+        t_spawn = time.monotonic_ns()  # before the process exists: its startup marks come after
         p = None
         if st.standby is not None:
             sb, st.standby = st.standby, None
@@ -294,11 +309,14 @@ class Supervisor:
             else:
                 sb.kill()
                 sb.join(1)
+        if p is None and self._forks is not None and st.restarts == 0:  # the first start: forked
+            p = self._forks.spawn(st.name, stage_kind(st.kind), self.cfg.to_dict(), self.cfg.base_dir, info)
         if p is None:
             p = spawn_stage(st.name, stage_kind(st.kind), self.cfg.to_dict(), self.cfg.base_dir, info)
         st.process, st.pid = p, p.pid
         st.dead = False
-        st.started_ns = st.last_seen_ns = st.last_progress_ns = time.monotonic_ns()
+        st.started_ns = t_spawn
+        st.last_seen_ns = st.last_progress_ns = time.monotonic_ns()
         st.restart_at_ns = 0
         st.ready = False
         st.ready_ns, st.marks = 0, {}
@@ -530,6 +548,9 @@ class Supervisor:
                     p.kill()
                     p.join(2)
         self._drain_control(0.1)
+        if self._forks is not None:  # its stages are gone: it ends
+            self._forks.close()
+            self._forks = None
         with self._lock:
             ing = self.stages.get(RING_WRITER)
             if ing is not None:
