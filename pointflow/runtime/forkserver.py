@@ -76,7 +76,7 @@ class ForkedStage:
 class ForkServer:
     """The supervisor's end: start the server (it imports ``modules``), fork stages from it."""
 
-    def __init__(self, modules: list[str]):
+    def __init__(self, modules: list[str], timeout_s: float = 30.0):
         env = dict(os.environ)
         env["PYTHONPATH"] = os.pathsep.join(p for p in (_PKG_PARENT, env.get("PYTHONPATH", "")) if p)
         for var in _ONE_THREAD:  # as launch.spawn_stage: one BLAS thread (and none to fork over)
@@ -92,7 +92,8 @@ class ForkServer:
         self._pids: list[int] = []
         self._exits: dict[int, int] = {}
         self._gone = False  # the server exited (its pipe closed)
-        self.ready = self._read() == ("ready",)
+        # it imports first: on a loaded machine seconds; one that never says it is ready is not used
+        self.ready = bool(select.select([self._reports], [], [], timeout_s)[0]) and self._read() == ("ready",)
         if not self.ready:
             self.close()
             return

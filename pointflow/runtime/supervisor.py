@@ -265,14 +265,16 @@ class Supervisor:
     def _spawn_all(self) -> None:
         """Start the stages in start order; after a kind that binds what a short replay must
         not miss (``await_ready``: the sender, which sources push to), wait for its first
-        heartbeat before starting the next. With ``supervisor.fork_server`` they are forked
-        from a fork server that imported their modules once (:mod:`.forkserver`)."""
-        if self.cfg.supervisor.fork_server and any(st.local is None for st in self.stages.values()):
+        heartbeat before starting the next. With ``supervisor.fork_server`` and two stages or
+        more they are forked from a fork server that imported their modules once
+        (:mod:`.forkserver`; for one stage it would only add a process)."""
+        if self.cfg.supervisor.fork_server and sum(st.local is None for st in self.stages.values()) >= 2:
             from .forkserver import ForkServer
 
             try:
                 self._forks = ForkServer(sorted({stage_kind(st.kind).main.partition(":")[0]
-                                                 for st in self.stages.values() if st.local is None}))
+                                                 for st in self.stages.values() if st.local is None}),
+                                         timeout_s=self.cfg.supervisor.startup_timeout_ms / 1000)
             except OSError as exc:
                 log.warning("no fork server (%s): starting each stage as a new interpreter", exc)
                 self._forks = None
