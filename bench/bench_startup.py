@@ -9,6 +9,8 @@ child reports "now - the parent's t0" at the instant it wrote its PNG):
   (the baseline the issue names);
 * ``rerun``: a new Python doing ``rr.init`` + ``rr.save`` + ``rr.log(Points3D)`` of the same
   points to an .rrd file (rerun-sdk, installed when missing as bench_api.py does);
+* ``api``: ``Pipeline.from_dict`` with an ``api`` source, ``start()``, ``send`` of the same
+  points, until the render stage drew them all, ``save_frame``: the shortest pipeline path;
 * ``demo``: ``pointflow run configs/demo.yaml`` (a 1M-point ring, 100k-point scans), from
   the command until its first PNG exists in the output folder (then Ctrl-C);
 * ``start``: ``Pipeline.start()`` of the demo (and with ``--record`` and ``--serve`` stages:
@@ -74,6 +76,21 @@ rr.save(sys.argv[2])
 rr.log("points", rr.Points3D(xyz), rr.AnyValues(intensity=np.abs(xyz[:, 2])))
 rr.disconnect()
 print(json.dumps({{"png_s": time.monotonic() - t0}}))
+"""
+
+API = """import sys, time, json, contextlib
+t0 = float(sys.argv[1])
+import numpy as np
+from pointflow import Pipeline
+{cloud}
+cfg = {{"sources": [{{"transport": "api", "name": "api"}}], "ring": {{"max_points": len(xyz)}},
+       "render": {{"size": [1280, 720], "color_by": "intensity", "output": {{"dir": None}}}}, "tracing": {{"enabled": False}}}}
+with contextlib.redirect_stdout(sys.stderr), Pipeline.from_dict(cfg) as p:
+    p.send(xyz, intensity=np.abs(xyz[:, 2]))
+    p.wait(None, until=lambda: p.stats()["stages"]["render"].get("drawn_count", 0) >= len(xyz))
+    p.save_frame(sys.argv[2])
+    png_s = time.monotonic() - t0
+print(json.dumps({{"png_s": png_s}}))
 """
 
 START = """import sys, time, json
@@ -156,6 +173,7 @@ def measure(trees: dict[str, Optional[Path]], rounds: int, with_rerun: bool, six
     runners: dict[str, Any] = {}
     for side, root in trees.items():
         runners[f"show:{side}"] = lambda r=root: _py(SHOW.format(cloud=cloud), r, str(tmp / "show.png"))
+        runners[f"api:{side}"] = lambda r=root: _py(API.format(cloud=cloud), r, str(tmp / "api.png"))
         runners[f"demo:{side}"] = lambda r=root: _demo_first_png(r, "configs/demo.yaml")
         runners[f"start:{side}"] = lambda r=root: _py(START, r, "configs/demo.yaml", str(tmp / "start"))
         if six:

@@ -127,11 +127,16 @@ def _frame_of(clouds: list[tuple[np.ndarray, dict]], cfg):
     for name in cfg.ring_channels():
         spec = ChannelSpec.default(name)
         shape = (n, spec.width) if spec.width > 1 else (n,)
+        absent = np.full(shape, np.nan if np.dtype(spec.dtype).kind == "f" else 0, spec.dtype)
         parts = [np.asarray(c[1][name]).reshape(len(c[0]), -1) if name in c[1] else None for c in clouds]
         if any(x is None for x in parts):  # a channel no cloud has: NaN, drawn in render.color
-            chans[name] = np.full(shape, np.nan, spec.dtype)
+            chans[name] = absent
             continue
-        chans[name] = np.concatenate(parts).astype(spec.dtype).reshape(shape)
+        try:
+            chans[name] = np.concatenate(parts).astype(spec.dtype).reshape(shape)
+        except ValueError:  # another width than the ring stores: not stored, as ingest would
+            chans[name] = absent
+            continue
         if spec.width == 1 and np.dtype(spec.dtype).kind == "f":
             v = chans[name][np.isfinite(chans[name])]
             if v.size:
