@@ -32,6 +32,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+import statistics
 import time
 from pathlib import Path
 from typing import Any, Optional
@@ -112,7 +113,8 @@ with contextlib.redirect_stdout(sys.stderr):
     start_s = time.monotonic() - t
     st = p.stats()["stages"]
     p.stop()
-print(json.dumps({"start_s": start_s, "stages": {k: v.get("startup_ms", {}) for k, v in st.items()}}))
+print(json.dumps({"start_s": start_s, "stages": {k: v.get("startup_ms", {}) for k, v in st.items()},
+                  "supervisor": p.stats().get("startup_ms", {})}))
 """
 
 
@@ -201,18 +203,18 @@ def summarise(samples: dict[str, list[dict]]) -> dict[str, Any]:
         vals = [r[key] for r in rs if r.get(key) is not None]
         out[k] = {"figure": key, **(H.spread(vals) if vals else {"n": 0})}
         if k.startswith("start"):
-            per: dict[str, dict[str, float]] = {}
+            per: dict[str, dict[str, list]] = {}
             for r in rs:
+                for cause, ms in r.get("supervisor", {}).items():  # before any stage: one bar
+                    per.setdefault("(supervisor)", {}).setdefault(cause, []).append(ms)
                 for stage, marks in r["stages"].items():
                     for cause, ms in marks.items():
                         per.setdefault(stage, {}).setdefault(cause, []).append(ms)
-            import statistics
-
             out[k]["stages_ms"] = {s: {c: statistics.median(v) for c, v in d.items()} for s, d in per.items()}
     return out
 
 
-CAUSES = ("interpreter", "runtime", "module", "context", "setup")
+CAUSES = ("prepare", "fork_server", "interpreter", "runtime", "module", "context", "setup")
 
 
 def chart(summary: dict[str, Any], mach: dict[str, Any], path: Path) -> None:

@@ -110,11 +110,16 @@ class Supervisor:
         self._stop_timeout = 5.0
         self._shut = False
         self._forks = None  # the fork server of the first start (supervisor.fork_server)
+        #: Where the start went before the stages: ``prepare`` (sweeps, the ring, the
+        #: sockets) and ``fork_server`` (its imports, before the first fork), ms.
+        self.startup_ms: dict[str, float] = {}
+        self._t_call = 0.0
 
     # ------------------------------------------------------------------ start
     def start(self, wait: bool = True) -> None:
         """Create the ring and the run directory, spawn the stages; with ``wait``, return once
         they have reported in (:meth:`wait_started`), without, once they are spawned."""
+        self._t_call = time.monotonic()
         from ..ring.config import check_ring_space
         from ..ring.sweep import sweep_orphans
         from .rundir import check_socket_paths, sweep_run_dirs
@@ -268,6 +273,8 @@ class Supervisor:
         heartbeat before starting the next. With ``supervisor.fork_server`` and two stages or
         more they are forked from a fork server that imported their modules once
         (:mod:`.forkserver`; for one stage it would only add a process)."""
+        t0 = time.monotonic()
+        self.startup_ms["prepare"] = round((t0 - self._t_call) * 1000, 1)  # sweep, ring, sockets
         if self.cfg.supervisor.fork_server and sum(st.local is None for st in self.stages.values()) >= 2:
             from .forkserver import ForkServer
 
@@ -281,6 +288,7 @@ class Supervisor:
             if self._forks is not None and not self._forks.ready:
                 log.warning("the fork server did not start: starting each stage as a new interpreter")
                 self._forks = None
+            self.startup_ms["fork_server"] = round((time.monotonic() - t0) * 1000, 1)  # its imports
         for st in list(self.stages.values()):
             if st.local is not None:
                 continue
@@ -646,6 +654,7 @@ class Supervisor:
             "frames": int(stages.get("render", {}).get("frames", 0)),
             "elapsed_s": round(time.monotonic() - self._t_start, 3) if self._t_start else 0.0,
             "events": list(self.events),
+            "startup_ms": dict(self.startup_ms),
             "shm_segments": list(getattr(self, "segments", [])),
         }
         if self.ring is not None:
