@@ -206,6 +206,7 @@ def _serve(pipe, args, every_s: float, summary, done=lambda: False, tty: bool = 
             pipe.poll(0.05)
             if not args.quiet:
                 _say_ready(pipe.stats()["stages"], said)
+        pipe.poll(0)  # a stage that failed the run while starting: PipelineFailed, no "running"
         if not stop.flag:
             st = pipe.stats()["stages"]
             if not args.quiet:
