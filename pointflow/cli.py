@@ -18,13 +18,13 @@ log = logging.getLogger("pointflow")
 #: Exit code for every configuration or input-path error (nothing was started).
 EXIT_CONFIG = 1
 
-#: When the command started: ``--duration`` counts from here, so starting the stages (spawn,
-#: imports, GPU device) is inside it; stopping them comes after.
+#: When the command started (the startup figures of ``--verbose`` count from here).
 _T0 = time.monotonic()
 
-DURATION_HELP = ("seconds from the command's start until it stops the pipeline (starting the stages is "
-                 "included; stopping them comes after: usually under a second, up to 5 s per stage wave "
-                 "when a stage is busy, e.g. in a slow software-GPU frame)")
+DURATION_HELP = ("seconds the pipeline runs, counted from when every stage has reported in (starting the "
+                 "stages comes before: interpreters, imports, a GPU device; it is printed as it happens), "
+                 "so a run draws for that long however busy the machine; stopping comes after: usually "
+                 "under a second, up to 5 s per stage wave when a stage is busy")
 
 
 def config_error_line(exc: ConfigError, file: Optional[str] = None) -> str:
@@ -53,13 +53,47 @@ def summary_line(stats: dict) -> str:
     return live_summary(stats)
 
 
-def starting_line(cfg) -> str:
-    """What ``run`` starts, printed before the stages are (the first progress line comes once
-    every stage has reported in)."""
+def starting_line(cfg, stages: list[str]) -> str:
+    """What ``run`` starts, printed before anything is (starting the stages takes seconds:
+    interpreters, imports, a GPU device); a line per stage follows as each reports in."""
     kinds = ", ".join(sorted({s.transport for s in cfg.sources}))
     return (f"starting {cfg.name}: {len(cfg.sources)} source{'s' * (len(cfg.sources) != 1)} ({kinds}), "
             f"ring {cfg.ring.max_points:,} points, render {cfg.render.backend} "
-            f"{cfg.render.size[0]}x{cfg.render.size[1]} ...")
+            f"{cfg.render.size[0]}x{cfg.render.size[1]}; stages {', '.join(stages)} ...")
+
+
+def no_frame_reason(stats: dict) -> Optional[str]:
+    """Why a run that has a render stage drew no frame (or saved none), or None when it saved
+    one. Said instead of pointing at an output folder with no frame in it."""
+    stages = stats.get("stages", {})
+    render = stages.get("render")
+    if render is None:
+        return None
+    if render.get("pngs", 0):
+        return None
+    frames = int(render.get("frames", 0) or 0)
+    if frames:
+        return (f"no frame saved: {frames} frame{'s' * (frames != 1)} drawn, none of them the "
+                "render.output.every_n_frames-th")
+    ready = render.get("startup_ms", {}).get("ready")
+    raster = render.get("raster")
+    if not render.get("ready") or ready is None:
+        return "no frame drawn: the render stage was still starting when the run stopped (it had not reported in)"
+    if isinstance(raster, str) and "compil" in raster:
+        return f"no frame drawn: the render stage was still compiling its raster ({raster})"
+    written = stats.get("accounting", {}).get("ingest_written", 0)
+    if not written:
+        sent = sum(v.get("points_out", 0) for v in stages.values() if v.get("kind") == "source")
+        return f"no frame drawn: no point reached the ring (the sources sent {sent:,})"
+    return f"no frame drawn: the render stage got no frame to draw ({written:,} points in the ring)"
+
+
+def check_duration(args) -> None:
+    """``--duration`` is a number of seconds > 0 (a typo such as ``-1`` or ``0`` is refused
+    before anything starts)."""
+    d = getattr(args, "duration", None)
+    if d is not None and not (d > 0 and d != float("inf")):
+        raise ConfigError("--duration", f"must be a number of seconds greater than 0, got {d:g}")
 
 
 class _Stop:
@@ -124,13 +158,18 @@ def _run(args, profile: bool = False) -> int:
     pipe = Pipeline(cfg, out_dir=out_dir)
     tty = sys.stderr.isatty() and not args.quiet
     if not args.quiet:  # at once: starting the stages takes seconds (interpreters, imports, GPU device)
-        print(starting_line(cfg), file=sys.stderr, flush=True)
+        print(starting_line(cfg, pipe.stages()), file=sys.stderr, flush=True)
     stats, code, signum = _serve(pipe, args, 0.5 if tty else 5.0, summary_line, done=lambda: pipe.stop_requested,
                                  tty=tty, at_once=True)
     if signum is not None:
         log.info("stopped by %s", signal.Signals(signum).name)
     print(summary_line(stats))
-    print(f"frames and stats.json in {os.path.abspath(out_dir)}")
+    why = no_frame_reason(stats)
+    if why is not None:
+        print(why)
+        print(f"stats.json in {os.path.abspath(out_dir)}")
+    else:
+        print(f"frames and stats.json in {os.path.abspath(out_dir)}")
     if cfg.record is not None:
         from .record.inspect import record_summary
 
@@ -146,36 +185,68 @@ def _run(args, profile: bool = False) -> int:
 
 def _serve(pipe, args, every_s: float, summary, done=lambda: False, tty: bool = False,
            at_once: bool = False) -> tuple[dict, int, "int | None"]:
-    """Start ``pipe`` and poll it until Ctrl-C/SIGTERM, ``--duration`` (from the command's
-    start) or ``done()``, printing ``summary(stats)`` every ``every_s`` unless ``--quiet``
-    (the first ``at_once``; on a terminal, ``tty``, as one line written over). The signal
-    handlers are restored and the pipeline stopped however it ends. Returns the final
-    stats, the exit code (2 when the pipeline failed) and the signal that stopped it."""
+    """Start ``pipe`` and poll it until Ctrl-C/SIGTERM, ``--duration`` (counted from when every
+    stage has reported in) or ``done()``. Unless ``--quiet``, each stage is said as it reports
+    in, then ``summary(stats)`` every ``every_s`` (the first ``at_once``; on a terminal,
+    ``tty``, as one line written over). The signal handlers are restored and the pipeline
+    stopped however it ends. Returns the final stats, the exit code (2 when the pipeline
+    failed) and the signal that stopped it."""
     from .runtime.supervisor import PipelineFailed
 
     stop = _Stop()
     old = {s: signal.signal(s, stop) for s in (signal.SIGINT, signal.SIGTERM)}
     code = 0
-    pipe.start()
-    t_end = None if args.duration is None else _T0 + args.duration  # from the command's start (--help)
-    last_print = 0.0 if at_once else time.monotonic()
+    t_end = None
+    said: set[str] = set()
+    drawn = False  # a progress line is on the terminal (ended with a newline at the end)
     try:
-        while not stop.flag and not done() and (t_end is None or time.monotonic() < t_end):
+        pipe.start(wait=False)
+        t_spawn = time.monotonic()
+        while pipe.starting and not stop.flag and not done():
             pipe.poll(0.05)
+            if not args.quiet:
+                _say_ready(pipe.stats()["stages"], said)
+        pipe.poll(0)  # a stage that failed the run while starting: PipelineFailed, no "running"
+        if not stop.flag:
+            st = pipe.stats()["stages"]
+            if not args.quiet:
+                _say_ready(st, said)
+                late = [n for n, v in st.items() if not (v.get("ready") or v.get("finished"))]
+                print(f"running after {time.monotonic() - t_spawn:.1f} s"
+                      + (f" (not reported in yet: {', '.join(late)})" if late else "")
+                      + (f"; stopping in {args.duration:g} s" if args.duration is not None else ""),
+                      file=sys.stderr, flush=True)
+            log.debug("started in %.3f s from the command's start", time.monotonic() - _T0)
+        t_end = None if args.duration is None else time.monotonic() + args.duration
+        last_print = 0.0 if at_once else time.monotonic()
+        while not stop.flag and not done() and (t_end is None or time.monotonic() < t_end):
+            pipe.poll(0.05 if t_end is None else max(0.0, min(0.05, t_end - time.monotonic())))
             if not args.quiet and time.monotonic() - last_print >= every_s:
                 last_print = time.monotonic()
                 line = summary(pipe.stats())
                 sys.stderr.write(("\r\033[K" + line) if tty else line + "\n")
                 sys.stderr.flush()
+                drawn = True
     except PipelineFailed:  # the supervisor printed why, once
         code = 2
     finally:
-        if tty:
+        if tty and drawn:
             sys.stderr.write("\n")
         for s, h in old.items():
             signal.signal(s, h)
         stats = pipe.stop()
     return stats, code, stop.signal
+
+
+def _say_ready(stages: dict, said: set) -> None:
+    """One line per stage as it reports in: its name and how long its start took."""
+    for name, v in stages.items():
+        if name in said or not (v.get("ready") or v.get("finished")):
+            continue
+        said.add(name)
+        ms = v.get("startup_ms", {}).get("ready")
+        print(f"ready: {name}" + (f" ({ms / 1000:.1f} s)" if ms is not None else " (in this process)"),
+              file=sys.stderr, flush=True)
 
 
 def _send(args) -> int:
@@ -468,6 +539,7 @@ def _main(argv: Optional[list[str]] = None) -> int:
     setup_logging(logging.DEBUG if args.verbose and args.cmd != "validate" else logging.INFO,
                   "%(asctime)s %(name)s %(levelname)s %(message)s")
     try:
+        check_duration(args)
         if args.cmd == "run":
             return _run(args)
         if args.cmd == "profile":

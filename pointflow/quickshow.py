@@ -10,6 +10,9 @@ order of :data:`VIEWS`:
 2. ``window``: a display (``DISPLAY``/``WAYLAND_DISPLAY``) and the window extra
    (``pip install pointflow[window]``): an interactive window, until it is closed;
 3. ``png``: anywhere else, one frame written to a PNG whose path is printed and returned.
+   Drawn in this process by the cpu tier's float64 reference (no stage is started: a one-shot
+   picture of a static array needs no ring, cadence or render process, whose start costs
+   seconds), with the camera and colour rules the render stage uses.
 """
 from __future__ import annotations
 
@@ -38,6 +41,10 @@ class View:
     render: Optional[dict] = None
     #: the view keeps the pipeline running after show returns (it stops it itself)
     keeps_running: bool = False
+    #: the view draws in this process, no pipeline started: ``show(clouds, cfg, path)`` with
+    #: ``clouds`` the checked ``(positions, channels)`` pairs and ``cfg`` the pipeline config
+    #: show would have started
+    in_process: bool = False
 
 
 def in_notebook() -> bool:
@@ -85,12 +92,79 @@ def _show_window(p, total: int, path: Optional[str], timeout_s: float) -> Option
     return None
 
 
-def _show_png(p, total: int, path: Optional[str], timeout_s: float) -> str:
-    _wait_drawn(p, total, timeout_s)
+def _png_path(path: Optional[str]) -> str:
     if path is None:
         fd, path = tempfile.mkstemp(prefix="pointflow-show-", suffix=".png")
         os.close(fd)
-    out = p.save_frame(path)
+    return os.path.abspath(path)
+
+
+def _show_png(p, total: int, path: Optional[str], timeout_s: float) -> str:
+    """The running pipeline's frame once every point is drawn (the window view's fallback)."""
+    _wait_drawn(p, total, timeout_s)
+    out = p.save_frame(_png_path(path))
+    print(out)
+    return out
+
+
+def _frame_of(clouds: list[tuple[np.ndarray, dict]], cfg):
+    """The frame the render stage would get once ingest stored every point: float32 offsets
+    from the ring's origin rule (the rounded median of the finite points), points too far from
+    it or not finite left out (NaN: every tier skips them), channels in the ring's dtypes and
+    their ranges over the values present."""
+    from .render.base import FrameInput
+    from .ring.layout import ChannelSpec
+    from .ring.ring import MAX_OFFSET
+
+    pos = np.concatenate([c[0] for c in clouds]).astype(np.float64, copy=False)
+    n = len(pos)
+    ok = np.isfinite(pos).all(axis=1)
+    origin = np.round(np.median(pos[ok], axis=0)) if ok.any() else np.zeros(3)
+    rel = pos - origin
+    with np.errstate(invalid="ignore"):
+        rel[~(np.abs(rel) < MAX_OFFSET).all(axis=1)] = np.nan
+    chans, ranges = {}, {}
+    for name in cfg.ring_channels():
+        spec = ChannelSpec.default(name)
+        shape = (n, spec.width) if spec.width > 1 else (n,)
+        absent = np.full(shape, np.nan if np.dtype(spec.dtype).kind == "f" else 0, spec.dtype)
+        parts = [np.asarray(c[1][name]).reshape(len(c[0]), -1) if name in c[1] else None for c in clouds]
+        if any(x is None for x in parts):  # a channel no cloud has: NaN, drawn in render.color
+            chans[name] = absent
+            continue
+        try:
+            chans[name] = np.concatenate(parts).astype(spec.dtype).reshape(shape)
+        except ValueError:  # another width than the ring stores: not stored, as ingest would
+            chans[name] = absent
+            continue
+        if spec.width == 1 and np.dtype(spec.dtype).kind == "f":
+            v = chans[name][np.isfinite(chans[name])]
+            if v.size:
+                ranges[name] = (float(v.min()), float(v.max()))
+    ones = np.ones(n, np.float32)
+    ranges.setdefault("importance", (1.0, 1.0))
+    return FrameInput(positions=rel.astype(np.float32), importance=ones, t_ingest_ms=np.zeros(n, np.float32),
+                      channels=chans, head=0, size=n, capacity=n, origin=origin, now_ms=0.0,
+                      channel_ranges=ranges, dirty=None)
+
+
+def _draw_png(clouds: list[tuple[np.ndarray, dict]], cfg, path: Optional[str]) -> str:
+    """One frame of every point, drawn here by the cpu tier's reference (bit-exact, no device,
+    nothing to compile), framed by the render stage's auto camera; written to ``path``."""
+    from .render.cpu import CpuRenderer
+    from .render.process import CameraController, write_png
+
+    frame = _frame_of(clouds, cfg)
+    w, h = cfg.render.size
+    camera = CameraController(cfg, w, h).update(frame)
+    renderer = CpuRenderer(cfg.render, frame.capacity, list(frame.channels))
+    try:
+        if camera is not None:  # None: not one finite point, the background alone
+            renderer.render(frame, camera)
+        out = _png_path(path)
+        write_png(out, renderer.read_image())
+    finally:
+        renderer.close()
     print(out)
     return out
 
@@ -117,7 +191,7 @@ def _show_notebook(p, total: int, path: Optional[str], timeout_s: float) -> None
 VIEWS: list[View] = [
     View("notebook", _notebook_available, _show_notebook, keeps_running=True),
     View("window", _window_available, _show_window, render={"window": True}),
-    View("png", lambda: True, _show_png),
+    View("png", lambda: True, _draw_png, in_process=True),
 ]
 
 
@@ -148,6 +222,18 @@ def _clouds(positions: Any, channels: dict) -> list[tuple[np.ndarray, dict]]:
     return out
 
 
+def show_config(total: int, names: list[str], color_by: str, size: Sequence[int], render: Optional[dict] = None):
+    """The pipeline config of a show: one ``api`` source named ``show``, the ring sized to
+    the points and keeping the channels given, ``render`` merged over show's render block."""
+    from .config import load_config
+
+    block = {"size": list(size), "color_by": color_by, "output": {"dir": None}, "camera": {"mode": "auto"},
+             **(render or {})}
+    return load_config({"name": "show", "sources": [{"transport": "api", "name": "show"}],
+                        "ring": {"max_points": max(total, 1), "extra_channels": [n for n in names if n != color_by]},
+                        "render": block, "tracing": {"enabled": False}, "cadence": {"target_hz": 10}})
+
+
 def show(positions: Any, *, path: Optional[str] = None, color_by: Optional[str] = None,
          size: Sequence[int] = (1280, 720), view: Optional[str] = None, timeout_s: float = 120.0,
          **channels: Any) -> Optional[str]:
@@ -155,9 +241,6 @@ def show(positions: Any, *, path: Optional[str] = None, color_by: Optional[str] 
     (``intensity=...``), in the best view available. Colours by ``color_by`` (default: the
     first channel given, else height). Returns the PNG's path (also printed) when it wrote
     one, None after a window was closed. ``view`` forces one of :data:`VIEWS` by name."""
-    from .config import load_config
-    from .runtime.pipeline import Pipeline
-
     clouds = _clouds(positions, channels)
     total = sum(len(c[0]) for c in clouds)
     names = list(clouds[0][1])
@@ -172,11 +255,11 @@ def show(positions: Any, *, path: Optional[str] = None, color_by: Optional[str] 
             raise ValueError(f"view: expected one of {', '.join(v.name for v in VIEWS)}, got {view!r}")
     else:
         chosen = next(v for v in VIEWS if v.available())
-    render = {"size": list(size), "color_by": color_by, "output": {"dir": None},
-              "camera": {"mode": "auto"}, **(chosen.render or {})}
-    cfg = load_config({"name": "show", "sources": [{"transport": "api", "name": "show"}],
-                       "ring": {"max_points": max(total, 1), "extra_channels": [n for n in names if n != color_by]},
-                       "render": render, "tracing": {"enabled": False}, "cadence": {"target_hz": 10}})
+    cfg = show_config(total, names, color_by, size, chosen.render)
+    if chosen.in_process:
+        return chosen.show(clouds, cfg, path)
+    from .runtime.pipeline import Pipeline
+
     p = Pipeline(cfg, out_dir="")
     p.start()
     kept = False

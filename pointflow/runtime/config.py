@@ -30,3 +30,8 @@ class SupervisorConfig:
     #: interpreter started, modules imported, the renderer's device created and warmed up,
     #: so a restart only hands it its run info.
     standby: bool = True
+    #: Start the stages the first time by forking them from one clean interpreter that has
+    #: imported numpy, zmq and the stages' modules once (pointflow/runtime/forkserver.py),
+    #: instead of one new interpreter each importing them all: a shorter start, most of all
+    #: on a busy machine. Restarts and standbys start as new interpreters either way.
+    fork_server: bool = True

@@ -15,6 +15,7 @@ import os
 import pickle
 import subprocess
 import sys
+import time
 from typing import Optional
 
 import pointflow
@@ -102,6 +103,7 @@ def spawn_stage(name: str, kind, cfg_dict: dict, base_dir: str, info, standby: b
 
 
 def _main() -> None:
+    t_main = time.monotonic_ns()  # the interpreter is up and ``pointflow`` imported (startup marks)
     # before anything slow: a supervisor killed from here on still takes the stage with it
     try:
         import ctypes
@@ -126,6 +128,7 @@ def _main() -> None:
             sys.exit(0)
         if os.getppid() != info.supervisor_pid:
             sys.exit(1)
+    info.extra.setdefault("t_main_ns", t_main)
     stage_main(name, kind, cfg_dict, base_dir, info, prepared=prepared)
 
 

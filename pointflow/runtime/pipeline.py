@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any, Optional, Union
 
 from ..config import PipelineConfig, load_config
-from .supervisor import PipelineFailed, Supervisor
+from .supervisor import PipelineFailed, Supervisor, planned_stages
 
 log = logging.getLogger("pointflow")
 
@@ -25,6 +25,16 @@ def _plain(args: dict) -> dict:
     return {k: (np.asarray(v).tolist() if isinstance(v, (np.ndarray, np.generic)) else v) for k, v in args.items()}
 
 
+def with_api_source(data: dict) -> dict:
+    """``data`` with one ``api`` source named ``api`` when it names none (no ``source``,
+    ``sources`` or ``router``): a pipeline built in Python with no source is fed by
+    :meth:`Pipeline.send`. A YAML file still needs its source (``pointflow run`` has no caller
+    to send)."""
+    if not isinstance(data, dict) or any(k in data for k in ("source", "sources", "router")):
+        return data
+    return {**data, "sources": [{"transport": "api", "name": "api"}]}
+
+
 class Pipeline:
     """A running (or runnable) pointflow pipeline.
 
@@ -33,11 +43,12 @@ class Pipeline:
     ...     print(p.stats()["frames"])
     """
 
-    def __init__(self, cfg: PipelineConfig, out_dir: Optional[str] = None, role: str = "pipeline"):
-        self.cfg = cfg
+    def __init__(self, cfg: Optional[PipelineConfig] = None, out_dir: Optional[str] = None, role: str = "pipeline"):
+        #: No config: every default, with the ``api`` source ``send`` feeds (:func:`with_api_source`).
+        self.cfg = cfg if cfg is not None else load_config(with_api_source({}))
         #: "send": run only the sources and publish them on ``cfg.send`` (``pointflow send``).
         self.role = role
-        self.out_dir = out_dir if out_dir is not None else cfg.render.output.dir
+        self.out_dir = out_dir if out_dir is not None else self.cfg.render.output.dir
         if self.out_dir:
             self.out_dir = str(Path(self.out_dir).resolve())
         self._sup: Optional[Supervisor] = None
@@ -49,22 +60,39 @@ class Pipeline:
 
     @classmethod
     def from_dict(cls, data: dict, out_dir: Optional[str] = None, base_dir: Optional[str] = None) -> "Pipeline":
-        return cls(load_config(data, base_dir=base_dir), out_dir=out_dir)
+        """A pipeline from a config dict; one that names no source gets the ``api`` source
+        :meth:`send` feeds (:func:`with_api_source`)."""
+        return cls(load_config(with_api_source(data), base_dir=base_dir), out_dir=out_dir)
 
     # ------------------------------------------------------------------ lifecycle
-    def start(self) -> "Pipeline":
+    def start(self, wait: bool = True) -> "Pipeline":
+        """Start every stage; return once each has reported in (``wait``, the default: then
+        ``wait(5)`` is five seconds of a running pipeline), or at once after spawning them
+        (``wait=False``: :attr:`starting` says when they are all in; ``send`` works already,
+        its clouds wait in ingest's socket)."""
         if self._sup is not None and self._sup.started:
             raise RuntimeError("pipeline already running")
         self._final = None
         self._sup = Supervisor(self.cfg, out_dir=self.out_dir, role=self.role)
         atexit.register(self.stop)
         try:
-            self._sup.start()
+            self._sup.start(wait)
         except BaseException:
             self._sup.stop()
             self._sup._release()
             raise
         return self
+
+    @property
+    def starting(self) -> bool:
+        """Started, and some stage has not reported in yet (within ``supervisor.startup_timeout_ms``)."""
+        return self._sup is not None and self._sup.starting()
+
+    def stages(self) -> list[str]:
+        """The stages this pipeline runs (or would), in start order."""
+        if self._sup is not None:
+            return list(self._sup.stages)
+        return planned_stages(self.cfg, self.role)
 
     @property
     def running(self) -> bool:

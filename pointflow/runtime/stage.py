@@ -52,6 +52,13 @@ class RunInfo:
     restart_count: int = 0
     log_level: int = logging.INFO
     extra: dict[str, Any] = field(default_factory=dict)
+    #: The process that must stay the stage's parent: the supervisor (0), or the fork
+    #: server that forked it (:mod:`.forkserver`); the stage stops when it goes.
+    parent_pid: int = 0
+
+    @property
+    def parent(self) -> int:
+        return self.parent_pid or self.supervisor_pid
 
 
 class StageCounters:
@@ -173,7 +180,7 @@ class StageContext:
 
     @property
     def running(self) -> bool:
-        if self._running and os.getppid() != self.info.supervisor_pid:
+        if self._running and os.getppid() != self.info.parent:
             self.log.error("supervisor (pid %d) is gone; stopping", self.info.supervisor_pid)
             self._running = False
         return self._running
@@ -314,14 +321,21 @@ def stage_main(name: str, kind: str | StageKind, cfg_dict: dict, base_dir: str, 
     # Ctrl-C reaches the whole process group; only the supervisor reacts to it and then
     # stops the stages in order.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    t_imports = time.monotonic_ns()
     cfg = load_config(cfg_dict, base_dir=base_dir)
     k = _kind(kind)
+    loop = resolve(k.main)  # the stage's own module (its tier's libraries come later, in its loop)
+    t_module = time.monotonic_ns()
     ctx = StageContext(name, k.name, cfg, info)
     ctx.prepared = prepared
     signal.signal(signal.SIGTERM, lambda *_: ctx.stop())
+    # where this stage's start went, before its loop sets up (``stats()["stages"][s]["startup_ms"]``)
+    ctx._send({"type": "starting", "marks_ns": {"main": info.extra.get("t_main_ns", t_imports),
+                                                "runtime": t_imports, "module": t_module,
+                                                "context": time.monotonic_ns()}})
     code = 0
     try:
-        resolve(k.main)(ctx)
+        loop(ctx)
         if ctx._running:  # returned on its own
             ctx._send({"type": "done"})
     except Exception as exc:  # noqa: BLE001 - report, then exit non-zero
@@ -333,7 +347,7 @@ def stage_main(name: str, kind: str | StageKind, cfg_dict: dict, base_dir: str, 
         code = 1
     finally:
         ctx.close()
-        if os.getppid() != info.supervisor_pid:
+        if os.getppid() != info.parent:
             # the supervisor was killed and could not unlink its segments: do it for it
             from ..ring.sweep import sweep_orphans
 

@@ -23,6 +23,11 @@ class StageProc:
     last_seen_ns: int = 0      # any message (heartbeat or pulse)
     last_progress_ns: int = 0  # the stage's main loop last came round
     ready: bool = False        # has sent its first heartbeat
+    ready_ns: int = 0          # when it did (monotonic, as started_ns)
+    #: The stage's startup marks (monotonic ns): ``main`` (interpreter up, pointflow imported),
+    #: ``runtime`` (the stage runtime imported), ``module`` (config loaded, the stage's module
+    #: imported), ``context`` (its sockets to the supervisor open): :meth:`startup_ms`.
+    marks: dict[str, int] = field(default_factory=dict)
     restarts: int = 0
     stats: dict[str, Any] = field(default_factory=dict)
     last_error: Optional[str] = None
@@ -75,6 +80,30 @@ class StageProc:
             except psutil.Error:
                 pass
 
+    def startup_ms(self) -> dict[str, float]:
+        """Where this incarnation's start went, ms per step from its spawn to its first
+        heartbeat: ``interpreter`` (a new Python and ``import pointflow``: numpy, the config
+        schema), ``runtime`` (the stage runtime, zmq), ``module`` (the config loaded, the
+        stage's own module), ``context`` (its sockets to the supervisor), ``setup`` (what its
+        loop does before it first reports: binding, a render tier's device and warm-up), and
+        ``ready`` (spawn to first heartbeat). Steps not reached yet are missing."""
+        if self.local is not None or not self.started_ns:
+            return {}
+        order = [("interpreter", "main"), ("runtime", "runtime"), ("module", "module"), ("context", "context")]
+        out: dict[str, float] = {}
+        prev = self.started_ns
+        for label, key in order:
+            t = self.marks.get(key)
+            if t is None:
+                break
+            out[label] = round((t - prev) / 1e6, 1)
+            prev = t
+        if self.ready_ns:
+            if "context" in out:
+                out["setup"] = round((self.ready_ns - prev) / 1e6, 1)
+            out["ready"] = round((self.ready_ns - self.started_ns) / 1e6, 1)
+        return out
+
     def report(self, counters: frozenset[str]) -> dict[str, Any]:
         """The stage's entry in ``stats()["stages"]``: its counts over every incarnation
         (``counters`` are summed, the rest is the live one's), how it runs, and whether."""
@@ -90,7 +119,7 @@ class StageProc:
                  ready=self.ready,  # this incarnation has reported in
                  standby_pid=self.standby.pid if self.standby is not None else None,
                  starved_silences=self.starved,  # silent past hung_after_ms, but running: kept
-                 finished=self.finished)
+                 finished=self.finished, startup_ms=self.startup_ms())
         if self.last_error:
             d["last_error"] = self.last_error[-2000:]
         return d

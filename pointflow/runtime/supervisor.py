@@ -41,6 +41,24 @@ log = logging.getLogger("pointflow.supervisor")
 SOURCE = "source"
 
 
+def wanted_kinds(cfg: PipelineConfig, role: str) -> list[StageKind]:
+    """The kinds ``role`` runs with ``cfg``, in start order. A kind's check of its config (an
+    unwritable recording path) raises here, before anything starts."""
+    return [k for k in role_kinds(role) if k.wanted is None or resolve(k.wanted)(cfg)]
+
+
+def planned_stages(cfg: PipelineConfig, role: str = "pipeline") -> list[str]:
+    """The stages a run of ``cfg`` has, in start order (every source that is not
+    ``external``, the ``api`` ones included): what ``pointflow run`` says it is starting."""
+    names: list[str] = []
+    for k in wanted_kinds(cfg, role):
+        if k.name == SOURCE:
+            names.extend(s.name for s in cfg.sources if not s.external)
+        else:
+            names.append(k.name)
+    return names
+
+
 class PipelineFailed(RuntimeError):
     """A stage kept failing past its restart limit; the pipeline was stopped."""
 
@@ -87,12 +105,21 @@ class Supervisor:
         self._thread: Optional[threading.Thread] = None
         self._halt = threading.Event()      # set by stop(): the thread stops the stages and exits
         self._up = threading.Event()        # the thread started the stages (or failed to)
+        self._reported = threading.Event()  # a stage reported in, failed or finished (wait_started)
         self._start_exc: Optional[BaseException] = None
         self._stop_timeout = 5.0
         self._shut = False
+        self._forks = None  # the fork server of the first start (supervisor.fork_server)
+        #: Where the start went before the stages: ``prepare`` (sweeps, the ring, the
+        #: sockets) and ``fork_server`` (its imports, before the first fork), ms.
+        self.startup_ms: dict[str, float] = {}
+        self._t_call = 0.0
 
     # ------------------------------------------------------------------ start
-    def start(self) -> None:
+    def start(self, wait: bool = True) -> None:
+        """Create the ring and the run directory, spawn the stages; with ``wait``, return once
+        they have reported in (:meth:`wait_started`), without, once they are spawned."""
+        self._t_call = time.monotonic()
         from ..ring.config import check_ring_space
         from ..ring.sweep import sweep_orphans
         from .rundir import check_socket_paths, sweep_run_dirs
@@ -104,9 +131,7 @@ class Supervisor:
                         len(stale), ", ".join(stale))
         for d in sweep_run_dirs():
             log.warning("removed %s, the socket directory of a pipeline that was killed", d)
-        # the kinds this role runs with this config (a kind's check of its config, e.g. an
-        # unwritable recording path, raises here: nothing started yet)
-        self.kinds = [k for k in role_kinds(self.role) if k.wanted is None or resolve(k.wanted)(cfg)]
+        self.kinds = wanted_kinds(cfg, self.role)
         self.uses_ring = any(k.name == RING_WRITER for k in self.kinds)  # no writer (send, router): no ring
         check_ring_space(cfg.ring, cfg.ring_channels())  # before anything is created
         self.run_dir = new_run_dir()
@@ -133,7 +158,7 @@ class Supervisor:
         if self.uses_ring:
             self._create_ring()
         self._add_stages()
-        self._go()
+        self._go(wait)
 
     def _create_ring(self) -> None:
         from ..ring.config import build_ring
@@ -183,12 +208,10 @@ class Supervisor:
                      name, os.getpid(), src.o.backpressure)
             return src
 
-    def _go(self) -> None:
-        """Start the supervision thread; it starts the stages. Returns once every stage has
-        reported in (a busy machine can take seconds to start a few interpreters), a stage
-        failed past its restart limit, or ``supervisor.startup_timeout_ms`` passed; so
-        ``wait(5)`` afterwards is five seconds of a running pipeline. Raises what starting
-        the stages raised."""
+    def _go(self, wait: bool = True) -> None:
+        """Start the supervision thread; it starts the stages. With ``wait``, returns once
+        every stage has reported in (:meth:`wait_started`); without, once they are spawned.
+        Raises what starting the stages raised."""
         self._t_start = time.monotonic()
         self.started = True
         self._thread = threading.Thread(target=self._supervise, name="pointflow-supervisor", daemon=True)
@@ -196,12 +219,35 @@ class Supervisor:
         self._up.wait()
         if self._start_exc is not None:
             raise self._start_exc
-        end = time.monotonic() + self.cfg.supervisor.startup_timeout_ms / 1000
-        while time.monotonic() < end and self.failure is None and self._thread.is_alive():
-            with self._lock:
-                if all(st.ready or st.failed or st.finished for st in self.stages.values()):
-                    break
-            time.sleep(0.02)
+        if wait:
+            self.wait_started()
+
+    def starting(self) -> bool:
+        """Still starting: some stage has not reported in (nor failed or finished), no stage
+        failed the run, and ``supervisor.startup_timeout_ms`` has not passed since the start."""
+        if not self.started or self.failure is not None or self._thread is None or not self._thread.is_alive():
+            return False
+        if time.monotonic() - self._t_start >= self.cfg.supervisor.startup_timeout_ms / 1000:
+            return False
+        with self._lock:
+            return not all(st.ready or st.failed or st.finished for st in self.stages.values())
+
+    def wait_started(self, timeout_s: Optional[float] = None) -> bool:
+        """Wait until :meth:`starting` is over (every stage reported in, a failure, or the
+        startup timeout: a busy machine can take seconds to start a few interpreters), or
+        ``timeout_s``; so ``wait(5)`` afterwards is five seconds of a running pipeline. Woken
+        by each stage's first heartbeat, not by a timer. True when it is over."""
+        end = None if timeout_s is None else time.monotonic() + timeout_s
+        while True:
+            self._reported.clear()
+            if not self.starting():
+                return True
+            left = self._t_start + self.cfg.supervisor.startup_timeout_ms / 1000 - time.monotonic()
+            if end is not None:
+                if end <= time.monotonic():
+                    return False
+                left = min(left, end - time.monotonic())
+            self._reported.wait(max(0.0, min(left, 0.25)))  # 0.25: a thread that died sets nothing
 
     def _supervise(self) -> None:
         """The supervision thread: start the stages, watch them until stop(), stop them."""
@@ -224,7 +270,25 @@ class Supervisor:
     def _spawn_all(self) -> None:
         """Start the stages in start order; after a kind that binds what a short replay must
         not miss (``await_ready``: the sender, which sources push to), wait for its first
-        heartbeat before starting the next."""
+        heartbeat before starting the next. With ``supervisor.fork_server`` and two stages or
+        more they are forked from a fork server that imported their modules once
+        (:mod:`.forkserver`; for one stage it would only add a process)."""
+        t0 = time.monotonic()
+        self.startup_ms["prepare"] = round((t0 - self._t_call) * 1000, 1)  # sweep, ring, sockets
+        if self.cfg.supervisor.fork_server and sum(st.local is None for st in self.stages.values()) >= 2:
+            from .forkserver import ForkServer
+
+            try:
+                self._forks = ForkServer(sorted({stage_kind(st.kind).main.partition(":")[0]
+                                                 for st in self.stages.values() if st.local is None}),
+                                         timeout_s=self.cfg.supervisor.startup_timeout_ms / 1000)
+            except OSError as exc:
+                log.warning("no fork server (%s): starting each stage as a new interpreter", exc)
+                self._forks = None
+            if self._forks is not None and not self._forks.ready:
+                log.warning("the fork server did not start: starting each stage as a new interpreter")
+                self._forks = None
+            self.startup_ms["fork_server"] = round((time.monotonic() - t0) * 1000, 1)  # its imports
         for st in list(self.stages.values()):
             if st.local is not None:
                 continue
@@ -245,6 +309,7 @@ class Supervisor:
     def _spawn(self, st: StageProc) -> None:
         # a restarted renderer numbers its frames on from where the last one stopped
         info = self._run_info(st, frames_base=int((st.carried or {}).get("frames", 0)))
+        t_spawn = time.monotonic_ns()  # before the process exists: its startup marks come after
         p = None
         if st.standby is not None:
             sb, st.standby = st.standby, None
@@ -254,13 +319,17 @@ class Supervisor:
             else:
                 sb.kill()
                 sb.join(1)
+        if p is None and self._forks is not None and st.restarts == 0:  # the first start: forked
+            p = self._forks.spawn(st.name, stage_kind(st.kind), self.cfg.to_dict(), self.cfg.base_dir, info)
         if p is None:
             p = spawn_stage(st.name, stage_kind(st.kind), self.cfg.to_dict(), self.cfg.base_dir, info)
         st.process, st.pid = p, p.pid
         st.dead = False
-        st.started_ns = st.last_seen_ns = st.last_progress_ns = time.monotonic_ns()
+        st.started_ns = t_spawn
+        st.last_seen_ns = st.last_progress_ns = time.monotonic_ns()
         st.restart_at_ns = 0
         st.ready = False
+        st.ready_ns, st.marks = 0, {}
         st.watch(p.pid)
         log.debug("started %s (pid %d)", st.name, p.pid)
 
@@ -303,6 +372,11 @@ class Supervisor:
         now = time.monotonic_ns()
         st.last_seen_ns = now
         kind = msg.get("type")
+        if kind == "starting":  # the stage's startup marks; it reports in with its first heartbeat
+            marks = msg.get("marks_ns")
+            if isinstance(marks, dict):
+                st.marks = {k: v for k, v in marks.items() if isinstance(v, int)}
+            return
         if kind == "pulse":
             if st.ready:
                 age = msg.get("loop_age_ms", 0)
@@ -310,6 +384,8 @@ class Supervisor:
             return
         if not st.ready:
             self._t_last_ready = time.monotonic()
+            st.ready_ns = now
+            self._reported.set()
         st.ready = True
         st.last_progress_ns = now
         if kind == "heartbeat":
@@ -321,6 +397,7 @@ class Supervisor:
             st.last_error = str(msg.get("message", ""))
             st.failed = True
             self.failure = f"stage {st.name}: {st.last_error}"
+            self._reported.set()
             log.error("%s", self.failure)
             self.events.append({"stage": st.name, "pid": st.pid, "reason": st.last_error, "action": "stop",
                                 "t": round(time.monotonic() - self._t_start, 3)})
@@ -329,6 +406,7 @@ class Supervisor:
             log.debug("%s reported: %s", st.name, st.last_error)
         elif kind == "done":
             st.finished = True
+            self._reported.set()
             if msg.get("stop_pipeline"):
                 self.stop_requested = f"{st.name}: {msg.get('reason', 'asked to stop')}"
                 log.info("stop requested by %s", self.stop_requested)
@@ -415,6 +493,7 @@ class Supervisor:
             log.error(msg)
             st.failed = True
             self.failure = msg
+            self._reported.set()
             ev["action"] = "stop"
             self.events.append(ev)
             return
@@ -479,6 +558,9 @@ class Supervisor:
                     p.kill()
                     p.join(2)
         self._drain_control(0.1)
+        if self._forks is not None:  # its stages are gone: it ends
+            self._forks.close()
+            self._forks = None
         with self._lock:
             ing = self.stages.get(RING_WRITER)
             if ing is not None:
@@ -572,6 +654,7 @@ class Supervisor:
             "frames": int(stages.get("render", {}).get("frames", 0)),
             "elapsed_s": round(time.monotonic() - self._t_start, 3) if self._t_start else 0.0,
             "events": list(self.events),
+            "startup_ms": dict(self.startup_ms),
             "shm_segments": list(getattr(self, "segments", [])),
         }
         if self.ring is not None:
