@@ -182,3 +182,20 @@ def test_show_outside_a_notebook_says_so(pipe, capsys):
     assert err.count("\n") == 0 and "not inside a Jupyter notebook" in err, err
     for way in ("render.window: true", "--serve", "save_frame"):
         assert way in err, err
+
+
+def test_a_kernel_shell_subclass_counts_as_a_notebook(monkeypatch):
+    """``p.show()`` and ``pointflow.show`` take a kernel's shell for a notebook also when it
+    subclasses ZMQInteractiveShell (Google Colab's does); a terminal IPython is not one."""
+    import sys
+    import types
+
+    from pointflow.quickshow import in_notebook
+
+    ZMQInteractiveShell = type("ZMQInteractiveShell", (), {})
+    shells = {"kernel": type("Shell", (ZMQInteractiveShell,), {})(),
+              "terminal": type("TerminalInteractiveShell", (), {})()}
+    for name, want in (("kernel", True), ("terminal", False)):
+        fake = types.SimpleNamespace(get_ipython=lambda s=shells[name]: s)
+        monkeypatch.setitem(sys.modules, "IPython", fake)
+        assert in_notebook() is want, name
