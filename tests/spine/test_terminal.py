@@ -168,3 +168,19 @@ def test_the_standby_render_says_it_is_the_standby(tmp_path):
     assert len({ln.split("[")[1].split("]")[0] for ln in standby}) == 1  # one process: the spare
     for ln in standby + running:
         assert LOG_LINE.match(ln), ln
+
+
+def test_an_activated_standby_logs_as_the_stage():
+    """Once activated, the standby's lines name the stage again (``render[pid]``): from then
+    on it is the render stage, and its errors must read so."""
+    code = ("import logging, types\n"
+            "from pointflow.runtime.stage import _setup_logging\n"
+            "info = types.SimpleNamespace(log_level=logging.INFO)\n"
+            "_setup_logging('render', info, standby=True); logging.getLogger('x').info('prepared')\n"
+            "_setup_logging('render', info); logging.getLogger('x').info('activated')\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, env=_env())
+    lines = r.stderr.splitlines()
+    assert r.returncode == 0 and len(lines) == 2, r.stderr
+    assert " render-standby[" in lines[0] and lines[0].endswith(" INFO prepared"), lines
+    assert " render[" in lines[1] and lines[1].endswith(" INFO activated"), lines
+    assert all(LOG_LINE.match(ln) for ln in lines), lines
