@@ -30,8 +30,10 @@ $(XDG_RUNTIME_DIR):
 run: $(STAMP) $(WARMED) system-deps | $(XDG_RUNTIME_DIR)
 	$(BIN)/pointflow run configs/demo.yaml --duration $(DURATION) --out out --record out/demo.mcap
 
+# two workers (most tests wait on processes they started); TEST_JOBS=0 runs them in one process
+TEST_JOBS ?= 2
 test: $(STAMP) $(WARMED) system-deps | $(XDG_RUNTIME_DIR)
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q $(if $(filter-out 0,$(TEST_JOBS)),-n $(TEST_JOBS) --dist loadgroup)
 
 bench: $(STAMP) $(WARMED) system-deps | $(XDG_RUNTIME_DIR)
 	for b in bench/bench_*.py; do $(BIN)/python $$b || exit 1; done

@@ -413,21 +413,12 @@ def probe_backends() -> dict[str, str]:
     except Exception:  # noqa: BLE001
         out["cpu"] = "available (numpy)"
     try:
-        from .render.select import crossover_points
+        from .render.select import auto_summary
 
-        n, where = crossover_points()
-        out["auto"] = auto_rule(n, where)
-    except Exception:  # noqa: BLE001
-        pass
+        out["auto"] = auto_summary()  # the decision a run makes, so it agrees with the cpu line
+    except Exception as exc:  # noqa: BLE001
+        out["auto"] = f"unknown ({type(exc).__name__}: {exc})"
     return out
-
-
-def auto_rule(crossover: int, where: str) -> str:
-    """How ``render.backend: auto`` picks, in words (a crossover of 0 means the cpu tier is never picked
-    first)."""
-    if crossover <= 0:
-        return f"wgpu > gl > cpu: a GPU tier at every ring size (measured crossover 0 points: {where})"
-    return f"wgpu > gl > cpu; the cpu tier for rings of fewer than {crossover:,} points ({where})"
 
 
 def version_line() -> str:

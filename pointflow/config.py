@@ -292,6 +292,38 @@ def load_config(data: dict | str | os.PathLike, *, base_dir: str | None = None) 
 MAX_CONFIG_BYTES = 16 << 20
 
 
+#: Point files a new user may hand to ``pointflow run``, by suffix ...
+_POINT_SUFFIXES = ((".copc.laz", "COPC"), (".las", "LAS"), (".laz", "LAZ"), (".ply", "PLY"), (".pcd", "PCD"),
+                   (".npy", "NPY"), (".npz", "NPZ"), (".bin", "KITTI .bin"), (".csv", "CSV"), (".xyz", "XYZ"))
+#: ... or by their first bytes (a point file renamed, or with no suffix)
+_POINT_MAGIC = ((b"LASF", "LAS/LAZ"), (b"ply\n", "PLY"), (b"ply\r\n", "PLY"), (b"# .PCD", "PCD"),
+                (b"\x93NUMPY", "NPY"), (b"PK\x03\x04", "NPZ"))
+
+
+def point_file_kind(path: Path) -> Optional[str]:
+    """"LAS", "PLY", ... when ``path`` is a point file (by its suffix or its first bytes), else None."""
+    name = path.name.lower()
+    for suffix, kind in _POINT_SUFFIXES:
+        if name.endswith(suffix):
+            return kind
+    try:
+        with open(path, "rb") as f:
+            head = f.read(8)
+    except OSError:
+        return None
+    return next((kind for magic, kind in _POINT_MAGIC if head.startswith(magic)), None)
+
+
+def point_file_error(path: Path, kind: str) -> ConfigError:
+    """A point file given where a pipeline config belongs: say so, and how to show it."""
+    big = f" or, for a big static file, a `map: {{path: {path.name}}}` block beside a source (docs/map.md)"
+    return ConfigError("", f"{path}: a {kind} point file, not a pipeline config (YAML); to show it, run a config "
+                           f"that reads it, e.g. a YAML file beside it holding `source: {{transport: file, options: "
+                           f"{{path: {path.name}}}}}` (streamed through the ring, like configs/autzen.yaml)"
+                           + (big if kind in ("COPC", "LAS", "LAZ", "LAS/LAZ", "PLY", "PCD") else "")
+                           + "; from Python: pointflow.show(positions)")
+
+
 def _read_text(path: Path) -> str:
     """The config file as text; every failure is a one-line ConfigError naming the file."""
     try:
@@ -300,6 +332,9 @@ def _read_text(path: Path) -> str:
             raise ConfigError("", f"cannot read config file {path}: it is a directory")
         if not stat.S_ISREG(st.st_mode):  # a FIFO or device would block or never end
             raise ConfigError("", f"cannot read config file {path}: not a regular file")
+        kind = point_file_kind(path)
+        if kind is not None:  # before the size limit and UTF-8: a point file is neither too big nor mis-encoded
+            raise point_file_error(path, kind)
         if st.st_size > MAX_CONFIG_BYTES:  # e.g. a point cloud given by mistake: not read into memory
             raise ConfigError("", f"{path}: {st.st_size:,} bytes is not a pipeline config (a YAML file of at most "
                                   f"{MAX_CONFIG_BYTES:,} bytes)")

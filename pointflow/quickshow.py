@@ -54,7 +54,8 @@ def in_notebook() -> bool:
         shell = ip.get_ipython() if ip is not None else None
     except Exception:  # noqa: BLE001
         return False
-    return shell is not None and type(shell).__name__ == "ZMQInteractiveShell"
+    # a subclass counts too (Google Colab's shell is one)
+    return shell is not None and any(c.__name__ == "ZMQInteractiveShell" for c in type(shell).__mro__)
 
 
 def _window_available() -> bool:

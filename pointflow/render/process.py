@@ -592,7 +592,7 @@ class _Stage:
 
 def _serve_commands(sock, stage: _Stage, ring, ctx) -> None:
     """Answer pending REQ/REP requests: ``pick`` (resolved through the ring, generation-checked),
-    ``save`` (write the current frame as PNG) and the view control messages of
+    ``save`` (write the current frame as PNG or JPEG) and the view control messages of
     :mod:`pointflow.render.control` (a bad one is answered with its error, counted
     ``bad_control``; the view stays as it was)."""
     while sock.poll(0, zmq.POLLIN):
@@ -611,7 +611,9 @@ def _serve_commands(sock, stage: _Stage, ring, ctx) -> None:
             elif cmd == "save":
                 path = str(req["path"])
                 os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
-                write_png(path, renderer.read_image())
+                from .imagefile import write_image  # PNG or JPEG, by its suffix
+
+                write_image(path, renderer.read_image())
                 rep = {"path": path}
             else:  # the view control messages; an unknown one is refused there, naming them
                 rep = _control(req, stage, ctx)

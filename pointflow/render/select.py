@@ -154,6 +154,47 @@ def cpu_raster_crossover() -> tuple[Optional[dict], str]:
     return calibration.load(CPU_RASTER_FILE, ("faster_up_to_points",))
 
 
+def auto_order(points: int, cfg: Optional[RenderConfig] = None) -> tuple[list[str], str]:
+    """(the tiers ``auto`` tries, in order, for a ring of ``points``; why): the same decision
+    a run makes (:func:`select_renderer`), without starting a tier."""
+    lines: list[str] = []
+    tiers = _candidates(cfg or RenderConfig(), points, points, lines)
+    why = next((ln for ln in lines if not ln.startswith("cpu raster:")), "")
+    return tiers, why
+
+
+def auto_summary(cfg: Optional[RenderConfig] = None) -> str:
+    """How ``auto`` picks here, in words (``pointflow info``): the order for each range of
+    ring sizes where it differs, each with the reason a run would log."""
+    cfg = cfg or RenderConfig()
+    xo, _ = crossover_points(cfg)
+    data, _ = cpu_raster_crossover()
+    lim = (data or {}).get("faster_up_to_points")
+    bounds = sorted({b for b in (xo, int(lim) + 1 if lim is not None else 0) if b > 1})
+    starts = [1] + bounds
+    parts: list[tuple[int, list[str], str]] = []  # (first ring size, order, why), one per range
+    for i, n in enumerate(starts):
+        tiers, why = auto_order(starts[i + 1] - 1 if i + 1 < len(starts) else n, cfg)
+        if parts and parts[-1][1] == tiers:
+            parts[-1] = (parts[-1][0], tiers, why)  # the same order: one range, the larger sizes' reason
+            continue
+        parts.append((n, tiers, why))
+
+    def words(tiers: list[str]) -> str:
+        shown = [("cpu (compiled raster)" if t == "cpu-compute" else t) for t in tiers]
+        if "cpu-compute" in tiers:
+            shown.remove("cpu")  # the reference backs the compiled raster up; said once
+        return " > ".join(shown)
+
+    if len(parts) == 1:
+        return f"{words(parts[0][1])} at every ring size ({parts[0][2]})"
+    out = []
+    for i, (n, tiers, why) in enumerate(parts):
+        upto = f"below {parts[i + 1][0]:,} points" if i + 1 < len(parts) else f"from {n:,} points"
+        out.append(f"{words(tiers)} {upto} ({why})")
+    return "; ".join(out)
+
+
 def probe_adapter(cfg: RenderConfig) -> Optional[dict]:
     """The wgpu adapter the wgpu tier would take (its summary), or None (no wgpu)."""
     try:

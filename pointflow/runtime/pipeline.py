@@ -5,6 +5,7 @@ import atexit
 import json
 import logging
 import os
+import sys
 import time
 from pathlib import Path
 from typing import Any, Optional, Union
@@ -13,6 +14,11 @@ from ..config import PipelineConfig, load_config
 from .supervisor import PipelineFailed, Supervisor, planned_stages
 
 log = logging.getLogger("pointflow")
+
+#: What ``Pipeline.show()`` says outside a notebook (it has no widget to show there).
+NOT_IN_NOTEBOOK = ("Pipeline.show(): not inside a Jupyter notebook, so no widget was shown; here, see the "
+                   "pipeline in a window (render.window: true), in a browser (serve:, or `pointflow run --serve`; "
+                   "docs/views.md) or in a file (p.save_frame('frame.png'))")
 
 #: "argument not given" (None is a value for some, e.g. ``style(color_by=None)``).
 _UNSET: Any = type("_Unset", (), {"__repr__": lambda self: "<unset>"})()
@@ -158,7 +164,11 @@ class Pipeline:
         return rep.get("point")
 
     def save_frame(self, path: str, timeout_s: float = 10.0) -> str:
-        """Write the current frame as PNG at ``path`` (on request, besides every N frames)."""
+        """Write the current frame at ``path`` (on request, besides every N frames): PNG for
+        ``.png``, JPEG for ``.jpg``/``.jpeg``; any other suffix is a ValueError naming them."""
+        from ..render.imagefile import image_format
+
+        image_format(path)  # refused here, before the render stage is asked
         rep = self._request({"cmd": "save", "path": os.path.abspath(path)}, timeout_s)
         return rep["path"]
 
@@ -324,9 +334,15 @@ class Pipeline:
 
     def show(self, width: int = 640, height: int = 400):
         """A live view of this (started) pipeline in a notebook: an anywidget with its own
-        camera (``pip install 'pointflow[notebook]'``; docs/views.md). Show it as a cell's value."""
+        camera (``pip install 'pointflow[notebook]'``; docs/views.md). Show it as a cell's value.
+        Outside a notebook there is nothing to show it in: it says so on stderr, with the views
+        that work there, and returns None."""
         from ..notebook import LiveView, available
+        from ..quickshow import in_notebook
 
+        if not in_notebook():
+            print(NOT_IN_NOTEBOOK, file=sys.stderr, flush=True)
+            return None
         if not available():
             raise RuntimeError("Pipeline.show needs the notebook extra: pip install 'pointflow[notebook]'")
         return LiveView(self, width=width, height=height)

@@ -281,10 +281,25 @@ def _die_with_parent() -> None:
         pass
 
 
-def _setup_logging(name: str, info: RunInfo) -> None:
+def _setup_logging(name: str, info: RunInfo, standby: bool = False) -> None:
+    """Log lines that name the stage; a standby's say ``<name>-standby`` (its tier selection
+    and warm-up are a spare being prepared, not a restart), until it is activated."""
     from .console import setup_logging  # on a terminal, a log line clears the progress line first
 
-    setup_logging(info.log_level, f"%(asctime)s {name}[%(process)d] %(levelname)s %(message)s")
+    global _standby_handlers
+    fmt = f"%(asctime)s {name}{'-standby' if standby else ''}[%(process)d] %(levelname)s %(message)s"
+    if _standby_handlers and not standby:  # a standby activated: its own handlers, the stage's label
+        for h in _standby_handlers:
+            h.setFormatter(type(h.formatter)(fmt) if h.formatter is not None else logging.Formatter(fmt))
+        _standby_handlers = []
+        return
+    setup_logging(info.log_level, fmt)
+    if standby:
+        _standby_handlers = list(logging.getLogger().handlers)
+
+
+#: The log handlers a standby set up (relabelled when it is activated).
+_standby_handlers: list[logging.Handler] = []
 
 
 def _kind(kind: str | StageKind) -> StageKind:
@@ -298,7 +313,7 @@ def prepare_stage(name: str, kind: str | StageKind, cfg_dict: dict, base_dir: st
     kind's ``prepare`` hook. Nothing here binds a socket or talks to the supervisor (the
     incarnation it replaces may still be alive). Returns what the hook returned (None when
     it failed: the stage then does the work itself)."""
-    _setup_logging(name, info)
+    _setup_logging(name, info, standby=True)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     log = logging.getLogger(f"pointflow.{name}")
     try:
@@ -306,6 +321,8 @@ def prepare_stage(name: str, kind: str | StageKind, cfg_dict: dict, base_dir: st
         importlib.import_module(k.main.partition(":")[0])
         if k.prepare is None:
             return None
+        log.info("preparing a standby: a spare %s that takes over if the running one dies (supervisor.standby)",
+                 name)
         cfg = load_config(cfg_dict, base_dir=base_dir)
         return resolve(k.prepare)(cfg, info, log)
     except Exception as exc:  # noqa: BLE001 - the activated stage does it again and reports

@@ -151,3 +151,51 @@ def _still_takes_clouds(pipe, before, rejected):
     assert st["stages"]["api"]["rejected"].get(rejected, 0) == before["stages"]["api"]["rejected"].get(rejected, 0) + 1
     assert st["accounting"]["ingest_balanced"] and "failure" not in st
     assert st["stages"]["lidar"]["alive"] and st["stages"]["ingest"]["restarts"] == 0
+
+
+# --------------------------------------------------------------- what a new user tried (issue 40)
+def test_save_frame_writes_the_format_its_suffix_names(pipe, tmp_path):
+    """``.jpg``/``.jpeg`` hold JPEG bytes, ``.png`` PNG; another suffix is refused before the
+    render stage is asked, naming the suffixes, and the next save works."""
+    from PIL import Image
+
+    for name, magic, fmt in (("f.jpg", b"\xff\xd8\xff", "JPEG"), ("f.JPEG", b"\xff\xd8\xff", "JPEG"),
+                             ("f.png", b"\x89PNG\r\n\x1a\n", "PNG")):
+        out = pipe.save_frame(str(tmp_path / name))
+        assert open(out, "rb").read(len(magic)) == magic, name
+        with Image.open(out) as img:
+            assert img.format == fmt and img.size == (64, 48)
+    for name in ("f.bmp", "frame"):
+        with pytest.raises(ValueError) as ei:
+            pipe.save_frame(str(tmp_path / name))
+        msg = str(ei.value)
+        assert "save_frame" in msg and name in msg and ".png, .jpg, .jpeg" in msg and "\n" not in msg, msg
+        assert not (tmp_path / name).exists()
+    assert open(pipe.save_frame(str(tmp_path / "after.png")), "rb").read(4) == b"\x89PNG"
+
+
+def test_show_outside_a_notebook_says_so(pipe, capsys):
+    """``p.show()`` in a script has no notebook to show a widget in: it says so, and what works
+    there, on one line of stderr, instead of returning a widget nobody sees."""
+    assert pipe.show() is None
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "not inside a Jupyter notebook" in err, err
+    for way in ("render.window: true", "--serve", "save_frame"):
+        assert way in err, err
+
+
+def test_a_kernel_shell_subclass_counts_as_a_notebook(monkeypatch):
+    """``p.show()`` and ``pointflow.show`` take a kernel's shell for a notebook also when it
+    subclasses ZMQInteractiveShell (Google Colab's does); a terminal IPython is not one."""
+    import sys
+    import types
+
+    from pointflow.quickshow import in_notebook
+
+    ZMQInteractiveShell = type("ZMQInteractiveShell", (), {})
+    shells = {"kernel": type("Shell", (ZMQInteractiveShell,), {})(),
+              "terminal": type("TerminalInteractiveShell", (), {})()}
+    for name, want in (("kernel", True), ("terminal", False)):
+        fake = types.SimpleNamespace(get_ipython=lambda s=shells[name]: s)
+        monkeypatch.setitem(sys.modules, "IPython", fake)
+        assert in_notebook() is want, name

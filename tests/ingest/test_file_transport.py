@@ -173,7 +173,7 @@ def test_progress_goes_to_the_progress_line_and_an_overrun_is_said_once(tmp_path
     assert len(said) == 1 and said[0].levelno == logging.WARNING, [r.getMessage() for r in said]
     msg = said[0].getMessage()
     assert "a.npy has sent 600 points" in msg and "ring.max_points 500" in msg and f"of its {N:,} points" in msg
-    assert "raise ring.max_points" in msg and "`map:` layer for big static files is planned" in msg
+    assert "raise ring.max_points" in msg and "`map: {path: " in msg and "docs/map.md" in msg and "planned" not in msg
     _, quiet = _replay(tmp_path / "a.npy", progress="off")
     assert "total" not in quiet.counters  # not on the progress line
 

@@ -162,28 +162,44 @@ def test_one_sender_fans_out_to_two_pipelines(net):
 
 
 def test_link_down_for_five_seconds(net):
-    """The link goes down for 5 s (heartbeats notice, ZeroMQ reconnects): every point the
-    sensor produced arrives or is counted lost in transit. A 1-s heartbeat timeout; on a
-    loaded machine a peer's I/O thread may hardly run during a short outage (a 2-s one,
-    beside four busy loops, ended with no reconnect counted), so the outage lasts five
-    timeouts, which a starved peer still sees. A starved peer can
-    also trip the timeout with the link up; the same identities cover that (more
-    disconnects, each one's losses counted)."""
+    """The link goes down for at least 5 s (heartbeats notice, ZeroMQ reconnects): every point
+    the sensor produced arrives or is counted lost in transit.
+
+    What is guaranteed, load or not: a link that carried data and then goes dead is dropped by
+    the receiver's heartbeat (a disconnect, logged and counted) once its I/O thread runs for a
+    heartbeat timeout, and a sender still producing reconnects when the link is back (a
+    reconnect, counted). The test waits for each of those conditions instead of timing them:
+    data on the wire before the cut (under load 7-16 a fixed 1.5 s after "sending on" could
+    cut a link that had not carried anything, so nothing was dropped: `assert 0 >= 1`), the
+    receiver's "went away" line before the link comes back (a starved receiver may take longer
+    than the 5-s minimum to see it), and data on the wire again before the sender is stopped
+    (its source runs until then, so the reconnect and the final sync always have a sender). A
+    starved peer can also trip the timeout with the link up; the same identities cover that
+    (more disconnects, each one's losses counted)."""
     sensor, viewer = net.host("sensor"), net.host("viewer")
     _, a_viewer = net.link(sensor, viewer)
     ep = f"tcp://{a_viewer}:{PORT}"
     hb = {"heartbeat_timeout_s": 1.0, "heartbeat_ttl_s": 1.0}
     recv = start_receiver(net, viewer, receiver_cfg(ep, insecure=True, **hb))
     wait_listening(net, "recv.log")
-    # 12 s of sensor data: it runs on for seconds after the outage, so the sender reconnects
-    # and its final sync gets through
-    send = start_sender(net, sensor, sender_cfg(synthetic_source(scans=120, points=2000, hz=10), endpoint=ep,
+    # a sensor that runs until the test stops it (scans: 0), 2,000 points at 10 Hz
+    send = start_sender(net, sensor, sender_cfg(synthetic_source(scans=0, points=2000, hz=10), endpoint=ep,
                                                 insecure=True, queue_chunks=8, send_hwm=4, **hb))
-    wait_for(lambda: "sending on" in net.log("send.log"), 120, "the sender", lambda: net.log("send.log"))
-    time.sleep(1.5)
+    went = "link peer went away"
+    flowing = 256 << 10  # bytes: several scans, far more than a handshake or a retransmission
+    t0 = net.tx_bytes(sensor, viewer)
+    wait_for(lambda: net.tx_bytes(sensor, viewer) - t0 > flowing, 180, "data on the link",
+             lambda: net.log("send.log") + net.log("recv.log"))
+    gone_before = net.log("recv.log").count(went)
     net.set_link(sensor, viewer, up=False)
-    time.sleep(5.0)
+    time.sleep(5.0)  # the outage itself: five heartbeat timeouts at least
+    wait_for(lambda: net.log("recv.log").count(went) > gone_before, 180, "the receiver to drop the dead link",
+             lambda: net.log("recv.log"))
     net.set_link(sensor, viewer, up=True)
+    t1 = net.tx_bytes(sensor, viewer)
+    wait_for(lambda: net.tx_bytes(sensor, viewer) - t1 > flowing, 180, "data on the link again (a reconnect)",
+             lambda: net.log("send.log") + net.log("recv.log"))
+    assert stop(send, 120) == 0, net.log("send.log")  # as Ctrl-C: the sources end, the final sync goes out
     snd, rcv = finish(net, send, recv)
     assert_exact(snd, rcv, lost_ok=True)
     assert rcv["stages"]["link"]["transport_disconnects"] >= 1, "the heartbeat did not notice the dead link"

@@ -129,7 +129,7 @@ def test_evictions_are_on_the_progress_line_and_a_file_overrun_is_said_once(tmp_
     said = [ln for ln in stderr.splitlines() if "more than the ring holds" in ln]
     assert len(said) == 1 and " WARNING " in said[0], said
     assert "of its 300,000 points only the last 100,000 stay in view" in said[0], said[0]
-    assert "`map:` layer for big static files is planned" in said[0], said[0]
+    assert "`map: {path: " in said[0] and "docs/map.md" in said[0], said[0]
     stats = json.loads((tmp_path / "out" / "stats.json").read_text())
     assert stats["stages"]["ingest"]["ring_evicted"] == 200_000
 
@@ -138,3 +138,49 @@ def test_version():
     r = subprocess.run([sys.executable, "-m", "pointflow.cli", "--version"], capture_output=True, text=True,
                        timeout=60, env=_env())
     assert r.returncode == 0 and r.stdout.startswith(f"pointflow {__version__} (Python "), (r.stdout, r.stderr)
+
+
+def test_the_standby_render_says_it_is_the_standby(tmp_path):
+    """The spare render stage prepared beside the running one (supervisor.standby) logs its
+    tier selection and warm-up as ``render-standby[pid]``, after a line saying what it is, so
+    they do not read like a restart (issue 40); the running stage's lines say ``render[pid]``."""
+    cfg = {"name": "standby-words", "source": {"transport": "synthetic", "options": {"scan_hz": 5, "points_per_scan": 500}},
+           "ring": {"max_points": 10_000}, "render": {"backend": "cpu", "size": [64, 48], "output": {"dir": None}},
+           "tracing": {"enabled": False}, "supervisor": {"standby": True}}
+    (tmp_path / "c.yaml").write_text(json.dumps(cfg))
+    p = subprocess.Popen([sys.executable, "-m", "pointflow.cli", "run", str(tmp_path / "c.yaml"), "--duration", "200"],
+                         text=True, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                         env=_env(), cwd=tmp_path)
+    err, sent = [], False
+    for line in p.stderr:  # until the standby has drawn its warm-up frame, then Ctrl-C
+        err.append(line)
+        if "render-standby[" in line and "warm-up frame drawn" in line and not sent:
+            p.send_signal(signal.SIGINT)
+            sent = True
+    p.communicate(timeout=120)
+    stderr = "".join(err)
+    assert p.returncode == 0 and sent, stderr[-3000:]
+    standby = [ln for ln in stderr.splitlines() if "render-standby[" in ln]
+    running = [ln for ln in stderr.splitlines() if " render[" in ln]
+    assert "preparing a standby: a spare render" in standby[0], standby
+    assert any("tier selection: cpu: chosen" in ln for ln in standby), standby
+    assert sum("tier selection: cpu: chosen" in ln for ln in running) == 1, running  # the first start only
+    assert len({ln.split("[")[1].split("]")[0] for ln in standby}) == 1  # one process: the spare
+    for ln in standby + running:
+        assert LOG_LINE.match(ln), ln
+
+
+def test_an_activated_standby_logs_as_the_stage():
+    """Once activated, the standby's lines name the stage again (``render[pid]``): from then
+    on it is the render stage, and its errors must read so."""
+    code = ("import logging, types\n"
+            "from pointflow.runtime.stage import _setup_logging\n"
+            "info = types.SimpleNamespace(log_level=logging.INFO)\n"
+            "_setup_logging('render', info, standby=True); logging.getLogger('x').info('prepared')\n"
+            "_setup_logging('render', info); logging.getLogger('x').info('activated')\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, env=_env())
+    lines = r.stderr.splitlines()
+    assert r.returncode == 0 and len(lines) == 2, r.stderr
+    assert " render-standby[" in lines[0] and lines[0].endswith(" INFO prepared"), lines
+    assert " render[" in lines[1] and lines[1].endswith(" INFO activated"), lines
+    assert all(LOG_LINE.match(ln) for ln in lines), lines

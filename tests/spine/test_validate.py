@@ -54,12 +54,39 @@ def test_validate_of_a_send_config_reports_the_link_not_a_render_backend(tmp_pat
     assert "render" not in out and "ring" not in out
 
 
-def test_info_words_the_auto_rule_without_below_zero():
-    from pointflow.cli import auto_rule
+def test_info_words_the_auto_rule_by_ring_size(monkeypatch):
+    """Where a crossover splits the ring sizes, each range gets its order and its reason."""
+    from pointflow.render.select import auto_summary
 
-    zero = auto_rule(0, "bench/results/crossover.json")
-    assert "below 0" not in zero and "every ring size" in zero and "crossover.json" in zero
-    assert "fewer than 200,000 points" in auto_rule(200_000, "built-in default")
+    monkeypatch.setenv("POINTFLOW_NO_NUMBA", "1")  # no compiled raster: no software-adapter rule
+    monkeypatch.setenv("POINTFLOW_CROSSOVER", "200000")
+    two = auto_summary()
+    assert two.startswith("cpu > wgpu > gl below 200,000 points (cpu first: ") and "< crossover 200000" in two, two
+    assert "; wgpu > gl > cpu from 200,000 points (" in two and "below 0" not in two, two
+    monkeypatch.setenv("POINTFLOW_CROSSOVER", "0")
+    one = auto_summary()
+    assert "at every ring size" in one and "below" not in one, one
+
+
+def test_info_says_one_true_thing_about_auto(capsys):
+    """`pointflow info`'s auto line is the decision a run makes (issue 40): on a software
+    adapter where the shipped measurement prefers the compiled cpu raster, the cpu line and
+    the auto line both put the cpu tier first; nowhere does it claim wgpu > gl > cpu then."""
+    from pointflow.render.config import RenderConfig
+    from pointflow.render.select import auto_order, cpu_raster_crossover, probe_adapter
+
+    assert main(["info"]) == 0
+    out = capsys.readouterr().out
+    auto = next(ln for ln in out.splitlines() if ln.strip().startswith("auto "))
+    cpu = next(ln for ln in out.splitlines() if ln.strip().startswith("cpu "))
+    first = auto_order(1_000_000)[0][0]
+    assert auto.split()[1] == ("cpu" if first.startswith("cpu") else first), auto
+    ad = probe_adapter(RenderConfig())
+    data, _ = cpu_raster_crossover()
+    if ad is not None and ad.get("adapter_type") == "CPU" and data and data.get("faster_up_to_points") is None \
+            and "auto prefers it over a software wgpu adapter at every size" in cpu:
+        assert "cpu (compiled raster) > wgpu > gl at every ring size" in auto, auto
+        assert "wgpu > gl > cpu" not in out, out
 
 
 def test_duration_counts_from_when_the_pipeline_runs(tmp_path):

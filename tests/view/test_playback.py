@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -142,10 +143,18 @@ def test_cli_start_rate_loop(tmp_path):
     path.write_text(yaml.safe_dump(cfg))
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [os.getcwd(), os.environ.get("PYTHONPATH")])))
     out = tmp_path / "out"
-    r = subprocess.run([sys.executable, "-m", "pointflow.cli", "run", str(path), "--start", "50%", "--rate", "4",
-                        "--duration", "12", "--out", str(out), "-q"], capture_output=True, text=True, env=env,
-                       timeout=120)
-    assert r.returncode == 0, r.stderr
+    # until the replay has ended (its "finished" line), then Ctrl-C: a fixed --duration would
+    # also count start-up, which a loaded machine can stretch past the replay's end
+    r = subprocess.Popen([sys.executable, "-m", "pointflow.cli", "run", str(path), "--start", "50%", "--rate", "4",
+                          "--duration", "240", "--out", str(out), "-q"], stdin=subprocess.DEVNULL,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    err = []
+    for line in r.stderr:
+        err.append(line)
+        if "rec finished (its input ended)" in line:
+            r.send_signal(signal.SIGINT)
+    r.communicate(timeout=120)
+    assert r.returncode == 0 and any("rec finished" in ln for ln in err), "".join(err)[-3000:]
     stats = json.loads((out / "stats.json").read_text())
     assert stats["stages"]["rec"]["points_in"] == sum(_size(i) for i in range(N // 2, N))
     assert stats["config"]["playback"]["rate"] == 4.0

@@ -202,9 +202,11 @@ class FileTransport(Transport):
             log.warning("%s: %s has sent %s points, more than the ring holds (ring.max_points %s): from here on "
                         "the ring keeps at most %s of them (ring.eviction decides which; the rest count as "
                         "ring_evicted), so %sonly the last %s stay in view. To keep a big static file whole, "
-                        "raise ring.max_points (memory permitting); a `map:` layer for big static files is "
-                        "planned, not available yet", self.source_id, os.path.basename(self.files[0]),
-                        f"{done:,}", f"{cap:,}", f"{cap:,}", of, f"{cap:,}")
+                        "raise ring.max_points (memory permitting), or show it as a map: a `map: {path: %s}` "
+                        "block (COPC, LAS/LAZ, PLY, PCD) serves a big static file by level of detail, beside a live "
+                        "source (docs/map.md)",
+                        self.source_id, os.path.basename(self.files[0]),
+                        f"{done:,}", f"{cap:,}", f"{cap:,}", of, f"{cap:,}", os.path.basename(self.files[0]))
         else:  # a replay of scans (or a loop) rolls through the ring as a live sensor does
             log.info("%s: the replay has sent %s points, more than the ring holds (%s): older points are "
                      "evicted from now on, as from a live sensor", self.source_id, f"{done:,}", f"{cap:,}")
