@@ -68,13 +68,30 @@ def http_get(url: str, headers: dict | None = None) -> tuple[int, str, dict]:
         return e.code, e.read().decode(errors="replace"), dict(e.headers)
 
 
+_COOKIE_NAMES: dict[str, str] = {}
+
+
+def cookie_name(base: str) -> str:
+    """The name of the token cookie this server sets (per run and port), as a browser
+    learns it: from the Set-Cookie of the view: URL's redirect."""
+    if base not in _COOKIE_NAMES:
+        code, _, headers = http_get(f"{base}/?token={TOKEN}")
+        assert code == 303, code
+        _COOKIE_NAMES[base] = headers["Set-Cookie"].split("=", 1)[0].split()[-1]
+    return _COOKIE_NAMES[base]
+
+
+def cookie_header(base: str, token: str = TOKEN) -> str:
+    return f"{cookie_name(base)}={token}"
+
+
 def ws_connect(base: str, *, token: str | None = TOKEN, origin: str | None = "same", **kw):
     """A WebSocket to the view server (the websockets sync client), as a page would open it."""
     from websockets.sync.client import connect
 
     headers = {}
-    if token is not None:
-        headers["Cookie"] = f"pointflow_view={token}"
+    if token is not None:  # the page's cookie is named per run and port: cookie_header() gives it
+        headers["Cookie"] = cookie_header(base, token)
     if origin == "same":
         origin = base
     ws = connect(base.replace("http://", "ws://") + "/ws", additional_headers=headers, origin=origin,

@@ -104,9 +104,9 @@ def _hit_and_run(base: str, payload: bytes, reset: bool) -> None:
     s = socket.create_connection(tuple(base.rsplit("//", 1)[1].split(":")) and
                                  (base.rsplit("//", 1)[1].split(":")[0], int(base.rsplit(":", 1)[1])))
     key = base64.b64encode(os.urandom(16)).decode()
-    s.sendall((f"GET /ws HTTP/1.1\r\nHost: x\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
-               f"Sec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\nCookie: pointflow_view={TOKEN}\r\n\r\n"
-               ).encode() + payload)
+    s.sendall((f"GET /ws?token={TOKEN} HTTP/1.1\r\nHost: 127.0.0.1\r\nUpgrade: websocket\r\n"
+               f"Connection: Upgrade\r\nSec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n\r\n").encode()
+              + payload)
     if reset:
         s.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))  # a reset, not a goodbye
     s.close()
