@@ -345,7 +345,7 @@ def apply(state: ViewState, msg: Any, *, current: Optional[Camera] = None, chann
                 if not f > 0:
                     raise ControlError("zoom.factor", f"expected a number > 0, got {f:g}")
                 cam = OrbitController(base, zoom_per_wheel=1.0 / f).zoom(1.0)
-        _in_space(cam.eye, cam.target, f"{cmd}.{keys[0]}")
+        _in_space(cam.eye, cam.target, f"{cmd}.{max(keys, key=lambda k: abs(vals[k] - (cmd == 'zoom')))}")
         new.camera = CameraState(mode="fixed", eye=list(map(float, cam.eye)), target=list(map(float, cam.target)),
                                  up=list(map(float, cam.up)), fov_deg=float(cam.fov_deg), follow=state.camera.follow,
                                  follow_anchor=state.camera.follow_anchor)

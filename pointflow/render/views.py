@@ -513,6 +513,7 @@ class ViewHub:
         fps = (main - self._main_frames0) / dt + vfps if dt > 0 else 0.0  # every picture the stage drew
         self._main_frames0, self._view_frames0 = main, vf
         self._counters()
+        self.ctx.counters.extra["view_targets_kept"] = len(getattr(stage.renderer, "_targets", None) or {}) or 1
         drops = {k: v for k, v in self.ctx.counters.drops.items() if v}
         msg = {"type": "stats", "points": int(self.last_frame.size) if self.last_frame is not None else 0,
                "fps": round(fps, 2), "view_fps": round(vfps, 2), "sources": self.sources, "drops": drops,

@@ -106,8 +106,8 @@ def redact(text: str, token: str) -> str:
 class _HeaderDeadline:
     """The web library's connection factory, with a deadline: a connection that has not sent
     a whole request head within ``header_timeout_s`` (a slow or silent client, before any
-    token is checked) is closed and counted ``header_timeouts``. aiohttp has a keep-alive
-    timeout but none for the first request, so 300 idle connections would stay open."""
+    token is checked) is closed and counted ``header_timeouts``. (aiohttp's keep-alive timeout,
+    an hour by default, would close it too, a second later and uncounted.)"""
 
     def __init__(self, server, timeout_s: float, extra: dict):
         self._server = server
@@ -290,9 +290,10 @@ class ViewServer:
         app.router.add_get("/", self._index)
         app.router.add_get("/ws", self._ws)
         app.router.add_get("/{name}", self._static)
-        # an idle keep-alive connection goes after header_timeout_s (aiohttp's default: an hour)
+        # an idle keep-alive connection goes after header_timeout_s (aiohttp's default: an hour);
+        # one that never finishes its first request head goes a little earlier, counted (_HeaderDeadline)
         self._runner = web.AppRunner(app, access_log=None, handle_signals=False,
-                                     keepalive_timeout=self.sc.limits.header_timeout_s)
+                                     keepalive_timeout=self.sc.limits.header_timeout_s + 1.0)
         await self._runner.setup()
         self._runner._server = _HeaderDeadline(self._runner.server, self.sc.limits.header_timeout_s, self.extra)
         ctx = None
@@ -312,8 +313,8 @@ class ViewServer:
         return self.url
 
     async def stop(self) -> None:
-        for c in list(self.clients.values()):
-            await self._drop_client(c, CLOSE_GOING_AWAY, "the pipeline is stopping")
+        await asyncio.gather(*(self._drop_client(c, CLOSE_GOING_AWAY, "the pipeline is stopping")
+                               for c in list(self.clients.values())))
         for t in self._tasks:
             t.cancel()
         if self._runner is not None:
@@ -453,13 +454,17 @@ class ViewServer:
     async def _close_ws(self, c: ViewClient, code: int, why: str) -> None:
         """Close with ``code`` and a short reason; a client that does not take the close
         frame within 2 s (it stopped reading) loses its connection outright."""
-        if not c.ws.closed:
-            try:
-                await asyncio.wait_for(c.ws.close(code=code, message=printable(why, 120).encode()[:123]), 2.0)
-            except (asyncio.TimeoutError, ConnectionError, RuntimeError):
-                pass
+        done = c.ws.closed
+        if not done:
+            # not wait_for: a close stuck behind a full socket does not end when cancelled
+            closing = asyncio.ensure_future(c.ws.close(code=code, message=printable(why, 120).encode()[:123]))
+            closing.add_done_callback(lambda f: f.cancelled() or f.exception())  # retrieved: no warning
+            await asyncio.wait({closing}, timeout=2.0)
+            done = closing.done() and not closing.cancelled() and closing.exception() is None
         t = c.transport
-        if t is not None and not t.is_closing():
+        # a transport closed with data it cannot send (the client stopped reading) stays
+        # ESTABLISHED, holding its buffers, until the kernel gives up: abort it
+        if t is not None and (not done or t.get_write_buffer_size() > 0):
             t.abort()
 
     async def _drop_client(self, c: ViewClient, code: int, why: str) -> None:

@@ -122,3 +122,31 @@ def read_until(ws, pred, timeout: float = 60.0):
 
 def is_frame(msg) -> bool:
     return isinstance(msg, tuple)
+
+
+def good_client(base):
+    ws = ws_connect(base)
+    read_until(ws, lambda m: isinstance(m, dict) and m.get("type") == "hello")
+    read_until(ws, is_frame)
+    return ws
+
+
+def frames_keep_coming(ws, n: int = 2) -> None:
+    for _ in range(n):
+        read_until(ws, is_frame, timeout=60)
+
+
+def closed_with(ws, codes) -> int:
+    from websockets.exceptions import ConnectionClosed
+
+    end = time.monotonic() + 30
+    while time.monotonic() < end:
+        try:
+            ws.recv(timeout=1)
+        except TimeoutError:
+            continue
+        except ConnectionClosed as exc:
+            code = exc.rcvd.code if exc.rcvd is not None else None
+            assert code in codes, (code, codes)
+            return code
+    raise AssertionError("the bad client was not closed")
