@@ -23,7 +23,8 @@ KIND = register_stage_kind(StageKind(
     counters=("clients_total", "refused_token", "refused_origin", "refused_full", "bad_messages", "rate_limited",
               "send_timeouts", "frames_in", "frames_sent", "dropped_frames", "bytes_sent", "encode_errors",
               "control_sent", "control_dropped", "render_errors", "clients_gone", "client_errors", "server_errors",
-              "bogus_acks", "dropped_messages", "refused_host", "header_timeouts", "views_reopened"),
+              "bogus_acks", "dropped_messages", "refused_host", "header_timeouts", "views_reopened",
+              "credit_withheld"),
     wanted="pointflow.serve.process:wanted"))
 
 

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import fcntl
 import json
 import logging
 import os
@@ -30,6 +31,7 @@ import secrets
 import socket as socketlib
 import ssl
 import struct
+import termios
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -175,6 +177,13 @@ class ViewClient:
     #: the connection, closed outright when the client is dropped (a client that stops
     #: reading never completes a close handshake, so its socket would stay open)
     transport: Any = None
+    #: its socket's descriptor (the kernel's send queue: what it has not taken yet)
+    fd: int = -1
+    #: the size of the last frame written; a credit check is waiting to look again
+    last_bytes: int = 0
+    recheck: bool = False
+    #: since when the frames written have stayed in its send queue (None: it reads)
+    stuck_since: Optional[float] = None
     #: frames from render being encoded now, and being written (the in-flight count's
     #: repair, _keepalive)
     encoding: int = 0
@@ -201,6 +210,21 @@ class ViewClient:
     closed: bool = False
     #: A playback request of this client is waiting for the sources (one at a time).
     playback_busy: bool = False
+
+
+#: Bytes a client's socket may hold unsent (besides two frames) and still get credit.
+UNSENT_BYTES = 16384
+
+
+def _unsent(fd: int) -> int:
+    """Bytes in the kernel's send queue of socket ``fd`` (written, not yet taken by the
+    peer: TIOCOUTQ); 0 where it cannot be read."""
+    if fd < 0:
+        return 0
+    try:
+        return struct.unpack("i", fcntl.ioctl(fd, termios.TIOCOUTQ, b"\0\0\0\0"))[0]
+    except OSError:
+        return 0
 
 
 def _count(c: dict, key: str, n: int = 1) -> None:
@@ -257,7 +281,7 @@ class ViewServer:
                   "rate_limited", "send_timeouts", "frames_in", "frames_sent", "dropped_frames", "bytes_sent",
                   "encode_errors", "control_sent", "control_dropped", "render_errors", "clients_gone",
                   "client_errors", "server_errors", "bogus_acks", "dropped_messages", "refused_host",
-                  "header_timeouts", "views_reopened"):
+                  "header_timeouts", "views_reopened", "credit_withheld"):
             self.extra.setdefault(k, 0)
         self._zctx_sync = zctx  # the shadow does not own it: keep it alive
         self.zctx = zmq.asyncio.Context.shadow(zctx.underlying)
@@ -397,9 +421,11 @@ class ViewServer:
         ws = web.WebSocketResponse(max_msg_size=lim.max_message_bytes, compress=False, heartbeat=20.0,
                                    timeout=lim.send_timeout_s)
         sock = request.transport.get_extra_info("socket") if request.transport is not None else None
+        fd = -1
         if sock is not None:  # bounded: a client that stops reading holds at most this much
             try:
                 sock.setsockopt(socketlib.SOL_SOCKET, socketlib.SO_SNDBUF, lim.socket_buffer_bytes)
+                fd = sock.fileno()
             except OSError:
                 pass
         try:
@@ -409,7 +435,7 @@ class ViewServer:
             return web.Response(status=400, text="gone\n")  # aiohttp drops it quietly (the peer is gone)
         view = f"w{self.extra['clients_total']}-{secrets.token_hex(4)}"
         c = ViewClient(view, ws, self.sc.width, self.sc.height, tokens=lim.max_messages_per_s * 2,
-                       transport=request.transport)
+                       transport=request.transport, fd=fd)
         self.clients[view] = c
         _count(self.extra, "clients_total")
         self.extra["clients"] = len(self.clients)
@@ -539,11 +565,36 @@ class ViewServer:
 
     def _grant(self, c: ViewClient, again: bool = False) -> None:
         """Tell render how many frames this view may take now (absolute: render sets its
-        credit to ``n``): two less the frames not yet shown by the page."""
+        credit to ``n``): two less the frames not yet shown by the page, and none while the
+        frames written are still in the kernel's send queue: a client that acks frames it
+        never reads (a "liar") gets no more than its socket has taken."""
+        if c.closed:
+            return
         n = max(0, MAX_IN_FLIGHT - c.in_flight)
-        if (n != c.granted or again) and not c.closed:
+        if n > 0 and _unsent(c.fd) <= max(2 * c.last_bytes, UNSENT_BYTES):
+            c.stuck_since = None
+        elif n > 0:
+            n = 0
+            _count(self.extra, "credit_withheld")
+            if c.stuck_since is None:
+                c.stuck_since = time.monotonic()
+            if not c.recheck:  # look again soon: an honest client on a slow link
+                c.recheck = True
+                asyncio.get_running_loop().call_later(0.05, self._recheck, c)
+        if n != c.granted or again:
             c.granted = n
             self._to_render(c.view, "credit", n=n)
+
+    def _recheck(self, c: ViewClient) -> None:
+        c.recheck = False
+        self._grant(c)
+
+    def _too_slow(self, c: ViewClient) -> None:
+        """A client that has taken nothing for ``send_timeout_s`` is closed (its own only)."""
+        _count(self.extra, "send_timeouts")
+        self._warn(f"client {c.view} closed: it took nothing for {self.sc.limits.send_timeout_s:g} s "
+                   f"({self.extra['send_timeouts']} so far)", self.extra["send_timeouts"])
+        asyncio.ensure_future(self._drop_client(c, CLOSE_POLICY, "too slow"))
 
     def _to_render(self, view: str, cmd: str, **args) -> None:
         msg = {**args, "view": view, "cmd": cmd}
@@ -722,10 +773,7 @@ class ViewServer:
                     send = c.ws.send_str(text) if text is not None else c.ws.send_bytes(data)
                     await asyncio.wait_for(send, self.sc.limits.send_timeout_s)
                 except asyncio.TimeoutError:
-                    _count(self.extra, "send_timeouts")
-                    self._warn(f"client {c.view} closed: it took nothing for {self.sc.limits.send_timeout_s:g} s "
-                               f"({self.extra['send_timeouts']} so far)", self.extra["send_timeouts"])
-                    asyncio.ensure_future(self._drop_client(c, 1008, "too slow"))
+                    self._too_slow(c)
                     return
                 except (ConnectionError, RuntimeError):
                     return
@@ -734,6 +782,7 @@ class ViewServer:
                 if text is not None:
                     continue
                 c.last_sent_seq = seq
+                c.last_bytes = len(data)
                 c.unacked += 1
                 c.frames_sent += 1
                 c.bytes_sent += len(data)
@@ -755,6 +804,9 @@ class ViewServer:
                 # render stage that restarted answers "unknown view" (the view is opened again)
                 self._repair_in_flight(c)
                 self._grant(c, again=True)
+                if c.stuck_since is not None and time.monotonic() - c.stuck_since > self.sc.limits.send_timeout_s:
+                    self._too_slow(c)
+                    continue
                 self._send_json(c, {"type": "stats", "points": rs.get("points"), "fps": rs.get("fps"),
                                           "sources": rs.get("sources", self.sources),
                                           "view": self.view_stats(c), "clients": len(self.clients)})

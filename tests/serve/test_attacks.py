@@ -234,6 +234,46 @@ def test_a_dropped_client_loses_its_connection(pipe):
     good.close()
 
 
+def _first_text(s: socket.socket) -> dict:
+    """The first WebSocket message on a raw socket (the server's hello), parsed."""
+    def exactly(n):
+        b = b""
+        while len(b) < n:
+            b += s.recv(n - len(b))
+        return b
+    b0, b1 = exactly(2)
+    n = b1 & 0x7F
+    n = int.from_bytes(exactly(2 if n == 126 else 8), "big") if n >= 126 else n
+    return json.loads(exactly(n))
+
+
+def test_a_client_that_acks_without_reading_gets_only_what_its_socket_took(pipe):
+    """10 clients that acked every frame without reading one cut a good client to 0.58 of
+    its frames: each looked like a fast viewer until its socket buffer (256 KiB) was full.
+    Credit now waits until the frames written have left the kernel's send queue."""
+    base = base_url(pipe)
+    good = good_client(base)
+    liar = raw_websocket(base, TOKEN)  # a 4 KiB receive buffer, and it will read nothing more
+    view = _first_text(liar)["view"]
+    st0 = serve_stats(pipe)
+    sent = 0
+    for _ in range(200):  # until it is dropped: it has taken nothing for send_timeout_s
+        try:
+            liar.sendall(masked_frame('{"cmd": "ack"}'))
+        except OSError:
+            break
+        frames_keep_coming(good, 1)
+        sent = max(sent, serve_stats(pipe).get("views", {}).get(view, {}).get("frames", 0))
+    st = serve_stats(pipe)
+    assert sent <= 20, f"{sent} frames written to a client that read none of them"
+    assert st["credit_withheld"] > st0.get("credit_withheld", 0)
+    pipe.wait(30, until=lambda: serve_stats(pipe)["send_timeouts"] > st0.get("send_timeouts", 0))
+    assert serve_stats(pipe)["send_timeouts"] > st0.get("send_timeouts", 0), "the liar was not dropped"
+    liar.close()
+    frames_keep_coming(good)
+    good.close()
+
+
 def test_resizing_frees_the_targets_of_old_sizes(pipe):
     """Each distinct view size kept a target in the render stage for ever (279 -> 677 MB
     after 12 resizes)."""
