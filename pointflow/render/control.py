@@ -187,7 +187,8 @@ _num = number  # the name views.py and older callers use
 def _unknown(msg: dict, allowed: tuple, cmd: str) -> None:
     extra = sorted(set(msg) - set(allowed) - {"cmd"})
     if extra:
-        raise ControlError(f"{cmd}.{str(extra[0])[:40]}", f"unknown argument; {cmd} takes {', '.join(allowed) or 'none'}")
+        raise ControlError(f"{cmd}.{str(extra[0])[:40]}",
+                           f"unknown argument; {cmd} takes {', '.join(allowed) or 'none'}")
 
 
 def check_style(args: dict, channels: Optional[list[str]], prefix: str = "style") -> dict:
@@ -201,9 +202,11 @@ def check_style(args: dict, channels: Optional[list[str]], prefix: str = "style"
                 out[k] = None
                 continue
             if not isinstance(v, str) or not v:
-                raise ControlError(key, f"expected a channel name or one of {', '.join(BUILTIN_COLOR)}, got {_short(v)}")
+                raise ControlError(key, f"expected a channel name or one of {', '.join(BUILTIN_COLOR)}, "
+                                        f"got {_short(v)}")
             if v not in BUILTIN_COLOR and channels is not None and v not in channels:
-                raise ControlError(key, f"channel {_short(v)} is not in the ring (it holds {sorted(channels) or 'none'}); "
+                raise ControlError(key, f"channel {_short(v)} is not in the ring (it holds "
+                                        f"{sorted(channels) or 'none'}); "
                                    f"to colour by it while running, list it in ring.extra_channels (or start with "
                                    f"render.color_by: {v}) so ingest keeps it")
             out[k] = v
@@ -425,7 +428,8 @@ def load_view_block(data: Any, path: str = "view") -> dict:
     cam = data.get("camera")
     if cam not in (None, "fit"):
         if not isinstance(cam, dict):
-            raise ControlError(f"{path}.camera", f"expected 'fit' or a mapping of eye/target/up/fov_deg, got {_short(cam)}")
+            raise ControlError(f"{path}.camera",
+                               f"expected 'fit' or a mapping of eye/target/up/fov_deg, got {_short(cam)}")
         c = check_camera(cam, f"{path}.camera")
         if "eye" not in c or "target" not in c:
             raise ControlError(f"{path}.camera.{'eye' if 'eye' not in c else 'target'}", "required with a fixed camera")

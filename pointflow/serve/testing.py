@@ -14,7 +14,8 @@ __all__ = ["raw_websocket", "masked_frame"]
 def raw_websocket(base: str, token: str, *, rcvbuf: int = 4096, wait_upgrade: bool = True,
                   timeout: float | None = None) -> socket.socket:
     """Open ``base``'s WebSocket (``http://host:port``) by hand with a tiny receive buffer and
-    the token in the query (the cookie's name is per run: auth.cookie_name); with ``wait_upgrade`` read up to the end of the 101 answer (and check
+    the token in the query (the cookie's name is per run: auth.cookie_name); with
+    ``wait_upgrade`` read up to the end of the 101 answer (and check
     it), otherwise return at once without reading anything."""
     host, port = base.rsplit("//", 1)[1].split(":")
     s = socket.socket()

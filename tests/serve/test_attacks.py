@@ -91,7 +91,8 @@ def test_huge_integers_are_refused_and_the_render_stage_lives(pipe):
     ws = good_client(base_url(pipe))
     r0 = _render(pipe)["restarts"]
     big = 10 ** 400
-    cases = [({"cmd": "zoom", "factor": big}, "zoom.factor"), ({"cmd": "orbit", "azimuth_deg": -big}, "orbit.azimuth_deg"),
+    cases = [({"cmd": "zoom", "factor": big}, "zoom.factor"),
+             ({"cmd": "orbit", "azimuth_deg": -big}, "orbit.azimuth_deg"),
              ({"cmd": "camera", "eye": [big, 0, 0], "target": [0, 0, 0]}, "camera.eye"),
              ({"cmd": "style", "edl_strength": big}, "style.edl_strength"),
              ({"cmd": "style", "color_range": [0, big]}, "style.color_range")]
@@ -314,7 +315,8 @@ def test_the_operators_terminal(tmp_path):
     URL past the HTTP parser's 8190 bytes was logged, token included)."""
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [os.getcwd(), os.environ.get("PYTHONPATH")])))
     cfg = tmp_path / "p.yaml"
-    cfg.write_text("sources:\n  - name: lidar\n    transport: synthetic\n    options: {scan_hz: 10, points_per_scan: 2000}\n"
+    cfg.write_text("sources:\n  - name: lidar\n    transport: synthetic\n"
+                   "    options: {scan_hz: 10, points_per_scan: 2000}\n"
                    "render: {backend: cpu, size: [64, 48], output: {every_n_frames: 100000}}\n")
     p = subprocess.Popen([sys.executable, "-m", "pointflow.cli", "run", str(cfg), "--out", str(tmp_path / "out"),
                           "--serve", "127.0.0.1:0", "--duration", "120"], stdout=subprocess.PIPE,
