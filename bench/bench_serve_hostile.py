@@ -58,7 +58,7 @@ class Good(threading.Thread):
         super().__init__(daemon=True)
         from websockets.sync.client import connect
 
-        self.ws = connect(base.replace("http", "ws") + "/ws", additional_headers={"Cookie": f"pointflow_view={TOKEN}"},
+        self.ws = connect(base.replace("http", "ws") + f"/ws?token={TOKEN}",
                           origin=base, max_size=2 ** 24)
         self.ws.pending_legacy_warning = False
         self.frames = 0

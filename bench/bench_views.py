@@ -72,8 +72,8 @@ class Client(threading.Thread):
         super().__init__(daemon=True)
         from websockets.sync.client import connect
 
-        self.ws = connect(base.replace("http://", "ws://") + "/ws", origin=base, max_size=2 ** 26, open_timeout=30,
-                          additional_headers={"Cookie": f"pointflow_view={TOKEN}"})
+        self.ws = connect(base.replace("http://", "ws://") + f"/ws?token={TOKEN}", origin=base, max_size=2 ** 26,
+                          open_timeout=30)
         self.frames: list[dict] = []  # header + t (monotonic s at arrival)
         self.replies: dict[int, dict] = {}
         self.cmds: "queue.SimpleQueue[dict]" = queue.SimpleQueue()

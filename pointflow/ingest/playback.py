@@ -62,6 +62,12 @@ class PlaybackConfig:
     hold: bool = False
 
 
+#: Replay rates taken (times as fast as recorded): 1000x replays an hour in 3.6 s; at 0.001x
+#: a second of recording takes 17 minutes. Beyond, a rate is a typo or an attack (1e-300
+#: would stall the replay for ever, 1e9 is "as fast as possible": ``realtime: false``).
+RATE_RANGE = (0.001, 1000.0)
+
+
 def check_playback(p: PlaybackConfig, path: str = "playback") -> None:
     if isinstance(p.start, str):
         s = p.start.strip()
@@ -75,8 +81,9 @@ def check_playback(p: PlaybackConfig, path: str = "playback") -> None:
             raise ConfigError(f"{path}.start", f"a percentage must be within 0%..100%, got {p.start!r}")
     if not isinstance(p.start, str) and not (math.isfinite(p.start) and p.start >= 0):
         raise ConfigError(f"{path}.start", f"must be >= 0 seconds, got {p.start!r}")
-    if p.rate is not None and not (math.isfinite(p.rate) and p.rate > 0):
-        raise ConfigError(f"{path}.rate", f"must be > 0, got {p.rate!r}")
+    if p.rate is not None and not (math.isfinite(p.rate) and RATE_RANGE[0] <= p.rate <= RATE_RANGE[1]):
+        raise ConfigError(f"{path}.rate", f"must be within {RATE_RANGE[0]:g}..{RATE_RANGE[1]:g} (times as fast as "
+                          f"recorded), got {p.rate!r}")
 
 
 def playback_endpoint(base: str, index: int) -> str:
@@ -215,7 +222,7 @@ class PlaybackClock:
         if "seek_s" in msg and "seek_fraction" in msg:
             raise PlaybackError("seek_s", "give seek_s or seek_fraction, not both")
         # check everything before changing anything
-        rate = _number(msg["rate"], "rate", lo=0.0, lo_open=True) if "rate" in msg else None
+        rate = _number(msg["rate"], "rate", lo=RATE_RANGE[0], hi=RATE_RANGE[1]) if "rate" in msg else None
         seek = None
         if "seek_s" in msg:
             seek = _number(msg["seek_s"], "seek_s", lo=0.0)
@@ -276,11 +283,14 @@ class PlaybackClock:
 
 def _number(v: Any, key: str, lo: float = -math.inf, hi: float = math.inf, lo_open: bool = False) -> float:
     if isinstance(v, bool) or not isinstance(v, (int, float)):
-        raise PlaybackError(key, f"expected a number, got {v!r}")
-    x = float(v)
+        raise PlaybackError(key, f"expected a number, got {repr(v)[:60]}")
+    try:
+        x = float(v)
+    except OverflowError:  # a JSON integer of hundreds of digits
+        x = math.inf
     if not math.isfinite(x) or x < lo or x > hi or (lo_open and x == lo):
         rng = f"{'>' if lo_open else '>='} {lo:g}" + (f" and <= {hi:g}" if hi != math.inf else "")
-        raise PlaybackError(key, f"expected a finite number {rng}, got {v!r}")
+        raise PlaybackError(key, f"expected a finite number {rng}, got {repr(v)[:60]}")
     return x
 
 

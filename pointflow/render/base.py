@@ -118,8 +118,35 @@ class Renderer(ABC):
         Tiers that can keep one target per size, so switching back costs nothing."""
         return (int(width), int(height)) == (self.width, self.height)
 
+    def forget_sizes(self, keep) -> int:
+        """Free the targets :meth:`resize` kept for sizes not in ``keep`` (the current size
+        always stays): a view closed or resized must not leave its target behind
+        (render/views.py bounds them). Returns how many were freed."""
+        targets = self.__dict__.get("_targets")
+        if not targets:
+            return 0
+        keep = {tuple(k) for k in keep} | {(self.width, self.height)}
+        gone = [s for s in targets if s not in keep]
+        for size in gone:
+            for obj in targets.pop(size):
+                _free(obj)
+        return len(gone)
+
     def info(self) -> dict[str, Any]:
         return {"tier": self.tier}
 
     def close(self) -> None:
         pass
+
+
+def _free(obj: Any) -> None:
+    """Release one part of a dropped target: a GPU buffer or method (``destroy`` /
+    ``release`` / ``close``); host arrays just lose their last reference."""
+    for name in ("close", "release", "destroy"):
+        f = getattr(obj, name, None)
+        if callable(f) and not isinstance(obj, np.ndarray):
+            try:
+                f()
+            except Exception:  # noqa: BLE001 - already freed, or the device is gone
+                pass
+            return

@@ -91,10 +91,18 @@ class RenderConfig:
     edl: EdlConfig = field(default_factory=EdlConfig)
 
 
+#: The largest screen-space point size, in pixels (a point's raster cost grows with its
+#: area: docs/views.md "Safe by default"); the view control messages take the same bound.
+MAX_SCREEN_POINT_PX = 32.0
+
+
 def check_render(r: RenderConfig) -> None:
     """What relates two values of the section (single bounds are on the fields)."""
     if isinstance(r.color_range, list) and not r.color_range[0] < r.color_range[1]:
         raise ConfigError("render.color_range", f"must be 'auto' or [lo, hi] with lo < hi, got {r.color_range!r}")
+    if r.point_size_space == "screen" and r.point_size > MAX_SCREEN_POINT_PX:
+        raise ConfigError("render.point_size", f"must be at most {MAX_SCREEN_POINT_PX:g} px (screen space), "
+                          f"got {r.point_size:g}")
     c = r.camera
     if c.near >= c.far:
         raise ConfigError("render.camera.near", f"must be less than camera.far ({c.far}), got {c.near}")

@@ -39,9 +39,11 @@ import numpy as np
 
 from . import colormap
 from .camera import Camera, OrbitController
+from .config import MAX_SCREEN_POINT_PX
 
 __all__ = ["ControlError", "ViewState", "CameraState", "StyleState", "apply", "COMMANDS", "BUILTIN_COLOR",
-           "load_view_block", "view_block", "style_render_config", "camera_near_far"]
+           "load_view_block", "view_block", "style_render_config", "camera_near_far", "MAX_POINT_SIZE_PX",
+           "MAX_CAMERA_COORD", "number", "printable"]
 
 #: Colourings that need no ring channel.
 BUILTIN_COLOR = ("z", "height", "ingest_time", "none")
@@ -53,13 +55,31 @@ COMMANDS = ("camera", "orbit", "pan", "zoom", "fit", "follow", "style", "visible
 #: The ring channel that says which configured source a point came from (pipelines with
 #: two or more sources; the source stage adds it to every chunk).
 SOURCE_CHANNEL = "source_index"
+#: The largest screen-space point a style may ask for, in pixels (render/config.py). A
+#: point's raster cost grows with its area: on the compiled cpu raster at 320x240 a 4096 px
+#: point covers the whole picture, and one style message made every frame take 17-18 s.
+MAX_POINT_SIZE_PX = MAX_SCREEN_POINT_PX
+#: A camera's eye and target stay within this distance of the world origin (metres): far
+#: beyond any data, and far from where float64 view matrices lose every digit or overflow
+#: (a pan by 1e308 would make a NaN camera).
+MAX_CAMERA_COORD = 1e12
+_CTRL = {c: f"\\x{c:02x}" for c in list(range(0x20)) + [0x7f]}
+
+
+def printable(text: Any, limit: int = 200) -> str:
+    """``text`` with control characters escaped (newlines, ANSI escapes: a client's string
+    cannot forge a log line or steer the operator's terminal) and cut to ``limit``."""
+    s = str(text)
+    s = s if len(s) <= limit else s[:limit] + "…"
+    return s.translate(_CTRL)
 
 
 class ControlError(ValueError):
     """A control message (or ``view:`` block) that cannot be applied; ``key`` names the argument."""
 
     def __init__(self, key: str, message: str):
-        super().__init__(f"{key}: {message}")
+        key = printable(key, 80)  # both may hold what a client sent: logged and replied safely
+        super().__init__(f"{key}: {printable(message, 400)}")
         self.key = key
 
 
@@ -126,22 +146,32 @@ class ViewState:
 
 # --------------------------------------------------------------------------- checks
 def _vec3(v: Any, key: str) -> list[float]:
+    if not isinstance(v, (list, tuple, np.ndarray)) or len(v) != 3:
+        raise ControlError(key, f"expected [x, y, z] (3 numbers), got {_short(v)}")
+    return [number(x, key, -MAX_CAMERA_COORD, MAX_CAMERA_COORD) for x in v]
+
+
+def _short(v: Any) -> str:
+    """A client's value in an error message: its repr, cut (a 400-digit number or a deep
+    list says what it was without filling the log)."""
     try:
-        out = [float(x) for x in v]
-    except (TypeError, ValueError):
-        raise ControlError(key, f"expected [x, y, z] numbers, got {v!r}") from None
-    if len(out) != 3:
-        raise ControlError(key, f"expected [x, y, z] (3 numbers), got {len(out)}")
-    if not all(math.isfinite(x) for x in out):
-        raise ControlError(key, f"expected finite numbers, got {out!r}")
-    return out
+        r = repr(v)
+    except (ValueError, RecursionError):  # an int past Python's digit limit, a cycle
+        r = f"<{type(v).__name__}>"
+    return r if len(r) <= 60 else r[:57] + "..."
 
 
-def _num(v: Any, key: str, lo: float = -math.inf, hi: float = math.inf, lo_open: bool = False,
-         hi_open: bool = False) -> float:
+def number(v: Any, key: str, lo: float = -math.inf, hi: float = math.inf, lo_open: bool = False,
+           hi_open: bool = False) -> float:
+    """``v`` as a finite float in the range, else :class:`ControlError` naming ``key`` (a JSON
+    integer of 400 digits is a refusal, not an OverflowError)."""
     if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
-        raise ControlError(key, f"expected a number, got {v!r}")
-    x = float(v)
+        raise ControlError(key, f"expected a number, got {_short(v)}")
+    try:
+        x = float(v)
+    except OverflowError:
+        raise ControlError(key, f"expected a finite number, got an integer of {int(v).bit_length()} bits, "
+                                "too large for a float") from None
     if not math.isfinite(x):
         raise ControlError(key, f"expected a finite number, got {x!r}")
     if x < lo or x > hi or (lo_open and x == lo) or (hi_open and x == hi):
@@ -151,10 +181,14 @@ def _num(v: Any, key: str, lo: float = -math.inf, hi: float = math.inf, lo_open:
     return x
 
 
+_num = number  # the name views.py and older callers use
+
+
 def _unknown(msg: dict, allowed: tuple, cmd: str) -> None:
     extra = sorted(set(msg) - set(allowed) - {"cmd"})
     if extra:
-        raise ControlError(f"{cmd}.{extra[0]}", f"unknown argument; {cmd} takes {', '.join(allowed) or 'none'}")
+        raise ControlError(f"{cmd}.{str(extra[0])[:40]}",
+                           f"unknown argument; {cmd} takes {', '.join(allowed) or 'none'}")
 
 
 def check_style(args: dict, channels: Optional[list[str]], prefix: str = "style") -> dict:
@@ -168,35 +202,37 @@ def check_style(args: dict, channels: Optional[list[str]], prefix: str = "style"
                 out[k] = None
                 continue
             if not isinstance(v, str) or not v:
-                raise ControlError(key, f"expected a channel name or one of {', '.join(BUILTIN_COLOR)}, got {v!r}")
+                raise ControlError(key, f"expected a channel name or one of {', '.join(BUILTIN_COLOR)}, "
+                                        f"got {_short(v)}")
             if v not in BUILTIN_COLOR and channels is not None and v not in channels:
-                raise ControlError(key, f"channel {v!r} is not in the ring (it holds {sorted(channels) or 'none'}); "
+                raise ControlError(key, f"channel {_short(v)} is not in the ring (it holds "
+                                        f"{sorted(channels) or 'none'}); "
                                    f"to colour by it while running, list it in ring.extra_channels (or start with "
                                    f"render.color_by: {v}) so ingest keeps it")
             out[k] = v
         elif k == "colormap":
             if v not in colormap.NAMES:
-                raise ControlError(key, f"unknown colormap {v!r}; expected one of {', '.join(colormap.NAMES)}")
+                raise ControlError(key, f"unknown colormap {_short(v)}; expected one of {', '.join(colormap.NAMES)}")
             out[k] = v
         elif k == "color_range":
             if v == "auto":
                 out[k] = "auto"
                 continue
             if not isinstance(v, (list, tuple)) or len(v) != 2:
-                raise ControlError(key, f"expected 'auto' or [lo, hi], got {v!r}")
+                raise ControlError(key, f"expected 'auto' or [lo, hi], got {_short(v)}")
             lo, hi = _num(v[0], key), _num(v[1], key)
             if not lo < hi:
                 raise ControlError(key, f"expected lo < hi, got [{lo:g}, {hi:g}]")
             out[k] = [lo, hi]
         elif k == "point_size":
-            out[k] = _num(v, key, 0.0, 4096.0, lo_open=True)
+            out[k] = _num(v, key, 0.0, MAX_POINT_SIZE_PX, lo_open=True)
         elif k == "point_shape":
             if v not in ("square", "round"):
-                raise ControlError(key, f"expected 'square' or 'round', got {v!r}")
+                raise ControlError(key, f"expected 'square' or 'round', got {_short(v)}")
             out[k] = v
         elif k == "edl":
             if not isinstance(v, bool):
-                raise ControlError(key, f"expected true or false, got {v!r}")
+                raise ControlError(key, f"expected true or false, got {_short(v)}")
             out[k] = v
         elif k == "edl_strength":
             out[k] = _num(v, key, 0.0)
@@ -208,11 +244,11 @@ def check_style(args: dict, channels: Optional[list[str]], prefix: str = "style"
 def check_visible(source: Any, on: Any, sources: Optional[list[str]], channels: Optional[list[str]],
                   key: str = "visible") -> bool:
     if not isinstance(on, bool):
-        raise ControlError(f"{key}.on", f"expected true or false, got {on!r}")
+        raise ControlError(f"{key}.on", f"expected true or false, got {_short(on)}")
     if not isinstance(source, str):
-        raise ControlError(f"{key}.source", f"expected a source name, got {source!r}")
+        raise ControlError(f"{key}.source", f"expected a source name, got {_short(source)}")
     if sources is not None and source not in sources:
-        raise ControlError(f"{key}.source", f"no source named {source!r}; sources: {', '.join(sources)}")
+        raise ControlError(f"{key}.source", f"no source named {_short(source)}; sources: {', '.join(sources)}")
     if channels is not None and SOURCE_CHANNEL not in channels:
         raise ControlError(f"{key}.source", "this pipeline has one source: there is no other to show alone "
                            "(the ring marks each point's source only with two or more sources)")
@@ -240,7 +276,7 @@ def apply(state: ViewState, msg: Any, *, current: Optional[Camera] = None, chann
     configured source names (``visible``); ``fixed_frame``: ``frames.fixed`` (``follow``);
     ``follow_origin``: where the followed frame's origin is now, if known."""
     if not isinstance(msg, dict) or not isinstance(msg.get("cmd"), str):
-        raise ControlError("cmd", f"a control message is a mapping with 'cmd'; got {msg!r}")
+        raise ControlError("cmd", f"a control message is a mapping with 'cmd'; got {_short(msg)}")
     cmd = msg["cmd"]
     args = {k: v for k, v in msg.items() if k != "cmd"}
     new = state.copy()
@@ -266,7 +302,7 @@ def apply(state: ViewState, msg: Any, *, current: Optional[Camera] = None, chann
         _unknown(args, ("frame",), cmd)
         name = args.get("frame")
         if name is not None and (not isinstance(name, str) or not name.strip()):
-            raise ControlError("follow.frame", f"expected a frame name or null, got {name!r}")
+            raise ControlError("follow.frame", f"expected a frame name or null, got {_short(name)}")
         if name is not None and not fixed_frame:
             raise ControlError("follow.frame", "following a frame needs frames.fixed in the config (the "
                                "transforms reach the render stage only then; docs/frames.md)")
@@ -294,6 +330,7 @@ def apply(state: ViewState, msg: Any, *, current: Optional[Camera] = None, chann
         cs.fov_deg = c.get("fov_deg", cs.fov_deg)
         if np.allclose(cs.eye, cs.target):
             raise ControlError("camera.eye", f"must differ from the target {cs.target}")
+        _in_space(cs.eye, cs.target, "camera.eye")
     elif cmd in ("orbit", "pan", "zoom"):
         keys = {"orbit": ("azimuth_deg", "elevation_deg"), "pan": ("right", "up"), "zoom": ("factor",)}[cmd]
         _unknown(args, keys, cmd)
@@ -301,15 +338,17 @@ def apply(state: ViewState, msg: Any, *, current: Optional[Camera] = None, chann
         base = _camera_of(state, current)
         if base is None:
             raise ControlError(cmd, "nothing is drawn yet to turn: wait for the first frame, or set eye and target")
-        if cmd == "orbit":
-            cam = OrbitController(base, orbit_deg_per_px=1.0).orbit(-vals["azimuth_deg"], vals["elevation_deg"])
-        elif cmd == "pan":
-            cam = OrbitController(base).pan(-vals["right"] * height_px, vals["up"] * height_px, height_px)
-        else:
-            f = vals["factor"]
-            if not f > 0:
-                raise ControlError("zoom.factor", f"expected a number > 0, got {f:g}")
-            cam = OrbitController(base, zoom_per_wheel=1.0 / f).zoom(1.0)
+        with np.errstate(all="ignore"):  # an absurd move is refused below, not warned about on the console
+            if cmd == "orbit":
+                cam = OrbitController(base, orbit_deg_per_px=1.0).orbit(-vals["azimuth_deg"], vals["elevation_deg"])
+            elif cmd == "pan":
+                cam = OrbitController(base).pan(-vals["right"] * height_px, vals["up"] * height_px, height_px)
+            else:
+                f = vals["factor"]
+                if not f > 0:
+                    raise ControlError("zoom.factor", f"expected a number > 0, got {f:g}")
+                cam = OrbitController(base, zoom_per_wheel=1.0 / f).zoom(1.0)
+        _in_space(cam.eye, cam.target, f"{cmd}.{max(keys, key=lambda k: abs(vals[k] - (cmd == 'zoom')))}")
         new.camera = CameraState(mode="fixed", eye=list(map(float, cam.eye)), target=list(map(float, cam.target)),
                                  up=list(map(float, cam.up)), fov_deg=float(cam.fov_deg), follow=state.camera.follow,
                                  follow_anchor=state.camera.follow_anchor)
@@ -318,6 +357,18 @@ def apply(state: ViewState, msg: Any, *, current: Optional[Camera] = None, chann
                                   "(or pick, save)")
     new.version = state.version + 1
     return new
+
+
+def _in_space(eye, target, key: str) -> None:
+    """A camera stays in finite space: eye and target finite, within MAX_CAMERA_COORD, and
+    apart (a move that would leave it is refused, the camera stays where it was)."""
+    e, t = np.asarray(eye, np.float64), np.asarray(target, np.float64)
+    with np.errstate(all="ignore"):
+        ok = (np.isfinite(e).all() and np.isfinite(t).all() and np.abs(e).max() <= MAX_CAMERA_COORD
+              and np.abs(t).max() <= MAX_CAMERA_COORD and float(np.linalg.norm(e - t)) > 0.0)
+    if not ok:
+        raise ControlError(key, f"the camera would leave finite space (eye and target within "
+                                f"{MAX_CAMERA_COORD:g} of the origin, apart); it stays where it was")
 
 
 def _camera_of(state: ViewState, current: Optional[Camera]) -> Optional[Camera]:
@@ -367,17 +418,18 @@ def load_view_block(data: Any, path: str = "view") -> dict:
     """Check a ``view:`` block; returns ``{"camera": None | {...}, "style": {...},
     "hidden_sources": [...]}`` with checked values. Errors are :class:`ControlError` naming ``view.<key>``."""
     if not isinstance(data, dict):
-        raise ControlError(path, f"expected a mapping with camera and/or style, got {data!r}")
+        raise ControlError(path, f"expected a mapping with camera and/or style, got {_short(data)}")
     _unknown(data, ("camera", "style", "hidden_sources"), path)
     out: dict[str, Any] = {"camera": None, "style": {}, "hidden_sources": []}
     hs = data.get("hidden_sources") or []
     if not isinstance(hs, list) or not all(isinstance(x, str) for x in hs):
-        raise ControlError(f"{path}.hidden_sources", f"expected a list of source names, got {hs!r}")
+        raise ControlError(f"{path}.hidden_sources", f"expected a list of source names, got {_short(hs)}")
     out["hidden_sources"] = list(hs)
     cam = data.get("camera")
     if cam not in (None, "fit"):
         if not isinstance(cam, dict):
-            raise ControlError(f"{path}.camera", f"expected 'fit' or a mapping of eye/target/up/fov_deg, got {cam!r}")
+            raise ControlError(f"{path}.camera",
+                               f"expected 'fit' or a mapping of eye/target/up/fov_deg, got {_short(cam)}")
         c = check_camera(cam, f"{path}.camera")
         if "eye" not in c or "target" not in c:
             raise ControlError(f"{path}.camera.{'eye' if 'eye' not in c else 'target'}", "required with a fixed camera")
@@ -385,6 +437,6 @@ def load_view_block(data: Any, path: str = "view") -> dict:
     st = data.get("style")
     if st is not None:
         if not isinstance(st, dict):
-            raise ControlError(f"{path}.style", f"expected a mapping, got {st!r}")
+            raise ControlError(f"{path}.style", f"expected a mapping, got {_short(st)}")
         out["style"] = check_style(st, None, f"{path}.style")
     return out

@@ -53,6 +53,11 @@ STATS_S = 1.0
 #: so the render stage's frames go to the views.
 MAIN_WHILE_VIEWED_S = 0.5
 SIZE_RANGE = (16, 4096)
+#: Targets (one per picture size, ``Renderer.resize``) kept besides the main view's: those
+#: of the most recently drawn views. Others are freed (``Renderer.forget_sizes``), so a
+#: client that resizes again and again, or views that close, leave no memory behind; a
+#: view whose size was freed gets a new target on its next draw.
+MAX_SIZES_KEPT = 4
 
 
 @dataclass
@@ -73,6 +78,7 @@ class View:
     last_image: Optional[np.ndarray] = None
     last_header: dict = field(default_factory=dict)
     waiting: bool = False  # a change is waiting for credit (counted once per change)
+    t_drawn: float = 0.0  # when it was last drawn (the sizes kept are the latest views')
 
 
 def _size(msg: dict, cmd: str) -> tuple[int, int]:
@@ -185,19 +191,25 @@ class ViewHub:
             self._command(peer, vid, cmd, req, msg, stage, ring)
         except ControlError as exc:
             self._bad(peer, vid, req, exc, exc.key)
-        except (RenderError, ValueError, TypeError, KeyError) as exc:
-            self._bad(peer, vid, req, ValueError(f"{cmd}: {type(exc).__name__}: {exc}"), cmd)
+        except Exception as exc:  # noqa: BLE001 - no message a view server relays may stop the render stage
+            self._bad(peer, vid, req, ControlError(cmd, f"{type(exc).__name__}: {exc}"), cmd)
 
     def _command(self, peer: bytes, vid: str, cmd: str, req, msg: dict, stage, ring) -> None:
         if cmd == "open":
-            control._unknown({k: v for k, v in msg.items() if k not in ("view", "req")}, ("width", "height", "state"),
-                             "open")
+            control._unknown({k: v for k, v in msg.items() if k not in ("view", "req")},
+                             ("width", "height", "state", "seq"), "open")
             w, h = _size(msg, "open")
+            seq = msg.get("seq", 0)  # a view opened again after a restart numbers on from the server's last
+            if isinstance(seq, bool) or not isinstance(seq, int) or not 0 <= seq < 2 ** 53:
+                raise ControlError("open.seq", f"expected a whole number >= 0, got {seq!r}")
             if vid not in self.views and len(self.views) >= MAX_VIEWS:
                 raise ControlError("open", f"this render stage serves at most {MAX_VIEWS} views")
-            self.views[vid] = v = self._new_view(vid, peer, w, h, stage)
+            v = self._new_view(vid, peer, w, h, stage)
+            v.seq = seq
             if msg.get("state") is not None:
                 self._take_state(v, msg["state"])
+            self.views[vid] = v
+            self._trim_sizes(stage)
             self._reply(v, req)
             self.ctx.log.info("view %s open (%dx%d)", vid, w, h)
             return
@@ -208,6 +220,7 @@ class ViewHub:
         args = {k: val for k, val in msg.items() if k not in ("view", "req")}
         if cmd == "close":
             self._close(vid)
+            self._trim_sizes(stage)
         elif cmd == "credit":
             control._unknown(args, ("n",), "credit")
             n = args.get("n")
@@ -219,6 +232,7 @@ class ViewHub:
             v.width, v.height = _size(args, "resize")
             v.ctl.auto.aspect = v.width / v.height
             v.ctl.height = v.height
+            self._trim_sizes(stage)
             self._reply(v, req)
         elif cmd == "pick":
             control._unknown(args, ("x", "y", "pixel_ratio"), "pick")
@@ -259,6 +273,19 @@ class ViewHub:
         d = v.ctl.reply(None, v.frames)
         d.pop("view_block", None)
         self._send(v.peer, {"type": "reply", "view": v.id, "req": req, "width": v.width, "height": v.height, **d})
+
+    def _trim_sizes(self, stage) -> None:
+        """Free the renderer's targets of sizes no open view needs (MAX_SIZES_KEPT)."""
+        recent = sorted(self.views.values(), key=lambda v: v.t_drawn, reverse=True)
+        keep = {tuple(self.cfg.render.size)}
+        for v in recent:
+            if len(keep) > MAX_SIZES_KEPT:
+                break
+            keep.add((v.width, v.height))
+        freed = stage.renderer.forget_sizes(keep)
+        if freed:
+            ex = self.ctx.counters.extra
+            ex["view_targets_freed"] = ex.get("view_targets_freed", 0) + freed
 
     def _close(self, vid: str) -> None:
         v = self.views.pop(vid, None)
@@ -366,6 +393,9 @@ class ViewHub:
         finally:
             r.resize(*self.cfg.render.size)
         self.clobbered = True
+        v.t_drawn = time.monotonic()
+        if len(getattr(r, "_targets", ())) > MAX_SIZES_KEPT + 1:
+            self._trim_sizes(stage)
         # one "view_draw" slice per view frame in the profile trace (draw + read-back)
         self.ctx.spans.record(new_trace_id(), "view_draw", t0_ns, time.monotonic_ns(), int(self.last_frame.size))
         return img, (time.perf_counter() - t0) * 1e3
@@ -483,6 +513,7 @@ class ViewHub:
         fps = (main - self._main_frames0) / dt + vfps if dt > 0 else 0.0  # every picture the stage drew
         self._main_frames0, self._view_frames0 = main, vf
         self._counters()
+        self.ctx.counters.extra["view_targets_kept"] = len(getattr(stage.renderer, "_targets", None) or {}) or 1
         drops = {k: v for k, v in self.ctx.counters.drops.items() if v}
         msg = {"type": "stats", "points": int(self.last_frame.size) if self.last_frame is not None else 0,
                "fps": round(fps, 2), "view_fps": round(vfps, 2), "sources": self.sources, "drops": drops,

@@ -3,13 +3,57 @@ cookie) and the WebSocket's Origin. Pure functions, so the refusals are tested w
 server and the messages are the same everywhere."""
 from __future__ import annotations
 
+import hashlib
 import hmac
+import ipaddress
 import os
 import secrets
 from typing import Optional
 from urllib.parse import urlsplit
 
+#: The cookie's name starts so; the rest is the port and the run (:func:`cookie_name`).
 COOKIE = "pointflow_view"
+
+
+def cookie_name(port: int, run_dir: str) -> str:
+    """The token cookie's name for this run and port: browsers keep cookies per host name,
+    not per port, so two runs on one host (or a run and its successor on the same port)
+    must not overwrite each other's cookie."""
+    return f"{COOKIE}_{int(port)}_{hashlib.sha256(run_dir.encode()).hexdigest()[:10]}"
+
+
+def check_host(host_header: Optional[str], bound_host: str, allowed: list[str]) -> Optional[str]:
+    """None when a request's ``Host`` may be served, else the reason (a DNS-rebinding page
+    reaches the server under its own name: ``evil.example:PORT``). Served: an IP address (it
+    cannot be rebound), ``localhost``, the address the server is bound to, this machine's
+    name when it listens on every address, and ``serve.allowed_hosts`` (``name`` or
+    ``name:port``, e.g. a reverse proxy's)."""
+    if not host_header:
+        return "a request without a Host header is not served"
+    h = host_header.strip().lower()
+    try:
+        u = urlsplit(f"//{h}")
+        name, port = (u.hostname or ""), u.port
+    except ValueError:
+        return f"host {host_header[:80]!r} is not allowed"
+    for a in allowed:
+        a = a.lower()
+        if a == name or (port is not None and a == f"{name}:{port}") or a == h:
+            return None
+    if name == "localhost" or name == bound_host.strip("[]").lower():
+        return None
+    try:
+        ipaddress.ip_address(name)
+        return None
+    except ValueError:
+        pass
+    if bound_host in ("0.0.0.0", "::", ""):
+        import socket
+
+        if name in (socket.gethostname().lower(), socket.getfqdn().lower()):
+            return None
+    return (f"host {host_header[:80]!r} is not allowed (an IP address, localhost, this machine's name or "
+            "serve.allowed_hosts)")
 
 
 def new_token() -> str:

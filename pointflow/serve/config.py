@@ -44,6 +44,9 @@ class ServeLimits:
     socket_buffer_bytes: int = field(default=262144, metadata=check(Bound(16384, 1 << 26)))
     #: The largest view a client may ask for (pixels per side).
     max_view_px: int = field(default=4096, metadata=check(Bound(16, 16384)))
+    #: A connection must have sent its request's headers within this long, and an idle
+    #: keep-alive connection is closed after it: slow or silent connections hold nothing.
+    header_timeout_s: float = field(default=10.0, metadata=check(Bound(0.5, 300)))
 
 
 @dataclass
@@ -62,6 +65,11 @@ class ServeConfig:
     #: Extra origins (``https://host:port``) whose pages may open the WebSocket; the page's
     #: own origin is always allowed.
     allowed_origins: list[str] = field(default_factory=list)
+    #: Extra names the page may be reached under (the ``Host`` header: ``name`` or
+    #: ``name:port``, e.g. a reverse proxy's). IP addresses, ``localhost``, the bound address
+    #: and (listening on every address) this machine's name are always served; any other
+    #: name is refused, so a DNS-rebinding page cannot reach the server under its own name.
+    allowed_hosts: list[str] = field(default_factory=list)
     #: Size of a new view when the page does not say (it sends its own size).
     width: int = field(default=800, metadata=check(Bound(16, 16384)))
     height: int = field(default=600, metadata=check(Bound(16, 16384)))
@@ -73,6 +81,7 @@ class ServeConfig:
 
 
 _TOKEN = re.compile(r"^[A-Za-z0-9_-]{16,128}$")
+_HOST = re.compile(r"^(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9]([A-Za-z0-9.-]{0,252}))(:[0-9]{1,5})?$")
 
 
 def is_loopback_host(host: str) -> bool:
@@ -107,6 +116,10 @@ def check_serve(sc: ServeConfig, path: str, base_dir: str = ".") -> None:
     for i, o in enumerate(sc.allowed_origins):
         if not re.match(r"^https?://[^/\s]+$", o):
             raise ConfigError(f"{path}.allowed_origins[{i}]", f"expected scheme://host[:port], got {o!r}")
+    for i, h in enumerate(sc.allowed_hosts):
+        if not isinstance(h, str) or not _HOST.match(h):
+            raise ConfigError(f"{path}.allowed_hosts[{i}]", f"expected a host name or name:port (no scheme, no "
+                              f"path), e.g. view.example.org or view.example.org:443, got {h!r}")
 
 
 def parse_serve_arg(text: str) -> tuple[Optional[str], int]:

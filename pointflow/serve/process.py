@@ -23,7 +23,8 @@ KIND = register_stage_kind(StageKind(
     counters=("clients_total", "refused_token", "refused_origin", "refused_full", "bad_messages", "rate_limited",
               "send_timeouts", "frames_in", "frames_sent", "dropped_frames", "bytes_sent", "encode_errors",
               "control_sent", "control_dropped", "render_errors", "clients_gone", "client_errors", "server_errors",
-              "bogus_acks", "dropped_messages"),
+              "bogus_acks", "dropped_messages", "refused_host", "header_timeouts", "views_reopened",
+              "credit_withheld"),
     wanted="pointflow.serve.process:wanted"))
 
 
@@ -59,7 +60,7 @@ async def _run(ctx) -> None:
                      zctx=ctx.zmq, counters=ctx.counters, spans=ctx.spans,
                      sources=[s.name for s in ctx.cfg.sources],
                      color_by=[c for c in ctx.cfg.ring_channels() if c != "source_index"] + ["z", "ingest_time", "none"],
-                     colormaps=list(NAMES))
+                     colormaps=list(NAMES), run_dir=ctx.info.run_dir)
     try:
         url = await srv.start()
     except OSError as exc:  # the port is taken or the address is not this host's: restarting cannot help

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import fcntl
 import json
 import logging
 import os
@@ -30,6 +31,7 @@ import secrets
 import socket as socketlib
 import ssl
 import struct
+import termios
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -39,7 +41,8 @@ from typing import Any, Optional
 import zmq
 import zmq.asyncio
 
-from .auth import COOKIE, check_origin, check_token
+from ..render.control import ControlError, number, printable
+from .auth import COOKIE, check_host, check_origin, check_token, cookie_name
 from .config import ServeConfig
 from .encode import encode_frame
 
@@ -55,6 +58,10 @@ STATIC = {"index.html": "text/html", "gestures.js": "text/javascript", "view.js"
 #: Control messages the page may send on to the render stage (render/control.py).
 CONTROL = ("camera", "orbit", "pan", "zoom", "fit", "follow", "style", "visible", "view_state")
 PLAYBACK_KEYS = ("paused", "seek_s", "seek_fraction", "step", "rate", "loop", "hold")
+#: How deep a client's JSON may nest (the page's deepest is an object holding a list).
+MAX_DEPTH = 4
+#: WebSocket close codes (RFC 6455): the page reconnects only after 1000/1001/1006.
+CLOSE_NORMAL, CLOSE_GOING_AWAY, CLOSE_POLICY, CLOSE_INTERNAL = 1000, 1001, 1008, 1011
 
 
 class _OneLine(logging.Filter):
@@ -62,20 +69,92 @@ class _OneLine(logging.Filter):
     line without a traceback: no traceback reaches the user, and a hostile client cannot
     flood the log (the first 10, then every 1000th)."""
 
-    def __init__(self, extra: dict):
+    def __init__(self, extra: dict, token: str = ""):
         super().__init__()
         self.extra = extra
+        self.token = token
 
     def filter(self, record: logging.LogRecord) -> bool:
         if record.levelno < logging.WARNING:
             return True
         _count(self.extra, "server_errors")
         n = self.extra["server_errors"]
+        text = record.getMessage()
         if record.exc_info and record.exc_info[1] is not None:
             e = record.exc_info[1]
-            record.msg, record.args = f"{record.getMessage()}: {type(e).__name__}: {e} ({n} so far)", ()
-            record.exc_info, record.exc_text = None, None
+            # the web library's parse errors quote the client's bytes (the first 100 of a
+            # line too long: a Cookie or URL with the token): only the kind and status go out
+            status = getattr(e, "status", None) or getattr(e, "code", None)
+            what = type(e).__name__ + (f" {status}" if isinstance(status, int) else "")
+            text = f"{text}: {what}" + ("" if getattr(e, "message", None) is not None or getattr(e, "headers", None)
+                                        is not None else f": {e}")
+        record.msg, record.args = f"{printable(redact(text, self.token), 300)} ({n} so far)", ()
+        record.exc_info, record.exc_text = None, None
         return n <= 10 or n % 1000 == 0
+
+
+def redact(text: str, token: str) -> str:
+    """``text`` with the token, or any 8 characters of it, replaced: nothing of the token
+    reaches a log line."""
+    if not token:
+        return text
+    for i in range(max(1, len(token) - 7)):
+        while token[i:i + 8] in text:
+            j = max(j for j in range(i + 8, len(token) + 1) if token[i:j] in text)  # the longest piece
+            text = text.replace(token[i:j], "<token>")
+    return text
+
+
+class _HeaderDeadline:
+    """The web library's connection factory, with a deadline: a connection that has not sent
+    a whole request head within ``header_timeout_s`` (a slow or silent client, before any
+    token is checked) is closed and counted ``header_timeouts``. (aiohttp's keep-alive timeout,
+    an hour by default, would close it too, a second later and uncounted.)"""
+
+    def __init__(self, server, timeout_s: float, extra: dict):
+        self._server = server
+        self._timeout = timeout_s
+        self._extra = extra
+        self._cls = None
+
+    def __getattr__(self, name):  # everything else is the web library's server
+        return getattr(self._server, name)
+
+    def __call__(self):
+        handler = self._server()
+        loop = asyncio.get_running_loop()
+        made = handler.connection_made
+        extra, timeout = self._extra, self._timeout
+
+        def expire(transport):
+            if getattr(handler, "_request_count", 1) == 0 and not transport.is_closing():
+                _count(extra, "header_timeouts")
+                transport.abort()
+
+        class _Proto(asyncio.Protocol):  # the handler, with the deadline started on connection
+            def __getattr__(self, name):
+                return getattr(handler, name)
+
+            def connection_made(self, transport):
+                made(transport)
+                loop.call_later(timeout, expire, transport)
+
+            def data_received(self, data):
+                handler.data_received(data)
+
+            def eof_received(self):
+                return handler.eof_received()
+
+            def connection_lost(self, exc):
+                handler.connection_lost(exc)
+
+            def pause_writing(self):
+                handler.pause_writing()
+
+            def resume_writing(self):
+                handler.resume_writing()
+
+        return _Proto()
 
 
 class BadMessage(ValueError):
@@ -95,6 +174,25 @@ class ViewClient:
     #: Frames written to the client's socket and not yet acked: only these can be acked (a
     #: client that acks without reading gets no more frames once its socket is full).
     unacked: int = 0
+    #: the connection, closed outright when the client is dropped (a client that stops
+    #: reading never completes a close handshake, so its socket would stay open)
+    transport: Any = None
+    #: its socket's descriptor (the kernel's send queue: what it has not taken yet)
+    fd: int = -1
+    #: the size of the last frame written; a credit check is waiting to look again
+    last_bytes: int = 0
+    recheck: bool = False
+    #: since when the frames written have stayed in its send queue (None: it reads)
+    stuck_since: Optional[float] = None
+    #: frames from render being encoded now, and being written (the in-flight count's
+    #: repair, _keepalive)
+    encoding: int = 0
+    writing: int = 0
+    #: the newest frame number render sent: a view opened again after a render restart
+    #: numbers on from here, so its frames are not taken for old ones
+    seq_in: int = 0
+    #: the camera of the render stage's last reply: a view opened again keeps it
+    camera: Optional[dict] = None
     queue: collections.deque = field(default_factory=collections.deque)
     #: JSON messages (replies, picks, stats) waiting for the writer, sent before frames.
     texts: collections.deque = field(default_factory=collections.deque)
@@ -114,16 +212,63 @@ class ViewClient:
     playback_busy: bool = False
 
 
+#: Bytes a client's socket may hold unsent (besides two frames) and still get credit.
+UNSENT_BYTES = 16384
+
+
+def _unsent(fd: int) -> int:
+    """Bytes in the kernel's send queue of socket ``fd`` (written, not yet taken by the
+    peer: TIOCOUTQ); 0 where it cannot be read."""
+    if fd < 0:
+        return 0
+    try:
+        return struct.unpack("i", fcntl.ioctl(fd, termios.TIOCOUTQ, b"\0\0\0\0"))[0]
+    except OSError:
+        return 0
+
+
 def _count(c: dict, key: str, n: int = 1) -> None:
     c[key] = c.get(key, 0) + n
+
+
+def _no_constant(name: str):
+    raise BadMessage(f"{name} is not a JSON number")
+
+
+def _depth(v: Any) -> int:
+    """How deep ``v`` nests (without recursion: a hostile message may nest hundreds deep)."""
+    deepest, todo = 0, [(v, 1)]
+    while todo:
+        x, d = todo.pop()
+        deepest = max(deepest, d)
+        if deepest > MAX_DEPTH:
+            break
+        if isinstance(x, dict):
+            todo.extend((y, d + 1) for y in x.values())
+        elif isinstance(x, list):
+            todo.extend((y, d + 1) for y in x)
+    return deepest
+
+
+def _finite(v: Any) -> Any:
+    """``v`` with every non-finite float as null (valid JSON for the page)."""
+    if isinstance(v, float):
+        return v if v == v and abs(v) != float("inf") else None
+    if isinstance(v, dict):
+        return {k: _finite(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_finite(x) for x in v]
+    return v
 
 
 class ViewServer:
     def __init__(self, sc: ServeConfig, *, views_endpoint: str, playback_endpoints: dict[str, str], token: str,
                  zctx: zmq.Context, counters=None, spans=None, sources: Optional[list[str]] = None,
-                 color_by: Optional[list[str]] = None, colormaps: Optional[list[str]] = None):
+                 color_by: Optional[list[str]] = None, colormaps: Optional[list[str]] = None, run_dir: str = ""):
         self.sc = sc
         self.token = token
+        self.run_dir = run_dir or secrets.token_hex(8)
+        self.cookie = COOKIE  # named for the port once listening (auth.cookie_name)
         self.views_endpoint = views_endpoint
         self.playback_endpoints = playback_endpoints
         self.sources = sources or []
@@ -135,7 +280,8 @@ class ViewServer:
         for k in ("clients", "clients_total", "refused_token", "refused_origin", "refused_full", "bad_messages",
                   "rate_limited", "send_timeouts", "frames_in", "frames_sent", "dropped_frames", "bytes_sent",
                   "encode_errors", "control_sent", "control_dropped", "render_errors", "clients_gone",
-                  "client_errors", "server_errors", "bogus_acks", "dropped_messages"):
+                  "client_errors", "server_errors", "bogus_acks", "dropped_messages", "refused_host",
+                  "header_timeouts", "views_reopened", "credit_withheld"):
             self.extra.setdefault(k, 0)
         self._zctx_sync = zctx  # the shadow does not own it: keep it alive
         self.zctx = zmq.asyncio.Context.shadow(zctx.underlying)
@@ -154,20 +300,26 @@ class ViewServer:
     async def start(self) -> str:
         from aiohttp import web
 
-        self._filter = _OneLine(self.extra)
-        for name in ("aiohttp.server", "aiohttp.web", "aiohttp.websocket", "aiohttp.internal"):
+        self._filter = _OneLine(self.extra, self.token)
+        for name in ("aiohttp.server", "aiohttp.web", "aiohttp.websocket", "aiohttp.internal", "aiohttp.access",
+                     "aiohttp.client"):
             logging.getLogger(name).addFilter(self._filter)
         self._dealer = self.zctx.socket(zmq.DEALER)
         self._dealer.setsockopt(zmq.LINGER, 0)
         self._dealer.setsockopt(zmq.SNDHWM, 1000)
         self._dealer.setsockopt(zmq.RCVHWM, 64)  # frames are big: render's sends beyond this are dropped there
         self._dealer.connect(self.views_endpoint)
-        app = web.Application(client_max_size=self.sc.limits.max_message_bytes)
+        host_check = web.middleware(lambda request, handler: self._host_check(request, handler))
+        app = web.Application(client_max_size=self.sc.limits.max_message_bytes, middlewares=[host_check])
         app.router.add_get("/", self._index)
         app.router.add_get("/ws", self._ws)
         app.router.add_get("/{name}", self._static)
-        self._runner = web.AppRunner(app, access_log=None, handle_signals=False)
+        # an idle keep-alive connection goes after header_timeout_s (aiohttp's default: an hour);
+        # one that never finishes its first request head goes a little earlier, counted (_HeaderDeadline)
+        self._runner = web.AppRunner(app, access_log=None, handle_signals=False,
+                                     keepalive_timeout=self.sc.limits.header_timeout_s + 1.0)
         await self._runner.setup()
+        self._runner._server = _HeaderDeadline(self._runner.server, self.sc.limits.header_timeout_s, self.extra)
         ctx = None
         if self.sc.tls is not None:
             ctx = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
@@ -179,13 +331,14 @@ class ViewServer:
         host = f"[{host}]" if ":" in host else host
         self.url = f"{'https' if ctx else 'http'}://{host}:{port}/?token={self.token}"
         self.port = port
+        self.cookie = cookie_name(port, self.run_dir)
         self._tasks.append(asyncio.ensure_future(self._from_render()))
         self._tasks.append(asyncio.ensure_future(self._keepalive()))
         return self.url
 
     async def stop(self) -> None:
-        for c in list(self.clients.values()):
-            await self._drop_client(c, 1001, "the pipeline is stopping")
+        await asyncio.gather(*(self._drop_client(c, CLOSE_GOING_AWAY, "the pipeline is stopping")
+                               for c in list(self.clients.values())))
         for t in self._tasks:
             t.cancel()
         if self._runner is not None:
@@ -197,7 +350,7 @@ class ViewServer:
     def _warn(self, text: str, n: int) -> None:
         """A hostile client must not flood the log: the first 10 of a kind, then every 1000th."""
         if n <= 10 or n % 1000 == 0:
-            log.warning("%s", text)
+            log.warning("%s", printable(redact(text, self.token), 400))
 
     # ------------------------------------------------------------------ HTTP
     def _refuse(self, key: str, status: int, reason: str):
@@ -205,10 +358,19 @@ class ViewServer:
 
         _count(self.extra, key)
         self._warn(f"refused a client ({self.extra[key]} so far): {reason}", self.extra[key])
-        return web.Response(status=status, text=f"pointflow view: {reason}\n")
+        resp = web.Response(status=status, text=f"pointflow view: {printable(reason, 300)}\n")
+        resp.force_close()  # a refused connection is not kept alive
+        return resp
+
+    async def _host_check(self, request, handler):
+        """Every request's Host is checked before anything else (DNS rebinding)."""
+        why = check_host(request.headers.get("Host"), self.sc.host, self.sc.allowed_hosts)
+        if why is not None:
+            return self._refuse("refused_host", 403, why)
+        return await handler(request)
 
     def _auth(self, request) -> Optional[str]:
-        return check_token(request.query.get("token"), request.cookies.get(COOKIE), self.token)
+        return check_token(request.query.get("token"), request.cookies.get(self.cookie), self.token)
 
     async def _index(self, request):
         from aiohttp import web
@@ -218,7 +380,7 @@ class ViewServer:
             return self._refuse("refused_token", 403, why)
         if "token" in request.query:  # the token leaves the URL (history, screenshots): a cookie from now on
             resp = web.HTTPSeeOther("/")
-            resp.set_cookie(COOKIE, self.token, httponly=True, samesite="Strict", secure=self._tls, path="/")
+            resp.set_cookie(self.cookie, self.token, httponly=True, samesite="Strict", secure=self._tls, path="/")
             raise resp
         return self._file("index.html")
 
@@ -259,9 +421,11 @@ class ViewServer:
         ws = web.WebSocketResponse(max_msg_size=lim.max_message_bytes, compress=False, heartbeat=20.0,
                                    timeout=lim.send_timeout_s)
         sock = request.transport.get_extra_info("socket") if request.transport is not None else None
+        fd = -1
         if sock is not None:  # bounded: a client that stops reading holds at most this much
             try:
                 sock.setsockopt(socketlib.SOL_SOCKET, socketlib.SO_SNDBUF, lim.socket_buffer_bytes)
+                fd = sock.fileno()
             except OSError:
                 pass
         try:
@@ -270,12 +434,13 @@ class ViewServer:
             _count(self.extra, "clients_gone")
             return web.Response(status=400, text="gone\n")  # aiohttp drops it quietly (the peer is gone)
         view = f"w{self.extra['clients_total']}-{secrets.token_hex(4)}"
-        c = ViewClient(view, ws, self.sc.width, self.sc.height, tokens=lim.max_messages_per_s * 2)
+        c = ViewClient(view, ws, self.sc.width, self.sc.height, tokens=lim.max_messages_per_s * 2,
+                       transport=request.transport, fd=fd)
         self.clients[view] = c
         _count(self.extra, "clients_total")
         self.extra["clients"] = len(self.clients)
         writer = asyncio.ensure_future(self._writer(c))
-        reason = ""
+        reason, code = "", CLOSE_NORMAL
         try:
             self._to_render(view, "open", width=c.width, height=c.height)
             self._send_json(c, {"type": "hello", "view": view, "sources": self.sources,
@@ -287,30 +452,46 @@ class ViewServer:
                         await self._client_message(c, msg.data)
                     except BadMessage as exc:
                         _count(self.extra, "bad_messages")
-                        reason = f"bad message: {exc}"
-                        await ws.close(code=1008, message=str(exc)[:120].encode())
+                        reason, code = f"bad message: {exc}", CLOSE_POLICY
+                        await self._close_ws(c, CLOSE_POLICY, str(exc))
                         break
                 elif msg.type == WSMsgType.BINARY:
                     _count(self.extra, "bad_messages")
-                    reason = "bad message: binary messages are not taken"
-                    await ws.close(code=1003, message=b"binary messages are not taken")
+                    reason, code = "bad message: binary messages are not taken", 1003
+                    await self._close_ws(c, 1003, "binary messages are not taken")
                     break
                 elif msg.type == WSMsgType.ERROR:  # too big (aiohttp closes it with 1009)
                     _count(self.extra, "bad_messages")
-                    reason = f"bad message: {ws.exception()}"
+                    reason, code = f"bad message: {ws.exception()}", 1009
                     break
         except (ConnectionError, asyncio.TimeoutError):  # the client went away mid-message
             _count(self.extra, "clients_gone")
         except Exception as exc:  # noqa: BLE001 - one client's fault never reaches the others
             _count(self.extra, "client_errors")
-            reason = f"{type(exc).__name__}: {exc}"
+            reason, code = f"internal error: {type(exc).__name__}: {exc}", CLOSE_INTERNAL
         finally:
             writer.cancel()
             if reason:
-                self._warn(f"client {view} closed ({self.extra['bad_messages']} bad so far): {reason}",
-                           self.extra["bad_messages"])
-            await self._drop_client(c, 1000, "")
+                n = self.extra["bad_messages"] + self.extra["client_errors"]
+                self._warn(f"client {view} closed ({self.extra['bad_messages']} bad so far): {reason}", n)
+            await self._drop_client(c, code, "internal error" if code == CLOSE_INTERNAL else "")
         return ws
+
+    async def _close_ws(self, c: ViewClient, code: int, why: str) -> None:
+        """Close with ``code`` and a short reason; a client that does not take the close
+        frame within 2 s (it stopped reading) loses its connection outright."""
+        done = c.ws.closed
+        if not done:
+            # not wait_for: a close stuck behind a full socket does not end when cancelled
+            closing = asyncio.ensure_future(c.ws.close(code=code, message=printable(why, 120).encode()[:123]))
+            closing.add_done_callback(lambda f: f.cancelled() or f.exception())  # retrieved: no warning
+            await asyncio.wait({closing}, timeout=2.0)
+            done = closing.done() and not closing.cancelled() and closing.exception() is None
+        t = c.transport
+        # a transport closed with data it cannot send (the client stopped reading) stays
+        # ESTABLISHED, holding its buffers, until the kernel gives up: abort it
+        if t is not None and (not done or t.get_write_buffer_size() > 0):
+            t.abort()
 
     async def _drop_client(self, c: ViewClient, code: int, why: str) -> None:
         if c.closed:
@@ -320,11 +501,7 @@ class ViewServer:
         self.extra["clients"] = len(self.clients)
         self._to_render(c.view, "close")
         c.wake.set()
-        if not c.ws.closed:
-            try:
-                await asyncio.wait_for(c.ws.close(code=code, message=why.encode()), 2.0)
-            except (asyncio.TimeoutError, ConnectionError, RuntimeError):
-                pass
+        await self._close_ws(c, code, why)
 
     def _limit_rate(self, c: ViewClient) -> None:
         now = time.monotonic()
@@ -339,11 +516,15 @@ class ViewServer:
     async def _client_message(self, c: ViewClient, text: str) -> None:
         self._limit_rate(c)
         try:
-            msg = json.loads(text)
-        except ValueError:
-            raise BadMessage("not JSON") from None
+            msg = json.loads(text, parse_constant=_no_constant)
+        except (ValueError, RecursionError) as exc:  # incl. NaN/Infinity, digits past Python's limit, deep nesting
+            raise BadMessage("not JSON" + (f" ({exc})" if isinstance(exc, BadMessage) else "")) from None
         if not isinstance(msg, dict) or not isinstance(msg.get("cmd"), str):
             raise BadMessage("expected a JSON object with 'cmd'")
+        if _depth(msg) > MAX_DEPTH:
+            raise BadMessage(f"nested deeper than {MAX_DEPTH} levels")
+        if "view" in msg:  # the envelope's key: a client does not name views
+            raise BadMessage("'view' is not an argument a client gives (each connection is one view)")
         cmd = msg.pop("cmd")
         req = msg.get("req")
         if req is not None and (isinstance(req, bool) or not isinstance(req, int)):
@@ -367,10 +548,11 @@ class ViewServer:
         elif cmd in CONTROL:
             self._to_render(c.view, cmd, **msg)
         elif cmd == "pick":
-            x, y = msg.get("x"), msg.get("y")
-            if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in (x, y)):
-                raise BadMessage("pick: x and y must be numbers (pixels of the view)")
-            self._to_render(c.view, "pick", x=float(x), y=float(y), req=req)
+            try:
+                x, y = (number(msg.get(k), f"pick.{k}", -1e6, 1e6) for k in ("x", "y"))
+            except ControlError as exc:
+                raise BadMessage(f"{exc} (pixels of the view)") from None
+            self._to_render(c.view, "pick", x=x, y=y, req=req)
         elif cmd == "playback":
             if c.playback_busy:  # one at a time per client: no pile of sockets waiting on an ended replay
                 self._send_json(c, {"type": "error", "req": req, "key": "playback",
@@ -383,14 +565,39 @@ class ViewServer:
 
     def _grant(self, c: ViewClient, again: bool = False) -> None:
         """Tell render how many frames this view may take now (absolute: render sets its
-        credit to ``n``): two less the frames not yet shown by the page."""
+        credit to ``n``): two less the frames not yet shown by the page, and none while the
+        frames written are still in the kernel's send queue: a client that acks frames it
+        never reads (a "liar") gets no more than its socket has taken."""
+        if c.closed:
+            return
         n = max(0, MAX_IN_FLIGHT - c.in_flight)
-        if (n != c.granted or again) and not c.closed:
+        if n > 0 and _unsent(c.fd) <= max(2 * c.last_bytes, UNSENT_BYTES):
+            c.stuck_since = None
+        elif n > 0:
+            n = 0
+            _count(self.extra, "credit_withheld")
+            if c.stuck_since is None:
+                c.stuck_since = time.monotonic()
+            if not c.recheck:  # look again soon: an honest client on a slow link
+                c.recheck = True
+                asyncio.get_running_loop().call_later(0.05, self._recheck, c)
+        if n != c.granted or again:
             c.granted = n
             self._to_render(c.view, "credit", n=n)
 
+    def _recheck(self, c: ViewClient) -> None:
+        c.recheck = False
+        self._grant(c)
+
+    def _too_slow(self, c: ViewClient) -> None:
+        """A client that has taken nothing for ``send_timeout_s`` is closed (its own only)."""
+        _count(self.extra, "send_timeouts")
+        self._warn(f"client {c.view} closed: it took nothing for {self.sc.limits.send_timeout_s:g} s "
+                   f"({self.extra['send_timeouts']} so far)", self.extra["send_timeouts"])
+        asyncio.ensure_future(self._drop_client(c, CLOSE_POLICY, "too slow"))
+
     def _to_render(self, view: str, cmd: str, **args) -> None:
-        msg = {"view": view, "cmd": cmd, **args}
+        msg = {**args, "view": view, "cmd": cmd}
         try:
             self._dealer.send(json.dumps(msg).encode(), zmq.NOBLOCK)
             _count(self.extra, "control_sent")
@@ -405,7 +612,11 @@ class ViewServer:
         if len(c.texts) >= MAX_TEXTS:
             c.texts.popleft()
             _count(self.extra, "dropped_messages")
-        c.texts.append(json.dumps(msg))
+        try:
+            text = json.dumps(msg, allow_nan=False)
+        except ValueError:  # NaN is not JSON: the page's JSON.parse would throw the message away
+            text = json.dumps(_finite(msg), allow_nan=False)
+        c.texts.append(text)
         c.wake.set()
 
     # ------------------------------------------------------------------ playback (the timeline)
@@ -468,16 +679,45 @@ class ViewServer:
                 _count(self.extra, "frames_in")
                 c.granted = max(0, c.granted - 1)
                 c.in_flight += 1
+                c.encoding += 1
+                seq = head.get("seq")
+                if isinstance(seq, int) and not isinstance(seq, bool):
+                    c.seq_in = max(c.seq_in, seq)
                 asyncio.ensure_future(self._encode(c, head, parts[1]))
             elif kind == "error" and head.get("key") == "view" and "unknown view" in str(head.get("error")):
-                # the render stage restarted and lost the view: open it again
-                self._to_render(c.view, "open", width=c.width, height=c.height)
-                c.in_flight = 0
-                self._grant(c, again=True)
+                self._reopen(c)
             else:
+                if kind == "reply" and isinstance(head.get("camera"), dict):
+                    c.camera = head["camera"]
                 self._send_json(c, head)
 
+    def _reopen(self, c: ViewClient) -> None:
+        """The render stage restarted and lost the view: open it again with its size, its
+        camera and a frame number past every frame already seen (else the new stage's
+        frames, numbered from 1, would be taken for old ones and dropped), then give credit
+        for the frames the page does not hold."""
+        _count(self.extra, "views_reopened")
+        state = {"camera": c.camera} if c.camera is not None else None
+        self._to_render(c.view, "open", width=c.width, height=c.height, seq=max(c.seq_in, c.last_sent_seq, 0),
+                        **({"state": state} if state else {}))
+        self._repair_in_flight(c)
+        self._grant(c, again=True)
+
+    def _repair_in_flight(self, c: ViewClient) -> None:
+        """Frames in flight are those being encoded, queued, or written and not yet acked;
+        any counted beyond (lost with a dead render stage or a failed write) are forgotten,
+        so a view never waits for frames that will not come."""
+        real = c.encoding + len(c.queue) + c.writing + c.unacked
+        if c.in_flight > real:
+            c.in_flight = real
+
     async def _encode(self, c: ViewClient, head: dict, frame) -> None:
+        try:
+            await self._encode_one(c, head, frame)
+        finally:
+            c.encoding = max(0, c.encoding - 1)
+
+    async def _encode_one(self, c: ViewClient, head: dict, frame) -> None:
         loop = asyncio.get_running_loop()
         t0 = time.monotonic_ns()
         try:
@@ -485,7 +725,7 @@ class ViewServer:
                                              int(head["height"]), bool(head.get("moving")), self.sc.jpeg_quality)
         except Exception as exc:  # noqa: BLE001 - one bad frame is counted, the view goes on
             _count(self.extra, "encode_errors")
-            log.warning("a frame of view %s could not be encoded: %s", c.view, exc)
+            log.warning("a frame of view %s could not be encoded: %s", c.view, printable(exc))
             c.in_flight = max(0, c.in_flight - 1)
             self._grant(c)
             return
@@ -528,20 +768,21 @@ class ViewServer:
                 text = c.texts.popleft() if c.texts else None
                 if text is None:
                     seq, data = c.queue.popleft()
+                    c.writing = 1
                 try:
                     send = c.ws.send_str(text) if text is not None else c.ws.send_bytes(data)
                     await asyncio.wait_for(send, self.sc.limits.send_timeout_s)
                 except asyncio.TimeoutError:
-                    _count(self.extra, "send_timeouts")
-                    self._warn(f"client {c.view} closed: it took nothing for {self.sc.limits.send_timeout_s:g} s "
-                               f"({self.extra['send_timeouts']} so far)", self.extra["send_timeouts"])
-                    asyncio.ensure_future(self._drop_client(c, 1008, "too slow"))
+                    self._too_slow(c)
                     return
                 except (ConnectionError, RuntimeError):
                     return
+                finally:
+                    c.writing = 0
                 if text is not None:
                     continue
                 c.last_sent_seq = seq
+                c.last_bytes = len(data)
                 c.unacked += 1
                 c.frames_sent += 1
                 c.bytes_sent += len(data)
@@ -559,8 +800,13 @@ class ViewServer:
             self.update_stats()
             rs = self.render_stats
             for c in list(self.clients.values()):
-                if c.in_flight == 0:  # nothing on its way: say the credit again (a lost one must not stall)
-                    self._grant(c, again=True)
+                # say the credit again, every second: a lost one must not stall a view, and a
+                # render stage that restarted answers "unknown view" (the view is opened again)
+                self._repair_in_flight(c)
+                self._grant(c, again=True)
+                if c.stuck_since is not None and time.monotonic() - c.stuck_since > self.sc.limits.send_timeout_s:
+                    self._too_slow(c)
+                    continue
                 self._send_json(c, {"type": "stats", "points": rs.get("points"), "fps": rs.get("fps"),
                                           "sources": rs.get("sources", self.sources),
                                           "view": self.view_stats(c), "clients": len(self.clients)})
@@ -581,3 +827,4 @@ class ViewServer:
         e["views"] = {c.view: self.view_stats(c) for c in self.clients.values()}
         e["url"] = self.url.split("?")[0]
         e["port"] = getattr(self, "port", 0)
+        e["cookie"] = self.cookie  # the token cookie's name (not secret): per run and port

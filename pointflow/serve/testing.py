@@ -14,16 +14,16 @@ __all__ = ["raw_websocket", "masked_frame"]
 def raw_websocket(base: str, token: str, *, rcvbuf: int = 4096, wait_upgrade: bool = True,
                   timeout: float | None = None) -> socket.socket:
     """Open ``base``'s WebSocket (``http://host:port``) by hand with a tiny receive buffer and
-    the token's cookie; with ``wait_upgrade`` read up to the end of the 101 answer (and check
+    the token in the query (the cookie's name is per run: auth.cookie_name); with
+    ``wait_upgrade`` read up to the end of the 101 answer (and check
     it), otherwise return at once without reading anything."""
     host, port = base.rsplit("//", 1)[1].split(":")
     s = socket.socket()
     s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
     s.connect((host, int(port)))
     key = base64.b64encode(os.urandom(16)).decode()
-    s.sendall((f"GET /ws HTTP/1.1\r\nHost: {host}:{port}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
-               f"Sec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\nCookie: pointflow_view={token}\r\n\r\n"
-               ).encode())
+    s.sendall((f"GET /ws?token={token} HTTP/1.1\r\nHost: {host}:{port}\r\nUpgrade: websocket\r\n"
+               f"Connection: Upgrade\r\nSec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n\r\n").encode())
     if wait_upgrade:
         head = b""
         while b"\r\n\r\n" not in head:

@@ -68,13 +68,30 @@ def http_get(url: str, headers: dict | None = None) -> tuple[int, str, dict]:
         return e.code, e.read().decode(errors="replace"), dict(e.headers)
 
 
+_COOKIE_NAMES: dict[str, str] = {}
+
+
+def cookie_name(base: str) -> str:
+    """The name of the token cookie this server sets (per run and port), as a browser
+    learns it: from the Set-Cookie of the view: URL's redirect."""
+    if base not in _COOKIE_NAMES:
+        code, _, headers = http_get(f"{base}/?token={TOKEN}")
+        assert code == 303, code
+        _COOKIE_NAMES[base] = headers["Set-Cookie"].split("=", 1)[0].split()[-1]
+    return _COOKIE_NAMES[base]
+
+
+def cookie_header(base: str, token: str = TOKEN) -> str:
+    return f"{cookie_name(base)}={token}"
+
+
 def ws_connect(base: str, *, token: str | None = TOKEN, origin: str | None = "same", **kw):
     """A WebSocket to the view server (the websockets sync client), as a page would open it."""
     from websockets.sync.client import connect
 
     headers = {}
-    if token is not None:
-        headers["Cookie"] = f"pointflow_view={token}"
+    if token is not None:  # the page's cookie is named per run and port: cookie_header() gives it
+        headers["Cookie"] = cookie_header(base, token)
     if origin == "same":
         origin = base
     ws = connect(base.replace("http://", "ws://") + "/ws", additional_headers=headers, origin=origin,
@@ -105,3 +122,31 @@ def read_until(ws, pred, timeout: float = 60.0):
 
 def is_frame(msg) -> bool:
     return isinstance(msg, tuple)
+
+
+def good_client(base):
+    ws = ws_connect(base)
+    read_until(ws, lambda m: isinstance(m, dict) and m.get("type") == "hello")
+    read_until(ws, is_frame)
+    return ws
+
+
+def frames_keep_coming(ws, n: int = 2) -> None:
+    for _ in range(n):
+        read_until(ws, is_frame, timeout=60)
+
+
+def closed_with(ws, codes) -> int:
+    from websockets.exceptions import ConnectionClosed
+
+    end = time.monotonic() + 30
+    while time.monotonic() < end:
+        try:
+            ws.recv(timeout=1)
+        except TimeoutError:
+            continue
+        except ConnectionClosed as exc:
+            code = exc.rcvd.code if exc.rcvd is not None else None
+            assert code in codes, (code, codes)
+            return code
+    raise AssertionError("the bad client was not closed")

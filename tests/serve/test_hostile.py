@@ -13,21 +13,17 @@ import time
 
 import pytest
 
-from pointflow import Pipeline
 from pointflow.serve.testing import masked_frame, raw_websocket
 
-from .helpers import TOKEN, base_url, config, is_frame, read_until, serve_stats, synthetic_source, ws_connect
+from .conftest import LIMITS
+from .helpers import (TOKEN, base_url, closed_with, frames_keep_coming, good_client, is_frame, read_until,
+                      serve_stats, ws_connect)
 
-LIMITS = {"max_message_bytes": 4096, "max_messages_per_s": 50.0, "send_timeout_s": 3.0, "queue_frames": 2}
 
-
-@pytest.fixture(scope="module")
-def pipe(tmp_path_factory):
-    cfg = config(synthetic_source(), serve={"limits": LIMITS, "width": 96, "height": 72}, size=(96, 72))
-    with Pipeline.from_dict(cfg, out_dir=str(tmp_path_factory.mktemp("hostile"))) as p:
-        base_url(p)
-        p.wait(60, until=lambda: p.stats()["stages"]["render"].get("frames", 0) > 2)
-        yield p
+@pytest.fixture
+def pipe(hostile_pipe):
+    """The package's pipeline (conftest.py), shared with test_attacks.py."""
+    return hostile_pipe
 
 
 def _render_frames(pipe) -> int:
@@ -37,34 +33,6 @@ def _render_frames(pipe) -> int:
     return r.get("frames", 0) + r.get("view_frames", 0)
 
 
-def _good_client(base):
-    ws = ws_connect(base)
-    read_until(ws, lambda m: isinstance(m, dict) and m.get("type") == "hello")
-    read_until(ws, is_frame)
-    return ws
-
-
-def _frames_keep_coming(ws, n: int = 2) -> None:
-    for _ in range(n):
-        read_until(ws, is_frame, timeout=60)
-
-
-def _closed_with(ws, codes) -> int:
-    from websockets.exceptions import ConnectionClosed
-
-    end = time.monotonic() + 30
-    while time.monotonic() < end:
-        try:
-            ws.recv(timeout=1)
-        except TimeoutError:
-            continue
-        except ConnectionClosed as exc:
-            code = exc.rcvd.code if exc.rcvd is not None else None
-            assert code in codes, (code, codes)
-            return code
-    raise AssertionError("the bad client was not closed")
-
-
 def _wait_stat(pipe, key, at_least, timeout=20):
     pipe.wait(timeout, until=lambda: serve_stats(pipe).get(key, 0) >= at_least)
     return serve_stats(pipe).get(key, 0)
@@ -72,7 +40,8 @@ def _wait_stat(pipe, key, at_least, timeout=20):
 
 def test_bad_messages_close_that_client_only(pipe):
     base = base_url(pipe)
-    good = _good_client(base)
+    good = good_client(base)
+    restarts0 = serve_stats(pipe)["restarts"]
     bad0 = serve_stats(pipe).get("bad_messages", 0)
     f0 = _render_frames(pipe)
     cases = [("text", "this is not json", {1008}), ("text", json.dumps([1, 2]), {1008}),
@@ -83,19 +52,19 @@ def test_bad_messages_close_that_client_only(pipe):
         ws = ws_connect(base)
         read_until(ws, lambda m: isinstance(m, dict) and m.get("type") == "hello")
         ws.send(payload)
-        _closed_with(ws, codes)
+        closed_with(ws, codes)
         ws.close()
     assert _wait_stat(pipe, "bad_messages", bad0 + len(cases)) == bad0 + len(cases)
-    _frames_keep_coming(good)
+    frames_keep_coming(good)
     # a control message the render stage refuses is NOT a bad message: an error reply, the client stays
     good.send(json.dumps({"cmd": "zoom", "factor": -1, "req": 7}))
     err = read_until(good, lambda m: isinstance(m, dict) and m.get("type") == "error")
     assert err["req"] == 7 and err["key"] == "zoom.factor"
-    _frames_keep_coming(good)
+    frames_keep_coming(good)
     pipe.wait(10, until=lambda: _render_frames(pipe) > f0)  # counts come with heartbeats
     assert _render_frames(pipe) > f0
     good.close()
-    assert pipe.stats()["stages"]["serve"]["restarts"] == 0
+    assert pipe.stats()["stages"]["serve"]["restarts"] == restarts0
     assert serve_stats(pipe).get("server_errors", 0) == 0 and serve_stats(pipe).get("client_errors", 0) == 0
 
 
@@ -104,9 +73,9 @@ def _hit_and_run(base: str, payload: bytes, reset: bool) -> None:
     s = socket.create_connection(tuple(base.rsplit("//", 1)[1].split(":")) and
                                  (base.rsplit("//", 1)[1].split(":")[0], int(base.rsplit(":", 1)[1])))
     key = base64.b64encode(os.urandom(16)).decode()
-    s.sendall((f"GET /ws HTTP/1.1\r\nHost: x\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
-               f"Sec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\nCookie: pointflow_view={TOKEN}\r\n\r\n"
-               ).encode() + payload)
+    s.sendall((f"GET /ws?token={TOKEN} HTTP/1.1\r\nHost: 127.0.0.1\r\nUpgrade: websocket\r\n"
+               f"Connection: Upgrade\r\nSec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n\r\n").encode()
+              + payload)
     if reset:
         s.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))  # a reset, not a goodbye
     s.close()
@@ -114,11 +83,11 @@ def _hit_and_run(base: str, payload: bytes, reset: bool) -> None:
 
 def test_clients_that_leave_at_once(pipe):
     base = base_url(pipe)
-    good = _good_client(base)
+    good = good_client(base)
     e0 = serve_stats(pipe).get("server_errors", 0)
     for i in range(60):
         _hit_and_run(base, _masked("garbage" * (i % 3)) if i % 2 else b"", reset=i % 4 < 2)
-    _frames_keep_coming(good)
+    frames_keep_coming(good)
     pipe.wait(20, until=lambda: serve_stats(pipe).get("clients", 0) == 1)
     assert serve_stats(pipe)["clients"] == 1
     good.close()
@@ -128,7 +97,7 @@ def test_clients_that_leave_at_once(pipe):
 
 def test_a_flood_is_cut_off(pipe):
     base = base_url(pipe)
-    good = _good_client(base)
+    good = good_client(base)
     r0 = serve_stats(pipe).get("rate_limited", 0)
     ws = ws_connect(base)
     from websockets.exceptions import ConnectionClosed
@@ -139,7 +108,7 @@ def test_a_flood_is_cut_off(pipe):
         ws.recv(timeout=30)
         ws.recv(timeout=30)
     assert _wait_stat(pipe, "rate_limited", r0 + 1) >= r0 + 1
-    _frames_keep_coming(good)
+    frames_keep_coming(good)
     good.close()
 
 
@@ -156,7 +125,7 @@ def test_a_client_that_never_reads(pipe):
     full nothing more is written, its acks for frames never written are counted
     (bogus_acks) and give no credit, and it is closed after send_timeout_s; the others go on."""
     base = base_url(pipe)
-    good = _good_client(base)
+    good = good_client(base)
     st0 = serve_stats(pipe)
     bad = _raw_ws(base)
     bad.settimeout(0.5)
@@ -170,7 +139,7 @@ def test_a_client_that_never_reads(pipe):
                 bad.sendall(_masked('{"cmd": "ack"}'))
             except (BlockingIOError, TimeoutError, socket.timeout, OSError):
                 pass
-            _frames_keep_coming(good, 1)
+            frames_keep_coming(good, 1)
             st = serve_stats(pipe)
             if st.get("send_timeouts", 0) > st0.get("send_timeouts", 0):
                 break
@@ -180,7 +149,7 @@ def test_a_client_that_never_reads(pipe):
     st = serve_stats(pipe)
     assert st["send_timeouts"] > st0.get("send_timeouts", 0), st
     assert st["bogus_acks"] > st0.get("bogus_acks", 0), st
-    _frames_keep_coming(good)
+    frames_keep_coming(good)
     good.close()
     pipe.wait(20, until=lambda: serve_stats(pipe).get("clients", 1) == 0)
     assert serve_stats(pipe)["clients"] == 0 and serve_stats(pipe)["clients_total"] >= c0
@@ -194,6 +163,7 @@ def test_fifty_clients_at_once_and_nothing_leaks(pipe):
     base = base_url(pipe)
     pid = pipe.stats()["stages"]["serve"]["pid"]
     fd0 = _fds(pid)
+    restarts0 = (serve_stats(pipe)["restarts"], pipe.stats()["stages"]["render"]["restarts"])
     f0 = _render_frames(pipe)
     clients = []
     try:
@@ -221,4 +191,4 @@ def test_fifty_clients_at_once_and_nothing_leaks(pipe):
     f1 = _render_frames(pipe)
     pipe.wait(30, until=lambda: _render_frames(pipe) > f1 + 2)
     assert _render_frames(pipe) > f1 + 2
-    assert pipe.stats()["stages"]["serve"]["restarts"] == 0 and pipe.stats()["stages"]["render"]["restarts"] == 0
+    assert (serve_stats(pipe)["restarts"], pipe.stats()["stages"]["render"]["restarts"]) == restarts0

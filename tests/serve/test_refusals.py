@@ -14,7 +14,7 @@ import pytest
 
 from pointflow import Pipeline
 
-from .helpers import TOKEN, base_url, config, http_get, serve_stats, synthetic_source, ws_connect
+from .helpers import TOKEN, base_url, config, cookie_header, http_get, serve_stats, synthetic_source, ws_connect
 
 
 @pytest.fixture(scope="module")
@@ -39,10 +39,12 @@ def test_page_needs_the_token_then_a_cookie(pipe):
     code, _, headers = http_get(f"{base}/?token={TOKEN}")
     assert code == 303 and headers["Location"] == "/"  # the token leaves the address bar
     cookie = headers["Set-Cookie"]
-    assert f"pointflow_view={TOKEN}" in cookie and "HttpOnly" in cookie and "SameSite=Strict" in cookie
-    code, body, _ = http_get(base + "/", {"Cookie": f"pointflow_view={TOKEN}"})
+    port = base.rsplit(":", 1)[1]
+    assert re.match(rf"pointflow_view_{port}_[0-9a-f]{{10}}={TOKEN};", cookie), cookie  # per run and port
+    assert "HttpOnly" in cookie and "SameSite=Strict" in cookie
+    code, body, _ = http_get(base + "/", {"Cookie": cookie_header(base)})
     assert code == 200 and "view.js" in body
-    code, body, _ = http_get(base + "/view.js", {"Cookie": f"pointflow_view={TOKEN}"})
+    code, body, _ = http_get(base + "/view.js", {"Cookie": cookie_header(base)})
     assert code == 200 and "WebSocket" in body
     pipe.wait(10, until=lambda: serve_stats(pipe)["refused_token"] >= 3)  # counts come with the next heartbeat
     assert serve_stats(pipe)["refused_token"] >= 3
@@ -51,7 +53,8 @@ def test_page_needs_the_token_then_a_cookie(pipe):
 @pytest.mark.parametrize("path", ["/config.py", "/../../etc/passwd", "/static/../server.py", "/%2e%2e/auth.py",
                                   "/__init__.py", "/static/index.html"])
 def test_only_the_pages_own_files_are_served(pipe, path):
-    code, body, _ = http_get(base_url(pipe) + path, {"Cookie": f"pointflow_view={TOKEN}"})
+    base = base_url(pipe)
+    code, body, _ = http_get(base + path, {"Cookie": cookie_header(base)})
     assert code == 404, (path, code)
     assert "import" not in body
 
@@ -137,7 +140,7 @@ def test_a_killed_view_server_comes_back_on_the_same_url(pipe):
     end = time.monotonic() + 60
     while time.monotonic() < end:
         try:
-            code, body, _ = http_get(base + "/", {"Cookie": f"pointflow_view={TOKEN}"})
+            code, body, _ = http_get(base + "/", {"Cookie": cookie_header(base)})
             break
         except OSError:
             pipe.wait(0.5)
@@ -177,8 +180,8 @@ def test_tls(tmp_path):
             urllib.request.urlopen(f"http://127.0.0.1:{port}/?token={TOKEN}", timeout=10).read()
         from websockets.sync.client import connect
 
-        with connect(f"wss://127.0.0.1:{port}/ws", ssl=ctx, origin=f"https://127.0.0.1:{port}",
-                     additional_headers={"Cookie": f"pointflow_view={TOKEN}"}, open_timeout=20) as ws:
+        with connect(f"wss://127.0.0.1:{port}/ws?token={TOKEN}", ssl=ctx, origin=f"https://127.0.0.1:{port}",
+                     open_timeout=20) as ws:
             assert '"hello"' in ws.recv(timeout=20)
 
 

@@ -87,3 +87,20 @@ def test_token_and_origin_rules(tmp_path):
     assert "not allowed" in check_origin("http://127.0.0.1:9999", "127.0.0.1:8000", "http", [])
     assert "not allowed" in check_origin("https://127.0.0.1:8000", "127.0.0.1:8000", "http", [])
     assert check_origin("https://ops.example", "10.0.0.2:8000", "https", ["https://ops.example"]) is None
+
+
+@pytest.mark.parametrize("bad", ["http://view.example.org", "view.example.org/path", "a b", "", "host:port"])
+def test_allowed_hosts_are_checked_at_load(bad):
+    with pytest.raises(ConfigError) as exc:
+        _load({"allowed_hosts": ["ok.example.org", bad]})
+    assert exc.value.path == "serve.allowed_hosts[1]" and "\n" not in str(exc.value)
+    assert _load({"allowed_hosts": ["view.example.org", "view.example.org:443", "[::1]:8765"]}).serve.allowed_hosts
+
+
+def test_the_host_rule():
+    from pointflow.serve.auth import check_host
+
+    for ok in ("127.0.0.1:8765", "localhost:8765", "[::1]:8765", "10.1.2.3", "proxy.lan:443"):
+        assert check_host(ok, "127.0.0.1", ["proxy.lan"]) is None, ok
+    for bad in ("evil.example:8765", "127.0.0.1.evil.example", "", None):
+        assert check_host(bad, "127.0.0.1", ["proxy.lan"]) is not None, bad

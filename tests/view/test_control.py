@@ -188,7 +188,7 @@ def test_bad_control_messages_are_refused_and_the_pipeline_goes_on(tmp_path):
             (lambda: pipe.camera(fov_deg=180.0), "camera.fov_deg", "(0, 180)"),
             (lambda: pipe.style(color_by="hieght"), "style.color_by", "ring.extra_channels"),
             (lambda: pipe.style(colormap="jet"), "style.colormap", "turbo, viridis, grayscale"),
-            (lambda: pipe.style(point_size=-1), "style.point_size", "(0, 4096]"),
+            (lambda: pipe.style(point_size=-1), "style.point_size", "(0, 32]"),
             (lambda: pipe.zoom(0.0), "zoom.factor", "> 0"),
             (lambda: pipe.control({"cmd": "spin"}), "cmd", "camera, orbit"),
             (lambda: pipe.control({"cmd": "camera", "eyes": [0, 0, 1]}), "camera.eyes", "unknown argument"),

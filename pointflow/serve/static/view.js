@@ -28,7 +28,7 @@
     ws.onopen = () => { statusEl.textContent = "waiting for the first frame…"; };
     ws.onclose = (e) => {
       // the view server restarted or the link dropped: try again; a refusal (bad message) stays closed
-      const again = ![1003, 1008, 1009].includes(e.code);
+      const again = ![1003, 1008, 1009, 1011].includes(e.code);  // 1011: the server failed on a message of ours
       statusEl.textContent = `disconnected (${e.code}${e.reason ? ": " + e.reason : ""})` + (again ? " — reconnecting…" : " — reload to reconnect");
       if (again) setTimeout(connect, 1000);
     };
