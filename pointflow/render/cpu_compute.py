@@ -36,8 +36,15 @@ from .rules import (EDL_SCALE, budget_fraction, budget_seed, check_frame, edl_of
 __all__ = ["CpuComputeRenderer"]
 
 ENV_SPLIT = "POINTFLOW_CPU_RASTER_SPLIT"
-#: how the threads share the work (bench/bench_render.py --cpu-raster measures both)
-DEFAULT_SPLIT = "points"
+#: how the threads share the work (bench/bench_render.py --cpu-raster measures them)
+SPLITS = ("bins", "points", "bands")
+DEFAULT_SPLIT = "bins"
+#: split by bins: logical indices per chunk of the binning pass (its scratch stays in cache)
+BIN_CHUNK = 4096
+#: split by bins: rows per screen band (a thread's band of keys, BH x width x 8 bytes, in cache)
+BAND_ROWS = 16
+#: split by bins: first guess of records per point (a box crossing a band edge is in two bands)
+RECORDS_PER_POINT = 1.125
 #: split by points: chunks of logical indices per thread, taken as threads come free
 CHUNKS_PER_THREAD = 8
 ENV_ADAPTIVE = "POINTFLOW_CPU_RASTER_ADAPTIVE"
@@ -45,6 +52,34 @@ ENV_ADAPTIVE = "POINTFLOW_CPU_RASTER_ADAPTIVE"
 TUNE_FRAMES = 3
 RETRY_EVERY = 30
 
+
+
+class _Bins:
+    """The binned raster's records of the last frame (per target size: picking reads them)."""
+
+    def __init__(self) -> None:
+        self.C = 0          # chunks drawn
+        self.RC = 0         # records per chunk region
+        self.BH = BAND_ROWS
+        self.NB = 0         # bands (bucket NB: boxes over MAX_BANDS_PER_POINT bands)
+        self.rkey = np.zeros(1, np.uint64)
+        self.rbox = np.zeros(1, np.uint64)
+        self.rf = np.zeros((1, 3), np.float64)
+        self.off = np.zeros((0, 2), np.int64)
+
+    def ready(self, chunks: int, per_chunk: int, round_: bool, H: int) -> None:
+        """Room for ``chunks`` regions of ``per_chunk`` records (grown, never shrunk)."""
+        self.NB = -(-H // self.BH)
+        n = chunks * per_chunk
+        if self.rkey.shape[0] < n or self.RC != per_chunk:
+            self.RC = per_chunk
+            self.rkey = np.empty(max(n, 1), np.uint64)
+            self.rbox = np.empty(max(n, 1), np.uint64)
+        if round_ and self.rf.shape[0] < n:
+            self.rf = np.empty((max(n, 1), 3), np.float64)
+        if self.off.shape != (chunks, self.NB + 2):
+            self.off = np.zeros((chunks, self.NB + 2), np.int64)
+        self.C = chunks
 
 
 def _pack(c: np.ndarray) -> np.uint32:
@@ -80,9 +115,14 @@ class CpuComputeRenderer(Renderer):
         #: writes its rows) or by points (one buffer per thread, merged in the resolve);
         #: env POINTFLOW_CPU_RASTER_SPLIT=bands|points, default DEFAULT_SPLIT (measured faster)
         split = os.environ.get(ENV_SPLIT, "").strip().lower() or DEFAULT_SPLIT
-        if split not in ("bands", "points"):
-            raise RenderError(f"${ENV_SPLIT}={split!r}: expected bands or points")
+        if split not in SPLITS:
+            raise RenderError(f"${ENV_SPLIT}={split!r}: expected one of {', '.join(SPLITS)}")
+        self.split = split
         self.bands = split == "bands"
+        self._bins = _Bins()
+        self._records_per_point = RECORDS_PER_POINT
+        self._bin_scratch: tuple = ()
+        self._drew = False
         self.threads = 1
         #: thread count chosen per frame by measurement (env POINTFLOW_CPU_RASTER_ADAPTIVE=0: always all)
         self._adaptive = os.environ.get(ENV_ADAPTIVE, "1") not in ("0", "false", "no")
@@ -200,6 +240,7 @@ class CpuComputeRenderer(Renderer):
         saved = (self._cap, self._pos, self._t, self._imp, self._cval, self._rgb, self._origin)
         try:
             self.render(f, cam)
+            self.winners(0, 1, 0, 1)  # the binned pick (keys of a few rows)
             # the one-thread scalar resolve (not reached by the frame above)
             empty = np.full((1, self.width * self.height), cpu_kernels.EMPTY, np.uint64)
             self._k.resolve_scalar_1(empty, self._img, 0, cap, self._single, self._bg,
@@ -208,10 +249,47 @@ class CpuComputeRenderer(Renderer):
             self._cap, self._pos, self._t, self._imp, self._cval, self._rgb, self._origin = saved
             self._img[:] = self._bg
             self._keys[:] = cpu_kernels.EMPTY
+            self._bins, self._drew = _Bins(), False
             self._synced_mode = None
             self.frames = 0
             self.nonfinite_total = 0
             self._tune, self._tune_n, self.frames_at = {}, 0, {}
+
+    # ---------------------------------------------------------------- binned raster
+    def _bin_pass(self, C: int, st, vr, mask, use_mask, head, size, cap, vp, planes, half, world, size_scale, round_,
+                  has_window, now, window, lod, has_imp, imp_deg, imp_lo, imp_scale, seed_h, range_mode,
+                  eps_s) -> None:
+        """Pass 1 (rules, projection, boxes, records sorted by band); run again with larger
+        chunk regions when a chunk needed more records than its region holds."""
+        bn, W, H = self._bins, self.width, self.height
+        nt = max(1, int(cpu_kernels.numba.config.NUMBA_NUM_THREADS))
+        if len(self._bin_scratch) == 0 or self._bin_scratch[0].shape[0] < nt or \
+                self._bin_scratch[3].shape[1] != -(-H // bn.BH) + 2 or (round_ and self._bin_scratch[2].shape[1] == 1):
+            self._bin_scratch = (np.empty((nt, BIN_CHUNK), np.uint64), np.empty((nt, BIN_CHUNK), np.uint64),
+                                 np.empty((nt, BIN_CHUNK if round_ else 1, 3), np.float64),
+                                 np.zeros((nt, -(-H // bn.BH) + 2), np.int64))
+        sk, sb, sf, scur = self._bin_scratch
+        need = np.zeros(C, np.int64)
+        for _ in range(2):
+            bn.ready(C, int(np.ceil(BIN_CHUNK * self._records_per_point)), round_, H)
+            self._k.bin(bn.rkey, bn.rbox, bn.rf, bn.off, need, st, vr, mask, use_mask, sk, sb, sf, scur, self._pos,
+                        self._t, self._imp, self._cval, head, size, cap, W, H, vp, planes, half, world, size_scale,
+                        round_, has_window, now, window, lod, has_imp, imp_deg, imp_lo, imp_scale, seed_h,
+                        range_mode, eps_s, BIN_CHUNK, bn.RC, bn.BH, bn.NB)
+            most = int(need.max()) if C else 0
+            if most <= bn.RC:
+                return
+            self._records_per_point = most / BIN_CHUNK * 1.0625  # then run the pass again
+        raise RenderError(f"cpu compute raster: binning needed {most} records per chunk after growing")
+
+    def _band_buffers(self) -> np.ndarray:
+        """One band of keys per thread (BH rows: stays in the core's cache)."""
+        nt = max(1, int(cpu_kernels.numba.config.NUMBA_NUM_THREADS))
+        n = self._bins.BH * self.width
+        kb = getattr(self, "_kbuf", None)
+        if kb is None or kb.shape != (nt, n):
+            kb = self._kbuf = np.empty((nt, n), np.uint64)
+        return kb
 
     # ---------------------------------------------------------------- render
     def render(self, frame: FrameInput, camera: Camera) -> FrameStats:
@@ -275,8 +353,12 @@ class CpuComputeRenderer(Renderer):
                 lo_c, hi_c = (float(x) for x in frame.channel_ranges[chan])
             else:
                 range_mode = cmode
-        keys = self._buffers(T)
-        C = T if self.bands else T * CHUNKS_PER_THREAD  # chunks of the raster pass
+        bins = self.split == "bins"
+        keys = self._buffers(T) if not bins else self._keys
+        if bins:
+            C = max(1, -(-size // BIN_CHUNK))
+        else:
+            C = T if self.bands else T * CHUNKS_PER_THREAD  # chunks of the raster pass
         st = np.zeros((max(C, T), cpu_kernels.N_ST), np.int64)
         vr = np.empty((max(C, T), 2), np.float64)
         vr[:, 0], vr[:, 1] = np.inf, -np.inf
@@ -306,9 +388,14 @@ class CpuComputeRenderer(Renderer):
         nb = self._k_numba()
         prev = nb.set_parallel_chunksize(1)  # chunks go to whichever thread is free
         try:
-            k.raster(keys, T, C, self.bands, st, vr, mask, use_mask, self._pos, self._t, self._imp, self._cval, head,
-                     size, cap, W, H, vp, planes, half, world, size_scale, round_, has_window, now, window, lod,
-                     has_imp, imp_deg, imp_lo, imp_scale, seed_h, range_mode, eps_s)
+            if bins:
+                self._bin_pass(C, st, vr, mask, use_mask, head, size, cap, vp, planes, half, world, size_scale,
+                               round_, has_window, now, window, lod, has_imp, imp_deg, imp_lo, imp_scale, seed_h,
+                               range_mode, eps_s)
+            else:
+                k.raster(keys, T, C, self.bands, st, vr, mask, use_mask, self._pos, self._t, self._imp, self._cval,
+                         head, size, cap, W, H, vp, planes, half, world, size_scale, round_, has_window, now, window,
+                         lod, has_imp, imp_deg, imp_lo, imp_scale, seed_h, range_mode, eps_s)
         finally:
             nb.set_parallel_chunksize(prev)
         t3 = time.perf_counter()
@@ -325,7 +412,17 @@ class CpuComputeRenderer(Renderer):
         lo32 = np.float32(lo_c)
         scale32 = np.float32(1.0 / (hi_c - lo_c)) if not degenerate else np.float32(0)
         self._last_ring = (head, cap)
-        if cmode == cpu_kernels.C_SCALAR and self._edl is None and T == 1:  # the same rule, serial build
+        self._drew = True
+        if bins:  # keys per band and the resolve in one pass
+            bn = self._bins
+            prev = nb.set_parallel_chunksize(1)
+            try:
+                k.bands(self._band_buffers(), self._img, self._logz, self._edl is not None, bn.rkey, bn.rbox, bn.rf,
+                        bn.off, W, H, bn.BH, bn.NB, round_, vp, head, cap, cmode, self._single, self._bg, self._rgb,
+                        self._pos, self._t, self._cval, lo32, scale32, degenerate, self._lut)
+            finally:
+                nb.set_parallel_chunksize(prev)
+        elif cmode == cpu_kernels.C_SCALAR and self._edl is None and T == 1:  # the same rule, serial build
             k.resolve_scalar_1(keys, self._img, head, cap, self._single, self._bg, self._cval, lo32, scale32,
                                degenerate, self._lut)
         else:
@@ -347,7 +444,7 @@ class CpuComputeRenderer(Renderer):
         return FrameStats(drawn=drawn, timings_ms=timings, uploaded_bytes=copied,
                           extra={"removed_nonfinite": nonfinite, "nonfinite_total": self.nonfinite_total,
                                  "occupied": size, "threads": T, "raster": "compute",
-                                 "split": "bands" if self.bands else "points"})
+                                 "split": self.split})
 
     def resize(self, width: int, height: int) -> bool:
         """A target per size (image, EDL depth, key buffers), kept for switching back; the
@@ -356,15 +453,17 @@ class CpuComputeRenderer(Renderer):
         if size == (self.width, self.height):
             return True
         targets = self.__dict__.setdefault("_targets", {})
-        targets[(self.width, self.height)] = (self._img, self._logz, self._keys, self._last_ring)
+        targets[(self.width, self.height)] = (self._img, self._logz, self._keys, self._last_ring, self._bins,
+                                              self._drew)
         if size in targets:
-            self._img, self._logz, self._keys, self._last_ring = targets[size]
+            self._img, self._logz, self._keys, self._last_ring, self._bins, self._drew = targets[size]
         else:
             W, H = size
             self._img = np.empty((H, W), np.uint32)
             self._img[:] = self._bg
             self._logz = np.zeros(H * W if self._edl is not None else 1, np.float64)
             self._keys, self._last_ring = np.empty((0, H * W), np.uint64), (0, 1)
+            self._bins, self._drew = _Bins(), False
         self.width, self.height = size
         return True
 
@@ -376,14 +475,23 @@ class CpuComputeRenderer(Renderer):
         """Ring slot drawn at each pixel of the last frame's block [ya:yb, xa:xb] (-1 =
         background), from the key buffers (the smallest key over the threads' buffers)."""
         H, W = self.height, self.width
-        kb = self._keys.reshape(-1, H, W)[:, ya:yb, xa:xb].min(axis=0)
+        if self.split == "bins":
+            ya, yb = range(H)[slice(ya, yb)].start, range(H)[slice(ya, yb)].stop
+            bn = self._bins
+            out = np.empty(max(yb - ya, 0) * W, np.uint64)
+            if yb > ya:
+                self._k.keys_rows(out, ya, yb, bn.rkey, bn.rbox, bn.rf, bn.off, W, bn.BH, bn.NB,
+                                  self.cfg.point_shape == "round")
+            kb = out.reshape(yb - ya, W)[:, xa:xb]
+        else:
+            kb = self._keys.reshape(-1, H, W)[:, ya:yb, xa:xb].min(axis=0)
         head, cap = self._last_ring
         slots = ((kb & np.uint64(0xFFFFFFFF)).astype(np.int64) + head) % cap
         return np.where(kb == cpu_kernels.EMPTY, -1, slots)
 
     def pick(self, x: float, y: float, pixel_ratio: float = 1.0) -> Optional[int]:
         win = pick_window(self.width, self.height, x, y, pixel_ratio, self.cfg.pick_radius)
-        if win is None or self._keys.shape[0] == 0:
+        if win is None or not self._drew:
             return None
         X, Y, xa, xb, ya, yb = win
         block = self.winners(ya, yb, xa, xb)
@@ -397,7 +505,7 @@ class CpuComputeRenderer(Renderer):
 
     def info(self) -> dict[str, Any]:
         return {"tier": self.tier, "raster": self.raster, "size": [self.width, self.height],
-                "split": "bands" if self.bands else "points", "adaptive_threads": self._adaptive,
+                "split": self.split, "adaptive_threads": self._adaptive,
                 "frames_per_thread_count": {str(t): n for t, n in sorted(self.frames_at.items())},
                 "threads": int(cpu_kernels.numba.get_num_threads()), "numba": cpu_kernels.numba.__version__,
                 "deterministic": True}

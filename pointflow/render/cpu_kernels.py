@@ -581,6 +581,278 @@ def _floor(keys, T, C, bands, pos, size, head, cap, W, H, vp, half_px):
             _splat(kb, logical, cx, cy, w, W, H, half_px, False, 0.0, False, ylo, yhi)
 
 
+
+# --------------------------------------------------------------------------- binned raster (split "bins")
+#: a box taller than this many bands goes to every band's shared bucket (bucket NB), once
+MAX_BANDS_PER_POINT = 4
+_M16 = np.uint64(0xFFFF)
+_U16 = np.uint64(16)
+_U48 = np.uint64(48)
+
+
+def _box_pack(x0, x1, y0, y1):
+    return np.uint64(x0) | (np.uint64(x1) << _U16) | (np.uint64(y0) << _U32) | (np.uint64(y1) << _U48)
+
+
+def _bin(rkey, rbox, rf, off, need, st, vrange, mask, use_mask, skey, sbox, sf, scur, pos, tms, imp, cval, head,
+         size, cap, W, H, vp, planes, half_px, world, size_scale, round_, has_window, now_ms, window_ms, lod, has_imp,
+         imp_degenerate, imp_lo, imp_scale, seed_h, range_mode, eps_s, L, RC, BH, NB):
+    """Pass 1 of the binned raster: chunks of ``L`` logical indices, handed to threads as
+    they come free. Per point the rules, the float64 projection, the footprint box
+    (rules.footprint_box, clipped to the screen) and the key, into the thread's scratch
+    (``skey``/``sbox``/``sf``: L entries, in cache); then the chunk's survivors counting-sorted
+    by screen band (rows [BH j, BH (j + 1))) into its own region of the records
+    (``[c RC, (c + 1) RC)``): one record per band the box touches, or one in bucket ``NB`` when
+    it touches more than MAX_BANDS_PER_POINT bands. ``off[c, j]`` is where band j starts
+    (``off[c, NB + 1]`` the end); ``need[c]`` the records the chunk needs (> RC: nothing
+    written, the caller grows RC and runs again). No shared writes."""
+    C = off.shape[0]
+    v00, v01, v02, v03 = vp[0, 0], vp[0, 1], vp[0, 2], vp[0, 3]
+    v10, v11, v12, v13 = vp[1, 0], vp[1, 1], vp[1, 2], vp[1, 3]
+    v20, v21, v22, v23 = vp[2, 0], vp[2, 1], vp[2, 2], vp[2, 3]
+    v30, v31, v32, v33 = vp[3, 0], vp[3, 1], vp[3, 2], vp[3, 3]
+    Wf = np.float64(W)
+    Hf = np.float64(H)
+    for c in numba.prange(C):
+        tid = numba.get_thread_id()
+        sk = skey[tid]
+        sb = sbox[tid]
+        cnt = scur[tid]
+        for j in range(NB + 2):
+            cnt[j] = 0
+        a = c * L
+        b = min(a + L, size)
+        n_occ = 0
+        n_bad = 0
+        n_keep = 0
+        ns = 0
+        vmin = np.inf
+        vmax = -np.inf
+        for seg in range(2):  # the ring's two runs of slots: no wrap test per point
+            if seg == 0:
+                la, lb, soff = a, min(b, cap - head), head
+            else:
+                la, lb, soff = max(a, cap - head), b, head - cap
+            for logical in range(la, lb):
+                slot = logical + soff
+                if use_mask:
+                    if mask[logical] == 0:
+                        continue
+                x = np.float64(pos[slot, 0])
+                y = np.float64(pos[slot, 1])
+                z = np.float64(pos[slot, 2])
+                if not use_mask:
+                    n_occ += 1
+                    if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
+                        n_bad += 1
+                        continue
+                    if range_mode != 0:
+                        v = _colour_value(range_mode, slot, pos, tms, cval)
+                        if np.isfinite(v):
+                            vmin = min(vmin, v)
+                            vmax = max(vmax, v)
+                cx = v00 * x + v01 * y + v02 * z + v03
+                cy = v10 * x + v11 * y + v12 * z + v13
+                w = v30 * x + v31 * y + v32 * z + v33
+                if not use_mask:
+                    cz = v20 * x + v21 * y + v22 * z + v23
+                    if not _frustum(x, y, z, cx, cy, cz, w, planes, eps_s * (abs(x) + abs(y) + abs(z) + 1.0)):
+                        continue
+                    if not _test(logical, slot, tms, imp, has_window, now_ms, window_ms, lod, has_imp,
+                                 imp_degenerate, imp_lo, imp_scale, seed_h):
+                        continue
+                n_keep += 1
+                px = (cx / w * 0.5 + 0.5) * W
+                py = (0.5 - cy / w * 0.5) * H
+                half = half_px
+                if world:
+                    s = size_scale / w
+                    if s < 1.0:
+                        s = 1.0
+                    if s > 4096.0:
+                        s = 4096.0
+                    half = s * 0.5
+                x0 = int(min(max(np.ceil(px - half - 0.5), 0.0), Wf))
+                y0 = int(min(max(np.ceil(py - half - 0.5), 0.0), Hf))
+                if round_:
+                    x1 = int(min(max(np.floor(px + half - 0.5) + 1.0, 0.0), Wf))
+                    y1 = int(min(max(np.floor(py + half - 0.5) + 1.0, 0.0), Hf))
+                else:
+                    x1 = int(min(max(np.ceil(px + half - 0.5), 0.0), Wf))
+                    y1 = int(min(max(np.ceil(py + half - 0.5), 0.0), Hf))
+                if x1 <= x0 or y1 <= y0:
+                    continue
+                wf = np.float32(w)
+                if wf < _F0:
+                    wf = _F0
+                sk[ns] = (np.uint64(_f32_bits(wf)) << _U32) | np.uint64(logical)
+                sb[ns] = _box_pack(x0, x1, y0, y1)
+                if round_:
+                    sf[tid, ns, 0] = px
+                    sf[tid, ns, 1] = py
+                    sf[tid, ns, 2] = half
+                ns += 1
+                b0 = y0 // BH
+                b1 = (y1 - 1) // BH
+                if b1 - b0 < MAX_BANDS_PER_POINT:
+                    for j in range(b0, b1 + 1):
+                        cnt[j] += 1
+                else:
+                    cnt[NB] += 1
+        total = 0
+        for j in range(NB + 1):
+            total += cnt[j]
+        need[c] = total
+        st[c, ST_OCC] = n_occ
+        st[c, ST_BAD] = n_bad
+        st[c, ST_KEEP] = n_keep
+        st[c, ST_DRAWN] = n_keep
+        vrange[c, 0] = vmin
+        vrange[c, 1] = vmax
+        if total > RC:
+            continue  # overflow: the caller grows RC and runs the pass again
+        run = c * RC
+        for j in range(NB + 1):
+            k = cnt[j]
+            off[c, j] = run
+            cnt[j] = run
+            run += k
+        off[c, NB + 1] = run
+        for i in range(ns):
+            bx = sb[i]
+            y0 = np.int64((bx >> _U32) & _M16)
+            y1 = np.int64(bx >> _U48)
+            b0 = y0 // BH
+            b1 = (y1 - 1) // BH
+            if b1 - b0 >= MAX_BANDS_PER_POINT:
+                b0 = NB
+                b1 = NB
+            for j in range(b0, b1 + 1):
+                r = cnt[j]
+                cnt[j] = r + 1
+                rkey[r] = sk[i]
+                rbox[r] = bx
+                if round_:
+                    rf[r, 0] = sf[tid, i, 0]
+                    rf[r, 1] = sf[tid, i, 1]
+                    rf[r, 2] = sf[tid, i, 2]
+
+
+def _band_splat(kb, row0, ylo, yhi, ra, rb, rkey, rbox, rf, W, round_):
+    """The records [ra, rb) into ``kb`` (rows [row0, ...) of the screen), clipped to rows
+    [ylo, yhi): the smallest key per pixel (square: every pixel of the box; round: the pixels
+    whose centre lies within half of (px, py), as :func:`_splat`)."""
+    for r in range(ra, rb):
+        bx = rbox[r]
+        y0 = np.int64((bx >> _U32) & _M16)
+        y1 = np.int64(bx >> _U48)
+        if y0 < ylo:
+            y0 = ylo
+        if y1 > yhi:
+            y1 = yhi
+        if y1 <= y0:
+            continue
+        x0 = np.int64(bx & _M16)
+        x1 = np.int64((bx >> _U16) & _M16)
+        key = rkey[r]
+        if not round_:
+            dx = x1 - x0
+            i = (y0 - row0) * W + x0
+            if dx == 2 and y1 - y0 == 2:
+                kb[i] = min(key, kb[i])
+                kb[i + 1] = min(key, kb[i + 1])
+                kb[i + W] = min(key, kb[i + W])
+                kb[i + W + 1] = min(key, kb[i + W + 1])
+            elif dx == 2 and y1 - y0 == 1:
+                kb[i] = min(key, kb[i])
+                kb[i + 1] = min(key, kb[i + 1])
+            else:
+                for yy in range(y0, y1):
+                    row = (yy - row0) * W
+                    for xx in range(x0, x1):
+                        kb[row + xx] = min(key, kb[row + xx])
+            continue
+        px = rf[r, 0]
+        py = rf[r, 1]
+        half = rf[r, 2]
+        hh = half * half
+        for yy in range(y0, y1):
+            row = (yy - row0) * W
+            ey = yy + 0.5 - py
+            for xx in range(x0, x1):
+                ex = xx + 0.5 - px
+                if ex * ex + ey * ey > hh:
+                    continue
+                kb[row + xx] = min(key, kb[row + xx])
+
+
+def _band_keys(kb, row0, ylo, yhi, rkey, rbox, rf, off, W, BH, NB, round_):
+    """The smallest key of every pixel of rows [ylo, yhi) (inside one band or several), from
+    the records of the bands they cross and the shared bucket; ``kb`` cleared by the caller."""
+    C = off.shape[0]
+    for j in range(ylo // BH, (yhi - 1) // BH + 1):
+        for c in range(C):
+            _band_splat(kb, row0, ylo, yhi, off[c, j], off[c, j + 1], rkey, rbox, rf, W, round_)
+    for c in range(C):
+        _band_splat(kb, row0, ylo, yhi, off[c, NB], off[c, NB + 1], rkey, rbox, rf, W, round_)
+
+
+def _bands(kbuf, img, logz, edl, rkey, rbox, rf, off, W, H, BH, NB, round_, vp, head, cap, cmode, single, bg, rgbp,
+           pos, tms, cval, lo, scale, degenerate, lut):
+    """Pass 2 of the binned raster: bands handed to threads as they come free; each thread
+    keys its band in its own buffer (``kbuf[thread]``, BH rows: in cache) and resolves it into
+    the image (as :func:`_resolve`). No shared writes, no full-screen key buffer, no merge."""
+    fl = img.reshape(H * W)
+    for j in numba.prange(NB):
+        kb = kbuf[numba.get_thread_id()]
+        ylo = j * BH
+        yhi = min(ylo + BH, H)
+        for i in range((yhi - ylo) * W):
+            kb[i] = EMPTY
+        _band_keys(kb, ylo, ylo, yhi, rkey, rbox, rf, off, W, BH, NB, round_)
+        for i in range((yhi - ylo) * W):
+            k = kb[i]
+            p = ylo * W + i
+            if k == EMPTY:
+                fl[p] = bg
+                if edl:
+                    logz[p] = np.inf
+                continue
+            slot = head + np.int64(k & _M32)
+            if slot >= cap:
+                slot -= cap
+            if edl:
+                w = (vp[3, 0] * np.float64(pos[slot, 0]) + vp[3, 1] * np.float64(pos[slot, 1])
+                     + vp[3, 2] * np.float64(pos[slot, 2]) + vp[3, 3])
+                logz[p] = np.log2(w)
+            if cmode == C_SINGLE:
+                fl[p] = single
+            elif cmode == C_RGB:
+                fl[p] = rgbp[slot]
+            else:
+                if cmode == C_Z:
+                    v = pos[slot, 2]
+                elif cmode == C_TIME:
+                    v = np.float32(tms[slot])
+                else:
+                    v = cval[slot]
+                if not np.isfinite(v):
+                    fl[p] = single
+                elif degenerate:
+                    fl[p] = lut[255]
+                else:
+                    t = (v - lo) * scale
+                    t = min(max(t, _F0), _F1)
+                    fl[p] = lut[int(np.floor(t * _F255 + _FH))]
+
+
+def _keys_rows(out, ylo, yhi, rkey, rbox, rf, off, W, BH, NB, round_):
+    """The last binned frame's smallest key per pixel of rows [ylo, yhi) (picking)."""
+    for i in range(out.shape[0]):
+        out[i] = EMPTY
+    _band_keys(out, ylo, ylo, yhi, rkey, rbox, rf, off, W, BH, NB, round_)
+
+
 _F32_BITS_PY = _f32_bits
 
 # --------------------------------------------------------------------------- compilation
@@ -607,12 +879,14 @@ def _compile(cache: bool) -> Kernels:
     opts = dict(cache=cache, nogil=True, boundscheck=False, error_model="numpy")
     from numba.extending import intrinsic
     g["_f32_bits"] = intrinsic(_F32_BITS_PY)
-    for name in ("_pcg", "_u01", "_colour_value", "_frustum", "_test", "_splat", "_chunk_sq"):
+    for name in ("_pcg", "_u01", "_colour_value", "_frustum", "_test", "_splat", "_chunk_sq", "_box_pack",
+                 "_band_splat", "_band_keys"):
         g[name] = nb.njit(inline="always", **opts)(g[name])
     out = {}
-    for name in ("_raster", "_select", "_thin", "_cap", "_resolve", "_edl", "_floor"):
+    for name in ("_raster", "_select", "_thin", "_cap", "_resolve", "_edl", "_floor", "_bin", "_bands"):
         out[name[1:]] = nb.njit(parallel=True, **opts)(g[name])
     out["resolve_scalar_1"] = nb.njit(**opts)(g["_resolve_scalar"])  # one thread: prange runs as range
+    out["keys_rows"] = nb.njit(**opts)(g["_keys_rows"])
     return Kernels(**out)
 
 
