@@ -37,12 +37,16 @@ __all__ = ["CpuComputeRenderer"]
 
 ENV_SPLIT = "POINTFLOW_CPU_RASTER_SPLIT"
 #: how the threads share the work (bench/bench_render.py --cpu-raster measures them)
-SPLITS = ("bins", "points", "bands")
-DEFAULT_SPLIT = "bins"
+SPLITS = ("auto", "bins", "points", "bands")
+#: auto: bins, but points for a frame drawn with one thread over more than
+#: ONE_THREAD_POINTS_ABOVE points (one key buffer, nothing to merge: less work than binning)
+DEFAULT_SPLIT = "auto"
+ONE_THREAD_POINTS_ABOVE = 250_000
 #: split by bins: logical indices per chunk of the binning pass (its scratch stays in cache)
-BIN_CHUNK = 4096
-#: split by bins: rows per screen band (a thread's band of keys, BH x width x 8 bytes, in cache)
-BAND_ROWS = 16
+BIN_CHUNK = 16384
+#: split by bins: rows per screen band, 2^BAND_SHIFT (a thread's band of keys, rows x width x 8
+#: bytes, stays in cache)
+BAND_SHIFT = 4
 #: split by bins: first guess of records per point (a box crossing a band edge is in two bands)
 RECORDS_PER_POINT = 1.125
 #: split by points: chunks of logical indices per thread, taken as threads come free
@@ -60,7 +64,8 @@ class _Bins:
     def __init__(self) -> None:
         self.C = 0          # chunks drawn
         self.RC = 0         # records per chunk region
-        self.BH = BAND_ROWS
+        self.BS = BAND_SHIFT
+        self.BH = 1 << BAND_SHIFT
         self.NB = 0         # bands (bucket NB: boxes over MAX_BANDS_PER_POINT bands)
         self.rkey = np.zeros(1, np.uint64)
         self.rbox = np.zeros(1, np.uint64)
@@ -111,13 +116,15 @@ class CpuComputeRenderer(Renderer):
         self._edl = edl_offsets(cfg.edl.radius_px).astype(np.int64) if cfg.edl.enabled else None
         self._logz = np.zeros(H * W if self._edl is not None else 1, np.float64)
         self._keys = np.empty((0, H * W), np.uint64)
-        #: split the work by screen bands (one key buffer, every thread runs every point and
-        #: writes its rows) or by points (one buffer per thread, merged in the resolve);
-        #: env POINTFLOW_CPU_RASTER_SPLIT=bands|points, default DEFAULT_SPLIT (measured faster)
+        #: how the threads share the work: bins (records sorted by screen band, then each band
+        #: keyed and resolved by one thread), points (one key buffer per thread, merged in the
+        #: resolve), bands (one key buffer, every thread runs every point and writes its rows),
+        #: auto (bins; points for one thread over many points); env POINTFLOW_CPU_RASTER_SPLIT
         split = os.environ.get(ENV_SPLIT, "").strip().lower() or DEFAULT_SPLIT
         if split not in SPLITS:
             raise RenderError(f"${ENV_SPLIT}={split!r}: expected one of {', '.join(SPLITS)}")
-        self.split = split
+        self.split_mode = split
+        self.split = "bins" if split == "auto" else split  # the last frame's
         self.bands = split == "bands"
         self._bins = _Bins()
         self._records_per_point = RECORDS_PER_POINT
@@ -275,7 +282,7 @@ class CpuComputeRenderer(Renderer):
             self._k.bin(bn.rkey, bn.rbox, bn.rf, bn.off, need, st, vr, mask, use_mask, sk, sb, sf, scur, self._pos,
                         self._t, self._imp, self._cval, head, size, cap, W, H, vp, planes, half, world, size_scale,
                         round_, has_window, now, window, lod, has_imp, imp_deg, imp_lo, imp_scale, seed_h,
-                        range_mode, eps_s, BIN_CHUNK, bn.RC, bn.BH, bn.NB)
+                        range_mode, eps_s, BIN_CHUNK, bn.RC, bn.BS, bn.NB)
             most = int(need.max()) if C else 0
             if most <= bn.RC:
                 return
@@ -353,6 +360,8 @@ class CpuComputeRenderer(Renderer):
                 lo_c, hi_c = (float(x) for x in frame.channel_ranges[chan])
             else:
                 range_mode = cmode
+        if self.split_mode == "auto":
+            self.split = "points" if T == 1 and size > ONE_THREAD_POINTS_ABOVE else "bins"
         bins = self.split == "bins"
         keys = self._buffers(T) if not bins else self._keys
         if bins:
@@ -418,7 +427,7 @@ class CpuComputeRenderer(Renderer):
             prev = nb.set_parallel_chunksize(1)
             try:
                 k.bands(self._band_buffers(), self._img, self._logz, self._edl is not None, bn.rkey, bn.rbox, bn.rf,
-                        bn.off, W, H, bn.BH, bn.NB, round_, vp, head, cap, cmode, self._single, self._bg, self._rgb,
+                        bn.off, W, H, bn.BS, bn.NB, round_, vp, head, cap, cmode, self._single, self._bg, self._rgb,
                         self._pos, self._t, self._cval, lo32, scale32, degenerate, self._lut)
             finally:
                 nb.set_parallel_chunksize(prev)
@@ -454,9 +463,9 @@ class CpuComputeRenderer(Renderer):
             return True
         targets = self.__dict__.setdefault("_targets", {})
         targets[(self.width, self.height)] = (self._img, self._logz, self._keys, self._last_ring, self._bins,
-                                              self._drew)
+                                              self._drew, self.split)
         if size in targets:
-            self._img, self._logz, self._keys, self._last_ring, self._bins, self._drew = targets[size]
+            self._img, self._logz, self._keys, self._last_ring, self._bins, self._drew, self.split = targets[size]
         else:
             W, H = size
             self._img = np.empty((H, W), np.uint32)
@@ -480,7 +489,8 @@ class CpuComputeRenderer(Renderer):
             bn = self._bins
             out = np.empty(max(yb - ya, 0) * W, np.uint64)
             if yb > ya:
-                self._k.keys_rows(out, ya, yb, bn.rkey, bn.rbox, bn.rf, bn.off, W, bn.BH, bn.NB,
+                self._k.keys_rows(out, np.empty(bn.BH * W, np.uint64), ya, yb, bn.rkey, bn.rbox, bn.rf, bn.off, W,
+                                  H, bn.BS, bn.NB,
                                   self.cfg.point_shape == "round")
             kb = out.reshape(yb - ya, W)[:, xa:xb]
         else:
@@ -505,7 +515,7 @@ class CpuComputeRenderer(Renderer):
 
     def info(self) -> dict[str, Any]:
         return {"tier": self.tier, "raster": self.raster, "size": [self.width, self.height],
-                "split": self.split, "adaptive_threads": self._adaptive,
+                "split": self.split, "split_mode": self.split_mode, "adaptive_threads": self._adaptive,
                 "frames_per_thread_count": {str(t): n for t, n in sorted(self.frames_at.items())},
                 "threads": int(cpu_kernels.numba.get_num_threads()), "numba": cpu_kernels.numba.__version__,
                 "deterministic": True}
