@@ -244,16 +244,18 @@ class CpuComputeRenderer(Renderer):
                        t_ingest_ms=np.zeros(cap), channels={}, head=0, size=cap, capacity=cap,
                        origin=np.zeros(3), now_ms=0.0, budget=1)
         cam = Camera(eye=[0, -5, 0], target=[0, 0, 0], near=0.1, far=100)
-        saved = (self._cap, self._pos, self._t, self._imp, self._cval, self._rgb, self._origin)
+        saved = (self._cap, self._pos, self._t, self._imp, self._cval, self._rgb, self._origin, self.split_mode)
         try:
-            self.render(f, cam)
-            self.winners(0, 1, 0, 1)  # the binned pick (keys of a few rows)
+            for mode in (("points", "bins") if self.split_mode == "auto" else (self.split_mode,)):
+                self.split_mode = mode  # auto draws with both
+                self.render(f, cam)
+                self.winners(0, 1, 0, 1)  # the pick (keys of a few rows)
             # the one-thread scalar resolve (not reached by the frame above)
             empty = np.full((1, self.width * self.height), cpu_kernels.EMPTY, np.uint64)
             self._k.resolve_scalar_1(empty, self._img, 0, cap, self._single, self._bg,
                                      np.zeros(cap, np.float32), np.float32(0), np.float32(1), False, self._lut)
         finally:
-            self._cap, self._pos, self._t, self._imp, self._cval, self._rgb, self._origin = saved
+            self._cap, self._pos, self._t, self._imp, self._cval, self._rgb, self._origin, self.split_mode = saved
             self._img[:] = self._bg
             self._keys[:] = cpu_kernels.EMPTY
             self._bins, self._drew = _Bins(), False
