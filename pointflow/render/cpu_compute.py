@@ -229,8 +229,12 @@ class CpuComputeRenderer(Renderer):
         """The key buffers for this frame's thread count: one (bands) or one per thread."""
         self.threads = T = max(1, int(self._k_numba().get_num_threads())) if threads is None else threads
         nb = 1 if self.bands else T
-        if self._keys.shape != (nb, self.width * self.height):
-            self._keys = np.empty((nb, self.width * self.height), np.uint64)
+        # grown, never shrunk: a frame at another thread count takes the first rows (reallocating
+        # here cost page faults over every buffer each time the count changed)
+        if self._keys.base is None or self._keys.base.shape[0] < nb or self._keys.shape[1] != self.width * self.height:
+            self._keys = np.empty((max(nb, self._keys.shape[0]), self.width * self.height), np.uint64)[:nb]
+        else:
+            self._keys = self._keys.base[:nb]
         return self._keys
 
     @staticmethod
@@ -362,6 +366,7 @@ class CpuComputeRenderer(Renderer):
                 lo_c, hi_c = (float(x) for x in frame.channel_ranges[chan])
             else:
                 range_mode = cmode
+        self.threads = T
         if self.split_mode == "auto":
             self.split = "points" if T == 1 and size > ONE_THREAD_POINTS_ABOVE else "bins"
         bins = self.split == "bins"
