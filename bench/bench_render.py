@@ -472,7 +472,7 @@ def cpu_raster(sizes: list[int], reps: dict[int, int]) -> dict[str, Any]:
         img_cc = cc.read_image()
         row: dict[str, Any] = {"points": n, "repeats": k, "threads": threads,
                                "frames_per_thread_count": {str(t): c for t, c in sorted(cc.frames_at.items())},
-                               "tune_ms": {str(t): v for t, v in cc._tune.items()},
+                               "tune_ms": {"/".join(map(str, t)) if isinstance(t, tuple) else str(t): v for t, v in cc._tune.items()},
                                "split": "bands" if cc.bands else "points", "other_split": other}
         for m, v in ts.items():
             row[f"{m}_ms"], row[f"{m}_all_ms"] = float(np.median(v)), v

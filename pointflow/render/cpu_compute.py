@@ -136,6 +136,7 @@ class CpuComputeRenderer(Renderer):
         self._tune: dict[int, list[float]] = {}
         self._tune_n = 0
         self.frames_at: dict[int, int] = {}  # frames drawn per thread count
+        self.frames_by: dict[tuple[str, int], int] = {}  # frames drawn per (split, thread count)
         self._origin: Optional[np.ndarray] = None
         self._cap = -1
         cb = cfg.color_by
@@ -208,22 +209,32 @@ class CpuComputeRenderer(Renderer):
         self._synced_mode = (cmode, chan)
         return total
 
-    def _pick_threads(self) -> int:
-        """This frame's thread count: 1 or all of numba's (``numba.get_num_threads()``),
-        whichever drew faster lately (the image is the same either way). The first frames
-        alternate, starting with all threads; then the slower count is re-tried every
-        RETRY_EVERY frames, so a machine whose other load changes is followed."""
+    def _rule(self, T: int, size: int) -> str:
+        """The split without measurements: the forced one, else bins (points for one thread
+        over more than ONE_THREAD_POINTS_ABOVE points)."""
+        if self.split_mode != "auto":
+            return self.split_mode
+        return "points" if T == 1 and size > ONE_THREAD_POINTS_ABOVE else "bins"
+
+    def _pick(self, size: int) -> tuple[str, int]:
+        """This frame's (split, thread count): every thread numba has (``numba.get_num_threads()``)
+        or one, and with ``auto`` the bins or the points split, whichever drew faster lately
+        (the image is the same either way). The first frames try each in turn (all threads
+        first, bins first); then the fastest draws, and every RETRY_EVERY frames one of the
+        others is re-tried in rotation, so a machine whose other load changes is followed."""
         most = max(1, int(self._k_numba().get_num_threads()))
         if most == 1 or not self._adaptive:
-            return most
-        cands = (most, 1)
-        seen = {t: self._tune.get(t, []) for t in cands}
-        for t in cands:
-            if len(seen[t]) < TUNE_FRAMES:
-                return t
-        best, other = sorted(cands, key=lambda t: float(np.median(seen[t])))
+            return self._rule(most, size), most
+        splits = ("bins", "points") if self.split_mode == "auto" else (self.split_mode,)
+        cands = [(sp, t) for t in (most, 1) for sp in splits]
+        for c in cands:
+            if len(self._tune.get(c, [])) < TUNE_FRAMES:
+                return c
+        ranked = sorted(cands, key=lambda c: float(np.median(self._tune[c])))
         self._tune_n += 1
-        return other if self._tune_n % RETRY_EVERY == 0 else best
+        if self._tune_n % RETRY_EVERY == 0:
+            return ranked[1 + (self._tune_n // RETRY_EVERY) % (len(ranked) - 1)]
+        return ranked[0]
 
     def _buffers(self, threads: Optional[int] = None) -> np.ndarray:
         """The key buffers for this frame's thread count: one (bands) or one per thread."""
@@ -266,7 +277,7 @@ class CpuComputeRenderer(Renderer):
             self._synced_mode = None
             self.frames = 0
             self.nonfinite_total = 0
-            self._tune, self._tune_n, self.frames_at = {}, 0, {}
+            self._tune, self._tune_n, self.frames_at, self.frames_by = {}, 0, {}, {}
 
     # ---------------------------------------------------------------- binned raster
     def _bin_pass(self, C: int, st, vr, mask, use_mask, head, size, cap, vp, planes, half, world, size_scale, round_,
@@ -308,10 +319,10 @@ class CpuComputeRenderer(Renderer):
     def render(self, frame: FrameInput, camera: Camera) -> FrameStats:
         nb = self._k_numba()
         caller = nb.get_num_threads()
-        T = self._pick_threads()
+        split, T = self._pick(int(frame.size))
         nb.set_num_threads(T)
         try:
-            st = self._render(frame, camera, T)
+            st = self._render(frame, camera, T, split)
         except (ValueError, RenderError):  # a malformed frame (skipped, counted), or already a tier failure
             raise
         except Exception as exc:  # noqa: BLE001 - the render stage falls back only on RenderError
@@ -319,13 +330,14 @@ class CpuComputeRenderer(Renderer):
         finally:
             nb.set_num_threads(caller)
         self.frames_at[T] = self.frames_at.get(T, 0) + 1
+        self.frames_by[(split, T)] = self.frames_by.get((split, T), 0) + 1
         if self._adaptive and caller > 1:
-            ts = self._tune.setdefault(T, [])
+            ts = self._tune.setdefault((split, T), [])
             ts.append(st.timings_ms["total"])
             del ts[:-TUNE_FRAMES]
         return st
 
-    def _render(self, frame: FrameInput, camera: Camera, T: int) -> FrameStats:
+    def _render(self, frame: FrameInput, camera: Camera, T: int, split: str) -> FrameStats:
         cap, size = check_frame(frame)
         if not 0 <= int(frame.head) < cap:
             raise ValueError(f"FrameInput.head must be in 0..capacity-1 ({cap - 1}), got {frame.head}")
@@ -366,9 +378,7 @@ class CpuComputeRenderer(Renderer):
                 lo_c, hi_c = (float(x) for x in frame.channel_ranges[chan])
             else:
                 range_mode = cmode
-        self.threads = T
-        if self.split_mode == "auto":
-            self.split = "points" if T == 1 and size > ONE_THREAD_POINTS_ABOVE else "bins"
+        self.threads, self.split = T, split
         bins = self.split == "bins"
         keys = self._buffers(T) if not bins else self._keys
         if bins:
@@ -524,5 +534,6 @@ class CpuComputeRenderer(Renderer):
         return {"tier": self.tier, "raster": self.raster, "size": [self.width, self.height],
                 "split": self.split, "split_mode": self.split_mode, "adaptive_threads": self._adaptive,
                 "frames_per_thread_count": {str(t): n for t, n in sorted(self.frames_at.items())},
+                "frames_per_split_and_threads": {f"{sp}/{t}": n for (sp, t), n in sorted(self.frames_by.items())},
                 "threads": int(cpu_kernels.numba.get_num_threads()), "numba": cpu_kernels.numba.__version__,
                 "deterministic": True}

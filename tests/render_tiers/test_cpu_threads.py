@@ -173,3 +173,28 @@ def test_a_ring_rewritten_between_frames(monkeypatch, split):
         pos[:] = kept
         hit = np.argwhere(before >= 0)[0]
         assert got.pick(float(hit[1]) + 0.5, float(hit[0]) + 0.5) is not None
+
+
+def test_auto_times_both_splits_at_both_thread_counts_and_keeps_the_image(monkeypatch):
+    """``auto``: the first frames draw with bins and points at every thread and at one, the
+    fastest then draws, and the others are re-tried in rotation; one image throughout."""
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        pytest.skip("one core: nothing to choose")
+    numba.set_num_threads(2)
+    frame, cam, kw = SCENES["terrain"]()
+    monkeypatch.delenv("POINTFLOW_CPU_RASTER_ADAPTIVE", raising=False)
+    r = renderer(monkeypatch, "auto", render_cfg(size=[320, 240], **kw), frame)
+    monkeypatch.delenv("POINTFLOW_CPU_RASTER_ADAPTIVE", raising=False)
+    r._adaptive = True
+    used, imgs = [], set()
+    for i in range(4 * cc.TUNE_FRAMES):
+        frame.dirty = None if i == 0 else []
+        st = r.render(frame, cam)
+        used.append((st.extra["split"], st.extra["threads"]))
+        imgs.add(r.read_image().tobytes())
+    first = [("bins", 2), ("points", 2), ("bins", 1), ("points", 1)]
+    assert used == [c for c in first for _ in range(cc.TUNE_FRAMES)] and len(imgs) == 1
+    r._tune = {c: [float(k + 1)] * cc.TUNE_FRAMES for k, c in enumerate(first)}  # bins at 2 threads fastest
+    picks = [r._pick(frame.size) for _ in range(3 * cc.RETRY_EVERY)]
+    assert picks.count(("bins", 2)) == 3 * cc.RETRY_EVERY - 3
+    assert sorted(p for p in picks if p != ("bins", 2)) == sorted(first[1:])  # each other one re-tried
