@@ -47,6 +47,9 @@ BIN_CHUNK = 16384
 #: split by bins: rows per screen band, 2^BAND_SHIFT (a thread's band of keys, rows x width x 8
 #: bytes, stays in cache)
 BAND_SHIFT = 4
+#: split by bins: cull whole batches of BIN_CHUNK slots whose bounds lie outside the frustum
+#: (env POINTFLOW_CPU_RASTER_CULL=0: never)
+ENV_CULL = "POINTFLOW_CPU_RASTER_CULL"
 #: split by bins: first guess of records per point (a box crossing a band edge is in two bands)
 RECORDS_PER_POINT = 1.125
 #: split by points: chunks of logical indices per thread, taken as threads come free
@@ -85,6 +88,11 @@ class _Bins:
         if self.off.shape != (chunks, self.NB + 2):
             self.off = np.zeros((chunks, self.NB + 2), np.int64)
         self.C = chunks
+
+
+def use_mask_of(frame: FrameInput, size: int) -> bool:
+    """A budget below the occupied count: the budget's passes decide the points first."""
+    return frame.budget is not None and size > max(int(frame.budget), 0)
 
 
 def _pack(c: np.ndarray) -> np.uint32:
@@ -128,6 +136,8 @@ class CpuComputeRenderer(Renderer):
         self.bands = split == "bands"
         self._bins = _Bins()
         self._records_per_point = RECORDS_PER_POINT
+        self._cull = os.environ.get(ENV_CULL, "1") not in ("0", "false", "no")
+        self.culled_points = 0  # points of the last frame in batches culled whole
         self._bin_scratch: tuple = ()
         self._drew = False
         self.threads = 1
@@ -158,6 +168,16 @@ class CpuComputeRenderer(Renderer):
         self._rgb = np.zeros(1, np.uint32)     # packed rgb (rgb mode; sized in _sync)
         self._cmode_chan: Optional[str] = None
         self._origin = None
+        self._batches(cap)
+
+    def _batches(self, cap: int) -> None:
+        """Bounds per batch of BIN_CHUNK slots of the own copy (kept as it is written: only
+        the batches of the dirty ranges are reduced again, when a frame needs them)."""
+        nbat = -(-cap // BIN_CHUNK)
+        if getattr(self, "_bstale", np.zeros(0)).shape[0] != nbat:
+            self._blo, self._bhi = np.zeros((nbat, 3)), np.zeros((nbat, 3))
+            self._bbad, self._bvlo, self._bvhi = np.zeros(nbat, np.int64), np.zeros(nbat), np.zeros(nbat)
+            self._bstale = np.ones(nbat, bool)
 
     def _colour_mode(self, frame: FrameInput) -> tuple[int, Optional[str]]:
         cb = self.cfg.color_by
@@ -190,6 +210,7 @@ class CpuComputeRenderer(Renderer):
         ranges = [(0, cap)] if full else merge_ranges(list(frame.dirty or []), cap)
         total = 0
         for a, b in ranges:
+            self._bstale[a // BIN_CHUNK:-(-b // BIN_CHUNK)] = True
             self._pos[a:b] = frame.positions[a:b]
             total += (b - a) * 12
             if self._need_t:
@@ -280,7 +301,55 @@ class CpuComputeRenderer(Renderer):
             self._tune, self._tune_n, self.frames_at, self.frames_by = {}, 0, {}, {}
 
     # ---------------------------------------------------------------- binned raster
-    def _bin_pass(self, C: int, st, vr, mask, use_mask, head, size, cap, vp, planes, half, world, size_scale, round_,
+    def _chunks(self, head: int, size: int, cap: int, cmode: int, planes: np.ndarray, cull: bool):
+        """The binning pass's chunks: the occupied logical range cut at the ring's end and at
+        every batch of BIN_CHUNK slots, as (first, end) logical indices; per chunk whether it
+        is a whole batch whose bounds lie wholly outside one frustum plane (culled: no point is
+        touched), with that batch's non-finite count and colour value range."""
+        B = BIN_CHUNK
+        runs = [(head, 0, min(size, cap - head))]
+        if head + size > cap:
+            runs.append((0, cap - head, head + size - cap))
+        starts, lens = [], []
+        for s0, l0, n in runs:
+            cut = np.arange(-(-s0 // B) * B, s0 + n, B)
+            edges = np.unique(np.concatenate([[s0], cut, [s0 + n]]))
+            starts.append(edges[:-1])
+            lens.append(np.diff(edges))
+        s = np.concatenate(starts) if starts else np.zeros(0, np.int64)
+        n = np.concatenate(lens) if lens else np.zeros(0, np.int64)
+        ca = ((s - head) % cap).astype(np.int64)
+        cb = ca + n
+        k = s // B
+        C = len(ca)
+        flag = np.zeros(C, np.uint8)
+        cbad = np.zeros(C, np.int64)
+        cvr = np.zeros((C, 2))
+        if cull and C:
+            self._batches(cap)
+            whole = (s == k * B) & (n == np.minimum((k + 1) * B, cap) - k * B)
+            kw = np.unique(k[whole])
+            stale = kw[self._bstale[kw]]
+            if stale.size:
+                self._k.batch_stats(stale.astype(np.int64), B, cap, self._pos, self._t, self._cval, cmode, self._blo,
+                                    self._bhi, self._bbad, self._bvlo, self._bvhi)
+                self._bstale[stale] = False
+            lo, hi = self._blo[k], self._bhi[k]
+            nrm, d = planes[:, :3], planes[:, 3]
+            # the largest value of each plane over the box (a corner), with a margin far above
+            # the rounding of either sum: culled only when every point is outside that plane
+            with np.errstate(invalid="ignore"):  # a batch without a finite point has infinite bounds
+                most = d + np.maximum(lo[:, None, :] * nrm, hi[:, None, :] * nrm).sum(axis=2)
+                scale = np.abs(d) + (np.maximum(np.abs(lo), np.abs(hi))[:, None, :] * np.abs(nrm)).sum(axis=2)
+                out = (most < -1e-9 * (scale + 1.0)).any(axis=1)
+            empty = self._bbad[k] == n  # no finite point at all
+            sel = whole & (out | empty)
+            flag[sel] = 1
+            cbad[sel] = self._bbad[k[sel]]
+            cvr[sel, 0], cvr[sel, 1] = self._bvlo[k[sel]], self._bvhi[k[sel]]
+        return ca, cb, flag, cbad, cvr
+
+    def _bin_pass(self, chunks, st, vr, mask, use_mask, head, size, cap, vp, planes, half, world, size_scale, round_,
                   has_window, now, window, lod, has_imp, imp_deg, imp_lo, imp_scale, seed_h, range_mode,
                   eps_s) -> None:
         """Pass 1 (rules, projection, boxes, records sorted by band); run again with larger
@@ -293,10 +362,13 @@ class CpuComputeRenderer(Renderer):
                                  np.empty((nt, BIN_CHUNK if round_ else 1, 3), np.float64),
                                  np.zeros((nt, -(-H // bn.BH) + 2), np.int64))
         sk, sb, sf, scur = self._bin_scratch
+        ca, cb, cull, cbad, cvr = chunks
+        C = len(ca)
         need = np.zeros(C, np.int64)
         for _ in range(2):
             bn.ready(C, int(np.ceil(BIN_CHUNK * self._records_per_point)), round_, H)
-            self._k.bin(bn.rkey, bn.rbox, bn.rf, bn.off, need, st, vr, mask, use_mask, sk, sb, sf, scur, self._pos,
+            self._k.bin(bn.rkey, bn.rbox, bn.rf, bn.off, need, st, vr, ca, cb, cull, cbad, cvr, mask, use_mask, sk, sb,
+                        sf, scur, self._pos,
                         self._t, self._imp, self._cval, head, size, cap, W, H, vp, planes, half, world, size_scale,
                         round_, has_window, now, window, lod, has_imp, imp_deg, imp_lo, imp_scale, seed_h,
                         range_mode, eps_s, BIN_CHUNK, bn.RC, bn.BS, bn.NB)
@@ -381,8 +453,10 @@ class CpuComputeRenderer(Renderer):
         self.threads, self.split = T, split
         bins = self.split == "bins"
         keys = self._buffers(T) if not bins else self._keys
-        if bins:
-            C = max(1, -(-size // BIN_CHUNK))
+        if bins:  # culling needs the tests of every point done here (not by the budget's passes)
+            chunks = self._chunks(head, size, cap, cmode, planes, self._cull and not use_mask_of(frame, size))
+            C = max(1, len(chunks[0]))
+            self.culled_points = int((chunks[1] - chunks[0])[chunks[2] == 1].sum())
         else:
             C = T if self.bands else T * CHUNKS_PER_THREAD  # chunks of the raster pass
         st = np.zeros((max(C, T), cpu_kernels.N_ST), np.int64)
@@ -394,7 +468,7 @@ class CpuComputeRenderer(Renderer):
         lod = max(int(cfg.lod_stride), 1)
         half = float(cfg.point_size) * 0.5
         round_ = cfg.point_shape == "round"
-        use_mask = frame.budget is not None and size > max(int(frame.budget), 0)
+        use_mask = use_mask_of(frame, size)
         mask = np.zeros(size if use_mask else 1, np.uint8)
         counts = {"occupied": size}
         if use_mask:  # budget: tests -> thinning -> the first b in logical order
@@ -415,7 +489,7 @@ class CpuComputeRenderer(Renderer):
         prev = nb.set_parallel_chunksize(1)  # chunks go to whichever thread is free
         try:
             if bins:
-                self._bin_pass(C, st, vr, mask, use_mask, head, size, cap, vp, planes, half, world, size_scale,
+                self._bin_pass(chunks, st, vr, mask, use_mask, head, size, cap, vp, planes, half, world, size_scale,
                                round_, has_window, now, window, lod, has_imp, imp_deg, imp_lo, imp_scale, seed_h,
                                range_mode, eps_s)
             else:
@@ -470,7 +544,7 @@ class CpuComputeRenderer(Renderer):
         return FrameStats(drawn=drawn, timings_ms=timings, uploaded_bytes=copied,
                           extra={"removed_nonfinite": nonfinite, "nonfinite_total": self.nonfinite_total,
                                  "occupied": size, "threads": T, "raster": "compute",
-                                 "split": self.split})
+                                 "split": self.split, "culled_points": self.culled_points if bins else 0})
 
     def resize(self, width: int, height: int) -> bool:
         """A target per size (image, EDL depth, key buffers), kept for switching back; the

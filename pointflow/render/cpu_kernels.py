@@ -658,11 +658,13 @@ def _bin_sq(sk, sb, cnt, a, b, head, cap, pos, tms, cval, vp, planes, eps_s, W, 
     return ns, n_bad, vmin, vmax
 
 
-def _bin(rkey, rbox, rf, off, need, st, vrange, mask, use_mask, skey, sbox, sf, scur, pos, tms, imp, cval, head,
+def _bin(rkey, rbox, rf, off, need, st, vrange, ca, cb, cull, cbad, cvr, mask, use_mask, skey, sbox, sf, scur, pos, tms, imp, cval, head,
          size, cap, W, H, vp, planes, half_px, world, size_scale, round_, has_window, now_ms, window_ms, lod, has_imp,
          imp_degenerate, imp_lo, imp_scale, seed_h, range_mode, eps_s, L, RC, BS, NB):
-    """Pass 1 of the binned raster: chunks of ``L`` logical indices, handed to threads as
-    they come free. Per point the rules, the float64 projection, the footprint box
+    """Pass 1 of the binned raster: chunks of logical indices ``[ca[c], cb[c])`` (at most
+    ``L``; each within one batch of slots), handed to threads as they come free. A chunk with
+    ``cull[c]`` (a whole batch whose bounds lie outside the frustum) touches no point: its
+    counts are the batch's (``cbad``: non-finite; ``cvr``: the colour value's range). Per point the rules, the float64 projection, the footprint box
     (rules.footprint_box, clipped to the screen) and the key, into the thread's scratch
     (``skey``/``sbox``/``sf``: L entries, in cache); then the chunk's survivors counting-sorted
     by screen band (rows [BH j, BH (j + 1)), BH = 2^BS) into its own region of the records
@@ -685,8 +687,19 @@ def _bin(rkey, rbox, rf, off, need, st, vrange, mask, use_mask, skey, sbox, sf, 
         cnt = scur[tid]
         for j in range(NB + 2):
             cnt[j] = 0
-        a = c * L
-        b = min(a + L, size)
+        a = ca[c]
+        b = cb[c]
+        if cull[c]:
+            st[c, ST_OCC] = b - a
+            st[c, ST_BAD] = cbad[c]
+            st[c, ST_KEEP] = 0
+            st[c, ST_DRAWN] = 0
+            vrange[c, 0] = cvr[c, 0] if range_mode != 0 else np.inf
+            vrange[c, 1] = cvr[c, 1] if range_mode != 0 else -np.inf
+            need[c] = 0
+            for j in range(NB + 2):
+                off[c, j] = c * RC
+            continue
         n_occ = 0
         n_bad = 0
         n_keep = 0
@@ -817,6 +830,46 @@ def _bin(rkey, rbox, rf, off, need, st, vrange, mask, use_mask, skey, sbox, sf, 
                     ya = max(y0, top) - top
                     yb = min(y1, top + (np.int64(1) << BS)) - top
                     rbox[r] = np.uint64(ya * W + x0) | (np.uint64(x1 - x0) << _U32) | (np.uint64(yb - ya) << _U48)
+
+
+def _batch_stats(ks, B, cap, pos, tms, cval, cmode, lo, hi, bad, vlo, vhi):
+    """Per batch k in ``ks`` (slots [k B, min((k + 1) B, cap))): the bounds of its finite
+    positions (``lo``/``hi``; +inf/-inf when none), its non-finite count, and the range of the
+    colour value (mode ``cmode``) over its finite points, as the raster pass reduces it."""
+    for q in numba.prange(ks.shape[0]):
+        k = ks[q]
+        x0 = y0 = z0 = np.inf
+        x1 = y1 = z1 = -np.inf
+        vmin = np.inf
+        vmax = -np.inf
+        n_bad = 0
+        for slot in range(k * B, min((k + 1) * B, cap)):
+            x = np.float64(pos[slot, 0])
+            y = np.float64(pos[slot, 1])
+            z = np.float64(pos[slot, 2])
+            if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
+                n_bad += 1
+                continue
+            x0 = min(x0, x)
+            x1 = max(x1, x)
+            y0 = min(y0, y)
+            y1 = max(y1, y)
+            z0 = min(z0, z)
+            z1 = max(z1, z)
+            if cmode >= C_SCALAR:
+                v = _colour_value(cmode, slot, pos, tms, cval)
+                if np.isfinite(v):
+                    vmin = min(vmin, v)
+                    vmax = max(vmax, v)
+        lo[k, 0] = x0
+        lo[k, 1] = y0
+        lo[k, 2] = z0
+        hi[k, 0] = x1
+        hi[k, 1] = y1
+        hi[k, 2] = z1
+        bad[k] = n_bad
+        vlo[k] = vmin
+        vhi[k] = vmax
 
 
 def _band_splat(kb, row0, ylo, yhi, ra, rb, rkey, rbox, rf, W, round_):
@@ -1017,7 +1070,8 @@ def _compile(cache: bool) -> Kernels:
     for name in ("_band", "_bin_sq"):  # called from parallel loops, each compiled on its own
         g[name] = nb.njit(**opts)(g[name])
     out = {}
-    for name in ("_raster", "_select", "_thin", "_cap", "_resolve", "_edl", "_floor", "_bin", "_bands"):
+    for name in ("_raster", "_select", "_thin", "_cap", "_resolve", "_edl", "_floor", "_bin", "_bands",
+                 "_batch_stats"):
         out[name[1:]] = nb.njit(parallel=True, **opts)(g[name])
     out["resolve_scalar_1"] = nb.njit(**opts)(g["_resolve_scalar"])  # one thread: prange runs as range
     out["keys_rows"] = nb.njit(**opts)(g["_keys_rows"])

@@ -83,22 +83,49 @@ def test_byte_identical_at_one_to_four_threads_in_every_split():
 
 
 @pytest.mark.parametrize("threads", [1, 2])
-def test_chunks_that_straddle_the_wrap(monkeypatch, threads):
-    """Small binning chunks over a ring whose occupied range wraps past the end (a chunk has
-    slots on both sides of it): the binned image equals the reference and the points split."""
+def test_batches_that_straddle_the_wrap_culled_or_not(monkeypatch, threads):
+    """Batches of 256 slots over a ring whose occupied range wraps past the end, the head in
+    the middle of a batch (that batch is cut in two chunks and never culled whole), the points
+    sorted by x so that a view of one end culls whole batches at the other: the binned image,
+    culling on and off, equals the reference and the points split, byte for byte."""
     numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
     monkeypatch.setattr(cc, "BIN_CHUNK", 256)
     w = terrain(5_000, seed=9)
+    w = w[np.argsort(w[:, 0])]
     f = make_frame(w, capacity=5_300, head=5_300 - 1_000, intensity=np.linspace(0, 1, len(w), dtype=np.float32))
-    assert f.head + f.size > f.capacity  # the logical range wraps
+    assert f.head + f.size > f.capacity and f.head % 256 != 0  # wraps; the head inside a batch
     cfg = render_cfg(size=[320, 240], point_size=3)
-    a, sa = draw(CpuRenderer(cfg, f.capacity, list(f.channels)), f, terrain_camera())
-    bins = renderer(monkeypatch, "bins", cfg, f)
-    b, sb = draw(bins, f, terrain_camera())
-    p, _ = draw(renderer(monkeypatch, "points", cfg, f), f, terrain_camera())
-    assert sb.drawn == sa.drawn and sb.extra["split"] == "bins"
-    assert np.array_equal(a, b) and np.array_equal(b, p)
-    assert bins._bins.C == -(-f.size // 256) > 4
+    cam = Camera(eye=[-35, -5, 40], target=[-35, 0, 0], near=1, far=200, fov_deg=40)  # looks down at the x < 0 end
+    a, sa = draw(CpuRenderer(cfg, f.capacity, list(f.channels)), f, cam)
+    imgs = {}
+    for cull in ("1", "0"):
+        monkeypatch.setenv("POINTFLOW_CPU_RASTER_CULL", cull)
+        bins = renderer(monkeypatch, "bins", cfg, f)
+        imgs[cull], sb = draw(bins, f, cam)
+        assert sb.drawn == sa.drawn and sb.extra["split"] == "bins"
+        assert (sb.extra["culled_points"] > 1_000) == (cull == "1")
+    p, _ = draw(renderer(monkeypatch, "points", cfg, f), f, cam)
+    assert (a != a[0, 0]).any(axis=-1).mean() > 0.05, "the view must show points"
+    assert np.array_equal(a, imgs["1"]) and np.array_equal(imgs["1"], imgs["0"]) and np.array_equal(imgs["1"], p)
+
+
+def test_culled_batches_keep_the_counts_and_the_automatic_colour_range(monkeypatch):
+    """A culled batch touches no point, yet the frame's non-finite count and the automatic
+    colour range (over every occupied point, seen or not) are those of the whole ring."""
+    monkeypatch.setattr(cc, "BIN_CHUNK", 512)
+    w = terrain(8_192, seed=13)
+    w = w[np.argsort(w[:, 0])]
+    w[7_000] = np.nan  # in a batch the view culls
+    z = w[:, 2].copy()
+    f = make_frame(w)
+    cfg = render_cfg(size=[200, 150], point_size=2, color_by="z")
+    cam = Camera(eye=[-35, -5, 40], target=[-35, 0, 0], near=1, far=200, fov_deg=40)  # looks down at the x < 0 end
+    ref, sa = draw(CpuRenderer(cfg, f.capacity, list(f.channels)), f, cam)
+    got, sb = draw(renderer(monkeypatch, "bins", cfg, f), f, cam)
+    assert sb.extra["culled_points"] > 4_000
+    assert sb.extra["removed_nonfinite"] == sa.extra["removed_nonfinite"] == 1
+    assert np.nanmax(z) > np.nanmax(z[:4_000])  # the range's top lies in the culled batches
+    assert np.array_equal(got, ref)
 
 
 def test_records_that_overflow_the_first_guess_grow_and_draw_the_same(monkeypatch):
