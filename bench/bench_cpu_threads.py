@@ -8,6 +8,13 @@ squares, turbo by intensity, 1% of the ring rewritten per frame, output = read_i
     PYTHONPATH=$PWD .venv/bin/python bench/bench_cpu_threads.py --sizes 100000 1000000
     NUMBA_NUM_THREADS=4 PYTHONPATH=$PWD .venv/bin/python bench/bench_cpu_threads.py   # up to 4 threads
 
+``--cull N`` instead: batch culling (issue 41) on a ring of N points, the whole ring in view
+against a view of about a tenth of it (the same ring, the camera fitted to a corner block of
+the tiles), each with culling on and off (``POINTFLOW_CPU_RASTER_CULL``), interleaved; writes
+``bench/results/cpu_cull.json``:
+
+    PYTHONPATH=$PWD .venv/bin/python bench/bench_cpu_threads.py --cull 4000000
+
 N is numba's thread count (``NUMBA_NUM_THREADS``, default the cores). Per pair: the median wall
 time and process CPU time per frame; per split the speed-up at t threads = the median of the
 per-round ratios (1-thread frame / t-thread frame of the same round), so load that changes
@@ -98,6 +105,74 @@ def measure(sizes: list[int], rounds: int, splits: tuple[str, ...]) -> dict[str,
             "measured_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "command": _harness.command()}
 
 
+def cull(n: int, rounds: int) -> dict[str, Any]:
+    """Frame time of the whole ring in view and of a view of ~10% of it, culling on and off."""
+    import numba
+
+    from pointflow.render.camera import Camera
+    from pointflow.render.cpu_compute import CpuComputeRenderer
+    machine = _harness.machine()
+    base, inten0, scene = base_cloud()
+    world, inten = tiled(base, inten0, n)
+    f = make_frame(world, inten)
+    lo, hi = world.min(0), world.max(0)
+    cams = {"whole": camera_for(world)}
+    # looking straight down from the height at which the view covers a twentieth of the ground
+    # (about a tenth of the points: the corner tiles are denser than the mean),
+    # centred on a point that keeps the whole view over the data
+    t, asp = np.tan(np.radians(60.0) / 2), W / H
+    h = np.sqrt(0.05 * (hi[0] - lo[0]) * (hi[1] - lo[1]) / (4 * asp * t * t))
+    c = np.array([lo[0] + 1.2 * asp * t * h, lo[1] + 1.2 * t * h, hi[2]])
+    cams["tenth"] = Camera(eye=c + [0, -1e-3 * h, h], target=c - [0, 0, h], up=[0, 1, 0], fov_deg=60.0,
+                           near=0.01 * h, far=4 * h)
+    del world
+    cfg = RenderConfig(size=[W, H], color_by="intensity", colormap="turbo", point_size=2.0, gpu_timestamps=False,
+                       backend="cpu", raster="compute")
+    os.environ["POINTFLOW_CPU_RASTER_ADAPTIVE"] = "0"
+    os.environ["POINTFLOW_CPU_RASTER_SPLIT"] = "bins"
+    rs = {}
+    for on in ("1", "0"):
+        os.environ["POINTFLOW_CPU_RASTER_CULL"] = on
+        rs[on] = CpuComputeRenderer(replace(cfg), n, ["intensity"])
+    for k in ("POINTFLOW_CPU_RASTER_CULL", "POINTFLOW_CPU_RASTER_SPLIT"):
+        del os.environ[k]
+    pairs = [(v, on) for v in cams for on in rs]
+    wall: dict[tuple[str, str], list[float]] = {p: [] for p in pairs}
+    seen: dict[str, float] = {}
+    culled: dict[tuple[str, str], int] = {}
+    imgs: dict[tuple[str, str], bytes] = {}
+    step, head = max(n // 100, 1), 0
+    for v, on in pairs:
+        f.dirty = None
+        st = rs[on].render(f, cams[v])
+        seen[v] = st.drawn / n
+    for i in range(rounds):
+        for v, on in pairs[i % len(pairs):] + pairs[:i % len(pairs)]:
+            a, b = head, min(head + step, n)
+            head = b % n
+            f.dirty = [(a, b)]
+            t0 = time.perf_counter()
+            st = rs[on].render(f, cams[v])
+            imgs[(v, on)] = rs[on].read_image().tobytes()
+            wall[(v, on)].append((time.perf_counter() - t0) * 1e3)
+            culled[(v, on)] = st.extra["culled_points"]
+    med = {f"{v}/cull_{'on' if on == '1' else 'off'}": float(np.median(wall[(v, on)])) for v, on in pairs}
+    res = {"points": n, "rounds": rounds, "threads": int(numba.get_num_threads()), "scene": scene,
+           "fraction_in_view": seen, "median_ms": med,
+           "tenth_over_whole_cull_on": med["tenth/cull_on"] / med["whole/cull_on"],
+           "tenth_over_whole_cull_off": med["tenth/cull_off"] / med["whole/cull_off"],
+           "culled_points": {f"{v}/{on}": c for (v, on), c in culled.items()},
+           "same_image_cull_on_off": all(imgs[(v, "1")] == imgs[(v, "0")] for v in cams),
+           "all_ms": {f"{v}/{on}": w for (v, on), w in wall.items()},
+           "machine": _harness.machine_done(machine), "command": _harness.command(),
+           "measured_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+    print(f"  {n:,} points; in view: whole {seen['whole']:.1%}, tenth {seen['tenth']:.1%}; " +
+          "  ".join(f"{k} {v:.1f} ms" for k, v in med.items()) +
+          f"; tenth/whole: cull on {res['tenth_over_whole_cull_on']:.3f}, off {res['tenth_over_whole_cull_off']:.3f};"
+          f" same image on/off: {res['same_image_cull_on_off']}", flush=True)
+    return res
+
+
 def _layer() -> Optional[str]:
     import numba
     try:
@@ -138,8 +213,13 @@ def main(argv: Optional[list[str]] = None) -> int:
     ap.add_argument("--sizes", type=int, nargs="*", default=[100_000, 1_000_000])
     ap.add_argument("--rounds", type=int, default=15, help="frames per (split, threads) pair, interleaved")
     ap.add_argument("--splits", default=",".join(SPLITS))
-    ap.add_argument("--out", default=str(_harness.RESULTS / "cpu_threads.json"))
+    ap.add_argument("--out", default=None, help="default bench/results/cpu_threads.json (cpu_cull.json with --cull)")
+    ap.add_argument("--cull", type=int, default=0, metavar="N", help="batch culling on a ring of N points instead")
     a = ap.parse_args(argv)
+    if a.cull:
+        _harness.write_result(a.out or _harness.RESULTS / "cpu_cull.json", cull(a.cull, a.rounds))
+        return 0
+    a.out = a.out or str(_harness.RESULTS / "cpu_threads.json")
     res = measure(a.sizes, a.rounds, tuple(a.splits.split(",")))
     path = _harness.write_result(a.out, res)
     chart(res, path.with_suffix(".png"))
