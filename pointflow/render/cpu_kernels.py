@@ -1055,8 +1055,16 @@ _tried = False
 _lock = threading.Lock()
 
 
+#: OpenMP's idle workers sleep at once instead of spinning (libgomp reads this when numba
+#: starts its ``omp`` threading layer, at the first parallel loop): spinning workers took the
+#: cores from the caller's own thread and from the other stages (ingest, cadence) on a shared
+#: machine, and made two threads slower than one; a value the user set is kept
+OMP_WAIT_POLICY = "PASSIVE"
+
+
 def _compile(cache: bool) -> Kernels:
     global numba
+    os.environ.setdefault("OMP_WAIT_POLICY", OMP_WAIT_POLICY)
     import numba as nb
 
     numba = nb  # the loops name numba.prange through this module global
