@@ -472,8 +472,8 @@ def cpu_raster(sizes: list[int], reps: dict[int, int]) -> dict[str, Any]:
         img_cc = cc.read_image()
         row: dict[str, Any] = {"points": n, "repeats": k, "threads": threads,
                                "frames_per_thread_count": {str(t): c for t, c in sorted(cc.frames_at.items())},
-                               "tune_ms": {str(t): v for t, v in cc._tune.items()},
-                               "split": "bands" if cc.bands else "points", "other_split": other}
+                               "tune_ms": {"/".join(map(str, t)) if isinstance(t, tuple) else str(t): v for t, v in cc._tune.items()},
+                               "split": cc.split_mode, "other_split": other}
         for m, v in ts.items():
             row[f"{m}_ms"], row[f"{m}_all_ms"] = float(np.median(v)), v
         c = np.asarray(ts["cpu_compute"])
@@ -533,7 +533,7 @@ def cpu_raster_chart(res: dict[str, Any], path: Path) -> None:
         return
     fig, ax, rows, n = got
     series = [("wgpu_compute_ms", "o-", "wgpu compute method on " + str(res.get("adapter") or "?").split(" (")[0]),
-              ("cpu_compute_ms", "*-", f"cpu compiled raster, {res['threads']} threads (split by points)"),
+              ("cpu_compute_ms", "*-", f"cpu compiled raster, {res['threads']} threads (split {rows[0].get('split', 'points')})"),
               ("cpu_compute_1thread_ms", "v:", "cpu compiled raster, 1 thread"),
               (f"cpu_compute_{rows[0].get('other_split', 'bands')}_ms", "x:",
                f"cpu compiled raster, split by {rows[0].get('other_split', 'bands')}"),

@@ -36,8 +36,22 @@ from .rules import (EDL_SCALE, budget_fraction, budget_seed, check_frame, edl_of
 __all__ = ["CpuComputeRenderer"]
 
 ENV_SPLIT = "POINTFLOW_CPU_RASTER_SPLIT"
-#: how the threads share the work (bench/bench_render.py --cpu-raster measures both)
-DEFAULT_SPLIT = "points"
+#: how the threads share the work (bench/bench_render.py --cpu-raster measures them)
+SPLITS = ("auto", "bins", "points", "bands")
+#: auto: bins, but points for a frame drawn with one thread over more than
+#: ONE_THREAD_POINTS_ABOVE points (one key buffer, nothing to merge: less work than binning)
+DEFAULT_SPLIT = "auto"
+ONE_THREAD_POINTS_ABOVE = 250_000
+#: split by bins: logical indices per chunk of the binning pass (its scratch stays in cache)
+BIN_CHUNK = 16384
+#: split by bins: rows per screen band, 2^BAND_SHIFT (a thread's band of keys, rows x width x 8
+#: bytes, stays in cache)
+BAND_SHIFT = 4
+#: split by bins: cull whole batches of BIN_CHUNK slots whose bounds lie outside the frustum
+#: (env POINTFLOW_CPU_RASTER_CULL=0: never)
+ENV_CULL = "POINTFLOW_CPU_RASTER_CULL"
+#: split by bins: first guess of records per point (a box crossing a band edge is in two bands)
+RECORDS_PER_POINT = 1.125
 #: split by points: chunks of logical indices per thread, taken as threads come free
 CHUNKS_PER_THREAD = 8
 ENV_ADAPTIVE = "POINTFLOW_CPU_RASTER_ADAPTIVE"
@@ -45,6 +59,40 @@ ENV_ADAPTIVE = "POINTFLOW_CPU_RASTER_ADAPTIVE"
 TUNE_FRAMES = 3
 RETRY_EVERY = 30
 
+
+
+class _Bins:
+    """The binned raster's records of the last frame (per target size: picking reads them)."""
+
+    def __init__(self) -> None:
+        self.C = 0          # chunks drawn
+        self.RC = 0         # records per chunk region
+        self.BS = BAND_SHIFT
+        self.BH = 1 << BAND_SHIFT
+        self.NB = 0         # bands (bucket NB: boxes over MAX_BANDS_PER_POINT bands)
+        self.rkey = np.zeros(1, np.uint64)
+        self.rbox = np.zeros(1, np.uint64)
+        self.rf = np.zeros((1, 3), np.float64)
+        self.off = np.zeros((0, 2), np.int64)
+
+    def ready(self, chunks: int, per_chunk: int, round_: bool, H: int) -> None:
+        """Room for ``chunks`` regions of ``per_chunk`` records (grown, never shrunk)."""
+        self.NB = -(-H // self.BH)
+        n = chunks * per_chunk
+        if self.rkey.shape[0] < n or self.RC != per_chunk:
+            self.RC = per_chunk
+            self.rkey = np.empty(max(n, 1), np.uint64)
+            self.rbox = np.empty(max(n, 1), np.uint64)
+        if round_ and self.rf.shape[0] < n:
+            self.rf = np.empty((max(n, 1), 3), np.float64)
+        if self.off.shape != (chunks, self.NB + 2):
+            self.off = np.zeros((chunks, self.NB + 2), np.int64)
+        self.C = chunks
+
+
+def use_mask_of(frame: FrameInput, size: int) -> bool:
+    """A budget below the occupied count: the budget's passes decide the points first."""
+    return frame.budget is not None and size > max(int(frame.budget), 0)
 
 
 def _pack(c: np.ndarray) -> np.uint32:
@@ -76,19 +124,29 @@ class CpuComputeRenderer(Renderer):
         self._edl = edl_offsets(cfg.edl.radius_px).astype(np.int64) if cfg.edl.enabled else None
         self._logz = np.zeros(H * W if self._edl is not None else 1, np.float64)
         self._keys = np.empty((0, H * W), np.uint64)
-        #: split the work by screen bands (one key buffer, every thread runs every point and
-        #: writes its rows) or by points (one buffer per thread, merged in the resolve);
-        #: env POINTFLOW_CPU_RASTER_SPLIT=bands|points, default DEFAULT_SPLIT (measured faster)
+        #: how the threads share the work: bins (records sorted by screen band, then each band
+        #: keyed and resolved by one thread), points (one key buffer per thread, merged in the
+        #: resolve), bands (one key buffer, every thread runs every point and writes its rows),
+        #: auto (bins; points for one thread over many points); env POINTFLOW_CPU_RASTER_SPLIT
         split = os.environ.get(ENV_SPLIT, "").strip().lower() or DEFAULT_SPLIT
-        if split not in ("bands", "points"):
-            raise RenderError(f"${ENV_SPLIT}={split!r}: expected bands or points")
+        if split not in SPLITS:
+            raise RenderError(f"${ENV_SPLIT}={split!r}: expected one of {', '.join(SPLITS)}")
+        self.split_mode = split
+        self.split = "bins" if split == "auto" else split  # the last frame's
         self.bands = split == "bands"
+        self._bins = _Bins()
+        self._records_per_point = RECORDS_PER_POINT
+        self._cull = os.environ.get(ENV_CULL, "1") not in ("0", "false", "no")
+        self.culled_points = 0  # points of the last frame in batches culled whole
+        self._bin_scratch: tuple = ()
+        self._drew = False
         self.threads = 1
         #: thread count chosen per frame by measurement (env POINTFLOW_CPU_RASTER_ADAPTIVE=0: always all)
         self._adaptive = os.environ.get(ENV_ADAPTIVE, "1") not in ("0", "false", "no")
         self._tune: dict[int, list[float]] = {}
         self._tune_n = 0
         self.frames_at: dict[int, int] = {}  # frames drawn per thread count
+        self.frames_by: dict[tuple[str, int], int] = {}  # frames drawn per (split, thread count)
         self._origin: Optional[np.ndarray] = None
         self._cap = -1
         cb = cfg.color_by
@@ -110,6 +168,16 @@ class CpuComputeRenderer(Renderer):
         self._rgb = np.zeros(1, np.uint32)     # packed rgb (rgb mode; sized in _sync)
         self._cmode_chan: Optional[str] = None
         self._origin = None
+        self._batches(cap)
+
+    def _batches(self, cap: int) -> None:
+        """Bounds per batch of BIN_CHUNK slots of the own copy (kept as it is written: only
+        the batches of the dirty ranges are reduced again, when a frame needs them)."""
+        nbat = -(-cap // BIN_CHUNK)
+        if getattr(self, "_bstale", np.zeros(0)).shape[0] != nbat:
+            self._blo, self._bhi = np.zeros((nbat, 3)), np.zeros((nbat, 3))
+            self._bbad, self._bvlo, self._bvhi = np.zeros(nbat, np.int64), np.zeros(nbat), np.zeros(nbat)
+            self._bstale = np.ones(nbat, bool)
 
     def _colour_mode(self, frame: FrameInput) -> tuple[int, Optional[str]]:
         cb = self.cfg.color_by
@@ -142,6 +210,7 @@ class CpuComputeRenderer(Renderer):
         ranges = [(0, cap)] if full else merge_ranges(list(frame.dirty or []), cap)
         total = 0
         for a, b in ranges:
+            self._bstale[a // BIN_CHUNK:-(-b // BIN_CHUNK)] = True
             self._pos[a:b] = frame.positions[a:b]
             total += (b - a) * 12
             if self._need_t:
@@ -161,29 +230,43 @@ class CpuComputeRenderer(Renderer):
         self._synced_mode = (cmode, chan)
         return total
 
-    def _pick_threads(self) -> int:
-        """This frame's thread count: 1 or all of numba's (``numba.get_num_threads()``),
-        whichever drew faster lately (the image is the same either way). The first frames
-        alternate, starting with all threads; then the slower count is re-tried every
-        RETRY_EVERY frames, so a machine whose other load changes is followed."""
+    def _rule(self, T: int, size: int) -> str:
+        """The split without measurements: the forced one, else bins (points for one thread
+        over more than ONE_THREAD_POINTS_ABOVE points)."""
+        if self.split_mode != "auto":
+            return self.split_mode
+        return "points" if T == 1 and size > ONE_THREAD_POINTS_ABOVE else "bins"
+
+    def _pick(self, size: int) -> tuple[str, int]:
+        """This frame's (split, thread count): every thread numba has (``numba.get_num_threads()``)
+        or one, and with ``auto`` the bins or the points split, whichever drew faster lately
+        (the image is the same either way). The first frames try each in turn (all threads
+        first, bins first); then the fastest draws, and every RETRY_EVERY frames one of the
+        others is re-tried in rotation, so a machine whose other load changes is followed."""
         most = max(1, int(self._k_numba().get_num_threads()))
         if most == 1 or not self._adaptive:
-            return most
-        cands = (most, 1)
-        seen = {t: self._tune.get(t, []) for t in cands}
-        for t in cands:
-            if len(seen[t]) < TUNE_FRAMES:
-                return t
-        best, other = sorted(cands, key=lambda t: float(np.median(seen[t])))
+            return self._rule(most, size), most
+        splits = ("bins", "points") if self.split_mode == "auto" else (self.split_mode,)
+        cands = [(sp, t) for t in (most, 1) for sp in splits]
+        for c in cands:
+            if len(self._tune.get(c, [])) < TUNE_FRAMES:
+                return c
+        ranked = sorted(cands, key=lambda c: float(np.median(self._tune[c])))
         self._tune_n += 1
-        return other if self._tune_n % RETRY_EVERY == 0 else best
+        if self._tune_n % RETRY_EVERY == 0:
+            return ranked[1 + (self._tune_n // RETRY_EVERY) % (len(ranked) - 1)]
+        return ranked[0]
 
     def _buffers(self, threads: Optional[int] = None) -> np.ndarray:
         """The key buffers for this frame's thread count: one (bands) or one per thread."""
         self.threads = T = max(1, int(self._k_numba().get_num_threads())) if threads is None else threads
         nb = 1 if self.bands else T
-        if self._keys.shape != (nb, self.width * self.height):
-            self._keys = np.empty((nb, self.width * self.height), np.uint64)
+        # grown, never shrunk: a frame at another thread count takes the first rows (reallocating
+        # here cost page faults over every buffer each time the count changed)
+        if self._keys.base is None or self._keys.base.shape[0] < nb or self._keys.shape[1] != self.width * self.height:
+            self._keys = np.empty((max(nb, self._keys.shape[0]), self.width * self.height), np.uint64)[:nb]
+        else:
+            self._keys = self._keys.base[:nb]
         return self._keys
 
     @staticmethod
@@ -197,30 +280,121 @@ class CpuComputeRenderer(Renderer):
                        t_ingest_ms=np.zeros(cap), channels={}, head=0, size=cap, capacity=cap,
                        origin=np.zeros(3), now_ms=0.0, budget=1)
         cam = Camera(eye=[0, -5, 0], target=[0, 0, 0], near=0.1, far=100)
-        saved = (self._cap, self._pos, self._t, self._imp, self._cval, self._rgb, self._origin)
+        saved = (self._cap, self._pos, self._t, self._imp, self._cval, self._rgb, self._origin, self.split_mode)
         try:
-            self.render(f, cam)
+            for mode in (("points", "bins") if self.split_mode == "auto" else (self.split_mode,)):
+                self.split_mode = mode  # auto draws with both
+                self.render(f, cam)
+                self.winners(0, 1, 0, 1)  # the pick (keys of a few rows)
             # the one-thread scalar resolve (not reached by the frame above)
             empty = np.full((1, self.width * self.height), cpu_kernels.EMPTY, np.uint64)
             self._k.resolve_scalar_1(empty, self._img, 0, cap, self._single, self._bg,
                                      np.zeros(cap, np.float32), np.float32(0), np.float32(1), False, self._lut)
         finally:
-            self._cap, self._pos, self._t, self._imp, self._cval, self._rgb, self._origin = saved
+            self._cap, self._pos, self._t, self._imp, self._cval, self._rgb, self._origin, self.split_mode = saved
             self._img[:] = self._bg
             self._keys[:] = cpu_kernels.EMPTY
+            self._bins, self._drew = _Bins(), False
             self._synced_mode = None
             self.frames = 0
             self.nonfinite_total = 0
-            self._tune, self._tune_n, self.frames_at = {}, 0, {}
+            self._tune, self._tune_n, self.frames_at, self.frames_by = {}, 0, {}, {}
+
+    # ---------------------------------------------------------------- binned raster
+    def _chunks(self, head: int, size: int, cap: int, cmode: int, planes: np.ndarray, cull: bool):
+        """The binning pass's chunks: the occupied logical range cut at the ring's end and at
+        every batch of BIN_CHUNK slots, as (first, end) logical indices; per chunk whether it
+        is a whole batch whose bounds lie wholly outside one frustum plane (culled: no point is
+        touched), with that batch's non-finite count and colour value range."""
+        B = BIN_CHUNK
+        runs = [(head, 0, min(size, cap - head))]
+        if head + size > cap:
+            runs.append((0, cap - head, head + size - cap))
+        starts, lens = [], []
+        for s0, l0, n in runs:
+            cut = np.arange(-(-s0 // B) * B, s0 + n, B)
+            edges = np.unique(np.concatenate([[s0], cut, [s0 + n]]))
+            starts.append(edges[:-1])
+            lens.append(np.diff(edges))
+        s = np.concatenate(starts) if starts else np.zeros(0, np.int64)
+        n = np.concatenate(lens) if lens else np.zeros(0, np.int64)
+        ca = ((s - head) % cap).astype(np.int64)
+        cb = ca + n
+        k = s // B
+        C = len(ca)
+        flag = np.zeros(C, np.uint8)
+        cbad = np.zeros(C, np.int64)
+        cvr = np.zeros((C, 2))
+        if cull and C:
+            self._batches(cap)
+            whole = (s == k * B) & (n == np.minimum((k + 1) * B, cap) - k * B)
+            kw = np.unique(k[whole])
+            stale = kw[self._bstale[kw]]
+            if stale.size:
+                self._k.batch_stats(stale.astype(np.int64), B, cap, self._pos, self._t, self._cval, cmode, self._blo,
+                                    self._bhi, self._bbad, self._bvlo, self._bvhi)
+                self._bstale[stale] = False
+            lo, hi = self._blo[k], self._bhi[k]
+            nrm, d = planes[:, :3], planes[:, 3]
+            # the largest value of each plane over the box (a corner), with a margin far above
+            # the rounding of either sum: culled only when every point is outside that plane
+            with np.errstate(invalid="ignore"):  # a batch without a finite point has infinite bounds
+                most = d + np.maximum(lo[:, None, :] * nrm, hi[:, None, :] * nrm).sum(axis=2)
+                scale = np.abs(d) + (np.maximum(np.abs(lo), np.abs(hi))[:, None, :] * np.abs(nrm)).sum(axis=2)
+                out = (most < -1e-9 * (scale + 1.0)).any(axis=1)
+            empty = self._bbad[k] == n  # no finite point at all
+            sel = whole & (out | empty)
+            flag[sel] = 1
+            cbad[sel] = self._bbad[k[sel]]
+            cvr[sel, 0], cvr[sel, 1] = self._bvlo[k[sel]], self._bvhi[k[sel]]
+        return ca, cb, flag, cbad, cvr
+
+    def _bin_pass(self, chunks, st, vr, mask, use_mask, head, size, cap, vp, planes, half, world, size_scale, round_,
+                  has_window, now, window, lod, has_imp, imp_deg, imp_lo, imp_scale, seed_h, range_mode,
+                  eps_s) -> None:
+        """Pass 1 (rules, projection, boxes, records sorted by band); run again with larger
+        chunk regions when a chunk needed more records than its region holds."""
+        bn, W, H = self._bins, self.width, self.height
+        nt = max(1, int(cpu_kernels.numba.config.NUMBA_NUM_THREADS))
+        if len(self._bin_scratch) == 0 or self._bin_scratch[0].shape[0] < nt or \
+                self._bin_scratch[3].shape[1] != -(-H // bn.BH) + 2 or (round_ and self._bin_scratch[2].shape[1] == 1):
+            self._bin_scratch = (np.empty((nt, BIN_CHUNK), np.uint64), np.empty((nt, BIN_CHUNK), np.uint64),
+                                 np.empty((nt, BIN_CHUNK if round_ else 1, 3), np.float64),
+                                 np.zeros((nt, -(-H // bn.BH) + 2), np.int64))
+        sk, sb, sf, scur = self._bin_scratch
+        ca, cb, cull, cbad, cvr = chunks
+        C = len(ca)
+        need = np.zeros(C, np.int64)
+        for _ in range(2):
+            bn.ready(C, int(np.ceil(BIN_CHUNK * self._records_per_point)), round_, H)
+            self._k.bin(bn.rkey, bn.rbox, bn.rf, bn.off, need, st, vr, ca, cb, cull, cbad, cvr, mask, use_mask, sk, sb,
+                        sf, scur, self._pos,
+                        self._t, self._imp, self._cval, head, size, cap, W, H, vp, planes, half, world, size_scale,
+                        round_, has_window, now, window, lod, has_imp, imp_deg, imp_lo, imp_scale, seed_h,
+                        range_mode, eps_s, BIN_CHUNK, bn.RC, bn.BS, bn.NB)
+            most = int(need.max()) if C else 0
+            if most <= bn.RC:
+                return
+            self._records_per_point = most / BIN_CHUNK * 1.0625  # then run the pass again
+        raise RenderError(f"cpu compute raster: binning needed {most} records per chunk after growing")
+
+    def _band_buffers(self) -> np.ndarray:
+        """One band of keys per thread (BH rows: stays in the core's cache)."""
+        nt = max(1, int(cpu_kernels.numba.config.NUMBA_NUM_THREADS))
+        n = self._bins.BH * self.width
+        kb = getattr(self, "_kbuf", None)
+        if kb is None or kb.shape != (nt, n):
+            kb = self._kbuf = np.empty((nt, n), np.uint64)
+        return kb
 
     # ---------------------------------------------------------------- render
     def render(self, frame: FrameInput, camera: Camera) -> FrameStats:
         nb = self._k_numba()
         caller = nb.get_num_threads()
-        T = self._pick_threads()
+        split, T = self._pick(int(frame.size))
         nb.set_num_threads(T)
         try:
-            st = self._render(frame, camera, T)
+            st = self._render(frame, camera, T, split)
         except (ValueError, RenderError):  # a malformed frame (skipped, counted), or already a tier failure
             raise
         except Exception as exc:  # noqa: BLE001 - the render stage falls back only on RenderError
@@ -228,13 +402,14 @@ class CpuComputeRenderer(Renderer):
         finally:
             nb.set_num_threads(caller)
         self.frames_at[T] = self.frames_at.get(T, 0) + 1
+        self.frames_by[(split, T)] = self.frames_by.get((split, T), 0) + 1
         if self._adaptive and caller > 1:
-            ts = self._tune.setdefault(T, [])
+            ts = self._tune.setdefault((split, T), [])
             ts.append(st.timings_ms["total"])
             del ts[:-TUNE_FRAMES]
         return st
 
-    def _render(self, frame: FrameInput, camera: Camera, T: int) -> FrameStats:
+    def _render(self, frame: FrameInput, camera: Camera, T: int, split: str) -> FrameStats:
         cap, size = check_frame(frame)
         if not 0 <= int(frame.head) < cap:
             raise ValueError(f"FrameInput.head must be in 0..capacity-1 ({cap - 1}), got {frame.head}")
@@ -275,8 +450,15 @@ class CpuComputeRenderer(Renderer):
                 lo_c, hi_c = (float(x) for x in frame.channel_ranges[chan])
             else:
                 range_mode = cmode
-        keys = self._buffers(T)
-        C = T if self.bands else T * CHUNKS_PER_THREAD  # chunks of the raster pass
+        self.threads, self.split = T, split
+        bins = self.split == "bins"
+        keys = self._buffers(T) if not bins else self._keys
+        if bins:  # culling needs the tests of every point done here (not by the budget's passes)
+            chunks = self._chunks(head, size, cap, cmode, planes, self._cull and not use_mask_of(frame, size))
+            C = max(1, len(chunks[0]))
+            self.culled_points = int((chunks[1] - chunks[0])[chunks[2] == 1].sum())
+        else:
+            C = T if self.bands else T * CHUNKS_PER_THREAD  # chunks of the raster pass
         st = np.zeros((max(C, T), cpu_kernels.N_ST), np.int64)
         vr = np.empty((max(C, T), 2), np.float64)
         vr[:, 0], vr[:, 1] = np.inf, -np.inf
@@ -286,7 +468,7 @@ class CpuComputeRenderer(Renderer):
         lod = max(int(cfg.lod_stride), 1)
         half = float(cfg.point_size) * 0.5
         round_ = cfg.point_shape == "round"
-        use_mask = frame.budget is not None and size > max(int(frame.budget), 0)
+        use_mask = use_mask_of(frame, size)
         mask = np.zeros(size if use_mask else 1, np.uint8)
         counts = {"occupied": size}
         if use_mask:  # budget: tests -> thinning -> the first b in logical order
@@ -306,9 +488,14 @@ class CpuComputeRenderer(Renderer):
         nb = self._k_numba()
         prev = nb.set_parallel_chunksize(1)  # chunks go to whichever thread is free
         try:
-            k.raster(keys, T, C, self.bands, st, vr, mask, use_mask, self._pos, self._t, self._imp, self._cval, head,
-                     size, cap, W, H, vp, planes, half, world, size_scale, round_, has_window, now, window, lod,
-                     has_imp, imp_deg, imp_lo, imp_scale, seed_h, range_mode, eps_s)
+            if bins:
+                self._bin_pass(chunks, st, vr, mask, use_mask, head, size, cap, vp, planes, half, world, size_scale,
+                               round_, has_window, now, window, lod, has_imp, imp_deg, imp_lo, imp_scale, seed_h,
+                               range_mode, eps_s)
+            else:
+                k.raster(keys, T, C, self.bands, st, vr, mask, use_mask, self._pos, self._t, self._imp, self._cval,
+                         head, size, cap, W, H, vp, planes, half, world, size_scale, round_, has_window, now, window,
+                         lod, has_imp, imp_deg, imp_lo, imp_scale, seed_h, range_mode, eps_s)
         finally:
             nb.set_parallel_chunksize(prev)
         t3 = time.perf_counter()
@@ -325,7 +512,17 @@ class CpuComputeRenderer(Renderer):
         lo32 = np.float32(lo_c)
         scale32 = np.float32(1.0 / (hi_c - lo_c)) if not degenerate else np.float32(0)
         self._last_ring = (head, cap)
-        if cmode == cpu_kernels.C_SCALAR and self._edl is None and T == 1:  # the same rule, serial build
+        self._drew = True
+        if bins:  # keys per band and the resolve in one pass
+            bn = self._bins
+            prev = nb.set_parallel_chunksize(1)
+            try:
+                k.bands(self._band_buffers(), self._img, self._logz, self._edl is not None, bn.rkey, bn.rbox, bn.rf,
+                        bn.off, W, H, bn.BS, bn.NB, round_, vp, head, cap, cmode, self._single, self._bg, self._rgb,
+                        self._pos, self._t, self._cval, lo32, scale32, degenerate, self._lut)
+            finally:
+                nb.set_parallel_chunksize(prev)
+        elif cmode == cpu_kernels.C_SCALAR and self._edl is None and T == 1:  # the same rule, serial build
             k.resolve_scalar_1(keys, self._img, head, cap, self._single, self._bg, self._cval, lo32, scale32,
                                degenerate, self._lut)
         else:
@@ -347,7 +544,7 @@ class CpuComputeRenderer(Renderer):
         return FrameStats(drawn=drawn, timings_ms=timings, uploaded_bytes=copied,
                           extra={"removed_nonfinite": nonfinite, "nonfinite_total": self.nonfinite_total,
                                  "occupied": size, "threads": T, "raster": "compute",
-                                 "split": "bands" if self.bands else "points"})
+                                 "split": self.split, "culled_points": self.culled_points if bins else 0})
 
     def resize(self, width: int, height: int) -> bool:
         """A target per size (image, EDL depth, key buffers), kept for switching back; the
@@ -356,15 +553,17 @@ class CpuComputeRenderer(Renderer):
         if size == (self.width, self.height):
             return True
         targets = self.__dict__.setdefault("_targets", {})
-        targets[(self.width, self.height)] = (self._img, self._logz, self._keys, self._last_ring)
+        targets[(self.width, self.height)] = (self._img, self._logz, self._keys, self._last_ring, self._bins,
+                                              self._drew, self.split)
         if size in targets:
-            self._img, self._logz, self._keys, self._last_ring = targets[size]
+            self._img, self._logz, self._keys, self._last_ring, self._bins, self._drew, self.split = targets[size]
         else:
             W, H = size
             self._img = np.empty((H, W), np.uint32)
             self._img[:] = self._bg
             self._logz = np.zeros(H * W if self._edl is not None else 1, np.float64)
             self._keys, self._last_ring = np.empty((0, H * W), np.uint64), (0, 1)
+            self._bins, self._drew = _Bins(), False
         self.width, self.height = size
         return True
 
@@ -376,14 +575,24 @@ class CpuComputeRenderer(Renderer):
         """Ring slot drawn at each pixel of the last frame's block [ya:yb, xa:xb] (-1 =
         background), from the key buffers (the smallest key over the threads' buffers)."""
         H, W = self.height, self.width
-        kb = self._keys.reshape(-1, H, W)[:, ya:yb, xa:xb].min(axis=0)
+        if self.split == "bins":
+            ya, yb = range(H)[slice(ya, yb)].start, range(H)[slice(ya, yb)].stop
+            bn = self._bins
+            out = np.empty(max(yb - ya, 0) * W, np.uint64)
+            if yb > ya:
+                self._k.keys_rows(out, np.empty(bn.BH * W, np.uint64), ya, yb, bn.rkey, bn.rbox, bn.rf, bn.off, W,
+                                  H, bn.BS, bn.NB,
+                                  self.cfg.point_shape == "round")
+            kb = out.reshape(yb - ya, W)[:, xa:xb]
+        else:
+            kb = self._keys.reshape(-1, H, W)[:, ya:yb, xa:xb].min(axis=0)
         head, cap = self._last_ring
         slots = ((kb & np.uint64(0xFFFFFFFF)).astype(np.int64) + head) % cap
         return np.where(kb == cpu_kernels.EMPTY, -1, slots)
 
     def pick(self, x: float, y: float, pixel_ratio: float = 1.0) -> Optional[int]:
         win = pick_window(self.width, self.height, x, y, pixel_ratio, self.cfg.pick_radius)
-        if win is None or self._keys.shape[0] == 0:
+        if win is None or not self._drew:
             return None
         X, Y, xa, xb, ya, yb = win
         block = self.winners(ya, yb, xa, xb)
@@ -397,8 +606,9 @@ class CpuComputeRenderer(Renderer):
 
     def info(self) -> dict[str, Any]:
         return {"tier": self.tier, "raster": self.raster, "size": [self.width, self.height],
-                "split": "bands" if self.bands else "points", "adaptive_threads": self._adaptive,
+                "split": self.split, "split_mode": self.split_mode, "adaptive_threads": self._adaptive,
                 "frames_per_thread_count": {str(t): n for t, n in sorted(self.frames_at.items())},
+                "frames_per_split_and_threads": {f"{sp}/{t}": n for (sp, t), n in sorted(self.frames_by.items())},
                 "threads": int(cpu_kernels.numba.get_num_threads()), "numba": cpu_kernels.numba.__version__,
                 "deterministic": True}
 

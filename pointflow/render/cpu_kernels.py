@@ -584,6 +584,463 @@ def _floor(keys, T, C, bands, pos, size, head, cap, W, H, vp, half_px):
             _splat(kb, logical, cx, cy, w, W, H, half_px, False, 0.0, False, ylo, yhi)
 
 
+
+# --------------------------------------------------------------------------- binned raster (split "bins")
+#: a box taller than this many bands goes to every band's shared bucket (bucket NB), once
+MAX_BANDS_PER_POINT = 4
+_M16 = np.uint64(0xFFFF)
+_U16 = np.uint64(16)
+_U48 = np.uint64(48)
+
+
+def _box_pack(x0, x1, y0, y1):
+    return np.uint64(x0) | (np.uint64(x1) << _U16) | (np.uint64(y0) << _U32) | (np.uint64(y1) << _U48)
+
+
+def _bin_sq(sk, sb, cnt, a, b, head, cap, pos, tms, cval, vp, planes, eps_s, W, H, half, range_mode, BS, NB):
+    """:func:`_bin`'s loop over logical [a, b) when only the finite and frustum tests apply
+    and the footprint is a screen-space square (as :func:`_chunk_sq`: the same decisions,
+    boxes and keys, the matrix in registers). Returns (survivors, non-finite, vmin, vmax)."""
+    v00, v01, v02, v03 = vp[0, 0], vp[0, 1], vp[0, 2], vp[0, 3]
+    v10, v11, v12, v13 = vp[1, 0], vp[1, 1], vp[1, 2], vp[1, 3]
+    v20, v21, v22, v23 = vp[2, 0], vp[2, 1], vp[2, 2], vp[2, 3]
+    v30, v31, v32, v33 = vp[3, 0], vp[3, 1], vp[3, 2], vp[3, 3]
+    Wf = np.float64(W)
+    Hf = np.float64(H)
+    n_bad = 0
+    ns = 0
+    vmin = np.inf
+    vmax = -np.inf
+    for seg in range(2):  # the ring's two runs of slots: no wrap test per point
+        if seg == 0:
+            la, lb, off = a, min(b, cap - head), head
+        else:
+            la, lb, off = max(a, cap - head), b, head - cap
+        for logical in range(la, lb):
+            slot = logical + off
+            x = np.float64(pos[slot, 0])
+            y = np.float64(pos[slot, 1])
+            z = np.float64(pos[slot, 2])
+            if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
+                n_bad += 1
+                continue
+            if range_mode != 0:
+                v = _colour_value(range_mode, slot, pos, tms, cval)
+                if np.isfinite(v):
+                    vmin = min(vmin, v)
+                    vmax = max(vmax, v)
+            cx = v00 * x + v01 * y + v02 * z + v03
+            cy = v10 * x + v11 * y + v12 * z + v13
+            cz = v20 * x + v21 * y + v22 * z + v23
+            w = v30 * x + v31 * y + v32 * z + v33
+            if not _frustum(x, y, z, cx, cy, cz, w, planes, eps_s * (abs(x) + abs(y) + abs(z) + 1.0)):
+                continue
+            px = (cx / w * 0.5 + 0.5) * W
+            py = (0.5 - cy / w * 0.5) * H
+            x0 = int(min(max(np.ceil(px - half - 0.5), 0.0), Wf))
+            y0 = int(min(max(np.ceil(py - half - 0.5), 0.0), Hf))
+            x1 = int(min(max(np.ceil(px + half - 0.5), 0.0), Wf))
+            y1 = int(min(max(np.ceil(py + half - 0.5), 0.0), Hf))
+            wf = np.float32(w)
+            if wf < _F0:
+                wf = _F0
+            sk[ns] = (np.uint64(_f32_bits(wf)) << _U32) | np.uint64(logical)
+            sb[ns] = _box_pack(x0, x1, y0, y1)
+            # an empty box (off screen) is kept, counted, and never binned
+            if x1 > x0 and y1 > y0:
+                b0 = y0 >> BS
+                b1 = (y1 - 1) >> BS
+                if b0 == b1:
+                    cnt[b0] += 1
+                elif b1 - b0 < MAX_BANDS_PER_POINT:
+                    for j in range(b0, b1 + 1):
+                        cnt[j] += 1
+                else:
+                    cnt[NB] += 1
+            ns += 1
+    return ns, n_bad, vmin, vmax
+
+
+def _bin(rkey, rbox, rf, off, need, st, vrange, ca, cb, cull, cbad, cvr, mask, use_mask, skey, sbox, sf, scur, pos, tms, imp, cval, head,
+         size, cap, W, H, vp, planes, half_px, world, size_scale, round_, has_window, now_ms, window_ms, lod, has_imp,
+         imp_degenerate, imp_lo, imp_scale, seed_h, range_mode, eps_s, L, RC, BS, NB):
+    """Pass 1 of the binned raster: chunks of logical indices ``[ca[c], cb[c])`` (at most
+    ``L``; each within one batch of slots), handed to threads as they come free. A chunk with
+    ``cull[c]`` (a whole batch whose bounds lie outside the frustum) touches no point: its
+    counts are the batch's (``cbad``: non-finite; ``cvr``: the colour value's range). Per point the rules, the float64 projection, the footprint box
+    (rules.footprint_box, clipped to the screen) and the key, into the thread's scratch
+    (``skey``/``sbox``/``sf``: L entries, in cache); then the chunk's survivors counting-sorted
+    by screen band (rows [BH j, BH (j + 1)), BH = 2^BS) into its own region of the records
+    (``[c RC, (c + 1) RC)``): one record per band the box touches, or one in bucket ``NB`` when
+    it touches more than MAX_BANDS_PER_POINT bands. ``off[c, j]`` is where band j starts
+    (``off[c, NB + 1]`` the end); ``need[c]`` the records the chunk needs (> RC: nothing
+    written, the caller grows RC and runs again). No shared writes."""
+    C = off.shape[0]
+    v00, v01, v02, v03 = vp[0, 0], vp[0, 1], vp[0, 2], vp[0, 3]
+    v10, v11, v12, v13 = vp[1, 0], vp[1, 1], vp[1, 2], vp[1, 3]
+    v20, v21, v22, v23 = vp[2, 0], vp[2, 1], vp[2, 2], vp[2, 3]
+    v30, v31, v32, v33 = vp[3, 0], vp[3, 1], vp[3, 2], vp[3, 3]
+    Wf = np.float64(W)
+    Hf = np.float64(H)
+    lean = not use_mask and not world and not round_ and not has_window and lod <= 1 and not has_imp
+    for c in numba.prange(C):
+        tid = numba.get_thread_id()
+        sk = skey[tid]
+        sb = sbox[tid]
+        cnt = scur[tid]
+        for j in range(NB + 2):
+            cnt[j] = 0
+        a = ca[c]
+        b = cb[c]
+        if cull[c]:
+            st[c, ST_OCC] = b - a
+            st[c, ST_BAD] = cbad[c]
+            st[c, ST_KEEP] = 0
+            st[c, ST_DRAWN] = 0
+            vrange[c, 0] = cvr[c, 0] if range_mode != 0 else np.inf
+            vrange[c, 1] = cvr[c, 1] if range_mode != 0 else -np.inf
+            need[c] = 0
+            for j in range(NB + 2):
+                off[c, j] = c * RC
+            continue
+        n_occ = 0
+        n_bad = 0
+        n_keep = 0
+        ns = 0
+        vmin = np.inf
+        vmax = -np.inf
+        if lean:
+            ns, n_bad, vmin, vmax = _bin_sq(sk, sb, cnt, a, b, head, cap, pos, tms, cval, vp, planes, eps_s, W, H,
+                                            half_px, range_mode, BS, NB)
+            n_occ = b - a
+            n_keep = ns
+            a = b  # done: skip the general loop
+        for seg in range(2):  # the ring's two runs of slots: no wrap test per point
+            if seg == 0:
+                la, lb, soff = a, min(b, cap - head), head
+            else:
+                la, lb, soff = max(a, cap - head), b, head - cap
+            for logical in range(la, lb):
+                slot = logical + soff
+                if use_mask:
+                    if mask[logical] == 0:
+                        continue
+                x = np.float64(pos[slot, 0])
+                y = np.float64(pos[slot, 1])
+                z = np.float64(pos[slot, 2])
+                if not use_mask:
+                    n_occ += 1
+                    if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
+                        n_bad += 1
+                        continue
+                    if range_mode != 0:
+                        v = _colour_value(range_mode, slot, pos, tms, cval)
+                        if np.isfinite(v):
+                            vmin = min(vmin, v)
+                            vmax = max(vmax, v)
+                cx = v00 * x + v01 * y + v02 * z + v03
+                cy = v10 * x + v11 * y + v12 * z + v13
+                w = v30 * x + v31 * y + v32 * z + v33
+                if not use_mask:
+                    cz = v20 * x + v21 * y + v22 * z + v23
+                    if not _frustum(x, y, z, cx, cy, cz, w, planes, eps_s * (abs(x) + abs(y) + abs(z) + 1.0)):
+                        continue
+                    if not _test(logical, slot, tms, imp, has_window, now_ms, window_ms, lod, has_imp,
+                                 imp_degenerate, imp_lo, imp_scale, seed_h):
+                        continue
+                n_keep += 1
+                px = (cx / w * 0.5 + 0.5) * W
+                py = (0.5 - cy / w * 0.5) * H
+                half = half_px
+                if world:
+                    s = size_scale / w
+                    if s < 1.0:
+                        s = 1.0
+                    if s > 4096.0:
+                        s = 4096.0
+                    half = s * 0.5
+                x0 = int(min(max(np.ceil(px - half - 0.5), 0.0), Wf))
+                y0 = int(min(max(np.ceil(py - half - 0.5), 0.0), Hf))
+                if round_:
+                    x1 = int(min(max(np.floor(px + half - 0.5) + 1.0, 0.0), Wf))
+                    y1 = int(min(max(np.floor(py + half - 0.5) + 1.0, 0.0), Hf))
+                else:
+                    x1 = int(min(max(np.ceil(px + half - 0.5), 0.0), Wf))
+                    y1 = int(min(max(np.ceil(py + half - 0.5), 0.0), Hf))
+                if x1 <= x0 or y1 <= y0:
+                    continue
+                wf = np.float32(w)
+                if wf < _F0:
+                    wf = _F0
+                sk[ns] = (np.uint64(_f32_bits(wf)) << _U32) | np.uint64(logical)
+                sb[ns] = _box_pack(x0, x1, y0, y1)
+                if round_:
+                    sf[tid, ns, 0] = px
+                    sf[tid, ns, 1] = py
+                    sf[tid, ns, 2] = half
+                ns += 1
+                b0 = y0 >> BS
+                b1 = (y1 - 1) >> BS
+                if b1 - b0 < MAX_BANDS_PER_POINT:
+                    for j in range(b0, b1 + 1):
+                        cnt[j] += 1
+                else:
+                    cnt[NB] += 1
+        total = 0
+        for j in range(NB + 1):
+            total += cnt[j]
+        need[c] = total
+        st[c, ST_OCC] = n_occ
+        st[c, ST_BAD] = n_bad
+        st[c, ST_KEEP] = n_keep
+        st[c, ST_DRAWN] = n_keep
+        vrange[c, 0] = vmin
+        vrange[c, 1] = vmax
+        if total > RC:
+            continue  # overflow: the caller grows RC and runs the pass again
+        run = c * RC
+        for j in range(NB + 1):
+            k = cnt[j]
+            off[c, j] = run
+            cnt[j] = run
+            run += k
+        off[c, NB + 1] = run
+        for i in range(ns):
+            bx = sb[i]
+            y0 = np.int64((bx >> _U32) & _M16)
+            y1 = np.int64(bx >> _U48)
+            x0 = np.int64(bx & _M16)
+            x1 = np.int64((bx >> _U16) & _M16)
+            if y1 <= y0 or x1 <= x0:
+                continue  # off screen (the lean loop keeps these in the scratch)
+            b0 = y0 >> BS
+            b1 = (y1 - 1) >> BS
+            if b1 - b0 >= MAX_BANDS_PER_POINT:
+                b0 = NB
+                b1 = NB
+            for j in range(b0, b1 + 1):
+                r = cnt[j]
+                cnt[j] = r + 1
+                rkey[r] = sk[i]
+                if round_ or j == NB:
+                    rbox[r] = bx
+                    if round_:
+                        rf[r, 0] = sf[tid, i, 0]
+                        rf[r, 1] = sf[tid, i, 1]
+                        rf[r, 2] = sf[tid, i, 2]
+                else:  # a square in band j: its part of the band, as (index in the band, dx, dy)
+                    top = j << BS
+                    ya = max(y0, top) - top
+                    yb = min(y1, top + (np.int64(1) << BS)) - top
+                    rbox[r] = np.uint64(ya * W + x0) | (np.uint64(x1 - x0) << _U32) | (np.uint64(yb - ya) << _U48)
+
+
+def _batch_stats(ks, B, cap, pos, tms, cval, cmode, lo, hi, bad, vlo, vhi):
+    """Per batch k in ``ks`` (slots [k B, min((k + 1) B, cap))): the bounds of its finite
+    positions (``lo``/``hi``; +inf/-inf when none), its non-finite count, and the range of the
+    colour value (mode ``cmode``) over its finite points, as the raster pass reduces it."""
+    for q in numba.prange(ks.shape[0]):
+        k = ks[q]
+        x0 = y0 = z0 = np.inf
+        x1 = y1 = z1 = -np.inf
+        vmin = np.inf
+        vmax = -np.inf
+        n_bad = 0
+        for slot in range(k * B, min((k + 1) * B, cap)):
+            x = np.float64(pos[slot, 0])
+            y = np.float64(pos[slot, 1])
+            z = np.float64(pos[slot, 2])
+            if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
+                n_bad += 1
+                continue
+            x0 = min(x0, x)
+            x1 = max(x1, x)
+            y0 = min(y0, y)
+            y1 = max(y1, y)
+            z0 = min(z0, z)
+            z1 = max(z1, z)
+            if cmode >= C_SCALAR:
+                v = _colour_value(cmode, slot, pos, tms, cval)
+                if np.isfinite(v):
+                    vmin = min(vmin, v)
+                    vmax = max(vmax, v)
+        lo[k, 0] = x0
+        lo[k, 1] = y0
+        lo[k, 2] = z0
+        hi[k, 0] = x1
+        hi[k, 1] = y1
+        hi[k, 2] = z1
+        bad[k] = n_bad
+        vlo[k] = vmin
+        vhi[k] = vmax
+
+
+def _band_splat(kb, row0, ylo, yhi, ra, rb, rkey, rbox, rf, W, round_):
+    """Full-box records [ra, rb) (round points, and boxes over many bands) into ``kb`` (rows
+    [row0, ...) of the screen), clipped to rows [ylo, yhi): the smallest key per pixel
+    (square: every pixel of the box; round: the pixels whose centre lies within half of
+    (px, py), as :func:`_splat`)."""
+    for r in range(ra, rb):
+        bx = rbox[r]
+        y0 = np.int64((bx >> _U32) & _M16)
+        y1 = np.int64(bx >> _U48)
+        if y0 < ylo:
+            y0 = ylo
+        if y1 > yhi:
+            y1 = yhi
+        if y1 <= y0:
+            continue
+        x0 = np.int64(bx & _M16)
+        x1 = np.int64((bx >> _U16) & _M16)
+        key = rkey[r]
+        if not round_:
+            for yy in range(y0, y1):
+                row = (yy - row0) * W
+                for xx in range(x0, x1):
+                    kb[row + xx] = min(key, kb[row + xx])
+            continue
+        px = rf[r, 0]
+        py = rf[r, 1]
+        half = rf[r, 2]
+        hh = half * half
+        for yy in range(y0, y1):
+            row = (yy - row0) * W
+            ey = yy + 0.5 - py
+            for xx in range(x0, x1):
+                ex = xx + 0.5 - px
+                if ex * ex + ey * ey > hh:
+                    continue
+                kb[row + xx] = min(key, kb[row + xx])
+
+
+def _band_splat_sq(kb, ra, rb, rkey, rbox, W):
+    """Square records [ra, rb) of one band (index in the band, dx, dy) into its keys ``kb``:
+    min() stores, the 2x2 and 2x1 boxes of a 2 px point unrolled."""
+    for r in range(ra, rb):
+        p = rbox[r]
+        key = rkey[r]
+        i = np.int64(p & _M32)
+        dx = np.int64((p >> _U32) & _M16)
+        dy = np.int64(p >> _U48)
+        if dx == 2 and dy == 2:
+            kb[i] = min(key, kb[i])
+            kb[i + 1] = min(key, kb[i + 1])
+            kb[i + W] = min(key, kb[i + W])
+            kb[i + W + 1] = min(key, kb[i + W + 1])
+        elif dx == 2 and dy == 1:
+            kb[i] = min(key, kb[i])
+            kb[i + 1] = min(key, kb[i + 1])
+        elif dx == 1 and dy == 1:
+            kb[i] = min(key, kb[i])
+        else:
+            for yy in range(dy):
+                row = i + yy * W
+                for xx in range(dx):
+                    kb[row + xx] = min(key, kb[row + xx])
+
+
+def _band_fill(kb, j, H, W, BS, NB, rkey, rbox, rf, off, round_):
+    """The smallest key of every pixel of band j (rows [j 2^BS, (j + 1) 2^BS)) into ``kb``,
+    from the band's records of every chunk and the shared bucket. Returns the band's rows."""
+    C = off.shape[0]
+    ylo = j << BS
+    yhi = min(ylo + (np.int64(1) << BS), H)
+    for i in range((yhi - ylo) * W):
+        kb[i] = EMPTY
+    for c in range(C):
+        if round_:
+            _band_splat(kb, ylo, ylo, yhi, off[c, j], off[c, j + 1], rkey, rbox, rf, W, round_)
+        else:
+            _band_splat_sq(kb, off[c, j], off[c, j + 1], rkey, rbox, W)
+    for c in range(C):
+        _band_splat(kb, ylo, ylo, yhi, off[c, NB], off[c, NB + 1], rkey, rbox, rf, W, round_)
+    return ylo, yhi
+
+
+def _band(kb, j, fl, logz, edl, rkey, rbox, rf, off, W, H, BS, NB, round_, vp, head, cap, cmode, single, bg, rgbp,
+          pos, tms, cval, lo, scale, degenerate, lut):
+    """One band of :func:`_bands`: its keys (:func:`_band_fill`), then per pixel the winner's
+    colour (as :func:`_resolve`). A function of its own, not inlined into the parallel loop
+    (numba's parallel build of the per-pixel loop runs at about half the speed)."""
+    ylo, yhi = _band_fill(kb, j, H, W, BS, NB, rkey, rbox, rf, off, round_)
+    base = ylo * W
+    n = (yhi - ylo) * W
+    if cmode == C_SCALAR and not edl:  # the commonest case, without the per-pixel branches
+        for i in range(n):
+            k = kb[i]
+            if k == EMPTY:
+                fl[base + i] = bg
+                continue
+            slot = head + np.int64(k & _M32)
+            if slot >= cap:
+                slot -= cap
+            v = cval[slot]
+            if not np.isfinite(v):
+                fl[base + i] = single
+            elif degenerate:
+                fl[base + i] = lut[255]
+            else:
+                t = (v - lo) * scale
+                t = min(max(t, _F0), _F1)
+                fl[base + i] = lut[int(np.floor(t * _F255 + _FH))]
+        return
+    for i in range(n):
+        k = kb[i]
+        p = base + i
+        if k == EMPTY:
+            fl[p] = bg
+            if edl:
+                logz[p] = np.inf
+            continue
+        slot = head + np.int64(k & _M32)
+        if slot >= cap:
+            slot -= cap
+        if edl:
+            w = (vp[3, 0] * np.float64(pos[slot, 0]) + vp[3, 1] * np.float64(pos[slot, 1])
+                 + vp[3, 2] * np.float64(pos[slot, 2]) + vp[3, 3])
+            logz[p] = np.log2(w)
+        if cmode == C_SINGLE:
+            fl[p] = single
+        elif cmode == C_RGB:
+            fl[p] = rgbp[slot]
+        else:
+            if cmode == C_Z:
+                v = pos[slot, 2]
+            elif cmode == C_TIME:
+                v = np.float32(tms[slot])
+            else:
+                v = cval[slot]
+            if not np.isfinite(v):
+                fl[p] = single
+            elif degenerate:
+                fl[p] = lut[255]
+            else:
+                t = (v - lo) * scale
+                t = min(max(t, _F0), _F1)
+                fl[p] = lut[int(np.floor(t * _F255 + _FH))]
+
+
+def _bands(kbuf, img, logz, edl, rkey, rbox, rf, off, W, H, BS, NB, round_, vp, head, cap, cmode, single, bg, rgbp,
+           pos, tms, cval, lo, scale, degenerate, lut):
+    """Pass 2 of the binned raster: bands handed to threads as they come free; each thread
+    keys its band in its own buffer (``kbuf[thread]``, 2^BS rows: in cache) and resolves it into
+    the image (:func:`_band`). No shared writes, no full-screen key buffer, no merge."""
+    fl = img.reshape(H * W)
+    for jj in numba.prange(NB):
+        _band(kbuf[numba.get_thread_id()], np.int64(jj), fl, logz, edl, rkey, rbox, rf, off, W, H, np.int64(BS), NB,
+              round_, vp, head, cap, cmode, single, bg, rgbp, pos, tms, cval, lo, scale, degenerate, lut)
+
+
+def _keys_rows(out, kb, ylo, yhi, rkey, rbox, rf, off, W, H, BS, NB, round_):
+    """The last binned frame's smallest key per pixel of rows [ylo, yhi) (picking): the
+    bands they cross keyed again in ``kb``, their rows copied out."""
+    for j in range(ylo >> BS, ((yhi - 1) >> BS) + 1):
+        a, b = _band_fill(kb, j, H, W, BS, NB, rkey, rbox, rf, off, round_)
+        for y in range(max(a, ylo), min(b, yhi)):
+            for x in range(W):
+                out[(y - ylo) * W + x] = kb[(y - a) * W + x]
+
+
 _F32_BITS_PY = _f32_bits
 
 # --------------------------------------------------------------------------- compilation
@@ -601,8 +1058,16 @@ _tried = False
 _lock = threading.Lock()
 
 
+#: OpenMP's idle workers sleep at once instead of spinning (libgomp reads this when numba
+#: starts its ``omp`` threading layer, at the first parallel loop): spinning workers took the
+#: cores from the caller's own thread and from the other stages (ingest, cadence) on a shared
+#: machine, and made two threads slower than one; a value the user set is kept
+OMP_WAIT_POLICY = "PASSIVE"
+
+
 def _compile(cache: bool) -> Kernels:
     global numba
+    os.environ.setdefault("OMP_WAIT_POLICY", OMP_WAIT_POLICY)
     import numba as nb
 
     numba = nb  # the loops name numba.prange through this module global
@@ -610,12 +1075,17 @@ def _compile(cache: bool) -> Kernels:
     opts = dict(cache=cache, nogil=True, boundscheck=False, error_model="numpy")
     from numba.extending import intrinsic
     g["_f32_bits"] = intrinsic(_F32_BITS_PY)
-    for name in ("_pcg", "_u01", "_colour_value", "_frustum", "_test", "_splat", "_chunk_sq"):
+    for name in ("_pcg", "_u01", "_colour_value", "_frustum", "_test", "_splat", "_chunk_sq", "_box_pack",
+                 "_band_splat", "_band_splat_sq", "_band_fill"):
         g[name] = nb.njit(inline="always", **opts)(g[name])
+    for name in ("_band", "_bin_sq"):  # called from parallel loops, each compiled on its own
+        g[name] = nb.njit(**opts)(g[name])
     out = {}
-    for name in ("_raster", "_select", "_thin", "_cap", "_resolve", "_edl", "_floor"):
+    for name in ("_raster", "_select", "_thin", "_cap", "_resolve", "_edl", "_floor", "_bin", "_bands",
+                 "_batch_stats"):
         out[name[1:]] = nb.njit(parallel=True, **opts)(g[name])
     out["resolve_scalar_1"] = nb.njit(**opts)(g["_resolve_scalar"])  # one thread: prange runs as range
+    out["keys_rows"] = nb.njit(**opts)(g["_keys_rows"])
     return Kernels(**out)
 
 

@@ -358,13 +358,15 @@ def test_a_pipeline_draws_with_the_compiled_raster_and_picks(tmp_path):
     assert got and all("slot" in h and "position" in h for h in got)
 
 
-def test_thread_count_follows_the_faster_one_and_keeps_the_image():
+def test_thread_count_follows_the_faster_one_and_keeps_the_image(monkeypatch):
     """Per frame the renderer runs 1 thread or all of numba's, whichever drew faster lately:
     both are timed first, the slower is re-tried now and then; the image never changes and
-    the caller's numba thread count is restored."""
+    the caller's numba thread count is restored. (One split forced; ``auto`` also chooses the
+    split: test_cpu_threads.py.)"""
     import pointflow.render.cpu_compute as cc
     if numba.config.NUMBA_NUM_THREADS < 2:
         pytest.skip("one core: nothing to choose")
+    monkeypatch.setenv("POINTFLOW_CPU_RASTER_SPLIT", "points")
     numba.set_num_threads(2)
     frame, cam, kw = SCENES["terrain"]()
     r = CpuComputeRenderer(render_cfg(size=[320, 240], **kw), frame.capacity, list(frame.channels))
@@ -375,10 +377,10 @@ def test_thread_count_follows_the_faster_one_and_keeps_the_image():
         imgs.add(r.read_image().tobytes())
     assert used == [2] * cc.TUNE_FRAMES + [1] * cc.TUNE_FRAMES and len(imgs) == 1
     assert numba.get_num_threads() == 2
-    assert sorted(r._tune) == [1, 2] and all(len(v) == cc.TUNE_FRAMES for v in r._tune.values())
+    assert sorted(r._tune) == [("points", 1), ("points", 2)] and all(len(v) == cc.TUNE_FRAMES for v in r._tune.values())
     # then the faster count, with the other re-tried every RETRY_EVERY frames
-    r._tune = {1: [1.0] * cc.TUNE_FRAMES, 2: [9.0] * cc.TUNE_FRAMES}
-    picks = [r._pick_threads() for _ in range(2 * cc.RETRY_EVERY)]
+    r._tune = {("points", 1): [1.0] * cc.TUNE_FRAMES, ("points", 2): [9.0] * cc.TUNE_FRAMES}
+    picks = [r._pick(frame.size)[1] for _ in range(2 * cc.RETRY_EVERY)]
     assert picks.count(2) == 2 and picks.count(1) == 2 * cc.RETRY_EVERY - 2
-    r._tune = {1: [9.0] * cc.TUNE_FRAMES, 2: [1.0] * cc.TUNE_FRAMES}
-    assert r._pick_threads() == 2
+    r._tune = {("points", 1): [9.0] * cc.TUNE_FRAMES, ("points", 2): [1.0] * cc.TUNE_FRAMES}
+    assert r._pick(frame.size) == ("points", 2)

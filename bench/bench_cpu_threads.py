@@ -1,0 +1,238 @@
+"""The compiled cpu raster against its thread count (issue 41): frame time at 1..N numba
+threads for each way of sharing the work (``auto``, ``bins``, ``points``; the env
+``POINTFLOW_CPU_RASTER_SPLIT`` of :mod:`pointflow.render.cpu_compute`), frames interleaved in
+rotating order so that every (split, threads) pair sees the same load; the scene of
+``bench_render.py --cpu-raster`` (the autzen tile repeated to N points, 1280x720, 2 px
+squares, turbo by intensity, 1% of the ring rewritten per frame, output = read_image):
+
+    PYTHONPATH=$PWD .venv/bin/python bench/bench_cpu_threads.py --sizes 100000 1000000
+    NUMBA_NUM_THREADS=4 PYTHONPATH=$PWD .venv/bin/python bench/bench_cpu_threads.py   # up to 4 threads
+
+``--cull N`` instead: batch culling (issue 41) on a ring of N points, the whole ring in view
+against a view of about a tenth of it (the same ring, the camera fitted to a corner block of
+the tiles), each with culling on and off (``POINTFLOW_CPU_RASTER_CULL``), interleaved; writes
+``bench/results/cpu_cull.json``:
+
+    PYTHONPATH=$PWD .venv/bin/python bench/bench_cpu_threads.py --cull 4000000
+
+N is numba's thread count (``NUMBA_NUM_THREADS``, default the cores). Per pair: the median wall
+time and process CPU time per frame; per split the speed-up at t threads = the median of the
+per-round ratios (1-thread frame / t-thread frame of the same round), so load that changes
+between rounds cancels. Writes ``bench/results/cpu_threads.json`` and the chart ``.png``.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from dataclasses import replace
+from pathlib import Path
+from typing import Any, Optional
+
+import numpy as np
+
+import _harness
+from _harness.scenes import H, W, base_cloud, camera_for, make_frame, tiled
+from pointflow.config import RenderConfig
+
+SPLITS = ("auto", "bins", "points")
+
+
+def measure(sizes: list[int], rounds: int, splits: tuple[str, ...]) -> dict[str, Any]:
+    import numba
+
+    from pointflow.render.cpu_compute import CpuComputeRenderer
+    machine = _harness.machine()
+    most = int(numba.config.NUMBA_NUM_THREADS)
+    threads = list(range(1, most + 1))
+    base, inten0, scene = base_cloud()
+    cfg = RenderConfig(size=[W, H], color_by="intensity", colormap="turbo", point_size=2.0, gpu_timestamps=False,
+                       backend="cpu", raster="compute")
+    rows = []
+    os.environ["POINTFLOW_CPU_RASTER_ADAPTIVE"] = "0"  # the thread count this bench sets, every frame
+    for n in sizes:
+        world, inten = tiled(base, inten0, n)
+        f = make_frame(world, inten)
+        cam = camera_for(world)
+        del world
+        rs = {}
+        for sp in splits:
+            os.environ["POINTFLOW_CPU_RASTER_SPLIT"] = sp
+            rs[sp] = CpuComputeRenderer(replace(cfg), n, ["intensity"])
+        del os.environ["POINTFLOW_CPU_RASTER_SPLIT"]
+        pairs = [(sp, t) for sp in splits for t in threads]
+        wall: dict[tuple[str, int], list[float]] = {p: [] for p in pairs}
+        cpu: dict[tuple[str, int], list[float]] = {p: [] for p in pairs}
+        used: dict[tuple[str, int], set] = {p: set() for p in pairs}
+        step, head = max(n // 100, 1), 0
+        for p in pairs:  # warm-up
+            numba.set_num_threads(p[1])
+            f.dirty = None
+            rs[p[0]].render(f, cam)
+        for i in range(rounds):
+            for sp, t in pairs[i % len(pairs):] + pairs[:i % len(pairs)]:
+                a, b = head, min(head + step, n)
+                head = b % n
+                f.dirty = [(a, b)]
+                numba.set_num_threads(t)
+                t0, c0 = time.perf_counter(), time.process_time()
+                st = rs[sp].render(f, cam)
+                rs[sp].read_image()
+                wall[(sp, t)].append((time.perf_counter() - t0) * 1e3)
+                cpu[(sp, t)].append((time.process_time() - c0) * 1e3)
+                used[(sp, t)].add(st.extra["split"])
+        numba.set_num_threads(most)
+        imgs = {sp: r.read_image().tobytes() for sp, r in rs.items()}
+        row: dict[str, Any] = {"points": n, "rounds": rounds, "threads": threads, "same_image": len(set(imgs.values())) == 1,
+                               "load_after": [round(x, 2) for x in os.getloadavg()], "splits": {}}
+        for sp in splits:
+            one = np.asarray(wall[(sp, 1)])
+            d: dict[str, Any] = {}
+            for t in threads:
+                w = np.asarray(wall[(sp, t)])
+                d[str(t)] = {"wall_ms": float(np.median(w)), "cpu_ms": float(np.median(cpu[(sp, t)])),
+                             "speedup_per_round_median": float(np.median(one / w)),
+                             "drawn_with": sorted(used[(sp, t)]), "all_wall_ms": w.round(3).tolist(),
+                             "all_cpu_ms": np.round(cpu[(sp, t)], 3).tolist()}
+            row["splits"][sp] = d
+            print(f"  {n:>9,} {sp:6s} " + "  ".join(
+                f"{t}T {d[str(t)]['wall_ms']:6.1f} ms (x{d[str(t)]['speedup_per_round_median']:.2f})" for t in threads),
+                flush=True)
+        rows.append(row)
+        del f, rs
+    return {"scene": scene, "size": [W, H], "numba": numba.__version__,
+            "threading_layer": _layer(), "rows": rows, "machine": _harness.machine_done(machine),
+            "measured_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "command": _harness.command()}
+
+
+def cull(n: int, rounds: int) -> dict[str, Any]:
+    """Frame time of the whole ring in view and of a view of ~10% of it, culling on and off."""
+    import numba
+
+    from pointflow.render.camera import Camera
+    from pointflow.render.cpu_compute import CpuComputeRenderer
+    machine = _harness.machine()
+    base, inten0, scene = base_cloud()
+    world, inten = tiled(base, inten0, n)
+    f = make_frame(world, inten)
+    lo, hi = world.min(0), world.max(0)
+    cams = {"whole": camera_for(world)}
+    # looking straight down from the height at which the view covers a twentieth of the ground
+    # (about a tenth of the points: the corner tiles are denser than the mean),
+    # centred on a point that keeps the whole view over the data
+    t, asp = np.tan(np.radians(60.0) / 2), W / H
+    h = np.sqrt(0.05 * (hi[0] - lo[0]) * (hi[1] - lo[1]) / (4 * asp * t * t))
+    c = np.array([lo[0] + 1.2 * asp * t * h, lo[1] + 1.2 * t * h, hi[2]])
+    cams["tenth"] = Camera(eye=c + [0, -1e-3 * h, h], target=c - [0, 0, h], up=[0, 1, 0], fov_deg=60.0,
+                           near=0.01 * h, far=4 * h)
+    del world
+    cfg = RenderConfig(size=[W, H], color_by="intensity", colormap="turbo", point_size=2.0, gpu_timestamps=False,
+                       backend="cpu", raster="compute")
+    os.environ["POINTFLOW_CPU_RASTER_ADAPTIVE"] = "0"
+    os.environ["POINTFLOW_CPU_RASTER_SPLIT"] = "bins"
+    rs = {}
+    for on in ("1", "0"):
+        os.environ["POINTFLOW_CPU_RASTER_CULL"] = on
+        rs[on] = CpuComputeRenderer(replace(cfg), n, ["intensity"])
+    for k in ("POINTFLOW_CPU_RASTER_CULL", "POINTFLOW_CPU_RASTER_SPLIT"):
+        del os.environ[k]
+    pairs = [(v, on) for v in cams for on in rs]
+    wall: dict[tuple[str, str], list[float]] = {p: [] for p in pairs}
+    cpu: dict[tuple[str, str], list[float]] = {p: [] for p in pairs}
+    seen: dict[str, float] = {}
+    culled: dict[tuple[str, str], int] = {}
+    imgs: dict[tuple[str, str], bytes] = {}
+    step, head = max(n // 100, 1), 0
+    for v, on in pairs:
+        f.dirty = None
+        st = rs[on].render(f, cams[v])
+        seen[v] = st.drawn / n
+    for i in range(rounds):
+        for v, on in pairs[i % len(pairs):] + pairs[:i % len(pairs)]:
+            a, b = head, min(head + step, n)
+            head = b % n
+            f.dirty = [(a, b)]
+            t0, c0 = time.perf_counter(), time.process_time()
+            st = rs[on].render(f, cams[v])
+            imgs[(v, on)] = rs[on].read_image().tobytes()
+            wall[(v, on)].append((time.perf_counter() - t0) * 1e3)
+            cpu[(v, on)].append((time.process_time() - c0) * 1e3)
+            culled[(v, on)] = st.extra["culled_points"]
+    med = {f"{v}/cull_{'on' if on == '1' else 'off'}": float(np.median(wall[(v, on)])) for v, on in pairs}
+    # process CPU time (every thread's work): less sensitive than wall time to waiting for a core
+    med_cpu = {f"{v}/cull_{'on' if on == '1' else 'off'}": float(np.median(cpu[(v, on)])) for v, on in pairs}
+    res = {"points": n, "rounds": rounds, "threads": int(numba.get_num_threads()), "scene": scene,
+           "fraction_in_view": seen, "median_ms": med,
+           "tenth_over_whole_cull_on": med["tenth/cull_on"] / med["whole/cull_on"],
+           "tenth_over_whole_cull_off": med["tenth/cull_off"] / med["whole/cull_off"],
+           "median_cpu_ms": med_cpu,
+           "cpu_tenth_over_whole_cull_on": med_cpu["tenth/cull_on"] / med_cpu["whole/cull_on"],
+           "cpu_tenth_over_whole_cull_off": med_cpu["tenth/cull_off"] / med_cpu["whole/cull_off"],
+           "culled_points": {f"{v}/{on}": c for (v, on), c in culled.items()},
+           "same_image_cull_on_off": all(imgs[(v, "1")] == imgs[(v, "0")] for v in cams),
+           "all_ms": {f"{v}/{on}": w for (v, on), w in wall.items()},
+           "machine": _harness.machine_done(machine), "command": _harness.command(),
+           "measured_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+    print(f"  {n:,} points; in view: whole {seen['whole']:.1%}, tenth {seen['tenth']:.1%}; " +
+          "  ".join(f"{k} {v:.1f} ms" for k, v in med.items()) +
+          f"; tenth/whole: cull on {res['tenth_over_whole_cull_on']:.3f}, off {res['tenth_over_whole_cull_off']:.3f}"
+          f" (CPU time: on {res['cpu_tenth_over_whole_cull_on']:.3f}, off {res['cpu_tenth_over_whole_cull_off']:.3f});"
+          f" same image on/off: {res['same_image_cull_on_off']}", flush=True)
+    return res
+
+
+def _layer() -> Optional[str]:
+    import numba
+    try:
+        return numba.threading_layer()
+    except ValueError:  # no parallel region has run
+        return None
+
+
+def chart(res: dict[str, Any], path: Path) -> None:
+    """Frame time against threads, one panel per size, one line per split."""
+    if (plt := _harness.pyplot()) is None:
+        return
+    rows = res["rows"]
+    fig, axes = plt.subplots(1, len(rows), figsize=(4.2 * len(rows), 3.8), squeeze=False)
+    for ax, row in zip(axes[0], rows):
+        for sp, d in row["splits"].items():
+            ts = [int(t) for t in d]
+            ax.plot(ts, [d[str(t)]["wall_ms"] for t in ts], "o-", label=sp)
+            for t in ts[1:]:
+                ax.annotate(f"x{d[str(t)]['speedup_per_round_median']:.2f}", (t, d[str(t)]["wall_ms"]),
+                            xytext=(4, 4), textcoords="offset points", fontsize=7)
+        ax.set_title(f"{row['points']:,} points", fontsize=9)
+        ax.set_xlabel("numba threads")
+        ax.set_ylabel("median frame ms (interleaved)")
+        ax.set_ylim(bottom=0)
+        ax.set_xticks(row["threads"])
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.suptitle(f"compiled cpu raster, {res['size'][0]}x{res['size'][1]}, 2 px; "
+                 f"{_harness.machine_line(res['machine'])}", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv: Optional[list[str]] = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sizes", type=int, nargs="*", default=[100_000, 1_000_000])
+    ap.add_argument("--rounds", type=int, default=15, help="frames per (split, threads) pair, interleaved")
+    ap.add_argument("--splits", default=",".join(SPLITS))
+    ap.add_argument("--out", default=None, help="default bench/results/cpu_threads.json (cpu_cull.json with --cull)")
+    ap.add_argument("--cull", type=int, default=0, metavar="N", help="batch culling on a ring of N points instead")
+    a = ap.parse_args(argv)
+    if a.cull:
+        _harness.write_result(a.out or _harness.RESULTS / "cpu_cull.json", cull(a.cull, a.rounds))
+        return 0
+    a.out = a.out or str(_harness.RESULTS / "cpu_threads.json")
+    res = measure(a.sizes, a.rounds, tuple(a.splits.split(",")))
+    path = _harness.write_result(a.out, res)
+    chart(res, path.with_suffix(".png"))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
