@@ -45,9 +45,9 @@ class _Opener(threading.Thread):
     """``open_map`` off the stage loop: building an index may take minutes, and the loop must
     keep beating meanwhile (the progress line comes from the index builder)."""
 
-    def __init__(self, mc: MapConfig, log):
+    def __init__(self, mc: MapConfig, log, counters=None):
         super().__init__(name="pointflow-map-open", daemon=True)
-        self.mc, self.log = mc, log
+        self.mc, self.log, self.counters = mc, log, counters
         self.source: Any = None
         self.error: Optional[BaseException] = None
 
@@ -57,10 +57,12 @@ class _Opener(threading.Thread):
         last = [-1]
 
         def progress(done: int, total: int) -> None:  # one log line per tenth of an index build
-            tenth = int(10 * done / max(total, 1))
-            if tenth != last[0]:
-                last[0] = tenth
-                self.log.info("map index: %d of %d points (%d%%)", done, total, 10 * tenth)
+            pct = min(100, int(100 * done / max(total, 1)))
+            if self.counters is not None:  # the run's progress line: "map: indexing 35%"
+                self.counters.extra["map_index_pct"] = pct
+            if pct // 10 != last[0]:
+                last[0] = pct // 10
+                self.log.info("map index: %d%% (%d of %d points)", pct, done, total)
 
         try:
             self.source = open_map(self.mc.paths(), cache_dir=self.mc.cache_dir, progress=progress)
@@ -344,7 +346,7 @@ class Server:
         origin = (lo + hi) / 2 if origin is None else np.asarray(origin, np.float64)
         msg = {"type": "version", "version": self.version, "full": full, "region": r.path, "slots": r.slots,
                "channels": [list(c) for c in r.channels], "files": self.files,
-               "origin": [float(v) for v in origin], "set": set_r, "cleared": cleared, "points": points,
+               "origin": [float(v) for v in origin], "bounds": [lo.tolist(), hi.tolist()], "set": set_r, "cleared": cleared, "points": points,
                "nodes": len(self.published), "channel_ranges": ranges}
         try:
             self.ctx_push.send(mr.encode(msg), zmq.NOBLOCK)
@@ -403,6 +405,20 @@ def _sweep_regions(run_dir: str) -> None:
                 pass
 
 
+def _send_bounds(push, files: list[str], bounds=None):
+    """The map's bounds to the render stage, as soon as its headers say them (None: unknown)."""
+    from .source import header_bounds
+
+    bounds = header_bounds(files) if bounds is None else bounds
+    if bounds is not None:
+        try:
+            push.send(mr.encode({"type": "bounds", "bounds": [bounds[0].tolist(), bounds[1].tolist()],
+                                 "files": files}), zmq.NOBLOCK)
+        except zmq.Again:
+            pass
+    return bounds
+
+
 def main(ctx) -> None:
     cfg = ctx.cfg
     mc: MapConfig = cfg.map
@@ -418,7 +434,8 @@ def main(ctx) -> None:
     _sweep_regions(ctx.info.run_dir)
     c.extra.update(map_files=files, map_error=None, map_ready=False)
     t_start = time.monotonic()
-    opener = _Opener(mc, ctx.log)
+    bounds = _send_bounds(push, files)  # from the headers: the views frame the map before it is open
+    opener = _Opener(mc, ctx.log, c)
     opener.start()
     server: Optional[Server] = None
     region: Optional[mr.MapRegion] = None
@@ -427,6 +444,10 @@ def main(ctx) -> None:
             ctx.beat()
             if server is None:
                 if opener.is_alive():
+                    while pull.poll(0, zmq.POLLIN):  # a (new) render stage says hello: the bounds again
+                        msg = mr.decode(pull.recv())
+                        if msg is not None and msg.get("type") == "hello":
+                            bounds = _send_bounds(push, files, bounds)
                     ctx.sleep(0.05)
                     continue
                 if opener.error is not None or opener.source is None:
@@ -436,6 +457,10 @@ def main(ctx) -> None:
                         ctx.log.error("map not shown: %s", line)
                         c.extra["map_error"] = line
                         c.drop("map_error", 1)
+                        try:  # the views stop framing a map that is not there
+                            push.send(mr.encode({"type": "bounds", "bounds": None}), zmq.NOBLOCK)
+                        except zmq.Again:
+                            pass
                     while pull.poll(0, zmq.POLLIN):
                         pull.recv()
                     ctx.sleep(0.1)
@@ -445,7 +470,7 @@ def main(ctx) -> None:
                 region = mr.MapRegion.create(ctx.info.run_dir, mc.point_budget, chans)
                 server = Server(ctx, src, region, list(src.paths))
                 server.ctx_push = push
-                c.extra.update(map_ready=True, map_open_s=round(time.monotonic() - t_start, 3))
+                c.extra.update(map_ready=True, map_open_s=round(time.monotonic() - t_start, 3), map_index_pct=None)
                 ctx.log.info("map open: %s (%d points, channels %s)", ", ".join(files), int(src.point_count),
                              [ch[0] for ch in chans] or "none")
             busy = server.step(time.monotonic_ns() + int(mc.load_slice_ms * 1e6))

@@ -95,6 +95,28 @@ class MapSource:
         self.close()
 
 
+def header_bounds(paths: Sequence[str]) -> Optional[tuple[np.ndarray, np.ndarray]]:
+    """The files' bounds from their LAS/LAZ/COPC headers, read at once (before any index is
+    built), so a view can frame the map from the start; None when a file's header has none
+    (PLY, PCD) or does not read (the map stage names that file when it opens it)."""
+    import laspy
+
+    los, his = [], []
+    for p in paths:
+        if os.path.splitext(p)[1].lower() not in (".las", ".laz"):
+            return None
+        try:
+            with laspy.open(p) as f:
+                lo, hi = np.asarray(f.header.mins, np.float64), np.asarray(f.header.maxs, np.float64)
+        except Exception:  # noqa: BLE001 - a broken file is the opener's error, with its name
+            return None
+        if not (np.isfinite(lo).all() and np.isfinite(hi).all() and (hi >= lo).all()):
+            return None
+        los.append(lo)
+        his.append(hi)
+    return (np.min(los, axis=0), np.max(his, axis=0)) if los else None
+
+
 Progress = Union[None, bool, Callable[[int, int], None]]
 
 
