@@ -107,7 +107,8 @@ class _WrongBounds(Exception):
 
 
 class _Builder:
-    def __init__(self, inp: _Input, tmp: str, progress: Callable[[int, int], None]):
+    def __init__(self, inp: _Input, tmp: str, progress: Callable[[int, int], None], preview=None,
+                 preview_points: int = 0):
         from . import kernels
 
         self.k = kernels
@@ -123,6 +124,8 @@ class _Builder:
         self.node_parts: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
         self.total_units = 2 * max(inp.count, 1)
         self.done_units = 0
+        self.preview = preview  # called with an evenly spread share of each chunk read, decoded
+        self.preview_stride = max(1, -(-max(inp.count, 1) // max(preview_points, 1)))
 
     def _tick(self, n: int) -> None:
         self.done_units += n
@@ -178,6 +181,8 @@ class _Builder:
                 seen += recs.shape[0]
                 if seen > n:
                     raise MapError(inp.path, f"holds more points than its header's {n}")
+                if self.preview is not None:
+                    self.preview(inp.decode(recs[::self.preview_stride]))
                 clo, chi = inp.chunk_bounds(recs)
                 lo_seen, hi_seen = np.minimum(lo_seen, clo), np.maximum(hi_seen, chi)
                 cell = (self.codes(recs) >> shift).astype(np.int64)
@@ -308,8 +313,11 @@ def _remove_orphans(out_dir: str) -> None:
         shutil.rmtree(d, ignore_errors=True)
 
 
-def build_index(path: str, out_dir: str, progress=None) -> None:
-    """Build the index of ``path`` into ``out_dir`` (replaced atomically)."""
+def build_index(path: str, out_dir: str, progress=None, preview=None, preview_points: int = 0) -> None:
+    """Build the index of ``path`` into ``out_dir`` (replaced atomically). ``preview``: called
+    from the first pass with about ``preview_points`` of the file in all, an evenly spread share
+    of each chunk as it is read (decoded as a node's load is), so a map can be drawn while its
+    index is built."""
     inp = open_input(path)
     parent = os.path.dirname(out_dir)
     os.makedirs(parent, exist_ok=True)
@@ -329,7 +337,7 @@ def build_index(path: str, out_dir: str, progress=None) -> None:
         ident = file_identity(path, inp.header_bytes)
         t0 = time.monotonic()
         try:
-            b = _Builder(inp, tmp, progress)
+            b = _Builder(inp, tmp, progress, preview, preview_points)
             b.run()
         except _WrongBounds as wb:
             b.data.close()

@@ -45,9 +45,9 @@ class _Opener(threading.Thread):
     """``open_map`` off the stage loop: building an index may take minutes, and the loop must
     keep beating meanwhile (the progress line comes from the index builder)."""
 
-    def __init__(self, mc: MapConfig, log, counters=None):
+    def __init__(self, mc: MapConfig, log, counters=None, preview=None):
         super().__init__(name="pointflow-map-open", daemon=True)
-        self.mc, self.log, self.counters = mc, log, counters
+        self.mc, self.log, self.counters, self.preview = mc, log, counters, preview
         self.source: Any = None
         self.error: Optional[BaseException] = None
 
@@ -65,7 +65,10 @@ class _Opener(threading.Thread):
                 self.log.info("map index: %d%% (%d of %d points)", pct, done, total)
 
         try:
-            self.source = open_map(self.mc.paths(), cache_dir=self.mc.cache_dir, progress=progress)
+            pv = self.preview
+            self.source = open_map(self.mc.paths(), cache_dir=self.mc.cache_dir, progress=progress,
+                                   preview=pv.offer if pv is not None else None,
+                                   preview_points=min(int(self.mc.point_budget), PREVIEW_POINTS))
         except BaseException as exc:  # noqa: BLE001 - reported by the stage loop
             self.error = exc
 
@@ -73,6 +76,9 @@ class _Opener(threading.Thread):
 def _error_line(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {exc}" if not isinstance(exc, ValueError) else str(exc)
 
+
+#: Points of a map drawn at most while its index is built (preview.py), within the budget.
+PREVIEW_POINTS = 250_000
 
 #: Nodes the loader thread is asked for ahead of placing them.
 LOADS_IN_FLIGHT = 4
@@ -120,7 +126,10 @@ class _Loader(threading.Thread):
 class Server:
     """Selection, loading and slot bookkeeping of one open map."""
 
-    def __init__(self, ctx, source, region: mr.MapRegion, files: list[str]):
+    def __init__(self, ctx, source, region: mr.MapRegion, files: list[str], first_version: int = 0,
+                 held: Optional[np.ndarray] = None):
+        """``first_version``/``held``: a preview's last version and the slots it holds in
+        ``region`` (free again once this server's first, full, version is acknowledged)."""
         from . import NodeCache
 
         self.ctx, self.src, self.region, self.files = ctx, source, region, files
@@ -138,8 +147,12 @@ class Server:
         self.cap: dict[Any, int] = {}  # nodes drawn in part (a root bigger than the budget)
         self.want: list = []
         self.want_stale = True
-        self.version = 0
+        self.version = int(first_version)
         self.acked = -1
+        if held is not None and held.size:
+            self.free[held] = False
+            self.n_free -= int(held.size)
+            self.pending_free.append((self.version + 1, held))
         self.full_next = True
         self.set_ranges: list = []
         self.cleared_ranges: list = []
@@ -272,6 +285,7 @@ class Server:
                 self.inflight.add(key)
                 self.loader.ask(key)
         self._collect()
+        starved = False
         for key in todo:
             if time.monotonic_ns() > deadline_ns and (self.set_ranges or self.cleared_ranges):
                 break
@@ -280,11 +294,14 @@ class Server:
                 continue
             n = min(int(len(data["positions"])), self.cap.get(key, 1 << 62))
             if n > self.n_free:
+                starved = True
                 break  # slots come back when the render stage acknowledges what was cleared
             del self.ready[key]
             self._place(key, data, self.cap.get(key))
         busy = any(k not in self.published for k in self.want if k not in self.bad_nodes)
-        if self.set_ranges or self.cleared_ranges or self.full_next:
+        # a full version replaces what the render stage shows (a preview too): not an empty one
+        # while the first nodes are still being read
+        if self.set_ranges or self.cleared_ranges or (self.full_next and (self.published or not busy or starved)):
             self._publish()
         if not busy and self.refine_ms is None and self.t_camera_ns:
             self.refine_ms = (time.monotonic_ns() - self.t_camera_ns) / 1e6
@@ -435,8 +452,12 @@ def main(ctx) -> None:
     c.extra.update(map_files=files, map_error=None, map_ready=False)
     t_start = time.monotonic()
     bounds = _send_bounds(push, files)  # from the headers: the views frame the map before it is open
-    opener = _Opener(mc, ctx.log, c)
+    from .preview import Preview
+
+    preview = Preview(ctx, mc.point_budget, lambda avail: kept_channels(cfg, mc, avail), bounds, files, push)
+    opener = _Opener(mc, ctx.log, c, preview)
     opener.start()
+    cams_msg = None  # the views' cameras while the map opens, for the server to start from
     server: Optional[Server] = None
     region: Optional[mr.MapRegion] = None
     try:
@@ -448,6 +469,10 @@ def main(ctx) -> None:
                         msg = mr.decode(pull.recv())
                         if msg is not None and msg.get("type") == "hello":
                             bounds = _send_bounds(push, files, bounds)
+                            preview.full_next = True
+                        elif msg is not None and msg.get("type") == "cameras":
+                            cams_msg = msg
+                    preview.step()  # what the index build has read so far, drawn while it goes on
                     ctx.sleep(0.05)
                     continue
                 if opener.error is not None or opener.source is None:
@@ -467,9 +492,19 @@ def main(ctx) -> None:
                     continue
                 src = opener.source
                 chans = kept_channels(cfg, mc, list(getattr(src, "channels", [])))
-                region = mr.MapRegion.create(ctx.info.run_dir, mc.point_budget, chans)
-                server = Server(ctx, src, region, list(src.paths))
+                preview.step()
+                held = None
+                if preview.region is not None and preview.region.channels == chans:  # the preview's region goes on
+                    region, held = preview.region, preview.held()
+                else:
+                    if preview.region is not None:  # the render stage keeps its mapping until it takes the new one
+                        preview.region.close()
+                        preview.region.unlink()
+                    region = mr.MapRegion.create(ctx.info.run_dir, mc.point_budget, chans)
+                server = Server(ctx, src, region, list(src.paths), first_version=preview.version, held=held)
                 server.ctx_push = push
+                if cams_msg is not None:
+                    server.on_message(cams_msg)
                 c.extra.update(map_ready=True, map_open_s=round(time.monotonic() - t_start, 3), map_index_pct=None)
                 ctx.log.info("map open: %s (%d points, channels %s)", ", ".join(files), int(src.point_count),
                              [ch[0] for ch in chans] or "none")
@@ -487,6 +522,8 @@ def main(ctx) -> None:
             server.close()
         pull.close(0)
         push.close(0)
+        if region is None:
+            region = preview.region  # stopped while the index was being built
         if region is not None:
             region.close()
             region.unlink()

@@ -121,11 +121,14 @@ Progress = Union[None, bool, Callable[[int, int], None]]
 
 
 def open_map(paths: Union[str, os.PathLike, Sequence[Union[str, os.PathLike]]], *, cache_dir: Optional[str] = None,
-             progress: Progress = None) -> MapSource:
+             progress: Progress = None, preview: Optional[Callable[[int, dict], None]] = None,
+             preview_points: int = 0) -> MapSource:
     """Open the files of a map: COPC through its hierarchy; LAS/LAZ/PLY/PCD through a
     level-of-detail index, built at the first open (a progress line on stderr unless
     ``progress`` is False or a callable ``(done, total)``) and kept in ``cache_dir``
-    (default: the user cache directory, ``$XDG_CACHE_HOME/pointflow/map``)."""
+    (default: the user cache directory, ``$XDG_CACHE_HOME/pointflow/map``). While an index is
+    built, ``preview(file index, points)`` gets an evenly spread share of the points read
+    (about ``preview_points`` of all the files), decoded as :meth:`MapSource.load` gives them."""
     from .copc import CopcFile, is_copc
     from .lod import LodFile
 
@@ -139,7 +142,11 @@ def open_map(paths: Union[str, os.PathLike, Sequence[Union[str, os.PathLike]]], 
         for p in paths:
             if not os.path.isfile(p):
                 raise MapError(p, "no such file" if not os.path.exists(p) else "not a regular file")
-            files.append(CopcFile(p) if is_copc(p) else LodFile(p, cache_dir=cache_dir, progress=progress))
+            i = len(files)
+            each = (lambda data, i=i: preview(i, data)) if preview is not None else None
+            files.append(CopcFile(p) if is_copc(p) else
+                         LodFile(p, cache_dir=cache_dir, progress=progress, preview=each,
+                                 preview_points=preview_points // len(paths)))
     except BaseException:
         for f in files:
             f.close()
