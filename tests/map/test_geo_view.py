@@ -47,7 +47,7 @@ def _live_frame(n: int, capacity: int) -> FrameInput:
                       dirty=None, seq=1)
 
 
-def occupancy(world: np.ndarray, cam: Camera, point_size: float) -> np.ndarray:
+def occupancy(world: np.ndarray, cam: Camera, point_size: float, W: int = W, H: int = H) -> np.ndarray:
     """The pixels laspy's points cover, by the draw rules' square footprint (float64 all through;
     no depth: every point in the frustum lights its pixels)."""
     px, py, depth, w = project_to_pixels(world - cam.target, cam.view_proj(W, H, cam.target), W, H)
