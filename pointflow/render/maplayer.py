@@ -52,6 +52,8 @@ class MapLayer:
         self.files: list[str] = []
         self.map_origin: Optional[np.ndarray] = None
         self.map_box: Optional[tuple] = None  # the map's (lo, hi), world float64, once the map stage knows it
+        self.preview = False  # the version held is a preview (the map's index is still being built)
+        self.previews = 0
         self.occupied = np.zeros(self.slots, bool)  # map slots holding a point
         self.map_ranges: dict[str, tuple[float, float]] = {}
         self.version = -1
@@ -152,6 +154,8 @@ class MapLayer:
             self.pending = None
         self.map_ranges = {k: (float(v[0]), float(v[1])) for k, v in (msg.get("channel_ranges") or {}).items()}
         self.version = int(msg["version"])
+        self.preview = bool(msg.get("preview"))
+        self.previews += int(self.preview)
         self.points = int(msg.get("points", int(self.occupied.sum())))
         self.nodes = int(msg.get("nodes", 0))
         self.versions += 1
@@ -352,7 +356,7 @@ class MapLayer:
     def stats(self) -> dict:
         return {"map_points": int(self.points), "map_nodes": int(self.nodes), "map_version": int(self.version),
                 "map_versions_taken": int(self.versions), "map_bad_messages": int(self.bad_messages),
-                "map_slots": int(self.slots)}
+                "map_slots": int(self.slots), "map_preview": self.preview, "map_previews_taken": int(self.previews)}
 
     def close(self) -> None:
         self.pull.close(0)
