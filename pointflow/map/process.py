@@ -388,10 +388,12 @@ def accounting(stages: dict, ring=None, cfg=None) -> dict:
     """``stats()["accounting"]`` for the map (docs/map.md): the points the map stage holds in
     the region (``map_points_held``, the sum of its published nodes) and the points the render
     stage took into its map slots (``map_points_drawn``); ``map_agrees`` compares them when
-    both have reported the same version (None while a version is in flight)."""
+    both have reported the same version (None while a version is in flight, and while the map
+    is not open yet: a preview of it is drawn then, preview.py)."""
     m, r = stages.get("map") or {}, stages.get("render") or {}
     held, drawn = m.get("map_points"), r.get("map_points")
-    same = m.get("map_version") is not None and m.get("map_version") == r.get("map_version")
+    same = (m.get("map_version") is not None and m.get("map_version") == r.get("map_version")
+            and bool(m.get("map_ready")))
     return {"map_file_points": m.get("map_point_count"), "map_points_loaded": m.get("points_in", 0),
             "map_points_held": held, "map_points_drawn": drawn,
             "map_agrees": (held == drawn) if same else None, "map_error": m.get("map_error")}
