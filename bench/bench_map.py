@@ -389,6 +389,8 @@ def main() -> None:
                     help="tiers of the in-process comparison (backend[:raster])")
     ap.add_argument("--only-inprocess", action="store_true")
     ap.add_argument("--only-error", action="store_true", help="only image error and frame time by budget")
+    ap.add_argument("--only-pipeline", action="store_true",
+                    help="only the whole pipelines: first picture, refine, frame time while orbiting")
     ap.add_argument("--out", default=str(RESULTS / "map.json"))
     a = ap.parse_args()
     tmp = tempfile.mkdtemp(prefix="bench-map-")
@@ -419,16 +421,19 @@ def main() -> None:
         return
     res["first_picture"] = first_picture_and_refine(path, live, lo, hi, cache_dir, a.budget)
     print("first picture / refine:", json.dumps(res["first_picture"]), flush=True)
-    res["frame_time_inprocess"] = [frame_times_inprocess(path, cache_dir, a.budget, a.frames, be, tmp)
-                                   for be in a.backends.split(",")]
-    for r in res["frame_time_inprocess"]:
-        print("frame time in process:", {k: v for k, v in r.items() if k not in ("map_ms", "ring_ms")}, flush=True)
+    if not a.only_pipeline:
+        res["frame_time_inprocess"] = [frame_times_inprocess(path, cache_dir, a.budget, a.frames, be, tmp)
+                                       for be in a.backends.split(",")]
+        for r in res["frame_time_inprocess"]:
+            print("frame time in process:", {k: v for k, v in r.items() if k not in ("map_ms", "ring_ms")},
+                  flush=True)
     live_b = ring_points(a.budget, lo, hi, tmp)
     res["frame_time"] = frame_times(path, live_b, live, cache_dir, a.budget, a.seconds, a.repeats)
     print("frame time:", json.dumps(res["frame_time"]["median_ms"]), res["frame_time"]["ratio_map_over_ring"],
           flush=True)
-    res["rss"] = rss_flight(path, live, lo, hi, cache_dir, a.budget, 16.0)
-    print("rss:", {k: v for k, v in res["rss"].items() if k != "samples"}, flush=True)
+    if not a.only_pipeline:
+        res["rss"] = rss_flight(path, live, lo, hi, cache_dir, a.budget, 16.0)
+        print("rss:", {k: v for k, v in res["rss"].items() if k != "samples"}, flush=True)
     H.machine_done(res["machine"])
     H.write_result(a.out, res)
 

@@ -80,6 +80,11 @@ def _error_line(exc: BaseException) -> str:
 #: Points of a map drawn at most while its index is built (preview.py), within the budget.
 PREVIEW_POINTS = 250_000
 
+#: While the camera keeps moving, nodes are chosen again at most this often (the last camera
+#: of a move is chosen for at most this long after the one before): swapping nodes at every
+#: camera message cost the frames of an orbiting view 1.5 x a ring's (docs/map.md).
+MOVING_SELECT_S = 0.4
+
 #: Nodes the loader thread is asked for ahead of placing them.
 LOADS_IN_FLIGHT = 4
 
@@ -147,6 +152,7 @@ class Server:
         self.cap: dict[Any, int] = {}  # nodes drawn in part (a root bigger than the budget)
         self.want: list = []
         self.want_stale = True
+        self.t_selected = 0.0  # monotonic s of the last selection
         self.version = int(first_version)
         self.acked = -1
         if held is not None and held.size:
@@ -239,6 +245,7 @@ class Server:
             merged = roots
         self.want = merged
         self.want_stale = False
+        self.t_selected = time.monotonic()
 
     # ------------------------------------------------------------------ loading
     def _collect(self) -> None:
@@ -267,7 +274,7 @@ class Server:
         flight), place what it finished until the deadline; publish a version when anything
         changed. True while nodes are still to load. Loads run in the loader thread, so a slow
         read (or a kernel compiled on first use) never keeps this loop from beating."""
-        if self.want_stale:
+        if self.want_stale and time.monotonic() - self.t_selected >= MOVING_SELECT_S:
             self.select()
         want = set(self.want)
         for key in [k for k in self.published if k not in want]:
@@ -298,7 +305,7 @@ class Server:
                 break  # slots come back when the render stage acknowledges what was cleared
             del self.ready[key]
             self._place(key, data, self.cap.get(key))
-        busy = any(k not in self.published for k in self.want if k not in self.bad_nodes)
+        busy = self.want_stale or any(k not in self.published for k in self.want if k not in self.bad_nodes)
         # a full version replaces what the render stage shows (a preview too): not an empty one
         # while the first nodes are still being read
         if self.set_ranges or self.cleared_ranges or (self.full_next and (self.published or not busy or starved)):
