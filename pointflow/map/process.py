@@ -80,10 +80,11 @@ def _error_line(exc: BaseException) -> str:
 #: Points of a map drawn at most while its index is built (preview.py), within the budget.
 PREVIEW_POINTS = 250_000
 
-#: While the camera keeps moving, nodes are chosen again at most this often (the last camera
-#: of a move is chosen for at most this long after the one before): swapping nodes at every
-#: camera message cost the frames of an orbiting view 1.5 x a ring's (docs/map.md).
+#: While the camera keeps moving (cameras less than :data:`MOVING_GAP_S` apart), nodes are
+#: chosen again at most this often, so an orbiting view does not swap nodes at every camera
+#: message; a single move is chosen for at once.
 MOVING_SELECT_S = 0.4
+MOVING_GAP_S = 0.25
 
 #: Nodes the loader thread is asked for ahead of placing them.
 LOADS_IN_FLIGHT = 4
@@ -153,6 +154,7 @@ class Server:
         self.want: list = []
         self.want_stale = True
         self.t_selected = 0.0  # monotonic s of the last selection
+        self.moving = False  # the last camera came hard on the one before (an orbit, a drag)
         self.version = int(first_version)
         self.acked = -1
         if held is not None and held.size:
@@ -180,9 +182,11 @@ class Server:
         if t == "cameras" and isinstance(msg.get("views"), list):
             cams = [v for v in msg["views"] if isinstance(v, dict)]
             if cams != self.cameras:
+                now_ns = time.monotonic_ns()
+                self.moving = self.t_camera_ns > 0 and (now_ns - self.t_camera_ns) < MOVING_GAP_S * 1e9
                 self.cameras = cams
                 self.want_stale = True
-                self.t_camera_ns = time.monotonic_ns()
+                self.t_camera_ns = now_ns
                 self.refine_ms = None
                 c = self.ctx.counters.extra
                 c["map_camera_moves"] = c.get("map_camera_moves", 0) + 1
@@ -274,7 +278,7 @@ class Server:
         flight), place what it finished until the deadline; publish a version when anything
         changed. True while nodes are still to load. Loads run in the loader thread, so a slow
         read (or a kernel compiled on first use) never keeps this loop from beating."""
-        if self.want_stale and time.monotonic() - self.t_selected >= MOVING_SELECT_S:
+        if self.want_stale and (not self.moving or time.monotonic() - self.t_selected >= MOVING_SELECT_S):
             self.select()
         want = set(self.want)
         for key in [k for k in self.published if k not in want]:

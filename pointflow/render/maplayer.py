@@ -30,6 +30,10 @@ from .base import FrameInput, merge_ranges
 #: The map stage hears of a moving camera at most this often.
 CAMERA_PERIOD_S = 0.1
 
+#: A camera looking further than this from the ring's origin, and nearer the map's, has the
+#: frame drawn from the map's origin (float32 steps are 1 mm at 10 km).
+FAR_FROM_ORIGIN = 10_000.0
+
 
 class MapLayer:
     """Receives map versions, composes the combined frame, publishes the cameras, names
@@ -270,9 +274,12 @@ class MapLayer:
             return ring
         if frame.size <= 0:
             return self.map_origin
-        if self.focus is not None and (np.linalg.norm(self.focus - self.map_origin)
-                                       < np.linalg.norm(self.focus - ring)):
-            return self.map_origin
+        if self.focus is not None:
+            to_ring = float(np.linalg.norm(self.focus - ring))
+            # only where float32 offsets from the ring's origin would lose millimetres: a sensor
+            # placed in the map never switches (a switch converts every slot again)
+            if to_ring > FAR_FROM_ORIGIN and float(np.linalg.norm(self.focus - self.map_origin)) < to_ring:
+                return self.map_origin
         return ring
 
     def _blank_free(self, frame: FrameInput, a: int, b: int) -> None:
