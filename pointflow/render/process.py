@@ -430,6 +430,9 @@ def main(ctx: StageContext) -> None:
                 if maplayer is not None:
                     frame = maplayer.compose(frame)
                 camera = window.camera if window is not None else view.camera(frame)
+                if window is not None:  # the window's own camera: its planes follow the view too
+                    view.auto.refresh(frame)
+                    camera.near, camera.far = view.auto.planes(camera.eye, camera.target, camera.up, camera.fov_deg)
                 if camera is None:  # nothing to frame yet
                     continue
                 if stage.hub is not None and stage.hub.main_rests(window, frame):
