@@ -78,7 +78,7 @@ def _error_line(exc: BaseException) -> str:
 
 
 #: Points of a map drawn at most while its index is built (preview.py), within the budget.
-PREVIEW_POINTS = 250_000
+PREVIEW_POINTS = 100_000
 
 #: While the camera keeps moving (cameras less than :data:`MOVING_GAP_S` apart), nodes are
 #: chosen again at most this often, so an orbiting view does not swap nodes at every camera
