@@ -109,9 +109,6 @@ class _WrongBounds(Exception):
 class _Builder:
     def __init__(self, inp: _Input, tmp: str, progress: Callable[[int, int], None], preview=None,
                  preview_points: int = 0):
-        from . import kernels
-
-        self.k = kernels
         self.inp, self.tmp, self.progress = inp, tmp, progress
         lo, hi = inp.bounds
         ext = float(np.max(hi - lo)) if inp.count else 0.0
@@ -126,6 +123,14 @@ class _Builder:
         self.done_units = 0
         self.preview = preview  # called with an evenly spread share of each chunk read, decoded
         self.preview_stride = max(1, -(-max(inp.count, 1) // max(preview_points, 1)))
+
+    @property
+    def k(self):
+        """The compiled kernels, imported on first use: numba's import takes seconds on a loaded
+        machine, and the first chunk's preview should not wait for it."""
+        from . import kernels
+
+        return kernels
 
     def _tick(self, n: int) -> None:
         self.done_units += n
@@ -162,7 +167,7 @@ class _Builder:
         self.written += recs.shape[0]
 
     def run(self) -> None:
-        inp, k = self.inp, self.k
+        inp = self.inp
         n = inp.count
         l0 = 0
         while l0 < MAX_L0 and n > CELL_TARGET * 8 ** l0:
@@ -171,7 +176,6 @@ class _Builder:
         os.makedirs(spill_dir)
         files: dict[int, object] = {}
         counts: dict[int, int] = {}
-        shift = np.uint64(3 * (k.DMAX - l0))
         seen = 0
         lo_seen, hi_seen = np.full(3, np.inf), np.full(3, -np.inf)
         try:
@@ -183,6 +187,8 @@ class _Builder:
                     raise MapError(inp.path, f"holds more points than its header's {n}")
                 if self.preview is not None:
                     self.preview(inp.decode(recs[::self.preview_stride]))
+                k = self.k
+                shift = np.uint64(3 * (k.DMAX - l0))
                 clo, chi = inp.chunk_bounds(recs)
                 lo_seen, hi_seen = np.minimum(lo_seen, clo), np.maximum(hi_seen, chi)
                 cell = (self.codes(recs) >> shift).astype(np.int64)
