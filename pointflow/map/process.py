@@ -54,16 +54,7 @@ class _Opener(threading.Thread):
     def run(self) -> None:
         from . import open_map
 
-        last = [-1]
-
-        def progress(done: int, total: int) -> None:  # one log line per tenth of an index build
-            pct = min(100, int(100 * done / max(total, 1)))
-            if self.counters is not None:  # the run's progress line: "map: indexing 35%"
-                self.counters.extra["map_index_pct"] = pct
-            if pct // 10 != last[0]:
-                last[0] = pct // 10
-                self.log.info("map index: %d%% (%d of %d points)", pct, done, total)
-
+        progress = index_progress(self.log, self.counters)
         try:
             pv = self.preview
             self.source = open_map(self.mc.paths(), cache_dir=self.mc.cache_dir, progress=progress,
@@ -71,6 +62,24 @@ class _Opener(threading.Thread):
                                    preview_points=min(int(self.mc.point_budget), PREVIEW_POINTS))
         except BaseException as exc:  # noqa: BLE001 - reported by the stage loop
             self.error = exc
+
+
+def index_progress(log, counters=None):
+    """The index build's ``progress(done, total)`` in the map stage: ``map_index_pct`` for the
+    run's live line (``map: indexing 35%``) and a log line per tenth,
+    ``map index: 90% (627949 of 697721 points)``: the percentage of the points counted, rounded
+    down, 100 % only once the index is in place."""
+    last = [-1]
+
+    def progress(done: int, total: int) -> None:
+        pct = min(100, int(100 * done / max(total, 1)))
+        if counters is not None:
+            counters.extra["map_index_pct"] = pct
+        if pct // 10 != last[0]:
+            last[0] = pct // 10
+            log.info("map index: %d%% (%d of %d points)", pct, done, total)
+
+    return progress
 
 
 def _error_line(exc: BaseException) -> str:

@@ -365,8 +365,9 @@ def live_summary(stats: dict) -> str:
     if mp:
         if mp.get("map_error"):
             parts.append("map=error")
-        elif mp.get("map_index_pct") is not None and not ren.get("map_points"):  # a first open builds its index
-            parts.append(f"map: indexing {mp['map_index_pct']}%")
+        elif mp.get("map_index_pct") is not None:  # a first open builds its index (a preview may be drawn)
+            parts.append(f"map: indexing {mp['map_index_pct']}%"
+                         + (f" map={_n(ren['map_points'])}" if ren.get("map_points") else ""))
         else:
             parts.append(f"map={_n(ren.get('map_points', 0) or 0)}")
     parts.append(f"drops={_n(drops)}")
