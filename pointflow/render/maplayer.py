@@ -57,6 +57,7 @@ class MapLayer:
         self.map_origin: Optional[np.ndarray] = None
         self.map_box: Optional[tuple] = None  # the map's (lo, hi), world float64, once the map stage knows it
         self.preview = False  # the version held is a preview (the map's index is still being built)
+        self.warned_apart = False  # the render stage said once that map and live points lie apart
         self.previews = 0
         self.occupied = np.zeros(self.slots, bool)  # map slots holding a point
         self.map_ranges: dict[str, tuple[float, float]] = {}

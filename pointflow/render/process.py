@@ -85,6 +85,7 @@ class CameraController:
             box, self._clip = self._bounds(frame, clip=True)
             if box is not None and (self._box is None or self._moved(box)):
                 self._box = box
+        self.apart_m = scene_box(self._box, self.map_box)[1]  # a user's camera is warned too
 
     def clip_boxes(self) -> list:
         """What near and far must hold: the live points' box and the map's."""
@@ -547,14 +548,14 @@ def main(ctx: StageContext) -> None:
 
 def _warn_apart(ctx, auto: CameraController, maplayer) -> None:
     """Once: the map and the live points lie far apart (a sensor not placed in the map's frame)."""
-    if not auto.apart_m or getattr(maplayer, "warned_apart", False):
+    if not auto.apart_m or maplayer.warned_apart:
         return
     maplayer.warned_apart = True
     live = (np.asarray(auto._box[0]) + np.asarray(auto._box[1])) / 2
     mp = (np.asarray(auto.map_box[0]) + np.asarray(auto.map_box[1])) / 2
-    ctx.log.warning("the map and the live points lie %.0f apart, in their coordinates' units (live around %s, map around %s): the view "
-                    "frames the map; place the sensor in the map's frame with frames.fixed and a static "
-                    "transform (docs/map.md#placing-the-live-sensor)", auto.apart_m,
+    ctx.log.warning("the map and the live points lie %.0f apart, in their coordinates' units (live around %s, "
+                    "map around %s): the view frames the map; place the sensor in the map's frame with "
+                    "frames.fixed and a static transform (docs/map.md#placing-the-live-sensor)", auto.apart_m,
                     np.round(live, 1).tolist(), np.round(mp, 1).tolist())
     ctx.counters.extra["map_apart_m"] = round(float(auto.apart_m), 1)
 
