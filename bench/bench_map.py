@@ -163,19 +163,31 @@ def frame_times(map_path, live_b: str, live, cache_dir, budget: int, seconds: fl
                     continue
                 if kind == "map":  # wait until the map stage settled
                     _poll(pipe, lambda s: s["stages"]["map"].get("map_refine_ms") is not None, 60)
-                samples, drawn, f0 = [], [], None
+                samples, drawn, f0, cpu, v0 = [], [], None, [], None
                 end = time.monotonic() + seconds
                 while time.monotonic() < end:
-                    r = pipe.stats()["stages"]["render"]
+                    st = pipe.stats()["stages"]
+                    r = st["render"]
                     if f0 is None:
                         f0 = r.get("frames", 0)
+                    if kind == "map":  # the map stage's work while the camera orbits
+                        m = st.get("map") or {}
+                        cpu.append(m.get("cpu_percent"))
+                        v0 = (m.get("map_versions", 0), m.get("map_nodes_loaded", 0)) if v0 is None else v0
                     samples.append(r.get("last_frame_ms"))
                     drawn.append(r.get("map_points") if kind == "map" else r.get("drawn_count"))
                     time.sleep(0.1)
-                r = pipe.stats()["stages"]["render"]
+                st = pipe.stats()["stages"]
+                r = st["render"]
                 tiers[kind] = r.get("tier")
                 runs[kind].append({"median_ms": float(np.median([s for s in samples if s])),
                                    "frames": r.get("frames", 0) - f0, "points": int(np.median(drawn))})
+                if kind == "map":
+                    m = st.get("map") or {}
+                    cpu = [c for c in cpu if c is not None]
+                    runs[kind][-1].update(map_cpu_percent_median=float(np.median(cpu)) if cpu else None,
+                                          map_versions=m.get("map_versions", 0) - v0[0],
+                                          map_nodes_loaded=m.get("map_nodes_loaded", 0) - v0[1])
     med = {k: float(np.median([r["median_ms"] for r in v if r])) if any(v) else None for k, v in runs.items()}
     return {"budget": budget, "runs": runs, "median_ms": med, "tiers": tiers,
             "ratio_map_over_ring": round(med["map"] / med["ring"], 3) if med["map"] and med["ring"] else None}
