@@ -163,19 +163,31 @@ def frame_times(map_path, live_b: str, live, cache_dir, budget: int, seconds: fl
                     continue
                 if kind == "map":  # wait until the map stage settled
                     _poll(pipe, lambda s: s["stages"]["map"].get("map_refine_ms") is not None, 60)
-                samples, drawn, f0 = [], [], None
+                samples, drawn, f0, cpu, v0 = [], [], None, [], None
                 end = time.monotonic() + seconds
                 while time.monotonic() < end:
-                    r = pipe.stats()["stages"]["render"]
+                    st = pipe.stats()["stages"]
+                    r = st["render"]
                     if f0 is None:
                         f0 = r.get("frames", 0)
+                    if kind == "map":  # the map stage's work while the camera orbits
+                        m = st.get("map") or {}
+                        cpu.append(m.get("cpu_percent"))
+                        v0 = (m.get("map_versions", 0), m.get("map_nodes_loaded", 0)) if v0 is None else v0
                     samples.append(r.get("last_frame_ms"))
                     drawn.append(r.get("map_points") if kind == "map" else r.get("drawn_count"))
                     time.sleep(0.1)
-                r = pipe.stats()["stages"]["render"]
+                st = pipe.stats()["stages"]
+                r = st["render"]
                 tiers[kind] = r.get("tier")
                 runs[kind].append({"median_ms": float(np.median([s for s in samples if s])),
                                    "frames": r.get("frames", 0) - f0, "points": int(np.median(drawn))})
+                if kind == "map":
+                    m = st.get("map") or {}
+                    cpu = [c for c in cpu if c is not None]
+                    runs[kind][-1].update(map_cpu_percent_median=float(np.median(cpu)) if cpu else None,
+                                          map_versions=m.get("map_versions", 0) - v0[0],
+                                          map_nodes_loaded=m.get("map_nodes_loaded", 0) - v0[1])
     med = {k: float(np.median([r["median_ms"] for r in v if r])) if any(v) else None for k, v in runs.items()}
     return {"budget": budget, "runs": runs, "median_ms": med, "tiers": tiers,
             "ratio_map_over_ring": round(med["map"] / med["ring"], 3) if med["map"] and med["ring"] else None}
@@ -389,6 +401,8 @@ def main() -> None:
                     help="tiers of the in-process comparison (backend[:raster])")
     ap.add_argument("--only-inprocess", action="store_true")
     ap.add_argument("--only-error", action="store_true", help="only image error and frame time by budget")
+    ap.add_argument("--only-pipeline", action="store_true",
+                    help="only the whole pipelines: first picture, refine, frame time while orbiting")
     ap.add_argument("--out", default=str(RESULTS / "map.json"))
     a = ap.parse_args()
     tmp = tempfile.mkdtemp(prefix="bench-map-")
@@ -419,16 +433,19 @@ def main() -> None:
         return
     res["first_picture"] = first_picture_and_refine(path, live, lo, hi, cache_dir, a.budget)
     print("first picture / refine:", json.dumps(res["first_picture"]), flush=True)
-    res["frame_time_inprocess"] = [frame_times_inprocess(path, cache_dir, a.budget, a.frames, be, tmp)
-                                   for be in a.backends.split(",")]
-    for r in res["frame_time_inprocess"]:
-        print("frame time in process:", {k: v for k, v in r.items() if k not in ("map_ms", "ring_ms")}, flush=True)
+    if not a.only_pipeline:
+        res["frame_time_inprocess"] = [frame_times_inprocess(path, cache_dir, a.budget, a.frames, be, tmp)
+                                       for be in a.backends.split(",")]
+        for r in res["frame_time_inprocess"]:
+            print("frame time in process:", {k: v for k, v in r.items() if k not in ("map_ms", "ring_ms")},
+                  flush=True)
     live_b = ring_points(a.budget, lo, hi, tmp)
     res["frame_time"] = frame_times(path, live_b, live, cache_dir, a.budget, a.seconds, a.repeats)
     print("frame time:", json.dumps(res["frame_time"]["median_ms"]), res["frame_time"]["ratio_map_over_ring"],
           flush=True)
-    res["rss"] = rss_flight(path, live, lo, hi, cache_dir, a.budget, 16.0)
-    print("rss:", {k: v for k, v in res["rss"].items() if k != "samples"}, flush=True)
+    if not a.only_pipeline:
+        res["rss"] = rss_flight(path, live, lo, hi, cache_dir, a.budget, 16.0)
+        print("rss:", {k: v for k, v in res["rss"].items() if k != "samples"}, flush=True)
     H.machine_done(res["machine"])
     H.write_result(a.out, res)
 

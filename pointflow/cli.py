@@ -170,6 +170,10 @@ def _run(args, profile: bool = False) -> int:
         print(f"stats.json in {os.path.abspath(out_dir)}")
     else:
         print(f"frames and stats.json in {os.path.abspath(out_dir)}")
+    map_error = ((stats.get("stages") or {}).get("map") or {}).get("map_error")
+    if map_error and code == 0:  # the live part ran, the map was never shown: not a success
+        print(f"error: map not shown: {map_error}", file=sys.stderr, flush=True)
+        code = 2
     if cfg.record is not None:
         from .record.inspect import record_summary
 

@@ -107,10 +107,8 @@ class _WrongBounds(Exception):
 
 
 class _Builder:
-    def __init__(self, inp: _Input, tmp: str, progress: Callable[[int, int], None]):
-        from . import kernels
-
-        self.k = kernels
+    def __init__(self, inp: _Input, tmp: str, progress: Callable[[int, int], None], preview=None,
+                 preview_points: int = 0):
         self.inp, self.tmp, self.progress = inp, tmp, progress
         lo, hi = inp.bounds
         ext = float(np.max(hi - lo)) if inp.count else 0.0
@@ -123,6 +121,16 @@ class _Builder:
         self.node_parts: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
         self.total_units = 2 * max(inp.count, 1)
         self.done_units = 0
+        self.preview = preview  # called with an evenly spread share of each chunk read, decoded
+        self.preview_stride = max(1, -(-max(inp.count, 1) // max(preview_points, 1)))
+
+    @property
+    def k(self):
+        """The compiled kernels, imported on first use: numba's import takes seconds on a loaded
+        machine, and the first chunk's preview should not wait for it."""
+        from . import kernels
+
+        return kernels
 
     def _tick(self, n: int) -> None:
         self.done_units += n
@@ -159,7 +167,7 @@ class _Builder:
         self.written += recs.shape[0]
 
     def run(self) -> None:
-        inp, k = self.inp, self.k
+        inp = self.inp
         n = inp.count
         l0 = 0
         while l0 < MAX_L0 and n > CELL_TARGET * 8 ** l0:
@@ -168,7 +176,6 @@ class _Builder:
         os.makedirs(spill_dir)
         files: dict[int, object] = {}
         counts: dict[int, int] = {}
-        shift = np.uint64(3 * (k.DMAX - l0))
         seen = 0
         lo_seen, hi_seen = np.full(3, np.inf), np.full(3, -np.inf)
         try:
@@ -178,6 +185,10 @@ class _Builder:
                 seen += recs.shape[0]
                 if seen > n:
                     raise MapError(inp.path, f"holds more points than its header's {n}")
+                if self.preview is not None:
+                    self.preview(inp.decode(recs[::self.preview_stride]))
+                k = self.k
+                shift = np.uint64(3 * (k.DMAX - l0))
                 clo, chi = inp.chunk_bounds(recs)
                 lo_seen, hi_seen = np.minimum(lo_seen, clo), np.maximum(hi_seen, chi)
                 cell = (self.codes(recs) >> shift).astype(np.int64)
@@ -308,8 +319,11 @@ def _remove_orphans(out_dir: str) -> None:
         shutil.rmtree(d, ignore_errors=True)
 
 
-def build_index(path: str, out_dir: str, progress=None) -> None:
-    """Build the index of ``path`` into ``out_dir`` (replaced atomically)."""
+def build_index(path: str, out_dir: str, progress=None, preview=None, preview_points: int = 0) -> None:
+    """Build the index of ``path`` into ``out_dir`` (replaced atomically). ``preview``: called
+    from the first pass with about ``preview_points`` of the file in all, an evenly spread share
+    of each chunk as it is read (decoded as a node's load is), so a map can be drawn while its
+    index is built."""
     inp = open_input(path)
     parent = os.path.dirname(out_dir)
     os.makedirs(parent, exist_ok=True)
@@ -329,7 +343,7 @@ def build_index(path: str, out_dir: str, progress=None) -> None:
         ident = file_identity(path, inp.header_bytes)
         t0 = time.monotonic()
         try:
-            b = _Builder(inp, tmp, progress)
+            b = _Builder(inp, tmp, progress, preview, preview_points)
             b.run()
         except _WrongBounds as wb:
             b.data.close()

@@ -50,7 +50,11 @@ def check_map(mc: MapConfig, path: str, base_dir: str = ".") -> None:
             raise ConfigError(key, "is empty")
         full = p if os.path.isabs(p) else os.path.normpath(os.path.join(base_dir, os.path.expanduser(p)))
         if not os.path.isfile(full):
-            raise ConfigError(key, f"no such file: {full}")
+            raise ConfigError(key, f"is a directory, not a point file: {full}" if os.path.isdir(full)
+                              else f"no such file: {full}")
+        why = not_a_point_file(full)
+        if why:
+            raise ConfigError(key, why)
         out.append(full)
     if len(set(out)) != len(out):
         raise ConfigError(f"{path}.path", "names the same file twice")
@@ -58,6 +62,34 @@ def check_map(mc: MapConfig, path: str, base_dir: str = ".") -> None:
     for i, c in enumerate(mc.channels or []):
         if c in ("x", "y", "z"):
             raise ConfigError(f"{path}.channels[{i}]", "x, y, z are always kept; list only channels")
+
+
+#: What a map file's first bytes must be, by its extension (the index build reads the rest).
+_MAGIC = {".las": (b"LASF",), ".laz": (b"LASF",), ".ply": (b"ply\n", b"ply\r\n")}
+
+
+def not_a_point_file(path: str) -> Optional[str]:
+    """Why ``path`` cannot be a map file (None: it may be): an extension that is not COPC, LAS,
+    LAZ, PLY or PCD, a file that does not read, or first bytes that are not its format's. A file
+    that passes and is broken further in is the map stage's error, at run time."""
+    ext = os.path.splitext(path)[1].lower()
+    if ext not in (".las", ".laz", ".ply", ".pcd"):
+        return (f"not a point file (a map is COPC, LAS, LAZ, PLY or PCD): {path}" if ext
+                else f"not a point file (no extension; a map is COPC, LAS, LAZ, PLY or PCD): {path}")
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4096)
+    except OSError as exc:
+        return f"cannot read {path}: {exc.strerror or exc}"
+    if ext == ".pcd":
+        lines = [ln.strip() for ln in head.split(b"\n") if ln.strip() and not ln.lstrip().startswith(b"#")]
+        if not lines or not lines[0].split()[0] in (b"VERSION", b"FIELDS"):
+            return f"not a PCD file (no VERSION or FIELDS header line): {path}"
+    elif not head.startswith(_MAGIC[ext]):
+        kind = "LAS/LAZ" if ext != ".ply" else "PLY"
+        return (f"not a {kind} file (it is empty): {path}" if not head else
+                f"not a {kind} file (it does not start with {_MAGIC[ext][0]!r}): {path}")
+    return None
 
 
 def map_slots(cfg) -> int:

@@ -12,6 +12,7 @@ import numpy as np
 from .errors import MapError
 
 CHUNK_POINTS = 1 << 20     # points per read
+FIRST_CHUNK = 1 << 17      # the first read of a LAS/LAZ: a preview of the map comes from it at once
 LOD_FORMATS = ("las", "laz", "ply", "pcd")
 
 
@@ -28,6 +29,14 @@ class _Input:
 
     def positions(self, recs: np.ndarray) -> np.ndarray:
         raise NotImplementedError
+
+    def decode(self, recs: np.ndarray) -> dict[str, np.ndarray]:
+        """Records as a node's load gives them: ``positions`` (n, 3) float64 and the channels."""
+        out = {"positions": self.positions(recs)}
+        for name in recs.dtype.names:
+            if name not in ("x", "y", "z"):
+                out[name] = np.array(recs[name])
+        return out
 
     def chunk_bounds(self, recs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return self.bounds  # PLY/PCD bounds come from the points themselves
@@ -73,8 +82,13 @@ class _LasInput(_Input):
 
         try:
             with laspy.open(self.path, laz_backend=formats._laz_backend()) as f:
-                for pts in f.chunk_iterator(CHUNK_POINTS):
+                n = FIRST_CHUNK  # small first: the map stage previews the map from it
+                while True:
+                    pts = f.read_points(n)
+                    if not len(pts):
+                        return
                     yield pts.array
+                    n = CHUNK_POINTS
         except BaseException as exc:
             if not formats._is_las_failure(exc):
                 raise
@@ -84,6 +98,11 @@ class _LasInput(_Input):
         from .lasrec import las_positions
 
         return las_positions(recs, self.scales, self.offsets)
+
+    def decode(self, recs: np.ndarray) -> dict[str, np.ndarray]:
+        from .lasrec import las_points
+
+        return las_points(np.ascontiguousarray(recs), self.point_format, self.scales, self.offsets)
 
     def chunk_bounds(self, recs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         lo = np.array([recs[f].min() for f in ("X", "Y", "Z")], np.float64) * self.scales + self.offsets

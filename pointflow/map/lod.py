@@ -22,7 +22,8 @@ class LodFile:
 
     kind = "lod"
 
-    def __init__(self, path: str, cache_dir: Optional[str] = None, progress=None):
+    def __init__(self, path: str, cache_dir: Optional[str] = None, progress=None, preview=None,
+                 preview_points: int = 0):
         self.path = path
         map_format(path)
         self.dir = index_dir(path, cache_dir)
@@ -30,7 +31,7 @@ class LodFile:
         if why:
             if why != "no index yet":
                 log.warning("%s: rebuilding its level-of-detail index (%s)", path, why)
-            build_index(path, self.dir, progress)
+            build_index(path, self.dir, progress, preview, preview_points)
             why = self._stale()
             if why:
                 raise MapError(path, f"its fresh level-of-detail index in {self.dir} does not check out: {why}")

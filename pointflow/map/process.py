@@ -45,32 +45,55 @@ class _Opener(threading.Thread):
     """``open_map`` off the stage loop: building an index may take minutes, and the loop must
     keep beating meanwhile (the progress line comes from the index builder)."""
 
-    def __init__(self, mc: MapConfig, log):
+    def __init__(self, mc: MapConfig, log, counters=None, preview=None):
         super().__init__(name="pointflow-map-open", daemon=True)
-        self.mc, self.log = mc, log
+        self.mc, self.log, self.counters, self.preview = mc, log, counters, preview
         self.source: Any = None
         self.error: Optional[BaseException] = None
 
     def run(self) -> None:
         from . import open_map
 
-        last = [-1]
-
-        def progress(done: int, total: int) -> None:  # one log line per tenth of an index build
-            tenth = int(10 * done / max(total, 1))
-            if tenth != last[0]:
-                last[0] = tenth
-                self.log.info("map index: %d of %d points (%d%%)", done, total, 10 * tenth)
-
+        progress = index_progress(self.log, self.counters)
         try:
-            self.source = open_map(self.mc.paths(), cache_dir=self.mc.cache_dir, progress=progress)
+            pv = self.preview
+            self.source = open_map(self.mc.paths(), cache_dir=self.mc.cache_dir, progress=progress,
+                                   preview=pv.offer if pv is not None else None,
+                                   preview_points=min(int(self.mc.point_budget), PREVIEW_POINTS))
         except BaseException as exc:  # noqa: BLE001 - reported by the stage loop
             self.error = exc
+
+
+def index_progress(log, counters=None):
+    """The index build's ``progress(done, total)`` in the map stage: ``map_index_pct`` for the
+    run's live line (``map: indexing 35%``) and a log line per tenth,
+    ``map index: 90% (627949 of 697721 points)``: the percentage of the points counted, rounded
+    down, 100 % only once the index is in place."""
+    last = [-1]
+
+    def progress(done: int, total: int) -> None:
+        pct = min(100, int(100 * done / max(total, 1)))
+        if counters is not None:
+            counters.extra["map_index_pct"] = pct
+        if pct // 10 != last[0]:
+            last[0] = pct // 10
+            log.info("map index: %d%% (%d of %d points)", pct, done, total)
+
+    return progress
 
 
 def _error_line(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {exc}" if not isinstance(exc, ValueError) else str(exc)
 
+
+#: Points of a map drawn at most while its index is built (preview.py), within the budget.
+PREVIEW_POINTS = 100_000
+
+#: While the camera keeps moving (cameras less than :data:`MOVING_GAP_S` apart), nodes are
+#: chosen again at most this often, so an orbiting view does not swap nodes at every camera
+#: message; a single move is chosen for at once.
+MOVING_SELECT_S = 0.4
+MOVING_GAP_S = 0.25
 
 #: Nodes the loader thread is asked for ahead of placing them.
 LOADS_IN_FLIGHT = 4
@@ -118,7 +141,10 @@ class _Loader(threading.Thread):
 class Server:
     """Selection, loading and slot bookkeeping of one open map."""
 
-    def __init__(self, ctx, source, region: mr.MapRegion, files: list[str]):
+    def __init__(self, ctx, source, region: mr.MapRegion, files: list[str], first_version: int = 0,
+                 held: Optional[np.ndarray] = None):
+        """``first_version``/``held``: a preview's last version and the slots it holds in
+        ``region`` (free again once this server's first, full, version is acknowledged)."""
         from . import NodeCache
 
         self.ctx, self.src, self.region, self.files = ctx, source, region, files
@@ -136,8 +162,14 @@ class Server:
         self.cap: dict[Any, int] = {}  # nodes drawn in part (a root bigger than the budget)
         self.want: list = []
         self.want_stale = True
-        self.version = 0
+        self.t_selected = 0.0  # monotonic s of the last selection
+        self.moving = False  # the last camera came hard on the one before (an orbit, a drag)
+        self.version = int(first_version)
         self.acked = -1
+        if held is not None and held.size:
+            self.free[held] = False
+            self.n_free -= int(held.size)
+            self.pending_free.append((self.version + 1, held))
         self.full_next = True
         self.set_ranges: list = []
         self.cleared_ranges: list = []
@@ -159,9 +191,11 @@ class Server:
         if t == "cameras" and isinstance(msg.get("views"), list):
             cams = [v for v in msg["views"] if isinstance(v, dict)]
             if cams != self.cameras:
+                now_ns = time.monotonic_ns()
+                self.moving = self.t_camera_ns > 0 and (now_ns - self.t_camera_ns) < MOVING_GAP_S * 1e9
                 self.cameras = cams
                 self.want_stale = True
-                self.t_camera_ns = time.monotonic_ns()
+                self.t_camera_ns = now_ns
                 self.refine_ms = None
                 c = self.ctx.counters.extra
                 c["map_camera_moves"] = c.get("map_camera_moves", 0) + 1
@@ -224,6 +258,7 @@ class Server:
             merged = roots
         self.want = merged
         self.want_stale = False
+        self.t_selected = time.monotonic()
 
     # ------------------------------------------------------------------ loading
     def _collect(self) -> None:
@@ -252,7 +287,7 @@ class Server:
         flight), place what it finished until the deadline; publish a version when anything
         changed. True while nodes are still to load. Loads run in the loader thread, so a slow
         read (or a kernel compiled on first use) never keeps this loop from beating."""
-        if self.want_stale:
+        if self.want_stale and (not self.moving or time.monotonic() - self.t_selected >= MOVING_SELECT_S):
             self.select()
         want = set(self.want)
         for key in [k for k in self.published if k not in want]:
@@ -270,6 +305,7 @@ class Server:
                 self.inflight.add(key)
                 self.loader.ask(key)
         self._collect()
+        starved = False
         for key in todo:
             if time.monotonic_ns() > deadline_ns and (self.set_ranges or self.cleared_ranges):
                 break
@@ -278,11 +314,14 @@ class Server:
                 continue
             n = min(int(len(data["positions"])), self.cap.get(key, 1 << 62))
             if n > self.n_free:
+                starved = True
                 break  # slots come back when the render stage acknowledges what was cleared
             del self.ready[key]
             self._place(key, data, self.cap.get(key))
-        busy = any(k not in self.published for k in self.want if k not in self.bad_nodes)
-        if self.set_ranges or self.cleared_ranges or self.full_next:
+        busy = self.want_stale or any(k not in self.published for k in self.want if k not in self.bad_nodes)
+        # a full version replaces what the render stage shows (a preview too): not an empty one
+        # while the first nodes are still being read
+        if self.set_ranges or self.cleared_ranges or (self.full_next and (self.published or not busy or starved)):
             self._publish()
         if not busy and self.refine_ms is None and self.t_camera_ns:
             self.refine_ms = (time.monotonic_ns() - self.t_camera_ns) / 1e6
@@ -344,7 +383,7 @@ class Server:
         origin = (lo + hi) / 2 if origin is None else np.asarray(origin, np.float64)
         msg = {"type": "version", "version": self.version, "full": full, "region": r.path, "slots": r.slots,
                "channels": [list(c) for c in r.channels], "files": self.files,
-               "origin": [float(v) for v in origin], "set": set_r, "cleared": cleared, "points": points,
+               "origin": [float(v) for v in origin], "bounds": [lo.tolist(), hi.tolist()], "set": set_r, "cleared": cleared, "points": points,
                "nodes": len(self.published), "channel_ranges": ranges}
         try:
             self.ctx_push.send(mr.encode(msg), zmq.NOBLOCK)
@@ -369,10 +408,12 @@ def accounting(stages: dict, ring=None, cfg=None) -> dict:
     """``stats()["accounting"]`` for the map (docs/map.md): the points the map stage holds in
     the region (``map_points_held``, the sum of its published nodes) and the points the render
     stage took into its map slots (``map_points_drawn``); ``map_agrees`` compares them when
-    both have reported the same version (None while a version is in flight)."""
+    both have reported the same version (None while a version is in flight, and while the map
+    is not open yet: a preview of it is drawn then, preview.py)."""
     m, r = stages.get("map") or {}, stages.get("render") or {}
     held, drawn = m.get("map_points"), r.get("map_points")
-    same = m.get("map_version") is not None and m.get("map_version") == r.get("map_version")
+    same = (m.get("map_version") is not None and m.get("map_version") == r.get("map_version")
+            and bool(m.get("map_ready")))
     return {"map_file_points": m.get("map_point_count"), "map_points_loaded": m.get("points_in", 0),
             "map_points_held": held, "map_points_drawn": drawn,
             "map_agrees": (held == drawn) if same else None, "map_error": m.get("map_error")}
@@ -403,6 +444,20 @@ def _sweep_regions(run_dir: str) -> None:
                 pass
 
 
+def _send_bounds(push, files: list[str], bounds=None):
+    """The map's bounds to the render stage, as soon as its headers say them (None: unknown)."""
+    from .source import header_bounds
+
+    bounds = header_bounds(files) if bounds is None else bounds
+    if bounds is not None:
+        try:
+            push.send(mr.encode({"type": "bounds", "bounds": [bounds[0].tolist(), bounds[1].tolist()],
+                                 "files": files}), zmq.NOBLOCK)
+        except zmq.Again:
+            pass
+    return bounds
+
+
 def main(ctx) -> None:
     cfg = ctx.cfg
     mc: MapConfig = cfg.map
@@ -418,8 +473,13 @@ def main(ctx) -> None:
     _sweep_regions(ctx.info.run_dir)
     c.extra.update(map_files=files, map_error=None, map_ready=False)
     t_start = time.monotonic()
-    opener = _Opener(mc, ctx.log)
+    bounds = _send_bounds(push, files)  # from the headers: the views frame the map before it is open
+    from .preview import Preview
+
+    preview = Preview(ctx, mc.point_budget, lambda avail: kept_channels(cfg, mc, avail), bounds, files, push)
+    opener = _Opener(mc, ctx.log, c, preview)
     opener.start()
+    cams_msg = None  # the views' cameras while the map opens, for the server to start from
     server: Optional[Server] = None
     region: Optional[mr.MapRegion] = None
     try:
@@ -427,6 +487,14 @@ def main(ctx) -> None:
             ctx.beat()
             if server is None:
                 if opener.is_alive():
+                    while pull.poll(0, zmq.POLLIN):  # a (new) render stage says hello: the bounds again
+                        msg = mr.decode(pull.recv())
+                        if msg is not None and msg.get("type") == "hello":
+                            bounds = _send_bounds(push, files, bounds)
+                            preview.full_next = True
+                        elif msg is not None and msg.get("type") == "cameras":
+                            cams_msg = msg
+                    preview.step()  # what the index build has read so far, drawn while it goes on
                     ctx.sleep(0.05)
                     continue
                 if opener.error is not None or opener.source is None:
@@ -436,16 +504,30 @@ def main(ctx) -> None:
                         ctx.log.error("map not shown: %s", line)
                         c.extra["map_error"] = line
                         c.drop("map_error", 1)
+                        try:  # the views stop framing a map that is not there
+                            push.send(mr.encode({"type": "bounds", "bounds": None}), zmq.NOBLOCK)
+                        except zmq.Again:
+                            pass
                     while pull.poll(0, zmq.POLLIN):
                         pull.recv()
                     ctx.sleep(0.1)
                     continue
                 src = opener.source
                 chans = kept_channels(cfg, mc, list(getattr(src, "channels", [])))
-                region = mr.MapRegion.create(ctx.info.run_dir, mc.point_budget, chans)
-                server = Server(ctx, src, region, list(src.paths))
+                preview.step()
+                held = None
+                if preview.region is not None and preview.region.channels == chans:  # the preview's region goes on
+                    region, held = preview.region, preview.held()
+                else:
+                    if preview.region is not None:  # the render stage keeps its mapping until it takes the new one
+                        preview.region.close()
+                        preview.region.unlink()
+                    region = mr.MapRegion.create(ctx.info.run_dir, mc.point_budget, chans)
+                server = Server(ctx, src, region, list(src.paths), first_version=preview.version, held=held)
                 server.ctx_push = push
-                c.extra.update(map_ready=True, map_open_s=round(time.monotonic() - t_start, 3))
+                if cams_msg is not None:
+                    server.on_message(cams_msg)
+                c.extra.update(map_ready=True, map_open_s=round(time.monotonic() - t_start, 3), map_index_pct=None)
                 ctx.log.info("map open: %s (%d points, channels %s)", ", ".join(files), int(src.point_count),
                              [ch[0] for ch in chans] or "none")
             busy = server.step(time.monotonic_ns() + int(mc.load_slice_ms * 1e6))
@@ -462,6 +544,8 @@ def main(ctx) -> None:
             server.close()
         pull.close(0)
         push.close(0)
+        if region is None:
+            region = preview.region  # stopped while the index was being built
         if region is not None:
             region.close()
             region.unlink()

@@ -95,15 +95,40 @@ class MapSource:
         self.close()
 
 
+def header_bounds(paths: Sequence[str]) -> Optional[tuple[np.ndarray, np.ndarray]]:
+    """The files' bounds from their LAS/LAZ/COPC headers, read at once (before any index is
+    built), so a view can frame the map from the start; None when a file's header has none
+    (PLY, PCD) or does not read (the map stage names that file when it opens it)."""
+    import laspy
+
+    los, his = [], []
+    for p in paths:
+        if os.path.splitext(p)[1].lower() not in (".las", ".laz"):
+            return None
+        try:
+            with laspy.open(p) as f:
+                lo, hi = np.asarray(f.header.mins, np.float64), np.asarray(f.header.maxs, np.float64)
+        except Exception:  # noqa: BLE001 - a broken file is the opener's error, with its name
+            return None
+        if not (np.isfinite(lo).all() and np.isfinite(hi).all() and (hi >= lo).all()):
+            return None
+        los.append(lo)
+        his.append(hi)
+    return (np.min(los, axis=0), np.max(his, axis=0)) if los else None
+
+
 Progress = Union[None, bool, Callable[[int, int], None]]
 
 
 def open_map(paths: Union[str, os.PathLike, Sequence[Union[str, os.PathLike]]], *, cache_dir: Optional[str] = None,
-             progress: Progress = None) -> MapSource:
+             progress: Progress = None, preview: Optional[Callable[[int, dict], None]] = None,
+             preview_points: int = 0) -> MapSource:
     """Open the files of a map: COPC through its hierarchy; LAS/LAZ/PLY/PCD through a
     level-of-detail index, built at the first open (a progress line on stderr unless
     ``progress`` is False or a callable ``(done, total)``) and kept in ``cache_dir``
-    (default: the user cache directory, ``$XDG_CACHE_HOME/pointflow/map``)."""
+    (default: the user cache directory, ``$XDG_CACHE_HOME/pointflow/map``). While an index is
+    built, ``preview(file index, points)`` gets an evenly spread share of the points read
+    (about ``preview_points`` of all the files), decoded as :meth:`MapSource.load` gives them."""
     from .copc import CopcFile, is_copc
     from .lod import LodFile
 
@@ -117,7 +142,11 @@ def open_map(paths: Union[str, os.PathLike, Sequence[Union[str, os.PathLike]]], 
         for p in paths:
             if not os.path.isfile(p):
                 raise MapError(p, "no such file" if not os.path.exists(p) else "not a regular file")
-            files.append(CopcFile(p) if is_copc(p) else LodFile(p, cache_dir=cache_dir, progress=progress))
+            i = len(files)
+            each = (lambda data, i=i: preview(i, data)) if preview is not None else None
+            files.append(CopcFile(p) if is_copc(p) else
+                         LodFile(p, cache_dir=cache_dir, progress=progress, preview=each,
+                                 preview_points=preview_points // len(paths)))
     except BaseException:
         for f in files:
             f.close()

@@ -363,7 +363,13 @@ def live_summary(stats: dict) -> str:
                      + (f" p99jit={j:.2f}ms" if j is not None else "") + (f" skip={skipped}" if skipped else ""))
     mp = st.get("map") or {}
     if mp:
-        parts.append(f"map={_n(ren.get('map_points', 0) or 0)}" if not mp.get("map_error") else "map=error")
+        if mp.get("map_error"):
+            parts.append("map=error")
+        elif mp.get("map_index_pct") is not None:  # a first open builds its index (a preview may be drawn)
+            parts.append(f"map: indexing {mp['map_index_pct']}%"
+                         + (f" map={_n(ren['map_points'])}" if ren.get("map_points") else ""))
+        else:
+            parts.append(f"map={_n(ren.get('map_points', 0) or 0)}")
     parts.append(f"drops={_n(drops)}")
     # points the ring pushed out to make room (a file bigger than the ring loses its start here)
     parts.append(f"evicted={_n(sum(s.get('ring_evicted', 0) or 0 for s in st.values()))}")

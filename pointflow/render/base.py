@@ -64,6 +64,10 @@ class FrameInput:
     budget: Optional[int] = None    # point budget from the policy engine
     seq: int = 0
     frame_seed: int = 0
+    #: With a map (render/maplayer.py): slots [0, live_slots) are the ring's, and ``map_box`` is
+    #: the map's (lo, hi) in world float64, so the camera frames and clips each (tiers ignore both).
+    live_slots: Optional[int] = None
+    map_box: Optional[tuple] = None
 
     def occupied_slots(self) -> np.ndarray:
         """Slot indices in logical order (oldest first)."""

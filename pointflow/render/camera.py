@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
+from typing import Optional
 
 import numpy as np
 
@@ -100,6 +101,77 @@ class Camera:
         d = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
         return cls(eye=centre + d * dist, target=centre, up=np.asarray(up, np.float64),
                    fov_deg=fov_deg, near=max(dist - radius * 1.5, dist * 1e-3), far=dist + radius * 1.5)
+
+
+#: The near plane is never closer than this share of the far plane. Every tier orders points by
+#: their linear view depth (float32 ``w`` keys, the quads method's ``w * 2^-k``, gl's
+#: ``(w - near) / (far - near)``), so a near plane this close costs no depth precision; it only
+#: keeps the frustum's near test meaningful.
+NEAR_FLOOR = 1e-7
+
+#: Map and live points whose boxes lie further apart than this many times the larger box's
+#: size are "apart": the auto camera frames the map alone (docs/map.md).
+APART_FACTOR = 10.0
+
+Box = tuple  # (lo, hi): float64 world corners
+
+
+def _corners(lo, hi) -> np.ndarray:
+    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    return np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+
+
+def clip_planes(eye, target, up, fov_deg: float, aspect: float, boxes) -> tuple[float, float]:
+    """Near and far planes from what lies in front of the camera: of every box ``(lo, hi)``
+    (world float64) that is not wholly outside one side plane of the view, the nearest and
+    farthest corner along the view axis (near halved, far 5 % further; the near plane at least
+    :data:`NEAR_FLOOR` of the far). A box behind the eye or beside the view plays no part, so a
+    georeferenced map far from the live points does not push the planes away from either.
+    Nothing in view: a range around the target."""
+    eye = np.asarray(eye, np.float64)
+    view = look_at(np.zeros(3), np.asarray(target, np.float64) - eye, np.asarray(up, np.float64))[:3, :3]
+    ty = math.tan(math.radians(float(fov_deg)) / 2.0)
+    tx = ty * float(aspect)
+    lo_d, hi_d = math.inf, 0.0
+    for box in boxes:
+        if box is None:
+            continue
+        v = (_corners(*box) - eye) @ view.T  # eye space: the camera looks down -z
+        d = -v[:, 2]
+        if (d <= 0).all() or (v[:, 0] > d * tx).all() or (v[:, 0] < -d * tx).all() \
+                or (v[:, 1] > d * ty).all() or (v[:, 1] < -d * ty).all():
+            continue
+        lo_d, hi_d = min(lo_d, max(float(d.min()), 0.0)), max(hi_d, float(d.max()))
+    if not hi_d > 0:
+        dist = float(np.linalg.norm(np.asarray(target, np.float64) - eye)) or 1.0
+        return dist * 1e-3, dist * 100.0
+    far = hi_d * 1.05 + 1e-6
+    return max(lo_d * 0.5, far * NEAR_FLOOR), far
+
+
+def box_gap(a: Box, b: Box) -> float:
+    """Distance between two boxes (0 when they touch or overlap)."""
+    (alo, ahi), (blo, bhi) = ((np.asarray(x, np.float64) for x in box) for box in (a, b))
+    gap = np.maximum(0.0, np.maximum(alo - bhi, blo - ahi))
+    return float(np.linalg.norm(gap))
+
+
+def box_size(box: Box) -> float:
+    return float(np.linalg.norm(np.asarray(box[1], np.float64) - np.asarray(box[0], np.float64)))
+
+
+def scene_box(live: Optional[Box], map_box: Optional[Box]) -> tuple[Optional[Box], float]:
+    """What the auto camera frames, and how far apart map and live points are (0 unless they are
+    *apart*: further than :data:`APART_FACTOR` times the larger box's size). Apart, the map
+    alone is framed: both at once would be two dots."""
+    if map_box is None or live is None:
+        return (live if map_box is None else map_box), 0.0
+    gap = box_gap(live, map_box)
+    if gap > APART_FACTOR * max(box_size(live), box_size(map_box), 1.0):
+        return map_box, gap
+    lo = np.minimum(np.asarray(live[0], np.float64), np.asarray(map_box[0], np.float64))
+    hi = np.maximum(np.asarray(live[1], np.float64), np.asarray(map_box[1], np.float64))
+    return (lo, hi), 0.0
 
 
 def project_to_pixels(points_rel: np.ndarray, view_proj: np.ndarray, width: int, height: int):

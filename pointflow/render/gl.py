@@ -13,9 +13,12 @@ Nearer depth wins; survivors are drawn in *reverse* logical order with ``depth_f
 so at equal depth the lower logical index (drawn last) wins, as in the cpu tier, and a
 point exactly on the far plane (depth 1.0 = the cleared depth) is still drawn.
 
-Depth: camera.py produces clip z in [0, w] (WebGPU). GL clips z to [-w, w], so the
-matrix is premultiplied by ``GL_DEPTH_FIX`` (``z' = 2z - w``); window depth then equals
-the WebGPU NDC depth again (glDepthRange 0..1).
+Depth: the linear view depth (clip w) between the near and far planes, ``(w - near) /
+(far - near)``, not the hyperbolic ``z / w``: the 24-bit depth buffer then resolves
+``(far - near) / 2^24`` everywhere (0.4 mm with a far plane 7 km away), where ``z / w``
+crowds its steps at the near plane and could not order a georeferenced map 5 km away
+(camera.py sets near and far from what lies in front of the camera). The CPU has culled to
+the frustum, so the depth is clamped to [0, 1] and GL clips nothing more.
 
 Picking draws ``slot + 1`` into a second RGBA8 attachment (4 bytes) in the same pass.
 
@@ -49,6 +52,7 @@ uniform mat4 u_vp;          // GL_DEPTH_FIX @ view_proj (origin-relative), float
 uniform vec2 u_view;        // viewport (w, h) in pixels
 uniform float u_size;       // screen: pixels; world: world units
 uniform float u_world_k;    // world: P[1,1] * h / 2 (pixels per world unit at w = 1); 0 = screen
+uniform vec2 u_depth;       // (near, 1 / (far - near)): window depth linear in the view depth w
 in vec3 in_pos;
 in vec4 in_color;
 in uint in_slot;
@@ -66,7 +70,8 @@ void main() {
     vec2 ndc = clip.xy / clip.w;
     v_centre = vec3((ndc.x * 0.5 + 0.5) * u_view.x, (0.5 - ndc.y * 0.5) * u_view.y, h);
     vec2 off = CORNERS[gl_VertexID] * (h + 1.0) * 2.0 / u_view;  // one pixel of slack
-    gl_Position = vec4((ndc + off) * clip.w, clip.z, clip.w);
+    float dz = clamp((clip.w - u_depth.x) * u_depth.y, 0.0, 1.0);
+    gl_Position = vec4((ndc + off) * clip.w, (2.0 * dz - 1.0) * clip.w, clip.w);
     v_color = in_color;
     v_id = in_slot + 1u;
 #ifdef EDL
@@ -281,6 +286,7 @@ class GlRenderer(Renderer):
             vp = (GL_DEPTH_FIX @ camera.view_proj(W, H, frame.origin)).astype(np.float32)
             self.prog["u_vp"].write(vp.T.tobytes())  # GLSL matrices are column-major
             self.prog["u_view"].value = (float(W), float(H))
+            self.prog["u_depth"].value = (float(camera.near), float(1.0 / max(camera.far - camera.near, 1e-30)))
             self.prog["u_size"].value = float(self.cfg.point_size)
             world = self.cfg.point_size_space == "world"
             self.prog["u_world_k"].value = float(camera.proj(W, H)[1, 1] * H * 0.5) if world else 0.0

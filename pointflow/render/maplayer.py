@@ -30,6 +30,10 @@ from .base import FrameInput, merge_ranges
 #: The map stage hears of a moving camera at most this often.
 CAMERA_PERIOD_S = 0.1
 
+#: A camera looking further than this from the ring's origin, and nearer the map's, has the
+#: frame drawn from the map's origin (float32 steps are 1 mm at 10 km).
+FAR_FROM_ORIGIN = 10_000.0
+
 
 class MapLayer:
     """Receives map versions, composes the combined frame, publishes the cameras, names
@@ -51,6 +55,10 @@ class MapLayer:
         self.region: Optional[mr.MapRegion] = None
         self.files: list[str] = []
         self.map_origin: Optional[np.ndarray] = None
+        self.map_box: Optional[tuple] = None  # the map's (lo, hi), world float64, once the map stage knows it
+        self.preview = False  # the version held is a preview (the map's index is still being built)
+        self.warned_apart = False  # the render stage said once that map and live points lie apart
+        self.previews = 0
         self.occupied = np.zeros(self.slots, bool)  # map slots holding a point
         self.map_ranges: dict[str, tuple[float, float]] = {}
         self.version = -1
@@ -60,6 +68,8 @@ class MapLayer:
         self.arrays: Optional[dict] = None
         self.origin: Optional[np.ndarray] = None  # the origin the map slots were converted for
         self._ring_occ: Optional[tuple[int, int]] = None  # (head, size) of the ring last composed
+        self._ring_origin: Optional[np.ndarray] = None  # the ring's origin last composed
+        self.focus: Optional[np.ndarray] = None  # where the last drawn camera looked
         self.padding_draws = 0  # NaN slots of the combined frames drawn (not counted "nonfinite")
         self._padding = 0
         self.versions = 0
@@ -85,6 +95,9 @@ class MapLayer:
         got = False
         while self.pull.poll(0, zmq.POLLIN):
             msg = mr.decode(self.pull.recv())
+            if msg is not None and msg.get("type") == "bounds":  # known before the map is open (its header)
+                self._bounds(msg)
+                continue
             if msg is None or msg.get("type") != "version":
                 self.bad_messages += 1
                 continue
@@ -98,7 +111,21 @@ class MapLayer:
             got = True
         return got
 
+    def _bounds(self, msg: dict) -> None:
+        if msg.get("type") == "bounds" and msg.get("bounds") is None:  # the map could not be opened
+            self.map_box = None
+            return
+        try:
+            lo, hi = (np.asarray(b, np.float64).reshape(3) for b in msg["bounds"])
+        except (KeyError, TypeError, ValueError):
+            self.bad_messages += 1
+            return
+        if np.isfinite(lo).all() and np.isfinite(hi).all() and (hi >= lo).all():
+            self.map_box = (lo, hi)
+
     def _apply(self, msg: dict) -> None:
+        if msg.get("bounds") is not None:
+            self._bounds(msg)
         chans = [tuple(c) for c in msg["channels"]]
         if self.region is None or self.region.path != msg["region"] or self.region.channels != chans:
             if self.region is not None:
@@ -132,6 +159,8 @@ class MapLayer:
             self.pending = None
         self.map_ranges = {k: (float(v[0]), float(v[1])) for k, v in (msg.get("channel_ranges") or {}).items()}
         self.version = int(msg["version"])
+        self.preview = bool(msg.get("preview"))
+        self.previews += int(self.preview)
         self.points = int(msg.get("points", int(self.occupied.sum())))
         self.nodes = int(msg.get("nodes", 0))
         self.versions += 1
@@ -190,16 +219,22 @@ class MapLayer:
             self._alloc(frame)
             self.pending = None
         A, R = self.arrays, self.ring_cap
-        # the ring's origin once it holds points; the map's own before (float32 offsets of a
-        # georeferenced map from 0 would lose its detail)
-        use_ring = frame.size > 0 or self.map_origin is None
-        origin = np.asarray(frame.origin, np.float64) if use_ring else self.map_origin
+        origin = self._origin(frame)
+        ring_origin = np.asarray(frame.origin, np.float64)
         if self.origin is None or not np.array_equal(origin, self.origin):
             self.origin = origin.copy()
             self.pending = None  # every map slot again, relative to the new origin
+            self._ring_occ = None  # and every ring slot
+        if self._ring_origin is None or not np.array_equal(ring_origin, self._ring_origin):
+            self._ring_origin = ring_origin.copy()
+            self._ring_occ = None
+        shift = ring_origin - self.origin
         ring = self._ring_refresh(frame)
         for a, b in ([(0, R)] if ring is None else ring):
-            A["positions"][a:b] = frame.positions[a:b]
+            if shift.any():  # the ring's offsets, moved to the frame's origin in float64
+                A["positions"][a:b] = (frame.positions[a:b].astype(np.float64) + shift).astype(np.float32)
+            else:
+                A["positions"][a:b] = frame.positions[a:b]
             A["importance"][a:b] = frame.importance[a:b]
             A["t_ingest_ms"][a:b] = frame.t_ingest_ms[a:b]
             for k, arr in A["channels"].items():
@@ -228,7 +263,25 @@ class MapLayer:
         return FrameInput(positions=A["positions"], importance=A["importance"], t_ingest_ms=A["t_ingest_ms"],
                           channels=A["channels"], head=0, size=self.capacity, capacity=self.capacity,
                           origin=self.origin, now_ms=frame.now_ms, channel_ranges=ranges, dirty=dirty,
-                          budget=budget, seq=frame.seq, frame_seed=frame.frame_seed)
+                          budget=budget, seq=frame.seq, frame_seed=frame.frame_seed, live_slots=R,
+                          map_box=self.map_box)
+
+    def _origin(self, frame: FrameInput) -> np.ndarray:
+        """The frame's one float64 origin: the ring's, or the map's while the ring is empty or
+        while the camera looks nearer the map's origin than the ring's (a georeferenced map far
+        from the live points would otherwise be float32 offsets of millions of metres)."""
+        ring = np.asarray(frame.origin, np.float64)
+        if self.map_origin is None:
+            return ring
+        if frame.size <= 0:
+            return self.map_origin
+        if self.focus is not None:
+            to_ring = float(np.linalg.norm(self.focus - ring))
+            # only where float32 offsets from the ring's origin would lose millimetres: a sensor
+            # placed in the map never switches (a switch converts every slot again)
+            if to_ring > FAR_FROM_ORIGIN and float(np.linalg.norm(self.focus - self.map_origin)) < to_ring:
+                return self.map_origin
+        return ring
 
     def _blank_free(self, frame: FrameInput, a: int, b: int) -> None:
         """NaN positions for the ring slots in [a, b) that hold no point."""
@@ -240,9 +293,12 @@ class MapLayer:
         if free.any():
             self.arrays["positions"][a:b][free] = np.nan
 
-    def drawn(self) -> None:
-        """The composed frame was drawn: its empty slots were skipped by the tier."""
+    def drawn(self, camera=None) -> None:
+        """The composed frame was drawn (with ``camera``): its empty slots were skipped by the
+        tier; the next frame's origin is the one nearer where this camera looked."""
         self.padding_draws += self._padding
+        if camera is not None:
+            self.focus = np.asarray(camera.target, np.float64).copy()
         self._undrawn = []
 
     # ------------------------------------------------------------------ render -> map stage
@@ -308,7 +364,7 @@ class MapLayer:
     def stats(self) -> dict:
         return {"map_points": int(self.points), "map_nodes": int(self.nodes), "map_version": int(self.version),
                 "map_versions_taken": int(self.versions), "map_bad_messages": int(self.bad_messages),
-                "map_slots": int(self.slots)}
+                "map_slots": int(self.slots), "map_preview": self.preview, "map_previews_taken": int(self.previews)}
 
     def close(self) -> None:
         self.pull.close(0)

@@ -23,15 +23,17 @@ from ..runtime.kinds import StageKind, register_stage_kind
 from ..runtime.stage import StageContext
 from .base import FrameInput, RenderError, Renderer
 from . import control
-from .camera import Camera
-from .control import ControlError, ViewState, camera_near_far, style_render_config
+from .camera import Camera, clip_planes, scene_box
+from .control import ControlError, ViewState, style_render_config
 
 
 class CameraController:
     """Frames the scene automatically (``camera.mode: auto``/``orbit``) or uses the fixed
     camera from the config. Bounds come from a strided sample of the occupied slots, checked
     about once a second (not every frame); the camera refits when they changed by more than
-    10%, so it follows a growing map or a moving sensor without jitter."""
+    10%, so it follows a growing map or a moving sensor without jitter. With a map, the live
+    points' box and the map's are kept apart: the camera frames the map when the two lie far
+    apart (``apart_m``), and near and far planes follow what lies in front of the camera."""
 
     def __init__(self, ctx_cfg, width: int, height: int):
         self.cfg = ctx_cfg.render.camera
@@ -39,22 +41,33 @@ class CameraController:
         self.camera: Optional[Camera] = None
         self._last_fit = 0.0
         self._box = None
+        self._clip = None  # the live points' min/max box (with a margin): what the planes must hold
+        self.map_box = None
+        self.apart_m = 0.0  # how far apart map and live points are (0: not apart)
         self._t0 = time.monotonic()
         if self.cfg.mode == "fixed":
             self.camera = Camera(eye=self.cfg.position, target=self.cfg.target, up=self.cfg.up,
                                  fov_deg=self.cfg.fov_deg, near=self.cfg.near, far=self.cfg.far)
 
     @staticmethod
-    def _bounds(frame: FrameInput):
-        """1st-99th percentile box of a strided sample of the occupied slots (world coords)."""
+    def _bounds(frame: FrameInput, clip: bool = False):
+        """1st-99th percentile box of a strided sample of the occupied live slots (world
+        coords); ``clip``: also their min/max box widened by a tenth (what must not be clipped)."""
         slots = frame.occupied_slots()
+        if frame.live_slots is not None:
+            slots = slots[slots < frame.live_slots]
         step = max(1, slots.size // 50_000)
         p = frame.positions[slots[::step]].astype(np.float64)
         p = p[np.isfinite(p).all(axis=1)]
         if not p.size:
-            return None
+            return (None, None) if clip else None
         lo, hi = np.percentile(p, [1, 99], axis=0)
-        return lo + frame.origin, hi + frame.origin
+        box = (lo + frame.origin, hi + frame.origin)
+        if not clip:
+            return box
+        mlo, mhi = p.min(axis=0), p.max(axis=0)
+        pad = 0.1 * (mhi - mlo) + 0.5
+        return box, (mlo - pad + frame.origin, mhi + pad + frame.origin)
 
     def _moved(self, box) -> bool:
         """Refit only when the data's box changed by more than 10% of its size (no jitter)."""
@@ -65,27 +78,39 @@ class CameraController:
     def refresh(self, frame: FrameInput) -> None:
         """Keep the data box current (about once a second; refit only on a >10% change)."""
         now = time.monotonic()
+        if frame.map_box is not None:
+            self.map_box = frame.map_box
         if frame.size and (self._box is None or now - self._last_fit > 1.0):
             self._last_fit = now
-            box = self._bounds(frame)
+            box, self._clip = self._bounds(frame, clip=True)
             if box is not None and (self._box is None or self._moved(box)):
                 self._box = box
+        self.apart_m = scene_box(self._box, self.map_box)[1]  # a user's camera is warned too
+
+    def clip_boxes(self) -> list:
+        """What near and far must hold: the live points' box and the map's."""
+        return [self._clip, self.map_box]
+
+    def planes(self, eye, target, up, fov_deg: float) -> tuple[float, float]:
+        return clip_planes(eye, target, up, fov_deg, self.aspect, self.clip_boxes())
 
     def update(self, frame: FrameInput) -> Optional[Camera]:
         c = self.cfg
         if c.mode == "fixed":
             return self.camera
         self.refresh(frame)
-        if self._box is None:
+        box, self.apart_m = scene_box(self._box, self.map_box)
+        if box is None:
             return None
         now = time.monotonic()
         az = -60.0 + (c.orbit_deg_per_s * (now - self._t0) if c.orbit_deg_per_s else 0.0)
-        cam = Camera.fit(self._box[0], self._box[1], fov_deg=c.fov_deg, azimuth_deg=az,
+        cam = Camera.fit(box[0], box[1], fov_deg=c.fov_deg, azimuth_deg=az,
                          elevation_deg=c.elevation_deg, up=c.up, aspect=self.aspect)
         if c.position is not None:
             cam.eye = np.asarray(c.position, np.float64)
         if c.target is not None:
             cam.target = np.asarray(c.target, np.float64)
+        cam.near, cam.far = self.planes(cam.eye, cam.target, cam.up, cam.fov_deg)
         self.camera = cam
         return cam
 
@@ -214,7 +239,7 @@ class ViewController:
             if o is not None:  # move with the frame's origin since following began
                 shift = o - np.asarray(c.follow_anchor if c.follow_anchor is not None else c.target, np.float64)
                 eye, target = eye + shift, target + shift
-        near, far = camera_near_far(eye, target, self.auto._box)
+        near, far = self.auto.planes(eye, target, c.up, c.fov_deg)
         return Camera(eye=eye, target=target, up=c.up, fov_deg=c.fov_deg, near=near, far=far)
 
     def unchanged(self, frame: FrameInput, camera: Camera, renderer: Renderer) -> bool:
@@ -411,6 +436,9 @@ def main(ctx: StageContext) -> None:
                 if maplayer is not None:
                     frame = maplayer.compose(frame)
                 camera = window.camera if window is not None else view.camera(frame)
+                if window is not None:  # the window's own camera: its planes follow the view too
+                    view.auto.refresh(frame)
+                    camera.near, camera.far = view.auto.planes(camera.eye, camera.target, camera.up, camera.fov_deg)
                 if camera is None:  # nothing to frame yet
                     continue
                 if stage.hub is not None and stage.hub.main_rests(window, frame):
@@ -439,7 +467,8 @@ def main(ctx: StageContext) -> None:
                     drew = True
                     view.last = camera
                     if maplayer is not None:
-                        maplayer.drawn()
+                        maplayer.drawn(camera)
+                        _warn_apart(ctx, view.auto, maplayer)
                 except ValueError as exc:  # a malformed frame (tiers check their input): skip it, counted
                     ctx.log.error("frame %d rejected by the %s tier: %s", h.seq, renderer.tier, exc)
                     c.drop("bad_frame", 1)
@@ -537,6 +566,20 @@ def _switch_raster(switch, stage: "_Stage", window, ctx) -> None:
             window.renderer = new
         ctx.counters.extra.update(tier=new.tier, tier_info=new.info())
     ctx.counters.extra.update(switch.stats())
+
+
+def _warn_apart(ctx, auto: CameraController, maplayer) -> None:
+    """Once: the map and the live points lie far apart (a sensor not placed in the map's frame)."""
+    if not auto.apart_m or maplayer.warned_apart:
+        return
+    maplayer.warned_apart = True
+    live = (np.asarray(auto._box[0]) + np.asarray(auto._box[1])) / 2
+    mp = (np.asarray(auto.map_box[0]) + np.asarray(auto.map_box[1])) / 2
+    ctx.log.warning("the map and the live points lie %.0f apart, in their coordinates' units (live around %s, "
+                    "map around %s): the view frames the map; place the sensor in the map's frame with "
+                    "frames.fixed and a static transform (docs/map.md#placing-the-live-sensor)", auto.apart_m,
+                    np.round(live, 1).tolist(), np.round(mp, 1).tolist())
+    ctx.counters.extra["map_apart_m"] = round(float(auto.apart_m), 1)
 
 
 def _gpu_spans(ctx, fs, t0: int) -> None:
