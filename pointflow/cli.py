@@ -63,18 +63,15 @@ def starting_line(cfg, stages: list[str]) -> str:
 
 
 def no_frame_reason(stats: dict) -> Optional[str]:
-    """Why a run that has a render stage drew no frame (or saved none), or None when it saved
-    one. Said instead of pointing at an output folder with no frame in it."""
+    """Why a run that has a render stage drew no frame, or None when it drew one (the render
+    stage then leaves ``last.png``, besides every ``output.every_n_frames``-th frame). Said
+    instead of pointing at an output folder with no frame in it."""
     stages = stats.get("stages", {})
     render = stages.get("render")
     if render is None:
         return None
-    if render.get("pngs", 0):
+    if render.get("pngs", 0) or render.get("frames", 0):  # a drawn frame is saved as last.png at the end
         return None
-    frames = int(render.get("frames", 0) or 0)
-    if frames:
-        return (f"no frame saved: {frames} frame{'s' * (frames != 1)} drawn, none of them the "
-                "render.output.every_n_frames-th")
     ready = render.get("startup_ms", {}).get("ready")
     raster = render.get("raster")
     if not render.get("ready") or ready is None:

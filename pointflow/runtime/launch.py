@@ -128,7 +128,8 @@ def _main() -> None:
             sys.exit(0)
         if os.getppid() != info.supervisor_pid:
             sys.exit(1)
-    info.extra.setdefault("t_main_ns", t_main)
+    if not standby:  # a standby's interpreter came up before this incarnation was asked for
+        info.extra.setdefault("t_main_ns", t_main)
     stage_main(name, kind, cfg_dict, base_dir, info, prepared=prepared)
 
 
