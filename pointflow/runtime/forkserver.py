@@ -93,7 +93,10 @@ class ForkServer:
         self._exits: dict[int, int] = {}
         self._gone = False  # the server exited (its pipe closed)
         # it imports first: on a loaded machine seconds; one that never says it is ready is not used
-        self.ready = bool(select.select([self._reports], [], [], timeout_s)[0]) and self._read() == ("ready",)
+        try:
+            self.ready = bool(select.select([self._reports], [], [], timeout_s)[0]) and self._read() == ("ready",)
+        except Exception:  # noqa: BLE001 - a server killed mid-write: start the stages the usual way
+            self.ready = False
         if not self.ready:
             self.close()
             return
