@@ -207,7 +207,10 @@ class ViewHub:
             v = self._new_view(vid, peer, w, h, stage)
             v.seq = seq
             if msg.get("state") is not None:
-                self._take_state(v, msg["state"])
+                try:
+                    self._take_state(v, msg["state"])
+                except ControlError as exc:  # the view opens framed on the data: better than not at all
+                    self._bad(None, vid, req, exc, exc.key)
             self.views[vid] = v
             self._trim_sizes(stage)
             self._reply(v, req)

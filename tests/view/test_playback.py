@@ -88,7 +88,7 @@ def test_pause_step_seek_rate_loop(tmp_path):
         for kwargs, key, words in [({"seek_s": 2.5}, "seek_s", "past the end"),
                                    ({"seek_fraction": 1.5}, "seek_fraction", "<= 1"),
                                    ({"rate": float("nan")}, "rate", "finite"),
-                                   ({"rate": 0.0}, "rate", "> 0"),
+                                   ({"rate": 0.0}, "rate", ">= 0.001"),
                                    ({"step": -1}, "step", ">= 0"),
                                    ({"source": "nope"}, "source", "rec")]:
             with pytest.raises(PlaybackError) as exc:
