@@ -3,6 +3,7 @@ cookie) and the WebSocket's Origin. Pure functions, so the refusals are tested w
 server and the messages are the same everywhere."""
 from __future__ import annotations
 
+import functools
 import hashlib
 import hmac
 import ipaddress
@@ -20,6 +21,15 @@ def cookie_name(port: int, run_dir: str) -> str:
     not per port, so two runs on one host (or a run and its successor on the same port)
     must not overwrite each other's cookie."""
     return f"{COOKIE}_{int(port)}_{hashlib.sha256(run_dir.encode()).hexdigest()[:10]}"
+
+
+@functools.lru_cache(maxsize=1)
+def machine_names() -> frozenset:
+    """This machine's names, looked up once: ``getfqdn`` may ask DNS, which must not happen
+    per request inside the event loop (a junk Host header would stall every view)."""
+    import socket
+
+    return frozenset(n.lower() for n in (socket.gethostname(), socket.getfqdn()) if n)
 
 
 def check_host(host_header: Optional[str], bound_host: str, allowed: list[str]) -> Optional[str]:
@@ -47,11 +57,8 @@ def check_host(host_header: Optional[str], bound_host: str, allowed: list[str]) 
         return None
     except ValueError:
         pass
-    if bound_host in ("0.0.0.0", "::", ""):
-        import socket
-
-        if name in (socket.gethostname().lower(), socket.getfqdn().lower()):
-            return None
+    if bound_host in ("0.0.0.0", "::", "") and name in machine_names():
+        return None
     return (f"host {host_header[:80]!r} is not allowed (an IP address, localhost, this machine's name or "
             "serve.allowed_hosts)")
 

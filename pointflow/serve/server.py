@@ -42,7 +42,7 @@ import zmq
 import zmq.asyncio
 
 from ..render.control import ControlError, number, printable
-from .auth import COOKIE, check_host, check_origin, check_token, cookie_name
+from .auth import COOKIE, check_host, check_origin, check_token, cookie_name, machine_names
 from .config import ServeConfig
 from .encode import encode_frame
 
@@ -326,6 +326,8 @@ class ViewServer:
             ctx.load_cert_chain(self.sc.tls.cert, self.sc.tls.key)
         site = web.TCPSite(self._runner, self.sc.host, self.sc.port, ssl_context=ctx, reuse_address=True)
         await site.start()
+        if self.sc.host in ("0.0.0.0", "::", ""):  # the names a Host may use, looked up once, off the loop
+            await asyncio.get_running_loop().run_in_executor(None, machine_names)
         port = site._server.sockets[0].getsockname()[1]  # the real port when 0 was asked for
         host = self.sc.host if self.sc.host not in ("0.0.0.0", "::", "") else "127.0.0.1"
         host = f"[{host}]" if ":" in host else host
