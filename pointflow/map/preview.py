@@ -88,7 +88,8 @@ class Preview:
         full = self.full_next
         msg = {"type": "version", "version": self.version, "full": full, "region": self.region.path,
                "slots": self.region.slots, "channels": [list(c) for c in self.region.channels], "files": self.files,
-               "origin": [float(v) for v in self.origin], "set": [(0, self.used)] if full else set_r, "cleared": [],
+               "origin": [float(v) for v in self.origin],
+               "set": ([(0, self.used)] if self.used else []) if full else set_r, "cleared": [],
                "points": self.used, "nodes": 0, "channel_ranges": self.ranges, "preview": True}
         if self.bounds is not None:
             msg["bounds"] = [np.asarray(self.bounds[0]).tolist(), np.asarray(self.bounds[1]).tolist()]
@@ -100,6 +101,17 @@ class Preview:
             self.full_next = True
         c = self.ctx.counters
         c.extra.update(map_points=self.used, map_preview_points=self.used, map_version=self.version)
+
+    def clear(self) -> None:
+        """The map could not be opened after all: the render stage drops what the preview showed."""
+        with self.lock:
+            self.queue.clear()
+            self.offered = self.budget  # nothing more is taken
+        self.bounds = None  # the views stop framing it (the stage said so; no version says otherwise)
+        if self.region is not None and self.used:
+            self.used, self.ranges = 0, {}
+            self.full_next = True
+            self.step()
 
     def held(self) -> np.ndarray:
         """The slots the preview holds (the server frees them once its full version is acknowledged)."""

@@ -508,6 +508,7 @@ def main(ctx) -> None:
                             push.send(mr.encode({"type": "bounds", "bounds": None}), zmq.NOBLOCK)
                         except zmq.Again:
                             pass
+                        preview.clear()  # nor show the part of it read before the error
                     while pull.poll(0, zmq.POLLIN):
                         pull.recv()
                     ctx.sleep(0.1)

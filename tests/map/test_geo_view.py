@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from pointflow.config import RenderConfig
+from pointflow.map import region as mr
 from pointflow.render.base import FrameInput
 from pointflow.render.camera import APART_FACTOR, Camera, clip_planes, project_to_pixels
 from pointflow.render.maplayer import MapLayer
@@ -78,7 +79,7 @@ def test_a_map_far_from_the_live_points_is_framed_and_not_clipped(tier, tmp_ipc,
         slots = np.arange(S)
         side.region.positions[slots] = world
         side.region.file[slots] = 0
-        side.push.send(__import__("pointflow.map.region", fromlist=["encode"]).encode({
+        side.push.send(mr.encode({
             "type": "version", "version": 1, "full": True, "region": side.region.path, "slots": S,
             "channels": [list(c) for c in side.region.channels], "files": ["/data/utm.las"],
             "origin": list(UTM + 200), "set": [[0, S]], "cleared": [], "points": S, "nodes": 1,
@@ -128,8 +129,8 @@ def test_a_map_far_from_the_live_points_is_framed_and_not_clipped(tier, tmp_ipc,
 def test_two_points_a_centimetre_apart_five_km_away_are_ordered(tier):
     """A red point 1 cm in front of a blue one, both 5 km from the origin and from the eye, the
     eye at the origin amid live points 1 m away (so near is small and far is 5 km: the ratio
-    that hyperbolic 24-bit depth cannot resolve). Each is drawn alone first, so the tier
-    really draws it there; together the red one wins whichever slot order they have."""
+    that hyperbolic 24-bit depth cannot resolve, as the gl tier had it). The red one wins the
+    pixel whichever slot order they have (ties would go to the lower slot)."""
     far = np.array([5000.0, 0.0, 0.0])
     near_pts = np.array([[1.0, 0.5, 0.2], [1.2, -0.5, -0.2]])
     for order in ((0, 1), (1, 0)):

@@ -5,6 +5,7 @@ yet) and in real processes (the render stage draws the preview, then the index's
 from __future__ import annotations
 
 import os
+import time
 
 import numpy as np
 from PIL import Image
@@ -84,3 +85,55 @@ def test_a_cold_map_is_drawn_from_its_preview_then_its_index(tmp_path):
         assert (img != img[0, 0]).any(axis=-1).mean() > 0.05
     shown = [ln for ln in lines if "map: indexing" in ln or "map=" in ln]
     assert shown, lines[-3:]
+
+
+def test_a_preview_is_drawn_then_dropped_when_the_map_fails(tmp_path):
+    """The map stage's preview side against the render stage's map layer, over real sockets: the
+    offered points arrive as a preview version (the header's bounds with them); a map that then
+    fails to open clears them (an empty full version), and the bounds go with it."""
+    import types
+
+    import zmq
+
+    from pointflow.map import region as mr
+    from pointflow.map.preview import Preview
+    from pointflow.render.maplayer import MapLayer
+
+    from .test_one_picture_layer import _ctx, _ring_frame, _scene
+
+    cfg, ctx = _ctx(str(tmp_path), 1000)
+    layer = MapLayer(cfg, ctx, 100)
+    push = ctx.zmq.socket(zmq.PUSH)
+    push.setsockopt(zmq.LINGER, 0)
+    push.connect(ctx.endpoints.map)
+    stage = types.SimpleNamespace(info=types.SimpleNamespace(run_dir=str(tmp_path)),
+                                  counters=types.SimpleNamespace(extra={}))
+    live, li, pts, _ = _scene(10, 300)
+    bounds = (pts.min(axis=0), pts.max(axis=0))
+    pv = Preview(stage, 1000, lambda avail: [mr.channel_spec(c) for c in avail], bounds, ["/data/tile.laz"], push)
+    try:
+        pv.offer(0, {"positions": pts, "intensity": np.arange(300, dtype=np.float32)})
+        pv.step()
+
+        def until(cond):
+            end = time.monotonic() + 30
+            while time.monotonic() < end and not cond():
+                layer.poll()
+                time.sleep(0.01)
+            assert cond()
+        until(lambda: layer.points == 300)
+        assert layer.preview and layer.map_box is not None
+        f = layer.compose(_ring_frame(live, li, 100))
+        assert np.isfinite(f.positions[100:400]).all(), "the preview's points are in the frame"
+        push.send(mr.encode({"type": "bounds", "bounds": None}))  # as the stage does on the error
+        pv.clear()
+        until(lambda: layer.points == 0)
+        assert layer.map_box is None
+        f = layer.compose(_ring_frame(live, li, 100))
+        assert np.isnan(f.positions[100:]).all(), "nothing of the failed map is drawn"
+    finally:
+        push.close(0)
+        layer.close()
+        if pv.region is not None:
+            pv.region.close()
+            pv.region.unlink()
