@@ -52,7 +52,8 @@ class CameraController:
     @staticmethod
     def _bounds(frame: FrameInput, clip: bool = False):
         """1st-99th percentile box of a strided sample of the occupied live slots (world
-        coords); ``clip``: also their min/max box widened by a tenth (what must not be clipped)."""
+        coords); ``clip``: also the min/max box of every occupied slot, widened by a tenth (what
+        must not be clipped; about once a second)."""
         slots = frame.occupied_slots()
         if frame.live_slots is not None:
             slots = slots[slots < frame.live_slots]
@@ -65,7 +66,12 @@ class CameraController:
         box = (lo + frame.origin, hi + frame.origin)
         if not clip:
             return box
-        mlo, mhi = p.min(axis=0), p.max(axis=0)
+        if step > 1:  # the planes must hold every point, not the sample's: sparse far returns too
+            q = frame.positions[slots]
+            q = q[np.isfinite(q).all(axis=1)]
+            mlo, mhi = q.min(axis=0).astype(np.float64), q.max(axis=0).astype(np.float64)
+        else:
+            mlo, mhi = p.min(axis=0), p.max(axis=0)
         pad = 0.1 * (mhi - mlo) + 0.5
         return box, (mlo - pad + frame.origin, mhi + pad + frame.origin)
 
