@@ -9,12 +9,16 @@ The wgpu compute method's semantics on the CPU, compiled with numba
    change), as the wgpu tier uploads.
 2. **Tests + keys**: every rule of :mod:`.rules` fused with the float64 projection and a
    write of ``bits(float32 w) << 32 | logical`` into each pixel of the footprint, the
-   smallest key winning: nearer linear depth, ties to the lower logical index. One chunk of
-   logical indices and one key buffer per thread. With a budget below the survivors, three
-   short passes first (tests, thinning, the first b in logical order).
-3. **Resolve**: per pixel the minimum over the threads' buffers (keys are unique, so the
-   image is the same whatever the thread count), its colour, and EDL over the winners'
-   log2 depth. Picking reads the winners' slots of the last frame.
+   smallest key winning: nearer linear depth, ties to the lower logical index. Split
+   ``bins`` (issue 41): per chunk of slots the points' records sorted by screen band, then
+   each band keyed in a thread's own in-cache buffer and resolved (no shared writes, nothing
+   to merge), whole batches outside the frustum culled from bounds kept as the copy is
+   written; split ``points``: one key buffer per thread, merged in the resolve; ``auto``
+   times both. With a budget below the survivors, three short passes first (tests,
+   thinning, the first b in logical order).
+3. **Resolve**: per pixel the smallest key (keys are unique, so the image is the same
+   whatever the thread count or split), its colour, and EDL over the winners' log2 depth.
+   Picking reads the winners' slots of the last frame.
 
 The float64 numpy tier (:mod:`.cpu`, ``raster: reference``) stays the accuracy reference.
 """
@@ -286,6 +290,9 @@ class CpuComputeRenderer(Renderer):
                 self.split_mode = mode  # auto draws with both
                 self.render(f, cam)
                 self.winners(0, 1, 0, 1)  # the pick (keys of a few rows)
+            one = np.zeros((1, 3))  # the batch bounds (culling: not reached by the frames above)
+            self._k.batch_stats(np.zeros(1, np.int64), BIN_CHUNK, cap, f.positions, np.zeros(1), np.zeros(1, np.float32),
+                                cpu_kernels.C_SINGLE, one, one.copy(), np.zeros(1, np.int64), np.zeros(1), np.zeros(1))
             # the one-thread scalar resolve (not reached by the frame above)
             empty = np.full((1, self.width * self.height), cpu_kernels.EMPTY, np.uint64)
             self._k.resolve_scalar_1(empty, self._img, 0, cap, self._single, self._bg,
