@@ -42,10 +42,12 @@ __all__ = ["CpuComputeRenderer"]
 ENV_SPLIT = "POINTFLOW_CPU_RASTER_SPLIT"
 #: how the threads share the work (bench/bench_render.py --cpu-raster measures them)
 SPLITS = ("auto", "bins", "points", "bands")
-#: auto: bins, but points for a frame drawn with one thread over more than
-#: ONE_THREAD_POINTS_ABOVE points (one key buffer, nothing to merge: less work than binning)
+#: auto without measurements: bins, but points for a frame drawn with at most
+#: POINTS_UP_TO_THREADS threads over more than POINTS_ABOVE points (measured faster here, 2
+#: cores: few buffers to clear and merge, no records to sort)
 DEFAULT_SPLIT = "auto"
-ONE_THREAD_POINTS_ABOVE = 250_000
+POINTS_ABOVE = 250_000
+POINTS_UP_TO_THREADS = 2
 #: split by bins: logical indices per chunk of the binning pass (its scratch stays in cache)
 BIN_CHUNK = 16384
 #: split by bins: rows per screen band, 2^BAND_SHIFT (a thread's band of keys, rows x width x 8
@@ -235,11 +237,11 @@ class CpuComputeRenderer(Renderer):
         return total
 
     def _rule(self, T: int, size: int) -> str:
-        """The split without measurements: the forced one, else bins (points for one thread
-        over more than ONE_THREAD_POINTS_ABOVE points)."""
+        """The split without measurements: the forced one, else bins (points for at most
+        POINTS_UP_TO_THREADS threads over more than POINTS_ABOVE points)."""
         if self.split_mode != "auto":
             return self.split_mode
-        return "points" if T == 1 and size > ONE_THREAD_POINTS_ABOVE else "bins"
+        return "points" if T <= POINTS_UP_TO_THREADS and size > POINTS_ABOVE else "bins"
 
     def _pick(self, size: int) -> tuple[str, int]:
         """This frame's (split, thread count): every thread numba has (``numba.get_num_threads()``)
