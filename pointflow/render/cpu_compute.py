@@ -9,12 +9,16 @@ The wgpu compute method's semantics on the CPU, compiled with numba
    change), as the wgpu tier uploads.
 2. **Tests + keys**: every rule of :mod:`.rules` fused with the float64 projection and a
    write of ``bits(float32 w) << 32 | logical`` into each pixel of the footprint, the
-   smallest key winning: nearer linear depth, ties to the lower logical index. One chunk of
-   logical indices and one key buffer per thread. With a budget below the survivors, three
-   short passes first (tests, thinning, the first b in logical order).
-3. **Resolve**: per pixel the minimum over the threads' buffers (keys are unique, so the
-   image is the same whatever the thread count), its colour, and EDL over the winners'
-   log2 depth. Picking reads the winners' slots of the last frame.
+   smallest key winning: nearer linear depth, ties to the lower logical index. Split
+   ``bins`` (issue 41): per chunk of slots the points' records sorted by screen band, then
+   each band keyed in a thread's own in-cache buffer and resolved (no shared writes, nothing
+   to merge), whole batches outside the frustum culled from bounds kept as the copy is
+   written; split ``points``: one key buffer per thread, merged in the resolve; ``auto``
+   times both. With a budget below the survivors, three short passes first (tests,
+   thinning, the first b in logical order).
+3. **Resolve**: per pixel the smallest key (keys are unique, so the image is the same
+   whatever the thread count or split), its colour, and EDL over the winners' log2 depth.
+   Picking reads the winners' slots of the last frame.
 
 The float64 numpy tier (:mod:`.cpu`, ``raster: reference``) stays the accuracy reference.
 """
@@ -38,10 +42,12 @@ __all__ = ["CpuComputeRenderer"]
 ENV_SPLIT = "POINTFLOW_CPU_RASTER_SPLIT"
 #: how the threads share the work (bench/bench_render.py --cpu-raster measures them)
 SPLITS = ("auto", "bins", "points", "bands")
-#: auto: bins, but points for a frame drawn with one thread over more than
-#: ONE_THREAD_POINTS_ABOVE points (one key buffer, nothing to merge: less work than binning)
+#: auto without measurements: bins, but points for a frame drawn with at most
+#: POINTS_UP_TO_THREADS threads over more than POINTS_ABOVE points (measured faster here, 2
+#: cores: few buffers to clear and merge, no records to sort)
 DEFAULT_SPLIT = "auto"
-ONE_THREAD_POINTS_ABOVE = 250_000
+POINTS_ABOVE = 250_000
+POINTS_UP_TO_THREADS = 2
 #: split by bins: logical indices per chunk of the binning pass (its scratch stays in cache)
 BIN_CHUNK = 16384
 #: split by bins: rows per screen band, 2^BAND_SHIFT (a thread's band of keys, rows x width x 8
@@ -231,11 +237,11 @@ class CpuComputeRenderer(Renderer):
         return total
 
     def _rule(self, T: int, size: int) -> str:
-        """The split without measurements: the forced one, else bins (points for one thread
-        over more than ONE_THREAD_POINTS_ABOVE points)."""
+        """The split without measurements: the forced one, else bins (points for at most
+        POINTS_UP_TO_THREADS threads over more than POINTS_ABOVE points)."""
         if self.split_mode != "auto":
             return self.split_mode
-        return "points" if T == 1 and size > ONE_THREAD_POINTS_ABOVE else "bins"
+        return "points" if T <= POINTS_UP_TO_THREADS and size > POINTS_ABOVE else "bins"
 
     def _pick(self, size: int) -> tuple[str, int]:
         """This frame's (split, thread count): every thread numba has (``numba.get_num_threads()``)
@@ -286,6 +292,9 @@ class CpuComputeRenderer(Renderer):
                 self.split_mode = mode  # auto draws with both
                 self.render(f, cam)
                 self.winners(0, 1, 0, 1)  # the pick (keys of a few rows)
+            one = np.zeros((1, 3))  # the batch bounds (culling: not reached by the frames above)
+            self._k.batch_stats(np.zeros(1, np.int64), BIN_CHUNK, cap, f.positions, np.zeros(1), np.zeros(1, np.float32),
+                                cpu_kernels.C_SINGLE, one, one.copy(), np.zeros(1, np.int64), np.zeros(1), np.zeros(1))
             # the one-thread scalar resolve (not reached by the frame above)
             empty = np.full((1, self.width * self.height), cpu_kernels.EMPTY, np.uint64)
             self._k.resolve_scalar_1(empty, self._img, 0, cap, self._single, self._bg,

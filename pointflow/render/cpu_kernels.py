@@ -3,10 +3,11 @@
 The same key and rules as the wgpu compute method: every per-point test of
 :mod:`pointflow.render.rules` fused with the projection and a write of the point's key
 ``bits(float32 w) << 32 | logical`` into every pixel of its footprint, the smallest key
-winning (nearer linear depth, then the lower logical index). Parallel over the cores: the
-occupied logical range is split into one contiguous chunk per thread, each thread clears and
-writes its own key buffer, and the per-pixel resolve takes the minimum over the buffers
-(keys are unique, so the image does not depend on the thread count). Projection and the
+winning (nearer linear depth, then the lower logical index). Parallel over the cores, two
+ways: :func:`_raster` (chunks of logical indices, a key buffer per thread, the per-pixel
+resolve takes the minimum over the buffers) and the binned pair :func:`_bin` + :func:`_bands`
+(records sorted by screen band per chunk, then each band keyed and resolved by one thread).
+Keys are unique, so the image does not depend on the thread count or the way. Projection and the
 frustum test run in float64 like the numpy reference; colours follow ``colormap.lut_index``
 in float32.
 
