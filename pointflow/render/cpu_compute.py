@@ -68,7 +68,8 @@ RETRY_EVERY = 30
 
 
 class _Bins:
-    """The binned raster's records of the last frame (per target size: picking reads them)."""
+    """The binned raster's records of the last frame (one for every target size: they scale
+    with the ring; picking reads them)."""
 
     def __init__(self) -> None:
         self.C = 0          # chunks drawn
@@ -562,17 +563,19 @@ class CpuComputeRenderer(Renderer):
         if size == (self.width, self.height):
             return True
         targets = self.__dict__.setdefault("_targets", {})
-        targets[(self.width, self.height)] = (self._img, self._logz, self._keys, self._last_ring, self._bins,
-                                              self._drew, self.split)
+        # the binned records are one buffer for every size (they scale with the ring, not the
+        # view): a size whose last frame was binned answers picks again once it has drawn
+        targets[(self.width, self.height)] = (self._img, self._logz, self._keys, self._last_ring,
+                                              self._drew and self.split != "bins", self.split)
         if size in targets:
-            self._img, self._logz, self._keys, self._last_ring, self._bins, self._drew, self.split = targets[size]
+            self._img, self._logz, self._keys, self._last_ring, self._drew, self.split = targets[size]
         else:
             W, H = size
             self._img = np.empty((H, W), np.uint32)
             self._img[:] = self._bg
             self._logz = np.zeros(H * W if self._edl is not None else 1, np.float64)
             self._keys, self._last_ring = np.empty((0, H * W), np.uint64), (0, 1)
-            self._bins, self._drew = _Bins(), False
+            self._drew = False
         self.width, self.height = size
         return True
 
