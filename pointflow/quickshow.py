@@ -27,6 +27,7 @@ from typing import Any, Callable, Optional, Sequence
 import numpy as np
 
 from .ingest.transports.api import SendError, check_cloud
+from .notebook import in_notebook
 
 
 @dataclass
@@ -45,17 +46,6 @@ class View:
     #: ``clouds`` the checked ``(positions, channels)`` pairs and ``cfg`` the pipeline config
     #: show would have started
     in_process: bool = False
-
-
-def in_notebook() -> bool:
-    """True inside a Jupyter kernel (an IPython kernel app, not a terminal IPython)."""
-    ip = sys.modules.get("IPython")
-    try:
-        shell = ip.get_ipython() if ip is not None else None
-    except Exception:  # noqa: BLE001
-        return False
-    # a subclass counts too (Google Colab's shell is one)
-    return shell is not None and any(c.__name__ == "ZMQInteractiveShell" for c in type(shell).__mro__)
 
 
 def _window_available() -> bool:

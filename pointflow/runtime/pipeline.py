@@ -337,8 +337,7 @@ class Pipeline:
         camera (``pip install 'pointflow[notebook]'``; docs/views.md). Show it as a cell's value.
         Outside a notebook there is nothing to show it in: it says so on stderr, with the views
         that work there, and returns None."""
-        from ..notebook import LiveView, available
-        from ..quickshow import in_notebook
+        from ..notebook import LiveView, available, in_notebook
 
         if not in_notebook():
             print(NOT_IN_NOTEBOOK, file=sys.stderr, flush=True)
