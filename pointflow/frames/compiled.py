@@ -141,6 +141,7 @@ def compile_all(dispatchers_only: bool = False) -> list:
 #: how often a load() that waits for the background compiler looks again
 _POLL_S = 0.5
 _pending: Optional[str] = None  # the cache directory a background compiler fills
+_proc: Any = None  # the compiler this process started
 _next_look = 0.0
 
 
@@ -167,7 +168,8 @@ def _first_load() -> Optional[Kernels]:
                         "NUMBA_CACHE_DIR and run `pointflow warm`); using numpy")
             return None
         if not jitcache.compiling(where):
-            jitcache.start_compiler("pointflow.frames.compiled:compile_all", where)
+            global _proc
+            _proc = jitcache.start_compiler("pointflow.frames.compiled:compile_all", where)
         log.info("frames: compiling the transform loops in the background (first run on this machine); "
                  "numpy meanwhile")
         _pending = where
@@ -185,8 +187,8 @@ def _look_again() -> Optional[Kernels]:
     if now < _next_look or _pending is None:
         return None
     _next_look = now + _POLL_S
-    if jitcache.compiling(_pending):
-        return None
+    if (_proc is not None and _proc.poll() is None) or jitcache.compiling(_pending):
+        return None  # ours still runs (it may not hold the lock yet), or another one's does
     where, _pending = _pending, None
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")

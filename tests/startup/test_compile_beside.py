@@ -217,3 +217,40 @@ def test_a_cache_numba_cannot_write_is_said_once_and_the_reference_draws(tmp_pat
     err = capfd.readouterr().err
     assert err.count("numba cannot cache the compiled raster") == 1, err[-3000:]
     assert "NUMBA_CACHE_DIR" in err
+
+
+_FRAMES = """
+import sys, time
+import numpy as np
+from pointflow.frames import compiled, kernels
+first = compiled.load()
+where = compiled._pending
+print("first", first is None, where is not None, flush=True)  # a compiler was started for it
+src = np.arange(30, dtype=np.float32).reshape(10, 3)
+R, t = np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]]), np.array([10.0, 20.0, 3.0])
+before = kernels.rigid(src, R, t)      # numpy meanwhile
+end = time.monotonic() + float(sys.argv[1])
+k = None
+while k is None and time.monotonic() < end:
+    time.sleep(0.2)
+    k = compiled.load()
+out = np.empty(30, np.float32)
+k.rigid(src.reshape(-1), R, t, out)
+print("later", k is not None, np.allclose(out.reshape(10, 3), before.astype(np.float32)), flush=True)
+"""
+
+
+@pytest.mark.timeout(COMPILE_LIMIT_S + 120)
+def test_the_frames_loops_never_hold_up_the_first_points(tmp_path):
+    """On an empty cache the frames transform's first load() returns at once with no compiled
+    loops (numpy places the points) while a compiler fills the cache; a later load() returns
+    them, and they place points as numpy did. Load only lengthens the wait for the later one."""
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "numba"),
+               PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    env.pop("POINTFLOW_NO_NUMBA", None)
+    try:
+        out = subprocess.run([sys.executable, "-c", _FRAMES, str(COMPILE_LIMIT_S)], capture_output=True, text=True,
+                             env=env, timeout=COMPILE_LIMIT_S + 60)
+        assert "first True True" in out.stdout and "later True True" in out.stdout, out.stdout + out.stderr[-2000:]
+    finally:
+        _compiler_done(tmp_path / "numba")
