@@ -1091,7 +1091,8 @@ def _compile(cache: bool) -> Kernels:
 
 
 #: the loops a render stage runs (``floor`` is the benchmark's bare floor): all cached = ready
-REQUIRED = ("raster", "select", "thin", "cap", "resolve", "edl", "resolve_scalar_1")
+REQUIRED = ("raster", "select", "thin", "cap", "resolve", "edl", "resolve_scalar_1", "bin", "bands", "batch_stats",
+            "keys_rows")
 
 
 def dispatchers() -> list:

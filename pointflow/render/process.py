@@ -713,11 +713,20 @@ def _restore_view(ctx, view: "ViewController", stage: "_Stage") -> None:
     r = stage.renderer
     new_cfg = style_render_config(r.cfg, state.style)
     if not r.restyle(new_cfg):
-        nr = type(r)(new_cfg, stage.capacity, stage.channels)
+        nr = _same_tier(r, new_cfg, stage)
         r.close()
         stage.renderer = nr
         stage.full_upload = True
     ctx.log.info("view state of the previous render stage taken up (version %d)", state.version)
+
+
+def _same_tier(r: Renderer, new_cfg, stage: _Stage) -> Renderer:
+    """A new renderer of ``r``'s tier with another style; a compile still due carries over
+    (the raster switch reads ``compiled_pending``)."""
+    nr = type(r)(new_cfg, stage.capacity, stage.channels)
+    if getattr(r, "compiled_pending", None) is not None:
+        nr.compiled_pending = r.compiled_pending  # type: ignore[attr-defined]
+    return nr
 
 
 def _control(req: dict, stage: _Stage, ctx) -> dict:
@@ -731,7 +740,7 @@ def _control(req: dict, stage: _Stage, ctx) -> dict:
         new_cfg = style_render_config(r.cfg, view.state.style)
         if not r.restyle(new_cfg):
             try:
-                nr = type(r)(new_cfg, stage.capacity, stage.channels)
+                nr = _same_tier(r, new_cfg, stage)
             except Exception as exc:  # noqa: BLE001 - keep drawing with the old style
                 view.state = old
                 raise ControlError("style", f"the {r.tier} tier could not take the new style: {exc}") from None

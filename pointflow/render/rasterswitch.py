@@ -93,6 +93,8 @@ class RasterSwitch:
         if self.raster != "compiling" or raster_of(renderer) == "compiled":
             self.raster = raster_of(renderer)
         self.meanwhile = renderer.tier
+        if self.raster != "compiling" and getattr(renderer, "compiled_pending", None) == "missing":
+            self._start(renderer)  # a fallback renderer chosen while the loops were not compiled
 
     def poll(self, renderer: Renderer, capacity: int, channels: list[str]) -> Optional[Renderer]:
         """A compiled renderer to draw the next frame with, once the cache is filled; else None."""
