@@ -33,7 +33,7 @@ run: $(STAMP) $(WARMED) system-deps | $(XDG_RUNTIME_DIR)
 # two workers (most tests wait on processes they started); TEST_JOBS=0 runs them in one process
 TEST_JOBS ?= 2
 test: $(STAMP) $(WARMED) system-deps | $(XDG_RUNTIME_DIR)
-	$(BIN)/python -m pytest -q $(if $(filter-out 0,$(TEST_JOBS)),-n $(TEST_JOBS) --dist loadgroup)
+	$(BIN)/python -m pytest -q $(if $(filter-out 0,$(TEST_JOBS)),-n $(TEST_JOBS) --dist loadfile)
 
 bench: $(STAMP) $(WARMED) system-deps | $(XDG_RUNTIME_DIR)
 	for b in bench/bench_*.py; do $(BIN)/python $$b || exit 1; done

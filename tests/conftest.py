@@ -2,6 +2,8 @@
 import os
 import tempfile
 
+import pytest
+
 if not os.environ.get("XDG_RUNTIME_DIR"):
     d = os.path.join(tempfile.gettempdir(), f"pointflow-xdg-{os.getuid()}")
     os.makedirs(d, mode=0o700, exist_ok=True)
@@ -21,25 +23,47 @@ def pytest_sessionstart(session):
         pass
 
 
-#: Test files that load the machine on purpose (busy loops), run links between network
-#: namespaces whose heartbeats are the subject, or drive a browser. Under ``pytest -n 2
-#: --dist loadgroup`` (``make test``) the files of one group run on one worker, one test at
-#: a time, so two of them never stack their load (or two browsers) on the two cores; any
-#: other file may run beside one of them (each test holds under load: it waits on
-#: conditions, not times).
-GROUPS = {"tests/remote/test_links.py": "heavy", "tests/remote/test_ros2_zenoh_netns.py": "heavy",
-          "tests/remote/test_sigterm.py": "heavy", "tests/remote/test_zenoh_topologies.py": "heavy",
-          "tests/spine/test_hung_under_load.py": "heavy", "tests/spine/test_startup_under_load.py": "heavy",
-          "tests/notebook/test_jupyterlab.py": "browser", "tests/serve/test_browser.py": "browser"}
+#: Test files that load the machine on purpose (busy loops), run links (between network
+#: namespaces, over Zenoh) whose heartbeats and queues are the subject, or drive a browser.
+#: Under ``pytest -n 2 --dist loadfile`` (``make test``) the files of one group run on one
+#: worker, one test at a time, so two of them never stack their load (or two browsers) on
+#: the two cores; any other file may run beside one of them (each test holds under load: it
+#: waits on conditions, not times). Every file under ``tests/remote/`` is in "heavy": beside
+#: each other, at load 7-15, four of them failed (slow-receiver and refusal waits).
+GROUPS = {"tests/spine/test_hung_under_load.py": "heavy", "tests/spine/test_startup_under_load.py": "heavy",
+          "tests/startup/test_compile_beside.py": "heavy",  # compiles from empty caches: minutes of both cores
+          "tests/notebook/test_jupyterlab.py": "browser", "tests/serve/test_browser.py": "browser",
+          # one package-scoped pipeline (tests/serve/conftest.py: hostile_pipe) serves both
+          "tests/serve/test_hostile.py": "hostile", "tests/serve/test_attacks.py": "hostile"}
+HEAVY_DIRS = ("tests/remote/",)
+
+
+def file_group(path: str) -> str:
+    """The xdist work unit of a test file (its path relative to the repository)."""
+    return "heavy" if path.startswith(HEAVY_DIRS) else GROUPS.get(path, path)
 
 
 def pytest_collection_modifyitems(config, items):
-    """Every test is in an xdist group: its file's (so a module-scoped fixture, e.g. a
-    pipeline shared by a file's tests, starts once, on one worker), or its file's entry in
-    :data:`GROUPS`. Without ``-n`` the marks change nothing."""
-    import pytest
-
+    """Under xdist, the "heavy" group first: its files run one after another on one worker,
+    the longest unit of the run, so it must not start last."""
+    if not os.environ.get("PYTEST_XDIST_WORKER"):
+        return
     root = str(config.rootpath)
-    for item in items:
-        rel = os.path.relpath(str(item.path), root)
-        item.add_marker(pytest.mark.xdist_group(GROUPS.get(rel, rel)))
+    items.sort(key=lambda it: file_group(os.path.relpath(str(it.path), root)) != "heavy")  # stable
+
+
+@pytest.hookimpl(optionalhook=True, tryfirst=True)
+def pytest_xdist_make_scheduler(config, log):
+    """``--dist loadfile``: each file's tests on one worker (a module-scoped fixture, e.g. a
+    pipeline its tests share, starts once), and the files of a group (:func:`file_group`) on
+    one worker. (xdist's own ``loadgroup`` marks do not reach its scheduler under pytest 9: it
+    renames ``item._nodeid``, which pytest 9 no longer reads.)"""
+    if config.getvalue("dist") != "loadfile":
+        return None
+    from xdist.scheduler import LoadFileScheduling
+
+    class FileGroups(LoadFileScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            return file_group(super()._split_scope(nodeid))
+
+    return FileGroups(config, log)
