@@ -195,14 +195,82 @@ def auto_summary(cfg: Optional[RenderConfig] = None) -> str:
     return "; ".join(out)
 
 
-def probe_adapter(cfg: RenderConfig) -> Optional[dict]:
-    """The wgpu adapter the wgpu tier would take (its summary), or None (no wgpu)."""
+#: the last adapter probe's answer, per user (:func:`probe_adapter`)
+ADAPTER_FILE = "adapter_probe.json"
+#: ``0`` turns the adapter probe's cache off (every start enumerates the adapters)
+ENV_ADAPTER_CACHE = "POINTFLOW_ADAPTER_CACHE"
+#: what can change which adapter wgpu finds: read at each start, the cache's key
+_ADAPTER_ENV = ("POINTFLOW_WGPU_ADAPTER", "VK_ICD_FILENAMES", "VK_DRIVER_FILES", "VK_ADD_DRIVER_FILES",
+                "WGPU_BACKEND_TYPE", "WGPU_ADAPTER_NAME", "WGPU_POWER_PREF", "LIBGL_ALWAYS_SOFTWARE",
+                "GALLIUM_DRIVER", "MESA_LOADER_DRIVER_OVERRIDE", "CUDA_VISIBLE_DEVICES", "LD_LIBRARY_PATH")
+_ADAPTER_DIRS = ("/dev/dri", "/usr/share/vulkan/icd.d", "/etc/vulkan/icd.d", "/usr/local/share/vulkan/icd.d")
+
+
+def _adapter_key(cfg: RenderConfig) -> Optional[str]:
+    """What the probe's answer depends on, read without importing wgpu (a few stat calls):
+    wgpu's install, the environment that steers the drivers, the GPU device nodes and the
+    Vulkan drivers installed. None: wgpu is not installed."""
+    import importlib.util
+
+    try:
+        spec = importlib.util.find_spec("wgpu")
+    except (ImportError, ValueError):
+        return None
+    if spec is None or not spec.origin:
+        return None
+    parts = [cfg.power_preference]
+    try:
+        parts.append(f"{spec.origin}@{os.stat(spec.origin).st_mtime_ns}")
+    except OSError:
+        return None
+    parts += [f"{k}={os.environ.get(k, '')}" for k in _ADAPTER_ENV]
+    for d in _ADAPTER_DIRS:
+        try:
+            parts.append(f"{d}:{','.join(sorted(os.listdir(d)))}")
+        except OSError:
+            parts.append(f"{d}:-")
+    try:
+        parts.append("nv:" + ",".join(sorted(n for n in os.listdir("/dev") if n.startswith("nvidia"))))
+    except OSError:
+        pass
+    return "|".join(parts)
+
+
+def _probe_adapter_now(cfg: RenderConfig) -> Optional[dict]:
     try:
         from .wgpu_tier.device import adapter_summary, select_adapter
         a, _why = select_adapter(cfg.power_preference)
         return adapter_summary(a) if a is not None else None
     except Exception:  # noqa: BLE001 - no wgpu stack: nothing to compare with
         return None
+
+
+def probe_adapter(cfg: RenderConfig) -> Optional[dict]:
+    """The wgpu adapter the wgpu tier would take (its summary), or None (no wgpu).
+
+    Enumerating the adapters imports wgpu and opens every driver: 0.4 s on an idle 2-core
+    VM with lavapipe, 1-3.5 s loaded, most of the render stage's start when the tier it
+    decides is then the cpu one. The answer is kept in the user cache
+    (``$XDG_CACHE_HOME/pointflow/adapter_probe.json``) under a key of what can change it
+    (:func:`_adapter_key`: wgpu's install, the driver environment, /dev/dri, /dev/nvidia*,
+    the Vulkan drivers installed), so a start on an unchanged machine reads a file.
+    ``POINTFLOW_ADAPTER_CACHE=0`` probes every time."""
+    use_cache = os.environ.get(ENV_ADAPTER_CACHE, "").strip() not in ("0", "off", "no")
+    key = _adapter_key(cfg) if use_cache else None
+    if key is not None:
+        try:
+            data = json.loads(calibration.cache_path(ADAPTER_FILE).read_text())
+            if data.get("key") == key and isinstance(data.get("adapter"), dict):
+                return data["adapter"]
+        except (OSError, ValueError, AttributeError):
+            pass
+    ad = _probe_adapter_now(cfg)
+    if key is not None and ad is not None:  # a failed probe is not remembered: the next start tries again
+        try:
+            calibration.install(ADAPTER_FILE, {"key": key, "adapter": ad})
+        except OSError:
+            pass
+    return ad
 
 
 def _prefer_cpu_compute(cfg: RenderConfig, n: int, lines: list[str]) -> bool:

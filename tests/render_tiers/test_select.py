@@ -102,3 +102,48 @@ def test_fallback_after_device_loss_goes_to_next_tier(monkeypatch):
         assert type(r) is CpuRenderer
     with pytest.raises(RenderError, match="no tier is left"):
         select.fallback_after(r, RenderError("boom"))
+
+
+def test_adapter_probe_is_remembered_under_its_key(monkeypatch):
+    """Issue 36: enumerating wgpu's adapters (importing wgpu, opening every driver) was most
+    of the render stage's start; an unchanged machine reads the last answer from the user
+    cache, a changed key (driver environment) or ``POINTFLOW_ADAPTER_CACHE=0`` probes again,
+    and a failed probe is not remembered."""
+    monkeypatch.delenv(select.ENV_ADAPTER_CACHE, raising=False)
+    monkeypatch.setattr(select, "_adapter_key", lambda c: f"key-{c.power_preference}-{__import__('os').environ.get('VK_ICD_FILENAMES', '')}")
+    calls = []
+    soft = {"summary": "llvmpipe (CPU) via Vulkan", "adapter_type": "CPU"}
+
+    def probe(c):
+        calls.append(c.power_preference)
+        return dict(soft)
+
+    monkeypatch.setattr(select, "_probe_adapter_now", probe)
+    assert select.probe_adapter(cfg()) == soft
+    assert select.probe_adapter(cfg()) == soft
+    assert len(calls) == 1  # the second start read the file
+    assert json.loads(select.calibration.cache_path(select.ADAPTER_FILE).read_text())["adapter"] == soft
+    monkeypatch.setenv("VK_ICD_FILENAMES", "/elsewhere/nvidia_icd.json")  # the key changed: probe again
+    assert select.probe_adapter(cfg()) == soft
+    assert len(calls) == 2
+    monkeypatch.setenv(select.ENV_ADAPTER_CACHE, "0")
+    assert select.probe_adapter(cfg()) == soft
+    assert len(calls) == 3
+    monkeypatch.delenv(select.ENV_ADAPTER_CACHE)
+    monkeypatch.setattr(select, "_probe_adapter_now", lambda c: calls.append("none"))  # no adapter now
+    monkeypatch.setattr(select, "_adapter_key", lambda c: "another-key")
+    assert select.probe_adapter(cfg()) is None
+    assert select.probe_adapter(cfg()) is None
+    assert calls[-2:] == ["none", "none"]  # a failed probe is tried again at the next start
+
+
+def test_adapter_key_reads_no_gpu_stack():
+    """The key is stat calls and the environment: computing it imports neither wgpu nor moderngl."""
+    import subprocess
+    import sys
+
+    code = ("import sys; from pointflow.render import select; from pointflow.config import RenderConfig; "
+            "k = select._adapter_key(RenderConfig()); "
+            "print(k is None or 'wgpu' not in sys.modules and 'moderngl' not in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.stdout.strip() == "True", out.stderr
