@@ -63,6 +63,8 @@ class LiveView(anywidget.AnyWidget):
         self.bytes_sent = 0
         self.last_encode_ms = 0.0
         self.last_pick: Optional[dict] = None
+        self.last_reply: Optional[dict] = None
+        self.views_reopened = 0  # times the render stage restarted and the view was opened again
         self._inbox: "queue.SimpleQueue[dict]" = queue.SimpleQueue()
         self._stop = threading.Event()
         self.on_msg(self._on_browser)
@@ -114,6 +116,8 @@ class _Link:
         self.enc_ms: list[float] = []
         self.sizes: list[int] = []
         self.acks: list[float] = []  # when the browser drew each frame (the last 2 s)
+        self.seq_in = 0  # the highest frame number from render (a reopened view numbers on from it)
+        self.camera: Optional[dict] = None  # the view's camera, from the last reply that held one
 
     def send(self, **msg) -> None:
         try:
@@ -121,8 +125,11 @@ class _Link:
         except zmq.Again:
             pass
 
-    def open(self) -> None:
-        self.send(cmd="open", width=self.w.width, height=self.w.height)
+    def open(self, again: bool = False) -> None:
+        """Open the view; ``again`` after a render restart: with its camera and a frame
+        number past every frame seen (as the view server does), so nothing is taken for old."""
+        kept = {"seq": self.seq_in, **({"state": {"camera": self.camera}} if self.camera else {})} if again else {}
+        self.send(cmd="open", width=self.w.width, height=self.w.height, **kept)
         self.send(cmd="view_state", req=self._req())
         self.grant()
 
@@ -183,11 +190,14 @@ class _Link:
             w.last_encode_ms = enc.encode_ms
             w.bytes_sent += len(enc.data)
             self.in_flight[head["seq"]] = time.monotonic()
+            if isinstance(head.get("seq"), int):
+                self.seq_in = max(self.seq_in, head["seq"])
             w.send({"type": "frame", "seq": head["seq"], "mime": enc.mime, "version": head.get("version"),
                     "width": head["width"], "height": head["height"], "moving": head.get("moving")}, [enc.data])
         elif kind == "error" and head.get("key") == "view" and "unknown view" in str(head.get("error")):
-            self.in_flight.clear()  # the render stage restarted: open the view again
-            self.open()
+            self.in_flight.clear()  # the render stage restarted: open the view again, as it was
+            self.w.views_reopened += 1
+            self.open(again=True)
         elif kind == "stats":
             n = len(self.sizes)
             w.send({"type": "stats", "points": head.get("points"), "fps": head.get("fps"),
@@ -196,6 +206,10 @@ class _Link:
                     "encode_ms": round(sum(self.enc_ms) / len(self.enc_ms), 2) if self.enc_ms else 0,
                     "sources": head.get("sources", [])})
         elif kind in ("reply", "pick", "error"):
+            if kind == "reply" and isinstance(head.get("camera"), dict):
+                self.camera = head["camera"]
             if kind == "pick":
                 w.last_pick = head
+            elif kind == "reply":
+                w.last_reply = head
             w.send(head)
