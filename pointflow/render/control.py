@@ -42,7 +42,7 @@ from .camera import Camera, OrbitController
 from .config import MAX_SCREEN_POINT_PX
 
 __all__ = ["ControlError", "ViewState", "CameraState", "StyleState", "apply", "COMMANDS", "BUILTIN_COLOR",
-           "load_view_block", "view_block", "style_render_config", "camera_near_far", "MAX_POINT_SIZE_PX",
+           "load_view_block", "view_block", "style_render_config", "MAX_POINT_SIZE_PX",
            "MAX_CAMERA_COORD", "number", "printable"]
 
 #: Colourings that need no ring channel.
@@ -376,21 +376,6 @@ def _camera_of(state: ViewState, current: Optional[Camera]) -> Optional[Camera]:
     if c.mode == "fixed" and c.eye is not None and c.target is not None:
         return Camera(eye=c.eye, target=c.target, up=c.up, fov_deg=c.fov_deg)
     return current
-
-
-def camera_near_far(eye, target, box) -> tuple[float, float]:
-    """Near and far planes that hold the data box ``(lo, hi)`` seen from ``eye`` (or a
-    range around the target when no data is known)."""
-    eye = np.asarray(eye, np.float64)
-    if box is None:
-        d = float(np.linalg.norm(np.asarray(target, np.float64) - eye)) or 1.0
-        return d * 1e-3, d * 100.0
-    lo, hi = (np.asarray(b, np.float64) for b in box)
-    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
-    far = float(np.linalg.norm(corners - eye, axis=1).max()) * 1.5 + 1e-3
-    inside = np.clip(eye, lo, hi)
-    near_d = float(np.linalg.norm(inside - eye))
-    return max(near_d * 0.5, far * 1e-3), far
 
 
 def style_render_config(render_cfg, style: StyleState):
