@@ -112,7 +112,7 @@ def recorder_vs_floor(chunks: list, repeats: int, tmp: str) -> dict:
     from pointflow.record.config import RecordConfig
     from pointflow.record.encode import SCHEMA_NAME, SCHEMA_TEXT, Layout, encode_pointcloud2, layout_key
     from pointflow.record.process import Recorder
-    from pointflow.runtime.stage import StageCounters
+    from pointflow.stage.context import StageCounters
 
     frames = [[bytes(f) for f in wire.encode(c)] for c in chunks]  # as they arrive from the socket
     lay = Layout(chunks[0].positions.dtype, [("intensity", np.dtype(np.float32), 1)])
@@ -161,7 +161,7 @@ def recorder_vs_floor(chunks: list, repeats: int, tmp: str) -> dict:
 def bytes_per_point(chunks: list, tmp: str) -> dict:
     from pointflow.record.config import RecordConfig
     from pointflow.record.process import Recorder
-    from pointflow.runtime.stage import StageCounters
+    from pointflow.stage.context import StageCounters
 
     out: dict = {}
     speed: dict = {}

@@ -119,7 +119,7 @@ def role_send(args) -> None:
     from pointflow.remote.options import SendConfig
     from pointflow.remote.security import LinkSecurity
     from pointflow.remote.sender import LinkSender
-    from pointflow.runtime.stage import StageCounters
+    from pointflow.stage.context import StageCounters
     import logging
 
     chunks = load(args.dataset)
@@ -250,7 +250,7 @@ def zenoh_send(args, chunks) -> None:
 
     from pointflow.remote.options import SendConfig, check_send
     from pointflow.remote.zenoh_sender import CLOSE_SETTLE_S, ZenohLinkSender, _matching, open_sender_session
-    from pointflow.runtime.stage import StageCounters
+    from pointflow.stage.context import StageCounters
 
     client = "router" in args.mode or "fanout" in args.mode
     z = _zopts(args, mode="client" if client else "peer", connect=[args.endpoint])
@@ -289,7 +289,7 @@ def fanout_zmq_send(args, chunks) -> None:
 
     from pointflow.remote.options import SendConfig
     from pointflow.remote.sender import LinkSender
-    from pointflow.runtime.stage import StageCounters
+    from pointflow.stage.context import StageCounters
 
     ctx = zmq.Context()
     sock = ctx.socket(zmq.XPUB)

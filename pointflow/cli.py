@@ -526,7 +526,7 @@ def _main(argv: Optional[list[str]] = None) -> int:
 
     ensure_runtime_dir()
     args = build_parser().parse_args(argv)
-    from .runtime.console import setup_logging
+    from .stage.console import setup_logging
 
     setup_logging(logging.DEBUG if args.verbose and args.cmd != "validate" else logging.INFO,
                   "%(asctime)s %(name)s %(levelname)s %(message)s")

@@ -22,7 +22,7 @@ import numpy as np
 import zmq
 
 from ..config import PipelineConfig
-from ..runtime.kinds import StageKind, register_stage_kind
+from ..stage.kinds import StageKind, register_stage_kind
 from .messages import ControlMessageError, FrameTime, Hello, Idle, decode_control
 from .policy import HardwareInfo, PolicyDecision, detect_hardware, resolve_policy, tick_interval_ms
 from .ticker import Clock, Sleep, Tick, Ticker

@@ -41,8 +41,8 @@ from ..chunk import ChunkError, PointChunk
 from ..frames import message as transforms
 from ..frames.kernels import Placed
 from ..ring.config import IMPORTANCE_SLOT, importance_values
-from ..runtime.kinds import StageKind, register_stage_kind
-from ..runtime.stage import RateLimitedLog, recv_frames, take_messages  # noqa: F401 - recv_frames: bench/ab_ingest.py
+from ..stage.kinds import StageKind, register_stage_kind
+from ..stage.context import RateLimitedLog, recv_frames, take_messages  # noqa: F401 - recv_frames: bench/ab_ingest.py
 from .jsonchunk import parse_json_chunk
 
 #: Per-reason log lines at most this often (seconds).
@@ -103,7 +103,7 @@ class Ingestor:
                  queue_max_batches: int = 64, adaptive_thinning: bool = False,
                  importance_field: str | None = None, counters=None, spans=None,
                  log: logging.Logger | None = None, frames=None, record=None):
-        from ..runtime.stage import StageCounters
+        from ..stage.context import StageCounters
 
         self.ring = ring
         self.max_chunk_points = max_chunk_points

@@ -18,7 +18,7 @@ from .. import wire
 from ..chunk import new_trace_id
 from ..frames import message as tfmsg
 from ..frames.deskew import TIME_FIELDS
-from ..runtime.kinds import StageKind, register_stage_kind
+from ..stage.kinds import StageKind, register_stage_kind
 from . import playback
 from .transports import resolve_transport
 from .transports.base import InputUnreadable

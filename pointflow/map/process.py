@@ -19,7 +19,7 @@ from typing import Any, Optional
 import numpy as np
 import zmq
 
-from ..runtime.kinds import StageKind, register_stage_kind
+from ..stage.kinds import StageKind, register_stage_kind
 from . import region as mr
 from .config import MapConfig
 

@@ -7,10 +7,10 @@ import time
 
 class ProgressLine:
     """``map: indexing NAME: 45% (12.3 M of 27.4 M points, 2.1 M points/s, ETA 7 s)`` on stderr,
-    redrawn in place on a terminal (see pointflow.runtime.console), one line per 10% elsewhere."""
+    redrawn in place on a terminal (see pointflow.stage.console), one line per 10% elsewhere."""
 
     def __init__(self, name: str, stream=None, min_interval_s: float = 0.5):
-        from pointflow.runtime.console import is_terminal
+        from pointflow.stage.console import is_terminal
 
         self.name, self.stream = name, stream if stream is not None else sys.stderr
         self.tty = is_terminal(self.stream)
@@ -31,7 +31,7 @@ class ProgressLine:
         line = (f"map: indexing {self.name}: {frac:4.0%} ({done / 1e6:.1f} M of {total / 1e6:.1f} M points, "
                 f"{rate / 1e6:.2f} M points/s, " + (f"ETA {eta:.0f} s)" if not final else f"{now - self.t0:.1f} s)"))
         if self.tty:
-            from pointflow.runtime.console import CLEAR_LINE
+            from pointflow.stage.console import CLEAR_LINE
 
             self.stream.write(CLEAR_LINE + line + ("\n" if final else ""))
         else:

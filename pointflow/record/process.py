@@ -32,8 +32,8 @@ import zmq
 from .. import wire
 from ..chunk import ChunkError
 from ..frames import message as transforms
-from ..runtime.kinds import StageKind, register_stage_kind
-from ..runtime.stage import RateLimitedLog, take_messages
+from ..stage.kinds import StageKind, register_stage_kind
+from ..stage.context import RateLimitedLog, take_messages
 from .encode import Layout, Scratch, encode_pointcloud2, encode_tf, layout_key
 from .files import RecordingFiles
 

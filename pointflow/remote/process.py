@@ -2,7 +2,7 @@
 (``send.engine``: :mod:`.sender` for ZeroMQ, :mod:`.zenoh_sender` for Zenoh)."""
 from __future__ import annotations
 
-from ..runtime.kinds import StageKind, register_stage_kind
+from ..stage.kinds import StageKind, register_stage_kind
 
 #: ``pointflow send``: binds the socket the sources push to, so they start once it
 #: reported in (a short replay is not over before anyone listens).

@@ -16,7 +16,7 @@ import threading
 import time
 from typing import Any
 
-from ..runtime.kinds import StageKind, register_stage_kind
+from ..stage.kinds import StageKind, register_stage_kind
 from .zenoh_options import RouterConfig, ZenohOpenError, open_session
 
 #: ``pointflow router``: this one stage, no ring; connections counted over its restarts.

@@ -27,7 +27,7 @@ import zmq
 from .. import wire
 from ..chunk import ChunkError, PointChunk
 from ..codec import Compressor
-from ..runtime.stage import take_messages
+from ..stage.context import take_messages
 from .security import LinkSecurity
 
 #: On stop, take the sources' last chunks until the PULL socket is quiet this long.

@@ -19,8 +19,8 @@ import zmq
 from ..ring import PointRing
 from ..ring.handoff import SlabReader
 from ..ring.slabs import SlabPair
-from ..runtime.kinds import StageKind, register_stage_kind
-from ..runtime.stage import StageContext
+from ..stage.kinds import StageKind, register_stage_kind
+from ..stage.context import StageContext
 from .base import FrameInput, RenderError, Renderer
 from . import control
 from .camera import Camera, clip_planes, scene_box

@@ -15,7 +15,7 @@ from __future__ import annotations
 import logging
 from typing import Any
 
-from .kinds import StageKind, resolve, stage_kinds
+from ..stage.kinds import StageKind, resolve, stage_kinds
 
 log = logging.getLogger("pointflow.supervisor")
 

@@ -5,7 +5,7 @@ script without an ``if __name__ == "__main__":`` guard (the README's example sav
 file), ``python -c``, a notebook or a frozen main either fails or re-runs the caller's
 code in each stage. Here a stage is a plain ``subprocess`` running this module; what
 :func:`pointflow.runtime.stage.stage_main` needs (stage name and kind, the config as a
-dict, base dir, :class:`~pointflow.runtime.stage.RunInfo`) arrives pickled on its stdin,
+dict, base dir, :class:`~pointflow.stage.context.RunInfo`) arrives pickled on its stdin,
 so nothing of the caller's ``__main__`` is ever imported. The stage still arms
 ``PR_SET_PDEATHSIG`` first thing, so it cannot outlive the supervisor.
 """
@@ -35,7 +35,7 @@ class StageProcess:
 
     A *standby* (``spawn_stage(..., standby=True)``) has imported its stage and prepared
     what does not depend on the incarnation (the renderer's device and pipelines) and waits
-    for :meth:`activate` to hand it its :class:`~pointflow.runtime.stage.RunInfo`."""
+    for :meth:`activate` to hand it its :class:`~pointflow.stage.context.RunInfo`."""
 
     def __init__(self, popen: subprocess.Popen, standby: bool = False):
         self._p = popen
@@ -79,7 +79,7 @@ class StageProcess:
 def spawn_stage(name: str, kind, cfg_dict: dict, base_dir: str, info, standby: bool = False) -> StageProcess:
     """Start ``stage_main(name, kind, cfg_dict, base_dir, info)`` in a new interpreter; with
     ``standby`` it prepares and then waits for :meth:`StageProcess.activate`. ``kind`` is the
-    :class:`~pointflow.runtime.kinds.StageKind` record (or its name)."""
+    :class:`~pointflow.stage.kinds.StageKind` record (or its name)."""
     payload = pickle.dumps((name, kind, cfg_dict, base_dir, info, standby), protocol=pickle.HIGHEST_PROTOCOL)
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join(p for p in (_PKG_PARENT, env.get("PYTHONPATH", "")) if p)

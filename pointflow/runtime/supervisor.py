@@ -30,10 +30,10 @@ import zmq
 
 from ..config import PipelineConfig, new_run_dir
 from .accounting import RING_WRITER, accounting, counter_names, merge_counts, reconcile_ring_writer
-from .kinds import StageKind, resolve, role_kinds, stage_kind
+from ..stage.kinds import StageKind, resolve, role_kinds, stage_kind
 from .launch import spawn_stage
 from .liveness import hang_reason
-from .stage import RunInfo
+from ..stage.context import RunInfo
 from .stagestate import StageProc, describe_exit
 
 log = logging.getLogger("pointflow.supervisor")

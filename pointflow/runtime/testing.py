@@ -25,7 +25,8 @@ import zmq
 
 from ..config import load_config, new_run_dir
 from ..ring.config import build_ring
-from .stage import RunInfo, stage_main
+from ..stage.context import RunInfo
+from .stage import stage_main
 
 __all__ = ["free_port", "wait_for", "decode_spans", "StageRig", "LineProc"]
 

@@ -8,7 +8,7 @@ import dataclasses
 import os
 import sys
 
-from ..runtime.kinds import StageKind, register_stage_kind
+from ..stage.kinds import StageKind, register_stage_kind
 
 
 def wanted(cfg) -> bool:
@@ -83,5 +83,5 @@ async def _run(ctx) -> None:
 
 
 def main(ctx) -> None:
-    """Stage loop (``pointflow.runtime.stage.STAGE_MAINS['serve']``)."""
+    """Stage loop (the ``serve`` kind's ``main``)."""
     asyncio.run(_run(ctx))

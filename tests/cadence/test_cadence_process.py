@@ -14,7 +14,8 @@ from pointflow.cadence.messages import encode_hello
 from pointflow.config import load_config
 from pointflow.profiling.collector import SpanCollector
 from pointflow.ring import PointRing, SlabPair, SlabReader
-from pointflow.runtime.stage import RunInfo, stage_main
+from pointflow.runtime.stage import stage_main
+from pointflow.stage.context import RunInfo
 
 from .conftest import assert_unlinked
 

@@ -16,7 +16,8 @@ from typing import Any
 
 import numpy as np
 
-from pointflow.runtime.stage import RunInfo, stage_main
+from pointflow.runtime.stage import stage_main
+from pointflow.stage.context import RunInfo
 
 from .stage_util import IngestStage
 

@@ -9,7 +9,8 @@ import zmq
 
 from pointflow import wire
 from pointflow.config import load_config, new_run_dir
-from pointflow.runtime.stage import RunInfo, stage_main
+from pointflow.runtime.stage import stage_main
+from pointflow.stage.context import RunInfo
 
 
 def _start(cfg):

@@ -26,7 +26,7 @@ from pointflow.render.base import FrameInput
 from pointflow.render.camera import Camera
 from pointflow.render.cpu import CpuRenderer
 from pointflow.render.maplayer import MapLayer
-from pointflow.runtime.stage import StageCounters
+from pointflow.stage.context import StageCounters
 
 from .mapfiles import ORIGIN, laspy_points, write_las
 

@@ -14,7 +14,7 @@ from pointflow.record.config import RecordConfig, topic_for
 from pointflow.record.process import Recorder
 from pointflow.record.tap import RecordTap
 from pointflow.ring import PointRing
-from pointflow.runtime.stage import StageCounters
+from pointflow.stage.context import StageCounters
 
 from .helpers import read_recording
 

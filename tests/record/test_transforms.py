@@ -167,7 +167,7 @@ def test_static_set_rewritten_when_it_changes_and_tap_never_waits(tmp_path):
     from pointflow.record.config import RecordConfig
     from pointflow.record.process import Recorder
     from pointflow.record.tap import RecordTap
-    from pointflow.runtime.stage import StageCounters
+    from pointflow.stage.context import StageCounters
 
     path = tmp_path / "u.mcap"
     rec = Recorder(RecordConfig(path=str(path)), StageCounters(), logging.getLogger("t"))

@@ -186,7 +186,7 @@ def test_sender_queue_drops_oldest_data_never_syncs():
 
     from pointflow.remote.options import SendConfig
     from pointflow.remote.sender import LinkSender
-    from pointflow.runtime.stage import StageCounters
+    from pointflow.stage.context import StageCounters
 
     ctx = zmq.Context()
     sock = ctx.socket(zmq.PUSH)

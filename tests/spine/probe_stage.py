@@ -6,7 +6,7 @@ from __future__ import annotations
 import os
 import sys
 
-from pointflow.runtime.kinds import StageKind, register_stage_kind, unregister_stage_kind
+from pointflow.stage.kinds import StageKind, register_stage_kind, unregister_stage_kind
 
 #: Whether a run has the probe (read by :func:`wanted` in the supervisor's process).
 WANTED = True

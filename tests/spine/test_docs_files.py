@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import re
 
-from pointflow.runtime.kinds import stage_kinds
+from pointflow.stage.kinds import stage_kinds
 
 from .test_docs import ROOT
 

@@ -126,9 +126,9 @@ LAYERS = {
     "pointflow.render.colormap": 2,
     # the loader, the schema, the top-level assembly
     "pointflow.config": 3,
-    # what a stage is and what every stage process shares
-    "pointflow.runtime.kinds": 4, "pointflow.runtime.stage": 4, "pointflow.runtime.launch": 4,
-    "pointflow.runtime.rundir": 4, "pointflow.runtime.console": 4,
+    # the stage kit: what a stage is and what every stage process shares (context, kinds,
+    # counters, console), below every stage
+    "pointflow.stage": 4,
     # the stages
     "pointflow.ingest": 5, "pointflow.cadence": 5, "pointflow.render": 5, "pointflow.record": 5,
     "pointflow.remote": 5, "pointflow.serve": 5,

@@ -9,7 +9,7 @@ import signal
 import pytest
 
 from pointflow import Pipeline
-from pointflow.runtime.kinds import StageKind, register_stage_kind, role_kinds, stage_kind, stage_kinds
+from pointflow.stage.kinds import StageKind, register_stage_kind, role_kinds, stage_kind, stage_kinds
 
 from . import probe_stage
 from .helpers import assert_gone, assert_segments_gone, small_config, wait_for
