@@ -1,35 +1,26 @@
 """pointflow: stream live point clouds through separate processes to the GPU."""
 from __future__ import annotations
 
+from ._lazy import lazy_exports
 from .chunk import ChunkError, PointChunk
 from .config import ConfigError, PipelineConfig, load_config
+from .errors import Error, KeyedError
 
 __version__ = "0.1.0"
 
+# Heavy parts (shared memory, zmq, GPU) load on first use.
+__getattr__ = lazy_exports(__name__, {
+    "Pipeline": ".runtime.pipeline", "connect": ".client", "show": ".quickshow", "PointRing": ".ring",
+    # the errors users catch, all subclasses of Error (pointflow/errors.py)
+    "PipelineFailed": ".runtime.supervisor", "SendError": ".ingest.transports.api",
+    "ControlError": ".render.control", "PlaybackError": ".ingest.playback", "LinkRefused": ".client",
+    "FormatError": ".ingest.formats", "MapError": ".map.errors", "RenderError": ".render.base",
+    "RingError": ".ring.layout",
+})
 
-def __getattr__(name: str):
-    # Heavy parts (shared memory, zmq, GPU) load on first use.
-    if name == "Pipeline":
-        from .runtime.pipeline import Pipeline
+#: The errors a user of pointflow may catch (every one a subclass of :class:`Error`).
+ERRORS = ("Error", "KeyedError", "ConfigError", "ChunkError", "SendError", "PipelineFailed", "ControlError",
+          "PlaybackError", "LinkRefused", "FormatError", "MapError", "RenderError", "RingError")
 
-        return Pipeline
-    if name == "connect":
-        from .client import connect
-
-        return connect
-    if name == "show":
-        from .quickshow import show
-
-        return show
-    if name == "SendError":
-        from .ingest.transports.api import SendError
-
-        return SendError
-    if name == "PointRing":
-        from .ring import PointRing
-
-        return PointRing
-    raise AttributeError(name)
-
-
-__all__ = ["Pipeline", "connect", "show", "SendError", "PointChunk", "PointRing", "ChunkError", "ConfigError", "PipelineConfig", "load_config", "__version__"]
+__all__ = ["Pipeline", "connect", "show", "PointChunk", "PointRing", "PipelineConfig", "load_config",
+           "__version__", *ERRORS]

@@ -6,6 +6,8 @@ import os
 import time
 from dataclasses import dataclass, field
 
+from .errors import Error
+
 import numpy as np
 
 #: dtypes a channel may carry on the wire and into ingest.
@@ -22,7 +24,7 @@ def new_trace_id() -> int:
     return ((os.getpid() & 0xFFFFF) << 40) | (next(_trace_counter) & 0xFFFFFFFFFF)
 
 
-class ChunkError(ValueError):
+class ChunkError(Error, ValueError):
     """A chunk is malformed; ``reason`` is a short machine-readable key counted in stats."""
 
     def __init__(self, reason: str, message: str):

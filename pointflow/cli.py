@@ -124,7 +124,7 @@ def _playback_flags(cfg, args) -> None:
     except ConfigError as exc:
         key = exc.path.rpartition(".")[2]
         given = getattr(args, key, None) is not None
-        raise ConfigError(f"--{key}" if given else exc.path, str(exc)[len(exc.path) + 2:]) from None
+        raise ConfigError(f"--{key}" if given else exc.path, exc.message) from None
     cfg.playback = pb
 
 

@@ -16,12 +16,13 @@ import time
 from typing import Any, Literal, Optional
 
 from .config import load_config
+from .errors import Error
 
 #: How often ``send`` looks at the link's state (a refused handshake, a failed sender).
 CHECK_EVERY_S = 0.25
 
 
-class LinkRefused(ConnectionRefusedError):
+class LinkRefused(Error, ConnectionRefusedError):
     """The receiving end refused this end's key; the message is the one ``pointflow send``
     logs for the same refusal."""
 

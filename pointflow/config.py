@@ -240,7 +240,7 @@ def _apply_view(cfg: PipelineConfig) -> None:
     try:
         v = load_view_block(cfg.view, "view")
     except ControlError as exc:
-        raise ConfigError(exc.key, str(exc)[len(exc.key) + 2:]) from None
+        raise ConfigError(exc.key, exc.message) from None
     r = cfg.render
     st = v["style"]
     simple = {k: st[k] for k in ("color_by", "colormap", "color_range", "point_size", "point_shape", "time_window_ms")

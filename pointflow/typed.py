@@ -14,13 +14,15 @@ import types
 import typing
 from typing import Any, Literal, Optional, Union
 
+from .errors import KeyedError
 
-class ConfigError(ValueError):
-    """A configuration value is wrong; ``path`` is the dotted key path."""
 
-    def __init__(self, path: str, message: str):
-        super().__init__(f"{path or '<root>'}: {message}" if path else message)
-        self.path = path
+class ConfigError(KeyedError):
+    """A configuration value is wrong; ``key`` (also ``path``) is the dotted key path."""
+
+    @property
+    def path(self) -> str:
+        return self.key
 
 
 class Constraint:

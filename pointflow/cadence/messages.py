@@ -30,6 +30,8 @@ import math
 from dataclasses import dataclass
 from typing import Literal, Optional, Sequence, Union
 
+from ..errors import Error
+
 CONTROL_TAG = b"pf.cadence.ctl/1"
 
 
@@ -59,7 +61,7 @@ class Idle:
 ControlMessage = Union[Hello, FrameTime, Idle]
 
 
-class ControlMessageError(ValueError):
+class ControlMessageError(Error, ValueError):
     """A frame on the release socket carried the control tag but a bad body."""
 
 

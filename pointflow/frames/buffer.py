@@ -17,6 +17,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from .rotation import normalise, slerp, to_matrix
+from ..errors import Error
 
 #: Default history kept per dynamic edge (tf2's default cache time).
 HISTORY_NS = 10_000_000_000
@@ -24,7 +25,7 @@ HISTORY_NS = 10_000_000_000
 MAX_SAMPLES = 20_000
 
 
-class FrameError(ValueError):
+class FrameError(Error, ValueError):
     """A transform or lookup was refused; ``reason`` is the short key counted in stats."""
 
     def __init__(self, reason: str, message: str):

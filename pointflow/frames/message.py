@@ -16,6 +16,8 @@ import json
 from dataclasses import dataclass, field
 from typing import Any
 
+from ..errors import Error
+
 SCHEMA = "pointflow.transforms/1"
 #: What ingest looks for in the first bytes of a one-frame message to tell it from a JSON chunk.
 SCHEMA_BYTES = b'"pointflow.transforms/1"'
@@ -23,7 +25,7 @@ SCHEMA_BYTES = b'"pointflow.transforms/1"'
 MAX_MESSAGE_BYTES = 4 << 20
 
 
-class TransformMessageError(ValueError):
+class TransformMessageError(Error, ValueError):
     """A malformed transforms message; ``reason`` is counted by ingest."""
 
     def __init__(self, reason: str, message: str):

@@ -21,6 +21,8 @@ import warnings
 import zipfile
 from typing import Iterator, Sequence
 
+from ..errors import KeyedError
+
 import numpy as np
 
 #: read_points reads LAS/LAZ in pieces of at most this many points.
@@ -29,10 +31,12 @@ LAS_PIECE_POINTS = 1 << 20
 FORMATS = ("las", "laz", "ply", "pcd", "npy", "npz", "csv", "xyz", "txt", "bin")
 
 
-class FormatError(ValueError):
-    def __init__(self, path: str, message: str):
-        super().__init__(f"{path}: {message}")
-        self.path = path
+class FormatError(KeyedError):
+    """A point file that cannot be read; ``key`` (also ``path``) is the file."""
+
+    @property
+    def path(self) -> str:
+        return self.key
 
 
 def detect_format(path: str) -> str:

@@ -31,6 +31,7 @@ import time
 from typing import Any, Iterator, Optional, Union
 
 from ..typed import ConfigError
+from ..errors import KeyedError
 
 __all__ = ["PlaybackClock", "PlaybackConfig", "PlaybackError", "playback_endpoint", "check_playback"]
 
@@ -38,12 +39,12 @@ __all__ = ["PlaybackClock", "PlaybackConfig", "PlaybackError", "playback_endpoin
 _SLICE_S = 0.02
 
 
-class PlaybackError(ValueError):
+class PlaybackError(KeyedError):
     """A playback request that cannot be applied; ``key`` names the argument."""
 
-    def __init__(self, key: str, message: str):
-        super().__init__(f"{key}: {message}")
-        self.key = key
+    @staticmethod
+    def _text(key: str, message: str) -> str:
+        return f"{key}: {message}"
 
 
 @dataclasses.dataclass
@@ -304,7 +305,7 @@ def serve(sock, clock: PlaybackClock, log, counters) -> None:
         except PlaybackError as exc:
             counters.extra["playback_refused"] = counters.extra.get("playback_refused", 0) + 1
             log.warning("playback request refused: %s", exc)
-            rep = {"error": str(exc), "key": exc.key}
+            rep = {"error": str(exc), "key": exc.key, "message": exc.message}
         except Exception as exc:  # noqa: BLE001 - a bad request must not end the replay
             rep = {"error": f"{type(exc).__name__}: {exc}", "key": "cmd"}
         sock.send_string(json.dumps(rep))

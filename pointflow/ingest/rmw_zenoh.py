@@ -42,6 +42,8 @@ import dataclasses
 import re
 from typing import Any, Mapping, Optional
 
+from ..errors import Error
+
 #: Prefix of every rmw_zenoh liveliness token.
 ADMIN_SPACE = "@ros2_lv"
 #: The type-hash chunk Humble's rmw_zenoh writes.
@@ -229,7 +231,7 @@ class Attachment:
         return self.gid.hex()
 
 
-class AttachmentError(ValueError):
+class AttachmentError(Error, ValueError):
     """A sample without a readable rmw_zenoh attachment."""
 
 

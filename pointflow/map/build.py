@@ -25,6 +25,7 @@ from typing import Callable, Iterator, Optional
 
 import numpy as np
 
+from ..errors import Error
 from .errors import MapError
 from .inputs import CHUNK_POINTS, _Input, _LasInput, file_identity, open_input
 from .progress import ProgressLine
@@ -98,7 +99,7 @@ def gather(recs: np.ndarray, perm: np.ndarray) -> np.ndarray:
     return recs.view(np.dtype((np.void, recs.dtype.itemsize)))[perm].view(recs.dtype)
 
 
-class _WrongBounds(Exception):
+class _WrongBounds(Error):
     """The header's bounds do not hold the points (seen: their real bounds)."""
 
     def __init__(self, lo: np.ndarray, hi: np.ndarray):

@@ -11,8 +11,10 @@ from pathlib import Path
 
 import zmq.auth
 
+from ..errors import Error
 
-class KeyFileError(ValueError):
+
+class KeyFileError(Error, ValueError):
     """A key file is missing or does not hold what it should."""
 
 

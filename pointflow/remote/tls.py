@@ -23,6 +23,8 @@ import os
 import re
 from pathlib import Path
 
+from ..errors import Error
+
 #: Lifetimes: the CA outlives the host certificates it signs.
 CA_DAYS = 3650
 CERT_DAYS = 825
@@ -31,7 +33,7 @@ DEFAULT_HOSTS = ("localhost", "127.0.0.1")
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
 
 
-class TlsFileError(ValueError):
+class TlsFileError(Error, ValueError):
     """A certificate or key is missing, exists already, or does not load."""
 
 

@@ -23,6 +23,7 @@ from dataclasses import field
 from typing import TYPE_CHECKING, Any, Literal, Optional
 
 from ..typed import ConfigError, Each, Prefix, check, positive
+from ..errors import Error
 
 if TYPE_CHECKING:  # zenoh is imported where a session opens: a config check needs no engine
     import zenoh
@@ -190,7 +191,7 @@ def zenoh_config(o: ZenohOptions, defaults: Optional[dict[str, Any]] = None) -> 
     return conf
 
 
-class ZenohOpenError(RuntimeError):
+class ZenohOpenError(Error, RuntimeError):
     """A session could not open; the message says which endpoint and why."""
 
 

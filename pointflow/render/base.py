@@ -23,6 +23,7 @@ import numpy as np
 
 from .config import RenderConfig
 from .camera import Camera
+from ..errors import Error
 
 #: A half-open range of ring slots.
 Range = tuple[int, int]
@@ -82,7 +83,7 @@ class FrameStats:
     extra: dict[str, Any] = field(default_factory=dict)
 
 
-class RenderError(RuntimeError):
+class RenderError(Error, RuntimeError):
     """A tier could not start or lost its device; the selector falls back."""
 
 

@@ -40,6 +40,7 @@ import numpy as np
 from . import colormap
 from .camera import Camera, OrbitController
 from .config import MAX_SCREEN_POINT_PX
+from ..errors import KeyedError
 
 __all__ = ["ControlError", "ViewState", "CameraState", "StyleState", "apply", "COMMANDS", "BUILTIN_COLOR",
            "load_view_block", "view_block", "style_render_config", "MAX_POINT_SIZE_PX",
@@ -74,13 +75,16 @@ def printable(text: Any, limit: int = 200) -> str:
     return s.translate(_CTRL)
 
 
-class ControlError(ValueError):
+class ControlError(KeyedError):
     """A control message (or ``view:`` block) that cannot be applied; ``key`` names the argument."""
 
     def __init__(self, key: str, message: str):
-        key = printable(key, 80)  # both may hold what a client sent: logged and replied safely
-        super().__init__(f"{key}: {printable(message, 400)}")
-        self.key = key
+        # both may hold what a client sent: logged and replied safely
+        super().__init__(printable(key, 80), printable(message, 400))
+
+    @staticmethod
+    def _text(key: str, message: str) -> str:
+        return f"{key}: {message}"
 
 
 @dataclass

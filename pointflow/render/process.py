@@ -669,7 +669,7 @@ def _serve_commands(sock, stage: _Stage, ring, ctx) -> None:
         except ControlError as exc:
             ctx.counters.drop("bad_control", 1)
             ctx.log.warning("render control message refused: %s", exc)
-            rep = {"error": str(exc), "key": exc.key}
+            rep = {"error": str(exc), "key": exc.key, "message": exc.message}
         except Exception as exc:  # noqa: BLE001 - a bad request must not kill the stage
             ctx.log.warning("render command failed: %s", exc)
             rep = {"error": f"{type(exc).__name__}: {exc}"}

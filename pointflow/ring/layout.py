@@ -14,6 +14,8 @@ import secrets
 from dataclasses import dataclass, field
 from typing import Any, Sequence
 
+from ..errors import Error
+
 import numpy as np
 
 SHM_DIR = "/dev/shm"
@@ -21,7 +23,7 @@ _NAME_RE = re.compile(r"^[A-Za-z0-9_.\-]{1,200}$")
 ALIGN = 64
 
 
-class RingError(Exception):
+class RingError(Error):
     """Base class of ring errors."""
 
 

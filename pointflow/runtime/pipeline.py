@@ -112,7 +112,7 @@ class Pipeline:
             return
         self._sup.poll(timeout_s)
         if self._sup.failure:
-            raise PipelineFailed(self._sup.failure)
+            raise PipelineFailed(self._sup.failure, self._sup.failure_cause)
 
     @property
     def stop_requested(self) -> Optional[str]:
@@ -265,7 +265,7 @@ class Pipeline:
         rep = self._sup.request(msg, timeout_s)
         if "error" in rep:
             if "key" in rep:
-                raise ControlError(rep["key"], rep["error"].split(": ", 1)[-1])
+                raise ControlError(rep["key"], rep["message"])
             raise RuntimeError(f"render stage: {rep['error']}")
         end = time.monotonic() + timeout_s
         while wait and rep["drawn_version"] < rep["version"] and time.monotonic() < end:
@@ -314,7 +314,7 @@ class Pipeline:
                 raise RuntimeError(f"source {s.name!r} did not answer within {timeout_s} s: its replay has ended "
                                    "(hold=True keeps it waiting for a seek) or it is restarting") from None
             if "error" in rep:
-                raise PlaybackError(rep.get("key", "cmd"), rep["error"].split(": ", 1)[-1])
+                raise PlaybackError(rep.get("key", "cmd"), rep.get("message", rep["error"]))
             out[s.name] = rep["state"]
         return out
 

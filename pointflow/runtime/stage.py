@@ -17,6 +17,7 @@ import traceback
 from typing import Any
 
 from ..config import load_config
+from ..errors import to_fields
 from ..stage.context import RunInfo, StageContext
 from ..stage.kinds import StageKind, resolve, stage_kind
 
@@ -107,7 +108,7 @@ def stage_main(name: str, kind: str | StageKind, cfg_dict: dict, base_dir: str, 
     except Exception as exc:  # noqa: BLE001 - report, then exit non-zero
         # the supervisor prints the last line with the stage's exit (once); here only when it
         # cannot be told, or as the whole traceback with -v
-        if not ctx.report_error("".join(traceback.format_exception(exc))):
+        if not ctx.report_error("".join(traceback.format_exception(exc)), to_fields(exc)):
             ctx.log.error("stage failed: %s", exc)
         ctx.log.debug("stage failed", exc_info=True)
         code = 1

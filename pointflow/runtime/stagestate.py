@@ -31,6 +31,8 @@ class StageProc:
     restarts: int = 0
     stats: dict[str, Any] = field(default_factory=dict)
     last_error: Optional[str] = None
+    #: The last error's fields (:func:`pointflow.errors.to_fields`), as the stage sent them.
+    last_error_fields: Optional[dict] = None
     finished: bool = False     # ended on its own (a source whose data ran out)
     failed: bool = False
     restart_at_ns: int = 0     # pending restart time (backoff), 0 = none

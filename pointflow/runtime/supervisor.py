@@ -35,6 +35,7 @@ from .launch import spawn_stage
 from .liveness import hang_reason
 from ..stage.context import RunInfo
 from .stagestate import StageProc, describe_exit
+from ..errors import Error, KeyedError, from_fields
 
 log = logging.getLogger("pointflow.supervisor")
 #: The kind with one stage per configured source (and the ``api`` sources in this process).
@@ -59,8 +60,17 @@ def planned_stages(cfg: PipelineConfig, role: str = "pipeline") -> list[str]:
     return names
 
 
-class PipelineFailed(RuntimeError):
-    """A stage kept failing past its restart limit; the pipeline was stopped."""
+class PipelineFailed(Error, RuntimeError):
+    """A stage kept failing past its restart limit (or failed the run); the pipeline was
+    stopped. ``cause``: the stage's own keyed error (a :class:`~pointflow.errors.KeyedError`,
+    e.g. a ``ConfigError`` with its ``key``), rebuilt from its fields; None otherwise."""
+
+    def __init__(self, message: str, cause: Optional[KeyedError] = None):
+        super().__init__(message)
+        self.cause = cause
+
+    def __reduce__(self):
+        return (type(self), (str(self), self.cause))
 
 
 #: A stage that ran this long before dying restarts with the first backoff again (a crash
@@ -93,6 +103,8 @@ class Supervisor:
         self.collector = None
         self.started = False
         self.failure: Optional[str] = None
+        #: The failed stage's keyed error, rebuilt from its fields (PipelineFailed.cause).
+        self.failure_cause: Optional[KeyedError] = None
         #: Set when a stage asked for the whole run to end (the window was closed).
         self.stop_requested: Optional[str] = None
         self.events: list[dict] = []   # restarts, failures, for stats
@@ -396,14 +408,17 @@ class Supervisor:
                 st.ring_at_report = seen
         elif kind == "fatal":  # restarting cannot help: the run fails
             st.last_error = str(msg.get("message", ""))
+            st.last_error_fields = msg.get("fields")
             st.failed = True
             self.failure = f"stage {st.name}: {st.last_error}"
+            self.failure_cause = from_fields(st.last_error_fields)
             self._reported.set()
             log.error("%s", self.failure)
             self.events.append({"stage": st.name, "pid": st.pid, "reason": st.last_error, "action": "stop",
                                 "t": round(time.monotonic() - self._t_start, 3)})
         elif kind == "error":  # printed once, with the stage's exit (_stage_died: "last error: ...")
             st.last_error = msg.get("message", "")
+            st.last_error_fields = msg.get("fields")
             log.debug("%s reported: %s", st.name, st.last_error)
         elif kind == "done":
             st.finished = True
@@ -494,6 +509,7 @@ class Supervisor:
             log.error(msg)
             st.failed = True
             self.failure = msg
+            self.failure_cause = from_fields(st.last_error_fields)
             self._reported.set()
             ev["action"] = "stop"
             self.events.append(ev)
@@ -505,6 +521,7 @@ class Supervisor:
         log.error("stage %s (pid %d) %s%s; restarting in %.0f ms", st.name, st.pid, reason, detail, backoff)
         st.restart_at_ns = time.monotonic_ns() + int(backoff * 1e6)
         st.last_error = None
+        st.last_error_fields = None
         ev["action"] = "restart"
         ev["backoff_ms"] = backoff
         self.events.append(ev)

@@ -45,6 +45,7 @@ from ..render.control import ControlError, number, printable
 from .auth import COOKIE, check_host, check_origin, check_token, cookie_name, machine_names
 from .config import ServeConfig
 from .encode import encode_frame
+from ..errors import Error
 
 log = logging.getLogger("pointflow.serve")
 
@@ -157,7 +158,7 @@ class _HeaderDeadline:
         return _Proto()
 
 
-class BadMessage(ValueError):
+class BadMessage(Error, ValueError):
     """A client message that is not one of the page's (closes that client, counted)."""
 
 

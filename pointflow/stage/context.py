@@ -205,18 +205,19 @@ class StageContext:
         self._send({"type": "done", "stop_pipeline": True, "reason": reason})
         self._running = False
 
-    def fail_run(self, message: str) -> None:
+    def fail_run(self, message: str, error: dict | None = None) -> None:
         """End this stage and fail the whole run (exit 2) with ``message``: for defects a
         restart cannot cure (no input can be read). The supervisor prints it, once; the
-        stage itself only when the message cannot reach the supervisor."""
-        if not self._send({"type": "fatal", "message": message[-4000:]}):
+        stage itself only when the message cannot reach the supervisor. ``error``: the
+        error's fields (:func:`pointflow.errors.to_fields`), rebuilt in the parent."""
+        if not self._send({"type": "fatal", "message": message[-4000:], "fields": error}):
             self.log.error("%s", message)
         self._running = False
 
-    def report_error(self, message: str) -> bool:
+    def report_error(self, message: str, error: dict | None = None) -> bool:
         """Hand an error (a traceback) to the supervisor, which prints it once with the
-        stage's exit; False when it could not be sent."""
-        return self._send({"type": "error", "message": message[-4000:]})
+        stage's exit; ``error`` as at :meth:`fail_run`. False when it could not be sent."""
+        return self._send({"type": "error", "message": message[-4000:], "fields": error})
 
     def _send(self, msg: dict) -> bool:
         msg.setdefault("stage", self.name)

@@ -51,3 +51,14 @@ def register() -> StageKind:
 
 def unregister() -> None:
     unregister_stage_kind(KIND.name)
+
+
+def fail_keyed(ctx) -> None:
+    """A stage whose loop raises a keyed error, for tests/spine/test_errors.py."""
+    from pointflow.config import ConfigError
+
+    ctx.beat(force=True)
+    raise ConfigError("probe.option", "refused by the probe stage")
+
+
+KEYED = StageKind(name="keyed_probe", main=f"{__name__}:fail_keyed", start_order=16, stop_wave=2)

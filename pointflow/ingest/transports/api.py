@@ -43,6 +43,7 @@ from ...chunk import SUPPORTED_DTYPES, PointChunk, new_trace_id
 from ...frames import message as tfmsg
 from ...typed import Bound, check
 from .base import Transport
+from ...errors import Error
 
 #: Messages ZeroMQ queues towards ingest before ``block`` waits (as a source stage's SEND_HWM).
 SEND_HWM = 64
@@ -134,7 +135,7 @@ class _Staging:
         return out, b
 
 
-class SendError(ValueError):
+class SendError(Error, ValueError):
     """Bad input to ``send``/``send_transforms``: the message names the argument and what
     was expected. Nothing of the call was sent; the pipeline goes on."""
 

@@ -16,9 +16,10 @@ from typing import Any, Callable, ClassVar, Iterator, Optional
 
 from ...chunk import ChunkError, PointChunk
 from ...typed import ConfigError, load_dataclass
+from ...errors import Error
 
 
-class InputUnreadable(Exception):
+class InputUnreadable(Error):
     """None of a transport's input can be read (every file of a replay is unreadable):
     restarting cannot help, so the source stage reports it and the run fails (exit 2),
     with this message naming the inputs and why."""
@@ -136,6 +137,4 @@ class Transport(ABC):
 
 def _msg(exc) -> str:
     """A ConfigError's message without its ``path: `` prefix."""
-    text = str(exc)
-    prefix = f"{exc.path}: "
-    return text[len(prefix):] if exc.path and text.startswith(prefix) else text
+    return exc.message

@@ -23,6 +23,7 @@ from ...typed import ConfigError
 from ..jsonchunk import parse_json_chunk
 from ._backoff import Backoff, NetworkOptions
 from .base import Transport
+from ...errors import Error
 
 log = logging.getLogger("pointflow.transport.sse")
 
@@ -38,7 +39,7 @@ class SseOptions(NetworkOptions):
     headers: dict[str, str] = dataclasses.field(default_factory=dict)
 
 
-class _HttpError(Exception):
+class _HttpError(Error):
     pass
 
 
