@@ -163,9 +163,9 @@ def run_replay(path: str, label: str, extra: dict) -> dict:
            "ring": {"max_points": 2_000_000}, "tracing": {"enabled": False},
            "render": {"backend": "cpu", "size": [320, 240], "color_by": "intensity", "output": {"dir": None}}}
     from pointflow.ingest.transports.file import _expand
-    from pointflow.ingest import formats
+    from pointflow import formats
 
-    total = sum(formats.read_points(f)[0].shape[0] for f in _expand(path))
+    total = sum(formats.read(f)[0].shape[0] for f in _expand(path))
     t0 = time.perf_counter()
     with Pipeline.from_dict(cfg) as p:
         p.wait(120, until=lambda: p.stats()["stages"].get("ingest", {}).get("points_out", 0) >= total)

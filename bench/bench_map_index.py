@@ -68,7 +68,7 @@ def laspy_read(path: str) -> tuple[float, int]:
     """laspy's chunked read, as the build reads: same backend (lazrs, one thread), same chunks."""
     import laspy
 
-    from pointflow.ingest.formats import _laz_backend
+    from pointflow.formats.las import laz_backend as _laz_backend
     from pointflow.map.inputs import CHUNK_POINTS
 
     t = time.perf_counter()

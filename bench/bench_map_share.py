@@ -35,13 +35,13 @@ from pointflow import Pipeline
 N = 697_721
 READER = """
 import sys, time, laspy
-from pointflow.ingest import formats
+from pointflow import formats
 from pointflow.map.inputs import CHUNK_POINTS
 path, stop = sys.argv[1], sys.argv[2]
 import os
 while not os.path.exists(stop):
     t = time.monotonic()
-    with laspy.open(path, laz_backend=formats._laz_backend()) as f:
+    with laspy.open(path, laz_backend=formats.las.laz_backend()) as f:
         for _ in f.chunk_iterator(CHUNK_POINTS):
             pass
     print(time.monotonic() - t, flush=True)
@@ -69,11 +69,11 @@ def utm_file(out: str) -> str:
 def read_s(path: str) -> float:
     import laspy
 
-    from pointflow.ingest import formats
+    from pointflow import formats
     from pointflow.map.inputs import CHUNK_POINTS
 
     t = time.monotonic()
-    with laspy.open(path, laz_backend=formats._laz_backend()) as f:
+    with laspy.open(path, laz_backend=formats.las.laz_backend()) as f:
         for _ in f.chunk_iterator(CHUNK_POINTS):
             pass
     return time.monotonic() - t

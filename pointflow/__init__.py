@@ -14,7 +14,7 @@ __getattr__ = lazy_exports(__name__, {
     # the errors users catch, all subclasses of Error (pointflow/errors.py)
     "PipelineFailed": ".runtime.supervisor", "SendError": ".ingest.transports.api",
     "ControlError": ".render.control", "PlaybackError": ".ingest.playback", "LinkRefused": ".client",
-    "FormatError": ".ingest.formats", "MapError": ".map.errors", "RenderError": ".render.base",
+    "FormatError": ".formats", "MapError": ".map.errors", "RenderError": ".render.base",
     "RingError": ".ring.layout",
 })
 

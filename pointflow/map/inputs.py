@@ -54,18 +54,18 @@ def _las_error(path: str, exc: BaseException) -> MapError:
 class _LasInput(_Input):
     def __init__(self, path: str):
         import laspy
-        from pointflow.ingest import formats
+        from pointflow import formats
 
         self.path = path
         try:
-            formats._precheck_las(path)
-            with laspy.open(path, laz_backend=formats._laz_backend()) as f:
-                formats._check_las_header(path, f.header)
+            formats.las.precheck_las(path)
+            with laspy.open(path, laz_backend=formats.las.laz_backend()) as f:
+                formats.las.check_las_header(path, f.header)
                 self.header = f.header
         except formats.FormatError as exc:
             raise MapError(path, str(exc).split(": ", 1)[-1]) from None
         except BaseException as exc:
-            if not formats._is_las_failure(exc):
+            if not formats.las.is_las_failure(exc):
                 raise
             raise _las_error(path, exc) from None
         h = self.header
@@ -78,10 +78,10 @@ class _LasInput(_Input):
 
     def chunks(self) -> Iterator[np.ndarray]:
         import laspy
-        from pointflow.ingest import formats
+        from pointflow import formats
 
         try:
-            with laspy.open(self.path, laz_backend=formats._laz_backend()) as f:
+            with laspy.open(self.path, laz_backend=formats.las.laz_backend()) as f:
                 n = FIRST_CHUNK  # small first: the map stage previews the map from it
                 while True:
                     pts = f.read_points(n)
@@ -90,7 +90,7 @@ class _LasInput(_Input):
                     yield pts.array
                     n = CHUNK_POINTS
         except BaseException as exc:
-            if not formats._is_las_failure(exc):
+            if not formats.las.is_las_failure(exc):
                 raise
             raise _las_error(self.path, exc) from None
 
@@ -123,15 +123,15 @@ def table_dtype(channels: dict[str, np.ndarray], pos_dtype=np.float64) -> np.dty
 
 
 class _TableInput(_Input):
-    """PCD and ASCII PLY through the project's readers (pointflow.ingest.formats): read whole,
+    """PCD and ASCII PLY through the project's readers (pointflow.formats): read whole,
     then indexed in chunks. These readers hold the file in memory (LAS/LAZ and binary PLY do not)."""
 
     def __init__(self, path: str, fmt: str):
-        from pointflow.ingest import formats
+        from pointflow import formats
 
         self.path = path
         try:
-            pos, ch = formats.read_points(path, fmt)
+            pos, ch = formats.read(path, fmt)
         except formats.FormatError as exc:
             raise MapError(path, str(exc).split(": ", 1)[-1]) from None
         pos = np.asarray(pos)
@@ -162,7 +162,7 @@ class _PlyStream(_Input):
     parses the header (its memory map gives the vertex dtype and where the data starts); the
     chunks are then plain reads, so a file cut short while indexing is an error, not a SIGBUS.
     Fields map to positions and channels exactly as the project's PLY reader maps them
-    (``formats._split_fields``), one chunk at a time."""
+    (``formats.base.split_fields``), one chunk at a time."""
 
     @classmethod
     def open(cls, path: str):
@@ -172,7 +172,7 @@ class _PlyStream(_Input):
             import plyfile
         except ImportError:
             return None
-        from pointflow.ingest import formats
+        from pointflow import formats
 
         try:
             ply = plyfile.PlyData.read(path, mmap="r")
@@ -184,7 +184,7 @@ class _PlyStream(_Input):
         if not isinstance(data, np.memmap) or data.dtype.names is None:
             return None
         lower = {n.lower(): n for n in data.dtype.names}
-        for trio in formats._RGB_NAMES:
+        for trio in formats.base.RGB_NAMES:
             if all(t in lower for t in trio) and any(data.dtype[lower[t]].kind == "f" for t in trio):
                 return None
         dtype, offset, count = data.dtype, int(data.offset), int(data.shape[0])
@@ -192,7 +192,7 @@ class _PlyStream(_Input):
         return cls(path, dtype, offset, count)
 
     def __init__(self, path: str, file_dtype: np.dtype, offset: int, count: int):
-        from pointflow.ingest import formats
+        from pointflow import formats
 
         self.path, self._file_dtype, self._offset, self.count = path, file_dtype, offset, count
         self._names = file_dtype.names
@@ -223,9 +223,9 @@ class _PlyStream(_Input):
         return {n.lower(): n for n in self._names}
 
     def _fields(self, part: np.ndarray):
-        from pointflow.ingest import formats
+        from pointflow import formats
 
-        return formats._split_fields(self.path, self._names,
+        return formats.base.split_fields(self.path, self._names,
                                      lambda nm: part[nm].astype(part.dtype[nm].newbyteorder("=")))
 
     def chunks(self) -> Iterator[np.ndarray]:

@@ -1,10 +1,10 @@
 """LAS point records (laspy's own packed records) to the map's dict of positions and channels,
-the same channels and dtypes as :func:`pointflow.ingest.formats.iter_las` gives a live file."""
+the same channels and dtypes as :func:`pointflow.formats.iter_las` gives a live file."""
 from __future__ import annotations
 
 import numpy as np
 
-from ..ingest.formats import las_record_channels
+from ..formats.las import las_record_channels
 
 
 #: Bytes per point of each decoded LAS channel (see :func:`las_points`).

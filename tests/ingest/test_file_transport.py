@@ -4,7 +4,7 @@ import os
 import numpy as np
 import pytest
 
-from pointflow.ingest import formats
+from pointflow import formats
 from pointflow.ingest.transports import resolve_transport
 from pointflow.ingest.transports.base import InputUnreadable
 
@@ -130,11 +130,11 @@ def test_bad_files_give_clear_errors(tmp_path):
         cls.validate_options({"path": str(tmp_path / "missing.las")}, "sources[0].options", os.getcwd())
     (tmp_path / "x.bin").write_bytes(b"\0" * 10)
     with pytest.raises(formats.FormatError, match="x.bin.*multiple of 16"):
-        formats.read_points(str(tmp_path / "x.bin"))
+        formats.read(str(tmp_path / "x.bin"))
     (tmp_path / "t.ply").write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 100\nproperty float x\n"
                                      b"property float y\nproperty float z\nend_header\n" + b"\0" * 12)
     with pytest.raises(formats.FormatError, match="promises 100 vertices"):
-        formats.read_points(str(tmp_path / "t.ply"))
+        formats.read(str(tmp_path / "t.ply"))
     # a source none of whose files can be read fails, naming them and why (it used to
     # replay nothing and look like a success); looping over them too, instead of spinning
     for name, why, loop in (("x.bin", "multiple of 16", False), ("t.ply", "promises 100 vertices", False),
@@ -180,7 +180,8 @@ def test_progress_goes_to_the_progress_line_and_an_overrun_is_said_once(tmp_path
 
 @pytest.mark.parametrize("size", [10, 4, 17, 31])
 def test_a_short_kitti_file_is_reported_with_its_real_size(tmp_path, size):
-    from pointflow.ingest.formats import FormatError, read_kitti
+    from pointflow.formats import FormatError
+    from pointflow.formats.arrays import read_kitti
 
     p = tmp_path / "short.bin"
     p.write_bytes(bytes(range(size)))

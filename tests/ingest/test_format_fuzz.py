@@ -11,8 +11,8 @@ import re
 import numpy as np
 import pytest
 
-from pointflow.ingest import formats
-from pointflow.ingest.formats import FormatError, read_points
+from pointflow import formats
+from pointflow.formats import FormatError, read as read_points
 
 N_MUT = 1000
 N_PTS = 40

@@ -6,7 +6,7 @@ import struct
 import numpy as np
 import pytest
 
-from pointflow.ingest import formats
+from pointflow import formats
 from pointflow.ingest.transports import resolve_transport
 
 N = 777
@@ -50,8 +50,8 @@ def test_compressed_equals_uncompressed(tmp_path):
     formats.write_pcd(str(tmp_path / "plain.pcd"), pos, {"intensity": inten, "rgb": rgb}, binary=True)
     write_compressed(tmp_path / "packed.pcd", *_pcl_layout(pos, inten, rgb), N)
     assert os.path.getsize(tmp_path / "packed.pcd") != os.path.getsize(tmp_path / "plain.pcd")
-    p0, c0 = formats.read_points(str(tmp_path / "plain.pcd"))
-    p1, c1 = formats.read_points(str(tmp_path / "packed.pcd"))
+    p0, c0 = formats.read(str(tmp_path / "plain.pcd"))
+    p1, c1 = formats.read(str(tmp_path / "packed.pcd"))
     assert np.array_equal(p0, p1) and np.array_equal(p1, pos.astype(np.float64))
     assert set(c0) == set(c1) == {"intensity", "rgb"}
     assert all(np.array_equal(c0[k], c1[k]) for k in c0)
@@ -74,7 +74,7 @@ def test_compressed_mixed_sizes_counts_and_padding(tmp_path):
     write_compressed(tmp_path / "m.pcd", ["x", "y", "z", "ring", "normal", "_"], [8, 8, 8, 2, 4, 1],
                      ["F", "F", "F", "U", "F", "U"], [1, 1, 1, 1, 3, 2],
                      [pos[:, 0], pos[:, 1], pos[:, 2], ring, normal, pad], N)
-    got, ch = formats.read_points(str(tmp_path / "m.pcd"))
+    got, ch = formats.read(str(tmp_path / "m.pcd"))
     assert np.array_equal(got, pos) and np.array_equal(ch["ring"], ring)
 
 
@@ -86,4 +86,4 @@ def test_compressed_sizes_promised_vs_present_are_checked(tmp_path, tamper, msg)
     names, sizes, types, counts, cols = _pcl_layout(pos, inten, rgb)
     write_compressed(tmp_path / "bad.pcd", names, sizes, types, counts, cols, N, tamper=tamper)
     with pytest.raises(formats.FormatError, match="bad.pcd: PCD binary_compressed " + msg):
-        formats.read_points(str(tmp_path / "bad.pcd"))
+        formats.read(str(tmp_path / "bad.pcd"))

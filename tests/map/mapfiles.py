@@ -98,7 +98,7 @@ def write_ply(path: str, n: int, seed: int = 0) -> tuple[np.ndarray, dict]:
 
 
 def write_pcd(path: str, n: int, seed: int = 0) -> tuple[np.ndarray, dict]:
-    from pointflow.ingest.formats import write_pcd as _write
+    from pointflow.formats import write_pcd as _write
 
     rng = np.random.default_rng(seed)
     pos = (terrain(n, seed) - ORIGIN).astype(np.float32)  # PCD holds float32: local coordinates

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from pointflow.config import ConfigError, load_config
-from pointflow.ingest import formats
+from pointflow import formats
 
 from .helpers import small_config
 

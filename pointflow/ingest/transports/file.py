@@ -11,11 +11,11 @@ Two modes:
 ``auto`` picks ``scans`` for several files, ``stream`` for one. ``realtime: false`` sends
 as fast as ingest accepts (the source waits instead of dropping: a replay is lossless).
 Coordinates stay float64 (georeferenced LAS) and the format's channels come along (see
-:mod:`pointflow.ingest.formats`); ``rename`` maps channel names (e.g. Ouster
+:mod:`pointflow.formats`); ``rename`` maps channel names (e.g. Ouster
 ``reflectivity`` -> ``intensity``). Its progress (``transport_progress``, of ``transport_total``
 points) is shown on the progress line of ``pointflow run``, the one place that draws on the terminal;
 the first time it sends more points than the ring holds it says so, once.
-A file that cannot be read (a :class:`~pointflow.ingest.formats.FormatError`, or anything a
+A file that cannot be read (a :class:`~pointflow.formats.FormatError`, or anything a
 reader raises) is logged with the reason, counted (``transport_bad_files``) and skipped: what
 was read before the defect is kept, and the other files go on. When *none* of the source's
 files can be read, :class:`~.base.InputUnreadable` names them and why, and the run fails.
@@ -33,7 +33,7 @@ import numpy as np
 
 from ...chunk import PointChunk
 from ...typed import ConfigError
-from .. import formats
+from ... import formats
 from ..playback import PlaybackClock
 from .base import InputUnreadable, Transport
 
@@ -119,7 +119,7 @@ class FileTransport(Transport):
             elif fmt == "bin":
                 names = {"intensity"}
             elif os.path.getsize(f) <= cls.PEEK_BYTES:
-                names = set(formats.read_points(f, fmt, o.columns)[1])
+                names = set(formats.read(f, fmt, o.columns)[1])
             else:
                 return None
         except Exception:  # noqa: BLE001 - a bad file is reported when it is read, not at load
@@ -171,7 +171,7 @@ class FileTransport(Transport):
         if fmt in ("las", "laz"):
             yield from formats.iter_las(f, cp)
             return
-        pos, ch = formats.read_points(f, fmt, self.o.columns)
+        pos, ch = formats.read(f, fmt, self.o.columns)
         n = pos.shape[0]
         if self.total is None and self.mode == "stream":
             self.total = n
