@@ -206,7 +206,7 @@ def frame_times_inprocess(map_path, cache_dir, budget: int, frames: int, backend
 
     from pointflow.config import EndpointsConfig, RenderConfig
     from pointflow.map import open_map, select_nodes
-    from pointflow.map import region as mr
+    from pointflow.render import mapregion as mr
     from pointflow.render.base import FrameInput
     from pointflow.render.camera import Camera
     from pointflow.render.maplayer import MapLayer

@@ -17,20 +17,21 @@ from typing import Any, Optional
 
 import yaml
 
-from .cadence.config import CadenceConfig, PolicyConfig
+from .cadence.config import ENDPOINTS as CADENCE_ENDPOINTS, CadenceConfig, PolicyConfig
 from .frames.config import FramesConfig, check_frames
-from .ingest.config import IngestConfig, SourceConfig
-from .ingest.playback import PlaybackConfig, check_playback
+from .ingest.config import ENDPOINTS as INGEST_ENDPOINTS, IngestConfig, SourceConfig
+from .ingest.playback import ENDPOINTS as PLAYBACK_ENDPOINTS, PlaybackConfig, check_playback
 from .ingest.transports import resolve_transport
-from .record.config import RecordConfig, check_record
-from .map.config import MapConfig, check_map
+from .record.config import ENDPOINTS as RECORD_ENDPOINTS, RecordConfig, check_record
+from .map.config import ENDPOINTS as MAP_ENDPOINTS, MapConfig, check_map
 from .serve.config import ServeConfig, check_serve
 from .remote.options import SendConfig, check_send, is_loopback_endpoint
 from .remote.zenoh_options import RouterConfig, check_router
 from .profiling.config import TracingConfig
-from .render.config import CameraConfig, EdlConfig, OutputConfig, RenderConfig, check_render
+from .render.config import ENDPOINTS as RENDER_ENDPOINTS, CameraConfig, EdlConfig, OutputConfig, RenderConfig, check_render
 from .ring.config import RingConfig, check_ring
-from .runtime.config import SupervisorConfig
+from .stage.supervision import ENDPOINTS as SUPERVISOR_ENDPOINTS, SupervisorConfig
+from .stage.endpoints import Endpoint
 from .typed import ConfigError, check, check_keys, dataclass_schema, endpoint, load_dataclass
 
 __all__ = ["ConfigError", "PipelineConfig", "load_config", "json_schema", "new_run_dir",
@@ -41,33 +42,19 @@ __all__ = ["ConfigError", "PipelineConfig", "load_config", "json_schema", "new_r
 
 
 # --------------------------------------------------------------------------- sections
-@dataclass
-class EndpointsConfig:
-    """ZeroMQ endpoints of the links between stages; ``None`` = ``ipc://`` in the run dir."""
+#: Every link between stages, each declared beside its stage's section (``ENDPOINTS``).
+ENDPOINTS: tuple[Endpoint, ...] = (*SUPERVISOR_ENDPOINTS, *INGEST_ENDPOINTS, *CADENCE_ENDPOINTS, *RENDER_ENDPOINTS,
+                                   *RECORD_ENDPOINTS, *PLAYBACK_ENDPOINTS, *MAP_ENDPOINTS)
 
-    ingest: Optional[str] = field(default=None, metadata=check(endpoint))
-    frames: Optional[str] = field(default=None, metadata=check(endpoint))
-    release: Optional[str] = field(default=None, metadata=check(endpoint))
-    control: Optional[str] = field(default=None, metadata=check(endpoint))
-    trace: Optional[str] = field(default=None, metadata=check(endpoint))
-    #: Requests to the render stage (pick, save a frame); REP bound by render.
-    render_commands: Optional[str] = field(default=None, metadata=check(endpoint))
-    #: Ingest -> recorder (only with ``record:``); PULL bound by the recorder.
-    record: Optional[str] = field(default=None, metadata=check(endpoint))
-    #: Replay control of the sources that read recordings (REP bound by each; ``-<index>``
-    #: is added per source, or the index to a tcp port): ingest/playback.py.
-    playback: Optional[str] = field(default=None, metadata=check(endpoint))
-    #: Transforms for a camera that follows a frame (only with ``frames.fixed``): PULL bound
-    #: by render, every source PUSHes the transforms it sends ingest here too.
-    view_transforms: Optional[str] = field(default=None, metadata=check(endpoint))
-    #: Map stage <-> render (only with ``map:``; docs/map.md): map region versions (PULL bound
-    #: by render) and the render stage's cameras and acknowledgements (PULL bound by the map stage).
-    map: Optional[str] = field(default=None, metadata=check(endpoint))
-    map_camera: Optional[str] = field(default=None, metadata=check(endpoint))
-    #: The view server's views (only with ``serve:``): ROUTER bound by render, DEALER of the view server.
-    views: Optional[str] = field(default=None, metadata=check(endpoint))
-    #: Allow these (unencrypted) endpoints on a non-loopback tcp:// address.
-    insecure: bool = False
+#: The ``endpoints:`` section: one optional ZeroMQ endpoint per link (``None`` = ``ipc://``
+#: in the run dir), made from the declarations, and ``insecure``: allow these (unencrypted)
+#: endpoints on a non-loopback tcp:// address.
+EndpointsConfig = dataclasses.make_dataclass(
+    "EndpointsConfig",
+    [(e.name, Optional[str], field(default=None, metadata=check(endpoint))) for e in ENDPOINTS]
+    + [("insecure", bool, field(default=False))],
+    namespace={"__module__": __name__,
+               "__doc__": "ZeroMQ endpoints of the links between stages; ``None`` = ``ipc://`` in the run dir."})
 
 
 @dataclass
@@ -79,7 +66,7 @@ class PipelineConfig:
     cadence: CadenceConfig = field(default_factory=CadenceConfig)
     policy: PolicyConfig = field(default_factory=PolicyConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
-    endpoints: EndpointsConfig = field(default_factory=EndpointsConfig)
+    endpoints: EndpointsConfig = field(default_factory=EndpointsConfig)  # type: ignore[valid-type]
     tracing: TracingConfig = field(default_factory=TracingConfig)
     supervisor: SupervisorConfig = field(default_factory=SupervisorConfig)
     #: Where ``pointflow send`` publishes the sources (docs/remote.md); unused by ``run``.
@@ -125,18 +112,11 @@ class PipelineConfig:
             names.append("source_index")
         return names
 
-    def resolved_endpoints(self, run_dir: str) -> EndpointsConfig:
+    def resolved_endpoints(self, run_dir: str) -> Any:
+        """The :data:`EndpointsConfig` of a run: each link's own or ``ipc://`` in ``run_dir``."""
         e = self.endpoints
-        d = lambda n: f"ipc://{os.path.join(run_dir, n)}.sock"
-        return EndpointsConfig(
-            ingest=e.ingest or d("ingest"), frames=e.frames or d("frames"),
-            release=e.release or d("release"), control=e.control or d("control"),
-            trace=e.trace or d("trace"), render_commands=e.render_commands or d("render-commands"),
-            record=e.record or d("record"), playback=e.playback or d("playback"),
-            view_transforms=e.view_transforms or d("view-transforms"),
-            map=e.map or d("map"), map_camera=e.map_camera or d("map-camera"),
-            views=e.views or d("views"),
-        )
+        return EndpointsConfig(**{x.name: getattr(e, x.name) or f"ipc://{os.path.join(run_dir, x.socket)}.sock"
+                                  for x in ENDPOINTS})
 
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
@@ -190,8 +170,7 @@ def _check_semantics(cfg: PipelineConfig) -> None:
     check_playback(cfg.playback, "playback")
     if cfg.view is not None:
         _apply_view(cfg)
-    for key in ("ingest", "frames", "release", "control", "trace", "render_commands", "record", "playback",
-                "view_transforms", "views", "map", "map_camera"):
+    for key in (x.name for x in ENDPOINTS):
         ep = getattr(e, key)
         if ep and not e.insecure and not is_loopback_endpoint(ep):
             raise ConfigError(f"endpoints.{key}", f"{ep} is reachable from other hosts and the links between "

@@ -5,7 +5,13 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal, Optional
 
+from ..stage.endpoints import Endpoint
 from ..typed import at_least_one, check, non_negative, positive
+
+
+#: The cadence's links with render: the frames it hands on and the slabs render gives back.
+ENDPOINTS = (Endpoint("frames", "frames", "cadence -> render: frame messages"),
+             Endpoint("release", "release", "render -> cadence: slabs released, hello and frame reports"))
 
 
 @dataclass

@@ -23,7 +23,6 @@ import os
 from dataclasses import asdict, dataclass, field
 from typing import Any, Literal, Optional
 
-from ..config import PipelineConfig
 
 log = logging.getLogger("pointflow.policy")
 
@@ -193,9 +192,11 @@ def detect_tier(hw: HardwareInfo) -> tuple[Tier, list[str]]:
 
 
 # --------------------------------------------------------------------------- resolution
-def resolve_policy(cfg: PipelineConfig, *, hardware: Optional[HardwareInfo] = None,
+def resolve_policy(cfg: Any, *, hardware: Optional[HardwareInfo] = None,
                    probe_gpu: bool = True) -> PolicyDecision:
-    """Apply tier, mode, legacy, constraints, view, GPU and ring caps; log every cap applied."""
+    """Apply tier, mode, legacy, constraints, view, GPU and ring caps; log every cap applied.
+    ``cfg``: the run's :class:`pointflow.config.PipelineConfig` (the loader sits above the
+    stages, so it is not imported here)."""
     p = cfg.policy
     reasons: list[str] = []
     if p.tier in TIERS:
@@ -256,7 +257,7 @@ def resolve_policy(cfg: PipelineConfig, *, hardware: Optional[HardwareInfo] = No
     return decision
 
 
-def tick_interval_ms(cfg: PipelineConfig, decision: PolicyDecision, frame_ema_ms: Optional[float] = None) -> float:
+def tick_interval_ms(cfg: Any, decision: PolicyDecision, frame_ema_ms: Optional[float] = None) -> float:
     """The cadence period. Fixed: ``1000 / target_hz``. Adaptive:
     ``min(200, max(policy cadence, 2 x renderer frame-time EMA))``. ``update_cadence_min_ms``
     is a hard floor in both (it wins over the 200 ms ceiling)."""

@@ -21,7 +21,6 @@ from typing import Any, Optional
 import numpy as np
 import zmq
 
-from ..config import PipelineConfig
 from ..stage.kinds import StageKind, register_stage_kind
 from .messages import ControlMessageError, FrameTime, Hello, Idle, decode_control
 from .policy import HardwareInfo, PolicyDecision, detect_hardware, resolve_policy, tick_interval_ms
@@ -69,7 +68,7 @@ class Cadence:
     """
 
     def __init__(self, ring, slabs, ready_sock: zmq.Socket, release_sock: zmq.Socket, zctx: zmq.Context,
-                 cfg: PipelineConfig, decision: PolicyDecision, *, spans: Any = None,
+                 cfg: Any, decision: PolicyDecision, *, spans: Any = None,
                  clock: Clock = time.monotonic, sleep: Sleep = time.sleep,
                  log: Optional[logging.Logger] = None, latest_only: bool = True,
                  wait_for_renderer: bool = False):
@@ -337,7 +336,7 @@ def main(ctx) -> None:
     """Stage entry point (``pointflow.cadence.process:main``)."""
     from ..ring import PointRing, SlabPair  # noqa: PLC0415
 
-    cfg: PipelineConfig = ctx.cfg
+    cfg = ctx.cfg  # the run's PipelineConfig
     ring = PointRing.attach(ctx.info.ring_name)
     slabs = SlabPair.attach(ctx.info.slab_names)
     release = ctx.zmq.socket(zmq.PULL)

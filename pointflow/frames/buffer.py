@@ -16,8 +16,8 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from .rotation import normalise, slerp, to_matrix
 from ..errors import Error
+from .rotation import normalise, slerp, to_matrix
 
 #: Default history kept per dynamic edge (tf2's default cache time).
 HISTORY_NS = 10_000_000_000

@@ -5,7 +5,12 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, Optional
 
+from ..stage.endpoints import Endpoint
 from ..typed import at_least_one, check
+
+
+#: Ingest's link: sources -> ingest (PULL bound by ingest).
+ENDPOINTS = (Endpoint("ingest", "ingest", "sources -> ingest (PULL bound by ingest)"),)
 
 
 @dataclass

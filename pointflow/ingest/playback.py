@@ -30,13 +30,19 @@ import math
 import time
 from typing import Any, Iterator, Optional, Union
 
-from ..typed import ConfigError
 from ..errors import KeyedError
+from ..stage.endpoints import Endpoint
+from ..typed import ConfigError
 
 __all__ = ["PlaybackClock", "PlaybackConfig", "PlaybackError", "playback_endpoint", "check_playback"]
 
 #: Longest single sleep while waiting (the stage beats and serves commands in between).
 _SLICE_S = 0.02
+
+
+#: Replay control of the sources that read recordings (REP bound by each; ``-<index>`` is
+#: added per source, or the index to a tcp port).
+ENDPOINTS = (Endpoint("playback", "playback", "replay control (REP bound by each replaying source)"),)
 
 
 class PlaybackError(KeyedError):

@@ -59,7 +59,7 @@ KIND = register_stage_kind(StageKind(
               # points a killed ingest wrote into the ring but never reported (reconciled from
               # the ring's own counter, runtime/accounting.py)
               "unreported_written"),
-    accounting="pointflow.runtime.accounting:ingest_identities"))
+    accounting="pointflow.ingest.accounting:ingest_identities"))
 
 #: On stop, drain the ingest socket until it is quiet this long, for at most STOP_GRACE_S.
 STOP_QUIET_S = 0.15

@@ -7,7 +7,14 @@ import os
 from dataclasses import dataclass, field
 from typing import Optional, Union
 
+from ..stage.endpoints import Endpoint
 from ..typed import ConfigError, Length, at_least_one, check, positive
+
+
+#: Map stage <-> render (only with ``map:``; docs/map.md): map region versions (PULL bound
+#: by render) and the render stage's cameras and acknowledgements (PULL bound by the map stage).
+ENDPOINTS = (Endpoint("map", "map", "map stage -> render: region versions (PULL bound by render)"),
+             Endpoint("map_camera", "map-camera", "render -> map stage: cameras, acks (PULL bound by the map stage)"))
 
 
 @dataclass
@@ -90,9 +97,3 @@ def not_a_point_file(path: str) -> Optional[str]:
         return (f"not a {kind} file (it is empty): {path}" if not head else
                 f"not a {kind} file (it does not start with {_MAGIC[ext][0]!r}): {path}")
     return None
-
-
-def map_slots(cfg) -> int:
-    """Extra slots the render stage draws after the ring's (0 without a map)."""
-    mc = getattr(cfg, "map", None)
-    return int(mc.point_budget) if mc is not None else 0

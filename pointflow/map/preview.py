@@ -14,7 +14,7 @@ from typing import Optional
 import numpy as np
 import zmq
 
-from . import region as mr
+from ..render import mapregion as mr
 
 
 class Preview:

@@ -4,7 +4,7 @@ It opens the files (COPC through its own hierarchy, others through their level-o
 index, :mod:`pointflow.map`), takes the render stage's cameras (every view's; the main view
 first), chooses nodes by projected size within ``map.point_budget``, coarse first, loads them
 (decoded nodes are kept in a bounded cache) and puts their points into the map region
-(:mod:`pointflow.map.region`), a version at a time: loading happens here, in its own
+(:mod:`pointflow.render.mapregion`), a version at a time: loading happens here, in its own
 process, so a camera move never stalls a frame. While the camera is still it goes on
 refining; nodes that left every view are cleared. A bad file is a one-line error, counted
 (``map_error``), and the stage idles: the live part of the pipeline goes on.
@@ -20,7 +20,7 @@ import numpy as np
 import zmq
 
 from ..stage.kinds import StageKind, register_stage_kind
-from . import region as mr
+from ..render import mapregion as mr
 from .config import MapConfig
 
 #: Starts after the render stage (it binds the map endpoint this stage connects to) and

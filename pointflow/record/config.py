@@ -9,7 +9,12 @@ import tempfile
 from dataclasses import dataclass, field
 from typing import Literal, Optional
 
+from ..stage.endpoints import Endpoint
 from ..typed import ConfigError, at_least_one, check, non_negative, positive
+
+
+#: Ingest -> recorder (only with ``record:``); PULL bound by the recorder.
+ENDPOINTS = (Endpoint("record", "record", "ingest -> recorder (PULL bound by the recorder)"),)
 
 
 @dataclass

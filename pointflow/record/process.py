@@ -54,7 +54,7 @@ def wanted(cfg) -> bool:
 KIND = register_stage_kind(StageKind(
     name="recorder", main="pointflow.record.process:main", start_order=25, stop_wave=2,
     counters=("record_messages", "record_files", "record_bytes", "record_transforms", "rejected_messages"),
-    accounting="pointflow.runtime.accounting:record_identities", wanted="pointflow.record.process:wanted"))
+    accounting="pointflow.record.accounting:record_identities", wanted="pointflow.record.process:wanted"))
 
 STOP_QUIET_S = 0.2
 STOP_GRACE_S = 3.0

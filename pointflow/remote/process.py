@@ -8,7 +8,7 @@ from ..stage.kinds import StageKind, register_stage_kind
 #: reported in (a short replay is not over before anyone listens).
 KIND = register_stage_kind(StageKind(
     name="sender", main="pointflow.remote.process:main", start_order=35, stop_wave=1, roles=("send",),
-    await_ready=True, counters=("rejected_messages",), accounting="pointflow.runtime.accounting:send_identities"))
+    await_ready=True, counters=("rejected_messages",), accounting="pointflow.remote.accounting:send_identities"))
 
 
 def main(ctx) -> None:

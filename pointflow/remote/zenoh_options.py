@@ -22,8 +22,8 @@ import re
 from dataclasses import field
 from typing import TYPE_CHECKING, Any, Literal, Optional
 
-from ..typed import ConfigError, Each, Prefix, check, positive
 from ..errors import Error
+from ..typed import ConfigError, Each, Prefix, check, positive
 
 if TYPE_CHECKING:  # zenoh is imported where a session opens: a config check needs no engine
     import zenoh

@@ -21,9 +21,9 @@ from typing import Any, ClassVar, Optional
 
 import numpy as np
 
-from .config import RenderConfig
-from .camera import Camera
 from ..errors import Error
+from .camera import Camera
+from .config import RenderConfig
 
 #: A half-open range of ring slots.
 Range = tuple[int, int]

@@ -8,7 +8,17 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import ClassVar, Literal, Optional, Union
 
+from ..stage.endpoints import Endpoint
 from ..typed import Bound, ConfigError, Each, Length, at_least_one, check, non_negative, positive
+
+
+#: The render stage's links: requests to it (pick, save a frame; REP bound by render), the
+#: transforms of a camera that follows a frame (only with ``frames.fixed``: PULL bound by
+#: render, every source PUSHes the transforms it sends ingest here too), and the view
+#: server's views (only with ``serve:``: ROUTER bound by render, DEALER of the view server).
+ENDPOINTS = (Endpoint("render_commands", "render-commands", "requests to render (REP bound by render)"),
+             Endpoint("view_transforms", "view-transforms", "sources -> render: transforms (PULL bound by render)"),
+             Endpoint("views", "views", "view server <-> render (ROUTER bound by render)"))
 
 
 @dataclass

@@ -37,10 +37,10 @@ from typing import Any, Optional
 
 import numpy as np
 
+from ..errors import KeyedError
 from . import colormap
 from .camera import Camera, OrbitController
 from .config import MAX_SCREEN_POINT_PX
-from ..errors import KeyedError
 
 __all__ = ["ControlError", "ViewState", "CameraState", "StyleState", "apply", "COMMANDS", "BUILTIN_COLOR",
            "load_view_block", "view_block", "style_render_config", "MAX_POINT_SIZE_PX",

@@ -8,7 +8,7 @@ copy kept current range by range: the ring's dirty ranges (and slots that became
 occupied) are copied from the slab, unoccupied ring slots and empty map slots hold NaN
 positions (every tier skips non-finite positions; they are not counted as ``nonfinite``),
 and the map slots change only when a map version message arrives
-(:mod:`pointflow.map.region`). World positions are converted to float32 offsets from the
+(:mod:`pointflow.render.mapregion`). World positions are converted to float32 offsets from the
 frame's origin in float64, so a georeferenced map and live points share one origin (the
 ring's; the map's own while the ring is empty). Map points carry ingest time +inf (a time
 window never hides them) and importance +inf (importance sampling keeps them: the map is
@@ -23,7 +23,7 @@ from typing import Optional
 import numpy as np
 import zmq
 
-from ..map import region as mr
+from . import mapregion as mr
 from .base import FrameInput, merge_ranges
 
 

@@ -765,7 +765,7 @@ def prepare(cfg, info, log) -> Optional[Renderer]:
     ring = PointRing.attach(info.ring_name)
     slabs = SlabPair.attach(info.slab_names)
     try:
-        from ..map.config import map_slots
+        from .mapregion import map_slots
 
         capacity = ring.layout.capacity + map_slots(cfg)  # a map's slots follow the ring's
         renderer = _select(cfg, capacity, [c.name for c in ring.layout.channels], log)

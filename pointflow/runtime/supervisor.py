@@ -29,13 +29,14 @@ from typing import Any, Optional
 import zmq
 
 from ..config import PipelineConfig, new_run_dir
-from .accounting import RING_WRITER, accounting, counter_names, merge_counts, reconcile_ring_writer
+from ..errors import Error, KeyedError, from_fields
+from ..stage.accounting import RING_WRITER
+from ..stage.context import RunInfo
 from ..stage.kinds import StageKind, resolve, role_kinds, stage_kind
+from .accounting import accounting, counter_names, merge_counts, reconcile_ring_writer
 from .launch import spawn_stage
 from .liveness import hang_reason
-from ..stage.context import RunInfo
 from .stagestate import StageProc, describe_exit
-from ..errors import Error, KeyedError, from_fields
 
 log = logging.getLogger("pointflow.supervisor")
 #: The kind with one stage per configured source (and the ``api`` sources in this process).

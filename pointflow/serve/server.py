@@ -41,11 +41,11 @@ from typing import Any, Optional
 import zmq
 import zmq.asyncio
 
+from ..errors import Error
 from ..render.control import ControlError, number, printable
 from .auth import COOKIE, check_host, check_origin, check_token, cookie_name, machine_names
 from .config import ServeConfig
 from .encode import encode_frame
-from ..errors import Error
 
 log = logging.getLogger("pointflow.serve")
 

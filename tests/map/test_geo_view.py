@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from pointflow.config import RenderConfig
-from pointflow.map import region as mr
+from pointflow.render import mapregion as mr
 from pointflow.render.base import FrameInput
 from pointflow.render.camera import APART_FACTOR, Camera, clip_planes, project_to_pixels
 from pointflow.render.maplayer import MapLayer

@@ -95,7 +95,7 @@ def test_a_preview_is_drawn_then_dropped_when_the_map_fails(tmp_path):
 
     import zmq
 
-    from pointflow.map import region as mr
+    from pointflow.render import mapregion as mr
     from pointflow.map.preview import Preview
     from pointflow.render.maplayer import MapLayer
 

@@ -19,7 +19,7 @@ import zmq
 
 from pointflow.config import EndpointsConfig, RenderConfig
 from pointflow.map import open_map
-from pointflow.map import region as mr
+from pointflow.render import mapregion as mr
 from pointflow.map.config import MapConfig
 from pointflow.map.process import Server, kept_channels
 from pointflow.render.base import FrameInput

@@ -1,7 +1,7 @@
 """One picture, at the render stage's map layer: live ring points and map points composed into
 one frame (render/maplayer.py) draw exactly the picture of one ring holding both, in every
 tier; picking names the map file or the live source. The map side is a real map region
-written by :class:`pointflow.map.region.MapRegion` and a real ZeroMQ version message."""
+written by :class:`pointflow.render.mapregion.MapRegion` and a real ZeroMQ version message."""
 from __future__ import annotations
 
 import dataclasses
@@ -22,7 +22,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(__file__)))
 from gpu_util import require_adapter, require_egl  # noqa: E402
 
 from pointflow.config import EdlConfig, EndpointsConfig, RenderConfig  # noqa: E402
-from pointflow.map import region as mr  # noqa: E402
+from pointflow.render import mapregion as mr  # noqa: E402
 from pointflow.render.base import FrameInput  # noqa: E402
 from pointflow.render.camera import Camera  # noqa: E402
 from pointflow.render.maplayer import MapLayer, occupied_ranges, xor_ranges  # noqa: E402

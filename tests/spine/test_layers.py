@@ -91,8 +91,21 @@ def test_transports_do_not_import_config():
     assert not offenders
 
 
+def test_no_stage_imports_the_config_loader():
+    """The loader assembles the stages' sections, so it sits above them (issue 38.5): a
+    stage gets its config in its context and imports only its own section."""
+    stages = ("ingest", "cadence", "render", "record", "remote", "serve", "notebook", "map", "formats", "stage")
+    g = _graph()
+    offenders = sorted(m for m, deps in g.items() if "pointflow.config" in deps
+                       and any(m == f"pointflow.{s}" or m.startswith(f"pointflow.{s}.") for s in stages))
+    assert not offenders, offenders
+
+
 def test_typed_loader_is_the_bottom_layer():
-    assert not _graph()["pointflow.typed"], "pointflow.typed must import nothing of pointflow"
+    g = _graph()
+    # the error root (ConfigError is a pointflow.errors.KeyedError) is the one floor below it
+    assert g["pointflow.typed"] <= {"pointflow.errors"}, "pointflow.typed must import nothing of pointflow but errors"
+    assert not g["pointflow.errors"], "pointflow.errors must import nothing of pointflow"
 
 
 def test_no_render_tier_imports_another_tier():
@@ -110,40 +123,42 @@ def test_no_render_tier_imports_another_tier():
 # Layers, low to high: a module imports its own layer or lower ones. Most specific prefix
 # wins; a module not named takes its package's layer.
 LAYERS = {
-    # the bottom: the typed loader, the chunk, its wire format and codecs
-    "pointflow.typed": 0, "pointflow._lazy": 0, "pointflow.chunk": 0, "pointflow.codec": 0, "pointflow.wire": 0,
+    # the bottom: the typed loader, the error root, the chunk, its wire format and codecs
+    "pointflow.typed": 0, "pointflow._lazy": 0, "pointflow.errors": 0, "pointflow.chunk": 0, "pointflow.codec": 0,
+    "pointflow.wire": 0,
     # numba's cache of the compiled loops (render and frames use it; imports nothing of pointflow)
     "pointflow.jitcache": 0,
-    # shared data structures
-    "pointflow.ring": 1, "pointflow.frames": 1, "pointflow.profiling": 1,
-    # config sections of the packages above the loader, each owned by its package, which
-    # the loader assembles (ring/config.py and frames/config.py sit in their own layer)
-    "pointflow.record.config": 2, "pointflow.ingest.config": 2, "pointflow.ingest.playback": 2,
-    "pointflow.cadence.config": 2, "pointflow.runtime.config": 2, "pointflow.map.config": 2,
-    "pointflow.serve.config": 2, "pointflow.remote.options": 2, "pointflow.remote.keys": 2,
-    "pointflow.remote.zenoh_options": 2, "pointflow.render.config": 2, "pointflow.render.control": 2,
-    "pointflow.render.camera": 2,
-    "pointflow.render.colormap": 2,
-    # the loader, the schema, the top-level assembly
-    "pointflow.config": 3,
+    # shared data structures and the point-file readers
+    "pointflow.ring": 1, "pointflow.frames": 1, "pointflow.profiling": 1, "pointflow.formats": 1,
     # the stage kit: what a stage is and what every stage process shares (context, kinds,
-    # counters, console), below every stage
-    "pointflow.stage": 4,
+    # counters, endpoints, console), below every stage and its config section
+    "pointflow.stage": 2,
+    # config sections of the packages above the loader, each owned by its package (with the
+    # endpoints its stage binds), which the loader assembles (ring/config.py and
+    # frames/config.py sit in their own layer)
+    "pointflow.record.config": 3, "pointflow.ingest.config": 3, "pointflow.ingest.playback": 3,
+    "pointflow.cadence.config": 3, "pointflow.map.config": 3,
+    "pointflow.serve.config": 3, "pointflow.remote.options": 3, "pointflow.remote.keys": 3,
+    "pointflow.remote.zenoh_options": 3, "pointflow.render.config": 3, "pointflow.render.control": 3,
+    "pointflow.render.camera": 3,
+    "pointflow.render.colormap": 3,
     # the stages
-    "pointflow.ingest": 5, "pointflow.cadence": 5, "pointflow.render": 5, "pointflow.record": 5,
-    "pointflow.remote": 5, "pointflow.serve": 5,
+    "pointflow.ingest": 4, "pointflow.cadence": 4, "pointflow.render": 4, "pointflow.record": 4,
+    "pointflow.remote": 4, "pointflow.serve": 4,
     # the notebook view: a client of the render stage's views, beside the view server
-    "pointflow.notebook": 5,
-    # the map library reads files with ingest's readers; its stage draws through render
-    "pointflow.map": 5,
-    # running them: lifecycle, accounting, liveness, the Python API
+    "pointflow.notebook": 4,
+    # the map library reads files with the readers of pointflow.formats; its stage draws through render
+    "pointflow.map": 4,
+    # the loader, the schema, the top-level assembly of the stages' sections: above the
+    # stages (no stage imports it; a stage's loop gets its config in its context)
+    "pointflow.config": 5,
+    # running them: lifecycle, launch, accounting, liveness, the Python API
     "pointflow.runtime": 6,
     # faces: the command line, the client, quick views, the package itself
     "pointflow.client": 7, "pointflow.quickshow": 7, "pointflow.cli": 7, "pointflow": 7,
 }
-#: The one import upward: the config loader resolves transports (the registry) to check
-#: their options with their own schema.
-UPWARD_ALLOWED = {("pointflow.config", "pointflow.ingest.transports")}
+#: No import runs upward.
+UPWARD_ALLOWED: set[tuple[str, str]] = set()
 
 
 def _layer(mod: str) -> int:
@@ -154,8 +169,7 @@ def _layer(mod: str) -> int:
 
 
 def test_no_module_imports_a_layer_above_it():
-    """Imports run one way (issue 27): no module imports a package above it, other than
-    the config loader's transport registry."""
+    """Imports run one way (issue 27, 38): no module imports a package above it."""
     g = _graph()
     bad = sorted((m, d) for m, deps in g.items() for d in deps
                  if d != "pointflow" and _layer(d) > _layer(m) and (m, d) not in UPWARD_ALLOWED)

@@ -40,10 +40,10 @@ import zmq
 
 from ... import wire
 from ...chunk import SUPPORTED_DTYPES, PointChunk, new_trace_id
+from ...errors import Error
 from ...frames import message as tfmsg
 from ...typed import Bound, check
 from .base import Transport
-from ...errors import Error
 
 #: Messages ZeroMQ queues towards ingest before ``block`` waits (as a source stage's SEND_HWM).
 SEND_HWM = 64

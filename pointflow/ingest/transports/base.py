@@ -15,8 +15,8 @@ from abc import ABC, abstractmethod
 from typing import Any, Callable, ClassVar, Iterator, Optional
 
 from ...chunk import ChunkError, PointChunk
-from ...typed import ConfigError, load_dataclass
 from ...errors import Error
+from ...typed import ConfigError, load_dataclass
 
 
 class InputUnreadable(Error):

@@ -19,11 +19,11 @@ from typing import Any, Iterator, Optional
 from urllib.parse import urlsplit
 
 from ...chunk import PointChunk
+from ...errors import Error
 from ...typed import ConfigError
 from ..jsonchunk import parse_json_chunk
 from ._backoff import Backoff, NetworkOptions
 from .base import Transport
-from ...errors import Error
 
 log = logging.getLogger("pointflow.transport.sse")
 

@@ -16,7 +16,7 @@ from typing import Any, ClassVar, Optional
 
 import numpy as np
 
-from ....config import RenderConfig
+from ...config import RenderConfig
 from .. import sources
 from ..layout import PARAMS_DTYPE
 

@@ -130,3 +130,10 @@ def camera_dict(view: str, camera, width: int, height: int) -> dict:
 
 def ranges_total(rs: Iterable) -> int:
     return int(sum(int(b) - int(a) for a, b in rs))
+
+
+def map_slots(cfg) -> int:
+    """Extra slots the render stage draws after the ring's (0 without a map): the map's
+    ``point_budget``; ``cfg`` is the run's PipelineConfig."""
+    mc = getattr(cfg, "map", None)
+    return int(mc.point_budget) if mc is not None else 0

@@ -1,10 +1,18 @@
-"""The ``supervisor:`` section: heartbeats, hang and stall limits, restarts, standbys
-(docs/reliability.md; the loader, pointflow/config.py, assembles it)."""
+"""The supervision contract, the ``supervisor:`` section: how often a stage beats, what
+silence and stalls the supervisor judges hung, restarts, standbys (docs/reliability.md),
+and the links every stage reports on. Both sides read it: a stage's context beats at
+``heartbeat_ms``, the supervisor (pointflow/runtime/) judges; the loader assembles it."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from ..stage.endpoints import Endpoint
 from ..typed import check, non_negative, positive
+
+
+#: The supervisor's links (PULL bound by the supervisor; every stage PUSHes).
+ENDPOINTS = (Endpoint("control", "control", "stages -> supervisor: heartbeats, pulses, errors"),
+             Endpoint("trace", "trace", "stages -> supervisor: profiling spans"))
 
 
 @dataclass
