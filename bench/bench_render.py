@@ -396,7 +396,7 @@ def cpu_raster(sizes: list[int], reps: dict[int, int]) -> dict[str, Any]:
     intensity. Also the compiled method at 1 thread and at every thread numba has."""
     import numba
 
-    from pointflow.render import cpu_kernels
+    from _harness.cpu_floor import floor_kernel
     from pointflow.render.cpu_compute import CHUNKS_PER_THREAD, TUNE_FRAMES, CpuComputeRenderer
     machine = _harness.machine()
     adapter, why = select_adapter()
@@ -420,7 +420,7 @@ def cpu_raster(sizes: list[int], reps: dict[int, int]) -> dict[str, Any]:
         finally:
             del os.environ["POINTFLOW_CPU_RASTER_SPLIT"]
         wg = WgpuRenderer(replace(cfg, raster="compute"), n, ["intensity"], adapter=adapter) if adapter else None
-        kern = cpu_kernels.load()
+        floor_loop = floor_kernel()
         vp = np.ascontiguousarray(cam.view_proj(W, H, f.origin), np.float64)
         fpos = np.ascontiguousarray(f.positions, np.float32)
 
@@ -431,7 +431,7 @@ def cpu_raster(sizes: list[int], reps: dict[int, int]) -> dict[str, Any]:
             prev = numba.set_parallel_chunksize(1)  # as the renderer runs its raster pass
             numba.set_num_threads(T)
             try:
-                kern.floor(keys, T, C, cc.bands, fpos, n, 0, n, W, H, vp, 1.0)
+                floor_loop(keys, T, C, cc.bands, fpos, n, 0, n, W, H, vp, 1.0)
             finally:
                 numba.set_parallel_chunksize(prev)
                 numba.set_num_threads(threads)

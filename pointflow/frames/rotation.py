@@ -60,12 +60,6 @@ def slerp(q0: np.ndarray, q1: np.ndarray, a: np.ndarray) -> np.ndarray:
     return normalise(w0 * q0 + w1 * q1)
 
 
-def angle_between(q0: np.ndarray, q1: np.ndarray) -> np.ndarray:
-    """Rotation angle (radians) from q0 to q1."""
-    d = np.abs(np.sum(np.asarray(q0) * np.asarray(q1), axis=-1))
-    return 2.0 * np.arccos(np.clip(d, -1.0, 1.0))
-
-
 def from_matrix(R: np.ndarray) -> np.ndarray:
     """A rotation matrix -> its (x, y, z, w) unit quaternion (Shepperd's method)."""
     R = np.asarray(R, np.float64)

@@ -545,47 +545,6 @@ def _edl(logz, img, offsets, k_shade):
             img[y, x] = r | (g << np.uint32(8)) | (bl << np.uint32(16)) | (c & np.uint32(0xFF000000))
 
 
-def _floor(keys, T, C, bands, pos, size, head, cap, W, H, vp, half_px):
-    """The benchmark's bare floor: the same threads, split and chunks, projection and key
-    write as :func:`_raster`, no rules (no tests but w > 0, square footprint, no colour, no
-    resolve)."""
-    if not bands:
-        for r in numba.prange(T * H):
-            t = r // H
-            y = r - t * H
-            for i in range(y * W, (y + 1) * W):
-                keys[t, i] = EMPTY
-    for c in numba.prange(C):
-        if bands:
-            kb = keys[0]
-            ylo = H * c // T
-            yhi = H * (c + 1) // T
-            for i in range(ylo * W, yhi * W):
-                kb[i] = EMPTY
-            a = 0
-            b = size
-        else:
-            kb = keys[numba.get_thread_id()]
-            ylo = 0
-            yhi = H
-            a = size * c // C
-            b = size * (c + 1) // C
-        for logical in range(a, b):
-            slot = head + logical
-            if slot >= cap:
-                slot -= cap
-            x = np.float64(pos[slot, 0])
-            y = np.float64(pos[slot, 1])
-            z = np.float64(pos[slot, 2])
-            w = vp[3, 0] * x + vp[3, 1] * y + vp[3, 2] * z + vp[3, 3]
-            if not w > 0.0:
-                continue
-            cx = vp[0, 0] * x + vp[0, 1] * y + vp[0, 2] * z + vp[0, 3]
-            cy = vp[1, 0] * x + vp[1, 1] * y + vp[1, 2] * z + vp[1, 3]
-            _splat(kb, logical, cx, cy, w, W, H, half_px, False, 0.0, False, ylo, yhi)
-
-
-
 # --------------------------------------------------------------------------- binned raster (split "bins")
 #: a box taller than this many bands goes to every band's shared bucket (bucket NB), once
 MAX_BANDS_PER_POINT = 4
@@ -1082,7 +1041,7 @@ def _compile(cache: bool) -> Kernels:
     for name in ("_band", "_bin_sq"):  # called from parallel loops, each compiled on its own
         g[name] = nb.njit(**opts)(g[name])
     out = {}
-    for name in ("_raster", "_select", "_thin", "_cap", "_resolve", "_edl", "_floor", "_bin", "_bands",
+    for name in ("_raster", "_select", "_thin", "_cap", "_resolve", "_edl", "_bin", "_bands",
                  "_batch_stats"):
         out[name[1:]] = nb.njit(parallel=True, **opts)(g[name])
     out["resolve_scalar_1"] = nb.njit(**opts)(g["_resolve_scalar"])  # one thread: prange runs as range
@@ -1090,7 +1049,7 @@ def _compile(cache: bool) -> Kernels:
     return Kernels(**out)
 
 
-#: the loops a render stage runs (``floor`` is the benchmark's bare floor): all cached = ready
+#: the loops a render stage runs: all cached = ready
 REQUIRED = ("raster", "select", "thin", "cap", "resolve", "edl", "resolve_scalar_1", "bin", "bands", "batch_stats",
             "keys_rows")
 

@@ -27,7 +27,7 @@ from __future__ import annotations
 import json
 import mmap
 import os
-from typing import Iterable, Optional
+from typing import Optional
 
 import numpy as np
 
@@ -126,10 +126,6 @@ def camera_dict(view: str, camera, width: int, height: int) -> dict:
     return {"view": view, "eye": [float(v) for v in camera.eye], "target": [float(v) for v in camera.target],
             "up": [float(v) for v in camera.up], "fov_deg": float(camera.fov_deg), "near": float(camera.near),
             "far": float(camera.far), "width": int(width), "height": int(height)}
-
-
-def ranges_total(rs: Iterable) -> int:
-    return int(sum(int(b) - int(a) for a, b in rs))
 
 
 def map_slots(cfg) -> int:
