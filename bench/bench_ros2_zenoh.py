@@ -1,7 +1,7 @@
 """ROS 2 over rmw_zenoh: Ouster-size PointCloud2 through a Zenoh router into the ``ros2_zenoh``
 transport, against the engine alone in the same run.
 
-A router process and a publisher process behaving as rmw_zenoh's (``pointflow/ingest/rmw_zenoh_pub.py``)
+A router process and a publisher process behaving as rmw_zenoh's (``pointflow/testing/rmw_zenoh_pub.py``)
 send ``--messages`` clouds of 131,072 points (48-byte points, 6.3 MB of CDR each) as fast as
 Zenoh takes them. Two receivers, interleaved over ``--repeats``:
 
@@ -34,9 +34,9 @@ import numpy as np
 
 import _harness as H
 from pointflow.ingest import rmw_zenoh as rz
-from pointflow.ingest import rmw_zenoh_pub as P
+from pointflow.testing import rmw_zenoh_pub as P
 from pointflow.ingest.transports import resolve_transport
-from pointflow.runtime.testing import LineProc, free_port
+from pointflow.testing import LineProc, free_port
 
 TOPIC = "/ouster/points"
 N_POINTS = 131_072

@@ -32,7 +32,7 @@ from pathlib import Path
 import _harness as harness
 
 from pointflow import Pipeline
-from pointflow.serve.testing import masked_frame, raw_websocket
+from pointflow.testing.serve import masked_frame, raw_websocket
 
 TOKEN = "bench-token-0123456789abcdef"
 

@@ -1,5 +1,5 @@
 """The ingest stage under measurement: the package's one-stage rig
-(``pointflow.runtime.testing.StageRig``) fed by a producer process, timed from the start
+(``pointflow.testing.StageRig``) fed by a producer process, timed from the start
 signal to the ring push that completed the count (bench_ingest.py, bench_frames.py)."""
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import time
 import numpy as np
 import zmq
 
-from pointflow.runtime.testing import StageRig
+from pointflow.testing import StageRig
 
 from . import cpu_seconds
 

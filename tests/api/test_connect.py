@@ -16,7 +16,7 @@ import pytest
 
 from pointflow import Pipeline
 from pointflow.remote.keys import create_keypair
-from pointflow.runtime.testing import free_port as _free_port
+from pointflow.testing import free_port as _free_port
 
 from .helpers import REPO, api_config, known_clouds, run_script
 

@@ -1,9 +1,9 @@
 """Run the real ingest stage (``stage_main``) in a spawned process, without the full
 supervisor: the test owns the ring and binds the control/trace endpoints itself (the rig is
-``pointflow.runtime.testing.StageRig``, shared with bench/)."""
+``pointflow.testing.StageRig``, shared with bench/)."""
 from __future__ import annotations
 
-from pointflow.runtime.testing import StageRig, decode_spans  # noqa: F401  (decode_spans: tests import it here)
+from pointflow.testing import StageRig, decode_spans  # noqa: F401  (decode_spans: tests import it here)
 
 
 def base_config(**ring) -> dict:

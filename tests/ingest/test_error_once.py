@@ -10,7 +10,7 @@ import pytest
 pytest.importorskip("zenoh", reason="eclipse-zenoh comes with the remote extra: pip install 'pointflow[remote]'")
 pytest.importorskip("rosbags", reason="rosbags comes with the ros extra: pip install 'pointflow[ros]'")
 
-from pointflow.ingest import rmw_zenoh_pub as P  # noqa: E402
+from pointflow.testing import rmw_zenoh_pub as P  # noqa: E402
 from .test_ros2_zenoh import TOPIC, _run, source_cfg, start_publisher  # noqa: E402
 from .test_ros2_zenoh import router  # noqa: E402,F401 - the fixture
 

@@ -1,5 +1,5 @@
 """``ros2_zenoh``: live ROS 2 over rmw_zenoh without ROS. Real processes throughout: a Zenoh
-router, a publisher that behaves as rmw_zenoh's (``pointflow/ingest/rmw_zenoh_pub.py``: its keys, attachments,
+router, a publisher that behaves as rmw_zenoh's (``pointflow/testing/rmw_zenoh_pub.py``: its keys, attachments,
 liveliness tokens, transient-local cache, Humble and buffer-aware Rolling modes), and the real
 source and ingest stages feeding a ring (or ``pointflow run``)."""
 from __future__ import annotations
@@ -20,8 +20,8 @@ pytest.importorskip("rosbags", reason="rosbags comes with the ros extra: pip ins
 
 from pointflow.config import ConfigError, load_config  # noqa: E402
 from pointflow.ingest import rmw_zenoh as rz  # noqa: E402
-from pointflow.ingest import rmw_zenoh_pub as P  # noqa: E402
-from pointflow.runtime.testing import LineProc, free_port  # noqa: E402
+from pointflow.testing import rmw_zenoh_pub as P  # noqa: E402
+from pointflow.testing import LineProc, free_port  # noqa: E402
 
 from . import ros_util as ru  # noqa: E402
 from .stage_util import base_config  # noqa: E402

@@ -17,7 +17,7 @@ from pointflow.config import ConfigError, load_config
 from pointflow.ingest.jsonchunk import chunk_to_json
 from pointflow.ingest.quantised import AttributeRange, encode_quantised
 from pointflow.ingest.transports import resolve_transport
-from pointflow.runtime.testing import free_port
+from pointflow.testing import free_port
 
 
 def make(name, options, sid="t"):

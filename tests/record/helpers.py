@@ -9,8 +9,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import pytest
 
-from pointflow.runtime.testing import free_port as free_tcp_port  # noqa: F401  (tests import it here)
-from pointflow.runtime.testing import wait_for  # noqa: F401  (tests import it here)
+from pointflow.testing import free_port as free_tcp_port  # noqa: F401  (tests import it here)
+from pointflow.testing import wait_for  # noqa: F401  (tests import it here)
 
 # PointField datatype -> numpy type (sensor_msgs/PointField constants)
 NP = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}

@@ -17,7 +17,7 @@ from pointflow.codec import Compressor
 from pointflow.remote.keys import create_keypair
 from pointflow.remote.options import is_loopback_endpoint
 from pointflow.remote.transit import TransitLedger
-from pointflow.runtime.testing import free_port as _free_port
+from pointflow.testing import free_port as _free_port
 
 
 def _zmq_cfg(**opts):

@@ -14,7 +14,7 @@ from pointflow.profiling.report import live_summary
 from pointflow.remote.keys import create_keypair
 from pointflow.remote.options import SendConfig
 from pointflow.remote.security import LinkSecurity
-from pointflow.runtime.testing import free_port as _free_port
+from pointflow.testing import free_port as _free_port
 
 
 @pytest.mark.parametrize("case", ["key-not-authorized", "wrong-server-key"])

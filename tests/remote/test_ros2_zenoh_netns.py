@@ -1,6 +1,6 @@
 """ROS 2 over rmw_zenoh across hosts (docs/ros.md, "A robot on another host"): Linux network
 namespaces joined by veth pairs (netns.py), as the other link tests. The robot's publisher
-(pointflow/ingest/rmw_zenoh_pub.py: an rmw_zenoh session, listening on its own loopback only, as
+(pointflow/testing/rmw_zenoh_pub.py: an rmw_zenoh session, listening on its own loopback only, as
 rmw_zenoh's DEFAULT_RMW_ZENOH_SESSION_CONFIG does) reaches the viewers only through a router on
 another host configured as rmw_zenohd is (``peers_failover_brokering: false``); the viewers
 cannot reach the robot at all. Run as root; under CI=true they must run.
@@ -23,7 +23,7 @@ pytest.importorskip("rosbags", reason="rosbags comes with the ros extra: pip ins
 
 from ingest import ros_util as ru  # noqa: E402
 
-from pointflow.ingest import rmw_zenoh_pub as P  # noqa: E402
+from pointflow.testing import rmw_zenoh_pub as P  # noqa: E402
 
 from .helpers import wait_for  # noqa: E402
 from .netns import REPO, Net  # noqa: E402

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from pointflow.config import load_config
-from pointflow.runtime.testing import free_port as _port
+from pointflow.testing import free_port as _port
 from pointflow.typed import ConfigError
 
 from .helpers import assert_exact, synthetic_source, wait_for

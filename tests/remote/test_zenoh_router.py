@@ -21,7 +21,7 @@ from pointflow.cli import main as cli_main  # noqa: E402
 from pointflow.remote.tls import make_certificate  # noqa: E402
 from pointflow.remote.zenoh_options import (ZenohOpenError, ZenohOptions, ZenohTls, check_zenoh,  # noqa: E402
                                             open_session)
-from pointflow.runtime.testing import free_port  # noqa: E402
+from pointflow.testing import free_port  # noqa: E402
 
 from .helpers import wait_for  # noqa: E402
 

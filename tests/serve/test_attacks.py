@@ -16,7 +16,7 @@ import time
 
 import pytest
 
-from pointflow.serve.testing import masked_frame, raw_websocket
+from pointflow.testing.serve import masked_frame, raw_websocket
 
 from .helpers import (TOKEN, base_url, closed_with, cookie_header, frames_keep_coming, good_client, http_get,
                       is_frame, read_until, serve_stats, ws_connect)

@@ -13,7 +13,7 @@ import time
 
 import pytest
 
-from pointflow.serve.testing import masked_frame, raw_websocket
+from pointflow.testing.serve import masked_frame, raw_websocket
 
 from .conftest import LIMITS
 from .helpers import (TOKEN, base_url, closed_with, frames_keep_coming, good_client, is_frame, read_until,

@@ -6,8 +6,8 @@ import time
 
 import psutil
 
-from pointflow.runtime import testing
-from pointflow.runtime.testing import free_port as free_tcp_port  # noqa: F401  (tests import it here)
+from pointflow import testing
+from pointflow.testing import free_port as free_tcp_port  # noqa: F401  (tests import it here)
 
 SHM = "/dev/shm"
 

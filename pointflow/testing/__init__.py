@@ -1,5 +1,7 @@
-"""Test rigs shipped with the package (dora's ``testing.py`` is the model): one stage in a
-spawned process without a supervisor, and the small helpers tests and benchmarks share.
+"""Test rigs shipped with the package (dora's ``testing.py`` is the model), apart from the
+library code: here one stage in a spawned process without a supervisor, and the small
+helpers tests and benchmarks share; :mod:`.serve` (hand-made WebSocket clients of the view
+server) and :mod:`.rmw_zenoh_pub` (a publisher that behaves as ROS 2's rmw_zenoh) beside it.
 
 :class:`StageRig` owns what the supervisor would: the ring, the run directory and the
 control/trace endpoints the stage reports to; the stage itself is the real ``stage_main`` in
@@ -26,7 +28,7 @@ import zmq
 from ..config import load_config, new_run_dir
 from ..ring.config import build_ring
 from ..stage.context import RunInfo
-from .stage import stage_main
+from ..runtime.stage import stage_main
 
 __all__ = ["free_port", "wait_for", "decode_spans", "StageRig", "LineProc"]
 

@@ -21,8 +21,8 @@ and benchmarks (there is no ROS 2 here; shipped in the package so bench/ need no
   modes publish when the test says ``go`` on stdin, ``rolling`` when its topics have a
   subscription (a test convenience for the non-buffer topics).
 
-Run as ``python -m pointflow.ingest.rmw_zenoh_pub SPEC.pickle`` (a publisher) or ``python -m
-pointflow.ingest.rmw_zenoh_pub --router LOCATOR`` (a Zenoh router, as ``rmw_zenohd`` is). It prints ``READY`` once declared,
+Run as ``python -m pointflow.testing.rmw_zenoh_pub SPEC.pickle`` (a publisher) or ``python -m
+pointflow.testing.rmw_zenoh_pub --router LOCATOR`` (a Zenoh router, as ``rmw_zenohd`` is). It prints ``READY`` once declared,
 ``MATCHED <token>`` for each subscription token of its topics, ``PATH cpu <token>`` or ``PATH gid
 <hex> <token>`` when a buffer-aware topic serves a subscription, ``SENT <topic> <n>`` when a topic's
 script is done, and exits when stdin closes.
@@ -38,7 +38,7 @@ import time
 import zenoh
 import zenoh.ext
 
-from . import rmw_zenoh as rz
+from ..ingest import rmw_zenoh as rz
 
 PC2 = "sensor_msgs/msg/PointCloud2"
 _OUT = threading.Lock()
