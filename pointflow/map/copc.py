@@ -38,7 +38,7 @@ def is_copc(path: str) -> bool:
 
 
 def _las_failure(exc: BaseException) -> bool:
-    from pointflow.formats import _is_las_failure
+    from pointflow.formats.las import is_las_failure as _is_las_failure
 
     return _is_las_failure(exc)
 
@@ -54,7 +54,7 @@ class CopcFile:
         self.path = path
         self.size = os.path.getsize(path)
         try:
-            from pointflow.formats import _precheck_las
+            from pointflow.formats.las import precheck_las as _precheck_las
 
             _precheck_las(path)
         except ValueError as exc:
