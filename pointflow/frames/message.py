@@ -31,6 +31,7 @@ class TransformMessageError(Error, ValueError):
     def __init__(self, reason: str, message: str):
         super().__init__(f"{reason}: {message}")
         self.reason = reason
+        self.message = message
 
 
 @dataclass

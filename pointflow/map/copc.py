@@ -58,7 +58,7 @@ class CopcFile:
 
             _precheck_las(path)
         except ValueError as exc:
-            raise MapError(path, str(exc).split(": ", 1)[-1]) from None
+            raise MapError(path, getattr(exc, "message", str(exc))) from None
         try:
             reader = CopcReader.open(path)
         except BaseException as exc:

@@ -63,7 +63,7 @@ class _LasInput(_Input):
                 formats.las.check_las_header(path, f.header)
                 self.header = f.header
         except formats.FormatError as exc:
-            raise MapError(path, str(exc).split(": ", 1)[-1]) from None
+            raise MapError(path, exc.message) from None
         except BaseException as exc:
             if not formats.las.is_las_failure(exc):
                 raise
@@ -133,7 +133,7 @@ class _TableInput(_Input):
         try:
             pos, ch = formats.read(path, fmt)
         except formats.FormatError as exc:
-            raise MapError(path, str(exc).split(": ", 1)[-1]) from None
+            raise MapError(path, exc.message) from None
         pos = np.asarray(pos)
         self.dtype = table_dtype(ch, pos.dtype if pos.dtype in (np.float32, np.float64) else np.float64)
         rec = np.empty(pos.shape[0], self.dtype)
@@ -199,7 +199,7 @@ class _PlyStream(_Input):
         try:
             _, ch = self._fields(self._read(0, min(1, count)))
         except formats.FormatError as exc:
-            raise MapError(path, str(exc).split(": ", 1)[-1]) from None
+            raise MapError(path, exc.message) from None
         self.dtype = table_dtype(ch, np.float64)
         lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
         for a in range(0, self.count, CHUNK_POINTS):

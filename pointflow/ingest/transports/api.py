@@ -236,7 +236,7 @@ def check_transforms(transforms: Any) -> tfmsg.Transforms:
     try:
         return tfmsg.decode({"transforms": items})
     except tfmsg.TransformMessageError as exc:
-        raise SendError("bad_transform", str(exc).partition(": ")[2] or str(exc)) from None
+        raise SendError("bad_transform", exc.message) from None
 
 
 # --------------------------------------------------------------------------- the source
