@@ -154,7 +154,7 @@ def check(*constraints: Any, message: str = "") -> dict:
     """Field metadata: the option's bounds, checked at load (not for null) and written into
     the JSON Schema. Give :class:`Constraint` objects (``positive``, ``Bound(1, 16384)``,
     ``Length(2)``...); a plain ``fn(value, path)`` still validates but cannot reach the
-    schema, and tests/spine/test_schema_bounds.py fails on one in the pipeline config."""
+    schema, and tests/spine/config/test_schema_bounds.py fails on one in the pipeline config."""
     if len(constraints) == 1 and not message:
         return {"check": constraints[0]}
     return {"check": AllOf(constraints, message)}

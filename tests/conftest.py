@@ -30,7 +30,7 @@ def pytest_sessionstart(session):
 #: the two cores; any other file may run beside one of them (each test holds under load: it
 #: waits on conditions, not times). Every file under ``tests/remote/`` is in "heavy": beside
 #: each other, at load 7-15, four of them failed (slow-receiver and refusal waits).
-GROUPS = {"tests/spine/test_hung_under_load.py": "heavy", "tests/spine/test_startup_under_load.py": "heavy",
+GROUPS = {"tests/spine/supervision/test_hung_under_load.py": "heavy", "tests/spine/supervision/test_startup_under_load.py": "heavy",
           "tests/startup/test_compile_beside.py": "heavy",  # compiles from empty caches: minutes of both cores
           "tests/notebook/test_jupyterlab.py": "browser", "tests/serve/test_browser.py": "browser",
           # one package-scoped pipeline (tests/serve/conftest.py: hostile_pipe) serves both

@@ -1,4 +1,4 @@
-"""A stage kind declared outside pointflow, for tests/spine/test_stage_kinds.py: what a new
+"""A stage kind declared outside pointflow, for tests/spine/house/test_stage_kinds.py: what a new
 stage's package holds (its loop, its identities, whether a config wants it), registered
 with one call (:func:`register`), nothing else edited."""
 from __future__ import annotations
@@ -54,7 +54,7 @@ def unregister() -> None:
 
 
 def fail_keyed(ctx) -> None:
-    """A stage whose loop raises a keyed error, for tests/spine/test_errors.py."""
+    """A stage whose loop raises a keyed error, for tests/spine/house/test_errors.py."""
     from pointflow.config import ConfigError
 
     ctx.beat(force=True)

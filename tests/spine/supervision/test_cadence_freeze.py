@@ -13,7 +13,7 @@ import signal
 
 from pointflow import Pipeline
 
-from .helpers import assert_gone, assert_segments_gone, small_config, wait_for
+from ..helpers import assert_gone, assert_segments_gone, small_config, wait_for
 
 
 def _cadence(pipe) -> dict:

@@ -1,4 +1,4 @@
-"""A stage kind is one record (pointflow/runtime/kinds.py): the supervisor starts, stops,
+"""A stage kind is one record (pointflow/stage/kinds.py): the supervisor starts, stops,
 restarts, counts and accounts a kind declared in a test module like a built-in one, and
 the built-in kinds say what docs/architecture.md says (start order, stop waves, roles)."""
 from __future__ import annotations
@@ -11,8 +11,8 @@ import pytest
 from pointflow import Pipeline
 from pointflow.stage.kinds import StageKind, register_stage_kind, role_kinds, stage_kind, stage_kinds
 
-from . import probe_stage
-from .helpers import assert_gone, assert_segments_gone, small_config, wait_for
+from .. import probe_stage
+from ..helpers import assert_gone, assert_segments_gone, small_config, wait_for
 
 
 @pytest.fixture

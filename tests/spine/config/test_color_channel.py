@@ -16,9 +16,9 @@ import pytest
 from pointflow.config import ConfigError, load_config
 from pointflow import formats
 
-from .helpers import small_config
+from ..helpers import small_config
 
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[3]
 
 
 def _refused(cfg: dict, base_dir: str = ".") -> str:

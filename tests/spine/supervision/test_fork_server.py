@@ -11,7 +11,7 @@ import psutil
 
 from pointflow import Pipeline
 
-from .helpers import assert_gone, assert_segments_gone, small_config, wait_for
+from ..helpers import assert_gone, assert_segments_gone, small_config, wait_for
 
 
 def _stage_pids(p) -> dict[str, int]:

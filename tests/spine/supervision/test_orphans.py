@@ -17,7 +17,7 @@ import yaml
 from pointflow.ring import PointRing
 from pointflow.ring.sweep import sweep_orphans
 
-from .helpers import assert_gone, small_config, wait_for
+from ..helpers import assert_gone, small_config, wait_for
 
 SHM = "/dev/shm"
 

@@ -13,7 +13,7 @@ import textwrap
 
 from pointflow import Pipeline
 
-from .helpers import assert_gone, assert_segments_gone, small_config, wait_for
+from ..helpers import assert_gone, assert_segments_gone, small_config, wait_for
 
 PLUGIN = textwrap.dedent('''
     import dataclasses, os, re, time

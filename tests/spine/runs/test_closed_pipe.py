@@ -15,9 +15,9 @@ import pytest
 
 from pointflow.cli import EXIT_PIPE
 
-from .helpers import assert_segments_gone, free_tcp_port, small_config
+from ..helpers import assert_segments_gone, free_tcp_port, small_config
 
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[3]
 
 
 def _closed_pipe() -> int:

@@ -10,7 +10,7 @@ import pytest
 from pointflow import Pipeline
 from pointflow.runtime.supervisor import PipelineFailed
 
-from .helpers import assert_gone, assert_segments_gone, small_config
+from ..helpers import assert_gone, assert_segments_gone, small_config
 
 
 def _ingest_balanced(st: dict) -> bool:

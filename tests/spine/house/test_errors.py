@@ -15,8 +15,8 @@ import pointflow
 from pointflow import Pipeline
 from pointflow.errors import Error, KeyedError, from_fields, to_fields
 
-from . import probe_stage
-from .helpers import small_config
+from .. import probe_stage
+from ..helpers import small_config
 
 
 def _modules():

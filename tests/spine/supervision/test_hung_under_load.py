@@ -16,7 +16,7 @@ import time
 
 from pointflow import Pipeline
 
-from .helpers import assert_gone, assert_segments_gone, small_config, wait_for
+from ..helpers import assert_gone, assert_segments_gone, small_config, wait_for
 
 
 def _renice_all(pid: int, nice: int) -> None:

@@ -12,7 +12,7 @@ from pointflow import Pipeline, wire
 from pointflow.chunk import PointChunk, new_trace_id
 from pointflow.render.camera import Camera, project_to_pixels
 
-from .helpers import free_tcp_port
+from ..helpers import free_tcp_port
 
 ORIGIN = np.array([640_000.0, 4_900_000.0, 100.0])
 

@@ -13,7 +13,7 @@ import yaml
 
 from pointflow.cli import EXIT_CONFIG, main, no_frame_reason
 
-from .helpers import small_config
+from ..helpers import small_config
 
 
 def _run(tmp_path, cfg: dict, *args: str) -> subprocess.CompletedProcess:

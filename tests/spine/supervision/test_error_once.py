@@ -12,9 +12,9 @@ from pathlib import Path
 
 import pytest
 
-from .helpers import assert_segments_gone, small_config
+from ..helpers import assert_segments_gone, small_config
 
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[3]
 
 PLUGIN = '''
 from pointflow.ingest.transports.base import Transport

@@ -77,7 +77,7 @@ DOC_SAMPLES = {  # the bad.yaml behind each sample line of docs/config.md
 def test_the_sample_errors_in_config_md_are_what_validate_prints(tmp_path, monkeypatch, capsys):
     from pathlib import Path
 
-    doc = (Path(__file__).resolve().parents[2] / "docs" / "config.md").read_text()
+    doc = (Path(__file__).resolve().parents[3] / "docs" / "config.md").read_text()
     shown = [l for l in doc.split("```")[1].splitlines() if l.startswith("config error:")]
     monkeypatch.chdir(tmp_path)
     printed = []

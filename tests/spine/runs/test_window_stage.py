@@ -6,7 +6,7 @@ import os
 
 from pointflow import Pipeline
 
-from .helpers import small_config
+from ..helpers import small_config
 
 
 def test_render_stage_with_a_window(tmp_path):

@@ -17,9 +17,9 @@ import yaml
 
 from pointflow import Pipeline
 
-from .helpers import assert_gone, assert_segments_gone, small_config
+from ..helpers import assert_gone, assert_segments_gone, small_config
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 
 
 def _readme_python_example() -> str:
@@ -180,7 +180,7 @@ def test_points_a_source_drops_at_its_send_queue_are_in_the_identities(tmp_path)
     from pointflow import wire
     from pointflow.chunk import PointChunk
 
-    from .helpers import free_tcp_port
+    from ..helpers import free_tcp_port
 
     port = free_tcp_port()
     cfg = small_config(source={"transport": "zmq", "options": {"endpoint": f"tcp://127.0.0.1:{port}",
@@ -252,7 +252,7 @@ def test_a_machine_wide_stall_is_not_a_hang(tmp_path):
     """Every stage silent at once (a loaded machine descheduled them all; seen in the chaos
     soak at load 15-20: four healthy stages killed as "hung" within a second) is not a
     reason to kill them; a single frozen stage among talking ones still is
-    (tests/spine/test_recovery.py::test_a_frozen_stage_is_detected_and_restarted)."""
+    (tests/spine/supervision/test_recovery.py::test_a_frozen_stage_is_detected_and_restarted)."""
     # 2.5 x hung_after_ms frozen, well past hung_after_ms but with 2.5 x to spare before the
     # 5 x bound: on a loaded machine the stages need seconds after SIGCONT to talk again
     cfg = small_config(supervisor={"max_restarts": 3, "hung_after_ms": 2000})

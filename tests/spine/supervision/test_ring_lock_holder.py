@@ -23,7 +23,7 @@ import numpy as np
 
 from pointflow import Pipeline
 
-from .helpers import assert_gone, assert_segments_gone, small_config
+from ..helpers import assert_gone, assert_segments_gone, small_config
 
 
 def _flock_holders(path: str) -> set[int]:

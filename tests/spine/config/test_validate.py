@@ -100,7 +100,7 @@ def test_duration_counts_from_when_the_pipeline_runs(tmp_path):
 
     from pointflow import cli
 
-    from .helpers import small_config
+    from ..helpers import small_config
 
     n = 2.0
     p = tmp_path / "c.yaml"

@@ -11,7 +11,7 @@ from pointflow.ring import RingLayout
 from pointflow.ring.space import RingSpaceError, check_shm_space, shm_bytes, shm_free
 from pointflow.ring.sweep import owner_pid
 
-from .helpers import SHM, shm_names, small_config
+from ..helpers import SHM, shm_names, small_config
 
 
 def _too_many_points() -> int:

@@ -130,7 +130,7 @@ def test_checked_in_json_schema_is_current_and_validates_configs():
 
     from pointflow.config import json_schema
 
-    root = Path(__file__).resolve().parents[2]
+    root = Path(__file__).resolve().parents[3]
     schema = json.loads((root / "pointflow.schema.json").read_text())
     assert schema == json.loads(json.dumps(json_schema())), "regenerate: pointflow schema > pointflow.schema.json"
     for path in sorted((root / "configs").glob("*.yaml")):

@@ -8,7 +8,7 @@ import pytest
 from pointflow import Pipeline
 from pointflow.profiling.report import write_profile
 
-from .helpers import small_config
+from ..helpers import small_config
 
 
 def test_gpu_timings_in_stats_and_trace(tmp_path):

@@ -17,7 +17,7 @@ from pointflow import Pipeline, wire
 from pointflow.chunk import PointChunk, new_trace_id
 from pointflow.runtime.supervisor import PipelineFailed
 
-from .helpers import assert_gone, assert_segments_gone, free_tcp_port, small_config, wait_for
+from ..helpers import assert_gone, assert_segments_gone, free_tcp_port, small_config, wait_for
 
 STAGES = {"source", "ingest", "cadence", "render"}
 

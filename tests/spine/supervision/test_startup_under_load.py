@@ -22,7 +22,7 @@ import pytest
 from pointflow import Pipeline
 from pointflow.runtime.supervisor import PipelineFailed
 
-from .helpers import assert_segments_gone, small_config
+from ..helpers import assert_segments_gone, small_config
 
 
 def test_stages_slower_to_start_than_the_timeout_are_kept_while_they_start(tmp_path):

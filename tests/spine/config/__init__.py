@@ -1,0 +1,1 @@
+"""Config files and command-line paths: errors name the key, the schema and validate agree."""

@@ -1,0 +1,1 @@
+"""Supervision: restarts, hung or starved, orphans, the fork server, accounting under faults."""
