@@ -18,11 +18,10 @@ import sys
 import time
 from typing import Optional
 
-import pointflow
-
-#: The directory that holds the ``pointflow`` package, put first on the stage's
-#: ``PYTHONPATH`` so a checkout used without installing is found by the child too.
-_PKG_PARENT = os.path.dirname(os.path.dirname(os.path.abspath(pointflow.__file__)))
+#: The directory that holds the ``pointflow`` package (this file is
+#: ``pointflow/runtime/launch.py``), put first on the stage's ``PYTHONPATH`` so a checkout
+#: used without installing is found by the child too.
+_PKG_PARENT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 
 #: Thread-pool sizes of the BLAS / OpenMP libraries numpy may use, set to 1 in stages.

@@ -10,7 +10,7 @@ import pytest
 import pointflow
 from pointflow import ConfigError, Pipeline, SendError
 from pointflow.ingest.transports.api import check_transforms
-from pointflow.quickshow import _clouds
+from pointflow.show import _clouds
 
 from .helpers import api_config
 
@@ -190,7 +190,7 @@ def test_a_kernel_shell_subclass_counts_as_a_notebook(monkeypatch):
     import sys
     import types
 
-    from pointflow.quickshow import in_notebook
+    from pointflow.show import in_notebook
 
     ZMQInteractiveShell = type("ZMQInteractiveShell", (), {})
     shells = {"kernel": type("Shell", (ZMQInteractiveShell,), {})(),

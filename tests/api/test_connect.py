@@ -99,7 +99,7 @@ try:
         link.send(np.zeros((10, 3), np.float32))
         time.sleep(0.05)
     raise SystemExit("not refused within 60 s")
-except pointflow.client.LinkRefused as exc:
+except pointflow.LinkRefused as exc:
     print("REFUSED:", exc)
 finally:
     link.close()

@@ -46,7 +46,7 @@ def test_send_and_show_from_a_kernel(tmp_path):
         out = _run(kc, f"""
 import json, numpy as np, pointflow
 from pointflow import Pipeline
-from pointflow.quickshow import in_notebook
+from pointflow.show import in_notebook
 print("IN_NOTEBOOK", in_notebook())
 p = Pipeline.from_dict(json.loads({json.dumps(json.dumps(cfg))}), out_dir="")
 p.start()

@@ -155,7 +155,7 @@ LAYERS = {
     # running them: lifecycle, launch, accounting, liveness, the Python API
     "pointflow.runtime": 6,
     # faces: the command line, the client, quick views, the package itself
-    "pointflow.client": 7, "pointflow.quickshow": 7, "pointflow.cli": 7, "pointflow": 7,
+    "pointflow.connect": 7, "pointflow.show": 7, "pointflow.cli": 7, "pointflow": 7,
     # test rigs shipped with the package: they drive the stages and the runtime
     "pointflow.testing": 7,
 }
