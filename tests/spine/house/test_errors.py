@@ -13,7 +13,7 @@ import pytest
 
 import pointflow
 from pointflow import Pipeline
-from pointflow.errors import Error, KeyedError, from_fields, to_fields
+from pointflow.errors import Error, from_fields, to_fields
 
 from .. import probe_stage
 from ..helpers import small_config
