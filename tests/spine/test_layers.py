@@ -121,7 +121,7 @@ LAYERS = {
     "pointflow.record.config": 2, "pointflow.ingest.config": 2, "pointflow.ingest.playback": 2,
     "pointflow.cadence.config": 2, "pointflow.runtime.config": 2, "pointflow.map.config": 2,
     "pointflow.serve.config": 2, "pointflow.remote.options": 2, "pointflow.remote.keys": 2,
-    "pointflow.remote.zenoh_options": 2, "pointflow.render.config": 2, "pointflow.render.control": 2,
+    "pointflow.remote.zenoh_options": 2, "pointflow.render.config": 2, "pointflow.render.view.protocol": 2,
     "pointflow.render.camera": 2,
     "pointflow.render.colormap": 2,
     # the loader, the schema, the top-level assembly
