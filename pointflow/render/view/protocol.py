@@ -398,31 +398,37 @@ def apply(state: ViewState, msg: Any, *, current: Optional[Camera] = None, chann
             raise ControlError("camera.eye", f"must differ from the target {cs.target}")
         _in_space(cs.eye, cs.target, "camera.eye")
     elif cmd in ("orbit", "pan", "zoom"):
-        keys = {"orbit": ("azimuth_deg", "elevation_deg"), "pan": ("right", "up"), "zoom": ("factor",)}[cmd]
-        _unknown(args, keys, cmd)
-        vals = {k: _num(args.get(k, 0.0 if cmd != "zoom" else 1.0), f"{cmd}.{k}") for k in keys}
-        base = _camera_of(state, current)
-        if base is None:
-            raise ControlError(cmd, "nothing is drawn yet to turn: wait for the first frame, or set eye and target")
-        with np.errstate(all="ignore"):  # an absurd move is refused below, not warned about on the console
-            if cmd == "orbit":
-                cam = OrbitController(base, orbit_deg_per_px=1.0).orbit(-vals["azimuth_deg"], vals["elevation_deg"])
-            elif cmd == "pan":
-                cam = OrbitController(base).pan(-vals["right"] * height_px, vals["up"] * height_px, height_px)
-            else:
-                f = vals["factor"]
-                if not f > 0:
-                    raise ControlError("zoom.factor", f"expected a number > 0, got {f:g}")
-                cam = OrbitController(base, zoom_per_wheel=1.0 / f).zoom(1.0)
-        _in_space(cam.eye, cam.target, f"{cmd}.{max(keys, key=lambda k: abs(vals[k] - (cmd == 'zoom')))}")
-        new.camera = CameraState(mode="fixed", eye=list(map(float, cam.eye)), target=list(map(float, cam.target)),
-                                 up=list(map(float, cam.up)), fov_deg=float(cam.fov_deg), follow=state.camera.follow,
-                                 follow_anchor=state.camera.follow_anchor)
+        new.camera = _turn(state, cmd, args, current, height_px)
     else:
         raise ControlError("cmd", f"unknown control message {cmd!r}; expected one of {', '.join(COMMANDS)} "
                                   "(or pick, save)")
     new.version = state.version + 1
     return new
+
+
+def _turn(state: ViewState, cmd: str, args: dict, current: Optional[Camera], height_px: int) -> CameraState:
+    """The camera after an ``orbit``, ``pan`` or ``zoom`` (a move that would leave finite
+    space is refused)."""
+    keys = {"orbit": ("azimuth_deg", "elevation_deg"), "pan": ("right", "up"), "zoom": ("factor",)}[cmd]
+    _unknown(args, keys, cmd)
+    vals = {k: _num(args.get(k, 0.0 if cmd != "zoom" else 1.0), f"{cmd}.{k}") for k in keys}
+    base = _camera_of(state, current)
+    if base is None:
+        raise ControlError(cmd, "nothing is drawn yet to turn: wait for the first frame, or set eye and target")
+    with np.errstate(all="ignore"):  # an absurd move is refused below, not warned about on the console
+        if cmd == "orbit":
+            cam = OrbitController(base, orbit_deg_per_px=1.0).orbit(-vals["azimuth_deg"], vals["elevation_deg"])
+        elif cmd == "pan":
+            cam = OrbitController(base).pan(-vals["right"] * height_px, vals["up"] * height_px, height_px)
+        else:
+            f = vals["factor"]
+            if not f > 0:
+                raise ControlError("zoom.factor", f"expected a number > 0, got {f:g}")
+            cam = OrbitController(base, zoom_per_wheel=1.0 / f).zoom(1.0)
+    _in_space(cam.eye, cam.target, f"{cmd}.{max(keys, key=lambda k: abs(vals[k] - (cmd == 'zoom')))}")
+    return CameraState(mode="fixed", eye=list(map(float, cam.eye)), target=list(map(float, cam.target)),
+                       up=list(map(float, cam.up)), fov_deg=float(cam.fov_deg), follow=state.camera.follow,
+                       follow_anchor=state.camera.follow_anchor)
 
 
 def _in_space(eye, target, key: str) -> None:
