@@ -18,7 +18,7 @@ __getattr__ = lazy_exports(__name__, {
     "Pipeline": ".runtime.pipeline", "PointRing": ".ring",
     # the errors users catch, all subclasses of Error (pointflow/errors.py)
     "PipelineFailed": ".runtime.supervisor", "SendError": ".ingest.transports.api",
-    "ControlError": ".render.control", "PlaybackError": ".ingest.playback",
+    "ControlError": ".render.view.protocol", "PlaybackError": ".ingest.playback",
     "FormatError": ".formats", "MapError": ".map.errors", "RenderError": ".render.base",
     "RingError": ".ring.layout",
 })

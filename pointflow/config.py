@@ -29,6 +29,7 @@ from .remote.options import SendConfig, check_send, is_loopback_endpoint
 from .remote.zenoh_options import RouterConfig, check_router
 from .profiling.config import TracingConfig
 from .render.config import ENDPOINTS as RENDER_ENDPOINTS, CameraConfig, EdlConfig, OutputConfig, RenderConfig, check_render
+from .render.view.protocol import BUILTIN_COLOR
 from .ring.config import RingConfig, check_ring
 from .stage.supervision import ENDPOINTS as SUPERVISOR_ENDPOINTS, SupervisorConfig
 from .stage.endpoints import Endpoint
@@ -83,7 +84,7 @@ class PipelineConfig:
     #: (``pointflow run --start/--rate/--loop``); steer them later with ``Pipeline.playback``.
     playback: PlaybackConfig = field(default_factory=PlaybackConfig)
     #: A view to start from (``Pipeline.save_view`` writes one): ``camera`` (fit, or
-    #: eye/target/up/fov_deg) and ``style``; applied over ``render`` at load (render/control.py).
+    #: eye/target/up/fov_deg) and ``style``; applied over ``render`` at load (render/view/protocol.py).
     view: Optional[dict[str, Any]] = None
     #: The view server (docs/views.md): a page and a WebSocket; also ``pointflow run --serve [HOST:]PORT``.
     serve: Optional[ServeConfig] = None
@@ -95,7 +96,7 @@ class PipelineConfig:
         """Only the channels this pipeline uses (render colour, importance, extras)."""
         names: list[str] = []
         cb = self.render.color_by
-        if cb and cb not in ("z", "height", "none", "ingest_time"):
+        if cb and cb not in BUILTIN_COLOR:
             names.append(cb)
         imp = self.ring.importance_field
         if imp and imp != "auto" and imp not in names:
@@ -179,8 +180,8 @@ def _check_semantics(cfg: PipelineConfig) -> None:
                               "or set endpoints.insecure: true")
 
 
-#: ``render.color_by`` values that are not channels of the data.
-COLOR_BY_BUILTIN = ("z", "height", "ingest_time", "none")
+#: ``render.color_by`` values that are not channels of the data (the view protocol's).
+COLOR_BY_BUILTIN = BUILTIN_COLOR
 
 
 def _check_color_by(cfg: PipelineConfig) -> None:
@@ -214,7 +215,7 @@ def _check_color_by(cfg: PipelineConfig) -> None:
 def _apply_view(cfg: PipelineConfig) -> None:
     """Check the ``view:`` block and start the render config from it (so the ring keeps the
     channel it colours by)."""
-    from .render.control import ControlError, load_view_block
+    from .render.view.protocol import ControlError, load_view_block
 
     try:
         v = load_view_block(cfg.view, "view")

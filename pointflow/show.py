@@ -28,6 +28,7 @@ import numpy as np
 
 from .ingest.transports.api import SendError, check_cloud
 from .notebook import in_notebook
+from .render.view.protocol import BUILTIN_COLOR
 
 
 @dataclass
@@ -143,7 +144,8 @@ def _draw_png(clouds: list[tuple[np.ndarray, dict]], cfg, path: Optional[str]) -
     """One frame of every point, drawn here by the cpu tier's reference (bit-exact, no device,
     nothing to compile), framed by the render stage's auto camera; written to ``path``."""
     from .render.cpu import CpuRenderer
-    from .render.process import CameraController, write_png
+    from .render.process import write_png
+    from .render.view.controller import CameraController
 
     frame = _frame_of(clouds, cfg)
     w, h = cfg.render.size
@@ -237,7 +239,7 @@ def show(positions: Any, *, path: Optional[str] = None, color_by: Optional[str] 
     names = list(clouds[0][1])
     if color_by is None:
         color_by = names[0] if names else "z"
-    elif color_by not in names and color_by not in ("z", "height", "ingest_time", "none"):
+    elif color_by not in names and color_by not in BUILTIN_COLOR:
         raise SendError("unknown_channel", f"color_by: {color_by!r} is not among the channels given "
                                            f"({', '.join(names) or 'none'}) nor z, height, ingest_time")
     if view is not None:

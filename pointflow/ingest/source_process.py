@@ -73,7 +73,7 @@ def main(ctx) -> None:
     transport.wants_transforms = bool(fcfg.fixed)
     transport.ring_capacity = ctx.cfg.ring.max_points
     frame_id = scfg.frame_id or ""
-    # which configured source each point came from, for per-source visibility (render/control.py)
+    # which configured source each point came from, for per-source visibility (render/view/protocol.py)
     mark = "source_index" in ctx.cfg.ring_channels()
     tf_sent = 0
     sock = ctx.zmq.socket(zmq.PUSH)

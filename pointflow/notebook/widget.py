@@ -6,7 +6,7 @@ camera. Frames travel to the browser over the widget's comm (the kernel's own ch
 over a port of their own: that works wherever the notebook works (JupyterLab, Notebook,
 VS Code, a remote kernel behind a proxy) and exposes nothing new on the network. A thread
 of the kernel receives the frames, encodes them as the view server does (JPEG while moving,
-PNG when still: :mod:`pointflow.serve.encode`) and sends each with ``Widget.send``; the
+PNG when still: :mod:`pointflow.render.view.encode`) and sends each with ``Widget.send``; the
 browser acknowledges each frame drawn, and at most two are in flight (the render stage
 draws for this view only when the widget can take a frame).
 """
@@ -24,22 +24,21 @@ import anywidget
 import traitlets
 import zmq
 
-from ..render.colormap import NAMES as COLORMAPS
-from ..serve.encode import encode_frame
+from ..render.view import GESTURES_JS
+from ..render.view.client import ClientEnd
+from ..render.view.encode import encode_frame
+from ..render.view.protocol import COLORMAPS, COMMANDS, color_by_options
 
 __all__ = ["LiveView"]
 
 STATIC = pathlib.Path(__file__).parent / "static"
-MAX_IN_FLIGHT = 2
-#: Control messages the widget's page may send on (the render stage checks each).
-CONTROL = ("camera", "orbit", "pan", "zoom", "fit", "follow", "style", "visible", "view_state")
 
 
 class LiveView(anywidget.AnyWidget):
     """A live view of ``pipeline`` (started, with the render stage's ``endpoints.views``)."""
 
     #: the page's gestures (one file for both) and the widget's own module
-    _esm = (STATIC.parent.parent / "serve" / "static" / "gestures.js").read_text() + "\n" + (STATIC / "widget.js").read_text()
+    _esm = GESTURES_JS.read_text() + "\n" + (STATIC / "widget.js").read_text()
     _css = STATIC / "widget.css"
     width = traitlets.Int(640).tag(sync=True)
     height = traitlets.Int(400).tag(sync=True)
@@ -51,7 +50,7 @@ class LiveView(anywidget.AnyWidget):
         if sup is None or not pipeline.running:
             raise RuntimeError("LiveView: start the pipeline first (Pipeline.start())")
         cfg = pipeline.cfg
-        chans = [c for c in cfg.ring_channels() if c != "source_index"] + ["z", "ingest_time", "none"]
+        chans = color_by_options(cfg.ring_channels())
         super().__init__(width=int(width), height=int(height), color_by_options=chans, colormaps=list(COLORMAPS))
         self.pipeline = pipeline
         self.owns_pipeline = owns_pipeline
@@ -105,19 +104,18 @@ class LiveView(anywidget.AnyWidget):
 
 
 class _Link:
-    """The widget thread's state: credit (two less the frames not yet shown), the view's size."""
+    """The widget thread's state: the view's client end (credit, frame numbers, camera:
+    render/view/client.py, as the view server keeps it) and the frames the browser holds."""
 
     def __init__(self, w: LiveView, sock):
         self.w, self.sock = w, sock
         self.in_flight: dict[int, float] = {}  # seq -> when sent to the browser
-        self.granted = -1
+        self.end = ClientEnd(w.width, w.height, granted=-1)
         self.req = 0
         self.t_ping = 0.0
         self.enc_ms: list[float] = []
         self.sizes: list[int] = []
         self.acks: list[float] = []  # when the browser drew each frame (the last 2 s)
-        self.seq_in = 0  # the highest frame number from render (a reopened view numbers on from it)
-        self.camera: Optional[dict] = None  # the view's camera, from the last reply that held one
 
     def send(self, **msg) -> None:
         try:
@@ -128,8 +126,8 @@ class _Link:
     def open(self, again: bool = False) -> None:
         """Open the view; ``again`` after a render restart: with its camera and a frame
         number past every frame seen (as the view server does), so nothing is taken for old."""
-        kept = {"seq": self.seq_in, **({"state": {"camera": self.camera}} if self.camera else {})} if again else {}
-        self.send(cmd="open", width=self.w.width, height=self.w.height, **kept)
+        self.end.width, self.end.height = self.w.width, self.w.height
+        self.send(**self.end.open(again=again))
         self.send(cmd="view_state", req=self._req())
         self.grant()
 
@@ -142,10 +140,9 @@ class _Link:
         for seq, t in list(self.in_flight.items()):  # a frame the browser never drew (output cleared)
             if now - t > 10.0:
                 del self.in_flight[seq]
-        n = max(0, MAX_IN_FLIGHT - len(self.in_flight))
-        if n != self.granted or again:
-            self.granted = n
-            self.send(cmd="credit", n=n)
+        msg = self.end.credit(len(self.in_flight), again=again)
+        if msg is not None:
+            self.send(**msg)
 
     def keepalive(self) -> None:
         now = time.monotonic()
@@ -170,7 +167,7 @@ class _Link:
                 self.in_flight.clear()
                 self.send(cmd="view_state", req=self._req())
                 self.grant(again=True)
-            elif kind == "control" and isinstance(m.get("msg"), dict) and m["msg"].get("cmd") in CONTROL:
+            elif kind == "control" and isinstance(m.get("msg"), dict) and m["msg"].get("cmd") in COMMANDS:
                 self.send(**{k: v for k, v in m["msg"].items() if k not in ("view", "req")}, req=self._req())
             elif kind == "pick":
                 self.send(cmd="pick", x=m.get("x"), y=m.get("y"), req=self._req())
@@ -180,25 +177,23 @@ class _Link:
             return
         head = json.loads(parts[0])
         kind = head.get("type")
+        what = self.end.from_render(head)  # credit used, frame numbers, the camera of a reply
         w = self.w
-        if kind == "frame":
+        if what == "frame":
             w.frames_received += 1
-            self.granted = max(0, self.granted - 1)
             enc = encode_frame(parts[1], head["width"], head["height"], bool(head.get("moving")))
             self.enc_ms = (self.enc_ms + [enc.encode_ms])[-60:]
             self.sizes = (self.sizes + [len(enc.data)])[-60:]
             w.last_encode_ms = enc.encode_ms
             w.bytes_sent += len(enc.data)
             self.in_flight[head["seq"]] = time.monotonic()
-            if isinstance(head.get("seq"), int):
-                self.seq_in = max(self.seq_in, head["seq"])
             w.send({"type": "frame", "seq": head["seq"], "mime": enc.mime, "version": head.get("version"),
                     "width": head["width"], "height": head["height"], "moving": head.get("moving")}, [enc.data])
-        elif kind == "error" and head.get("key") == "view" and "unknown view" in str(head.get("error")):
+        elif what == "gone":
             self.in_flight.clear()  # the render stage restarted: open the view again, as it was
             self.w.views_reopened += 1
             self.open(again=True)
-        elif kind == "stats":
+        elif what == "stats":
             n = len(self.sizes)
             w.send({"type": "stats", "points": head.get("points"), "fps": head.get("fps"),
                     "view_fps": round(len([t for t in self.acks if time.monotonic() - t < 2.0]) / 2.0, 1),
@@ -206,8 +201,6 @@ class _Link:
                     "encode_ms": round(sum(self.enc_ms) / len(self.enc_ms), 2) if self.enc_ms else 0,
                     "sources": head.get("sources", [])})
         elif kind in ("reply", "pick", "error"):
-            if kind == "reply" and isinstance(head.get("camera"), dict):
-                self.camera = head["camera"]
             if kind == "pick":
                 w.last_pick = head
             elif kind == "reply":

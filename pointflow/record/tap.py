@@ -26,7 +26,7 @@ class RecordTap:
         self.sock.setsockopt(zmq.LINGER, 2000)  # on stop, what is queued still reaches the recorder
         self.sock.connect(endpoint)
         self.keep = set(channels) if channels is not None else None
-        # source_index marks a point's source for per-source visibility (render/control.py): not data
+        # source_index marks a point's source for per-source visibility (render/view/protocol.py): not data
         self.exclude = set(exclude) | {"source_index"}
         self.offered = self.sent = self.dropped = 0
         self.messages_sent = 0

@@ -90,7 +90,7 @@ class RenderError(Error, RuntimeError):
 class Renderer(ABC):
     tier: ClassVar[str] = ""
     #: True when the tier keeps its own copy of the ring (uploaded by dirty ranges): it can
-    #: draw again with ``frame.dirty == []`` after the slab went back (render/views.py).
+    #: draw again with ``frame.dirty == []`` after the slab went back (render/view/hub.py).
     keeps_data: ClassVar[bool] = False
 
     def __init__(self, cfg: RenderConfig, capacity: int, channels: list[str]):
@@ -114,19 +114,19 @@ class Renderer(ABC):
     def restyle(self, cfg: RenderConfig) -> bool:
         """Take a new style (colouring, point size and shape, EDL, time window) for the next
         frame, in place; False when the tier cannot (it caches them in pipelines), and the
-        render stage builds a new renderer of the same tier instead (render/control.py)."""
+        render stage builds a new renderer of the same tier instead (render/view/protocol.py)."""
         return False
 
     def resize(self, width: int, height: int) -> bool:
         """Draw the next frames at ``width`` x ``height`` (a view of another size,
-        render/views.py); False when the tier cannot (the view then gets the tier's size).
+        render/view/hub.py); False when the tier cannot (the view then gets the tier's size).
         Tiers that can keep one target per size, so switching back costs nothing."""
         return (int(width), int(height)) == (self.width, self.height)
 
     def forget_sizes(self, keep) -> int:
         """Free the targets :meth:`resize` kept for sizes not in ``keep`` (the current size
         always stays): a view closed or resized must not leave its target behind
-        (render/views.py bounds them). Returns how many were freed."""
+        (render/view/hub.py bounds them). Returns how many were freed."""
         targets = self.__dict__.get("_targets")
         if not targets:
             return 0

@@ -211,7 +211,7 @@ class GlRenderer(Renderer):
         self._color, self._ids, self._depth, self.fbo, self._ids_fbo, self._edl, self._last = t
 
     def resize(self, width: int, height: int) -> bool:
-        """A set of framebuffers per size, kept for switching back (render/views.py). The gl
+        """A set of framebuffers per size, kept for switching back (render/view/hub.py). The gl
         tier uploads the drawn points every frame anyway, so a view of another size costs
         its own upload as any gl frame does."""
         size, old = (int(width), int(height)), (self.width, self.height)

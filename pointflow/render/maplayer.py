@@ -319,7 +319,7 @@ class MapLayer:
 
     def publish_stage(self, stage) -> None:
         """The render stage's views: main (the window's camera or the last drawn), then the
-        view server's views (render/views.py), each with the camera it last drew."""
+        view server's views (render/view/hub.py), each with the camera it last drew."""
         main = stage.window.camera if getattr(stage, "window", None) is not None else stage.view.last
         views = [("main", main, stage.view.cfg.render.size[0], stage.view.cfg.render.size[1])]
         hub = getattr(stage, "hub", None)

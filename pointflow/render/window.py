@@ -42,7 +42,7 @@ class PointWindow:
         self.controller = OrbitController(camera)
         self.title = title
         self.on_pick = on_pick or (lambda slot, x, y: print(f"pick ({x:.0f}, {y:.0f}) -> slot {slot}"))
-        #: With it, mouse and wheel become view control messages (render/control.py), the
+        #: With it, mouse and wheel become view control messages (render/view/protocol.py), the
         #: set Python and other views use; the render stage applies them and sets the camera.
         self.on_control = on_control
         w, h = renderer.width, renderer.height

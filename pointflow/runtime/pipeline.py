@@ -255,10 +255,10 @@ class Pipeline:
         return str(path)
 
     def control(self, msg: dict, wait: bool = True, timeout_s: float = 10.0) -> dict:
-        """Send one view control message (render/control.py); with ``wait`` return once a
+        """Send one view control message (render/view/protocol.py); with ``wait`` return once a
         frame shows it (or ``timeout_s`` passed: nothing to draw yet). A refused message
-        raises :class:`~pointflow.render.control.ControlError` naming the argument."""
-        from ..render.control import ControlError
+        raises :class:`~pointflow.render.view.protocol.ControlError` naming the argument."""
+        from ..render.view.protocol import ControlError
 
         if self._sup is None:
             raise RuntimeError("pipeline is not running")

@@ -1,5 +1,6 @@
 """The ``serve:`` block (and ``pointflow run --serve [HOST:]PORT``): where the view server
-listens and what it allows. Only :mod:`pointflow.typed` is imported here, so
+listens and what it allows. Only :mod:`pointflow.typed` and the view protocol's limits
+(:mod:`pointflow.render.view.protocol`, a config-level module) are imported here, so
 ``pointflow.config`` can hold a :class:`ServeConfig` without an import cycle.
 
 Safe by default: loopback only; a random token is required (docs/views.md). A non-loopback
@@ -13,6 +14,7 @@ import re
 from dataclasses import dataclass, field
 from typing import Optional
 
+from ..render.view.protocol import MAX_VIEW_PX
 from ..typed import Bound, ConfigError, at_least_one, check, positive
 
 
@@ -42,8 +44,8 @@ class ServeLimits:
     #: The kernel's send buffer per client (SO_SNDBUF): what a client that stops reading can
     #: hold before its sends block (and it is closed after send_timeout_s).
     socket_buffer_bytes: int = field(default=262144, metadata=check(Bound(16384, 1 << 26)))
-    #: The largest view a client may ask for (pixels per side).
-    max_view_px: int = field(default=4096, metadata=check(Bound(16, 16384)))
+    #: The largest view a client may ask for (pixels per side; at most the render stage's).
+    max_view_px: int = field(default=MAX_VIEW_PX, metadata=check(Bound(16, MAX_VIEW_PX)))
     #: A connection must have sent its request's headers within this long, and an idle
     #: keep-alive connection is closed after it: slow or silent connections hold nothing.
     header_timeout_s: float = field(default=10.0, metadata=check(Bound(0.5, 300)))
@@ -71,8 +73,8 @@ class ServeConfig:
     #: name is refused, so a DNS-rebinding page cannot reach the server under its own name.
     allowed_hosts: list[str] = field(default_factory=list)
     #: Size of a new view when the page does not say (it sends its own size).
-    width: int = field(default=800, metadata=check(Bound(16, 16384)))
-    height: int = field(default=600, metadata=check(Bound(16, 16384)))
+    width: int = field(default=800, metadata=check(Bound(16, MAX_VIEW_PX)))
+    height: int = field(default=600, metadata=check(Bound(16, MAX_VIEW_PX)))
     #: JPEG quality of moving frames (still frames are PNG, lossless).
     jpeg_quality: int = field(default=80, metadata=check(Bound(1, 100)))
     #: Threads that encode frames (off the render loop; the encoders release the GIL).

@@ -45,7 +45,7 @@ def _playback_endpoints(cfg, base: str) -> dict[str, str]:
 
 
 async def _run(ctx) -> None:
-    from ..render.colormap import NAMES
+    from ..render.view.protocol import COLORMAPS, color_by_options
     from .auth import run_token
     from .server import ViewServer
 
@@ -59,8 +59,7 @@ async def _run(ctx) -> None:
                      playback_endpoints=_playback_endpoints(ctx.cfg, ctx.endpoints.playback), token=token,
                      zctx=ctx.zmq, counters=ctx.counters, spans=ctx.spans,
                      sources=[s.name for s in ctx.cfg.sources],
-                     color_by=[c for c in ctx.cfg.ring_channels() if c != "source_index"] + ["z", "ingest_time", "none"],
-                     colormaps=list(NAMES), run_dir=ctx.info.run_dir)
+                     color_by=color_by_options(ctx.cfg.ring_channels()), colormaps=list(COLORMAPS), run_dir=ctx.info.run_dir)
     try:
         url = await srv.start()
     except OSError as exc:  # the port is taken or the address is not this host's: restarting cannot help

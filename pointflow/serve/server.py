@@ -3,7 +3,7 @@
 Between the browser and the render stage (docs/views.md):
 
 * to render, a zmq DEALER on ``endpoints.views`` (the render stage's ROUTER): ``open`` /
-  ``close`` / ``resize`` / ``credit`` and the control messages of render/control.py, each
+  ``close`` / ``resize`` / ``credit`` and the control messages of render/view/protocol.py, each
   ``{"view": id, "cmd": ...}``;
 * from render, ``[header, RGBA]`` frames (drawn only when the view changed and has credit),
   replies, picks, errors and stats;
@@ -11,7 +11,7 @@ Between the browser and the render stage (docs/views.md):
   one binary message: a 4-byte big-endian header length, the JSON header, the image;
   replies, picks, stats and errors as JSON text messages.
 
-Flow: a view has at most :data:`MAX_IN_FLIGHT` frames between "credit given to render" and
+Flow: a view has at most :data:`~pointflow.render.view.protocol.MAX_CREDIT` frames between "credit given to render" and
 "shown by the page" (the page acks each frame it has drawn); a newer frame replaces the
 oldest still waiting for a slow client (counted ``dropped_frames``). A client that never
 reads fills only its own bounded queue and is closed after ``limits.send_timeout_s``. A
@@ -42,22 +42,20 @@ import zmq
 import zmq.asyncio
 
 from ..errors import Error
-from ..render.control import ControlError, number, printable
+from ..render.view import GESTURES_JS
+from ..render.view.client import ClientEnd
+from ..render.view.encode import encode_frame
+from ..render.view.protocol import COMMANDS, MAX_CREDIT, ControlError, color_by_options, number, printable
 from .auth import COOKIE, check_host, check_origin, check_token, cookie_name, machine_names
 from .config import ServeConfig
-from .encode import encode_frame
 
 log = logging.getLogger("pointflow.serve")
 
-#: Frames of one view between credit and display (jupyter_rfb's "at most two in flight").
-MAX_IN_FLIGHT = 2
 #: JSON messages waiting for one client (replies, picks, stats); beyond, the oldest is dropped.
 MAX_TEXTS = 256
 #: The page's files: nothing else is ever served.
 STATIC = {"index.html": "text/html", "gestures.js": "text/javascript", "view.js": "text/javascript",
           "view.css": "text/css"}
-#: Control messages the page may send on to the render stage (render/control.py).
-CONTROL = ("camera", "orbit", "pan", "zoom", "fit", "follow", "style", "visible", "view_state")
 PLAYBACK_KEYS = ("paused", "seek_s", "seek_fraction", "step", "rate", "loop", "hold")
 #: How deep a client's JSON may nest (the page's deepest is an object holding a list).
 MAX_DEPTH = 4
@@ -166,10 +164,9 @@ class BadMessage(Error, ValueError):
 class ViewClient:
     view: str
     ws: Any
-    width: int
-    height: int
-    #: Frames render may still send (credit given, not yet used).
-    granted: int = 0
+    #: the view's size, credit given, newest frame number and camera (the client end the
+    #: notebook widget keeps too: render/view/client.py)
+    end: ClientEnd
     #: Frames received from render and not yet acked by the page (encoding, queued, sent).
     in_flight: int = 0
     #: Frames written to the client's socket and not yet acked: only these can be acked (a
@@ -189,11 +186,6 @@ class ViewClient:
     #: repair, _keepalive)
     encoding: int = 0
     writing: int = 0
-    #: the newest frame number render sent: a view opened again after a render restart
-    #: numbers on from here, so its frames are not taken for old ones
-    seq_in: int = 0
-    #: the camera of the render stage's last reply: a view opened again keeps it
-    camera: Optional[dict] = None
     queue: collections.deque = field(default_factory=collections.deque)
     #: JSON messages (replies, picks, stats) waiting for the writer, sent before frames.
     texts: collections.deque = field(default_factory=collections.deque)
@@ -273,7 +265,7 @@ class ViewServer:
         self.views_endpoint = views_endpoint
         self.playback_endpoints = playback_endpoints
         self.sources = sources or []
-        self.color_by = color_by or ["z", "ingest_time", "none"]
+        self.color_by = color_by or color_by_options([])
         self.colormaps = colormaps or ["turbo"]
         self.counters = counters
         self.spans = spans
@@ -401,7 +393,8 @@ class ViewServer:
     def _file(self, name: str):
         from aiohttp import web
 
-        body = resource_files("pointflow.serve").joinpath("static", name).read_bytes()
+        body = (GESTURES_JS.read_bytes() if name == GESTURES_JS.name
+                else resource_files("pointflow.serve").joinpath("static", name).read_bytes())
         return web.Response(body=body, content_type=STATIC[name],
                             headers={"Cache-Control": "no-store", "X-Content-Type-Options": "nosniff",
                                      "Content-Security-Policy": "default-src 'self'; img-src 'self' blob:; "
@@ -437,7 +430,7 @@ class ViewServer:
             _count(self.extra, "clients_gone")
             return web.Response(status=400, text="gone\n")  # aiohttp drops it quietly (the peer is gone)
         view = f"w{self.extra['clients_total']}-{secrets.token_hex(4)}"
-        c = ViewClient(view, ws, self.sc.width, self.sc.height, tokens=lim.max_messages_per_s * 2,
+        c = ViewClient(view, ws, ClientEnd(self.sc.width, self.sc.height), tokens=lim.max_messages_per_s * 2,
                        transport=request.transport, fd=fd)
         self.clients[view] = c
         _count(self.extra, "clients_total")
@@ -445,9 +438,9 @@ class ViewServer:
         writer = asyncio.ensure_future(self._writer(c))
         reason, code = "", CLOSE_NORMAL
         try:
-            self._to_render(view, "open", width=c.width, height=c.height)
+            self._to_render(view, **c.end.open())
             self._send_json(c, {"type": "hello", "view": view, "sources": self.sources,
-                                "replays": sorted(self.playback_endpoints), "max_in_flight": MAX_IN_FLIGHT,
+                                "replays": sorted(self.playback_endpoints), "max_in_flight": MAX_CREDIT,
                                 "color_by": self.color_by, "colormaps": self.colormaps})
             async for msg in ws:
                 if msg.type == WSMsgType.TEXT:
@@ -544,11 +537,11 @@ class ViewServer:
             mx = self.sc.limits.max_view_px
             if not all(isinstance(v, int) and not isinstance(v, bool) and 16 <= v <= mx for v in (w, h)):
                 raise BadMessage(f"resize: width and height must be whole numbers in 16..{mx}")
-            if (w, h) != (c.width, c.height):
-                c.width, c.height = w, h
-                self._to_render(c.view, "resize", width=w, height=h)
+            change = c.end.resize(w, h)
+            if change is not None:
+                self._to_render(c.view, **change)
             self._grant(c)
-        elif cmd in CONTROL:
+        elif cmd in COMMANDS:
             self._to_render(c.view, cmd, **msg)
         elif cmd == "pick":
             try:
@@ -573,20 +566,21 @@ class ViewServer:
         never reads (a "liar") gets no more than its socket has taken."""
         if c.closed:
             return
-        n = max(0, MAX_IN_FLIGHT - c.in_flight)
+        n = max(0, MAX_CREDIT - c.in_flight)
+        withhold = False
         if n > 0 and _unsent(c.fd) <= max(2 * c.last_bytes, UNSENT_BYTES):
             c.stuck_since = None
         elif n > 0:
-            n = 0
+            withhold = True
             _count(self.extra, "credit_withheld")
             if c.stuck_since is None:
                 c.stuck_since = time.monotonic()
             if not c.recheck:  # look again soon: an honest client on a slow link
                 c.recheck = True
                 asyncio.get_running_loop().call_later(0.05, self._recheck, c)
-        if n != c.granted or again:
-            c.granted = n
-            self._to_render(c.view, "credit", n=n)
+        msg = c.end.credit(c.in_flight, again=again, withhold=withhold)
+        if msg is not None:
+            self._to_render(c.view, **msg)
 
     def _recheck(self, c: ViewClient) -> None:
         c.recheck = False
@@ -599,7 +593,7 @@ class ViewServer:
                    f"({self.extra['send_timeouts']} so far)", self.extra["send_timeouts"])
         asyncio.ensure_future(self._drop_client(c, CLOSE_POLICY, "too slow"))
 
-    def _to_render(self, view: str, cmd: str, **args) -> None:
+    def _to_render(self, view: str, cmd: str, **args: Any) -> None:
         msg = {**args, "view": view, "cmd": cmd}
         try:
             self._dealer.send(json.dumps(msg).encode(), zmq.NOBLOCK)
@@ -678,20 +672,15 @@ class ViewServer:
             c = self.clients.get(head.get("view", ""))
             if c is None or c.closed:
                 continue
-            if kind == "frame" and len(parts) >= 2:
+            what = c.end.from_render(head)  # credit used, frame numbers, the camera of a reply
+            if what == "frame" and len(parts) >= 2:
                 _count(self.extra, "frames_in")
-                c.granted = max(0, c.granted - 1)
                 c.in_flight += 1
                 c.encoding += 1
-                seq = head.get("seq")
-                if isinstance(seq, int) and not isinstance(seq, bool):
-                    c.seq_in = max(c.seq_in, seq)
                 asyncio.ensure_future(self._encode(c, head, parts[1]))
-            elif kind == "error" and head.get("key") == "view" and "unknown view" in str(head.get("error")):
+            elif what == "gone":
                 self._reopen(c)
             else:
-                if kind == "reply" and isinstance(head.get("camera"), dict):
-                    c.camera = head["camera"]
                 self._send_json(c, head)
 
     def _reopen(self, c: ViewClient) -> None:
@@ -700,9 +689,7 @@ class ViewServer:
         frames, numbered from 1, would be taken for old ones and dropped), then give credit
         for the frames the page does not hold."""
         _count(self.extra, "views_reopened")
-        state = {"camera": c.camera} if c.camera is not None else None
-        self._to_render(c.view, "open", width=c.width, height=c.height, seq=max(c.seq_in, c.last_sent_seq, 0),
-                        **({"state": state} if state else {}))
+        self._to_render(c.view, **c.end.open(again=True, seen=c.last_sent_seq))
         self._repair_in_flight(c)
         self._grant(c, again=True)
 
@@ -804,7 +791,7 @@ class ViewServer:
             rs = self.render_stats
             for c in list(self.clients.values()):
                 # say the credit again, every second: a lost one must not stall a view, and a
-                # render stage that restarted answers "unknown view" (the view is opened again)
+                # render stage that restarted answers that the view is gone (it is opened again)
                 self._repair_in_flight(c)
                 self._grant(c, again=True)
                 if c.stuck_since is not None and time.monotonic() - c.stuck_since > self.sc.limits.send_timeout_s:

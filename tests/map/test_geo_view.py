@@ -18,7 +18,7 @@ from pointflow.render import mapregion as mr
 from pointflow.render.base import FrameInput
 from pointflow.render.camera import APART_FACTOR, Camera, clip_planes, project_to_pixels
 from pointflow.render.maplayer import MapLayer
-from pointflow.render.process import CameraController
+from pointflow.render.view.controller import CameraController
 from pointflow.render.rules import footprint_box
 
 from .mapfiles import laspy_points, write_las

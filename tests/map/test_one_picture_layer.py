@@ -225,7 +225,7 @@ class _FakeRing:
 
 
 def _to_dict(rec):
-    from pointflow.render.process import point_to_dict
+    from pointflow.render.view.protocol import point_to_dict
 
     return point_to_dict(rec)
 
@@ -281,7 +281,7 @@ def test_range_helpers():
 
 def test_the_render_stage_publishes_every_views_camera_main_first(tmp_ipc):
     """``publish_stage`` sends the main view's camera and the view server's views' (the hub of
-    render/views.py), main first; an unchanged set is not sent again."""
+    render/view/hub.py), main first; an unchanged set is not sent again."""
     cfg, ctx = _ctx(tmp_ipc, 10)
     layer = MapLayer(cfg, ctx, 10)
     side = MapSide(tmp_ipc, 10, ctx)

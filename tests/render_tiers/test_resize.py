@@ -1,4 +1,4 @@
-"""Renderer.resize (render/views.py draws views of several sizes with one renderer): a draw
+"""Renderer.resize (render/view/hub.py draws views of several sizes with one renderer): a draw
 at another size from the data already uploaded (``dirty=[]``) is the picture a renderer of
 that size draws, uploads nothing, and switching back finds the first size's picture kept."""
 from __future__ import annotations

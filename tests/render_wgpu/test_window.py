@@ -75,9 +75,9 @@ def test_window_presents_orbits_and_picks(make_renderer, display):
 
 def test_window_input_is_view_control_messages(make_renderer, display):
     """In the render stage the window's drag and wheel travel as the view control messages
-    Python sends (render/control.py), and applying them moves the camera exactly as the
+    Python sends (render/view/protocol.py), and applying them moves the camera exactly as the
     window's own controller would."""
-    from pointflow.render import control
+    from pointflow.render.view import protocol as control
     from pointflow.render.camera import OrbitController
     from pointflow.render.window import PointWindow
 

@@ -271,7 +271,7 @@ def test_a_client_that_acks_without_reading_gets_only_what_its_socket_took(pipe)
 def test_resizing_frees_the_targets_of_old_sizes(pipe):
     """Each distinct view size kept a target in the render stage for ever (279 -> 677 MB
     after 12 resizes)."""
-    from pointflow.render.views import MAX_SIZES_KEPT
+    from pointflow.render.view.hub import MAX_SIZES_KEPT
 
     ws = good_client(base_url(pipe))
     for i in range(12):

@@ -17,7 +17,7 @@ from PIL import Image
 from pointflow import Pipeline
 from pointflow.render import colormap
 from pointflow.render.camera import Camera, project_to_pixels
-from pointflow.render.control import ControlError
+from pointflow.render.view.protocol import ControlError
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(__file__)))
 

@@ -1,4 +1,4 @@
-"""Many views in one render stage (render/views.py): a real pipeline, the real render stage,
+"""Many views in one render stage (render/view/hub.py): a real pipeline, the real render stage,
 and a Python zmq DEALER as the view server, speaking the view protocol (docs/views.md).
 
 Scene (world metres): a dense 20 x 20 m plane with a step (z = 0 for x < 10, z = 3 above),

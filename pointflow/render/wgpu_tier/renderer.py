@@ -5,7 +5,7 @@ every method shares and hands it over as a :class:`.raster.Gpu`; the method reco
 passes for each frame's :class:`.raster.FramePlan`. Frame path (no Python loop over points,
 no readback on the frame path):
 
-1. upload the dirty slot ranges into the GPU buffer set ``k % 2`` (the other set may still
+1. upload the dirty slot ranges (:mod:`.upload`) into the GPU buffer set ``k % 2`` (the other set may still
    be read by the previous frame; each set catches up on the ranges it missed);
 2. write the frame's ``Params`` (:mod:`.frame_params`) and reset the counters;
 3. the method's passes (quads: cull + compaction + indirect draw; compute: fused tests +
@@ -37,6 +37,7 @@ from . import chunks, frame_params
 from .device import adapter_summary, request_device, select_adapter
 from .layout import PARAMS_DTYPE, ColourMode
 from .pick import pick_block, resolve_pick
+from .upload import IncrementalUpload
 from .raster import METHODS, FramePlan, Gpu, RasterMethod, choose_raster
 
 log = logging.getLogger("pointflow.render.wgpu")
@@ -51,7 +52,7 @@ NAIVE_FLOAT32 = False
 __all__ = ["WgpuRenderer", "merge_ranges", "resolve_pick"]
 
 
-class WgpuRenderer(Renderer):
+class WgpuRenderer(IncrementalUpload, Renderer):
     """GPU tier on wgpu. ``info()`` reports the adapter, limits, caps and timestamp support."""
 
     tier = "wgpu"
@@ -239,60 +240,6 @@ class WgpuRenderer(Renderer):
             self._method, self._readback, self._row_bytes = targets[old]
             return False
         return True
-
-    # ------------------------------------------------------------------ upload
-    def _upload(self, frame: FrameInput, s: int) -> int:
-        """Write the ranges set ``s`` has missed; returns bytes uploaded."""
-        cap = min(self.render_capacity, frame.capacity)
-        ranges = merge_ranges(self._pending[s], cap)
-        self._pending[s] = []
-        total = 0
-        for a, b in ranges:
-            for c, (c0, n) in enumerate(self._chunk_table):
-                lo, hi = max(a, c0), min(b, c0 + n)
-                if lo < hi:
-                    total += self._write(frame, self._sets[s][c], lo, hi, lo - c0)
-        return total
-
-    def _write(self, frame: FrameInput, S: dict[str, Any], a: int, b: int, at: int) -> int:
-        """Write slots [a, b) into the chunk buffers ``S`` from their slot ``at``; bytes written."""
-        q, total = self.queue, 0
-        pos = np.ascontiguousarray(frame.positions[a:b], dtype=np.float32)
-        q.write_buffer(S["pos"], at * 12, pos)
-        total += pos.nbytes
-        if self._need_t:
-            t64 = np.asarray(frame.t_ingest_ms[a:b], dtype=np.float64)
-            tt = np.empty((b - a, 2), np.float32)
-            tt[:, 0] = t64
-            tt[:, 1] = t64 - tt[:, 0]
-            q.write_buffer(S["tms"], at * 8, tt)
-            total += tt.nbytes
-        if self._need_imp:
-            imp = np.ascontiguousarray(frame.importance[a:b], dtype=np.float32)
-            q.write_buffer(S["imp"], at * 4, imp)
-            total += imp.nbytes
-        if self._cmode == ColourMode.RGB:
-            rgb = np.asarray(frame.channels["rgb"][a:b], dtype=np.uint32)
-            packed = rgb[:, 0] | (rgb[:, 1] << 8) | (rgb[:, 2] << 16) | np.uint32(0xFF000000)
-            q.write_buffer(S["col"], at * 4, packed)
-            total += packed.nbytes
-        elif self._cmode == ColourMode.SCALAR:
-            v = np.ascontiguousarray(frame.channels[self._cchan][a:b], dtype=np.float32)
-            q.write_buffer(S["col"], at * 4, v)
-            total += v.nbytes
-        return total
-
-    def _mark_dirty(self, frame: FrameInput) -> None:
-        cap = min(self.render_capacity, frame.capacity)
-        origin = np.asarray(frame.origin, np.float64)
-        full = frame.dirty is None or self._origin is None or not np.array_equal(origin, self._origin) \
-            or self._last is None or self._last.capacity != frame.capacity
-        d = [(0, cap)] if full else list(frame.dirty or [])
-        for s in range(2):
-            self._pending[s].extend(d)
-            if len(self._pending[s]) > 64:  # keep the list short
-                self._pending[s] = merge_ranges(self._pending[s], cap)
-        self._origin = origin.copy()
 
     # ------------------------------------------------------------------ frame
     def _wait_set(self, s: int) -> None:

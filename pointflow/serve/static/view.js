@@ -1,5 +1,5 @@
 // pointflow view: the live frame of one view, steered by the control messages of
-// render/control.py over one WebSocket (docs/views.md). Frames arrive as binary messages
+// render/view/protocol.py over one WebSocket (docs/views.md). Frames arrive as binary messages
 // [u32 header length][JSON header][JPEG or PNG]; each one drawn is acknowledged ("ack"),
 // which lets the server send the next (at most two in flight).
 "use strict";

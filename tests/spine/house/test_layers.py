@@ -139,7 +139,7 @@ LAYERS = {
     "pointflow.record.config": 3, "pointflow.ingest.config": 3, "pointflow.ingest.playback": 3,
     "pointflow.cadence.config": 3, "pointflow.map.config": 3,
     "pointflow.serve.config": 3, "pointflow.remote.options": 3, "pointflow.remote.keys": 3,
-    "pointflow.remote.zenoh_options": 3, "pointflow.render.config": 3, "pointflow.render.control": 3,
+    "pointflow.remote.zenoh_options": 3, "pointflow.render.config": 3, "pointflow.render.view.protocol": 3,
     "pointflow.render.camera": 3,
     "pointflow.render.colormap": 3,
     # the stages

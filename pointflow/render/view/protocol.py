@@ -1,4 +1,8 @@
-"""The view control messages: one set for every view (the window, Python, a future view server).
+"""The view protocol, written once: messages, state, validation, limits, credit, typed errors.
+
+Every view (the window, Python's ``Pipeline.view``, the page of pointflow/serve, the
+notebook widget) speaks this vocabulary; render, serve and the notebook import it from
+here and keep no copy (tests/view/test_protocol_once.py guards that).
 
 A view is a :class:`ViewState`: a camera (``auto`` = framed on the data, following it as it
 grows; ``fixed`` = an eye/target/up/fov the user set or turned) and a style (colouring,
@@ -37,22 +41,38 @@ from typing import Any, Optional
 
 import numpy as np
 
-from ..errors import KeyedError
-from . import colormap
-from .camera import Camera, OrbitController
-from .config import MAX_SCREEN_POINT_PX
+from ...errors import KeyedError
+from .. import colormap
+from ..camera import Camera, OrbitController
+from ..config import MAX_SCREEN_POINT_PX
 
 __all__ = ["ControlError", "ViewState", "CameraState", "StyleState", "apply", "COMMANDS", "BUILTIN_COLOR",
            "load_view_block", "view_block", "style_render_config", "MAX_POINT_SIZE_PX",
-           "MAX_CAMERA_COORD", "number", "printable"]
+           "MAX_CAMERA_COORD", "number", "printable", "MAX_CREDIT", "MAX_VIEWS", "SIZE_RANGE", "MAX_VIEW_PX",
+           "MAX_MESSAGE_BYTES", "COLORMAPS", "color_by_options", "gone_reply", "is_gone", "point_to_dict",
+           "check_size", "check_keys"]
 
 #: Colourings that need no ring channel.
 BUILTIN_COLOR = ("z", "height", "ingest_time", "none")
+#: The colourings a client offers besides the ring's channels ("height" is z under another name).
+_OFFERED_BUILTIN = ("z", "ingest_time", "none")
+#: The colormaps a style may name.
+COLORMAPS = tuple(colormap.NAMES)
 #: The style fields and the type each one takes.
 _STYLE_KEYS = ("color_by", "colormap", "color_range", "point_size", "point_shape", "edl", "edl_strength",
                "time_window_ms")
 _CAMERA_KEYS = ("eye", "target", "up", "fov_deg")
+#: The control messages every view takes (the table above).
 COMMANDS = ("camera", "orbit", "pan", "zoom", "fit", "follow", "style", "visible", "view_state")
+#: Frames a client may have in flight between credit and display (jupyter_rfb's rule: two).
+MAX_CREDIT = 2
+#: Views one render stage serves at once (an ``open`` beyond is refused with an error).
+MAX_VIEWS = 64
+#: A view's width and height in pixels: the render stage draws no larger, a client asks no larger.
+SIZE_RANGE = (16, 4096)
+MAX_VIEW_PX = SIZE_RANGE[1]
+#: A message from a view server larger than this disconnects it (ZMQ_MAXMSGSIZE).
+MAX_MESSAGE_BYTES = 64 * 1024
 #: The ring channel that says which configured source a point came from (pipelines with
 #: two or more sources; the source stage adds it to every chunk).
 SOURCE_CHANNEL = "source_index"
@@ -73,6 +93,35 @@ def printable(text: Any, limit: int = 200) -> str:
     s = str(text)
     s = s if len(s) <= limit else s[:limit] + "…"
     return s.translate(_CTRL)
+
+
+def color_by_options(channels) -> list[str]:
+    """What a client offers to colour by: the ring's channels (not the source marker) and the
+    built-in colourings."""
+    return [c for c in channels if c != SOURCE_CHANNEL] + list(_OFFERED_BUILTIN)
+
+
+def gone_reply(view: Optional[str], req: Any) -> dict:
+    """The render stage's answer to a message for a view it does not hold (it restarted, or
+    the view was closed): typed by ``gone``, so a client opens the view again without
+    reading the text."""
+    return {"type": "error", "view": view, "req": req, "key": "view", "gone": True,
+            "error": "view: unknown view (the render stage does not hold it: open it again)"}
+
+
+def is_gone(head: dict) -> bool:
+    """True for :func:`gone_reply`'s message."""
+    return head.get("type") == "error" and head.get("gone") is True
+
+
+def point_to_dict(rec) -> Optional[dict]:
+    """A ring point (``PointRing.get_point``) as a pick reply's ``point``."""
+    if rec is None:
+        return None
+    chans = {k: (np.asarray(v).tolist()) for k, v in rec.channels.items()}
+    return {"slot": int(rec.slot), "position": [float(v) for v in rec.position], "channels": chans,
+            "t_ingest_ms": float(rec.t_ingest_ms), "generation": int(rec.generation),
+            "importance": float(getattr(rec, "importance", 1.0))}
 
 
 class ControlError(KeyedError):
@@ -185,7 +234,24 @@ def number(v: Any, key: str, lo: float = -math.inf, hi: float = math.inf, lo_ope
     return x
 
 
-_num = number  # the name views.py and older callers use
+_num = number  # the short name used below
+
+
+def check_size(msg: dict, cmd: str) -> tuple[int, int]:
+    """``width`` and ``height`` of an ``open`` or ``resize``: whole pixels in :data:`SIZE_RANGE`."""
+    lo, hi = SIZE_RANGE
+    out = []
+    for k in ("width", "height"):
+        v = msg.get(k)
+        if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
+            raise ControlError(f"{cmd}.{k}", f"expected a whole number of pixels in [{lo}, {hi}], got {_short(v)}")
+        out.append(v)
+    return out[0], out[1]
+
+
+def check_keys(msg: dict, allowed: tuple, cmd: str) -> None:
+    """Refuse an argument ``cmd`` does not take (naming it and what it takes)."""
+    _unknown(msg, allowed, cmd)
 
 
 def _unknown(msg: dict, allowed: tuple, cmd: str) -> None:
@@ -336,31 +402,37 @@ def apply(state: ViewState, msg: Any, *, current: Optional[Camera] = None, chann
             raise ControlError("camera.eye", f"must differ from the target {cs.target}")
         _in_space(cs.eye, cs.target, "camera.eye")
     elif cmd in ("orbit", "pan", "zoom"):
-        keys = {"orbit": ("azimuth_deg", "elevation_deg"), "pan": ("right", "up"), "zoom": ("factor",)}[cmd]
-        _unknown(args, keys, cmd)
-        vals = {k: _num(args.get(k, 0.0 if cmd != "zoom" else 1.0), f"{cmd}.{k}") for k in keys}
-        base = _camera_of(state, current)
-        if base is None:
-            raise ControlError(cmd, "nothing is drawn yet to turn: wait for the first frame, or set eye and target")
-        with np.errstate(all="ignore"):  # an absurd move is refused below, not warned about on the console
-            if cmd == "orbit":
-                cam = OrbitController(base, orbit_deg_per_px=1.0).orbit(-vals["azimuth_deg"], vals["elevation_deg"])
-            elif cmd == "pan":
-                cam = OrbitController(base).pan(-vals["right"] * height_px, vals["up"] * height_px, height_px)
-            else:
-                f = vals["factor"]
-                if not f > 0:
-                    raise ControlError("zoom.factor", f"expected a number > 0, got {f:g}")
-                cam = OrbitController(base, zoom_per_wheel=1.0 / f).zoom(1.0)
-        _in_space(cam.eye, cam.target, f"{cmd}.{max(keys, key=lambda k: abs(vals[k] - (cmd == 'zoom')))}")
-        new.camera = CameraState(mode="fixed", eye=list(map(float, cam.eye)), target=list(map(float, cam.target)),
-                                 up=list(map(float, cam.up)), fov_deg=float(cam.fov_deg), follow=state.camera.follow,
-                                 follow_anchor=state.camera.follow_anchor)
+        new.camera = _turn(state, cmd, args, current, height_px)
     else:
         raise ControlError("cmd", f"unknown control message {cmd!r}; expected one of {', '.join(COMMANDS)} "
                                   "(or pick, save)")
     new.version = state.version + 1
     return new
+
+
+def _turn(state: ViewState, cmd: str, args: dict, current: Optional[Camera], height_px: int) -> CameraState:
+    """The camera after an ``orbit``, ``pan`` or ``zoom`` (a move that would leave finite
+    space is refused)."""
+    keys = {"orbit": ("azimuth_deg", "elevation_deg"), "pan": ("right", "up"), "zoom": ("factor",)}[cmd]
+    _unknown(args, keys, cmd)
+    vals = {k: _num(args.get(k, 0.0 if cmd != "zoom" else 1.0), f"{cmd}.{k}") for k in keys}
+    base = _camera_of(state, current)
+    if base is None:
+        raise ControlError(cmd, "nothing is drawn yet to turn: wait for the first frame, or set eye and target")
+    with np.errstate(all="ignore"):  # an absurd move is refused below, not warned about on the console
+        if cmd == "orbit":
+            cam = OrbitController(base, orbit_deg_per_px=1.0).orbit(-vals["azimuth_deg"], vals["elevation_deg"])
+        elif cmd == "pan":
+            cam = OrbitController(base).pan(-vals["right"] * height_px, vals["up"] * height_px, height_px)
+        else:
+            f = vals["factor"]
+            if not f > 0:
+                raise ControlError("zoom.factor", f"expected a number > 0, got {f:g}")
+            cam = OrbitController(base, zoom_per_wheel=1.0 / f).zoom(1.0)
+    _in_space(cam.eye, cam.target, f"{cmd}.{max(keys, key=lambda k: abs(vals[k] - (cmd == 'zoom')))}")
+    return CameraState(mode="fixed", eye=list(map(float, cam.eye)), target=list(map(float, cam.target)),
+                       up=list(map(float, cam.up)), fov_deg=float(cam.fov_deg), follow=state.camera.follow,
+                       follow_anchor=state.camera.follow_anchor)
 
 
 def _in_space(eye, target, key: str) -> None:

@@ -2,12 +2,12 @@
 
 The render stage binds a ROUTER on ``endpoints.views``; a view server (pointflow/serve)
 connects a DEALER and opens views for its clients. Each view has its own camera (a
-:class:`~pointflow.render.process.ViewController`) and size; the ring is uploaded ONCE per
+:class:`~pointflow.render.view.controller.ViewController`) and size; the ring is uploaded ONCE per
 handoff for the main view and every other view (a second draw passes ``dirty=[]``, so the
 tiers that keep their own copy upload nothing; wgpu's two buffer sets each take a dirty
 range once). A view is drawn only when its camera, size, the shared style or the data
 changed AND its client has credit (``credit {n}``: it can take n more frames, at most
-:data:`MAX_CREDIT`): a client that falls behind gets fewer frames and never slows the loop.
+:data:`~pointflow.render.view.protocol.MAX_CREDIT`): a client that falls behind gets fewer frames and never slows the loop.
 
 Drawing between handoffs (a camera turned while the data stands still) uses the last
 handoff's frame with ``dirty=[]``: tiers that keep their data (``Renderer.keeps_data``:
@@ -28,19 +28,15 @@ from typing import Any, Optional
 import numpy as np
 import zmq
 
-from ..chunk import new_trace_id
-from . import control
-from .base import FrameInput, RenderError, merge_ranges
-from .control import ControlError
+from ...chunk import new_trace_id
+from ..base import FrameInput, RenderError, merge_ranges
+from . import protocol
+from .controller import ViewController
+from .mainview import steer
+from .protocol import MAX_CREDIT, MAX_MESSAGE_BYTES, MAX_VIEWS, ControlError, check_keys, check_size, point_to_dict
 
-__all__ = ["ViewHub", "MAX_CREDIT", "MAX_VIEWS"]
+__all__ = ["ViewHub", "View"]
 
-#: Frames a client may have in flight (jupyter_rfb's rule: two).
-MAX_CREDIT = 2
-#: Views one render stage serves at once (an ``open`` beyond is refused with an error).
-MAX_VIEWS = 64
-#: A message from the view server larger than this disconnects it (ZMQ_MAXMSGSIZE).
-MAX_MESSAGE_BYTES = 64 * 1024
 #: Messages read per loop turn (the rest wait for the next turn; the loop never starves).
 MAX_MESSAGES_PER_TURN = 256
 #: A view whose picture changed within this long is "moving" (the server sends JPEG); when
@@ -52,7 +48,6 @@ STATS_S = 1.0
 #: often: its picture is read only for PNGs, picks and saves (those redraw it on demand),
 #: so the render stage's frames go to the views.
 MAIN_WHILE_VIEWED_S = 0.5
-SIZE_RANGE = (16, 4096)
 #: Targets (one per picture size, ``Renderer.resize``) kept besides the main view's: those
 #: of the most recently drawn views. Others are freed (``Renderer.forget_sizes``), so a
 #: client that resizes again and again, or views that close, leave no memory behind; a
@@ -66,7 +61,7 @@ class View:
     peer: bytes
     width: int
     height: int
-    ctl: Any  # a render.process.ViewController: this view's camera and control state
+    ctl: ViewController  # this view's camera and control state
     credit: int = 0
     seq: int = 0
     frames: int = 0
@@ -81,26 +76,11 @@ class View:
     t_drawn: float = 0.0  # when it was last drawn (the sizes kept are the latest views')
 
 
-def _size(msg: dict, cmd: str) -> tuple[int, int]:
-    lo, hi = SIZE_RANGE
-    out = []
-    for k in ("width", "height"):
-        v = msg.get(k)
-        if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
-            raise ControlError(f"{cmd}.{k}", f"expected a whole number of pixels in [{lo}, {hi}], got {v!r}")
-        out.append(v)
-    return out[0], out[1]
-
-
 class ViewHub:
     """The views of one render stage and the ROUTER they come through."""
 
-    def __init__(self, ctx, sock, cfg, channels: list[str], stage_api: dict):
+    def __init__(self, ctx, sock, cfg, channels: list[str]):
         self.ctx = ctx
-        #: what the render stage lends (render/process.py; passed in, so imports run one way):
-        #: ``view_cls`` (ViewController), ``shared_control`` (applies a style/visible message
-        #: to the pipeline's style) and ``point_dict`` (a ring point as a dict)
-        self.api = stage_api
         self.sock = sock
         self.cfg = cfg
         self.channels = channels
@@ -123,7 +103,7 @@ class ViewHub:
         self.t_main = 0.0  # when the main view was last drawn
 
     @classmethod
-    def open(cls, ctx, cfg, channels: list[str], **stage_api) -> Optional["ViewHub"]:
+    def open(cls, ctx, cfg, channels: list[str]) -> Optional["ViewHub"]:
         ep = getattr(ctx.endpoints, "views", None)
         if not ep:
             return None
@@ -133,7 +113,7 @@ class ViewHub:
         sock.setsockopt(zmq.MAXMSGSIZE, MAX_MESSAGE_BYTES)
         sock.setsockopt(zmq.SNDHWM, MAX_CREDIT * MAX_VIEWS + 64)
         sock.bind(ep)
-        return cls(ctx, sock, cfg, channels, stage_api)
+        return cls(ctx, sock, cfg, channels)
 
     # ------------------------------------------------------------------ messages
     def service(self, stage, ring) -> None:
@@ -153,13 +133,14 @@ class ViewHub:
         if now - self._t_stats >= STATS_S:
             self._stats(stage, now)
 
-    def _bad(self, peer: Optional[bytes], view: Optional[str], req: Any, exc: Exception, key: str) -> None:
+    def _bad(self, peer: Optional[bytes], view: Optional[str], req: Any, exc: Exception, key: str,
+             reply: Optional[dict] = None) -> None:
         self.ctx.counters.drop("bad_view_message", 1)
         n = self.ctx.counters.drops.get("bad_view_message", 0)
         if n <= 10 or n % 1000 == 0:
             self.ctx.log.warning("view message refused (%d so far): %s", n, exc)
         if peer is not None:
-            self._send(peer, {"type": "error", "view": view, "req": req, "error": str(exc), "key": key})
+            self._send(peer, reply or {"type": "error", "view": view, "req": req, "error": str(exc), "key": key})
 
     def _message(self, parts: list, stage, ring) -> None:
         peer = parts[0] if parts else None
@@ -196,9 +177,9 @@ class ViewHub:
 
     def _command(self, peer: bytes, vid: str, cmd: str, req, msg: dict, stage, ring) -> None:
         if cmd == "open":
-            control._unknown({k: v for k, v in msg.items() if k not in ("view", "req")},
-                             ("width", "height", "state", "seq"), "open")
-            w, h = _size(msg, "open")
+            check_keys({k: v for k, v in msg.items() if k not in ("view", "req")},
+                       ("width", "height", "state", "seq"), "open")
+            w, h = check_size(msg, "open")
             seq = msg.get("seq", 0)  # a view opened again after a restart numbers on from the server's last
             if isinstance(seq, bool) or not isinstance(seq, int) or not 0 <= seq < 2 ** 53:
                 raise ControlError("open.seq", f"expected a whole number >= 0, got {seq!r}")
@@ -217,48 +198,50 @@ class ViewHub:
             self.ctx.log.info("view %s open (%dx%d)", vid, w, h)
             return
         v = self.views.get(vid)
-        if v is None:
-            raise ControlError("view", "unknown view")
+        if v is None:  # a restarted render stage, or a closed view: the client opens it again
+            gone = protocol.gone_reply(vid, req)
+            self._bad(peer, vid, req, ControlError("view", "unknown view"), "view", reply=gone)
+            return
         v.peer = peer
         args = {k: val for k, val in msg.items() if k not in ("view", "req")}
         if cmd == "close":
             self._close(vid)
             self._trim_sizes(stage)
         elif cmd == "credit":
-            control._unknown(args, ("n",), "credit")
+            check_keys(args, ("n",), "credit")
             n = args.get("n")
             if isinstance(n, bool) or not isinstance(n, int) or n < 0:
                 raise ControlError("credit.n", f"expected a whole number >= 0, got {n!r}")
             v.credit = min(n, MAX_CREDIT)
         elif cmd == "resize":
-            control._unknown(args, ("width", "height"), "resize")
-            v.width, v.height = _size(args, "resize")
+            check_keys(args, ("width", "height"), "resize")
+            v.width, v.height = check_size(args, "resize")
             v.ctl.auto.aspect = v.width / v.height
             v.ctl.height = v.height
             self._trim_sizes(stage)
             self._reply(v, req)
         elif cmd == "pick":
-            control._unknown(args, ("x", "y", "pixel_ratio"), "pick")
-            x, y = control._num(args.get("x"), "pick.x"), control._num(args.get("y"), "pick.y")
-            pr = control._num(args.get("pixel_ratio", 1.0), "pick.pixel_ratio", 0.0, 16.0, lo_open=True)
+            check_keys(args, ("x", "y", "pixel_ratio"), "pick")
+            x, y = protocol.number(args.get("x"), "pick.x"), protocol.number(args.get("y"), "pick.y")
+            pr = protocol.number(args.get("pixel_ratio", 1.0), "pick.pixel_ratio", 0.0, 16.0, lo_open=True)
             self._pick(v, x, y, pr, req, stage, ring)
         elif cmd in ("style", "visible"):  # the pipeline's, shared by every view (module docstring)
-            self.api["shared_control"](dict(args, cmd=cmd), stage, self.ctx)
+            steer(dict(args, cmd=cmd), stage, self.ctx)
             main = stage.view.state
             st = v.ctl.state.copy()
             st.style, st.hidden_sources = dataclasses.replace(main.style), list(main.hidden_sources)
             st.version += 1
             v.ctl.state = st
             self._reply(v, req)
-        elif cmd in control.COMMANDS:
+        elif cmd in protocol.COMMANDS:
             v.ctl.apply(args | {"cmd": cmd}, None)
             self._reply(v, req)
         else:
             raise ControlError("cmd", f"unknown view command {cmd!r}; expected open, close, resize, credit, pick "
-                                      f"or one of {', '.join(control.COMMANDS)}")
+                                      f"or one of {', '.join(protocol.COMMANDS)}")
 
     def _new_view(self, vid: str, peer: bytes, w: int, h: int, stage) -> View:
-        ctl = self.api["view_cls"](self.cfg, w, h, self.channels)
+        ctl = ViewController(self.cfg, w, h, self.channels)
         ctl.state.style = dataclasses.replace(stage.view.state.style)
         ctl.state.hidden_sources = list(stage.view.state.hidden_sources)
         return View(id=vid, peer=peer, width=w, height=h, ctl=ctl, changed_t=time.monotonic())
@@ -468,14 +451,14 @@ class ViewHub:
             r.resize(*self.cfg.render.size)
             self.clobbered = True
         if stage.maplayer is not None:  # a map point is named "map: <file>", a live one by its source
-            rep = stage.maplayer.pick_reply(ring, slot, self.api["point_dict"])
+            rep = stage.maplayer.pick_reply(ring, slot, point_to_dict)
             self._send(v.peer, {"type": "pick", "view": v.id, "req": req, "point": rep.get("point"),
                                 "source": rep.get("source")})
             return
-        point = self.api["point_dict"](ring.get_point(slot)) if slot is not None else None
+        point = point_to_dict(ring.get_point(slot)) if slot is not None else None
         source = None
         if point is not None:
-            idx = point["channels"].get(control.SOURCE_CHANNEL)
+            idx = point["channels"].get(protocol.SOURCE_CHANNEL)
             if idx is not None and 0 <= int(idx) < len(self.sources):
                 source = self.sources[int(idx)]
             elif len(self.sources) == 1:
