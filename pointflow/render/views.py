@@ -32,6 +32,7 @@ from ..chunk import new_trace_id
 from . import control
 from .base import FrameInput, RenderError, merge_ranges
 from .control import ControlError
+from .legend import camera_dict, legend_dict
 
 __all__ = ["ViewHub", "MAX_CREDIT", "MAX_VIEWS"]
 
@@ -403,6 +404,15 @@ class ViewHub:
         self.ctx.spans.record(new_trace_id(), "view_draw", t0_ns, time.monotonic_ns(), int(self.last_frame.size))
         return img, (time.perf_counter() - t0) * 1e3
 
+    def _legend(self, stage) -> Optional[dict]:
+        """The colour legend of the pictures drawn from the last handoff (render/legend.py),
+        computed once per data generation and style."""
+        style = stage.view.state.style
+        k = (self.data_gen, style.color_by, style.colormap, str(style.color_range))
+        if getattr(self, "_legend_key", None) != k:
+            self._legend_key, self._legend_val = k, legend_dict(self.last_frame, style)
+        return self._legend_val
+
     def _draw(self, v: View, stage, cam, key, now: float) -> bool:
         try:
             img, ms = self._render(v, stage, cam)
@@ -422,7 +432,7 @@ class ViewHub:
         v.seq += 1
         hdr = {"type": "frame", "view": v.id, "seq": v.seq, "width": int(w), "height": int(h), "moving": moving,
                "version": v.ctl.state.version, "points": int(self.last_frame.size), "frame_ms": round(ms, 3),
-               "t_ns": time.monotonic_ns()}
+               "t_ns": time.monotonic_ns(), "camera": camera_dict(cam), "legend": self._legend(stage)}
         self.draw_ms_ema = ms if not self.draw_ms_ema else 0.9 * self.draw_ms_ema + 0.1 * ms
         data = np.ascontiguousarray(img)  # read_image's own copy: sent without another (zmq copy=False)
         if not self._send(v.peer, hdr, data):

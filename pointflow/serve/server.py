@@ -41,7 +41,9 @@ from typing import Any, Optional
 import zmq
 import zmq.asyncio
 
+from ..render.colormap import NAMES
 from ..render.control import ControlError, number, printable
+from ..render.legend import lut_hex
 from .auth import COOKIE, check_host, check_origin, check_token, cookie_name, machine_names
 from .config import ServeConfig
 from .encode import encode_frame
@@ -54,7 +56,9 @@ MAX_IN_FLIGHT = 2
 MAX_TEXTS = 256
 #: The page's files: nothing else is ever served.
 STATIC = {"index.html": "text/html", "gestures.js": "text/javascript", "view.js": "text/javascript",
-          "view.css": "text/css"}
+          "view.css": "text/css", "overlay.js": "text/javascript", "favicon.svg": "image/svg+xml"}
+#: Names a browser asks for on its own, answered with one of STATIC (no 404 in its console).
+ALIASES = {"favicon.ico": "favicon.svg"}
 #: Control messages the page may send on to the render stage (render/control.py).
 CONTROL = ("camera", "orbit", "pan", "zoom", "fit", "follow", "style", "visible", "view_state")
 PLAYBACK_KEYS = ("paused", "seek_s", "seek_fraction", "step", "rate", "loop", "hold")
@@ -62,6 +66,9 @@ PLAYBACK_KEYS = ("paused", "seek_s", "seek_fraction", "step", "rate", "loop", "h
 MAX_DEPTH = 4
 #: WebSocket close codes (RFC 6455): the page reconnects only after 1000/1001/1006.
 CLOSE_NORMAL, CLOSE_GOING_AWAY, CLOSE_POLICY, CLOSE_INTERNAL = 1000, 1001, 1008, 1011
+#: The run ended (the pipeline stops its view server): the page says so and stops retrying
+#: (an application code, RFC 6455 4000-4999; a view server that restarts closes with 1006).
+CLOSE_RUN_ENDED = 4000
 
 
 class _OneLine(logging.Filter):
@@ -339,7 +346,7 @@ class ViewServer:
         return self.url
 
     async def stop(self) -> None:
-        await asyncio.gather(*(self._drop_client(c, CLOSE_GOING_AWAY, "the pipeline is stopping")
+        await asyncio.gather(*(self._drop_client(c, CLOSE_RUN_ENDED, "run ended")
                                for c in list(self.clients.values())))
         for t in self._tasks:
             t.cancel()
@@ -388,6 +395,7 @@ class ViewServer:
 
     async def _static(self, request):
         name = request.match_info["name"]
+        name = ALIASES.get(name, name)
         if name not in STATIC:
             from aiohttp import web
 
@@ -447,7 +455,8 @@ class ViewServer:
             self._to_render(view, "open", width=c.width, height=c.height)
             self._send_json(c, {"type": "hello", "view": view, "sources": self.sources,
                                 "replays": sorted(self.playback_endpoints), "max_in_flight": MAX_IN_FLIGHT,
-                                "color_by": self.color_by, "colormaps": self.colormaps})
+                                "color_by": self.color_by, "colormaps": self.colormaps,
+                                "luts": {n: lut_hex(n) for n in self.colormaps if n in NAMES}})
             async for msg in ws:
                 if msg.type == WSMsgType.TEXT:
                     try:
@@ -743,7 +752,8 @@ class ViewServer:
         if seq <= c.last_sent_seq:  # an older frame finished after a newer one
             self._dropped(c)
             return
-        hdr = {k: head.get(k) for k in ("seq", "width", "height", "moving", "version", "points", "frame_ms")}
+        hdr = {k: head.get(k) for k in ("seq", "width", "height", "moving", "version", "points", "frame_ms",
+                                       "camera", "legend")}
         hdr.update(type="frame", mime=enc.mime, bytes=len(enc.data), encode_ms=round(enc.encode_ms, 2))
         hb = json.dumps(hdr).encode()
         c.queue.append((seq, struct.pack(">I", len(hb)) + hb + enc.data))

@@ -1,0 +1,52 @@
+"""What a view's picture shows that the picture itself cannot say: the camera it was drawn
+with and the colour scale in use (channel, colormap, the range actually used, also when it
+is automatic). The render stage puts both in every view frame's header, so a page or a
+notebook widget draws axes, grid, compass, markers and the colour legend over exactly the
+picture it shows (docs/views.md "Orientation and legend")."""
+from __future__ import annotations
+
+from types import SimpleNamespace
+from typing import Any, Optional
+
+import numpy as np
+
+from . import colormap
+from .base import FrameInput
+from .camera import Camera
+from .rules import color_values
+
+__all__ = ["camera_dict", "legend_dict", "lut_hex"]
+
+
+def camera_dict(cam: Camera) -> dict:
+    """The camera a picture was drawn with (world coordinates; camera.py's projection:
+    ``perspective(fov_deg, width / height, near, far) @ look_at(eye, target, up)``)."""
+    return {"eye": [float(x) for x in cam.eye], "target": [float(x) for x in cam.target],
+            "up": [float(x) for x in cam.up], "fov_deg": float(cam.fov_deg), "near": float(cam.near),
+            "far": float(cam.far)}
+
+
+def legend_dict(frame: Optional[FrameInput], style: Any) -> Optional[dict]:
+    """``{"color_by", "colormap", "range": [lo, hi], "auto"}`` for a colouring through a
+    colormap, in world units (``z`` in metres, not origin-relative), the range by the same
+    rule every tier follows (render/rules.py ``color_values``: fixed, the handoff's
+    ``channel_ranges``, else the finite min/max of the points held); None for a single
+    colour or a channel the ring does not hold."""
+    cb = getattr(style, "color_by", None)
+    if frame is None or cb in (None, "none", "rgb"):
+        return None
+    cfg = SimpleNamespace(color_by=cb, color_range=style.color_range)
+    cv = color_values(frame, cfg, np.empty(0, np.int64))
+    if cv is None:
+        return None
+    lo, hi = cv[1]
+    shift = float(frame.origin[2]) if cb in ("z", "height") else 0.0
+    lo, hi = float(lo) + shift, float(hi) + shift
+    return {"color_by": cb, "colormap": style.colormap, "auto": style.color_range == "auto",
+            "range": [lo if np.isfinite(lo) else None, hi if np.isfinite(hi) else None]}
+
+
+def lut_hex(name: str) -> str:
+    """A colormap's 256 RGB entries as one hex string (``rrggbb`` x 256): the page draws its
+    legend with the render stage's own table (render/colormap.py), not an approximation."""
+    return colormap.lut(name)[:, :3].tobytes().hex()
