@@ -15,7 +15,7 @@ from .base import FrameInput
 from .camera import Camera
 from .rules import color_values
 
-__all__ = ["camera_dict", "legend_dict", "lut_hex"]
+__all__ = ["camera_dict", "legend_dict", "lut_hex", "follow_dict"]
 
 
 def camera_dict(cam: Camera) -> dict:
@@ -24,6 +24,16 @@ def camera_dict(cam: Camera) -> dict:
     return {"eye": [float(x) for x in cam.eye], "target": [float(x) for x in cam.target],
             "up": [float(x) for x in cam.up], "fov_deg": float(cam.fov_deg), "near": float(cam.near),
             "far": float(cam.far)}
+
+
+def follow_dict(ctl: Any) -> Optional[dict]:
+    """``{"frame", "origin"}``: the frame a view's camera follows and where its origin is now
+    in the fixed frame (the page draws that frame's axes there too); None when not following
+    or its transforms are not known yet."""
+    name = ctl.state.camera.follow
+    ff = getattr(ctl, "follow", None)
+    o = ff.origin(name) if name and ff is not None else None
+    return None if o is None else {"frame": name, "origin": [float(x) for x in o]}
 
 
 def legend_dict(frame: Optional[FrameInput], style: Any) -> Optional[dict]:

@@ -32,7 +32,7 @@ from ..chunk import new_trace_id
 from . import control
 from .base import FrameInput, RenderError, merge_ranges
 from .control import ControlError
-from .legend import camera_dict, legend_dict
+from .legend import camera_dict, follow_dict, legend_dict
 
 __all__ = ["ViewHub", "MAX_CREDIT", "MAX_VIEWS"]
 
@@ -432,7 +432,8 @@ class ViewHub:
         v.seq += 1
         hdr = {"type": "frame", "view": v.id, "seq": v.seq, "width": int(w), "height": int(h), "moving": moving,
                "version": v.ctl.state.version, "points": int(self.last_frame.size), "frame_ms": round(ms, 3),
-               "t_ns": time.monotonic_ns(), "camera": camera_dict(cam), "legend": self._legend(stage)}
+               "t_ns": time.monotonic_ns(), "camera": camera_dict(cam), "legend": self._legend(stage),
+               "follow": follow_dict(v.ctl)}
         self.draw_ms_ema = ms if not self.draw_ms_ema else 0.9 * self.draw_ms_ema + 0.1 * ms
         data = np.ascontiguousarray(img)  # read_image's own copy: sent without another (zmq copy=False)
         if not self._send(v.peer, hdr, data):

@@ -753,7 +753,7 @@ class ViewServer:
             self._dropped(c)
             return
         hdr = {k: head.get(k) for k in ("seq", "width", "height", "moving", "version", "points", "frame_ms",
-                                       "camera", "legend")}
+                                       "camera", "legend", "follow")}
         hdr.update(type="frame", mime=enc.mime, bytes=len(enc.data), encode_ms=round(enc.encode_ms, 2))
         hb = json.dumps(hdr).encode()
         c.queue.append((seq, struct.pack(">I", len(hb)) + hb + enc.data))

@@ -3,7 +3,8 @@
 // eye, target, up, fov_deg, near, far; render/camera.py's look_at and perspective). No
 // dependencies; loaded by the page (view.js) and loadable by the notebook widget.
 //   pointflowOverlay.project(cam, w, h, p) -> [x, y, depth] in canvas pixels, or null behind the eye
-//   pointflowOverlay.draw(g, cam, w, h, opts) draws; opts: {axes, grid, compass, marks: {pick, measure}}
+//   pointflowOverlay.draw(g, cam, w, h, opts) draws; opts: {axes, grid, compass, marks: {pick, measure},
+//     follow: {frame, origin}} (the followed frame's axes, at half length, named)
 //   pointflowOverlay.niceStep(x) -> 1, 2 or 5 x 10^k nearest at or above x
 //   pointflowOverlay.layout(cam) -> {spacing, axisLength} (what draw uses)
 // Why an overlay and not pixels in the frame: crisp at any resolution and device pixel ratio,
@@ -98,12 +99,15 @@ var pointflowOverlay = (function () {
     g.restore();
   }
 
-  function drawAxes(g, P, L, scale) {
+  function drawAxes(g, P, L, scale, o, title) {
+    o = o || [0, 0, 0];
     for (const [name, color, d] of AXIS) {
-      const tip = [d[0] * L.axisLength, d[1] * L.axisLength, d[2] * L.axisLength];
-      const s = line(g, P, [0, 0, 0], tip, color, 3 * scale);
+      const tip = [o[0] + d[0] * L.axisLength, o[1] + d[1] * L.axisLength, o[2] + d[2] * L.axisLength];
+      const s = line(g, P, o, tip, color, 3 * scale);
       if (s) label(g, name, s[1][0] + 4 * scale, s[1][1] - 4 * scale, color, scale);
     }
+    const q = title && P.project(o);
+    if (q) label(g, title, q[0] + 6 * scale, q[1] + 14 * scale, "#ddd", scale);
   }
 
   // a small axis triad in the bottom-left corner: the world's X, Y (north) and Z (up) as
@@ -159,7 +163,10 @@ var pointflowOverlay = (function () {
       drawGrid(g, P, cam, L, scale);
       label(g, `grid ${fmtLen(L.spacing)}`, (opts.compass ? 90 : 10) * scale, h - 12 * scale, "#ccc", scale);
     }
-    if (opts.axes) drawAxes(g, P, L, scale);
+    if (opts.axes) {
+      drawAxes(g, P, L, scale);
+      if (opts.follow && opts.follow.origin) drawAxes(g, P, { axisLength: L.axisLength / 2 }, scale, opts.follow.origin, opts.follow.frame);
+    }
     drawMarks(g, P, opts.marks, scale);
     if (opts.compass) drawCompass(g, P, w, h, scale);
     return L;

@@ -77,7 +77,7 @@
   function drawOverlay() {
     if (over.width !== canvas.width || over.height !== canvas.height) { over.width = canvas.width; over.height = canvas.height; }
     overlayLayout = pointflowOverlay.draw(og, frame.camera, over.width, over.height,
-      { axes: show.axes, grid: show.grid, compass: show.compass, marks });
+      { axes: show.axes, grid: show.grid, compass: show.compass, marks, follow: frame.follow });
     over.dataset.drawn = String(shown);
   }
 
