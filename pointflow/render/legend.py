@@ -45,15 +45,38 @@ def legend_dict(frame: Optional[FrameInput], style: Any) -> Optional[dict]:
     cb = getattr(style, "color_by", None)
     if frame is None or cb in (None, "none", "rgb"):
         return None
-    cfg = SimpleNamespace(color_by=cb, color_range=style.color_range)
-    cv = color_values(frame, cfg, np.empty(0, np.int64))
-    if cv is None:
-        return None
-    lo, hi = cv[1]
     shift = float(frame.origin[2]) if cb in ("z", "height") else 0.0
-    lo, hi = float(lo) + shift, float(hi) + shift
+    auto = _auto_range(frame, cb) if style.color_range == "auto" and cb in ("z", "height", "ingest_time") else None
+    if auto is not None:
+        lo, hi = auto[0] + shift, auto[1] + shift
+    else:
+        cfg = SimpleNamespace(color_by=cb, color_range=style.color_range)
+        cv = color_values(frame, cfg, np.empty(0, np.int64))
+        if cv is None:
+            return None
+        lo, hi = float(cv[1][0]) + shift, float(cv[1][1]) + shift
     return {"color_by": cb, "colormap": style.colormap, "auto": style.color_range == "auto",
             "range": [lo if np.isfinite(lo) else None, hi if np.isfinite(hi) else None]}
+
+
+def _auto_range(frame: FrameInput, cb: str) -> tuple[float, float]:
+    """rules.color_values' automatic range of ``z`` / ``ingest_time`` (finite min/max over the
+    occupied slots whose position is finite, origin-relative), without its float64 copy of
+    every value: the min and max of the float32 values are the same numbers (~10x faster)."""
+    cap, size = int(frame.capacity), min(int(frame.capacity), int(frame.size))
+    if size == cap:
+        pos, t = frame.positions[:cap], frame.t_ingest_ms[:cap]
+    else:
+        occ = frame.occupied_slots()
+        pos, t = frame.positions[occ], frame.t_ingest_ms[occ]
+    ok = np.isfinite(pos).all(axis=1)
+    v = pos[:, 2] if cb in ("z", "height") else t
+    v = v[ok] if not ok.all() else v
+    if cb == "ingest_time":
+        v = v[np.isfinite(v)]
+    if v.size == 0:
+        return 0.0, 0.0
+    return float(v.min()), float(v.max())
 
 
 def lut_hex(name: str) -> str:

@@ -54,6 +54,9 @@ STATS_S = 1.0
 #: so the render stage's frames go to the views.
 MAIN_WHILE_VIEWED_S = 0.5
 SIZE_RANGE = (16, 4096)
+#: How often a view frame's legend is computed again while only the data changes: an automatic
+#: ``z`` or ``ingest_time`` range is a min/max over every point held (~10 ms per million).
+LEGEND_S = 0.5
 #: Targets (one per picture size, ``Renderer.resize``) kept besides the main view's: those
 #: of the most recently drawn views. Others are freed (``Renderer.forget_sizes``), so a
 #: client that resizes again and again, or views that close, leave no memory behind; a
@@ -116,6 +119,8 @@ class ViewHub:
         #: newer contents, so the next draw takes them from there
         self._carry: Any = []
         self.clobbered = False  # the renderer's target holds a view's picture, not main's
+        self._legend_key: Any = None  # the legend of view frames (_legend): style, data generation, when
+        self._legend_gen, self._legend_t, self._legend_val = -1, 0.0, None
         self.totals = {"view_frames": 0, "view_skipped_no_credit": 0, "view_bytes": 0, "view_uploaded_bytes": 0}
         self._t_stats = time.monotonic()
         self._main_frames0 = 0
@@ -405,12 +410,15 @@ class ViewHub:
         return img, (time.perf_counter() - t0) * 1e3
 
     def _legend(self, stage) -> Optional[dict]:
-        """The colour legend of the pictures drawn from the last handoff (render/legend.py),
-        computed once per data generation and style."""
+        """The colour legend of the pictures drawn from the last handoff (render/legend.py):
+        at once after a style change, at most every LEGEND_S while only the data changes."""
         style = stage.view.state.style
-        k = (self.data_gen, style.color_by, style.colormap, str(style.color_range))
-        if getattr(self, "_legend_key", None) != k:
-            self._legend_key, self._legend_val = k, legend_dict(self.last_frame, style)
+        k = (style.color_by, style.colormap, str(style.color_range))
+        now = time.monotonic()
+        # new data alone: at most every LEGEND_S (an automatic z range reads every position)
+        if self._legend_key != k or (self._legend_gen != self.data_gen and now - self._legend_t >= LEGEND_S):
+            self._legend_key, self._legend_gen, self._legend_t = k, self.data_gen, now
+            self._legend_val = legend_dict(self.last_frame, style)
         return self._legend_val
 
     def _draw(self, v: View, stage, cam, key, now: float) -> bool:
