@@ -19,7 +19,7 @@ from pointflow.render.camera import Camera, project_to_pixels
 from pointflow.render.colormap import lut
 
 from .browser import frames, launch, need_browser, new_page, wait_frames
-from .helpers import TOKEN, base_url, config, file_source, http_get, scene
+from .helpers import TOKEN, base_url, config, file_source, http_get, scene, serve_stats
 
 KNOWN = (1.5, -2.25, 3.0)
 DOCS_IMG = os.path.join(os.path.dirname(__file__), "..", "..", "docs", "img")
@@ -265,6 +265,30 @@ def test_help_names_tooltip_favicon_and_refusal_text(browser, pipe):
                                                                      + "=" + TOKEN})
     assert code == 200 and headers["Content-Type"].startswith("image/svg+xml") and "<svg" in body
     assert not page.errors, page.errors
+    page.context.close()
+
+
+def test_a_restarting_view_server_is_not_a_run_that_ended(browser, pipe):
+    """A view server killed and restarted by the supervisor drops the link (1006): the page
+    reconnects and shows frames again; only the pipeline's own stop says "run ended"."""
+    import signal
+
+    page = _open(browser, pipe)
+    st = serve_stats(pipe)
+    os.kill(st["pid"], signal.SIGKILL)
+    pipe.wait(60, until=lambda: serve_stats(pipe).get("alive") and serve_stats(pipe).get("port")
+              and serve_stats(pipe).get("pid") != st["pid"])
+    page.wait_for_function("document.getElementById('status').textContent.includes('reconnecting')"
+                           " || window.pointflowView.frames() > 0", timeout=30000)
+    n = frames(page)
+    _control(page, cmd="orbit", azimuth_deg=10.0, elevation_deg=0.0)  # ignored while disconnected: retry
+    end = time.monotonic() + 90
+    while frames(page) <= n and time.monotonic() < end:
+        time.sleep(0.5)
+        _control(page, cmd="orbit", azimuth_deg=10.0, elevation_deg=0.0)
+    assert frames(page) > n, "the page did not come back after the view server restarted"
+    assert not page.evaluate("window.pointflowView.ended()")
+    assert page.locator("#status").inner_text() != "run ended"
     page.context.close()
 
 
