@@ -155,6 +155,7 @@ class ViewHub:
         if self.views and self.last_frame is not None and renderer.keeps_data:
             self._draw_all(stage, self.last_frame)
         self._resend_still()
+        self._legend_catch_up(stage)
         now = time.monotonic()
         if now - self._t_stats >= STATS_S:
             self._stats(stage, now)
@@ -420,6 +421,18 @@ class ViewHub:
             self._legend_key, self._legend_gen, self._legend_t = k, self.data_gen, now
             self._legend_val = legend_dict(self.last_frame, style)
         return self._legend_val
+
+    def _legend_catch_up(self, stage) -> None:
+        """New data came within LEGEND_S of the last legend and nothing has been drawn since
+        (the data stopped): the views get the legend of what they show as its own message."""
+        if not self.views or self._legend_key is None or self._legend_gen == self.data_gen \
+                or time.monotonic() - self._legend_t < LEGEND_S:
+            return
+        old = self._legend_val
+        if self._legend(stage) != old:
+            for v in list(self.views.values()):
+                if v.frames:
+                    self._send(v.peer, {"type": "legend", "view": v.id, "legend": self._legend_val})
 
     def _draw(self, v: View, stage, cam, key, now: float) -> bool:
         try:

@@ -220,6 +220,7 @@
       info.textContent = `refused: ${k && !e.startsWith(k + ":") ? k + ": " : ""}${e}`; info.hidden = false;
     }
     else if (m.type === "stats") { showStats(m); }
+    else if (m.type === "legend") { frame.legend = m.legend; drawLegend(m.legend); }  // the data changed after the last frame
     else if (m.type === "playback") { onPlayback(m); }
   }
 
