@@ -55,7 +55,7 @@ STATS_S = 1.0
 MAIN_WHILE_VIEWED_S = 0.5
 SIZE_RANGE = (16, 4096)
 #: How often a view frame's legend is computed again while only the data changes: an automatic
-#: ``z`` or ``ingest_time`` range is a min/max over every point held (~10 ms per million).
+#: ``z`` or ``ingest_time`` range is a min/max over every point held (tens of ms per million).
 LEGEND_S = 0.5
 #: Targets (one per picture size, ``Renderer.resize``) kept besides the main view's: those
 #: of the most recently drawn views. Others are freed (``Renderer.forget_sizes``), so a

@@ -6,7 +6,6 @@ stats line's names and tooltip; the favicon; "run ended" when the pipeline stops
 while paused changes the picture and a step moves one message."""
 from __future__ import annotations
 
-import io
 import json
 import os
 import time
@@ -22,7 +21,6 @@ from .browser import frames, launch, need_browser, new_page, wait_frames
 from .helpers import TOKEN, base_url, config, file_source, http_get, scene, serve_stats
 
 KNOWN = (1.5, -2.25, 3.0)
-DOCS_IMG = os.path.join(os.path.dirname(__file__), "..", "..", "docs", "img")
 
 
 @pytest.fixture(scope="module")
@@ -338,7 +336,6 @@ def test_seek_while_paused_shows_the_message_then_run_ended(browser, tmp_path):
         page.keyboard.press(".")
         pipe.wait(30, until=lambda: pipe.playback()["rec"]["index"] == n // 2 + 2)
         assert pipe.playback()["rec"]["paused"]
-        page.evaluate("window.__ended = () => window.pointflowView.ended()")
     # the pipeline stopped: the page says so and does not try again
     page.wait_for_function("window.pointflowView.ended()", timeout=60000)
     assert page.locator("#status").inner_text() == "run ended"
