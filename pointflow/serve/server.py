@@ -42,10 +42,11 @@ import zmq
 import zmq.asyncio
 
 from ..errors import Error
-from ..render.view import GESTURES_JS
+from ..render.view import GESTURES_JS, OVERLAY_JS
 from ..render.view.client import ClientEnd
 from ..render.view.encode import encode_frame
-from ..render.view.protocol import COMMANDS, MAX_CREDIT, ControlError, color_by_options, number, printable
+from ..render.view.protocol import COLORMAPS, COMMANDS, MAX_CREDIT, ControlError, color_by_options, number, printable
+from ..render.view.legend import lut_hex
 from .auth import COOKIE, check_host, check_origin, check_token, cookie_name, machine_names
 from .config import ServeConfig
 
@@ -55,12 +56,19 @@ log = logging.getLogger("pointflow.serve")
 MAX_TEXTS = 256
 #: The page's files: nothing else is ever served.
 STATIC = {"index.html": "text/html", "gestures.js": "text/javascript", "view.js": "text/javascript",
-          "view.css": "text/css"}
+          "view.css": "text/css", "overlay.js": "text/javascript", "favicon.svg": "image/svg+xml"}
+#: Names a browser asks for on its own, answered with one of STATIC (no 404 in its console).
+ALIASES = {"favicon.ico": "favicon.svg"}
+#: The page's files that live with the view protocol, shared with the notebook widget.
+SHARED = {p.name: p for p in (GESTURES_JS, OVERLAY_JS)}
 PLAYBACK_KEYS = ("paused", "seek_s", "seek_fraction", "step", "rate", "loop", "hold")
 #: How deep a client's JSON may nest (the page's deepest is an object holding a list).
 MAX_DEPTH = 4
 #: WebSocket close codes (RFC 6455): the page reconnects only after 1000/1001/1006.
 CLOSE_NORMAL, CLOSE_GOING_AWAY, CLOSE_POLICY, CLOSE_INTERNAL = 1000, 1001, 1008, 1011
+#: The run ended (the pipeline stops its view server): the page says so and stops retrying
+#: (an application code, RFC 6455 4000-4999; a view server that restarts closes with 1006).
+CLOSE_RUN_ENDED = 4000
 
 
 class _OneLine(logging.Filter):
@@ -332,7 +340,7 @@ class ViewServer:
         return self.url
 
     async def stop(self) -> None:
-        await asyncio.gather(*(self._drop_client(c, CLOSE_GOING_AWAY, "the pipeline is stopping")
+        await asyncio.gather(*(self._drop_client(c, CLOSE_RUN_ENDED, "run ended")
                                for c in list(self.clients.values())))
         for t in self._tasks:
             t.cancel()
@@ -381,6 +389,7 @@ class ViewServer:
 
     async def _static(self, request):
         name = request.match_info["name"]
+        name = ALIASES.get(name, name)
         if name not in STATIC:
             from aiohttp import web
 
@@ -393,7 +402,8 @@ class ViewServer:
     def _file(self, name: str):
         from aiohttp import web
 
-        body = (GESTURES_JS.read_bytes() if name == GESTURES_JS.name
+        shared = SHARED.get(name)  # the scripts the notebook widget loads too (render/view/static)
+        body = (shared.read_bytes() if shared is not None
                 else resource_files("pointflow.serve").joinpath("static", name).read_bytes())
         return web.Response(body=body, content_type=STATIC[name],
                             headers={"Cache-Control": "no-store", "X-Content-Type-Options": "nosniff",
@@ -441,7 +451,8 @@ class ViewServer:
             self._to_render(view, **c.end.open())
             self._send_json(c, {"type": "hello", "view": view, "sources": self.sources,
                                 "replays": sorted(self.playback_endpoints), "max_in_flight": MAX_CREDIT,
-                                "color_by": self.color_by, "colormaps": self.colormaps})
+                                "color_by": self.color_by, "colormaps": self.colormaps,
+                                "luts": {n: lut_hex(n) for n in self.colormaps if n in COLORMAPS}})
             async for msg in ws:
                 if msg.type == WSMsgType.TEXT:
                     try:
@@ -731,7 +742,8 @@ class ViewServer:
         if seq <= c.last_sent_seq:  # an older frame finished after a newer one
             self._dropped(c)
             return
-        hdr = {k: head.get(k) for k in ("seq", "width", "height", "moving", "version", "points", "frame_ms")}
+        hdr = {k: head.get(k) for k in ("seq", "width", "height", "moving", "version", "points", "frame_ms",
+                                       "camera", "legend", "follow")}
         hdr.update(type="frame", mime=enc.mime, bytes=len(enc.data), encode_ms=round(enc.encode_ms, 2))
         hb = json.dumps(hdr).encode()
         c.queue.append((seq, struct.pack(">I", len(hb)) + hb + enc.data))

@@ -156,7 +156,7 @@ def test_two_tabs_keep_their_own_cameras(browser, pipe):
     # the page's stats line: points, frames/s, drops, sources
     page_stats = a.locator("#stats")
     a.wait_for_function("document.getElementById('stats').textContent.includes('points 6401')", timeout=30000)
-    assert "drops" in page_stats.inner_text() and "sources scene" in page_stats.inner_text()
+    assert "drops" in page_stats.inner_text() and "source: scene" in page_stats.inner_text()
     for p in (a, b):
         p.context.close()
 

@@ -131,6 +131,12 @@ def test_two_views_independent_cameras_credit_and_close(tmp_path, tier):
             hb, ib = cl.frame("b", rb["version"])
             assert (ha["width"], ha["height"]) == (W, H) and ia.shape == (H, W, 4)
             assert (hb["width"], hb["height"]) == (200, 100) and ib.shape == (100, 200, 4)
+            # each frame says the camera it was drawn with and its colour legend (the page's overlay)
+            assert ha["camera"]["eye"] == TOP["eye"] and ha["camera"]["target"] == TOP["target"]
+            assert hb["camera"]["eye"] == SIDE["eye"] and 0 < hb["camera"]["near"] < hb["camera"]["far"]
+            lg = ha["legend"]
+            assert lg["color_by"] == "intensity" and lg["colormap"] == "turbo" and lg["auto"], lg
+            assert lg["range"][0] < lg["range"][1], lg
             # view a has main's camera and size: the very same pixels as main's saved frame
             assert np.array_equal(ia[..., :3], main[..., :3]), "a view with main's camera must draw main's picture"
             lit = lambda img: int(np.count_nonzero((img[..., :3].astype(int) - img[0, 0, :3]).any(-1)))

@@ -2,7 +2,7 @@
 a view's controller (:mod:`.controller`), the main view's one path (:mod:`.mainview`), the
 hub that draws many views in the render stage (:mod:`.hub`), the client end the view server
 and the notebook both drive (:mod:`.client`), the frame encoder (:mod:`.encode`) and the
-shared gestures script (``static/gestures.js``).
+shared gestures and overlay scripts (``static/gestures.js``, ``static/overlay.js``).
 
 The view server (pointflow/serve) and the notebook widget import this package and nothing
 else of pointflow.render. The protocol's vocabulary is importable from here; the other
@@ -17,6 +17,9 @@ from .protocol import (BUILTIN_COLOR, COLORMAPS, COMMANDS, MAX_CREDIT, MAX_VIEW_
 
 #: The page's and the widget's gestures (one file for both).
 GESTURES_JS = Path(__file__).parent / "static" / "gestures.js"
+#: The page's and the widget's overlays drawn from the view's camera: axes, grid, compass,
+#: legend, pick and measure marks (one file for both).
+OVERLAY_JS = Path(__file__).parent / "static" / "overlay.js"
 
 __all__ = ["BUILTIN_COLOR", "COLORMAPS", "COMMANDS", "MAX_CREDIT", "MAX_VIEW_PX", "SIZE_RANGE", "ControlError",
-           "ViewState", "color_by_options", "is_gone", "GESTURES_JS"]
+           "ViewState", "color_by_options", "is_gone", "GESTURES_JS", "OVERLAY_JS"]

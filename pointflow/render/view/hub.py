@@ -34,6 +34,7 @@ from . import protocol
 from .controller import ViewController
 from .mainview import steer
 from .protocol import MAX_CREDIT, MAX_MESSAGE_BYTES, MAX_VIEWS, ControlError, check_keys, check_size, point_to_dict
+from .legend import camera_dict, follow_dict, legend_dict
 
 __all__ = ["ViewHub", "View"]
 
@@ -48,6 +49,9 @@ STATS_S = 1.0
 #: often: its picture is read only for PNGs, picks and saves (those redraw it on demand),
 #: so the render stage's frames go to the views.
 MAIN_WHILE_VIEWED_S = 0.5
+#: How often a view frame's legend is computed again while only the data changes: an automatic
+#: ``z`` or ``ingest_time`` range is a min/max over every point held (tens of ms per million).
+LEGEND_S = 0.5
 #: Targets (one per picture size, ``Renderer.resize``) kept besides the main view's: those
 #: of the most recently drawn views. Others are freed (``Renderer.forget_sizes``), so a
 #: client that resizes again and again, or views that close, leave no memory behind; a
@@ -95,6 +99,8 @@ class ViewHub:
         #: newer contents, so the next draw takes them from there
         self._carry: Any = []
         self.clobbered = False  # the renderer's target holds a view's picture, not main's
+        self._legend_key: Any = None  # the legend of view frames (_legend): style, data generation, when
+        self._legend_gen, self._legend_t, self._legend_val = -1, 0.0, None
         self.totals = {"view_frames": 0, "view_skipped_no_credit": 0, "view_bytes": 0, "view_uploaded_bytes": 0}
         self._t_stats = time.monotonic()
         self._main_frames0 = 0
@@ -129,6 +135,7 @@ class ViewHub:
         if self.views and self.last_frame is not None and renderer.keeps_data:
             self._draw_all(stage, self.last_frame)
         self._resend_still()
+        self._legend_catch_up(stage)
         now = time.monotonic()
         if now - self._t_stats >= STATS_S:
             self._stats(stage, now)
@@ -386,6 +393,30 @@ class ViewHub:
         self.ctx.spans.record(new_trace_id(), "view_draw", t0_ns, time.monotonic_ns(), int(self.last_frame.size))
         return img, (time.perf_counter() - t0) * 1e3
 
+    def _legend(self, stage) -> Optional[dict]:
+        """The colour legend of the pictures drawn from the last handoff (render/view/legend.py):
+        at once after a style change, at most every LEGEND_S while only the data changes."""
+        style = stage.view.state.style
+        k = (style.color_by, style.colormap, str(style.color_range))
+        now = time.monotonic()
+        # new data alone: at most every LEGEND_S (an automatic z range reads every position)
+        if self._legend_key != k or (self._legend_gen != self.data_gen and now - self._legend_t >= LEGEND_S):
+            self._legend_key, self._legend_gen, self._legend_t = k, self.data_gen, now
+            self._legend_val = legend_dict(self.last_frame, style)
+        return self._legend_val
+
+    def _legend_catch_up(self, stage) -> None:
+        """New data came within LEGEND_S of the last legend and nothing has been drawn since
+        (the data stopped): the views get the legend of what they show as its own message."""
+        if not self.views or self._legend_key is None or self._legend_gen == self.data_gen \
+                or time.monotonic() - self._legend_t < LEGEND_S:
+            return
+        old = self._legend_val
+        if self._legend(stage) != old:
+            for v in list(self.views.values()):
+                if v.frames:
+                    self._send(v.peer, {"type": "legend", "view": v.id, "legend": self._legend_val})
+
     def _draw(self, v: View, stage, cam, key, now: float) -> bool:
         try:
             img, ms = self._render(v, stage, cam)
@@ -405,7 +436,8 @@ class ViewHub:
         v.seq += 1
         hdr = {"type": "frame", "view": v.id, "seq": v.seq, "width": int(w), "height": int(h), "moving": moving,
                "version": v.ctl.state.version, "points": int(self.last_frame.size), "frame_ms": round(ms, 3),
-               "t_ns": time.monotonic_ns()}
+               "t_ns": time.monotonic_ns(), "camera": camera_dict(cam), "legend": self._legend(stage),
+               "follow": follow_dict(v.ctl)}
         self.draw_ms_ema = ms if not self.draw_ms_ema else 0.9 * self.draw_ms_ema + 0.1 * ms
         data = np.ascontiguousarray(img)  # read_image's own copy: sent without another (zmq copy=False)
         if not self._send(v.peer, hdr, data):
