@@ -14,6 +14,7 @@ from .. import colormap
 from ..base import FrameInput
 from ..camera import Camera
 from ..rules import color_values
+from .protocol import BUILTIN_COLOR
 
 __all__ = ["camera_dict", "legend_dict", "lut_hex", "follow_dict"]
 
@@ -46,7 +47,7 @@ def legend_dict(frame: Optional[FrameInput], style: Any) -> Optional[dict]:
     if frame is None or cb in (None, "none", "rgb"):
         return None
     shift = float(frame.origin[2]) if cb in ("z", "height") else 0.0
-    auto = _auto_range(frame, cb) if style.color_range == "auto" and cb in ("z", "height", "ingest_time") else None
+    auto = _auto_range(frame, cb) if style.color_range == "auto" and cb in BUILTIN_COLOR else None  # "none" returned above
     if auto is not None:
         lo, hi = auto[0] + shift, auto[1] + shift
     else:
