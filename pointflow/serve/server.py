@@ -42,9 +42,9 @@ import zmq
 import zmq.asyncio
 
 from ..render.control import ControlError, number, printable
+from .adapt import Link, encode_level
 from .auth import COOKIE, check_host, check_origin, check_token, cookie_name, machine_names
 from .config import ServeConfig
-from .encode import encode_frame
 
 log = logging.getLogger("pointflow.serve")
 
@@ -210,6 +210,8 @@ class ViewClient:
     closed: bool = False
     #: A playback request of this client is waiting for the sources (one at a time).
     playback_busy: bool = False
+    #: what its link takes: the level moving frames are sent at (serve/adapt.py)
+    link: Link = field(default_factory=Link)
 
 
 #: Bytes a client's socket may hold unsent (besides two frames) and still get credit.
@@ -437,7 +439,7 @@ class ViewServer:
             return web.Response(status=400, text="gone\n")  # aiohttp drops it quietly (the peer is gone)
         view = f"w{self.extra['clients_total']}-{secrets.token_hex(4)}"
         c = ViewClient(view, ws, self.sc.width, self.sc.height, tokens=lim.max_messages_per_s * 2,
-                       transport=request.transport, fd=fd)
+                       transport=request.transport, fd=fd, link=Link(target_fps=self.sc.adapt_fps))
         self.clients[view] = c
         _count(self.extra, "clients_total")
         self.extra["clients"] = len(self.clients)
@@ -535,6 +537,9 @@ class ViewServer:
             if c.unacked > 0:
                 c.unacked -= 1
                 c.in_flight = max(0, c.in_flight - 1)
+                now = time.monotonic()
+                c.link.acked(now)
+                c.link.flight(c.in_flight >= MAX_IN_FLIGHT, now)
                 self._grant(c)
             else:
                 _count(self.extra, "bogus_acks")
@@ -681,6 +686,7 @@ class ViewServer:
                 _count(self.extra, "frames_in")
                 c.granted = max(0, c.granted - 1)
                 c.in_flight += 1
+                c.link.flight(c.in_flight >= MAX_IN_FLIGHT, time.monotonic())
                 c.encoding += 1
                 seq = head.get("seq")
                 if isinstance(seq, int) and not isinstance(seq, bool):
@@ -722,9 +728,10 @@ class ViewServer:
     async def _encode_one(self, c: ViewClient, head: dict, frame) -> None:
         loop = asyncio.get_running_loop()
         t0 = time.monotonic_ns()
+        w, h, moving = int(head["width"]), int(head["height"]), bool(head.get("moving"))
+        level, how = c.link.choose(moving, w * h)  # smaller while moving on a slow link (serve/adapt.py)
         try:
-            enc = await loop.run_in_executor(self.pool, encode_frame, frame.buffer, int(head["width"]),
-                                             int(head["height"]), bool(head.get("moving")), self.sc.jpeg_quality)
+            enc = await loop.run_in_executor(self.pool, encode_level, frame.buffer, w, h, how, self.sc.jpeg_quality)
         except Exception as exc:  # noqa: BLE001 - one bad frame is counted, the view goes on
             _count(self.extra, "encode_errors")
             log.warning("a frame of view %s could not be encoded: %s", c.view, printable(exc))
@@ -732,6 +739,8 @@ class ViewServer:
             self._grant(c)
             return
         t1 = time.monotonic_ns()
+        if moving:
+            c.link.encoded(level, len(enc.data), w * h)
         c.encode_ms.append(enc.encode_ms)
         self._enc_ms_all.append(enc.encode_ms)
         self._bytes["jpeg" if enc.mime == "image/jpeg" else "png"].append(len(enc.data))
@@ -744,9 +753,10 @@ class ViewServer:
             self._dropped(c)
             return
         hdr = {k: head.get(k) for k in ("seq", "width", "height", "moving", "version", "points", "frame_ms")}
-        hdr.update(type="frame", mime=enc.mime, bytes=len(enc.data), encode_ms=round(enc.encode_ms, 2))
+        hdr.update(type="frame", mime=enc.mime, bytes=len(enc.data), encode_ms=round(enc.encode_ms, 2),
+                   reduce=how.reduce, quality=0 if how.lossless else how.quality or self.sc.jpeg_quality)
         hb = json.dumps(hdr).encode()
-        c.queue.append((seq, struct.pack(">I", len(hb)) + hb + enc.data))
+        c.queue.append((seq, struct.pack(">I", len(hb)) + hb + enc.data, moving))
         while len(c.queue) > self.sc.limits.queue_frames:
             c.queue.popleft()
             self._dropped(c)
@@ -769,8 +779,9 @@ class ViewServer:
             while (c.texts or c.queue) and not c.closed:
                 text = c.texts.popleft() if c.texts else None
                 if text is None:
-                    seq, data = c.queue.popleft()
+                    seq, data, moving = c.queue.popleft()
                     c.writing = 1
+                    c.link.sent(len(data), moving, time.monotonic())  # before the await: its ack may come first
                 try:
                     send = c.ws.send_str(text) if text is not None else c.ws.send_bytes(data)
                     await asyncio.wait_for(send, self.sc.limits.send_timeout_s)
@@ -818,7 +829,8 @@ class ViewServer:
         recent = [t for t in c.sent_t if now - t <= 2.0]
         return {"fps": round(len(recent) / 2.0, 1), "frames": c.frames_sent, "drops": c.dropped,
                 "bytes_per_frame": int(sum(c.sizes) / len(c.sizes)) if c.sizes else 0,
-                "encode_ms": round(sum(c.encode_ms) / len(c.encode_ms), 2) if c.encode_ms else 0.0}
+                "encode_ms": round(sum(c.encode_ms) / len(c.encode_ms), 2) if c.encode_ms else 0.0,
+                "link": c.link.stats(now)}
 
     def update_stats(self) -> None:
         e = self.extra
