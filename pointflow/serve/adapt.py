@@ -14,9 +14,12 @@ Two parts:
 Why these signals: a frame rate under target is the link's fault only when the view was
 starved of credit (its frames were all out, waiting to be acknowledged); a render stage
 that is simply slow leaves credit unused, and lowering the quality would not help it, so
-the level stays. The link's rate is measured on frames sent back to back (the next frame
-was written before the previous one was acknowledged): the link was busy between the two
-acks, so bytes over the interval is its rate (a lower bound otherwise).
+the level stays; and a view whose frames already fit the link's rate at the target waits on
+the round trip (two frames of credit per round trip), not on the link's rate. The link's
+rate is measured on frames sent back to back (the next frame was written before the
+previous one was acknowledged): bytes over the interval between the two acks. With two
+frames of credit and a round trip, that underestimates a link the view does not fill,
+which only keeps a level, never raises it wrongly.
 """
 from __future__ import annotations
 
@@ -83,7 +86,8 @@ def _budget(o: Observed) -> Optional[float]:
 def decide(o: Observed) -> int:
     """The level for the next moving frames: down (to the best level whose frames fit the
     link at the target rate, at least one step) when the view shows fewer frames than the
-    target and waited on the link; up one step when it keeps the target and the better
+    target, waited on the link, and its frames do not fit the link (or it is not measured
+    yet); up one step when it keeps the target and the better
     level fits with room to spare; else the same."""
     n = len(LEVELS)
     level = min(max(o.level, 0), n - 1)
@@ -91,8 +95,8 @@ def decide(o: Observed) -> int:
         return level
     budget = _budget(o)
     if o.fps < o.target_fps and o.starved > STARVED:
-        if level == n - 1:
-            return level
+        if level == n - 1 or (budget is not None and o.expected_bytes[level] <= budget):
+            return level  # the frames fit the link: the wait is the round trip's or render's
         if budget is not None:
             for k in range(level + 1, n):
                 if o.expected_bytes[k] <= budget:
@@ -148,13 +152,16 @@ class Link:
         self.pending.append(_Sent(t_start, nbytes, moving))
 
     def acked(self, now: float) -> None:
-        """The page acknowledged its oldest frame."""
+        """The page acknowledged its oldest frame. A rate sample: when the frame was written
+        before the previous one was acknowledged (back to back), bytes over the interval
+        between the two acks; else bytes over its whole trip (a lower bound: the round trip
+        is in it)."""
         if not self.pending:
             return
         s = self.pending.popleft()
-        if self.t_ack and s.t_start < self.t_ack and now > self.t_ack:  # back to back: the link was busy
+        if self.t_ack and s.t_start < self.t_ack and now > self.t_ack:
             self.samples.append((now, s.nbytes * 8.0 / (now - self.t_ack)))
-        elif now > s.t_start:  # bytes over the whole trip: a lower bound of the rate
+        elif now > s.t_start:
             self.samples.append((now, s.nbytes * 8.0 / (now - s.t_start)))
         self.acks.append((now, s.nbytes, s.moving))
         self.t_ack = now
@@ -169,7 +176,8 @@ class Link:
 
     # ---------------------------------------------------------------- reading
     def link_bps(self, now: float) -> Optional[float]:
-        """The link's rate: the highest sample lately (samples underestimate, never over)."""
+        """The link's rate: the highest sample lately (a sample underestimates when the link
+        idled between the two acks; it does not overestimate)."""
         recent = [r for t, r in self.samples if now - t <= WINDOW_S]
         return max(recent) if recent else None
 

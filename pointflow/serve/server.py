@@ -752,7 +752,7 @@ class ViewServer:
         if seq <= c.last_sent_seq:  # an older frame finished after a newer one
             self._dropped(c)
             return
-        hdr = {k: head.get(k) for k in ("seq", "width", "height", "moving", "version", "points", "frame_ms")}
+        hdr = {k: head.get(k) for k in ("seq", "width", "height", "moving", "version", "points", "frame_ms", "t_ns")}
         hdr.update(type="frame", mime=enc.mime, bytes=len(enc.data), encode_ms=round(enc.encode_ms, 2),
                    reduce=how.reduce, quality=0 if how.lossless else how.quality or self.sc.jpeg_quality)
         hb = json.dumps(hdr).encode()
