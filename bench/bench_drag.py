@@ -4,7 +4,8 @@ shows it, cut into its parts with the clocks of the processes (one machine: one
 CLOCK_MONOTONIC):
 
 * ``to_render`` — client -> view server -> render stage, until the turn is applied
-  (the reply's ``changed_ns``);
+  (the reply's ``changed_ns``); of it ``to_serve`` (client -> the view server's event
+  loop, the reply's ``served_ns``) and ``serve_to_render`` (zmq and the render loop);
 * ``wait``      — applied -> the view's draw starts (the loop busy with something else:
   the main view's own frame, a handoff, credit);
 * ``draw``      — the view's draw and read-back (``frame_ms``);
@@ -72,6 +73,9 @@ def one(points: int, size, turns: int) -> dict:
                         ch = rep.get("changed_ns")
                         if ch:
                             row["to_render"] = ch / 1e6 - t0 * 1e3
+                        if ch and rep.get("served_ns"):
+                            row["to_serve"] = rep["served_ns"] / 1e6 - t0 * 1e3
+                            row["serve_to_render"] = (ch - rep["served_ns"]) / 1e6
                         if hit.get("t_ns") and ch:
                             start = hit["t_ns"] / 1e6 - (hit.get("frame_ms") or 0.0)
                             row["wait"] = start - ch / 1e6
@@ -96,7 +100,7 @@ def _stats(rows: list[dict]) -> dict:
         out["budget_ms"] = 2 * float(np.median(draw)) + float(np.median(enc))
     # the parts: median over all turns, and their mean over the slowest 5 % (the tail)
     tail = sorted(rows, key=lambda r: r["lat"])[-max(1, len(rows) // 20):]
-    for k in ("to_render", "wait", "draw", "encode", "to_client"):
+    for k in ("to_render", "to_serve", "serve_to_render", "wait", "draw", "encode", "to_client"):
         vals = [r[k] for r in rows if r.get(k) is not None]
         if vals:
             out[f"{k}_median_ms"] = float(np.median(vals))
@@ -140,7 +144,8 @@ def main() -> None:
            "size": list(size), "points": args.points, "turns_per_round": args.turns, "rounds": args.rounds}
     for k, rounds in res.items():
         rows = [r for rr in rounds for r in rr["rows"]]
-        out[k] = _stats(rows) | {"per_round": [_stats(rr["rows"]) for rr in rounds], "latency_ms": [r["lat"] for r in rows]}
+        out[k] = _stats(rows) | {"per_round": [_stats(rr["rows"]) for rr in rounds], "latency_ms": [r["lat"] for r in rows],
+                                 "rows": rows}
     if "before" in out and out["before"].get("p99_ms"):
         out["after_over_before"] = {p: out["after"][p] / out["before"][p] for p in ("p50_ms", "p90_ms", "p99_ms")}
     _harness.write_result(Path(args.out) if args.out else RESULTS / "drag.json", out, 1)

@@ -212,6 +212,8 @@ class ViewClient:
     playback_busy: bool = False
     #: what its link takes: the level moving frames are sent at (serve/adapt.py)
     link: Link = field(default_factory=Link)
+    #: when each control message with a ``req`` came (monotonic ns; its reply carries it)
+    req_ns: dict = field(default_factory=dict)
 
 
 #: Bytes a client's socket may hold unsent (besides two frames) and still get credit.
@@ -553,6 +555,10 @@ class ViewServer:
                 self._to_render(c.view, "resize", width=w, height=h)
             self._grant(c)
         elif cmd in CONTROL:
+            if req is not None:  # when it came: its reply says (where a drag's time goes, bench_drag.py)
+                c.req_ns[req] = time.monotonic_ns()
+                while len(c.req_ns) > 64:
+                    c.req_ns.pop(next(iter(c.req_ns)))
             self._to_render(c.view, cmd, **msg)
         elif cmd == "pick":
             try:
@@ -697,6 +703,8 @@ class ViewServer:
             else:
                 if kind == "reply" and isinstance(head.get("camera"), dict):
                     c.camera = head["camera"]
+                if kind == "reply" and head.get("req") in c.req_ns:
+                    head["served_ns"] = c.req_ns.pop(head["req"])
                 self._send_json(c, head)
 
     def _reopen(self, c: ViewClient) -> None:
