@@ -14,8 +14,7 @@ Two parts:
 Why these signals: a frame rate under target is the link's fault only when the view was
 starved of credit (its frames were all out, waiting to be acknowledged); a render stage
 that is simply slow leaves credit unused, and lowering the quality would not help it, so
-the level stays; and a view whose frames already fit the link's rate at the target waits on
-the round trip (two frames of credit per round trip), not on the link's rate. The link's
+the level stays. The link's
 rate is measured on frames sent back to back (the next frame was written before the
 previous one was acknowledged): bytes over the interval between the two acks. With two
 frames of credit and a round trip, that underestimates a link the view does not fill,
@@ -86,8 +85,9 @@ def _budget(o: Observed) -> Optional[float]:
 def decide(o: Observed) -> int:
     """The level for the next moving frames: down (to the best level whose frames fit the
     link at the target rate, at least one step) when the view shows fewer frames than the
-    target, waited on the link, and its frames do not fit the link (or it is not measured
-    yet); up one step when it keeps the target and the better
+    target and waited on the link (its credit was out: the frames were on the link or in
+    the page; with two frames a round trip, a smaller frame is a shorter trip, so this holds
+    on a link of ample rate but long delay too); up one step when it keeps the target and the better
     level fits with room to spare; else the same."""
     n = len(LEVELS)
     level = min(max(o.level, 0), n - 1)
@@ -95,8 +95,8 @@ def decide(o: Observed) -> int:
         return level
     budget = _budget(o)
     if o.fps < o.target_fps and o.starved > STARVED:
-        if level == n - 1 or (budget is not None and o.expected_bytes[level] <= budget):
-            return level  # the frames fit the link: the wait is the round trip's or render's
+        if level == n - 1:
+            return level
         if budget is not None:
             for k in range(level + 1, n):
                 if o.expected_bytes[k] <= budget:

@@ -52,6 +52,7 @@
       statusEl.textContent = "";
       canvas.dataset.frames = String(shown);
       canvas.dataset.mime = head.mime;
+      canvas.dataset.reduce = String(head.reduce || 1);  // > 1: sent smaller for a slow link
     }).catch(() => {}).then(() => send({ cmd: "ack" }));
   }
 
