@@ -51,6 +51,8 @@ def one(points: int, size, turns: int) -> dict:
         cfg = _config(_scene(tmp, points), points, size, "cpu", orbit=0.0)
         with Pipeline.from_dict(cfg, out_dir=tmp) as pipe:
             pipe.wait(120, until=lambda: _render(pipe).get("drawn_count", 0) >= points)
+            # the compiled raster (a fresh tree compiles it beside the stage: minutes here)
+            pipe.wait(900, until=lambda: _render(pipe).get("raster") not in ("compiling", None))
             c = Client(_base_url(pipe))
             try:
                 time.sleep(1.5)
