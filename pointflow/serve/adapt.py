@@ -14,11 +14,11 @@ Two parts:
 Why these signals: a frame rate under target is the link's fault only when the view was
 starved of credit (its frames were all out, waiting to be acknowledged); a render stage
 that is simply slow leaves credit unused, and lowering the quality would not help it, so
-the level stays. The link's
-rate is measured on frames sent back to back (the next frame was written before the
-previous one was acknowledged): bytes over the interval between the two acks. With two
-frames of credit and a round trip, that underestimates a link the view does not fill,
-which only keeps a level, never raises it wrongly.
+the level stays. The link's rate is measured on frames sent back to back (the next frame
+was written before the previous one was acknowledged): bytes over the interval between the
+two acks. With two frames of credit and a round trip, that underestimates a link the view
+does not fill, which only keeps a level, never raises it wrongly. The policy is pure and
+its inputs are plain numbers, so it is tested without a link (tests/serve/test_adapt.py).
 """
 from __future__ import annotations
 
