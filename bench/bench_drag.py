@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import random
 import sys
 import tempfile
@@ -71,7 +70,8 @@ def one(points: int, size, turns: int) -> dict:
                         hit = next((f for f in c.frames[k:] if (f.get("version") or 0) >= v), None)
                         time.sleep(0.0005)
                     if hit is not None:
-                        row = {"lat": (hit["t"] - t0) * 1e3, "draw": hit.get("frame_ms"), "encode": hit.get("encode_ms")}
+                        row = {"lat": (hit["t"] - t0) * 1e3, "draw": hit.get("frame_ms"),
+                               "encode": hit.get("encode_ms")}
                         ch = rep.get("changed_ns")
                         if ch:
                             row["to_render"] = ch / 1e6 - t0 * 1e3
@@ -127,27 +127,25 @@ def main() -> None:
         return
     mach = _harness.machine(command=_harness.command())
     child = [str(HERE), "--one", "--points", str(args.points), "--size", args.size, "--turns", str(args.turns)]
-    sides: dict = {"after": None}
-    with tempfile.TemporaryDirectory() as _:
-        tree_cm = _harness.revision_tree(args.before) if args.before else None
-        tree = tree_cm.__enter__() if tree_cm else None
-        try:
-            runners = {"after": lambda: _harness.run_json(child, _harness.ROOT, timeout=1200)}
-            if tree is not None:
-                runners["before"] = lambda: _harness.run_json(child, tree, timeout=1200)
-            res = _harness.interleave(runners, args.rounds,
-                                      on_result=lambda i, k, r: print(i, k, json.dumps(_stats(r["rows"])), flush=True))
-        finally:
-            if tree_cm:
-                tree_cm.__exit__(None, None, None)
+    tree_cm = _harness.revision_tree(args.before) if args.before else None
+    tree = tree_cm.__enter__() if tree_cm else None
+    try:
+        runners = {"after": lambda: _harness.run_json(child, _harness.ROOT, timeout=1200)}
+        if tree is not None:
+            runners["before"] = lambda: _harness.run_json(child, tree, timeout=1200)
+        res = _harness.interleave(runners, args.rounds,
+                                  on_result=lambda i, k, r: print(i, k, json.dumps(_stats(r["rows"])), flush=True))
+    finally:
+        if tree_cm:
+            tree_cm.__exit__(None, None, None)
     _harness.machine_done(mach)
     out = {"machine": mach, "uptime_before": mach["uptime_before"], "uptime_after": mach["uptime_after"],
            "before_revision": _harness.resolve_revision(args.before) if args.before else None,
            "size": list(size), "points": args.points, "turns_per_round": args.turns, "rounds": args.rounds}
     for k, rounds in res.items():
         rows = [r for rr in rounds for r in rr["rows"]]
-        out[k] = _stats(rows) | {"per_round": [_stats(rr["rows"]) for rr in rounds], "latency_ms": [r["lat"] for r in rows],
-                                 "rows": rows}
+        out[k] = _stats(rows) | {"per_round": [_stats(rr["rows"]) for rr in rounds],
+                                 "latency_ms": [r["lat"] for r in rows], "rows": rows}
     if "before" in out and out["before"].get("p99_ms"):
         out["after_over_before"] = {p: out["after"][p] / out["before"][p] for p in ("p50_ms", "p90_ms", "p99_ms")}
     _harness.write_result(Path(args.out) if args.out else RESULTS / "drag.json", out, 1)

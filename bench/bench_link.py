@@ -252,7 +252,8 @@ def main() -> None:
 
 def _summary(rows: list[dict]) -> dict:
     out = {}
-    for key, sel in (("unlimited", [r for r in rows if not r["rate_bps"]]), ("slow", [r for r in rows if r["rate_bps"]])):
+    for key, sel in (("unlimited", [r for r in rows if not r["rate_bps"]]),
+                     ("slow", [r for r in rows if r["rate_bps"]])):
         if not sel:
             continue
         out[key] = {"link": sel[0]["link"], "moving_fps_median": float(np.median([r["moving_fps"] for r in sel])),

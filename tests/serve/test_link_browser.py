@@ -34,7 +34,8 @@ def pipe(tmp_path_factory):
 
 def _canvas(page) -> dict:
     """The canvas's size, the view's (its last reply's), what the last frame was."""
-    return page.evaluate("(() => { const c = document.getElementById('view'); const s = window.pointflowView.state();"
+    return page.evaluate("(() => { const c = document.getElementById('view');"
+                         " const s = window.pointflowView.state();"
                          " return {w: c.width, h: c.height, vw: s && s.width, vh: s && s.height,"
                          " mime: c.dataset.mime, reduce: c.dataset.reduce}; })()")
 
@@ -70,7 +71,8 @@ def test_a_page_dragged_over_a_slow_link_draws_reduced_frames_at_its_size(browse
             assert reduced is not None, f"no reduced frame drawn at the view's size over 1 Mbit/s: {seen[-5:]}"
             assert reduced["mime"] == "image/jpeg"
             # the still: lossless, full size, at the view's size
-            page.wait_for_function("(() => { const c = document.getElementById('view'), s = window.pointflowView.state();"
+            page.wait_for_function("(() => { const c = document.getElementById('view');"
+                                   " const s = window.pointflowView.state();"
                                    " return c.dataset.mime === 'image/png' && c.dataset.reduce === '1' && s"
                                    " && c.width === s.width && c.height === s.height; })()", timeout=90000)
             assert not page.errors, page.errors
