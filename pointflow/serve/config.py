@@ -75,8 +75,11 @@ class ServeConfig:
     #: Size of a new view when the page does not say (it sends its own size).
     width: int = field(default=800, metadata=check(Bound(16, MAX_VIEW_PX)))
     height: int = field(default=600, metadata=check(Bound(16, MAX_VIEW_PX)))
-    #: JPEG quality of moving frames (still frames are PNG, lossless).
+    #: JPEG quality of moving frames at full size (still frames are PNG, lossless).
     jpeg_quality: int = field(default=80, metadata=check(Bound(1, 100)))
+    #: Frames/s a moving view keeps on a slow link: its frames get a lower JPEG quality and
+    #: then half or a quarter of the size until they fit (render/view/adapt.py); 0 = always full.
+    adapt_fps: float = field(default=20.0, metadata=check(Bound(0, 240)))
     #: Threads that encode frames (off the render loop; the encoders release the GIL).
     encode_threads: int = field(default=2, metadata=check(Bound(1, 32)))
     limits: ServeLimits = field(default_factory=ServeLimits)

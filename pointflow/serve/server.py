@@ -47,6 +47,7 @@ from ..render.view.client import ClientEnd
 from ..render.view.encode import encode_frame
 from ..render.view.protocol import COLORMAPS, COMMANDS, MAX_CREDIT, ControlError, color_by_options, number, printable
 from ..render.view.legend import lut_hex
+from ..render.view.adapt import Link, encode_level
 from .auth import COOKIE, check_host, check_origin, check_token, cookie_name, machine_names
 from .config import ServeConfig
 
@@ -211,6 +212,10 @@ class ViewClient:
     closed: bool = False
     #: A playback request of this client is waiting for the sources (one at a time).
     playback_busy: bool = False
+    #: what its link takes: the level moving frames are sent at (render/view/adapt.py)
+    link: Link = field(default_factory=Link)
+    #: when each control message with a ``req`` came (monotonic ns; its reply carries it)
+    req_ns: dict = field(default_factory=dict)
 
 
 #: Bytes a client's socket may hold unsent (besides two frames) and still get credit.
@@ -441,7 +446,7 @@ class ViewServer:
             return web.Response(status=400, text="gone\n")  # aiohttp drops it quietly (the peer is gone)
         view = f"w{self.extra['clients_total']}-{secrets.token_hex(4)}"
         c = ViewClient(view, ws, ClientEnd(self.sc.width, self.sc.height), tokens=lim.max_messages_per_s * 2,
-                       transport=request.transport, fd=fd)
+                       transport=request.transport, fd=fd, link=Link(target_fps=self.sc.adapt_fps))
         self.clients[view] = c
         _count(self.extra, "clients_total")
         self.extra["clients"] = len(self.clients)
@@ -540,6 +545,9 @@ class ViewServer:
             if c.unacked > 0:
                 c.unacked -= 1
                 c.in_flight = max(0, c.in_flight - 1)
+                now = time.monotonic()
+                c.link.acked(now)
+                c.link.flight(c.in_flight >= MAX_CREDIT, now)
                 self._grant(c)
             else:
                 _count(self.extra, "bogus_acks")
@@ -553,6 +561,10 @@ class ViewServer:
                 self._to_render(c.view, **change)
             self._grant(c)
         elif cmd in COMMANDS:
+            if req is not None:  # when it came: its reply says (where a drag's time goes, bench_drag.py)
+                c.req_ns[req] = time.monotonic_ns()
+                while len(c.req_ns) > 64:
+                    c.req_ns.pop(next(iter(c.req_ns)))
             self._to_render(c.view, cmd, **msg)
         elif cmd == "pick":
             try:
@@ -687,11 +699,14 @@ class ViewServer:
             if what == "frame" and len(parts) >= 2:
                 _count(self.extra, "frames_in")
                 c.in_flight += 1
+                c.link.flight(c.in_flight >= MAX_CREDIT, time.monotonic())
                 c.encoding += 1
                 asyncio.ensure_future(self._encode(c, head, parts[1]))
             elif what == "gone":
                 self._reopen(c)
             else:
+                if kind == "reply" and head.get("req") in c.req_ns:
+                    head["served_ns"] = c.req_ns.pop(head["req"])
                 self._send_json(c, head)
 
     def _reopen(self, c: ViewClient) -> None:
@@ -721,9 +736,10 @@ class ViewServer:
     async def _encode_one(self, c: ViewClient, head: dict, frame) -> None:
         loop = asyncio.get_running_loop()
         t0 = time.monotonic_ns()
+        w, h, moving = int(head["width"]), int(head["height"]), bool(head.get("moving"))
+        level, how = c.link.choose(moving, w * h)  # smaller while moving on a slow link (render/view/adapt.py)
         try:
-            enc = await loop.run_in_executor(self.pool, encode_frame, frame.buffer, int(head["width"]),
-                                             int(head["height"]), bool(head.get("moving")), self.sc.jpeg_quality)
+            enc = await loop.run_in_executor(self.pool, encode_level, frame.buffer, w, h, how, self.sc.jpeg_quality)
         except Exception as exc:  # noqa: BLE001 - one bad frame is counted, the view goes on
             _count(self.extra, "encode_errors")
             log.warning("a frame of view %s could not be encoded: %s", c.view, printable(exc))
@@ -731,6 +747,8 @@ class ViewServer:
             self._grant(c)
             return
         t1 = time.monotonic_ns()
+        if moving:
+            c.link.encoded(level, len(enc.data), w * h)
         c.encode_ms.append(enc.encode_ms)
         self._enc_ms_all.append(enc.encode_ms)
         self._bytes["jpeg" if enc.mime == "image/jpeg" else "png"].append(len(enc.data))
@@ -742,11 +760,12 @@ class ViewServer:
         if seq <= c.last_sent_seq:  # an older frame finished after a newer one
             self._dropped(c)
             return
-        hdr = {k: head.get(k) for k in ("seq", "width", "height", "moving", "version", "points", "frame_ms",
+        hdr = {k: head.get(k) for k in ("seq", "width", "height", "moving", "version", "points", "frame_ms", "t_ns",
                                        "camera", "legend", "follow")}
-        hdr.update(type="frame", mime=enc.mime, bytes=len(enc.data), encode_ms=round(enc.encode_ms, 2))
+        hdr.update(type="frame", mime=enc.mime, bytes=len(enc.data), encode_ms=round(enc.encode_ms, 2),
+                   reduce=how.reduce, quality=0 if how.lossless else how.quality or self.sc.jpeg_quality)
         hb = json.dumps(hdr).encode()
-        c.queue.append((seq, struct.pack(">I", len(hb)) + hb + enc.data))
+        c.queue.append((seq, struct.pack(">I", len(hb)) + hb + enc.data, moving))
         while len(c.queue) > self.sc.limits.queue_frames:
             c.queue.popleft()
             self._dropped(c)
@@ -769,8 +788,9 @@ class ViewServer:
             while (c.texts or c.queue) and not c.closed:
                 text = c.texts.popleft() if c.texts else None
                 if text is None:
-                    seq, data = c.queue.popleft()
+                    seq, data, moving = c.queue.popleft()
                     c.writing = 1
+                    c.link.sent(len(data), moving, time.monotonic())  # before the await: its ack may come first
                 try:
                     send = c.ws.send_str(text) if text is not None else c.ws.send_bytes(data)
                     await asyncio.wait_for(send, self.sc.limits.send_timeout_s)
@@ -818,7 +838,8 @@ class ViewServer:
         recent = [t for t in c.sent_t if now - t <= 2.0]
         return {"fps": round(len(recent) / 2.0, 1), "frames": c.frames_sent, "drops": c.dropped,
                 "bytes_per_frame": int(sum(c.sizes) / len(c.sizes)) if c.sizes else 0,
-                "encode_ms": round(sum(c.encode_ms) / len(c.encode_ms), 2) if c.encode_ms else 0.0}
+                "encode_ms": round(sum(c.encode_ms) / len(c.encode_ms), 2) if c.encode_ms else 0.0,
+                "link": c.link.stats(now)}
 
     def update_stats(self) -> None:
         e = self.extra

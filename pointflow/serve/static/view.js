@@ -60,8 +60,10 @@
     const head = JSON.parse(new TextDecoder().decode(new Uint8Array(buf, 4, n)));
     const blob = new Blob([new Uint8Array(buf, 4 + n)], { type: head.mime });
     drawing = drawing.then(() => createImageBitmap(blob)).then((bmp) => {
-      if (canvas.width !== bmp.width || canvas.height !== bmp.height) { canvas.width = bmp.width; canvas.height = bmp.height; }
-      g.drawImage(bmp, 0, 0);
+      // a frame reduced for a slow link (head.reduce > 1) is drawn at the view's size
+      const w = head.width || bmp.width, h = head.height || bmp.height;
+      if (canvas.width !== w || canvas.height !== h) { canvas.width = w; canvas.height = h; }
+      g.drawImage(bmp, 0, 0, w, h);
       bmp.close();
       frame = head; shown++;
       const now = performance.now(); shownT.push(now); while (shownT.length && now - shownT[0] > 2000) shownT.shift();
@@ -70,6 +72,7 @@
       canvas.dataset.mime = head.mime;
       drawOverlay();
       drawLegend(head.legend);
+      canvas.dataset.reduce = String(head.reduce || 1);  // > 1: sent smaller for a slow link
     }).catch(() => {}).then(() => send({ cmd: "ack" }));
   }
 
