@@ -22,3 +22,15 @@ def hostile_pipe(tmp_path_factory):
         base_url(p)
         p.wait(60, until=lambda: p.stats()["stages"]["render"].get("frames", 0) > 2)
         yield p
+
+
+@pytest.fixture(scope="module")
+def browser():
+    """One headless Chromium per test file that asks for it (tests/serve/browser.py)."""
+    from .browser import launch, need_browser
+
+    sync_api = need_browser()
+    with sync_api.sync_playwright() as pw:
+        b = launch(pw)
+        yield b
+        b.close()

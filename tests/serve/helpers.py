@@ -2,6 +2,8 @@
 real sockets, the real browser in test_browser.py)."""
 from __future__ import annotations
 
+import contextlib
+
 import json
 import os
 import struct
@@ -150,3 +152,15 @@ def closed_with(ws, codes) -> int:
             assert code in codes, (code, codes)
             return code
     raise AssertionError("the bad client was not closed")
+
+
+@contextlib.contextmanager
+def scene_pipeline(d: str, **serve):
+    """A pipeline replaying :func:`scene` (with its known point) to a view server, started,
+    its scene drawn and its page served; ``serve``: options of the ``serve:`` section."""
+    from pointflow import Pipeline
+
+    with Pipeline.from_dict(config(file_source(scene(d)), **({"serve": serve} if serve else {})), out_dir=d) as p:
+        p.wait(90, until=lambda: p.stats()["stages"]["render"]["points_in"] >= 6401)
+        base_url(p)
+        yield p

@@ -11,27 +11,16 @@ import pytest
 
 from pointflow import Pipeline
 
-from .browser import canvas_pixels, frames, launch, need_browser, new_page, wait_frames
-from .helpers import TOKEN, base_url, config, file_source, scene, serve_stats
+from .browser import canvas_pixels, frames, new_page, wait_frames
+from .helpers import scene_pipeline, TOKEN, base_url, config, serve_stats
 
 KNOWN = (1.5, -2.25, 3.0)
 
 
 @pytest.fixture(scope="module")
-def browser():
-    sync_api = need_browser()
-    with sync_api.sync_playwright() as pw:
-        b = launch(pw)
-        yield b
-        b.close()
-
-
-@pytest.fixture(scope="module")
 def pipe(tmp_path_factory):
     d = tmp_path_factory.mktemp("browser")
-    with Pipeline.from_dict(config(file_source(scene(str(d)))), out_dir=str(d)) as p:
-        p.wait(90, until=lambda: p.stats()["stages"]["render"]["points_in"] >= 6401)
-        base_url(p)
+    with scene_pipeline(str(d)) as p:
         yield p
 
 

@@ -7,28 +7,16 @@ import time
 
 import pytest
 
-from pointflow import Pipeline
 from pointflow.testing.linksim import SlowLink
 
-from .browser import launch, need_browser, new_page, wait_frames
-from .helpers import TOKEN, base_url, config, file_source, scene
-
-
-@pytest.fixture(scope="module")
-def browser():
-    sync_api = need_browser()
-    with sync_api.sync_playwright() as pw:
-        b = launch(pw)
-        yield b
-        b.close()
+from .browser import new_page, wait_frames
+from .helpers import scene_pipeline, TOKEN, base_url
 
 
 @pytest.fixture(scope="module")
 def pipe(tmp_path_factory):
     d = tmp_path_factory.mktemp("link_browser")
-    with Pipeline.from_dict(config(file_source(scene(str(d))), serve={"adapt_fps": 20}), out_dir=str(d)) as p:
-        p.wait(90, until=lambda: p.stats()["stages"]["render"]["points_in"] >= 6401)
-        base_url(p)
+    with scene_pipeline(str(d), adapt_fps=20) as p:
         yield p
 
 
