@@ -1,4 +1,4 @@
-"""A/B of two git revisions in one run: the ingest, render and pipeline benchmarks (each
+"""A/B of two git revisions in one run: the ingest, render, pipeline and views benchmarks (each
 revision's own ``bench/`` script against its own ``pointflow``), interleaved round by round
 (ABBA), so a refactor can be shown to stay within the run-to-run spread:
 
@@ -51,6 +51,12 @@ def _pipeline(res: dict) -> dict[str, float]:
 
 
 #: name -> (script, full-size arguments, --quick arguments, figures from its JSON, lower is better)
+def _views(res: dict) -> dict[str, float]:
+    ov, dr, fv = res["one_view"], res["drag"], res["four_views"]
+    return {"view_client_fps": ov["client_fps_median"], "view_over_render_alone": ov["ratio"],
+            "drag_p50_ms": dr["p50_ms"], "four_views_over_one": fv["ratio"]}
+
+
 BENCHES: dict[str, tuple[str, list[str], list[str], Callable[[dict], dict[str, float]], bool]] = {
     "ingest": ("bench_ingest.py", ["--points", "10000000", "--repeats", "3", "--sizes", "1000,10000", "--no-replay",
                                    "--no-frames"],
@@ -59,6 +65,8 @@ BENCHES: dict[str, tuple[str, list[str], list[str], Callable[[dict], dict[str, f
                ["--sizes", "100000", "--cpu-max", "0", "--quick"], _render, True),
     "pipeline": ("bench_pipeline.py", ["--seconds", "8", "--rounds", "1"],
                  ["--seconds", "3", "--warmup", "4", "--rounds", "1"], _pipeline, False),
+    # a view's frames/s through the view server, drag to frame (higher is better but for drag_p50_ms)
+    "views": ("bench_views.py", ["--points", "300000"], ["--points", "50000", "--quick"], _views, False),
 }
 
 
