@@ -118,6 +118,34 @@ def test_pause_step_seek_rate_loop(tmp_path):
         assert pipe.stats()["stages"]["rec"]["restarts"] == 0
 
 
+def test_seek_returns_once_landed(tmp_path):
+    """``playback(seek_*)`` returns the state after the seek: paused, the sought message waits
+    to go (``next_s``); playing, it has gone out (``position_s``); past the last message, at
+    the end. No poll after it: the returned state itself shows where the seek landed."""
+    scans = _scans(str(tmp_path))
+    with Pipeline.from_dict(_config(scans, paused=True, hold=True), out_dir=str(tmp_path)) as pipe:
+        pipe.playback(step=1)
+        _settle(pipe, _size(0))
+        st = pipe.playback(seek_s=1.05)["rec"]  # paused: message 11 (1.1 s) waits to go
+        assert not st["seek_pending"] and st["seeks_landed"] == st["seeks"] == 1
+        assert st["next_s"] == pytest.approx(1.1) and st["index"] == 0 and st["paused"]
+        st = pipe.playback(seek_fraction=0.25)["rec"]  # 0.5 s: message 5
+        assert st["next_s"] == pytest.approx(0.5) and st["seeks_landed"] == 2
+        pipe.playback(step=1)
+        _settle(pipe, _size(0) + _size(5))
+        assert pipe.playback()["rec"]["index"] == 5
+
+        st = pipe.playback(seek_s=1.95)["rec"]  # past the last message (1.9 s): at the end (hold)
+        assert st["seeks_landed"] == 3 and st["next_s"] is None
+        pipe.wait(10, until=lambda: pipe.playback()["rec"]["at_end"])
+        assert pipe.playback()["rec"]["at_end"]
+
+        pipe.playback(rate=0.01, paused=False, seek_s=0.0)  # playing, slowly (10 s a message): message 0 goes at once
+        st = pipe.playback(seek_s=1.2)["rec"]  # playing: message 12 has gone out
+        assert not st["seek_pending"] and st["seeks_landed"] == st["seeks"] == 5
+        assert st["index"] == 12 and st["position_s"] == pytest.approx(1.2) and not st["paused"]
+
+
 def test_loop_repeats_and_pause_holds(tmp_path):
     scans = _scans(str(tmp_path))
     total = sum(_size(i) for i in range(N))
