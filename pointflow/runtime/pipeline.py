@@ -41,6 +41,25 @@ def with_api_source(data: dict) -> dict:
     return {**data, "sources": [{"transport": "api", "name": "api"}]}
 
 
+class RunStats(dict):
+    """A run's final stats (``Pipeline.stop``, ``run``): a plain dict of every counter, with
+    a one-line repr, so a notebook cell or a REPL ending in ``p.stop()`` prints a line."""
+
+    def __repr__(self) -> str:
+        if not self:
+            return "Stopped()"
+        acc = self.get("accounting") or {}
+        parts = [f"frames={self.get('frames', 0)}", f"elapsed_s={self.get('elapsed_s', 0.0):g}"]
+        if "ring_written" in acc:
+            parts.append(f"ring_written={acc['ring_written']}")
+        if self.get("failure"):
+            parts.append(f"failure={str(self['failure'])[:80]!r}")
+        return f"Stopped({', '.join(parts)})"
+
+    def _repr_pretty_(self, printer, cycle: bool) -> None:  # IPython: the same one line
+        printer.text(repr(self))
+
+
 class Pipeline:
     """A running (or runnable) pointflow pipeline.
 
@@ -128,17 +147,19 @@ class Pipeline:
             if until is not None and until():
                 return
 
-    def stop(self) -> dict:
-        """Stop every stage, unlink shared memory, write ``stats.json``; idempotent."""
+    def stop(self) -> "RunStats":
+        """Stop every stage, unlink shared memory, write ``stats.json``; idempotent. Returns
+        the final stats: a dict whose repr is one line (a notebook cell ending in
+        ``p.stop()`` shows ``Stopped(frames=..., elapsed_s=...)``, not the whole dict)."""
         if self._sup is None:
-            return self._final or {}
+            return self._final if self._final is not None else RunStats()
         sup, self._sup = self._sup, None
         try:
             atexit.unregister(self.stop)
         except Exception:  # noqa: BLE001
             pass
         sup.stop()
-        self._final = sup.stats()
+        self._final = RunStats(sup.stats())
         self._final["config"] = self.cfg.to_dict()
         self._collector = sup.collector
         if self.out_dir:
@@ -392,4 +413,4 @@ class Pipeline:
         self.stop()
 
 
-__all__ = ["Pipeline", "PipelineFailed"]
+__all__ = ["Pipeline", "PipelineFailed", "RunStats"]
