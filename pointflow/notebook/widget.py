@@ -9,6 +9,11 @@ of the kernel receives the frames, encodes them as the view server does (JPEG wh
 PNG when still: :mod:`pointflow.serve.encode`) and sends each with ``Widget.send``; the
 browser acknowledges each frame drawn, and at most two are in flight (the render stage
 draws for this view only when the widget can take a frame).
+
+The timeline steers the pipeline's replaying sources through ``Pipeline.playback`` (in a
+thread of its own: a seek waits until it has landed, and frames go on meanwhile). The kernel
+side also watches the pipeline: once it stops (``p.stop()``, a failure, the window closed),
+:attr:`LiveView.stopped` says why and the page shows "run ended" with its controls off.
 """
 from __future__ import annotations
 
@@ -33,6 +38,16 @@ STATIC = pathlib.Path(__file__).parent / "static"
 MAX_IN_FLIGHT = 2
 #: Control messages the widget's page may send on (the render stage checks each).
 CONTROL = ("camera", "orbit", "pan", "zoom", "fit", "follow", "style", "visible", "view_state")
+#: What the timeline may ask of ``Pipeline.playback`` (the page's timeline: serve/server.py).
+PLAYBACK_KEYS = ("paused", "seek_s", "seek_fraction", "step", "rate", "loop")
+
+
+def _replays(cfg) -> list[str]:
+    """The names of the pipeline's replaying sources (those ``Pipeline.playback`` steers)."""
+    from ..ingest.transports import resolve_transport
+
+    return [s.name for s in cfg.sources
+            if not s.external and getattr(resolve_transport(s.transport), "seekable", False)]
 
 
 class LiveView(anywidget.AnyWidget):
@@ -45,6 +60,10 @@ class LiveView(anywidget.AnyWidget):
     height = traitlets.Int(400).tag(sync=True)
     color_by_options = traitlets.List(traitlets.Unicode()).tag(sync=True)
     colormaps = traitlets.List(traitlets.Unicode()).tag(sync=True)
+    #: the replaying sources (``file``, ``rosbag``): the page shows the timeline when any
+    replays = traitlets.List(traitlets.Unicode()).tag(sync=True)
+    #: "" while the pipeline runs; why it ended once it stopped ("run ended", "run failed: ...")
+    stopped = traitlets.Unicode("").tag(sync=True)
 
     def __init__(self, pipeline, *, width: int = 640, height: int = 400, owns_pipeline: bool = False):
         sup = pipeline.supervisor
@@ -52,7 +71,8 @@ class LiveView(anywidget.AnyWidget):
             raise RuntimeError("LiveView: start the pipeline first (Pipeline.start())")
         cfg = pipeline.cfg
         chans = [c for c in cfg.ring_channels() if c != "source_index"] + ["z", "ingest_time", "none"]
-        super().__init__(width=int(width), height=int(height), color_by_options=chans, colormaps=list(COLORMAPS))
+        super().__init__(width=int(width), height=int(height), color_by_options=chans, colormaps=list(COLORMAPS),
+                         replays=_replays(cfg))
         self.pipeline = pipeline
         self.owns_pipeline = owns_pipeline
         self.view_id = f"nb-{secrets.token_hex(4)}"
@@ -66,6 +86,8 @@ class LiveView(anywidget.AnyWidget):
         self.last_reply: Optional[dict] = None
         self.views_reopened = 0  # times the render stage restarted and the view was opened again
         self._inbox: "queue.SimpleQueue[dict]" = queue.SimpleQueue()
+        self._playback_q: "queue.SimpleQueue[Optional[dict]]" = queue.SimpleQueue()
+        self._playback_thread: Optional[threading.Thread] = None
         self._stop = threading.Event()
         self.on_msg(self._on_browser)
         self._thread = threading.Thread(target=self._run, name=f"pointflow-view-{self.view_id}", daemon=True)
@@ -89,11 +111,56 @@ class LiveView(anywidget.AnyWidget):
                 if sock.poll(20):
                     link.render(sock.recv_multipart())
                 link.keepalive()
-            link.send(cmd="close")
+                why = self._ended()
+                if why:  # the frames stop; the page keeps the last one and says why
+                    self.stopped = why
+                    break
+            else:
+                link.send(cmd="close")
         except zmq.ZMQError:  # the context went away with the kernel
             pass
         finally:
             sock.close(0)
+            self._playback_q.put(None)
+
+    def _ended(self) -> str:
+        """Why the pipeline is no longer running ("" while it runs)."""
+        p = self.pipeline
+        sup = p.supervisor
+        if sup is not None and p.running:
+            return ""
+        failure = getattr(sup, "failure", None) or (p.stats() or {}).get("failure")
+        return f"run failed: {str(failure)[:200]}" if failure else "run ended"
+
+    # ------------------------------------------------------------------ the timeline
+    def _playback(self, m: dict) -> None:
+        """A timeline request from the page: answered by a thread of its own (a seek waits
+        until it has landed; the frames go on meanwhile)."""
+        if self._playback_thread is None:
+            self._playback_thread = threading.Thread(target=self._playback_loop, daemon=True,
+                                                     name=f"pointflow-playback-{self.view_id}")
+            self._playback_thread.start()
+        self._playback_q.put(m)
+
+    def _playback_loop(self) -> None:
+        from ..ingest.playback import PlaybackError
+
+        while True:
+            m = self._playback_q.get()
+            if m is None or self._stop.is_set():
+                return
+            args = m.get("args") if isinstance(m.get("args"), dict) else {}
+            bad = [k for k in args if k not in PLAYBACK_KEYS]
+            try:
+                if bad:
+                    raise PlaybackError(bad[0], f"unknown argument; the timeline sends {', '.join(PLAYBACK_KEYS)}")
+                out = self.pipeline.playback(**args, timeout_s=3.0)
+                self.send({"type": "playback", "req": m.get("req"), "sources": out})
+            except PlaybackError as exc:
+                self.send({"type": "error", "req": m.get("req"), "key": f"playback.{exc.key}",
+                           "error": str(exc).split(": ", 1)[-1]})
+            except (RuntimeError, TimeoutError) as exc:  # ended, restarting, or not landed in time
+                self.send({"type": "error", "req": m.get("req"), "key": "playback", "error": str(exc)})
 
     def close(self) -> None:
         """Close the view (and the pipeline, when :func:`pointflow.show` started it for this widget)."""
@@ -174,6 +241,8 @@ class _Link:
                 self.send(**{k: v for k, v in m["msg"].items() if k not in ("view", "req")}, req=self._req())
             elif kind == "pick":
                 self.send(cmd="pick", x=m.get("x"), y=m.get("y"), req=self._req())
+            elif kind == "playback":  # the timeline: Pipeline.playback, in a thread of its own
+                self.w._playback(m)
 
     def render(self, parts: list) -> None:
         if len(parts) != 2:

@@ -1,8 +1,10 @@
 // pointflow's notebook view (an anywidget): the live frame of one view of the render
 // stage, steered with the page's controls (pointflow/serve/static/view.js: drag orbits,
-// shift- or right-drag pans, the wheel zooms, a click picks, f fits). Frames come from the
-// kernel as custom messages with one buffer (JPEG while moving, PNG when still); each one
-// drawn is acknowledged, which lets the kernel ask for the next (at most two in flight).
+// shift- or right-drag pans, the wheel zooms, a click picks or measures, f fits, r resets,
+// space plays or pauses a replay, ? shows the help). Frames come from the kernel as custom
+// messages with one buffer (JPEG while moving, PNG when still); each one drawn is
+// acknowledged, which lets the kernel ask for the next (at most two in flight). The model's
+// `stopped` says the pipeline ended: the last frame stays, the controls are switched off.
 
 function el(tag, attrs = {}, parent = null) {
   const e = document.createElement(tag);
@@ -15,24 +17,73 @@ function fmt(v) {
   return typeof v === "number" ? (Math.abs(v) >= 1e4 || (v !== 0 && Math.abs(v) < 1e-3) ? v.toExponential(3) : v.toFixed(3)) : String(v);
 }
 
+// a control with its name before it: <label>Name <control></label>
+function labelled(text, control, parent, title) {
+  const l = el("label", { class: "pf-field", title: title || text }, parent);
+  el("span", { class: "pf-label", text }, l);
+  l.appendChild(control);
+  return l;
+}
+
+const HELP = [
+  ["drag", "orbit"], ["shift-drag, right-drag", "pan"], ["wheel, pinch", "zoom"],
+  ["click", "pick a point (Click: measure — two clicks, their distance)"],
+  ["arrows", "orbit (shift: pan)"], ["+ / -", "zoom"], ["f", "fit: frame the data"],
+  ["r", "reset: fit and the starting style"], ["space", "play / pause a replay"], ["?", "this help"],
+];
+
 function render({ model, el: root }) {
   root.classList.add("pointflow-view");
   const bar = el("div", { class: "pf-bar" }, root);
   const fit = el("button", { text: "Fit", title: "frame the data (f)" }, bar);
-  const colorBy = el("select", { title: "colour by" }, bar);
-  const cmap = el("select", { title: "colormap" }, bar);
-  const size = el("input", { type: "number", min: "1", max: "64", step: "1", value: "2", title: "point size (px)" }, bar);
-  const edlBox = el("label", { text: " EDL" }, bar);
-  const edl = el("input", { type: "checkbox" });
-  edlBox.prepend(edl);
-  const canvas = el("canvas", { class: "pf-canvas", tabindex: "0" }, root);
-  canvas.width = model.get("width"); canvas.height = model.get("height");
-  canvas.style.width = `${model.get("width")}px`; canvas.style.height = `${model.get("height")}px`;
-  const g = canvas.getContext("2d");
+  const reset = el("button", { text: "Reset", title: "fit, and the style the view started with (r)" }, bar);
+  const mode = el("select", { class: "pf-mode" });
+  for (const m of ["pick", "measure"]) el("option", { value: m, text: m }, mode);
+  labelled("Click", mode, bar, "what a click on the picture does");
+  const colorBy = el("select", { class: "pf-color-by" });
+  labelled("Colour", colorBy, bar, "the channel the colour shows");
+  const cmap = el("select", { class: "pf-colormap" });
+  labelled("Map", cmap, bar, "colormap");
+  const size = el("input", { class: "pf-size", type: "range", min: "1", max: "12", step: "1", value: "2" });
+  const sizeVal = el("span", { class: "pf-value", text: "2 px" });
+  labelled("Size", size, bar, "point size (pixels)").appendChild(sizeVal);
+  const edl = el("input", { class: "pf-edl", type: "checkbox" });
+  labelled("EDL", edl, bar, "eye-dome lighting: shades depth edges");
+  const helpBtn = el("button", { text: "?", title: "gestures and keys (?)", class: "pf-help-button" }, bar);
+
+  const stage = el("div", { class: "pf-stage" }, root);
+  const canvas = el("canvas", { class: "pf-canvas", tabindex: "0" }, stage);
+  const marks = el("canvas", { class: "pf-marks" }, stage);  // pick marker and measure line
+  for (const c of [canvas, marks]) {
+    c.width = model.get("width"); c.height = model.get("height");
+    c.style.width = `${model.get("width")}px`; c.style.height = `${model.get("height")}px`;
+  }
+  const g = canvas.getContext("2d"), mg = marks.getContext("2d");
+  const ended = el("div", { class: "pf-ended" }, stage);
+  ended.hidden = true;
+  const help = el("div", { class: "pf-help" }, stage);
+  for (const [k, v] of HELP) { const r = el("div", {}, help); el("b", { text: k }, r); el("span", { text: " " + v }, r); }
+  help.hidden = true;
+
+  const timeline = el("div", { class: "pf-timeline" }, root);
+  const play = el("button", { class: "pf-play", text: "Pause", title: "play / pause (space)" }, timeline);
+  const step = el("button", { class: "pf-step", text: "Step", title: "send the next message (stays paused)" }, timeline);
+  const seek = el("input", { class: "pf-seek", type: "range", min: "0", max: "1000", value: "0" });
+  labelled("Time", seek, timeline, "seek in the recording");
+  const position = el("span", { class: "pf-position", text: "0.0 s" }, timeline);
+  const rate = el("select", { class: "pf-rate" });
+  for (const r of ["0.25", "0.5", "1", "2", "4"]) el("option", { value: r, text: `${r}×` }, rate);
+  rate.value = "1";
+  labelled("Speed", rate, timeline, "times as fast as recorded");
+  const loop = el("input", { class: "pf-loop", type: "checkbox" });
+  labelled("Loop", loop, timeline, "start again at the end");
+  timeline.hidden = true;
+
   const stats = el("div", { class: "pf-stats", text: "waiting for the first frame…" }, root);
   const info = el("pre", { class: "pf-info" }, root);
   info.hidden = true;
-  let shown = 0, drawing = Promise.resolve(), alive = true;
+  let shown = 0, drawing = Promise.resolve(), alive = true, state0 = null, lastCamera = null;
+  let measureA = null, playbackState = null, seeking = false, pbWaiting = 0, pickAt = [0, 0];
 
   const fill = (sel, names, value) => {
     sel.innerHTML = "";
@@ -40,13 +91,20 @@ function render({ model, el: root }) {
     if (value != null) sel.value = value;
   };
   fill(colorBy, model.get("color_by_options")); fill(cmap, model.get("colormaps"));
-  const send = (m) => { if (alive) model.send(m); };
-  const control = (m) => send({ type: "control", msg: m });
+  const stopped = () => !!model.get("stopped");
+  const send = (m) => { if (alive && !stopped()) model.send(m); };
+  const control = (m) => {
+    if (!["style", "view_state", "visible"].includes(m.cmd)) clearMarks();  // the camera moves: marks would lie
+    send({ type: "control", msg: m });
+  };
 
+  // ------------------------------------------------------------------ frames
   function onFrame(head, buffer) {
     const blob = new Blob([buffer], { type: head.mime });
     drawing = drawing.then(() => createImageBitmap(blob)).then((bmp) => {
-      if (canvas.width !== bmp.width || canvas.height !== bmp.height) { canvas.width = bmp.width; canvas.height = bmp.height; }
+      if (canvas.width !== bmp.width || canvas.height !== bmp.height) {
+        canvas.width = marks.width = bmp.width; canvas.height = marks.height = bmp.height;
+      }
       g.drawImage(bmp, 0, 0);
       bmp.close();
       shown++;
@@ -58,47 +116,154 @@ function render({ model, el: root }) {
 
   function onState(s) {
     if (!s || !s.style) return;
+    if (!state0) state0 = s;
     const cb = s.style.color_by == null ? "none" : s.style.color_by;
     if (![...colorBy.options].some((o) => o.value === cb)) el("option", { value: cb, text: cb }, colorBy);
     colorBy.value = cb; cmap.value = s.style.colormap; size.value = s.style.point_size; edl.checked = !!s.style.edl;
+    sizeVal.textContent = `${s.style.point_size} px`;
+    const cam = JSON.stringify(s.camera || null);
+    if (lastCamera !== null && cam !== lastCamera) clearMarks();
+    lastCamera = cam;
+  }
+
+  // ------------------------------------------------------------------ pick and measure
+  function clearMarks() {
+    mg.clearRect(0, 0, marks.width, marks.height);
+    delete canvas.dataset.distance;
+    if (measureA) { measureA = null; info.hidden = true; }
+  }
+
+  function mark(x, y) {
+    mg.lineWidth = 2; mg.strokeStyle = "#ffffff"; mg.fillStyle = "#ff3366";
+    mg.beginPath(); mg.arc(x, y, 5, 0, 2 * Math.PI); mg.fill(); mg.stroke();
   }
 
   function showPick(m) {
     const p = m.point;
     if (!p) { info.textContent = "no point there"; info.hidden = false; return; }
     const pos = p.position || [];
+    const at = pickAt;  // the canvas pixel clicked (picks are answered in order)
     let text = `x ${fmt(pos[0])}\ny ${fmt(pos[1])}\nz ${fmt(pos[2])}`;
-    if (m.source) text += `\nsource ${m.source}`;
-    for (const [k, v] of Object.entries(p.channels || {})) text += `\n${k} ${fmt(v)}`;
+    if (m.source) text += `\nsource: ${m.source}`;
+    for (const [k, v] of Object.entries(p.channels || {})) text += `\n${k}: ${fmt(v)}`;
+    if (mode.value === "measure" && measureA) {
+      const a = measureA.pos;
+      const d = Math.hypot(pos[0] - a[0], pos[1] - a[1], pos[2] - a[2]);
+      mg.lineWidth = 2; mg.strokeStyle = "#ffdd33";
+      mg.beginPath(); mg.moveTo(measureA.at[0], measureA.at[1]); mg.lineTo(at[0], at[1]); mg.stroke();
+      mark(at[0], at[1]);
+      const label = `${fmt(d)}`;
+      mg.font = "bold 13px system-ui, sans-serif";
+      const tx = (measureA.at[0] + at[0]) / 2 + 6, ty = (measureA.at[1] + at[1]) / 2 - 6;
+      mg.lineWidth = 3; mg.strokeStyle = "#000"; mg.strokeText(label, tx, ty);
+      mg.fillStyle = "#ffdd33"; mg.fillText(label, tx, ty);
+      text = `distance ${fmt(d)}\nfrom ${a.map(fmt).join(", ")}\nto   ${pos.map(fmt).join(", ")}`;
+      measureA = null;
+      canvas.dataset.distance = String(d);
+    } else {
+      mg.clearRect(0, 0, marks.width, marks.height);
+      mark(at[0], at[1]);
+      if (mode.value === "measure") { measureA = { pos, at }; text = "measure: first point\n" + text + "\n(click the second)"; }
+    }
     info.textContent = text; info.hidden = false;
     info.dataset.position = JSON.stringify(pos);
   }
 
+  // ------------------------------------------------------------------ timeline
+  const playback = (args) => { if (pbWaiting < 2) { pbWaiting++; send({ type: "playback", args }); } };
+  function onPlayback(m) {
+    const states = Object.values(m.sources || {}).filter(Boolean);
+    if (!states.length) return;
+    const s = states[0]; playbackState = s;
+    play.textContent = s.paused ? "Play" : "Pause";
+    loop.checked = !!s.loop;
+    if (s.rate > 0) rate.value = [...rate.options].some((o) => Number(o.value) === s.rate) ? String(s.rate) : rate.value;
+    position.textContent = `${s.position_s.toFixed(1)}${s.duration_s ? " / " + s.duration_s.toFixed(1) : ""} s`
+      + (s.at_end ? " (end)" : "");
+    if (!seeking && s.duration_s) seek.value = String(Math.round(1000 * s.position_s / s.duration_s));
+    timeline.dataset.paused = String(s.paused);
+    timeline.dataset.position = String(s.position_s);
+    timeline.dataset.index = String(s.index);
+  }
+  play.onclick = () => playback({ paused: !(playbackState && playbackState.paused) });
+  step.onclick = () => playback({ step: 1 });
+  seek.oninput = () => { seeking = true; };
+  seek.onchange = () => {
+    seeking = false;
+    // paused, a seek also sends the sought message (one step), so the picture shows it
+    const f = Number(seek.value) / 1000;
+    playback(playbackState && playbackState.paused ? { seek_fraction: f, step: 1 } : { seek_fraction: f });
+  };
+  rate.onchange = () => playback({ rate: Number(rate.value) });
+  loop.onchange = () => playback({ loop: loop.checked });
+  const replays = model.get("replays") || [];
+  if (replays.length) { timeline.hidden = false; timeline.dataset.sources = replays.join(","); playback({}); }
+  const poll = setInterval(() => { if (!timeline.hidden && !pbWaiting) playback({}); }, 1000);
+
+  // ------------------------------------------------------------------ messages from the kernel
   const onMsg = (msg, buffers) => {
     if (msg.type === "frame") onFrame(msg, buffers[0]);
     else if (msg.type === "reply") onState(msg);
     else if (msg.type === "pick") showPick(msg);
-    else if (msg.type === "error") { info.textContent = `refused: ${msg.key ? msg.key + ": " : ""}${msg.error}`; info.hidden = false; }
-    else if (msg.type === "stats") {
+    else if (msg.type === "playback") { pbWaiting = Math.max(0, pbWaiting - 1); onPlayback(msg); }
+    else if (msg.type === "error") {
+      if (String(msg.key || "").startsWith("playback")) pbWaiting = Math.max(0, pbWaiting - 1);
+      info.textContent = `refused: ${msg.key ? msg.key + ": " : ""}${msg.error}`; info.hidden = false;
+    } else if (msg.type === "stats" && !stopped()) {
+      const src = msg.sources || [];
       stats.textContent = [`points ${msg.points}`, `render ${msg.fps} fps`, `view ${msg.view_fps} fps`,
         `${Math.round((msg.bytes_per_frame || 0) / 1024)} KB/frame`, `encode ${msg.encode_ms} ms`,
-        `sources ${(msg.sources || []).join(", ")}`].join(" · ");
+        `${src.length === 1 ? "source" : "sources"}: ${src.join(", ") || "–"}`].join(" · ");
     }
   };
   model.on("msg:custom", onMsg);
 
+  // ------------------------------------------------------------------ the run ended
+  function onStopped() {
+    const why = model.get("stopped");
+    root.classList.toggle("pf-stopped", !!why);
+    for (const c of root.querySelectorAll("button, select, input")) c.disabled = !!why;
+    ended.hidden = !why;
+    if (!why) return;
+    ended.textContent = why;
+    canvas.dataset.stopped = why;
+    stats.textContent = `${why} — the picture is the last frame drawn`;
+    clearInterval(poll);
+  }
+  model.on("change:stopped", onStopped);
+  onStopped();
+
+  // ------------------------------------------------------------------ controls
   fit.onclick = () => control({ cmd: "fit" });
+  reset.onclick = () => {
+    control({ cmd: "fit" });
+    if (state0) {
+      const st = state0.style;
+      control({ cmd: "style", color_by: st.color_by, colormap: st.colormap, color_range: st.color_range,
+                point_size: st.point_size, edl: st.edl });
+    }
+  };
+  mode.onchange = () => { clearMarks(); info.hidden = true; };
   colorBy.onchange = () => control({ cmd: "style", color_by: colorBy.value });
   cmap.onchange = () => control({ cmd: "style", colormap: cmap.value });
+  size.oninput = () => { sizeVal.textContent = `${size.value} px`; };
   size.onchange = () => control({ cmd: "style", point_size: Number(size.value) });
   edl.onchange = () => control({ cmd: "style", edl: edl.checked });
+  helpBtn.onclick = () => { help.hidden = !help.hidden; };
 
   // drags, wheel, pinch and keys: the page's gestures.js, prepended to this module by widget.py
-  pointflowGestures(canvas, control, (x, y) => send({ type: "pick", x, y }),
-                    (e) => { if (e.key !== "f") return false; fit.click(); return true; });
+  pointflowGestures(canvas, control, (x, y) => { pickAt = [x, y]; send({ type: "pick", x, y }); }, (e) => {
+    if (stopped()) return false;
+    if (e.key === "f") fit.click();
+    else if (e.key === "r") reset.click();
+    else if (e.key === "?") helpBtn.click();
+    else if (e.key === " " && !timeline.hidden) play.click();
+    else return false;
+    return true;
+  });
 
   send({ type: "hello" });
-  return () => { alive = false; model.off("msg:custom", onMsg); };
+  return () => { alive = false; clearInterval(poll); model.off("msg:custom", onMsg); model.off("change:stopped", onStopped); };
 }
 
 export default { render };
