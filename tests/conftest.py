@@ -33,6 +33,7 @@ def pytest_sessionstart(session):
 GROUPS = {"tests/spine/test_hung_under_load.py": "heavy", "tests/spine/test_startup_under_load.py": "heavy",
           "tests/startup/test_compile_beside.py": "heavy",  # compiles from empty caches: minutes of both cores
           "tests/notebook/test_jupyterlab.py": "browser", "tests/serve/test_browser.py": "browser",
+          "tests/notebook/test_widget_controls.py": "browser",
           # one package-scoped pipeline (tests/serve/conftest.py: hostile_pipe) serves both
           "tests/serve/test_hostile.py": "hostile", "tests/serve/test_attacks.py": "hostile"}
 HEAVY_DIRS = ("tests/remote/",)
