@@ -85,6 +85,7 @@ class LiveView(anywidget.AnyWidget):
         self.last_pick: Optional[dict] = None
         self.last_reply: Optional[dict] = None
         self.views_reopened = 0  # times the render stage restarted and the view was opened again
+        self.playback_refused = 0  # timeline requests refused (each answered with the key at fault)
         self._inbox: "queue.SimpleQueue[dict]" = queue.SimpleQueue()
         self._playback_q: "queue.SimpleQueue[Optional[dict]]" = queue.SimpleQueue()
         self._playback_thread: Optional[threading.Thread] = None
@@ -149,14 +150,17 @@ class LiveView(anywidget.AnyWidget):
             m = self._playback_q.get()
             if m is None or self._stop.is_set():
                 return
-            args = m.get("args") if isinstance(m.get("args"), dict) else {}
-            bad = [k for k in args if k not in PLAYBACK_KEYS]
+            args = m.get("args", {})
             try:
+                if not isinstance(args, dict):
+                    raise PlaybackError("args", f"expected an object of {', '.join(PLAYBACK_KEYS)}, got {str(args)[:60]!r}")
+                bad = [k for k in args if k not in PLAYBACK_KEYS]
                 if bad:
-                    raise PlaybackError(bad[0], f"unknown argument; the timeline sends {', '.join(PLAYBACK_KEYS)}")
+                    raise PlaybackError(str(bad[0])[:60], f"unknown argument; the timeline sends {', '.join(PLAYBACK_KEYS)}")
                 out = self.pipeline.playback(**args, timeout_s=3.0)
                 self.send({"type": "playback", "req": m.get("req"), "sources": out})
             except PlaybackError as exc:
+                self.playback_refused += 1
                 self.send({"type": "error", "req": m.get("req"), "key": f"playback.{exc.key}",
                            "error": str(exc).split(": ", 1)[-1]})
             except (RuntimeError, TimeoutError) as exc:  # ended, restarting, or not landed in time
