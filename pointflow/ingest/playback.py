@@ -17,9 +17,11 @@ message, the reply the clock's state (docs/api.md, "Steer the replay")::
     {"cmd": "playback", "hold": true}                   at the end, wait for a seek (do not end)
     {"cmd": "playback"}                                 the state only
 
-A seek lands on the first message whose time is at or after the target: ``seeks_landed``
-reaches ``seeks`` once that message went out (playing), waits to go (paused: ``next_s``) or
-the end is reached, so a caller can wait for it (``Pipeline.playback`` does). The ring keeps
+A seek lands on the first message whose time is at or after the target; while paused, that
+message goes once (a view shows where the seek landed) and the replay stays paused.
+``seeks_landed`` reaches ``seeks`` once that message went out or the end is reached, so a
+caller can wait for it (``Pipeline.playback`` does); ``next_s`` is the message waiting to go.
+The ring keeps
 what it holds (the points from before the seek stay until newer points evict them);
 ``seeks`` counts seeks and ``skipped_messages`` the messages a forward seek passed over.
 """
@@ -126,6 +128,7 @@ class PlaybackClock:
         self.skipped_messages = 0
         self._steps = 0
         self._seek: Optional[float] = None
+        self._show_once = False  # a seek while paused: release the message it lands on
         self._anchor: Optional[tuple[float, float]] = None  # (media time, wall time) it maps to
         self._start: Union[float, str] = 0.0
 
@@ -169,6 +172,9 @@ class PlaybackClock:
         if s is not None:
             self._anchor = None
             self.next_s = None
+            # paused: the message at the sought position goes once, so a view shows where the
+            # seek landed (a timeline dragged while paused); the replay stays paused after it
+            self._show_once = self.paused
         return s
 
     def _land(self) -> None:
@@ -189,8 +195,12 @@ class PlaybackClock:
             if self._seek is not None:
                 return
             if self.paused:
+                if self._show_once and counts:
+                    self._show_once = False
+                    self._anchor = (t_s, time.monotonic())
+                    return
                 if self.seeks_landed < self.seeks and self._steps == 0:
-                    self._land()  # paused on the sought message: it waits to go (next_s)
+                    self._land()  # paused on the sought message (a transform): it waits to go (next_s)
                 if self._steps > 0:
                     if counts:
                         self._steps -= 1

@@ -303,8 +303,8 @@ class Pipeline:
         for a seek instead of ending the source. Returns ``{source name: state}``
         (``paused``, ``rate``, ``loop``, ``position_s``, ``index`` of the last message sent,
         ``next_s`` of the one waiting to go, ``duration_s``, ``seeks``, ``steps``...). A seek
-        returns once it has landed: playing, the sought message went out (``position_s``);
-        paused, it waits to go (``next_s``); past the last message, the replay is at its end.
+        returns once it has landed: the sought message went out (``position_s``; paused, it
+        goes once and the replay stays paused); past the last message, the replay is at its end.
         A step returns once its messages went out. Not landed within ``timeout_s``: raises
         :class:`TimeoutError`. A refused argument raises
         :class:`~pointflow.ingest.playback.PlaybackError` naming it."""

@@ -45,7 +45,7 @@ def test_timeline_requests_refusals_and_the_stopped_state(tmp_path):
             return _until(lambda: next((m for m in got if m.get("req") == req and m["type"] in ("playback", "error")),
                                        None), 60, f"the answer to request {req}")
 
-        view._inbox.put({"type": "playback", "req": 1, "args": {"seek_fraction": 0.8, "step": 1}})
+        view._inbox.put({"type": "playback", "req": 1, "args": {"seek_fraction": 0.8}})
         st = answer(1)["sources"]["rec"]
         assert st["index"] == 8 and st["position_s"] == pytest.approx(4.0) and st["paused"]
         for req, args, key in [(2, {"seek_s": "far"}, "playback.seek_s"), (3, {"rewind": True}, "playback.rewind"),

@@ -68,21 +68,25 @@ def test_pause_step_seek_rate_loop(tmp_path):
         assert _settle(pipe, _size(0)) == _size(0)
         assert pipe.playback()["rec"]["index"] == 0
 
-        # seek to 1.05 s lands on message 11 (the first at or after it: 1.1 s); a step sends it
+        # seek to 1.05 s lands on message 11 (the first at or after it: 1.1 s); paused, it goes
+        # once (a view shows where the seek landed) and the replay stays paused
         st = pipe.playback(seek_s=1.05)["rec"]
         assert st["seeks"] == 1
-        pipe.playback(step=1)
         got = _settle(pipe, _size(0) + _size(11))
         assert got == _size(0) + _size(11)
         st = pipe.playback()["rec"]
-        assert st["index"] == 11 and st["position_s"] == pytest.approx(1.1)
+        assert st["index"] == 11 and st["position_s"] == pytest.approx(1.1) and st["paused"]
+        pipe.playback(step=1)  # a step sends the next
+        got = _settle(pipe, got + _size(12))
+        assert got == _size(0) + _size(11) + _size(12)
 
-        # seek by fraction: 0.5 of 2 s = 1.0 s = message 10; two steps send 10 and 11
+        # seek by fraction: 0.5 of 2 s = 1.0 s = message 10 (shown); two steps send 11 and 12
         pipe.playback(seek_fraction=0.5)
+        got = _settle(pipe, got + _size(10))
         pipe.playback(step=2)
-        got = _settle(pipe, got + _size(10) + _size(11))
-        assert got == _size(0) + _size(11) + _size(10) + _size(11)
-        assert pipe.playback()["rec"]["index"] == 11
+        got = _settle(pipe, got + _size(11) + _size(12))
+        assert got == _size(0) + 2 * (_size(11) + _size(12)) + _size(10)
+        assert pipe.playback()["rec"]["index"] == 12
 
         # bad arguments: each refused, naming it; the replay state is unchanged and goes on
         for kwargs, key, words in [({"seek_s": 2.5}, "seek_s", "past the end"),
@@ -95,17 +99,17 @@ def test_pause_step_seek_rate_loop(tmp_path):
                 pipe.playback(**kwargs)
             assert exc.value.key == key and words in str(exc.value), str(exc.value)
         st = pipe.playback()["rec"]
-        assert st["index"] == 11 and st["paused"] and st["rate"] == 1.0
+        assert st["index"] == 12 and st["paused"] and st["rate"] == 1.0
         assert _points_in(pipe) == got
 
         # rate: replay messages 0..19 at rate 1 and at rate 2; the second takes about half as long
         def replay(rate: float) -> float:
-            pipe.playback(paused=True, seek_s=0.0, rate=rate)
-            pipe.wait(0.3)
             before = _points_in(pipe)
+            pipe.playback(paused=True, seek_s=0.0, rate=rate)  # paused: message 0 goes once
+            before = _settle(pipe, before + _size(0))
             t0 = time.monotonic()
             pipe.playback(paused=False)
-            total = sum(_size(i) for i in range(N))
+            total = sum(_size(i) for i in range(1, N))
             pipe.wait(60, until=lambda: _points_in(pipe) >= before + total)
             assert _points_in(pipe) == before + total
             return time.monotonic() - t0
@@ -119,28 +123,28 @@ def test_pause_step_seek_rate_loop(tmp_path):
 
 
 def test_seek_returns_once_landed(tmp_path):
-    """``playback(seek_*)`` returns the state after the seek: paused, the sought message waits
-    to go (``next_s``); playing, it has gone out (``position_s``); past the last message, at
-    the end. No poll after it: the returned state itself shows where the seek landed."""
+    """``playback(seek_*)`` and ``playback(step=n)`` return the state after they landed: the
+    sought message has gone out (paused too: it goes once), the steps have gone out, a seek past
+    the last message is at the end. No poll after it: the returned state itself shows it."""
     scans = _scans(str(tmp_path))
     with Pipeline.from_dict(_config(scans, paused=True, hold=True), out_dir=str(tmp_path)) as pipe:
-        pipe.playback(step=1)
-        _settle(pipe, _size(0))
-        st = pipe.playback(seek_s=1.05)["rec"]  # paused: message 11 (1.1 s) waits to go
+        st = pipe.playback(step=1)["rec"]
+        assert st["index"] == 0 and st["steps_pending"] == 0
+        st = pipe.playback(seek_s=1.05)["rec"]  # paused: message 11 (1.1 s) goes once
         assert not st["seek_pending"] and st["seeks_landed"] == st["seeks"] == 1
-        assert st["next_s"] == pytest.approx(1.1) and st["index"] == 0 and st["paused"]
+        assert st["index"] == 11 and st["position_s"] == pytest.approx(1.1) and st["paused"]
         st = pipe.playback(seek_fraction=0.25)["rec"]  # 0.5 s: message 5
-        assert st["next_s"] == pytest.approx(0.5) and st["seeks_landed"] == 2
-        pipe.playback(step=1)
-        _settle(pipe, _size(0) + _size(5))
-        assert pipe.playback()["rec"]["index"] == 5
+        assert st["index"] == 5 and st["position_s"] == pytest.approx(0.5) and st["seeks_landed"] == 2
+        st = pipe.playback(step=1)["rec"]
+        assert st["index"] == 6 and st["paused"]
+        assert _settle(pipe, _size(0) + _size(11) + _size(5) + _size(6)) == _size(0) + _size(11) + _size(5) + _size(6)
 
         st = pipe.playback(seek_s=1.95)["rec"]  # past the last message (1.9 s): at the end (hold)
-        assert st["seeks_landed"] == 3 and st["next_s"] is None
+        assert st["seeks_landed"] == 3 and st["next_s"] is None and st["index"] == 6
         pipe.wait(10, until=lambda: pipe.playback()["rec"]["at_end"])
         assert pipe.playback()["rec"]["at_end"]
 
-        pipe.playback(rate=0.01, paused=False, seek_s=0.0)  # playing, slowly (10 s a message): message 0 goes at once
+        pipe.playback(rate=0.01, paused=False, seek_s=0.0)  # playing, slowly (10 s a message)
         st = pipe.playback(seek_s=1.2)["rec"]  # playing: message 12 has gone out
         assert not st["seek_pending"] and st["seeks_landed"] == st["seeks"] == 5
         assert st["index"] == 12 and st["position_s"] == pytest.approx(1.2) and not st["paused"]

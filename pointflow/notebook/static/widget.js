@@ -190,9 +190,8 @@ function render({ model, el: root }) {
   seek.oninput = () => { seeking = true; };
   seek.onchange = () => {
     seeking = false;
-    // paused, a seek also sends the sought message (one step), so the picture shows it
-    const f = Number(seek.value) / 1000;
-    playback(playbackState && playbackState.paused ? { seek_fraction: f, step: 1 } : { seek_fraction: f });
+    // paused, the sought message goes once (ingest/playback.py), so the picture shows it
+    playback({ seek_fraction: Number(seek.value) / 1000 });
   };
   rate.onchange = () => playback({ rate: Number(rate.value) });
   loop.onchange = () => playback({ loop: loop.checked });
