@@ -15,7 +15,7 @@ from tests.notebook.test_widget_controls import REPLAY  # noqa: E402
 
 def main(out: str) -> None:
     sync_api = need("lab")
-    cell = (REPLAY.replace("p.playback(step=1)", "p.playback(seek_s=2.0, step=1)")
+    cell = (REPLAY.replace("p.playback(step=1)", "p.playback(seek_s=2.0)")
             .replace("width=320, height=240", "width=560, height=320").replace('"size": [320, 240]', '"size": [560, 320]'))
     with jupyter(Path(tempfile.mkdtemp()), "lab") as (url, token, d, page_path), browser_page(sync_api) as page:
         write_notebook(d / "shot.ipynb", cell)

@@ -30,11 +30,13 @@ import traitlets
 import zmq
 
 from ..render.colormap import NAMES as COLORMAPS
+from ..render.colormap import lut
 from ..serve.encode import encode_frame
 
 __all__ = ["LiveView"]
 
 STATIC = pathlib.Path(__file__).parent / "static"
+SERVE_STATIC = STATIC.parent.parent / "serve" / "static"
 MAX_IN_FLIGHT = 2
 #: Control messages the widget's page may send on (the render stage checks each).
 CONTROL = ("camera", "orbit", "pan", "zoom", "fit", "follow", "style", "visible", "view_state")
@@ -53,13 +55,17 @@ def _replays(cfg) -> list[str]:
 class LiveView(anywidget.AnyWidget):
     """A live view of ``pipeline`` (started, with the render stage's ``endpoints.views``)."""
 
-    #: the page's gestures (one file for both) and the widget's own module
-    _esm = (STATIC.parent.parent / "serve" / "static" / "gestures.js").read_text() + "\n" + (STATIC / "widget.js").read_text()
+    #: the page's gestures and overlay (axes, grid, compass, marks; one file for both, when
+    #: there) and the widget's own module
+    _esm = "\n".join(f.read_text() for f in (SERVE_STATIC / "gestures.js", SERVE_STATIC / "overlay.js",
+                                              STATIC / "widget.js") if f.exists())
     _css = STATIC / "widget.css"
     width = traitlets.Int(640).tag(sync=True)
     height = traitlets.Int(400).tag(sync=True)
     color_by_options = traitlets.List(traitlets.Unicode()).tag(sync=True)
     colormaps = traitlets.List(traitlets.Unicode()).tag(sync=True)
+    #: each colormap's 256 RGB entries as hex (the legend bar: the render stage's own table)
+    luts = traitlets.Dict().tag(sync=True)
     #: the replaying sources (``file``, ``rosbag``): the page shows the timeline when any
     replays = traitlets.List(traitlets.Unicode()).tag(sync=True)
     #: "" while the pipeline runs; why it ended once it stopped ("run ended", "run failed: ...")
@@ -72,7 +78,7 @@ class LiveView(anywidget.AnyWidget):
         cfg = pipeline.cfg
         chans = [c for c in cfg.ring_channels() if c != "source_index"] + ["z", "ingest_time", "none"]
         super().__init__(width=int(width), height=int(height), color_by_options=chans, colormaps=list(COLORMAPS),
-                         replays=_replays(cfg))
+                         replays=_replays(cfg), luts={n: lut(n)[:, :3].tobytes().hex() for n in COLORMAPS})
         self.pipeline = pipeline
         self.owns_pipeline = owns_pipeline
         self.view_id = f"nb-{secrets.token_hex(4)}"
@@ -266,7 +272,8 @@ class _Link:
             if isinstance(head.get("seq"), int):
                 self.seq_in = max(self.seq_in, head["seq"])
             w.send({"type": "frame", "seq": head["seq"], "mime": enc.mime, "version": head.get("version"),
-                    "width": head["width"], "height": head["height"], "moving": head.get("moving")}, [enc.data])
+                    "width": head["width"], "height": head["height"], "moving": head.get("moving"),
+                    **{k: head[k] for k in ("camera", "legend", "follow") if k in head}}, [enc.data])
         elif kind == "error" and head.get("key") == "view" and "unknown view" in str(head.get("error")):
             self.in_flight.clear()  # the render stage restarted: open the view again, as it was
             self.w.views_reopened += 1
@@ -278,6 +285,8 @@ class _Link:
                     "bytes_per_frame": sum(self.sizes) / n if n else 0,
                     "encode_ms": round(sum(self.enc_ms) / len(self.enc_ms), 2) if self.enc_ms else 0,
                     "sources": head.get("sources", [])})
+        elif kind == "legend":  # the data changed after the last frame (render/views.py)
+            w.send({"type": "legend", "legend": head.get("legend")})
         elif kind in ("reply", "pick", "error"):
             if kind == "reply" and isinstance(head.get("camera"), dict):
                 self.camera = head["camera"]

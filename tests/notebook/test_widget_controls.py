@@ -13,7 +13,8 @@ import time
 
 import pytest
 
-from .helpers import browser_page, changed, jupyter, lit, need, open_notebook, pixels, run_cell, wait_widget, write_notebook
+from .helpers import (REPO, browser_page, changed, jupyter, lit, need, open_notebook, pixels, run_cell, wait_widget,
+                      write_notebook)
 
 #: 10 scans, 2 a second (message i at i / 2 s): a tilted plane, scan i raised by i (colour by z,
 #: a fixed range: each scan has its own colours). Paused, holding at the end; the first scan sent.
@@ -36,6 +37,14 @@ p.wait(60, until=lambda: p.stats()["stages"]["render"].get("drawn_count", 0) >= 
 p.show(width=320, height=240)
 """
 STOP = "p.stop()"
+
+
+#: The page's overlay (axes, grid, compass, marks) and the frames' camera and legend (issue 39,
+#: items 1-3, another branch): where they are, the widget draws them and this test checks them.
+OVERLAY = (REPO / "pointflow" / "serve" / "static" / "overlay.js").exists()
+#: Pixels of the widget's overlay canvas that something was drawn on (its own, not the picture's).
+DRAWN = "c => { const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data; let n = 0; " \
+        "for (let i = 3; i < d.length; i += 4) if (d[i] > 0) n++; return n; }"
 
 
 def _attr(page, selector: str, name: str):
@@ -80,6 +89,23 @@ def test_widget_controls_in_jupyterlab(tmp_path):
         assert page.locator(f"{view} button", has_text="Reset").count() == 1
         assert page.locator(f"{view} .pf-value").inner_text().strip() == "3 px"  # the size slider's value
 
+        # axes, grid, compass and the legend over the picture, each switched off by its box
+        if OVERLAY:
+            _wait_attr(page, "canvas.pf-canvas", "e.dataset.overlay === '1'")
+            legend = page.locator(f"{view} .pf-legend")
+            legend.wait_for(timeout=60000)
+            assert float(legend.get_attribute("data-lo")) == -3 and float(legend.get_attribute("data-hi")) == 13
+            assert legend.get_attribute("data-colormap") == "turbo"
+            assert page.locator(f"{view} .pf-legend-title").inner_text().startswith("z (m) · turbo")
+            assert page.eval_on_selector(f"{view} canvas.pf-marks", DRAWN) > 500, "no axes or grid drawn"
+            for k in ("axes", "grid", "compass", "legend"):
+                page.locator(f"{view} input.pf-show-{k}").uncheck()
+            assert page.eval_on_selector(f"{view} canvas.pf-marks", DRAWN) == 0
+            assert not legend.is_visible()
+            for k in ("axes", "grid", "compass", "legend"):
+                page.locator(f"{view} input.pf-show-{k}").check()
+            assert page.eval_on_selector(f"{view} canvas.pf-marks", DRAWN) > 500
+
         # Reset: a turned view goes back to the picture it started with
         v0 = int(_attr(page, "canvas.pf-canvas", "version") or 0)
         start = _still(page, canvas, v0 - 1)
@@ -104,8 +130,7 @@ def test_widget_controls_in_jupyterlab(tmp_path):
         distance = float(_attr(page, "canvas.pf-canvas", "distance"))
         assert 0.5 < distance < 20, distance  # two points of the 20 m wide plane, 80 px apart
         assert f"distance {distance:.3f}" in page.locator(f"{view} .pf-info").inner_text()
-        marks = pixels(page.locator(f"{view} canvas.pf-marks"))
-        assert lit(marks) > 50, "no measure line drawn"
+        assert page.eval_on_selector(f"{view} canvas.pf-marks", DRAWN) > 50, "no measure line drawn"
         page.select_option(f"{view} select.pf-mode", "pick")  # a new mode clears the line
         _wait_attr(page, "canvas.pf-canvas", "e.dataset.distance === undefined")
 

@@ -5,6 +5,9 @@
 // messages with one buffer (JPEG while moving, PNG when still); each one drawn is
 // acknowledged, which lets the kernel ask for the next (at most two in flight). The model's
 // `stopped` says the pipeline ended: the last frame stays, the controls are switched off.
+// Over the picture: the page's overlay.js (axes, grid, compass, pick and measure marks, from
+// the camera each frame was drawn with) and the colour legend, when the frames carry them;
+// without them, the marks are drawn where the clicks were and cleared when the camera moves.
 
 function el(tag, attrs = {}, parent = null) {
   const e = document.createElement(tag);
@@ -29,7 +32,8 @@ const HELP = [
   ["drag", "orbit"], ["shift-drag, right-drag", "pan"], ["wheel, pinch", "zoom"],
   ["click", "pick a point (Click: measure — two clicks, their distance)"],
   ["arrows", "orbit (shift: pan)"], ["+ / -", "zoom"], ["f", "fit: frame the data"],
-  ["r", "reset: fit and the starting style"], ["space", "play / pause a replay"], ["?", "this help"],
+  ["r", "reset: fit and the starting style"], ["space", "play / pause a replay"],
+  ["a, g, c, l", "axes, grid, compass, legend on / off"], ["?", "this help"],
 ];
 
 function render({ model, el: root }) {
@@ -49,6 +53,16 @@ function render({ model, el: root }) {
   labelled("Size", size, bar, "point size (pixels)").appendChild(sizeVal);
   const edl = el("input", { class: "pf-edl", type: "checkbox" });
   labelled("EDL", edl, bar, "eye-dome lighting: shades depth edges");
+  const showBox = el("span", { class: "pf-show", title: "drawn over the picture from the camera it was drawn with" }, bar);
+  el("span", { class: "pf-label", text: "Show" }, showBox);
+  const show = { axes: true, grid: true, compass: true, legend: true }, showInput = {};
+  for (const k of Object.keys(show)) {
+    const l = el("label", { class: "pf-field" }, showBox);
+    showInput[k] = el("input", { type: "checkbox", class: `pf-show-${k}` }, l);
+    showInput[k].checked = true;
+    el("span", { text: k }, l);
+  }
+  showBox.hidden = true;  // until a frame carries its camera (the overlay has something to draw from)
   const helpBtn = el("button", { text: "?", title: "gestures and keys (?)", class: "pf-help-button" }, bar);
 
   const stage = el("div", { class: "pf-stage" }, root);
@@ -64,6 +78,11 @@ function render({ model, el: root }) {
   const help = el("div", { class: "pf-help" }, stage);
   for (const [k, v] of HELP) { const r = el("div", {}, help); el("b", { text: k }, r); el("span", { text: " " + v }, r); }
   help.hidden = true;
+  const legend = el("div", { class: "pf-legend" }, stage);
+  const legendTitle = el("div", { class: "pf-legend-title" }, legend);
+  const legendBar = el("canvas", { class: "pf-legend-bar", width: "256", height: "1" }, legend);
+  const legendTicks = el("div", { class: "pf-legend-ticks" }, legend);
+  legend.hidden = true;
 
   const timeline = el("div", { class: "pf-timeline" }, root);
   const play = el("button", { class: "pf-play", text: "Pause", title: "play / pause (space)" }, timeline);
@@ -84,6 +103,10 @@ function render({ model, el: root }) {
   info.hidden = true;
   let shown = 0, drawing = Promise.resolve(), alive = true, state0 = null, lastCamera = null;
   let measureA = null, playbackState = null, seeking = false, pbWaiting = 0, pickAt = [0, 0];
+  // marks in world coordinates (overlay.js projects them with each frame's camera) and where
+  // the clicks were (drawn as they are when the frames carry no camera)
+  let wmarks = { pick: null, measure: [] }, marksPx = { pick: null, measure: [] }, frameCam = null, frameFollow = null;
+  const overlay = typeof pointflowOverlay !== "undefined" ? pointflowOverlay : null;
 
   const fill = (sel, names, value) => {
     sel.innerHTML = "";
@@ -94,7 +117,8 @@ function render({ model, el: root }) {
   const stopped = () => !!model.get("stopped");
   const send = (m) => { if (alive && !stopped()) model.send(m); };
   const control = (m) => {
-    if (!["style", "view_state", "visible"].includes(m.cmd)) clearMarks();  // the camera moves: marks would lie
+    // the camera moves: marks drawn where the clicks were would lie (projected ones follow it)
+    if (!frameCam && !["style", "view_state", "visible"].includes(m.cmd)) clearMarks();
     send({ type: "control", msg: m });
   };
 
@@ -111,6 +135,10 @@ function render({ model, el: root }) {
       canvas.dataset.frames = String(shown);
       canvas.dataset.mime = head.mime;
       canvas.dataset.version = String(head.version);
+      frameCam = head.camera || null; frameFollow = head.follow || null;
+      showBox.hidden = !(overlay && frameCam);
+      drawMarks();
+      if ("legend" in head) drawLegend(head.legend);
     }).catch(() => {}).then(() => send({ type: "ack", seq: head.seq }));
   }
 
@@ -122,21 +150,93 @@ function render({ model, el: root }) {
     colorBy.value = cb; cmap.value = s.style.colormap; size.value = s.style.point_size; edl.checked = !!s.style.edl;
     sizeVal.textContent = `${s.style.point_size} px`;
     const cam = JSON.stringify(s.camera || null);
-    if (lastCamera !== null && cam !== lastCamera) clearMarks();
+    if (!frameCam && lastCamera !== null && cam !== lastCamera) clearMarks();
     lastCamera = cam;
   }
 
   // ------------------------------------------------------------------ pick and measure
   function clearMarks() {
-    mg.clearRect(0, 0, marks.width, marks.height);
+    wmarks = { pick: null, measure: [] }; marksPx = { pick: null, measure: [] };
     delete canvas.dataset.distance;
     if (measureA) { measureA = null; info.hidden = true; }
+    drawMarks();
   }
 
   function mark(x, y) {
     mg.lineWidth = 2; mg.strokeStyle = "#ffffff"; mg.fillStyle = "#ff3366";
     mg.beginPath(); mg.arc(x, y, 5, 0, 2 * Math.PI); mg.fill(); mg.stroke();
   }
+
+  // the overlay from the frame's camera, else the marks where the clicks were
+  function drawMarks() {
+    if (overlay && frameCam) {
+      overlay.draw(mg, frameCam, marks.width, marks.height, { axes: show.axes, grid: show.grid, compass: show.compass,
+                                                              marks: wmarks, follow: frameFollow });
+      canvas.dataset.overlay = "1";
+      return;
+    }
+    mg.clearRect(0, 0, marks.width, marks.height);
+    const m = marksPx.measure;
+    if (m.length === 2) {
+      const d = Math.hypot(...[0, 1, 2].map((i) => wmarks.measure[1][i] - wmarks.measure[0][i]));
+      mg.lineWidth = 2; mg.strokeStyle = "#ffdd33";
+      mg.beginPath(); mg.moveTo(m[0][0], m[0][1]); mg.lineTo(m[1][0], m[1][1]); mg.stroke();
+      mg.font = "bold 13px system-ui, sans-serif";
+      const tx = (m[0][0] + m[1][0]) / 2 + 6, ty = (m[0][1] + m[1][1]) / 2 - 6;
+      mg.lineWidth = 3; mg.strokeStyle = "#000"; mg.strokeText(fmt(d), tx, ty);
+      mg.fillStyle = "#ffdd33"; mg.fillText(fmt(d), tx, ty);
+    }
+    for (const p of m) mark(p[0], p[1]);
+    if (marksPx.pick) mark(marksPx.pick[0], marksPx.pick[1]);
+  }
+
+  // ------------------------------------------------------------------ the colour legend
+  const lutCache = {};
+  function lutRgba(name) {
+    const hex = (model.get("luts") || {})[name];
+    if (!hex) return null;
+    const out = new Uint8ClampedArray(256 * 4);
+    for (let i = 0; i < 256; i++) {
+      for (let c = 0; c < 3; c++) out[4 * i + c] = parseInt(hex.substr(6 * i + 2 * c, 2), 16);
+      out[4 * i + 3] = 255;
+    }
+    return out;
+  }
+  let legendKey = "";
+  function drawLegend(lg) {
+    const lut = lg && (lutCache[lg.colormap] || (lutCache[lg.colormap] = lutRgba(lg.colormap)));
+    if (!show.legend || !lg || !lut || lg.range[0] == null || lg.range[1] == null) { legend.hidden = true; return; }
+    legend.hidden = false;
+    const [lo, hi] = lg.range, key = JSON.stringify(lg);
+    if (key === legendKey) return;
+    legendKey = key;
+    legend.dataset.lo = String(lo); legend.dataset.hi = String(hi); legend.dataset.colormap = lg.colormap;
+    const unit = lg.color_by === "z" || lg.color_by === "height" ? " (m)" : "";
+    legendTitle.textContent = `${lg.color_by}${unit} · ${lg.colormap}${lg.auto ? " · auto range" : ""}`;
+    legendBar.getContext("2d").putImageData(new ImageData(lut, 256, 1), 0, 0);
+    legendTicks.innerHTML = "";
+    const put = (cls, v, frac) => {
+      const t = el("span", { class: cls, text: fmt(v) }, legendTicks);
+      if (cls === "mid") t.style.left = `${100 * frac}%`;
+      el("i", {}, legendTicks).style.left = `${Math.min(99.5, 100 * frac)}%`;
+    };
+    put("lo", lo, 0); put("hi", hi, 1);
+    if (hi > lo && overlay) {  // round values between, where their labels do not run into the ends'
+      const stepV = overlay.niceStep((hi - lo) / 4);
+      for (let v = Math.ceil(lo / stepV) * stepV; v < hi; v += stepV) {
+        const f = (v - lo) / (hi - lo);
+        if (f > 0.25 && f < 0.75) put("mid", +v.toPrecision(6), f);
+      }
+    }
+  }
+  for (const k of Object.keys(show)) {
+    showInput[k].onchange = () => {
+      show[k] = showInput[k].checked;
+      drawMarks();
+      if (k === "legend") { legendKey = ""; if (!show.legend) legend.hidden = true; }
+    };
+  }
+  const toggle = (k) => { showInput[k].checked = !showInput[k].checked; showInput[k].onchange(); };
 
   function showPick(m) {
     const p = m.point;
@@ -149,22 +249,18 @@ function render({ model, el: root }) {
     if (mode.value === "measure" && measureA) {
       const a = measureA.pos;
       const d = Math.hypot(pos[0] - a[0], pos[1] - a[1], pos[2] - a[2]);
-      mg.lineWidth = 2; mg.strokeStyle = "#ffdd33";
-      mg.beginPath(); mg.moveTo(measureA.at[0], measureA.at[1]); mg.lineTo(at[0], at[1]); mg.stroke();
-      mark(at[0], at[1]);
-      const label = `${fmt(d)}`;
-      mg.font = "bold 13px system-ui, sans-serif";
-      const tx = (measureA.at[0] + at[0]) / 2 + 6, ty = (measureA.at[1] + at[1]) / 2 - 6;
-      mg.lineWidth = 3; mg.strokeStyle = "#000"; mg.strokeText(label, tx, ty);
-      mg.fillStyle = "#ffdd33"; mg.fillText(label, tx, ty);
+      wmarks = { pick: null, measure: [a, pos] }; marksPx = { pick: null, measure: [measureA.at, at] };
       text = `distance ${fmt(d)}\nfrom ${a.map(fmt).join(", ")}\nto   ${pos.map(fmt).join(", ")}`;
       measureA = null;
       canvas.dataset.distance = String(d);
+    } else if (mode.value === "measure") {
+      wmarks = { pick: pos, measure: [] }; marksPx = { pick: at, measure: [] };
+      measureA = { pos, at };
+      text = "measure: first point\n" + text + "\n(click the second)";
     } else {
-      mg.clearRect(0, 0, marks.width, marks.height);
-      mark(at[0], at[1]);
-      if (mode.value === "measure") { measureA = { pos, at }; text = "measure: first point\n" + text + "\n(click the second)"; }
+      wmarks = { pick: pos, measure: [] }; marksPx = { pick: at, measure: [] };
     }
+    drawMarks();
     info.textContent = text; info.hidden = false;
     info.dataset.position = JSON.stringify(pos);
   }
@@ -204,6 +300,7 @@ function render({ model, el: root }) {
     if (msg.type === "frame") onFrame(msg, buffers[0]);
     else if (msg.type === "reply") onState(msg);
     else if (msg.type === "pick") showPick(msg);
+    else if (msg.type === "legend") drawLegend(msg.legend);  // the data changed after the last frame
     else if (msg.type === "playback") { pbWaiting = Math.max(0, pbWaiting - 1); onPlayback(msg); }
     else if (msg.type === "error") {
       if (String(msg.key || "").startsWith("playback")) pbWaiting = Math.max(0, pbWaiting - 1);
@@ -257,6 +354,7 @@ function render({ model, el: root }) {
     else if (e.key === "r") reset.click();
     else if (e.key === "?") helpBtn.click();
     else if (e.key === " " && !timeline.hidden) play.click();
+    else if ({ a: "axes", g: "grid", c: "compass", l: "legend" }[e.key] && !showBox.hidden) toggle({ a: "axes", g: "grid", c: "compass", l: "legend" }[e.key]);
     else return false;
     return true;
   });
