@@ -153,9 +153,9 @@ def test_widget_controls_in_jupyterlab(tmp_path):
 
         # p.stop(): one line in the cell, "run ended" in the widget, its controls off
         run_cell(page, 1)
-        out = page.locator(".jp-Notebook .jp-Cell").nth(1).locator(".jp-OutputArea-output")
+        out = page.locator(".jp-Notebook .jp-Cell").nth(1).locator(".jp-OutputArea-executeResult")  # the value, not logs
         out.first.wait_for(timeout=120000)
-        text = out.first.inner_text()
+        text = out.first.locator(".jp-OutputArea-output").inner_text()
         assert text.startswith("Stopped(frames=") and "\n" not in text.strip(), text
         page.locator(f"{view} .pf-ended", has_text="run ended").wait_for(timeout=60000)
         assert _attr(page, "canvas.pf-canvas", "stopped") == "run ended"
