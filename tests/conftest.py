@@ -35,6 +35,7 @@ GROUPS = {"tests/spine/supervision/test_hung_under_load.py": "heavy", "tests/spi
           "tests/notebook/test_jupyterlab.py": "browser", "tests/serve/test_browser.py": "browser",
           "tests/serve/test_page_overlay.py": "browser",
           "tests/serve/test_link_browser.py": "browser",
+          "tests/notebook/test_widget_controls.py": "browser",
           # one package-scoped pipeline (tests/serve/conftest.py: hostile_pipe) serves both
           "tests/serve/test_hostile.py": "hostile", "tests/serve/test_attacks.py": "hostile"}
 HEAVY_DIRS = ("tests/remote/",)

@@ -18,7 +18,10 @@ message, the reply the clock's state (docs/api.md, "Steer the replay")::
     {"cmd": "playback"}                                 the state only
 
 A seek lands on the first message whose time is at or after the target; while paused, that
-message goes once (a view shows where the seek landed) and the replay stays paused. The ring keeps
+message goes once (a view shows where the seek landed) and the replay stays paused.
+``seeks_landed`` reaches ``seeks`` once that message went out or the end is reached, so a
+caller can wait for it (``Pipeline.playback`` does); ``next_s`` is the message waiting to go.
+The ring keeps
 what it holds (the points from before the seek stay until newer points evict them);
 ``seeks`` counts seeks and ``skipped_messages`` the messages a forward seek passed over.
 """
@@ -122,6 +125,12 @@ class PlaybackClock:
         self.position_s = 0.0  # time of the last message released
         self.index = -1  # index of the last message released (in the recording, from 0)
         self.seeks = 0
+        #: Seeks the replay has reached (:meth:`landed`): ``seeks_landed == seeks`` once the
+        #: last seek's message went out (playing), waits to go (paused) or the end was reached.
+        self.seeks_landed = 0
+        #: Time of the message waiting to go (paused: the one a step or resume sends); None
+        #: while none waits.
+        self.next_s: Optional[float] = None
         self.steps_done = 0
         self.skipped_messages = 0
         self._steps = 0
@@ -169,10 +178,16 @@ class PlaybackClock:
         s, self._seek = self._seek, None
         if s is not None:
             self._anchor = None
+            self.next_s = None
             # paused: the message at the sought position goes once, so a view shows where the
             # seek landed (a timeline dragged while paused); the replay stays paused after it
             self._show_once = self.paused
         return s
+
+    def _land(self) -> None:
+        """The replay reached the last seek's target: every seek asked for so far has landed."""
+        if self._seek is None:
+            self.seeks_landed = self.seeks
 
     def restart(self) -> None:
         """A new pass (loop) or a seek: the next message goes at once."""
@@ -182,6 +197,7 @@ class PlaybackClock:
         """Yield None while the message at ``t_s`` must wait (paused, or not yet due); return
         when it may go, or when a seek is pending (the caller checks ``seek_pending``).
         ``counts``: the message is one a step releases (False: transforms riding along)."""
+        self.next_s = float(t_s)
         while True:
             if self._seek is not None:
                 return
@@ -190,6 +206,8 @@ class PlaybackClock:
                     self._show_once = False
                     self._anchor = (t_s, time.monotonic())
                     return
+                if self.seeks_landed < self.seeks and self._steps == 0:
+                    self._land()  # paused on the sought message (a transform): it waits to go (next_s)
                 if self._steps > 0:
                     if counts:
                         self._steps -= 1
@@ -217,6 +235,8 @@ class PlaybackClock:
         """At the end of a pass without loop: with ``hold``, wait until a seek (or loop) asks
         for more; the caller then goes on, else the replay ends."""
         self.at_end = True
+        self.next_s = None
+        self._land()  # a seek past the last message lands at the end
         while self.hold and self._seek is None and not self.loop:
             time.sleep(_SLICE_S)
             yield None
@@ -225,6 +245,9 @@ class PlaybackClock:
     def released(self, t_s: float, index: int) -> None:
         self.position_s = float(t_s)
         self.index = int(index)
+        self.next_s = None
+        if self.seeks_landed < self.seeks:
+            self._land()  # playing: the sought message went out
 
     # ----------------------------------------------------------------- control
     def command(self, msg: Any) -> dict:
@@ -285,7 +308,8 @@ class PlaybackClock:
         return {"paused": self.paused, "rate": self.rate if self.realtime else 0.0, "loop": self.loop,
                 "hold": self.hold, "at_end": self.at_end,
                 "position_s": round(self.position_s, 6), "index": self.index, "duration_s": self.duration_s,
-                "messages": self.messages, "seeks": self.seeks, "steps": self.steps_done,
+                "messages": self.messages, "seeks": self.seeks, "seeks_landed": self.seeks_landed,
+                "next_s": None if self.next_s is None else round(self.next_s, 6), "steps": self.steps_done,
                 "skipped_messages": self.skipped_messages, "seek_pending": self._seek is not None,
                 "steps_pending": self._steps}
 

@@ -41,6 +41,25 @@ def with_api_source(data: dict) -> dict:
     return {**data, "sources": [{"transport": "api", "name": "api"}]}
 
 
+class RunStats(dict):
+    """A run's final stats (``Pipeline.stop``, ``run``): a plain dict of every counter, with
+    a one-line repr, so a notebook cell or a REPL ending in ``p.stop()`` prints a line."""
+
+    def __repr__(self) -> str:
+        if not self:
+            return "Stopped()"
+        acc = self.get("accounting") or {}
+        parts = [f"frames={self.get('frames', 0)}", f"elapsed_s={self.get('elapsed_s', 0.0):g}"]
+        if "ring_written" in acc:
+            parts.append(f"ring_written={acc['ring_written']}")
+        if self.get("failure"):
+            parts.append(f"failure={str(self['failure'])[:80]!r}")
+        return f"Stopped({', '.join(parts)})"
+
+    def _repr_pretty_(self, printer, cycle: bool) -> None:  # IPython: the same one line
+        printer.text(repr(self))
+
+
 class Pipeline:
     """A running (or runnable) pointflow pipeline.
 
@@ -128,17 +147,19 @@ class Pipeline:
             if until is not None and until():
                 return
 
-    def stop(self) -> dict:
-        """Stop every stage, unlink shared memory, write ``stats.json``; idempotent."""
+    def stop(self) -> "RunStats":
+        """Stop every stage, unlink shared memory, write ``stats.json``; idempotent. Returns
+        the final stats: a dict whose repr is one line (a notebook cell ending in
+        ``p.stop()`` shows ``Stopped(frames=..., elapsed_s=...)``, not the whole dict)."""
         if self._sup is None:
-            return self._final or {}
+            return self._final if self._final is not None else RunStats()
         sup, self._sup = self._sup, None
         try:
             atexit.unregister(self.stop)
         except Exception:  # noqa: BLE001
             pass
         sup.stop()
-        self._final = sup.stats()
+        self._final = RunStats(sup.stats())
         self._final["config"] = self.cfg.to_dict()
         self._collector = sup.collector
         if self.out_dir:
@@ -281,7 +302,11 @@ class Pipeline:
         name. With no argument it only reads their state. ``hold``: at the end (no loop) wait
         for a seek instead of ending the source. Returns ``{source name: state}``
         (``paused``, ``rate``, ``loop``, ``position_s``, ``index`` of the last message sent,
-        ``duration_s``, ``seeks``, ``steps``...). A refused argument raises
+        ``next_s`` of the one waiting to go, ``duration_s``, ``seeks``, ``steps``...). A seek
+        returns once it has landed: the sought message went out (``position_s``; paused, it
+        goes once and the replay stays paused); past the last message, the replay is at its end.
+        A step returns once its messages went out. Not landed within ``timeout_s``: raises
+        :class:`TimeoutError`. A refused argument raises
         :class:`~pointflow.ingest.playback.PlaybackError` naming it."""
         from ..ingest.playback import PlaybackError, playback_endpoint, request
         from ..ingest.transports import resolve_transport
@@ -316,7 +341,31 @@ class Pipeline:
             if "error" in rep:
                 raise PlaybackError(rep.get("key", "cmd"), rep.get("message", rep["error"]))
             out[s.name] = rep["state"]
+        if seek_s is not None or seek_fraction is not None or step:
+            end = time.monotonic() + timeout_s
+            what = (f"the seek to {seek_s:g} s" if seek_s is not None else
+                    "the seek" if seek_fraction is not None else f"the step of {step}")
+            for i, s in replays:
+                out[s.name] = self._landed(i, s.name, out[s.name], end, what, timeout_s)
         return out
+
+    def _landed(self, index: int, name: str, st: dict, end: float, what: str, timeout_s: float) -> dict:
+        """Poll a source's playback state until its seeks have landed (``seeks_landed``) and
+        its steps went out (``steps_pending``; or it is at its end)."""
+        from ..ingest.playback import playback_endpoint, request
+
+        ep = playback_endpoint(self._sup.endpoints.playback, index)
+        while st["seeks_landed"] < st["seeks"] or (st["steps_pending"] and not st["at_end"]):
+            if time.monotonic() > end:
+                raise TimeoutError(f"source {name!r}: {what} has not landed within {timeout_s:g} s "
+                                   "(the source is busy or restarting); p.playback() reads its state")
+            time.sleep(0.01)
+            try:
+                st = request(self._sup._zctx, ep, {"cmd": "playback"}, max(0.1, end - time.monotonic()))["state"]
+            except TimeoutError:
+                raise RuntimeError(f"source {name!r} did not answer after the seek: its replay has ended "
+                                   "(hold=True keeps it waiting for a seek) or it is restarting") from None
+        return st
 
     def _request(self, msg: dict, timeout_s: float) -> dict:
         if self._sup is None:
@@ -364,4 +413,4 @@ class Pipeline:
         self.stop()
 
 
-__all__ = ["Pipeline", "PipelineFailed"]
+__all__ = ["Pipeline", "PipelineFailed", "RunStats"]

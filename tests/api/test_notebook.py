@@ -25,6 +25,8 @@ def _run(kc, code: str, timeout: float = 180) -> str:
         kind, content = msg["msg_type"], msg["content"]
         if kind == "stream":
             out.append(content["text"])
+        elif kind == "execute_result":  # a cell's value, as the notebook shows it
+            out.append("RESULT " + content["data"].get("text/plain", "") + "\n")
         elif kind == "display_data":
             out.extend(f"DISPLAY {mime}\n" for mime in content["data"])
         elif kind == "error":
@@ -58,6 +60,18 @@ print("WRITTEN", stats["accounting"]["ring_written"], stats["stages"]["api"]["po
 """)
         assert "IN_NOTEBOOK True" in out
         assert "WRITTEN 10000 10000" in out
+        # a cell ending in p.stop() shows one line, not the whole stats dict
+        out = _run(kc, f"""
+p = Pipeline.from_dict(json.loads({json.dumps(json.dumps(cfg))}), out_dir="")
+p.start()
+p.send(np.zeros((500, 3), np.float32), intensity=np.zeros(500, np.float32))
+p.wait(60, until=lambda: p.stats()["accounting"]["ring_written"] == 500)
+p.stop()
+""")
+        result = [line for line in out.splitlines() if line.startswith("RESULT ")]
+        assert len(result) == 1 and result[0].startswith("RESULT Stopped(frames=") and "ring_written=500" in result[0], out
+        out = _run(kc, 'print("STATS", p.stop()["accounting"]["ring_written"], type(p.stop()).__mro__[1].__name__)')
+        assert "STATS 500 dict" in out, out
         # with the notebook extra, show displays the live widget (pointflow.notebook)
         if importlib.util.find_spec("anywidget") is not None:
             out = _run(kc, """

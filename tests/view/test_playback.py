@@ -122,6 +122,34 @@ def test_pause_step_seek_rate_loop(tmp_path):
         assert pipe.stats()["stages"]["rec"]["restarts"] == 0
 
 
+def test_seek_returns_once_landed(tmp_path):
+    """``playback(seek_*)`` and ``playback(step=n)`` return the state after they landed: the
+    sought message has gone out (paused too: it goes once), the steps have gone out, a seek past
+    the last message is at the end. No poll after it: the returned state itself shows it."""
+    scans = _scans(str(tmp_path))
+    with Pipeline.from_dict(_config(scans, paused=True, hold=True), out_dir=str(tmp_path)) as pipe:
+        st = pipe.playback(step=1)["rec"]
+        assert st["index"] == 0 and st["steps_pending"] == 0
+        st = pipe.playback(seek_s=1.05)["rec"]  # paused: message 11 (1.1 s) goes once
+        assert not st["seek_pending"] and st["seeks_landed"] == st["seeks"] == 1
+        assert st["index"] == 11 and st["position_s"] == pytest.approx(1.1) and st["paused"]
+        st = pipe.playback(seek_fraction=0.25)["rec"]  # 0.5 s: message 5
+        assert st["index"] == 5 and st["position_s"] == pytest.approx(0.5) and st["seeks_landed"] == 2
+        st = pipe.playback(step=1)["rec"]
+        assert st["index"] == 6 and st["paused"]
+        assert _settle(pipe, _size(0) + _size(11) + _size(5) + _size(6)) == _size(0) + _size(11) + _size(5) + _size(6)
+
+        st = pipe.playback(seek_s=1.95)["rec"]  # past the last message (1.9 s): at the end (hold)
+        assert st["seeks_landed"] == 3 and st["next_s"] is None and st["index"] == 6
+        pipe.wait(10, until=lambda: pipe.playback()["rec"]["at_end"])
+        assert pipe.playback()["rec"]["at_end"]
+
+        pipe.playback(rate=0.01, paused=False, seek_s=0.0)  # playing, slowly (10 s a message)
+        st = pipe.playback(seek_s=1.2)["rec"]  # playing: message 12 has gone out
+        assert not st["seek_pending"] and st["seeks_landed"] == st["seeks"] == 5
+        assert st["index"] == 12 and st["position_s"] == pytest.approx(1.2) and not st["paused"]
+
+
 def test_loop_repeats_and_pause_holds(tmp_path):
     scans = _scans(str(tmp_path))
     total = sum(_size(i) for i in range(N))
