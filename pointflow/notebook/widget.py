@@ -165,7 +165,7 @@ class LiveView(anywidget.AnyWidget):
             except PlaybackError as exc:
                 self.playback_refused += 1
                 self.send({"type": "error", "req": m.get("req"), "key": f"playback.{exc.key}",
-                           "error": str(exc).split(": ", 1)[-1]})
+                           "error": exc.message})
             except (RuntimeError, TimeoutError) as exc:  # ended, restarting, or not landed in time
                 self.send({"type": "error", "req": m.get("req"), "key": "playback", "error": str(exc)})
 
