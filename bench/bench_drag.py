@@ -41,7 +41,11 @@ HERE = Path(__file__).resolve()
 
 def one(points: int, size, turns: int) -> dict:
     """One pipeline (this process's pointflow), ``turns`` turns; each turn's parts in ms."""
-    from bench_views import Client, _base_url, _config, _render, _scene
+    from _harness.views import Client
+    from _harness.views import base_url as _base_url
+    from _harness.views import config as _config
+    from _harness.views import render_stats as _render
+    from _harness.views import scene as _scene
 
     from pointflow import Pipeline
 

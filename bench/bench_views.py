@@ -27,99 +27,22 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import queue
 import random
-import struct
 import tempfile
-import threading
 import time
 from pathlib import Path
 
 import numpy as np
 
 import _harness  # sets XDG_RUNTIME_DIR before pointflow is imported
+from _harness.views import Client
+from _harness.views import base_url as _base_url
+from _harness.views import config as _config
+from _harness.views import render_stats as _render
+from _harness.views import scene as _scene
 from pointflow import Pipeline
 
 RESULTS = _harness.RESULTS
-TOKEN = "bench-views-token-0123456789"
-
-
-def _scene(path: str, n: int) -> str:
-    rng = np.random.default_rng(1)
-    xy = rng.uniform(-20, 20, (n, 2))
-    z = np.sin(xy[:, 0] / 3) * np.cos(xy[:, 1] / 4) * 3 + rng.normal(0, 0.05, n)
-    f = os.path.join(path, "cloud.npz")
-    np.savez(f, x=xy[:, 0], y=xy[:, 1], z=z, intensity=rng.random(n).astype(np.float32))
-    return f
-
-
-def _config(scene: str, n: int, size, backend: str, orbit: float) -> dict:
-    render = {"backend": backend, "size": list(size), "point_size": 2, "color_by": "intensity",
-              "camera": {"mode": "auto", "orbit_deg_per_s": orbit}, "output": {"every_n_frames": 10 ** 9}}
-    if backend == "cpu":
-        render["raster"] = "compute"
-    return {"name": "bench-views",
-            "source": {"transport": "file", "name": "cloud", "options": {"path": scene, "realtime": False}},
-            "ring": {"max_points": n + 1000}, "cadence": {"target_hz": 240}, "render": render,
-            "tracing": {"enabled": False},
-            "serve": {"port": 0, "token": TOKEN, "width": int(size[0]), "height": int(size[1])}}
-
-
-class Client(threading.Thread):
-    """One page's worth of WebSocket: frames acknowledged on arrival, commands from a queue."""
-
-    def __init__(self, base: str):
-        super().__init__(daemon=True)
-        from websockets.sync.client import connect
-
-        self.ws = connect(base.replace("http://", "ws://") + f"/ws?token={TOKEN}", origin=base, max_size=2 ** 26,
-                          open_timeout=30)
-        self.frames: list[dict] = []  # header + t (monotonic s at arrival)
-        self.replies: dict[int, dict] = {}
-        self.cmds: "queue.SimpleQueue[dict]" = queue.SimpleQueue()
-        self.stop = threading.Event()
-        self.start()
-
-    def run(self) -> None:
-        while not self.stop.is_set():
-            while True:
-                try:
-                    self.ws.send(json.dumps(self.cmds.get_nowait()))
-                except queue.Empty:
-                    break
-            try:
-                raw = self.ws.recv(timeout=0.005)
-            except TimeoutError:
-                continue
-            except Exception:  # noqa: BLE001 - closed
-                return
-            t = time.monotonic()
-            if isinstance(raw, bytes):
-                n = struct.unpack(">I", raw[:4])[0]
-                head = json.loads(raw[4:4 + n])
-                head["t"] = t
-                self.frames.append(head)
-                self.ws.send('{"cmd": "ack"}')
-            else:
-                m = json.loads(raw)
-                if m.get("type") == "reply" and m.get("req") is not None:
-                    m["t"] = t
-                    self.replies[m["req"]] = m
-
-    def rate(self, t0: float, t1: float) -> float:
-        return sum(t0 <= f["t"] < t1 for f in self.frames) / (t1 - t0)
-
-    def close(self) -> None:
-        self.stop.set()
-        self.join(2)
-        try:
-            self.ws.close()
-        except Exception:  # noqa: BLE001
-            pass
-
-
-def _render(pipe) -> dict:
-    return pipe.stats()["stages"]["render"]
 
 
 def _main_fps(pipe, seconds: float) -> float:
@@ -127,11 +50,6 @@ def _main_fps(pipe, seconds: float) -> float:
     t0 = time.monotonic()
     time.sleep(seconds)
     return (_render(pipe)["frames"] - a) / (time.monotonic() - t0)
-
-
-def _base_url(pipe) -> str:
-    pipe.wait(60, until=lambda: pipe.stats()["stages"].get("serve", {}).get("port"))
-    return f"http://127.0.0.1:{pipe.stats()['stages']['serve']['port']}"
 
 
 def _clients_fps(base: str, k: int, seconds: float) -> tuple[float, list[float]]:
