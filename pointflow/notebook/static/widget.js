@@ -193,14 +193,7 @@ function render({ model, el: root }) {
   // ------------------------------------------------------------------ the colour legend
   const lutCache = {};
   function lutRgba(name) {
-    const hex = (model.get("luts") || {})[name];
-    if (!hex) return null;
-    const out = new Uint8ClampedArray(256 * 4);
-    for (let i = 0; i < 256; i++) {
-      for (let c = 0; c < 3; c++) out[4 * i + c] = parseInt(hex.substr(6 * i + 2 * c, 2), 16);
-      out[4 * i + 3] = 255;
-    }
-    return out;
+    return overlay ? overlay.decodeLut((model.get("luts") || {})[name]) : null;
   }
   let legendKey = "";
   function drawLegend(lg) {

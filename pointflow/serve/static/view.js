@@ -85,14 +85,7 @@
   }
 
   function lutRgb(name) {
-    const hex = hello && hello.luts && hello.luts[name];
-    if (!hex) return null;
-    const out = new Uint8ClampedArray(256 * 4);
-    for (let i = 0; i < 256; i++) {
-      for (let c = 0; c < 3; c++) out[4 * i + c] = parseInt(hex.substr(6 * i + 2 * c, 2), 16);
-      out[4 * i + 3] = 255;
-    }
-    return out;
+    return pointflowOverlay.decodeLut(hello && hello.luts && hello.luts[name]);
   }
   const lutCache = {};
   let legendKey = "";

@@ -172,6 +172,18 @@ var pointflowOverlay = (function () {
     return L;
   }
 
-  return { project, draw, niceStep, layout, fmtLen };
+  // a colormap's table as sent by the server / widget (``rrggbb`` x 256: render/view/legend.py
+  // lut_hex) -> RGBA bytes for the legend bar; null when there is none
+  function decodeLut(hex) {
+    if (!hex) return null;
+    const out = new Uint8ClampedArray(256 * 4);
+    for (let i = 0; i < 256; i++) {
+      for (let c = 0; c < 3; c++) out[4 * i + c] = parseInt(hex.substr(6 * i + 2 * c, 2), 16);
+      out[4 * i + 3] = 255;
+    }
+    return out;
+  }
+
+  return { project, draw, niceStep, layout, fmtLen, decodeLut };
 })();
 if (typeof module !== "undefined") module.exports = pointflowOverlay;
