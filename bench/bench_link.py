@@ -26,16 +26,14 @@ import argparse
 import io
 import json
 import os
-import queue
-import struct
 import tempfile
-import threading
 import time
 from pathlib import Path
 
 import numpy as np
 
 import _harness  # sets XDG_RUNTIME_DIR before pointflow is imported
+from _harness import views
 from pointflow import Pipeline
 from pointflow.testing.linksim import SlowLink
 
@@ -67,50 +65,12 @@ def _config(scene: str, n: int, size, adapt_fps: float) -> dict:
                       "adapt_fps": adapt_fps}}
 
 
-class Client(threading.Thread):
-    """One page's WebSocket: frames acknowledged on arrival; still frames kept (decoded later)."""
+class Client(views.Client):
+    """One page's WebSocket through the relay (or straight): frames acknowledged on arrival;
+    still frames kept (decoded later)."""
 
     def __init__(self, port: int, size):
-        super().__init__(daemon=True)
-        from websockets.sync.client import connect
-
-        base = f"http://127.0.0.1:{port}"
-        self.ws = connect(f"ws://127.0.0.1:{port}/ws?token={TOKEN}", origin=base, max_size=2 ** 26, open_timeout=30)
-        self.frames: list[dict] = []
-        self.stills: list[tuple[dict, bytes]] = []
-        self.replies: dict[int, dict] = {}
-        self.cmds: "queue.SimpleQueue[dict]" = queue.SimpleQueue()
-        self.stop = threading.Event()
-        self.cmds.put({"cmd": "resize", "width": int(size[0]), "height": int(size[1])})
-        self.start()
-
-    def run(self) -> None:
-        while not self.stop.is_set():
-            while True:
-                try:
-                    self.ws.send(json.dumps(self.cmds.get_nowait()))
-                except queue.Empty:
-                    break
-            try:
-                raw = self.ws.recv(timeout=0.003)
-            except TimeoutError:
-                continue
-            except Exception:  # noqa: BLE001 - closed
-                return
-            t = time.monotonic()
-            if isinstance(raw, bytes):
-                n = struct.unpack(">I", raw[:4])[0]
-                head = json.loads(raw[4:4 + n])
-                head["t"] = t
-                self.frames.append(head)
-                if not head.get("moving"):
-                    self.stills.append((head, raw[4 + n:]))
-                self.ws.send('{"cmd": "ack"}')
-            else:
-                m = json.loads(raw)
-                if m.get("type") == "reply" and m.get("req") is not None:
-                    m["t"] = t
-                    self.replies[m["req"]] = m
+        super().__init__(f"http://127.0.0.1:{port}", token=TOKEN, size=size)
 
     def ask(self, msg: dict, req: int, timeout: float = 30.0) -> dict:
         self.cmds.put(dict(msg, req=req))

@@ -39,16 +39,19 @@ def config(scene: str, n: int, size, backend: str, orbit: float) -> dict:
 class Client(threading.Thread):
     """One page's worth of WebSocket: frames acknowledged on arrival, commands from a queue."""
 
-    def __init__(self, base: str):
+    def __init__(self, base: str, token: str = TOKEN, size=None):
         super().__init__(daemon=True)
         from websockets.sync.client import connect
 
-        self.ws = connect(base.replace("http://", "ws://") + f"/ws?token={TOKEN}", origin=base, max_size=2 ** 26,
+        self.ws = connect(base.replace("http://", "ws://") + f"/ws?token={token}", origin=base, max_size=2 ** 26,
                           open_timeout=30)
         self.frames: list[dict] = []  # header + t (monotonic s at arrival)
+        self.stills: list[tuple[dict, bytes]] = []  # still frames (header, image), decoded by whoever asks
         self.replies: dict[int, dict] = {}
         self.cmds: "queue.SimpleQueue[dict]" = queue.SimpleQueue()
         self.stop = threading.Event()
+        if size is not None:  # a view of this size (else the server's default)
+            self.cmds.put({"cmd": "resize", "width": int(size[0]), "height": int(size[1])})
         self.start()
 
     def run(self) -> None:
@@ -70,6 +73,8 @@ class Client(threading.Thread):
                 head = json.loads(raw[4:4 + n])
                 head["t"] = t
                 self.frames.append(head)
+                if not head.get("moving"):
+                    self.stills.append((head, raw[4 + n:]))
                 self.ws.send('{"cmd": "ack"}')
             else:
                 m = json.loads(raw)
