@@ -60,19 +60,7 @@ def one(points: int, size, turns: int) -> dict:
             try:
                 time.sleep(1.5)
                 for i in range(turns):
-                    req = 1000 + i
-                    k = len(c.frames)
-                    t0 = time.monotonic()
-                    c.cmds.put({"cmd": "orbit", "azimuth_deg": 3.0, "req": req})
-                    end = t0 + 30
-                    while req not in c.replies and time.monotonic() < end:
-                        time.sleep(0.0005)
-                    rep = c.replies.get(req, {})
-                    v = rep.get("version")
-                    hit = None
-                    while v is not None and hit is None and time.monotonic() < end:
-                        hit = next((f for f in c.frames[k:] if (f.get("version") or 0) >= v), None)
-                        time.sleep(0.0005)
+                    t0, rep, hit = c.turn(1000 + i)
                     if hit is not None:
                         row = {"lat": (hit["t"] - t0) * 1e3, "draw": hit.get("frame_ms"),
                                "encode": hit.get("encode_ms")}

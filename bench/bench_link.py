@@ -41,15 +41,6 @@ RESULTS = _harness.RESULTS
 TOKEN = "bench-link-token-0123456789"
 
 
-def _scene(path: str, n: int) -> str:
-    rng = np.random.default_rng(1)
-    xy = rng.uniform(-20, 20, (n, 2))
-    z = np.sin(xy[:, 0] / 3) * np.cos(xy[:, 1] / 4) * 3 + rng.normal(0, 0.05, n)
-    f = os.path.join(path, "cloud.npz")
-    np.savez(f, x=xy[:, 0], y=xy[:, 1], z=z, intensity=rng.random(n).astype(np.float32))
-    return f
-
-
 def _config(scene: str, n: int, size, adapt_fps: float) -> dict:
     return {"name": "bench-link",
             "source": {"transport": "file", "name": "cloud", "options": {"path": scene, "realtime": False}},
@@ -191,7 +182,7 @@ def main() -> None:
             d = os.path.join(tmp, name)
             os.makedirs(d)
             rows = []
-            with Pipeline.from_dict(_config(_scene(d, args.points), args.points, size, fps), out_dir=d) as pipe:
+            with Pipeline.from_dict(_config(views.scene(d, args.points), args.points, size, fps), out_dir=d) as pipe:
                 pipe.wait(120, until=lambda: pipe.stats()["stages"]["render"].get("drawn_count", 0) >= args.points)
                 pipe.wait(60, until=lambda: pipe.stats()["stages"].get("serve", {}).get("port"))
                 port = pipe.stats()["stages"]["serve"]["port"]

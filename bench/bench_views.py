@@ -108,18 +108,8 @@ def drag(tmp: str, n: int, size, backend: str, repeats: int) -> dict:
         try:
             time.sleep(1.5)
             for i in range(repeats):
-                req = 1000 + i
                 k = len(c.frames)
-                t0 = time.monotonic()
-                c.cmds.put({"cmd": "orbit", "azimuth_deg": 3.0, "req": req})
-                end = t0 + 30
-                while req not in c.replies and time.monotonic() < end:
-                    time.sleep(0.001)
-                v = c.replies.get(req, {}).get("version")
-                hit = None
-                while v is not None and hit is None and time.monotonic() < end:
-                    hit = next((f for f in c.frames[k:] if (f.get("version") or 0) >= v), None)
-                    time.sleep(0.001)
+                t0, _, hit = c.turn(1000 + i, poll_s=0.001)
                 if hit is None:
                     continue
                 lat.append((hit["t"] - t0) * 1e3)

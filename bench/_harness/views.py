@@ -82,6 +82,22 @@ class Client(threading.Thread):
                     m["t"] = t
                     self.replies[m["req"]] = m
 
+    def turn(self, req: int, azimuth_deg: float = 3.0, timeout: float = 30.0, poll_s: float = 0.0005):
+        """Send one ``orbit`` and wait for its reply and the first frame at the reply's
+        version: (t0 monotonic s when sent, the reply or {}, that frame or None)."""
+        k = len(self.frames)
+        t0 = time.monotonic()
+        self.cmds.put({"cmd": "orbit", "azimuth_deg": azimuth_deg, "req": req})
+        end = t0 + timeout
+        while req not in self.replies and time.monotonic() < end:
+            time.sleep(poll_s)
+        rep = self.replies.get(req, {})
+        v, hit = rep.get("version"), None
+        while v is not None and hit is None and time.monotonic() < end:
+            hit = next((f for f in self.frames[k:] if (f.get("version") or 0) >= v), None)
+            time.sleep(poll_s)
+        return t0, rep, hit
+
     def rate(self, t0: float, t1: float) -> float:
         return sum(t0 <= f["t"] < t1 for f in self.frames) / (t1 - t0)
 

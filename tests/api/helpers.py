@@ -55,3 +55,19 @@ def known_clouds(k: int, n: int, seed: int = 0):
 
 def read_json(path: Path) -> dict:
     return json.loads(path.read_text())
+
+
+def until(cond, timeout: float, what: str):
+    """``cond()``'s first truthy value, polled every 50 ms; a test failure naming ``what``
+    after ``timeout`` s (a condition, not a time: the tests hold on a busy machine)."""
+    import time
+
+    import pytest
+
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        got = cond()
+        if got:
+            return got
+        time.sleep(0.05)
+    pytest.fail(f"timed out waiting for {what}")

@@ -9,26 +9,15 @@ from __future__ import annotations
 
 import os
 import signal
-import time
 
 import numpy as np
 import pytest
 
 from pointflow import Pipeline
 
-from .helpers import api_config
+from .helpers import api_config, until
 
 pytest.importorskip("anywidget", reason="the notebook extra comes with the test extra: pip install 'pointflow[test]'")
-
-
-def _until(cond, timeout: float, what: str):
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        got = cond()
-        if got:
-            return got
-        time.sleep(0.05)
-    pytest.fail(f"timed out waiting for {what}")
 
 
 def test_the_widget_reopens_its_view_with_its_camera_after_a_render_restart(tmp_path):
@@ -50,20 +39,20 @@ def test_the_widget_reopens_its_view_with_its_camera_after_a_render_restart(tmp_
                 view._inbox.put({"type": "ack", "seq": seq})
             return len(sent) >= n
 
-        _until(lambda: frames_past(1), 120, "a first frame")
+        until(lambda: frames_past(1), 120, "a first frame")
         view._inbox.put({"type": "control", "msg": {"cmd": "orbit", "azimuth_deg": 35, "elevation_deg": 15}})
-        _until(lambda: frames_past(0) and view.last_reply and view.last_reply.get("camera", {}).get("mode") == "fixed",
+        until(lambda: frames_past(0) and view.last_reply and view.last_reply.get("camera", {}).get("mode") == "fixed",
                60, "the orbit's reply")
         eye = view.last_reply["camera"]["eye"]
         before = max(sent)
         render = p.stats()["stages"]["render"]
         os.kill(render["pid"], signal.SIGKILL)
-        _until(lambda: frames_past(0) and view.views_reopened >= 1, 120, "the view opened again")
+        until(lambda: frames_past(0) and view.views_reopened >= 1, 120, "the view opened again")
         # the new stage draws the reopened view once (the data does not change after that)
-        _until(lambda: frames_past(0) and max(sent) > before, 120, "a frame from the new render stage")
+        until(lambda: frames_past(0) and max(sent) > before, 120, "a frame from the new render stage")
         assert all(b > a for a, b in zip(sent, sent[1:])), "frame numbers went back after the restart"
         view._inbox.put({"type": "control", "msg": {"cmd": "view_state"}})
         view.last_reply = None
-        after = _until(lambda: frames_past(0) and view.last_reply, 60, "the view state")
+        after = until(lambda: frames_past(0) and view.last_reply, 60, "the view state")
         assert after["camera"]["mode"] == "fixed" and after["camera"]["eye"] == pytest.approx(eye)
         view.close()

@@ -4,24 +4,15 @@ malformed ones are refused naming the argument, and the widget learns that the p
 stopped (``LiveView.stopped``). The browser half: tests/notebook/test_widget_controls.py."""
 from __future__ import annotations
 
-import time
 
 import numpy as np
 import pytest
 
 from pointflow import Pipeline
 
+from .helpers import until
+
 pytest.importorskip("anywidget", reason="the notebook extra comes with the test extra: pip install 'pointflow[test]'")
-
-
-def _until(cond, timeout: float, what: str):
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        got = cond()
-        if got:
-            return got
-        time.sleep(0.05)
-    pytest.fail(f"timed out waiting for {what}")
 
 
 def test_timeline_requests_refusals_and_the_stopped_state(tmp_path):
@@ -42,7 +33,7 @@ def test_timeline_requests_refusals_and_the_stopped_state(tmp_path):
         view.send = lambda content, buffers=None: got.append(content)
 
         def answer(req: int) -> dict:
-            return _until(lambda: next((m for m in got if m.get("req") == req and m["type"] in ("playback", "error")),
+            return until(lambda: next((m for m in got if m.get("req") == req and m["type"] in ("playback", "error")),
                                        None), 60, f"the answer to request {req}")
 
         view._inbox.put({"type": "playback", "req": 1, "args": {"seek_fraction": 0.8}})
@@ -59,7 +50,7 @@ def test_timeline_requests_refusals_and_the_stopped_state(tmp_path):
         assert p.playback()["rec"]["index"] == 8  # the replay goes on as it was
         assert view.stopped == ""
         p.stop()
-        _until(lambda: view.stopped, 30, "the widget to see the pipeline stop")
+        until(lambda: view.stopped, 30, "the widget to see the pipeline stop")
         assert view.stopped == "run ended"
         view.close()
     finally:
