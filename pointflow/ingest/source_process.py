@@ -5,7 +5,10 @@ Resolves the transport of ``cfg.sources[info.source_index]``, opens it, stamps e
 PUSH socket connected to ``endpoints.ingest``. A full send queue (ingest behind) never
 blocks forever: live transports wait at most ``LIVE_SEND_WAIT_MS`` and then drop the chunk
 (counted as ``hwm``); replay transports (``Transport.lossless``) wait, beating, until ingest
-takes it or the stage is stopped. ``close()`` runs on every exit path.
+takes it or the stage is stopped. ``close()`` runs on every exit path. When the input ends
+the stage says so (``finished``) and stays connected until the pipeline stops it: ZeroMQ
+drops what the receiver had not yet taken when the sending side disconnects, so a replay
+into a slow consumer (a sender waiting for its subscriber) would lose its tail.
 """
 from __future__ import annotations
 
@@ -40,6 +43,15 @@ KIND = register_stage_kind(StageKind(
 LIVE_SEND_WAIT_MS = 100
 #: Messages the PUSH socket queues before the wait/drop policy applies.
 SEND_HWM = 64
+
+
+def _stay_connected(ctx) -> None:
+    """The input ended: say so, then idle (beating) until stopped, so the receiver takes
+    every queued chunk before this end of the socket goes away."""
+    ctx.input_ended()
+    while ctx.running:
+        ctx.beat()
+        time.sleep(0.05)
 
 
 def _send(ctx, sock, frames, lossless: bool) -> bool:
@@ -115,6 +127,7 @@ def main(ctx) -> None:
             try:
                 chunk = next(it)
             except StopIteration:
+                _stay_connected(ctx)
                 break
             ctx.beat()
             if chunk is None:

@@ -209,6 +209,9 @@ def open_session(o: ZenohOptions) -> "zenoh.Session":
 
 #: Where a router listens when the config names no endpoint: this host only.
 DEFAULT_LISTEN = ("tcp/127.0.0.1:7447",)
+#: A closing sender's query "did everything I put reach you?" carries these parameters; the
+#: ``zenoh`` source answers it (``remote.zenoh_sender.confirm_delivery``).
+CONFIRM_PARAMETERS = "pointflow=delivered"
 
 
 @dataclasses.dataclass

@@ -25,13 +25,17 @@ import zmq
 from .. import wire
 from .options import source_key
 from .sender import FLUSH_S, STOP_GRACE_S, STOP_QUIET_S, LinkSender, take_from_sources
-from .zenoh_options import ZenohOpenError, zenoh_config
+from .zenoh_options import CONFIRM_PARAMETERS, ZenohOpenError, zenoh_config
 
 #: A put to a full network queue waits this long (us) before Zenoh drops it (Zenoh's default
 #: is 1 ms): rides out a busy host's scheduling hiccups, still never stalls for long.
 SENDER_DEFAULTS = {"transport/link/tx/queue/congestion_control/drop/wait_before_drop": 10_000}
 #: After the last put, before closing the session: Zenoh sends its batches asynchronously.
 CLOSE_SETTLE_S = 0.3
+#: How long the closing sender waits for its receivers to say they took its final sync
+#: (:func:`confirm_delivery`): a replay (``backpressure``) waits for a slow viewer, live data
+#: does not wait long.
+CONFIRM_S = {True: 30.0, False: 2.0}
 
 
 def open_sender_session(z):
@@ -83,6 +87,43 @@ class ZenohLinkSender(LinkSender):
 
     def stats(self) -> dict:
         return {**super().stats(), "link_publishers": len(self.publishers)}
+
+
+def confirm_delivery(session, sources: dict[str, str], timeout: float, log) -> None:
+    """Wait until the receivers of each source took its final sync, or ``timeout``.
+
+    Closing a Zenoh session drops what its transmit queue still holds, and with a slow
+    receiver (a replay with backpressure) that is the tail of the data and the final sync.
+    Zenoh gives no delivery receipt, and a query may overtake earlier samples (callbacks run
+    on several threads), so the sender asks each source's receivers, again and again, whether
+    the source's end has been taken; each answers ``ended`` or ``pending``. No answer (no
+    receiver, or one without the queryable) ends the wait at once."""
+    import zenoh
+
+    end = time.monotonic() + timeout
+    pending = dict(sources)  # key -> source name
+    answered: dict[str, int] = {}
+    while pending and time.monotonic() < end:
+        for key, name in list(pending.items()):
+            try:
+                replies = session.get(f"{key}?{CONFIRM_PARAMETERS}", payload=name.encode(),
+                                      target=zenoh.QueryTarget.ALL, consolidation=zenoh.ConsolidationMode.NONE,
+                                      timeout=max(0.1, min(2.0, end - time.monotonic())))
+                answers = [r.ok.payload.to_bytes() for r in replies if r.ok is not None]
+            except zenoh.ZError as exc:
+                log.warning("could not ask the receivers of %s whether they took everything: %s", key, exc)
+                answers = []
+            answered[key] = len(answers)
+            if all(a == b"ended" for a in answers):  # also: nobody answers
+                del pending[key]
+        if pending:
+            time.sleep(0.05)
+    for key in sources:
+        if key in pending:
+            log.warning("a receiver of %s had not taken everything after %.0f s; what it had not is lost with the "
+                        "session", key, timeout)
+        elif answered.get(key):
+            log.info("%d receiver(s) of %s took everything", answered[key], key)
 
 
 def _matching(pub) -> bool:
@@ -162,6 +203,8 @@ def main(ctx) -> None:
             ctx.counters.drop("unsent_at_stop", snd.queued_points)
             ctx.log.warning("%d queued point(s) could not be sent before stopping", snd.queued_points)
             snd.queue.clear()
+        confirm_delivery(session, {source_key(s.key, src): src for src in snd.publishers}, CONFIRM_S[s.backpressure],
+                         ctx.log)
         time.sleep(CLOSE_SETTLE_S)
     finally:
         _stats()

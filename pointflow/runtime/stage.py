@@ -104,7 +104,7 @@ def stage_main(name: str, kind: str | StageKind, cfg_dict: dict, base_dir: str, 
     try:
         loop(ctx)
         if ctx._running:  # returned on its own
-            ctx._send({"type": "done"})
+            ctx.input_ended()
     except Exception as exc:  # noqa: BLE001 - report, then exit non-zero
         # the supervisor prints the last line with the stage's exit (once); here only when it
         # cannot be told, or as the whole traceback with -v

@@ -490,6 +490,10 @@ class Supervisor:
                 reason = hung
                 st.process.kill()
                 st.process.join(2)
+                if st.finished and st.kind == SOURCE:  # restarting would send its input again
+                    log.warning("%s had said its input ended, then %s; killed, not restarted", st.name, hung)
+                    st.process = None
+                    continue
             else:
                 reason = describe_exit(code)
             self._stage_died(st, reason)

@@ -138,6 +138,7 @@ class StageContext:
         self.counters = StageCounters()
         self.zmq = zmq.Context()
         self._running = True
+        self._said_done = False  # input_ended() told the supervisor already
         self._hb_interval_ns = int(cfg.supervisor.heartbeat_ms * 1e6 / 2)
         self._last_hb = 0
         self._control = self.zmq.socket(zmq.PUSH)
@@ -199,6 +200,14 @@ class StageContext:
                 self.log.exception("stats callback failed")
         self._send({"type": "heartbeat", "t_ns": now, "stats": self.counters.to_dict()})
         self.spans.maybe_flush()
+
+    def input_ended(self) -> None:
+        """Tell the supervisor this stage's input ran out (``finished`` in stats) while it
+        stays up: a source keeps its socket connected until the pipeline stops it, because
+        ZeroMQ drops what a receiver had not yet taken when the sending side disconnects."""
+        if not self._said_done:
+            self._said_done = True
+            self._send({"type": "done"})
 
     def request_stop(self, reason: str) -> None:
         """Ask the supervisor to stop the whole pipeline (e.g. the user closed the window)."""

@@ -133,12 +133,12 @@ def test_exact_counts_send_to_run(loop):
     assert "sending on zenoh pftest/<source>" in loop.log("send.log")
 
 
-def _file_source(tmp: Path, n: int = 40_000):
+def _file_source(tmp: Path, n: int = 40_000, chunk_points: int = 5000):
     rng = np.random.default_rng(7)
     xyz = rng.uniform(-80, 80, size=(n, 3)) + [6.4e5, 4.9e6, 120.0]
     np.savez(tmp / "scan.npz", xyz=xyz, intensity=rng.random(n).astype(np.float32))
     return xyz, {"transport": "file", "name": "replay",
-                 "options": {"path": str(tmp / "scan.npz"), "mode": "stream", "chunk_points": 5000,
+                 "options": {"path": str(tmp / "scan.npz"), "mode": "stream", "chunk_points": chunk_points,
                              "realtime": False, "progress": "off"}}
 
 
@@ -197,6 +197,9 @@ def test_two_senders_on_a_wildcard(loop):
     assert "publishing source 'left' on zenoh key pftest/site1/left" in loop.log("a.log")
 
 
+REPLAY_POINTS = 400_000  # 11 MB: more than loopback's socket buffers, so a held receiver holds the sender
+
+
 @pytest.mark.parametrize("backpressure", [False, True], ids=["live-drops-counted", "replay-backpressure"])
 def test_a_slow_receiver(loop, backpressure):
     """A receiver that takes nothing for a while. Live (default): its bounded queue keeps the
@@ -208,7 +211,7 @@ def test_a_slow_receiver(loop, backpressure):
     probe = _probe(loop, {"key": "pftest/**", "queue_chunks": 3, "backpressure": backpressure,
                           "zenoh": {"connect": [f"tcp/127.0.0.1:{port}"]}}, hold=6.0)
     if backpressure:
-        _, src = _file_source(loop.workdir)
+        _, src = _file_source(loop.workdir, n=REPLAY_POINTS)  # more than the sockets' buffers hold
         send = start_send(loop, zsend_cfg(src, port, backpressure=True, queue_chunks=2))
     else:
         send = start_send(loop, zsend_cfg(synthetic_source(scans=10, hz=20), port))
@@ -221,9 +224,33 @@ def test_a_slow_receiver(loop, backpressure):
     assert c["link_sent"] == sent == c["link_received"] + c["lost_in_transit"] + c["receive_queue_full"], (c, sent)
     assert len(np.load(loop.workdir / "probe.npy")) == c["link_received"]
     if backpressure:
-        assert c["receive_queue_full"] == 0 and c["lost_in_transit"] == 0 and c["link_received"] == sent == 40_000
+        assert c["receive_queue_full"] == 0 and c["lost_in_transit"] == 0 and c["link_received"] == sent == REPLAY_POINTS
+        # the sender closed its session only once the held receiver had taken its final sync
+        assert "1 receiver(s) of pftest/replay took everything" in loop.log("send.log"), loop.log("send.log")
+        assert "restarting" not in loop.log("send.log"), loop.log("send.log")
     else:
         assert c["receive_queue_full"] > 0 and c["receive_queue_full_chunks"] > 0, c
+
+
+def test_a_replay_waits_for_a_late_receiver(loop):
+    """The replay's input ends at once, but the sender waits for its subscriber, which comes
+    seconds later: the finished source keeps its last chunks and beats while they wait (it
+    is not taken for hung and restarted, which would send the file twice), and the sender
+    closes only after the receiver took its final sync. Everything arrives, once."""
+    port = _port()
+    # 400 chunks: more than the source's and the sender's socket queues (64 + 64) hold
+    xyz, src = _file_source(loop.workdir, chunk_points=100)
+    send = start_send(loop, zsend_cfg(src, port, backpressure=True, queue_chunks=2))
+    wait_for(lambda: "publishing source" in loop.log("send.log"), 60, "the sender", lambda: loop.log("send.log"))
+    time.sleep(3.0)  # several times supervisor.hung_after_ms (800 ms)
+    probe = _probe(loop, {"key": "pftest/**", "backpressure": True, "zenoh": {"connect": [f"tcp/127.0.0.1:{port}"]}})
+    assert send.wait(90) == 0, loop.log("send.log")
+    assert probe.wait(90) == 0, loop.log("probe.log")
+    c = json.loads((loop.workdir / "probe.json").read_text())
+    log = loop.log("send.log")
+    assert "hung" not in log and "restarting" not in log, log
+    assert c["ended"] == ["replay"] and c["link_received"] == len(xyz) == stats(loop, "send")["accounting"]["link_sent"], c
+    assert np.array_equal(np.load(loop.workdir / "probe.npy"), xyz)
 
 
 def test_a_killed_sender_is_noticed(loop):

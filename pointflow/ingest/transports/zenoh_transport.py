@@ -34,7 +34,7 @@ from ... import wire
 from ...chunk import ChunkError, PointChunk
 from ...remote.options import check_key_expr
 from ...remote.transit import TransitLedger
-from ...remote.zenoh_options import ZenohOptions, check_zenoh
+from ...remote.zenoh_options import CONFIRM_PARAMETERS, ZenohOptions, check_zenoh
 from ...typed import ConfigError, at_least_one, check, load_dataclass
 from ._backoff import NetworkOptions
 from .base import Transport
@@ -114,6 +114,14 @@ class ZenohTransport(Transport):
                     self._dropped_uncounted += 1
         self._wake.set()
 
+    def _on_query(self, query) -> None:
+        """Zenoh's thread: a closing sender asks whether its final sync has been taken here
+        (``remote.zenoh_sender.confirm_delivery``); the payload names its source."""
+        if str(query.parameters) != CONFIRM_PARAMETERS:
+            return
+        src = query.payload.to_bytes().decode("utf-8", "replace") if query.payload is not None else ""
+        query.reply(query.key_expr, b"ended" if src in self.ledger.ended else b"pending")
+
     def _on_token(self, sample) -> None:
         import zenoh
 
@@ -127,6 +135,7 @@ class ZenohTransport(Transport):
         self._session = open_session(self.o.zenoh)
         try:
             self._subs.append(self._session.declare_subscriber(self.o.key, self._on_sample))
+            self._subs.append(self._session.declare_queryable(self.o.key, self._on_query))
             self._subs.append(self._session.liveliness().declare_subscriber(self.o.key, self._on_token, history=True))
         except Exception as exc:  # noqa: BLE001 - a ZError: one line, no traceback
             self.close()
