@@ -24,6 +24,7 @@ import numpy as np
 
 from .config import RenderConfig
 from .base import FrameInput, FrameStats, Renderer
+from .batches import BatchBounds, culling_enabled
 from .camera import Camera
 from .rules import (apply_shade, drawn_attributes, edl_offsets, edl_shade, footprint_box, in_pick_circle,
                     in_round_footprint, pick_window, point_colors, point_sizes_px, resolve_pick, rgba_u8,
@@ -52,6 +53,7 @@ class CpuRenderer(Renderer):
         self._edl = edl_offsets(cfg.edl.radius_px) if cfg.edl.enabled else None
         self.nonfinite_total = 0
         self.frames = 0
+        self._bounds = BatchBounds() if culling_enabled() else None  # whole batches culled
 
     def resize(self, width: int, height: int) -> bool:
         """A target per size (image and slot map), kept for switching back."""
@@ -80,7 +82,9 @@ class CpuRenderer(Renderer):
     def render(self, frame: FrameInput, camera: Camera) -> FrameStats:
         t0 = time.perf_counter()
         W, H = self.width, self.height
-        sel = select_points(frame, camera, self.cfg, W, H)
+        if self._bounds is not None:
+            self._bounds.note(frame)
+        sel = select_points(frame, camera, self.cfg, W, H, self._bounds)
         t1 = time.perf_counter()
         vp = camera.view_proj(W, H, frame.origin)
         p = frame.positions[sel.slots].astype(np.float64)
@@ -118,7 +122,7 @@ class CpuRenderer(Renderer):
                         "resolve": ms(t3, t4), "total": ms(t0, t4),
                         **({"edl": ms(t_edl, t4)} if self._edl is not None else {})},
             extra={**{f"removed_{k}": v for k, v in sel.counts.items() if k not in ("occupied", "drawn")},
-                   "nonfinite_total": self.nonfinite_total},
+                   "nonfinite_total": self.nonfinite_total, "culled_points": sel.culled},
         )
 
     def _splat(self, px: np.ndarray, py: np.ndarray, size) -> np.ndarray:

@@ -33,6 +33,7 @@ import numpy as np
 from .config import RenderConfig
 from . import colormap, cpu_kernels
 from .base import FrameInput, FrameStats, Renderer, RenderError, merge_ranges
+from .batches import BATCH_SLOTS, boxes_outside, culling_enabled
 from .camera import Camera
 from .rules import (EDL_SCALE, budget_fraction, budget_seed, check_frame, edl_offsets, in_pick_circle, pick_window,
                     resolve_pick, rgba_u8, seed_hash)
@@ -49,13 +50,12 @@ DEFAULT_SPLIT = "auto"
 POINTS_ABOVE = 250_000
 POINTS_UP_TO_THREADS = 2
 #: split by bins: logical indices per chunk of the binning pass (its scratch stays in cache)
-BIN_CHUNK = 16384
+BIN_CHUNK = BATCH_SLOTS
 #: split by bins: rows per screen band, 2^BAND_SHIFT (a thread's band of keys, rows x width x 8
 #: bytes, stays in cache)
 BAND_SHIFT = 4
-#: split by bins: cull whole batches of BIN_CHUNK slots whose bounds lie outside the frustum
-#: (env POINTFLOW_CPU_RASTER_CULL=0: never)
-ENV_CULL = "POINTFLOW_CPU_RASTER_CULL"
+#: split by bins: whole batches (render/batches.py, BATCH_SLOTS) whose bounds lie outside the
+#: frustum are culled (env POINTFLOW_CPU_RASTER_CULL=0: never)
 #: split by bins: first guess of records per point (a box crossing a band edge is in two bands)
 RECORDS_PER_POINT = 1.125
 #: split by points: chunks of logical indices per thread, taken as threads come free
@@ -143,7 +143,7 @@ class CpuComputeRenderer(Renderer):
         self.bands = split == "bands"
         self._bins = _Bins()
         self._records_per_point = RECORDS_PER_POINT
-        self._cull = os.environ.get(ENV_CULL, "1") not in ("0", "false", "no")
+        self._cull = culling_enabled()
         self.culled_points = 0  # points of the last frame in batches culled whole
         self._bin_scratch: tuple = ()
         self._drew = False
@@ -344,14 +344,7 @@ class CpuComputeRenderer(Renderer):
                 self._k.batch_stats(stale.astype(np.int64), B, cap, self._pos, self._t, self._cval, cmode, self._blo,
                                     self._bhi, self._bbad, self._bvlo, self._bvhi)
                 self._bstale[stale] = False
-            lo, hi = self._blo[k], self._bhi[k]
-            nrm, d = planes[:, :3], planes[:, 3]
-            # the largest value of each plane over the box (a corner), with a margin far above
-            # the rounding of either sum: culled only when every point is outside that plane
-            with np.errstate(invalid="ignore"):  # a batch without a finite point has infinite bounds
-                most = d + np.maximum(lo[:, None, :] * nrm, hi[:, None, :] * nrm).sum(axis=2)
-                scale = np.abs(d) + (np.maximum(np.abs(lo), np.abs(hi))[:, None, :] * np.abs(nrm)).sum(axis=2)
-                out = (most < -1e-9 * (scale + 1.0)).any(axis=1)
+            out = boxes_outside(self._blo[k], self._bhi[k], planes)  # one plane test for every tier
             empty = self._bbad[k] == n  # no finite point at all
             sel = whole & (out | empty)
             flag[sel] = 1

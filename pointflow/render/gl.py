@@ -37,6 +37,7 @@ import numpy as np
 
 from .config import RenderConfig
 from .base import FrameInput, FrameStats, Renderer, RenderError
+from .batches import BatchBounds, culling_enabled
 from .camera import Camera
 from .rules import (EDL_NEIGHBOURS, EDL_SCALE, MAX_POINT_PX, drawn_attributes, edl_offsets, in_pick_circle,
                     pick_window, point_colors, resolve_pick, rgba_u8, select_points)
@@ -188,6 +189,7 @@ class GlRenderer(Renderer):
         self._last: dict[str, np.ndarray] = {}
         self.nonfinite_total = 0
         self.frames = 0
+        self._bounds = BatchBounds() if culling_enabled() else None  # whole batches culled
         self._clear()
 
     def _make_targets(self, edl_pass: bool = True) -> tuple:
@@ -270,7 +272,9 @@ class GlRenderer(Renderer):
     def render(self, frame: FrameInput, camera: Camera) -> FrameStats:
         t0 = time.perf_counter()
         W, H = self.width, self.height
-        sel = select_points(frame, camera, self.cfg, W, H)
+        if self._bounds is not None:
+            self._bounds.note(frame)
+        sel = select_points(frame, camera, self.cfg, W, H, self._bounds)
         n = sel.n
         slots = sel.slots[::-1]  # newest first: with '<=' the lower logical index, drawn last, wins ties
         inst = np.empty(n, _INSTANCE)
@@ -324,7 +328,7 @@ class GlRenderer(Renderer):
             drawn=n, uploaded_bytes=n * _INSTANCE.itemsize,
             timings_ms={"select": ms(t0, t1), "upload": ms(t1, t2), "draw": ms(t2, t3), "total": ms(t0, t3)},
             extra={**{f"removed_{k}": v for k, v in sel.counts.items() if k not in ("occupied", "drawn")},
-                   "nonfinite_total": self.nonfinite_total},
+                   "nonfinite_total": self.nonfinite_total, "culled_points": sel.culled},
         )
 
     def read_image(self) -> np.ndarray:

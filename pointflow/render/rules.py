@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Optional
+from typing import TYPE_CHECKING, Optional
 
 import numpy as np
 
@@ -18,6 +18,9 @@ from .config import RenderConfig
 from . import colormap
 from .base import FrameInput
 from .camera import Camera
+
+if TYPE_CHECKING:
+    from .batches import BatchBounds
 
 __all__ = ["Selection", "check_frame", "select_points", "pcg", "pcg_hash", "seed_hash", "budget_seed", "uniform01",
            "keep_probability", "importance_range_for_budget", "budget_fraction", "rgba_u8", "color_values",
@@ -133,6 +136,7 @@ class Selection:
     logical: np.ndarray          # int64 logical indices (0 = oldest)
     slots: np.ndarray            # int64 ring slots
     counts: dict[str, int] = field(default_factory=dict)  # removed per filter + occupied/drawn
+    culled: int = 0              # points in whole batches culled before any point was read
 
     @property
     def n(self) -> int:
@@ -163,7 +167,8 @@ def check_frame(frame: FrameInput) -> tuple[int, int]:
     return cap, size
 
 
-def select_points(frame: FrameInput, camera: Camera, cfg: RenderConfig, width: int, height: int) -> Selection:
+def select_points(frame: FrameInput, camera: Camera, cfg: RenderConfig, width: int, height: int,
+                  bounds: Optional["BatchBounds"] = None) -> Selection:
     """Apply, in order: finite positions, time window (``now - t <= window``, off when 0),
     LOD stride (``logical % stride == 0``), importance sampling (``uniform01(slot,
     seed_hash(seed)) <= p`` in float32, p from :func:`keep_probability` over the
@@ -172,15 +177,26 @@ def select_points(frame: FrameInput, camera: Camera, cfg: RenderConfig, width: i
     budget_seed(seed)) < max(b - 3 sqrt(b), b / 2) / n`` (float32), then at most the first
     b in logical order.
     The wgpu tier applies the same rules on the GPU (``wgpu_tier/reference.py`` is their
-    per-slot form) except that the GPU's final truncation picks an arbitrary b."""
+    per-slot form) except that the GPU's final truncation picks an arbitrary b.
+
+    With ``bounds`` (:class:`pointflow.render.batches.BatchBounds`, noted for this frame),
+    whole batches outside the frustum are skipped before any point is read: the same
+    survivors, their points counted as ``nonfinite`` (the batch's count) and ``frustum``."""
     cap, size = check_frame(frame)
     counts = {"occupied": size, "nonfinite": 0, "time_window": 0, "lod": 0, "sampled": 0, "frustum": 0,
               "budget": 0}
-    logical = np.arange(size, dtype=np.int64)
+    planes = camera.frustum_planes(width, height, frame.origin)
+    cut = bounds.survivors(frame, planes) if bounds is not None and size else None
+    if cut is None:
+        logical = np.arange(size, dtype=np.int64)
+    else:
+        logical, culled_bad, culled = cut
+        counts["nonfinite"], counts["frustum"] = culled_bad, culled - culled_bad
+    all_slots = (int(frame.head) + np.arange(size, dtype=np.int64)) % cap if cut is not None else None
     slots = (int(frame.head) + logical) % cap
     pos = frame.positions[slots]
     keep = np.isfinite(pos).all(axis=1)
-    counts["nonfinite"] = int(size - np.count_nonzero(keep))
+    counts["nonfinite"] += int(logical.size - np.count_nonzero(keep))
     if cfg.time_window_ms > 0:
         t = np.asarray(frame.t_ingest_ms[slots], np.float64)
         tw = (float(frame.now_ms) - t) <= float(cfg.time_window_ms)
@@ -191,7 +207,8 @@ def select_points(frame: FrameInput, camera: Camera, cfg: RenderConfig, width: i
         counts["lod"] = int(np.count_nonzero(keep & ~lod))
         keep &= lod
     if cfg.importance_sampling:
-        lo, hi = frame.channel_ranges.get("importance") or _finite_range(frame.importance[slots])
+        lo, hi = frame.channel_ranges.get("importance") or _finite_range(
+            frame.importance[slots if all_slots is None else all_slots])
         idx = np.flatnonzero(keep)
         p = keep_probability(frame.importance[slots[idx]], lo, hi)
         u = uniform01(slots[idx], seed_hash(frame.frame_seed))
@@ -200,10 +217,9 @@ def select_points(frame: FrameInput, camera: Camera, cfg: RenderConfig, width: i
         keep[drop] = False
     idx = np.flatnonzero(keep)
     if idx.size:
-        planes = camera.frustum_planes(width, height, frame.origin)
         d = pos[idx].astype(np.float64) @ planes[:, :3].T + planes[:, 3]
         inside = (d >= 0.0).all(axis=1)
-        counts["frustum"] = int(idx.size - np.count_nonzero(inside))
+        counts["frustum"] += int(idx.size - np.count_nonzero(inside))
         idx = idx[inside]
     if frame.budget is not None and idx.size > max(int(frame.budget), 0):
         b = max(int(frame.budget), 0)
@@ -211,7 +227,7 @@ def select_points(frame: FrameInput, camera: Camera, cfg: RenderConfig, width: i
         idx = idx[uniform01(slots[idx], budget_seed(frame.frame_seed)) < budget_fraction(b, idx.size)][:b]
         counts["budget"] = int(before - idx.size)
     counts["drawn"] = int(idx.size)
-    return Selection(logical=logical[idx], slots=slots[idx], counts=counts)
+    return Selection(logical=logical[idx], slots=slots[idx], counts=counts, culled=0 if cut is None else cut[2])
 
 
 # --------------------------------------------------------------------------- colour ranges & colours

@@ -1,0 +1,137 @@
+"""Batches of ring slots with bounds, so a tier culls whole batches before touching points.
+
+The ring's slots are cut into batches of :data:`BATCH_SLOTS`; per batch the bounds of its
+finite positions and its non-finite count are kept as the ring is written (only batches a
+frame's dirty ranges touch are reduced again, and only when a frame needs them). A batch
+whose every slot is occupied, that the ring's head does not cut, and whose box lies wholly
+outside one frustum plane (or that holds no finite point) can be skipped whole: none of its
+points would survive the frustum test. Every tier uses this one idea: the compiled cpu
+raster (``cpu_compute``: its own copy and compiled reductions, the same batches and the same
+plane test, :func:`boxes_outside`), and the numpy reference and the gl tier through
+:class:`BatchBounds` and :func:`pointflow.render.rules.select_points`.
+
+``POINTFLOW_CPU_RASTER_CULL=0`` (:data:`ENV_CULL`) turns culling off in every tier (same
+image: tested).
+"""
+from __future__ import annotations
+
+import os
+from typing import Optional
+
+import numpy as np
+
+from .base import merge_ranges
+
+__all__ = ["BATCH_SLOTS", "ENV_CULL", "BatchBounds", "boxes_outside", "culling_enabled"]
+
+#: Slots per batch: small enough that a view of a tenth of a ring skips most of it, large
+#: enough that the per-batch work (bounds, the plane test, one run per batch) stays small.
+BATCH_SLOTS = 16384
+#: Set to 0 to draw without batch culling (the images are the same).
+ENV_CULL = "POINTFLOW_CPU_RASTER_CULL"
+
+
+def culling_enabled() -> bool:
+    return os.environ.get(ENV_CULL, "1") not in ("0", "false", "no")
+
+
+def boxes_outside(lo: np.ndarray, hi: np.ndarray, planes: np.ndarray) -> np.ndarray:
+    """Per box (rows of ``lo``/``hi``, float64) whether it lies wholly outside one of the
+    frustum ``planes`` (n, 4; inside is ``>= 0``). The largest value of each plane over the
+    box is at a corner; the box counts as outside only when that is below ``-1e-9`` relative
+    to the sum's magnitude, far above the rounding of either the per-point or the per-box
+    sum, so no point a per-point test would keep is ever culled. A box with no finite point
+    (infinite bounds) is not outside here (callers cull it by its non-finite count)."""
+    nrm, d = planes[:, :3], planes[:, 3]
+    with np.errstate(invalid="ignore"):
+        most = d + np.maximum(lo[:, None, :] * nrm, hi[:, None, :] * nrm).sum(axis=2)
+        scale = np.abs(d) + (np.maximum(np.abs(lo), np.abs(hi))[:, None, :] * np.abs(nrm)).sum(axis=2)
+        return (most < -1e-9 * (scale + 1.0)).any(axis=1)
+
+
+class BatchBounds:
+    """Bounds per batch of a ring read in place (the numpy and gl tiers read the slab), kept
+    from the frames' dirty ranges."""
+
+    def __init__(self, batch: int = BATCH_SLOTS):
+        self.batch = int(batch)
+        self.cap = -1
+        self.lo = self.hi = np.zeros((0, 3))
+        self.bad = np.zeros(0, np.int64)
+        self.stale = np.zeros(0, bool)
+
+    def note(self, frame) -> None:
+        """Mark the batches this frame's dirty ranges touch (all of them for ``None`` or a new
+        capacity). Call once per frame handed to the tier, before :meth:`culled`."""
+        cap = int(frame.capacity)
+        if cap != self.cap:
+            nb = -(-cap // self.batch)
+            self.cap = cap
+            self.lo, self.hi = np.full((nb, 3), np.inf), np.full((nb, 3), -np.inf)
+            self.bad = np.zeros(nb, np.int64)
+            self.stale = np.ones(nb, bool)
+            return
+        if frame.dirty is None:
+            self.stale[:] = True
+            return
+        B = self.batch
+        for a, b in merge_ranges(frame.dirty, cap):  # a wrapping range (b < a) is split
+            self.stale[a // B:(b - 1) // B + 1] = True
+
+    def _refresh(self, positions: np.ndarray, ks: np.ndarray) -> None:
+        """Reduce the stale batches among ``ks`` (float64 bounds of the finite positions)."""
+        ks = ks[self.stale[ks]]
+        if not ks.size:
+            return
+        B = self.batch
+        for k in ks:
+            p = positions[k * B:min((k + 1) * B, self.cap)]
+            fin = np.isfinite(p).all(axis=1)
+            self.bad[k] = int(p.shape[0] - np.count_nonzero(fin))
+            if self.bad[k] == p.shape[0]:
+                self.lo[k], self.hi[k] = np.inf, -np.inf
+            elif self.bad[k]:
+                q = p[fin]
+                self.lo[k], self.hi[k] = q.min(axis=0), q.max(axis=0)
+            else:
+                self.lo[k], self.hi[k] = p.min(axis=0), p.max(axis=0)
+        self.stale[ks] = False
+
+    def culled(self, frame, planes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(batch indices culled whole, their first logical indices), ascending by logical
+        index: whole batches (every slot occupied, not cut by the ring's head) outside the
+        frustum or without a finite point."""
+        cap, size, head = self.cap, int(frame.size), int(frame.head)
+        B = self.batch
+        if size <= 0 or cap <= 0:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        k = np.arange(self.lo.shape[0], dtype=np.int64)
+        first = k * B
+        n = np.minimum(first + B, cap) - first
+        la = (first - head) % cap  # logical index of the batch's first slot
+        # whole: its slots are logical [la, la + n) within the occupied [0, size), no wrap
+        whole = (la + n <= size) & ~((head > first) & (head < first + n))
+        ks = k[whole]
+        if not ks.size:
+            return ks, ks
+        self._refresh(frame.positions, ks)
+        out = boxes_outside(self.lo[ks], self.hi[ks], planes) | (self.bad[ks] == n[ks])
+        ks = ks[out]
+        order = np.argsort(la[ks], kind="stable")
+        return ks[order], la[ks][order]
+
+    def survivors(self, frame, planes: np.ndarray) -> Optional[tuple[np.ndarray, int, int]]:
+        """The logical indices left after culling whole batches, with the culled points'
+        non-finite count and total; None when nothing is culled (the caller takes every
+        occupied index)."""
+        ks, la = self.culled(frame, planes)
+        if not ks.size:
+            return None
+        B, size, cap = self.batch, int(frame.size), self.cap
+        n = np.minimum((ks + 1) * B, cap) - ks * B
+        starts = np.concatenate([[0], la + n])
+        ends = np.concatenate([la, [size]])
+        keep = ends > starts
+        runs = [np.arange(a, b, dtype=np.int64) for a, b in zip(starts[keep], ends[keep])]
+        logical = np.concatenate(runs) if runs else np.zeros(0, np.int64)
+        return logical, int(self.bad[ks].sum()), int(n.sum())
