@@ -207,6 +207,7 @@ class StageContext:
         ZeroMQ drops what a receiver had not yet taken when the sending side disconnects."""
         if not self._said_done:
             self._said_done = True
+            self.beat(force=True)  # the final counters first: "done" means they are all in
             self._send({"type": "done"})
 
     def request_stop(self, reason: str) -> None:

@@ -191,13 +191,12 @@ def test_file_source_stage_skips_bad_files_and_sends_the_good_ones(tmp_path):
     """A real source process replaying a directory with broken files among good ones: it
     counts and skips each broken one, sends every good point, and ends normally."""
     import shutil
-    import time
 
     import zmq
 
     from pointflow import wire
 
-    from .test_source_stage import _messages, _start
+    from .test_source_stage import _start, _until_done
 
     d = tmp_path / "scans"
     d.mkdir()
@@ -215,14 +214,13 @@ def test_file_source_stage_skips_bad_files_and_sends_the_good_ones(tmp_path):
     pull.bind(ep.ingest)
     try:
         chunks = []
-        end = time.monotonic() + 60
-        while p.is_alive() and time.monotonic() < end:
-            while pull.poll(50):
+
+        def take():
+            while pull.poll(20):
                 chunks.append(wire.decode(pull.recv_multipart()))
-        p.join(30)
-        while pull.poll(200):
-            chunks.append(wire.decode(pull.recv_multipart()))
-        msgs = _messages(control)
+
+        msgs = _until_done(p, control, on_idle=take)
+        take()
         assert p.exitcode == 0 and any(m["type"] == "done" for m in msgs)
         assert not [m for m in msgs if m["type"] == "error"]
         assert sum(c.n for c in chunks) == good

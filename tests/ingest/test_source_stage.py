@@ -29,6 +29,22 @@ def _start(cfg):
     return p, z, control, trace, ep, run_dir
 
 
+def _until_done(p, control, timeout=60.0, on_idle=None):
+    """Control messages until the stage says its input ended ("done"); it then stays up,
+    connected (so nothing queued for ingest is lost), until it is stopped: stop it."""
+    msgs, end = [], time.monotonic() + timeout
+    while time.monotonic() < end and not any(m["type"] == "done" for m in msgs):
+        msgs += _messages(control, 0.05)
+        if on_idle is not None:
+            on_idle()
+    assert any(m["type"] == "done" for m in msgs), "the stage never said its input ended"
+    time.sleep(0.3)
+    assert p.is_alive(), "a finished source stays connected until it is stopped"
+    p.terminate()  # SIGTERM: the stage's stop
+    p.join(30)
+    return msgs + _messages(control)
+
+
 def _messages(control, timeout=0.2):
     out = []
     while control.poll(int(timeout * 1000)):
@@ -48,8 +64,7 @@ def test_source_stamps_chunks_and_reports_done():
         while len(chunks) < 20 and time.monotonic() < end:
             if pull.poll(100):
                 chunks.append(wire.decode(pull.recv_multipart()))
-        p.join(30)
-        msgs = _messages(control)
+        msgs = _until_done(p, control)
         assert [c.seq for c in chunks] == list(range(20))
         assert all(c.source_id == "source" and c.trace_id and c.t_sent_ns for c in chunks)
         assert len({c.trace_id for c in chunks}) == 20
