@@ -105,12 +105,20 @@ def measure(sizes: list[int], rounds: int, splits: tuple[str, ...]) -> dict[str,
             "measured_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "command": _harness.command()}
 
 
-def cull(n: int, rounds: int) -> dict[str, Any]:
+#: ``--tier``: the renderer class the culling figures are taken with (render/batches.py)
+CULL_TIERS = {"cpu-compute": "pointflow.render.cpu_compute:CpuComputeRenderer",
+              "cpu": "pointflow.render.cpu:CpuRenderer", "gl": "pointflow.render.gl:GlRenderer"}
+
+
+def cull(n: int, rounds: int, tier: str = "cpu-compute") -> dict[str, Any]:
     """Frame time of the whole ring in view and of a view of ~10% of it, culling on and off."""
+    import importlib
+
     import numba
 
     from pointflow.render.camera import Camera
-    from pointflow.render.cpu_compute import CpuComputeRenderer
+    mod, cls = CULL_TIERS[tier].split(":")
+    Renderer = getattr(importlib.import_module(mod), cls)
     machine = _harness.machine()
     base, inten0, scene = base_cloud()
     world, inten = tiled(base, inten0, n)
@@ -127,13 +135,15 @@ def cull(n: int, rounds: int) -> dict[str, Any]:
                            near=0.01 * h, far=4 * h)
     del world
     cfg = RenderConfig(size=[W, H], color_by="intensity", colormap="turbo", point_size=2.0, gpu_timestamps=False,
-                       backend="cpu", raster="compute")
+                       backend="gl" if tier == "gl" else "cpu", raster="compute" if tier == "cpu-compute" else "auto")
+    # the pipeline's handoff carries the channel's range (cadence keeps it): so does this frame
+    f.channel_ranges = {"intensity": (float(np.nanmin(inten)), float(np.nanmax(inten)))}
     os.environ["POINTFLOW_CPU_RASTER_ADAPTIVE"] = "0"
     os.environ["POINTFLOW_CPU_RASTER_SPLIT"] = "bins"
     rs = {}
     for on in ("1", "0"):
         os.environ["POINTFLOW_CPU_RASTER_CULL"] = on
-        rs[on] = CpuComputeRenderer(replace(cfg), n, ["intensity"])
+        rs[on] = Renderer(replace(cfg), n, ["intensity"])
     for k in ("POINTFLOW_CPU_RASTER_CULL", "POINTFLOW_CPU_RASTER_SPLIT"):
         del os.environ[k]
     pairs = [(v, on) for v in cams for on in rs]
@@ -161,7 +171,7 @@ def cull(n: int, rounds: int) -> dict[str, Any]:
     med = {f"{v}/cull_{'on' if on == '1' else 'off'}": float(np.median(wall[(v, on)])) for v, on in pairs}
     # process CPU time (every thread's work): less sensitive than wall time to waiting for a core
     med_cpu = {f"{v}/cull_{'on' if on == '1' else 'off'}": float(np.median(cpu[(v, on)])) for v, on in pairs}
-    res = {"points": n, "rounds": rounds, "threads": int(numba.get_num_threads()), "scene": scene,
+    res = {"tier": tier, "points": n, "rounds": rounds, "threads": int(numba.get_num_threads()), "scene": scene,
            "fraction_in_view": seen, "median_ms": med,
            "tenth_over_whole_cull_on": med["tenth/cull_on"] / med["whole/cull_on"],
            "tenth_over_whole_cull_off": med["tenth/cull_off"] / med["whole/cull_off"],
@@ -223,9 +233,11 @@ def main(argv: Optional[list[str]] = None) -> int:
     ap.add_argument("--splits", default=",".join(SPLITS))
     ap.add_argument("--out", default=None, help="default bench/results/cpu_threads.json (cpu_cull.json with --cull)")
     ap.add_argument("--cull", type=int, default=0, metavar="N", help="batch culling on a ring of N points instead")
+    ap.add_argument("--tier", default="cpu-compute", choices=sorted(CULL_TIERS), help="with --cull: the tier")
     a = ap.parse_args(argv)
     if a.cull:
-        _harness.write_result(a.out or _harness.RESULTS / "cpu_cull.json", cull(a.cull, a.rounds))
+        default = "cpu_cull.json" if a.tier == "cpu-compute" else f"{a.tier}_cull.json"
+        _harness.write_result(a.out or _harness.RESULTS / default, cull(a.cull, a.rounds, a.tier))
         return 0
     a.out = a.out or str(_harness.RESULTS / "cpu_threads.json")
     res = measure(a.sizes, a.rounds, tuple(a.splits.split(",")))

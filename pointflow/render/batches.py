@@ -53,8 +53,8 @@ class BatchBounds:
     """Bounds per batch of a ring read in place (the numpy and gl tiers read the slab), kept
     from the frames' dirty ranges."""
 
-    def __init__(self, batch: int = BATCH_SLOTS):
-        self.batch = int(batch)
+    def __init__(self, batch: Optional[int] = None):
+        self.batch = int(batch or BATCH_SLOTS)
         self.cap = -1
         self.lo = self.hi = np.zeros((0, 3))
         self.bad = np.zeros(0, np.int64)
