@@ -14,6 +14,8 @@ the tiles), each with culling on and off (``POINTFLOW_CPU_RASTER_CULL``), interl
 ``bench/results/cpu_cull.json``:
 
     PYTHONPATH=$PWD .venv/bin/python bench/bench_cpu_threads.py --cull 4000000
+    PYTHONPATH=$PWD .venv/bin/python bench/bench_cpu_threads.py --cull 4000000 --tier gl   # gl_cull.json
+    PYTHONPATH=$PWD .venv/bin/python bench/bench_cpu_threads.py --cull 4000000 --tier cpu  # numpy_cull.json
 
 N is numba's thread count (``NUMBA_NUM_THREADS``, default the cores). Per pair: the median wall
 time and process CPU time per frame; per split the speed-up at t threads = the median of the
@@ -236,7 +238,7 @@ def main(argv: Optional[list[str]] = None) -> int:
     ap.add_argument("--tier", default="cpu-compute", choices=sorted(CULL_TIERS), help="with --cull: the tier")
     a = ap.parse_args(argv)
     if a.cull:
-        default = "cpu_cull.json" if a.tier == "cpu-compute" else f"{a.tier}_cull.json"
+        default = {"cpu-compute": "cpu_cull.json", "cpu": "numpy_cull.json"}.get(a.tier, f"{a.tier}_cull.json")
         _harness.write_result(a.out or _harness.RESULTS / default, cull(a.cull, a.rounds, a.tier))
         return 0
     a.out = a.out or str(_harness.RESULTS / "cpu_threads.json")
