@@ -4,7 +4,8 @@
 #   2. the GPU tests (tests/render_wgpu, tests/render_tiers; a missing adapter fails them),
 #   3. the render benchmark at 1M, 4M and 16M points for every method -- wgpu compute, wgpu
 #      quads, the cpu tier's compiled raster -- against the bare quad floor, interleaved,
-# and writes ONE JSON (bench/results/gpu_check.json) plus a short table on stdout.
+# and writes ONE JSON (bench/results/gpu_check.json) plus a short table on stdout: frame
+# times and G points/s per method and size (``gpoints_per_s`` in the JSON).
 #
 #   bench/gpu_check.sh                                  # the real check
 #   GPU_CHECK_SIZES="100000 1000000" GPU_CHECK_TESTS=tests/render_tiers/test_agreement.py \
@@ -74,6 +75,10 @@ res = {"measured_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "host"
        "bench_rc": bench_rc, "bench": bench, "bench_tail": None if bench else read("bench.txt")[-3000:],
        "seconds": {"info": t1 - t0, "tests": t2 - t1, "bench": t3 - t2, "total": t3 - t0},
        "load": subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()}
+# G points/s per method and size (issue 41): points over the median frame time
+METHODS = (("floor", "floor_ms"), ("quads", "quads_ms"), ("compute", "compute_ms"), ("cpu_compute", "cpu_compute_ms"))
+res["gpoints_per_s"] = [{"points": r["points"], **{m: round(r["points"] / r[k] / 1e6, 3) for m, k in METHODS
+                                                   if r.get(k)}} for r in (bench or {}).get("rows", [])]
 os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
 with open(out, "w") as f:
     json.dump(res, f, indent=1)
@@ -86,6 +91,9 @@ if bench:
         cc = r.get("cpu_compute_ms", float("nan"))
         print(f"{r['points']:>11,} {r['floor_ms']:>9.1f} {r['quads_ms']:>9.1f} {r['compute_ms']:>10.1f} {cc:>11.1f} "
               f"{r['floor_over_compute_per_frame_median']:>10.2f} {r['floor_ms'] / r['quads_ms']:>11.2f}")
+    print(f"{'points':>11} " + " ".join(f"{m + ' Gpt/s':>16}" for m, _ in METHODS))
+    for g in res["gpoints_per_s"]:
+        print(f"{g['points']:>11,} " + " ".join(f"{g.get(m, float('nan')):>16.3f}" for m, _ in METHODS))
 print(f"wrote {out}")
 sys.exit(1 if (test_rc or bench_rc) else 0)
 EOF
