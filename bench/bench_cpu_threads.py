@@ -15,6 +15,12 @@ the tiles), each with culling on and off (``POINTFLOW_CPU_RASTER_CULL``), interl
 
     PYTHONPATH=$PWD .venv/bin/python bench/bench_cpu_threads.py --cull 4000000
 
+``--cull N --tiers wgpu-compute,wgpu-quads``: the same for the wgpu tier's raster methods
+(frame = render + read_image, which waits for the GPU); writes ``bench/results/wgpu_cull.json``
+(one entry per tier under ``tiers``):
+
+    PYTHONPATH=$PWD .venv/bin/python bench/bench_cpu_threads.py --cull 4000000 --tiers wgpu-compute,wgpu-quads
+
 N is numba's thread count (``NUMBA_NUM_THREADS``, default the cores). Per pair: the median wall
 time and process CPU time per frame; per split the speed-up at t threads = the median of the
 per-round ratios (1-thread frame / t-thread frame of the same round), so load that changes
@@ -105,13 +111,16 @@ def measure(sizes: list[int], rounds: int, splits: tuple[str, ...]) -> dict[str,
             "measured_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "command": _harness.command()}
 
 
-def cull(n: int, rounds: int) -> dict[str, Any]:
-    """Frame time of the whole ring in view and of a view of ~10% of it, culling on and off."""
-    import numba
+CULL_TIERS = ("cpu-compute", "wgpu-compute", "wgpu-quads")
 
+
+def cull(n: int, rounds: int, tiers: tuple[str, ...] = ("cpu-compute",)) -> dict[str, Any]:
+    """Frame time of the whole ring in view and of a view of ~10% of it, culling on and off,
+    for each tier (the compiled cpu raster alone: its result; otherwise ``{"tiers": ...}``)."""
     from pointflow.render.camera import Camera
-    from pointflow.render.cpu_compute import CpuComputeRenderer
-    machine = _harness.machine()
+    for t in tiers:
+        if t not in CULL_TIERS:
+            raise SystemExit(f"--tiers: unknown tier {t!r} (expected some of {', '.join(CULL_TIERS)})")
     base, inten0, scene = base_cloud()
     world, inten = tiled(base, inten0, n)
     f = make_frame(world, inten)
@@ -126,16 +135,36 @@ def cull(n: int, rounds: int) -> dict[str, Any]:
     cams["tenth"] = Camera(eye=c + [0, -1e-3 * h, h], target=c - [0, 0, h], up=[0, 1, 0], fov_deg=60.0,
                            near=0.01 * h, far=4 * h)
     del world
+    if tiers == ("cpu-compute",):
+        return _cull_tier(f, cams, n, rounds, "cpu-compute", scene)
+    out = {"points": n, "scene": scene, "tiers": {}}
+    for t in tiers:
+        out["tiers"][t] = _cull_tier(f, cams, n, rounds, t, scene)
+    return out
+
+
+def _make_cull(tier: str, n: int, on: str) -> Any:
+    """The tier's renderer with culling ``on`` ("1") or off ("0")."""
     cfg = RenderConfig(size=[W, H], color_by="intensity", colormap="turbo", point_size=2.0, gpu_timestamps=False,
                        backend="cpu", raster="compute")
+    os.environ["POINTFLOW_CPU_RASTER_CULL"] = on
+    try:
+        if tier == "cpu-compute":
+            from pointflow.render.cpu_compute import CpuComputeRenderer
+            return CpuComputeRenderer(cfg, n, ["intensity"])
+        from pointflow.render.wgpu_tier import WgpuRenderer
+        return WgpuRenderer(replace(cfg, backend="wgpu", raster=tier[5:]), n, ["intensity"])
+    finally:
+        del os.environ["POINTFLOW_CPU_RASTER_CULL"]
+
+
+def _cull_tier(f: Any, cams: dict[str, Any], n: int, rounds: int, tier: str, scene: str) -> dict[str, Any]:
+    import numba
+    machine = _harness.machine()
     os.environ["POINTFLOW_CPU_RASTER_ADAPTIVE"] = "0"
     os.environ["POINTFLOW_CPU_RASTER_SPLIT"] = "bins"
-    rs = {}
-    for on in ("1", "0"):
-        os.environ["POINTFLOW_CPU_RASTER_CULL"] = on
-        rs[on] = CpuComputeRenderer(replace(cfg), n, ["intensity"])
-    for k in ("POINTFLOW_CPU_RASTER_CULL", "POINTFLOW_CPU_RASTER_SPLIT"):
-        del os.environ[k]
+    rs = {on: _make_cull(tier, n, on) for on in ("1", "0")}
+    del os.environ["POINTFLOW_CPU_RASTER_SPLIT"]
     pairs = [(v, on) for v in cams for on in rs]
     wall: dict[tuple[str, str], list[float]] = {p: [] for p in pairs}
     cpu: dict[tuple[str, str], list[float]] = {p: [] for p in pairs}
@@ -146,6 +175,7 @@ def cull(n: int, rounds: int) -> dict[str, Any]:
     for v, on in pairs:
         f.dirty = None
         st = rs[on].render(f, cams[v])
+        rs[on].read_image()  # (the wgpu tier fills drawn once the GPU is done)
         seen[v] = st.drawn / n
     for i in range(rounds):
         for v, on in pairs[i % len(pairs):] + pairs[:i % len(pairs)]:
@@ -161,7 +191,12 @@ def cull(n: int, rounds: int) -> dict[str, Any]:
     med = {f"{v}/cull_{'on' if on == '1' else 'off'}": float(np.median(wall[(v, on)])) for v, on in pairs}
     # process CPU time (every thread's work): less sensitive than wall time to waiting for a core
     med_cpu = {f"{v}/cull_{'on' if on == '1' else 'off'}": float(np.median(cpu[(v, on)])) for v, on in pairs}
-    res = {"points": n, "rounds": rounds, "threads": int(numba.get_num_threads()), "scene": scene,
+    info = rs["1"].info() if tier != "cpu-compute" else {}
+    for r in rs.values():
+        r.close()
+    res = {"tier": tier, "points": n, "rounds": rounds, "scene": scene,
+           "threads": int(numba.get_num_threads()) if tier == "cpu-compute" else None,
+           "adapter": info.get("adapter"), "chunks": info.get("chunks"),
            "fraction_in_view": seen, "median_ms": med,
            "tenth_over_whole_cull_on": med["tenth/cull_on"] / med["whole/cull_on"],
            "tenth_over_whole_cull_off": med["tenth/cull_off"] / med["whole/cull_off"],
@@ -173,7 +208,7 @@ def cull(n: int, rounds: int) -> dict[str, Any]:
            "all_ms": {f"{v}/{on}": w for (v, on), w in wall.items()},
            "machine": _harness.machine_done(machine), "command": _harness.command(),
            "measured_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
-    print(f"  {n:,} points; in view: whole {seen['whole']:.1%}, tenth {seen['tenth']:.1%}; " +
+    print(f"  {tier}: {n:,} points; in view: whole {seen['whole']:.1%}, tenth {seen['tenth']:.1%}; " +
           "  ".join(f"{k} {v:.1f} ms" for k, v in med.items()) +
           f"; tenth/whole: cull on {res['tenth_over_whole_cull_on']:.3f}, off {res['tenth_over_whole_cull_off']:.3f}"
           f" (CPU time: on {res['cpu_tenth_over_whole_cull_on']:.3f}, off {res['cpu_tenth_over_whole_cull_off']:.3f});"
@@ -223,9 +258,13 @@ def main(argv: Optional[list[str]] = None) -> int:
     ap.add_argument("--splits", default=",".join(SPLITS))
     ap.add_argument("--out", default=None, help="default bench/results/cpu_threads.json (cpu_cull.json with --cull)")
     ap.add_argument("--cull", type=int, default=0, metavar="N", help="batch culling on a ring of N points instead")
+    ap.add_argument("--tiers", default="cpu-compute",
+                    help=f"with --cull: some of {','.join(CULL_TIERS)} (any wgpu one: wgpu_cull.json)")
     a = ap.parse_args(argv)
     if a.cull:
-        _harness.write_result(a.out or _harness.RESULTS / "cpu_cull.json", cull(a.cull, a.rounds))
+        tiers = tuple(t.strip() for t in a.tiers.split(",") if t.strip())
+        name = "cpu_cull.json" if tiers == ("cpu-compute",) else "wgpu_cull.json"
+        _harness.write_result(a.out or _harness.RESULTS / name, cull(a.cull, a.rounds, tiers))
         return 0
     a.out = a.out or str(_harness.RESULTS / "cpu_threads.json")
     res = measure(a.sizes, a.rounds, tuple(a.splits.split(",")))
