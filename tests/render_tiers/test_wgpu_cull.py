@@ -15,6 +15,7 @@ from scenes import make_frame, render_cfg, terrain
 import pointflow.render.batches as batches
 from pointflow.render.base import FrameInput
 from pointflow.render.camera import Camera
+from pointflow.render.wgpu_tier import chunks
 
 METHODS = ["compute", "quads"]
 #: looks down at the x < 0 end of a terrain sorted by x
@@ -24,12 +25,12 @@ COUNTS = ("occupied", "removed_nonfinite", "survivors_before_budget")
 
 @pytest.fixture(autouse=True)
 def _small_batches(monkeypatch):
-    require_adapter()
     monkeypatch.setattr(batches, "BATCH_SLOTS", 256)
 
 
 def pair(monkeypatch, cfg, capacity, channels, **kw):
     """(culling on, culling off) renderers."""
+    require_adapter()
     from pointflow.render.wgpu_tier import WgpuRenderer
     out = []
     for cull in ("1", "0"):
@@ -140,3 +141,34 @@ def test_a_ring_rewritten_between_frames(monkeypatch, method):
     finally:
         on.close()
         off.close()
+
+
+@pytest.mark.parametrize("head,size,cap,clen", [(4_300, 5_000, 5_300, 5_300), (4_300, 5_000, 5_300, 1_280),
+                                                (0, 9_000, 9_000, 2_048), (8_900, 9_000, 9_000, 2_048)])
+def test_runs_walk_every_unculled_logical_index_once_in_order(head, size, cap, clen):
+    """chunks.runs: the segments less the culled ranges (any of them, including ones across a
+    chunk's edge and the first and last) walk each other logical index once, in order, on
+    its own slot, and the output windows fit their chunk."""
+    table = chunks.chunks(cap, clen)
+    segs = chunks.segments(head, size, cap, cap, table)
+    if len(table) == 1:
+        segs[0].size = size
+    rng = np.random.default_rng(head + clen)
+    for _ in range(20):
+        edges = np.sort(rng.choice(np.arange(1, size), 12, replace=False))
+        cut = [(int(a), int(b - a)) for a, b in zip(edges[0::2], edges[1::2])]
+        if rng.random() < 0.3:
+            cut = [(0, 300)] + [c for c in cut if c[0] > 300]
+        runs = chunks.runs(segs, [a for a, _ in cut], [n for _, n in cut], len(segs),
+                           [n + chunks.OUT_ALIGN for _, n in table])
+        assert runs is not None
+        want = np.ones(size, bool)
+        for a, n in cut:
+            want[a:a + n] = False
+        logical = np.concatenate([r.logical_base + np.arange(r.size) for r in runs])
+        assert np.array_equal(logical, np.flatnonzero(want))
+        slots = np.concatenate([r.slot_base + (r.head + np.arange(r.size)) % r.capacity for r in runs])
+        assert np.array_equal(slots, (head + logical) % cap)
+        assert [r.index for r in runs] == list(range(len(segs), len(segs) + len(runs)))
+        for r in runs:
+            assert r.out_off % chunks.OUT_ALIGN == 0 and r.out_off + r.size <= table[r.chunk][1] + chunks.OUT_ALIGN
