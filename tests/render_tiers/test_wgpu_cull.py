@@ -80,6 +80,29 @@ def test_batches_that_straddle_the_wrap_culled_or_not(monkeypatch, method, chunk
 
 
 @pytest.mark.parametrize("method", METHODS)
+def test_every_filter_keeps_the_whole_rings_indices(monkeypatch, method):
+    """LOD stride, importance sampling, a time window, colour by ingest time and a budget:
+    each run keeps its logical indices and slots (strides, hashes and ranks of the whole
+    ring), so culling on and off draw the same."""
+    w = terrain(6_000, seed=5)
+    w = w[np.argsort(w[:, 0])]
+    n = len(w)
+    f = make_frame(w, capacity=6_500, head=6_500 - 2_000, intensity=np.linspace(0, 1, n, dtype=np.float32),
+                   importance=np.random.default_rng(3).random(n).astype(np.float32),
+                   t_ms=np.linspace(0, 1_000, n), now_ms=1_000.0, budget=40)
+    cfg = render_cfg(size=[240, 180], point_size=3, raster=method, lod_stride=3, importance_sampling=True,
+                     time_window_ms=900.0, color_by="ingest_time", color_range=[0.0, 1_000.0])
+    on, off = pair(monkeypatch, cfg, f.capacity, f.channels)
+    try:
+        img, st = check_same(on, off, f)
+        assert st.extra["culled_points"] > 1_000
+        assert 0 < st.drawn <= 40 < st.extra["survivors_before_budget"]
+    finally:
+        on.close()
+        off.close()
+
+
+@pytest.mark.parametrize("method", METHODS)
 def test_culled_batches_keep_the_counts_and_the_automatic_colour_range(monkeypatch, method):
     """A culled batch touches no point on the GPU, yet the non-finite count, the occupied
     count and the automatic z range (its top in the culled batches) are those of the whole
