@@ -103,39 +103,47 @@ def test_every_filter_keeps_the_whole_rings_indices(monkeypatch, method):
 
 
 @pytest.mark.parametrize("method", METHODS)
-def test_culled_batches_keep_the_counts_and_the_automatic_colour_range(monkeypatch, method):
+@pytest.mark.parametrize("color_by", ["z", "intensity", "ingest_time"])
+def test_culled_batches_keep_the_counts_and_the_automatic_colour_range(monkeypatch, method, color_by):
     """A culled batch touches no point on the GPU, yet the non-finite count, the occupied
-    count and the automatic z range (its top in the culled batches) are those of the whole
-    ring; an automatic range of another channel turns culling off (same image either way)."""
+    count and the automatic colour range (its top in the culled batches; z, a scalar channel,
+    the ingest time; points without a finite position left out of it) are the whole ring's."""
     w = terrain(8_192, seed=13)
     w = w[np.argsort(w[:, 0])]
     w[7_000] = np.nan  # in a batch the view culls
     w[7_424:7_680] = np.inf  # a whole batch without a finite point
-    z = w[:, 2].copy()
-    f = make_frame(w, intensity=np.linspace(0, 1, len(w), dtype=np.float32) ** 2)
-    assert np.nanmax(z[np.isfinite(z)]) > np.nanmax(z[:4_000])  # the range's top lies in the culled batches
-    for color_by, culls in (("z", True), ("intensity", False)):
-        cfg = render_cfg(size=[200, 150], point_size=2, color_by=color_by, color_range="auto", raster=method)
-        on, off = pair(monkeypatch, cfg, f.capacity, f.channels)
-        try:
-            _, st = check_same(on, off, f)
-            assert (st.extra["culled_points"] > 4_000) == culls
-            assert st.extra["removed_nonfinite"] == 257 and st.extra["occupied"] == 8_192
-        finally:
-            on.close()
-            off.close()
+    inten = np.linspace(0, 1, len(w), dtype=np.float32) ** 2
+    t = np.linspace(0.0, 5_000.0, len(w))
+    v = {"z": w[:, 2], "intensity": inten, "ingest_time": t}[color_by]
+    fin = np.isfinite(w).all(axis=1)
+    assert v[fin].max() > v[:4_000][fin[:4_000]].max()  # the range's top lies in the culled batches
+    f = make_frame(w, intensity=inten, t_ms=t, now_ms=5_000.0)
+    assert not f.channel_ranges  # the ranges are reduced over the ring: automatic
+    cfg = render_cfg(size=[200, 150], point_size=2, color_by=color_by, color_range="auto", raster=method)
+    on, off = pair(monkeypatch, cfg, f.capacity, f.channels)
+    try:
+        _, st = check_same(on, off, f)
+        assert st.extra["culled_points"] > 4_000
+        assert st.extra["removed_nonfinite"] == 257 and st.extra["occupied"] == 8_192
+    finally:
+        on.close()
+        off.close()
 
 
 @pytest.mark.parametrize("method", METHODS)
-def test_a_ring_rewritten_between_frames(monkeypatch, method):
+@pytest.mark.parametrize("auto", [False, True])
+def test_a_ring_rewritten_between_frames(monkeypatch, method, auto):
     """A ring rewritten frame after frame (partly, across the end: a dirty range (a, b) with
     b < a, then wholly), each write a band of x so that batches stay compact in space: every
-    frame draws the same with culling on and off, and culling skips points."""
+    frame draws the same with culling on and off, and culling skips points. ``auto``: the
+    intensity grows with x and shrinks with each write, so a culled batch's kept range that
+    did not follow its rewrites would widen the automatic range (its top in culled batches)."""
     cap = 9_000
     rng = np.random.default_rng(12)
     pos = np.zeros((cap, 3), np.float32)
     inten = np.zeros(cap, np.float32)
-    cfg = render_cfg(size=[200, 150], point_size=2, raster=method)
+    cfg = render_cfg(size=[200, 150], point_size=2, raster=method, color_by="intensity",
+                     color_range="auto" if auto else [0.0, 1.0])
     cam = Camera(eye=[-15, -12, 10], target=[-15, 0, 0], near=1, far=100)
 
     def frame(head, size, dirty):
@@ -150,7 +158,7 @@ def test_a_ring_rewritten_between_frames(monkeypatch, method):
             slots = (write + np.arange(n)) % cap
             x = np.sort(rng.uniform(-20, 20, n))  # each write sweeps x once: compact batches
             pos[slots] = np.column_stack([x, rng.uniform(-5, 5, n), rng.uniform(-1, 1, n)])
-            inten[slots] = rng.random(n)
+            inten[slots] = 10 / (k + 1) * (x + 20) / 40 + 0.01 * rng.random(n) if auto else rng.random(n)
             dirty = [(write, (write + n) % cap)] if n < cap else [(0, cap)]
             if k == 2:
                 assert dirty[0][1] < dirty[0][0]  # the wrapping dirty range

@@ -21,10 +21,10 @@ against the float32 frustum planes the shaders get, with a margin far above floa
 the passes over points then walk only the runs of the ring between culled whole batches
 (:func:`.chunks.runs`: each run its own ``Params`` record and dispatch), so their work scales
 with the surviving points. The culled points are added to the counters on the CPU
-(``removed_nonfinite``: the batches' non-finite count, ``occupied``), the automatic colour
-range of ``color_by: z`` is seeded with the culled batches' z range; with an automatic range
-of another channel (scalar, ingest time) and for a frame's ring larger than the tier's, the
-tier does not cull (the image would depend on it). Same image on and off: tested.
+(``removed_nonfinite``: the batches' non-finite count, ``occupied``) and the GPU's automatic
+colour range is seeded with the culled batches' (:mod:`.cull_range`); a frame whose ring is
+larger than the tier's is not culled (slots beyond are skipped, not counted). Same image on
+and off: tested.
 
 At most two frames are in flight: before reusing buffer set ``s`` we wait for the frame
 that last read it, which also bounds latency when the GPU is slower than the cadence.
@@ -47,6 +47,7 @@ from ..camera import Camera
 from . import chunks, frame_params
 from .device import adapter_summary, request_device, select_adapter
 from .layout import PARAMS_DTYPE, ColourMode, Flag
+from .cull_range import BatchColourRange
 from .pick import pick_block, resolve_pick
 from .upload import IncrementalUpload
 from .raster import METHODS, FramePlan, Gpu, RasterMethod, choose_raster
@@ -118,6 +119,8 @@ class WgpuRenderer(IncrementalUpload, Renderer):
             self._nseg = 2 * self._nseg + -(-self.render_capacity // self._bounds.batch)
         self._cut = [(0, 0), (0, 0)]  # per buffer set: the frame's culled (non-finite, points)
         self._setup_colour(channels)
+        # the automatic colour range's share of culled batches (seeds the GPU's reduction)
+        self._crange = BatchColourRange(self._cmode, self._cchan) if self._bounds is not None else None
         self._need_t = cfg.time_window_ms > 0 or self._cmode == ColourMode.TIME or cfg.pick_strategy == "recent_first"
         self._need_imp = bool(cfg.importance_sampling) or cfg.pick_strategy == "highest_importance"
         self._method: Optional[RasterMethod] = None
@@ -348,7 +351,7 @@ class WgpuRenderer(IncrementalUpload, Renderer):
         budget_on = self._method.plan(n_threads, frame.budget)[3]  # (as without culling)
         P = frame_params.build(self.cfg, frame, camera, self.width, self.height, self._cmode, self._cchan,
                                self.naive_float32, n_slots, segs[0].gx, segs[0].groups)
-        runs, bad, cut, zrange = self._cull(frame, P, segs)
+        runs, bad, cut, crange = self._cull(frame, P, segs)
         if runs:
             groups_total = 0
             for g in runs:
@@ -361,9 +364,9 @@ class WgpuRenderer(IncrementalUpload, Renderer):
         q.write_buffer(self._params, 0, self._segment_params(P, segs + runs, n_slots, groups_total, len(segs)))
         q.write_buffer(self._state, 0, self._state_reset)
         rng = self._rng_reset
-        if zrange is not None:  # the culled batches' share of the automatic z range
+        if crange is not None:  # the culled batches' share of the automatic colour range
             rng = rng.copy()
-            rng[0], rng[1] = zrange
+            rng[0], rng[1] = crange
         q.write_buffer(self._rng, 0, rng)
         t_up = time.perf_counter()
         plan = FramePlan(set=s, n_threads=n_threads, groups=groups_total, gx=walk[0].gx, gy=walk[0].gy,
@@ -397,16 +400,18 @@ class WgpuRenderer(IncrementalUpload, Renderer):
     def _cull(self, frame: FrameInput, P: np.ndarray, segs: list[chunks.Segment]
               ) -> tuple[list[chunks.Segment], int, int, Optional[tuple[int, int]]]:
         """Batch culling: (the runs the point passes walk, empty when nothing is culled; the
-        culled points' non-finite count; the culled points; the culled batches' automatic z
-        range as ord_f words, or None)."""
+        culled points' non-finite count; the culled points; the culled batches' automatic
+        colour range as ord_f words, or None)."""
         none: tuple[list[chunks.Segment], int, int, Optional[tuple[int, int]]] = ([], 0, 0, None)
         bb = self._bounds
         if bb is None:
             return none
         bb.note(frame)
+        if self._crange is not None:
+            self._crange.note(bb)
         cap = int(frame.capacity)
         auto = bool(int(P["flags"]) & Flag.RANGE_AUTO)
-        if int(frame.size) == 0 or cap > self.render_capacity or (auto and self._cmode != ColourMode.Z):
+        if int(frame.size) == 0 or cap > self.render_capacity:
             return none
         # the planes exactly as the shaders get them (float32), tested in float64 with a margin
         ks, la = bb.culled(frame, np.asarray(P["planes"], np.float64).reshape(6, 4), rel=CULL_REL)
@@ -419,12 +424,9 @@ class WgpuRenderer(IncrementalUpload, Renderer):
         if runs is None or len(segs) + len(runs) > self._nseg:
             return none
         zr = None
-        if auto:
-            fin = bb.bad[ks] < n
-            if fin.any():  # the shaders reduce float32 z: the float32 of the float64 extremes
-                z = np.array([bb.lo[ks[fin], 2].min(), bb.hi[ks[fin], 2].max()], np.float32).view(np.uint32)
-                o = np.where(z & 0x80000000, ~z, z | 0x80000000).astype(np.uint32)  # ord_f (common.wgsl)
-                zr = (int(o[0]), int(o[1]))
+        if auto and self._crange is not None:
+            w = self._crange.words(frame, ks, B)
+            zr = w if w[0] <= w[1] else None
         return runs, int(bb.bad[ks].sum()), int(n.sum()), zr
 
     def _segment_params(self, P: np.ndarray, segs: list[chunks.Segment], n_slots: int, groups_total: int,
