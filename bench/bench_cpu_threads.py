@@ -14,8 +14,14 @@ the tiles), each with culling on and off (``POINTFLOW_CPU_RASTER_CULL``), interl
 ``bench/results/cpu_cull.json``:
 
     PYTHONPATH=$PWD .venv/bin/python bench/bench_cpu_threads.py --cull 4000000
-    PYTHONPATH=$PWD .venv/bin/python bench/bench_cpu_threads.py --cull 4000000 --tier gl   # gl_cull.json
-    PYTHONPATH=$PWD .venv/bin/python bench/bench_cpu_threads.py --cull 4000000 --tier cpu  # numpy_cull.json
+    PYTHONPATH=$PWD .venv/bin/python bench/bench_cpu_threads.py --cull 4000000 --tiers gl   # gl_cull.json
+    PYTHONPATH=$PWD .venv/bin/python bench/bench_cpu_threads.py --cull 4000000 --tiers cpu  # numpy_cull.json
+
+``--cull N --tiers wgpu-compute,wgpu-quads``: the same for the wgpu tier's raster methods
+(frame = render + read_image, which waits for the GPU); writes ``bench/results/wgpu_cull.json``
+(one entry per tier under ``tiers``):
+
+    PYTHONPATH=$PWD .venv/bin/python bench/bench_cpu_threads.py --cull 4000000 --tiers wgpu-compute,wgpu-quads
 
 N is numba's thread count (``NUMBA_NUM_THREADS``, default the cores). Per pair: the median wall
 time and process CPU time per frame; per split the speed-up at t threads = the median of the
@@ -107,21 +113,18 @@ def measure(sizes: list[int], rounds: int, splits: tuple[str, ...]) -> dict[str,
             "measured_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "command": _harness.command()}
 
 
-#: ``--tier``: the renderer class the culling figures are taken with (render/batches.py)
-CULL_TIERS = {"cpu-compute": "pointflow.render.cpu_compute:CpuComputeRenderer",
-              "cpu": "pointflow.render.cpu:CpuRenderer", "gl": "pointflow.render.gl:GlRenderer"}
+#: ``--tiers``: the compiled cpu raster, the wgpu tier's two methods, the gl tier and the numpy
+#: reference (``cpu``), each culling whole batches (render/batches.py)
+CULL_TIERS = ("cpu-compute", "wgpu-compute", "wgpu-quads", "gl", "cpu")
 
 
-def cull(n: int, rounds: int, tier: str = "cpu-compute") -> dict[str, Any]:
-    """Frame time of the whole ring in view and of a view of ~10% of it, culling on and off."""
-    import importlib
-
-    import numba
-
+def cull(n: int, rounds: int, tiers: tuple[str, ...] = ("cpu-compute",)) -> dict[str, Any]:
+    """Frame time of the whole ring in view and of a view of ~10% of it, culling on and off,
+    for each tier (the compiled cpu raster alone: its result; otherwise ``{"tiers": ...}``)."""
     from pointflow.render.camera import Camera
-    mod, cls = CULL_TIERS[tier].split(":")
-    Renderer = getattr(importlib.import_module(mod), cls)
-    machine = _harness.machine()
+    for t in tiers:
+        if t not in CULL_TIERS:
+            raise SystemExit(f"--tiers: unknown tier {t!r} (expected some of {', '.join(CULL_TIERS)})")
     base, inten0, scene = base_cloud()
     world, inten = tiled(base, inten0, n)
     f = make_frame(world, inten)
@@ -136,18 +139,42 @@ def cull(n: int, rounds: int, tier: str = "cpu-compute") -> dict[str, Any]:
     cams["tenth"] = Camera(eye=c + [0, -1e-3 * h, h], target=c - [0, 0, h], up=[0, 1, 0], fov_deg=60.0,
                            near=0.01 * h, far=4 * h)
     del world
+    if len(tiers) == 1 and not tiers[0].startswith("wgpu"):
+        return _cull_tier(f, cams, n, rounds, tiers[0], scene)
+    out = {"points": n, "scene": scene, "tiers": {}}
+    for t in tiers:
+        out["tiers"][t] = _cull_tier(f, cams, n, rounds, t, scene)
+    return out
+
+
+def _make_cull(tier: str, n: int, on: str) -> Any:
+    """The tier's renderer with culling ``on`` ("1") or off ("0")."""
     cfg = RenderConfig(size=[W, H], color_by="intensity", colormap="turbo", point_size=2.0, gpu_timestamps=False,
-                       backend="gl" if tier == "gl" else "cpu", raster="compute" if tier == "cpu-compute" else "auto")
-    # the pipeline's handoff carries the channel's range (cadence keeps it): so does this frame
-    f.channel_ranges = {"intensity": (float(np.nanmin(inten)), float(np.nanmax(inten)))}
+                       backend="cpu", raster="compute")
+    os.environ["POINTFLOW_CPU_RASTER_CULL"] = on
+    try:
+        if tier == "cpu-compute":
+            from pointflow.render.cpu_compute import CpuComputeRenderer
+            return CpuComputeRenderer(cfg, n, ["intensity"])
+        if tier == "cpu":
+            from pointflow.render.cpu import CpuRenderer
+            return CpuRenderer(replace(cfg, raster="auto"), n, ["intensity"])
+        if tier == "gl":
+            from pointflow.render.gl import GlRenderer
+            return GlRenderer(replace(cfg, backend="gl", raster="auto"), n, ["intensity"])
+        from pointflow.render.wgpu_tier import WgpuRenderer
+        return WgpuRenderer(replace(cfg, backend="wgpu", raster=tier[5:]), n, ["intensity"])
+    finally:
+        del os.environ["POINTFLOW_CPU_RASTER_CULL"]
+
+
+def _cull_tier(f: Any, cams: dict[str, Any], n: int, rounds: int, tier: str, scene: str) -> dict[str, Any]:
+    import numba
+    machine = _harness.machine()
     os.environ["POINTFLOW_CPU_RASTER_ADAPTIVE"] = "0"
     os.environ["POINTFLOW_CPU_RASTER_SPLIT"] = "bins"
-    rs = {}
-    for on in ("1", "0"):
-        os.environ["POINTFLOW_CPU_RASTER_CULL"] = on
-        rs[on] = Renderer(replace(cfg), n, ["intensity"])
-    for k in ("POINTFLOW_CPU_RASTER_CULL", "POINTFLOW_CPU_RASTER_SPLIT"):
-        del os.environ[k]
+    rs = {on: _make_cull(tier, n, on) for on in ("1", "0")}
+    del os.environ["POINTFLOW_CPU_RASTER_SPLIT"]
     pairs = [(v, on) for v in cams for on in rs]
     wall: dict[tuple[str, str], list[float]] = {p: [] for p in pairs}
     cpu: dict[tuple[str, str], list[float]] = {p: [] for p in pairs}
@@ -158,6 +185,7 @@ def cull(n: int, rounds: int, tier: str = "cpu-compute") -> dict[str, Any]:
     for v, on in pairs:
         f.dirty = None
         st = rs[on].render(f, cams[v])
+        rs[on].read_image()  # (the wgpu tier fills drawn once the GPU is done)
         seen[v] = st.drawn / n
     for i in range(rounds):
         for v, on in pairs[i % len(pairs):] + pairs[:i % len(pairs)]:
@@ -173,7 +201,12 @@ def cull(n: int, rounds: int, tier: str = "cpu-compute") -> dict[str, Any]:
     med = {f"{v}/cull_{'on' if on == '1' else 'off'}": float(np.median(wall[(v, on)])) for v, on in pairs}
     # process CPU time (every thread's work): less sensitive than wall time to waiting for a core
     med_cpu = {f"{v}/cull_{'on' if on == '1' else 'off'}": float(np.median(cpu[(v, on)])) for v, on in pairs}
-    res = {"tier": tier, "points": n, "rounds": rounds, "threads": int(numba.get_num_threads()), "scene": scene,
+    info = rs["1"].info() if tier != "cpu-compute" else {}
+    for r in rs.values():
+        r.close()
+    res = {"tier": tier, "points": n, "rounds": rounds, "scene": scene,
+           "threads": int(numba.get_num_threads()) if tier == "cpu-compute" else None,
+           "adapter": info.get("adapter"), "chunks": info.get("chunks"),
            "fraction_in_view": seen, "median_ms": med,
            "tenth_over_whole_cull_on": med["tenth/cull_on"] / med["whole/cull_on"],
            "tenth_over_whole_cull_off": med["tenth/cull_off"] / med["whole/cull_off"],
@@ -185,7 +218,7 @@ def cull(n: int, rounds: int, tier: str = "cpu-compute") -> dict[str, Any]:
            "all_ms": {f"{v}/{on}": w for (v, on), w in wall.items()},
            "machine": _harness.machine_done(machine), "command": _harness.command(),
            "measured_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
-    print(f"  {n:,} points; in view: whole {seen['whole']:.1%}, tenth {seen['tenth']:.1%}; " +
+    print(f"  {tier}: {n:,} points; in view: whole {seen['whole']:.1%}, tenth {seen['tenth']:.1%}; " +
           "  ".join(f"{k} {v:.1f} ms" for k, v in med.items()) +
           f"; tenth/whole: cull on {res['tenth_over_whole_cull_on']:.3f}, off {res['tenth_over_whole_cull_off']:.3f}"
           f" (CPU time: on {res['cpu_tenth_over_whole_cull_on']:.3f}, off {res['cpu_tenth_over_whole_cull_off']:.3f});"
@@ -235,11 +268,14 @@ def main(argv: Optional[list[str]] = None) -> int:
     ap.add_argument("--splits", default=",".join(SPLITS))
     ap.add_argument("--out", default=None, help="default bench/results/cpu_threads.json (cpu_cull.json with --cull)")
     ap.add_argument("--cull", type=int, default=0, metavar="N", help="batch culling on a ring of N points instead")
-    ap.add_argument("--tier", default="cpu-compute", choices=sorted(CULL_TIERS), help="with --cull: the tier")
+    ap.add_argument("--tiers", default="cpu-compute",
+                    help=f"with --cull: some of {','.join(CULL_TIERS)} (any wgpu one: wgpu_cull.json)")
     a = ap.parse_args(argv)
     if a.cull:
-        default = {"cpu-compute": "cpu_cull.json", "cpu": "numpy_cull.json"}.get(a.tier, f"{a.tier}_cull.json")
-        _harness.write_result(a.out or _harness.RESULTS / default, cull(a.cull, a.rounds, a.tier))
+        tiers = tuple(t.strip() for t in a.tiers.split(",") if t.strip())
+        names = {("cpu-compute",): "cpu_cull.json", ("gl",): "gl_cull.json", ("cpu",): "numpy_cull.json"}
+        name = names.get(tiers, "wgpu_cull.json")
+        _harness.write_result(a.out or _harness.RESULTS / name, cull(a.cull, a.rounds, tiers))
         return 0
     a.out = a.out or str(_harness.RESULTS / "cpu_threads.json")
     res = measure(a.sizes, a.rounds, tuple(a.splits.split(",")))

@@ -7,8 +7,10 @@ whose every slot is occupied, that the ring's head does not cut, and whose box l
 outside one frustum plane (or that holds no finite point) can be skipped whole: none of its
 points would survive the frustum test. Every tier uses this one idea: the compiled cpu
 raster (``cpu_compute``: its own copy and compiled reductions, the same batches and the same
-plane test, :func:`boxes_outside`), and the numpy reference and the gl tier through
-:class:`BatchBounds` and :func:`pointflow.render.rules.select_points`.
+plane test, :func:`boxes_outside`), the numpy reference and the gl tier through
+:class:`BatchBounds` and :func:`pointflow.render.rules.select_points`, and the wgpu tier
+through :class:`BatchBounds` (its passes then walk only the surviving runs of the ring:
+``wgpu_tier/chunks.py``, :func:`~pointflow.render.wgpu_tier.chunks.runs`).
 
 ``POINTFLOW_CPU_RASTER_CULL=0`` (:data:`ENV_CULL`) turns culling off in every tier (same
 image: tested).
@@ -35,18 +37,19 @@ def culling_enabled() -> bool:
     return os.environ.get(ENV_CULL, "1") not in ("0", "false", "no")
 
 
-def boxes_outside(lo: np.ndarray, hi: np.ndarray, planes: np.ndarray) -> np.ndarray:
+def boxes_outside(lo: np.ndarray, hi: np.ndarray, planes: np.ndarray, rel: float = 1e-9) -> np.ndarray:
     """Per box (rows of ``lo``/``hi``, float64) whether it lies wholly outside one of the
     frustum ``planes`` (n, 4; inside is ``>= 0``). The largest value of each plane over the
-    box is at a corner; the box counts as outside only when that is below ``-1e-9`` relative
-    to the sum's magnitude, far above the rounding of either the per-point or the per-box
-    sum, so no point a per-point test would keep is ever culled. A box with no finite point
+    box is at a corner; the box counts as outside only when that is below ``-rel`` (default
+    1e-9) relative to the sum's magnitude, far above the rounding of either the per-point or
+    the per-box sum, so no point a per-point test would keep is ever culled (a tier that tests
+    points in float32, the wgpu tier, passes a larger ``rel``). A box with no finite point
     (infinite bounds) is not outside here (callers cull it by its non-finite count)."""
     nrm, d = planes[:, :3], planes[:, 3]
     with np.errstate(invalid="ignore"):
         most = d + np.maximum(lo[:, None, :] * nrm, hi[:, None, :] * nrm).sum(axis=2)
         scale = np.abs(d) + (np.maximum(np.abs(lo), np.abs(hi))[:, None, :] * np.abs(nrm)).sum(axis=2)
-        return (most < -1e-9 * (scale + 1.0)).any(axis=1)
+        return (most < -rel * (scale + 1.0)).any(axis=1)
 
 
 class BatchBounds:
@@ -97,10 +100,10 @@ class BatchBounds:
                 self.lo[k], self.hi[k] = p.min(axis=0), p.max(axis=0)
         self.stale[ks] = False
 
-    def culled(self, frame, planes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def culled(self, frame, planes: np.ndarray, rel: float = 1e-9) -> tuple[np.ndarray, np.ndarray]:
         """(batch indices culled whole, their first logical indices), ascending by logical
         index: whole batches (every slot occupied, not cut by the ring's head) outside the
-        frustum or without a finite point."""
+        frustum (:func:`boxes_outside` with ``rel``) or without a finite point."""
         cap, size, head = self.cap, int(frame.size), int(frame.head)
         B = self.batch
         if size <= 0 or cap <= 0:
@@ -115,7 +118,7 @@ class BatchBounds:
         if not ks.size:
             return ks, ks
         self._refresh(frame.positions, ks)
-        out = boxes_outside(self.lo[ks], self.hi[ks], planes) | (self.bad[ks] == n[ks])
+        out = boxes_outside(self.lo[ks], self.hi[ks], planes, rel) | (self.bad[ks] == n[ks])
         ks = ks[out]
         order = np.argsort(la[ks], kind="stable")
         return ks[order], la[ks][order]

@@ -84,3 +84,48 @@ def segments(head: int, size: int, capacity: int, drawn_slots: int, table: list[
     if not out:  # an empty ring still clears the image
         out.append(Segment(0, 0, 0, 0, table[0][1], 0, 0))
     return out
+
+
+def runs(segs: list[Segment], cut_first: "list[int]", cut_len: "list[int]", first_index: int,
+         room: "list[int]") -> "list[Segment] | None":
+    """The frame's segments less the culled logical ranges ``[cut_first[i], cut_first[i] +
+    cut_len[i])`` (whole batches, ascending, disjoint): runs of consecutive slots in logical
+    order, numbered from ``first_index`` (their Params and state windows follow the segments'),
+    each with its window in its chunk's output buffers; ``None`` when those windows would not
+    fit the chunk's ``room`` entries (the frame is then drawn without culling). A run keeps
+    its logical index (``logical_base``) and slots, so depth keys, hashes, LOD strides and
+    budget ranks are those of the whole ring; a run of a single chunk may wrap its end
+    (``head + size > capacity``), as the one segment does."""
+    cuts = list(zip((int(a) for a in cut_first), (int(a) + int(n) for a, n in zip(cut_first, cut_len))))
+    out: list[Segment] = []
+    used: dict[int, int] = {}
+
+    def emit(g: Segment, a: int, b: int) -> bool:
+        off = used.get(g.chunk, 0)
+        if off + (b - a) > room[g.chunk]:
+            return False
+        out.append(Segment(first_index + len(out), g.chunk, (g.head + a - g.logical_base) % g.capacity, b - a,
+                           g.capacity, g.slot_base, a, out_off=off))
+        used[g.chunk] = off + (b - a + OUT_ALIGN - 1) // OUT_ALIGN * OUT_ALIGN
+        return True
+
+    i = 0
+    for g in segs:
+        lo, hi = g.logical_base, g.logical_base + g.size
+        at = lo
+        while i < len(cuts) and cuts[i][1] <= at:
+            i += 1
+        j = i
+        while j < len(cuts) and cuts[j][0] < hi:
+            c0, c1 = cuts[j]
+            if c0 > at and not emit(g, at, c0):
+                return None
+            at = max(at, c1)
+            if c1 > hi:
+                break
+            j += 1
+        if at < hi and not emit(g, at, hi):
+            return None
+    if not out:  # everything culled: one empty run (the passes still run, drawing nothing)
+        out.append(Segment(first_index, segs[0].chunk, segs[0].head, 0, segs[0].capacity, segs[0].slot_base, 0))
+    return out

@@ -128,6 +128,14 @@ class FramePlan:
     capacity: int
     params: np.ndarray = field(repr=False)  #: the Params record written this frame (segment 0's)
     segments: list[Any] = field(default_factory=list)  #: :class:`..chunks.Segment` s in logical order
+    #: the runs of the segments left after batch culling (:func:`..chunks.runs`); empty: none culled
+    runs: list[Any] = field(default_factory=list)
+
+    @property
+    def walk(self) -> list[Any]:
+        """What the passes over points walk, in logical order: the runs that survive batch
+        culling, or the segments. (Per-pixel passes run per segment.)"""
+        return self.runs or self.segments
 
 
 class RasterMethod(abc.ABC):

@@ -162,7 +162,7 @@ class ComputeRaster(RasterMethod):
         g = self.gpu
         var = self.variant(plan, g.cmode)
         self.write_cparams(plan.gx, plan.budget_on, (g.row_bytes // 4, 0, 0, 0))
-        segs = plan.segments
+        segs = plan.walk  # the point passes walk the runs that survive batch culling
         bgs = [self.groups(plan.set, seg) for seg in segs]
         enc.clear_buffer(self.keys)
         if not self.key64:
@@ -186,7 +186,7 @@ class ComputeRaster(RasterMethod):
         cp.end()
         cp = enc.begin_compute_pass(**g.ts_writes(2))
         cp.set_pipeline(self._resolve_pipe(g.cmode, var["RANGE_AUTO"]))
-        for bg in bgs:
+        for bg in (bgs if segs is plan.segments else [self.groups(plan.set, seg) for seg in plan.segments]):
             cp.set_bind_group(0, bg["resolve"])
             cp.dispatch_workgroups(math.ceil(g.width / 256), g.height, 1)
         cp.end()
@@ -226,14 +226,14 @@ class ComputeRaster(RasterMethod):
         parameters, capped at the budget, as slots."""
         g = self.gpu
         BU = g.wgpu.BufferUsage
-        size = max(seg.logical_base + seg.size for seg in plan.segments)  # logical indices walked
+        size = max(seg.logical_base + seg.size for seg in plan.segments)  # logical indices of the ring
         dbg = g.buffer(max(size, 1) * 4, BU.STORAGE | BU.COPY_SRC, "debug-flags")
         try:
             self.write_cparams(plan.gx, plan.budget_on)
             enc = g.device.create_command_encoder()
             cp = enc.begin_compute_pass()
             cp.set_pipeline(self._raster_pipe("debug", self.variant(plan, g.cmode)))
-            for seg in plan.segments:
+            for seg in plan.walk:  # (culled batches: flags stay 0)
                 cp.set_bind_group(0, g.bind(self.bgl_raster, self._head(plan.set, seg)
                                             + [g.state_at(0), g.rng, self.wgc, dbg]))
                 cp.dispatch_workgroups(seg.gx, seg.gy, 1)

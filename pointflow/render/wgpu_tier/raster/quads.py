@@ -49,7 +49,9 @@ class QuadsRaster(RasterMethod):
         g, wgpu = gpu, gpu.wgpu
         BU, TU, SS = wgpu.BufferUsage, wgpu.TextureUsage, wgpu.ShaderStage
         # per chunk: the survivors (slot in the chunk, RGBA8) and their clip positions
-        self.out_len = [n + (OUT_ALIGN if len(g.chunks) > 1 else 0) for _, n in g.chunks]
+        # (+ OUT_ALIGN: a second segment's window, or the runs' windows after batch culling,
+        # start aligned: chunks.runs keeps them within n + OUT_ALIGN)
+        self.out_len = [n + OUT_ALIGN for _, n in g.chunks]
         self.idx1 = [g.buffer(n * 8, BU.STORAGE | BU.COPY_SRC, f"idx1.{c}") for c, n in enumerate(self.out_len)]
         self.clip1 = [g.buffer(n * 16, BU.STORAGE, f"clip1.{c}") for c, n in enumerate(self.out_len)]
         groups = (g.chunk_len + 255) // 256  # scratch of one segment at a time
@@ -146,7 +148,7 @@ class QuadsRaster(RasterMethod):
         bg = self.bg_cache.get(key)
         if bg is None:
             g = self.gpu
-            if len(self.bg_cache) > 64:  # a second segment's window moves with the head
+            if len(self.bg_cache) > max(64, 4 * g.max_segments):  # windows move with the head and the culling
                 self.bg_cache.clear()
             data, P, st, win = g.data(s, c), g.params_at(seg.index), g.state_at(seg.index), g.window
             idx1, clip1 = win(self.idx1[c], off, 8), win(self.clip1[c], off, 16)
@@ -168,16 +170,16 @@ class QuadsRaster(RasterMethod):
     def _draws(self, rp: Any, plan: FramePlan) -> None:
         """One indirect draw per segment, in logical order (ties: the lower logical index)."""
         g = self.gpu
-        for seg in plan.segments:
+        for seg in plan.walk:
             rp.set_bind_group(0, self.groups(plan.set, plan.budget_on, seg)["draw"])
             rp.draw_indirect(g.state, seg.index * g.STATE_STRIDE)
 
     # ------------------------------------------------------------------ frame
     def encode(self, enc: Any, plan: FramePlan) -> None:
         g, wgpu, p = self.gpu, self.gpu.wgpu, self.p
-        bgs = [self.groups(plan.set, plan.budget_on, seg) for seg in plan.segments]
+        bgs = [self.groups(plan.set, plan.budget_on, seg) for seg in plan.walk]
         cp = enc.begin_compute_pass(**g.ts_writes(0))
-        for seg, bg in zip(plan.segments, bgs):
+        for seg, bg in zip(plan.walk, bgs):
             cp.set_bind_group(0, bg["cull"])
             cp.set_pipeline(p["cull"])
             cp.dispatch_workgroups(seg.gx, seg.gy, 1)
@@ -293,7 +295,7 @@ class QuadsRaster(RasterMethod):
         g = self.gpu
         st = np.frombuffer(g.queue.read_buffer(g.state), np.uint32).reshape(-1, g.STATE_STRIDE // 4)
         out = [np.zeros(0, np.int64)]
-        for seg in plan.segments:
+        for seg in plan.walk:
             n = int(st[seg.index, 1])
             if n:
                 buf = (self.idx2 if plan.budget_on else self.idx1)[seg.chunk]
