@@ -15,16 +15,9 @@ no readback on the frame path):
 A ring larger than one storage binding is kept in chunks of slots, each with its own buffers,
 and every pass runs once per segment of the ring (:mod:`.chunks`): every slot is drawn.
 
-Batch culling (:mod:`pointflow.render.batches`): the CPU keeps per batch of ring slots the
-bounds of the positions the tier uploads (from the frames' dirty ranges) and tests the boxes
-against the float32 frustum planes the shaders get, with a margin far above float32 rounding;
-the passes over points then walk only the runs of the ring between culled whole batches
-(:func:`.chunks.runs`: each run its own ``Params`` record and dispatch), so their work scales
-with the surviving points. The culled points are added to the counters on the CPU
-(``removed_nonfinite``: the batches' non-finite count, ``occupied``) and the GPU's automatic
-colour range is seeded with the culled batches' (:mod:`.cull_range`); a frame whose ring is
-larger than the tier's is not culled (slots beyond are skipped, not counted). Same image on
-and off: tested.
+Batch culling (:mod:`.culling`): the passes over points walk only the runs of the ring
+between whole batches culled on the CPU; counters and the automatic colour range are those
+without culling.
 
 At most two frames are in flight: before reusing buffer set ``s`` we wait for the frame
 that last read it, which also bounds latency when the GPU is slower than the cadence.
@@ -46,8 +39,8 @@ from ..base import FrameInput, FrameStats, Range, Renderer, RenderError, merge_r
 from ..camera import Camera
 from . import chunks, frame_params
 from .device import adapter_summary, request_device, select_adapter
-from .layout import PARAMS_DTYPE, ColourMode, Flag
-from .cull_range import BatchColourRange
+from .layout import PARAMS_DTYPE, ColourMode
+from .culling import Culling
 from .pick import pick_block, resolve_pick
 from .upload import IncrementalUpload
 from .raster import METHODS, FramePlan, Gpu, RasterMethod, choose_raster
@@ -55,9 +48,6 @@ from .raster import METHODS, FramePlan, Gpu, RasterMethod, choose_raster
 log = logging.getLogger("pointflow.render.wgpu")
 
 _MAX_GROUPS = 65535
-#: batch culling's plane margin relative to the sum's magnitude: far above the rounding of
-#: the shaders' float32 plane test (a few units of 2^-24), so no point they keep is culled
-CULL_REL = 1e-5
 
 #: test-only switch: draw with an absolute float32 model matrix instead of the float64
 #: origin-relative view-projection (shows the large-coordinate error it avoids).
@@ -114,13 +104,11 @@ class WgpuRenderer(IncrementalUpload, Renderer):
         self.render_capacity = max(int(capacity), 1)
         self._chunk_table = self._chunk_plan(self.render_capacity)
         self._nseg = 1 if len(self._chunk_table) == 1 else len(self._chunk_table) + 1
-        self._bounds = batches.BatchBounds(batches.BATCH_SLOTS) if batches.culling_enabled() else None
-        if self._bounds is not None:  # Params/state windows: the segments, then their runs
-            self._nseg = 2 * self._nseg + -(-self.render_capacity // self._bounds.batch)
         self._cut = [(0, 0), (0, 0)]  # per buffer set: the frame's culled (non-finite, points)
         self._setup_colour(channels)
-        # the automatic colour range's share of culled batches (seeds the GPU's reduction)
-        self._crange = BatchColourRange(self._cmode, self._cchan) if self._bounds is not None else None
+        self._culling = Culling(self._cmode, self._cchan) if batches.culling_enabled() else None
+        if self._culling is not None:  # Params/state windows: the segments, then their runs
+            self._nseg = 2 * self._nseg + -(-self.render_capacity // self._culling.bounds.batch)
         self._need_t = cfg.time_window_ms > 0 or self._cmode == ColourMode.TIME or cfg.pick_strategy == "recent_first"
         self._need_imp = bool(cfg.importance_sampling) or cfg.pick_strategy == "highest_importance"
         self._method: Optional[RasterMethod] = None
@@ -351,7 +339,8 @@ class WgpuRenderer(IncrementalUpload, Renderer):
         budget_on = self._method.plan(n_threads, frame.budget)[3]  # (as without culling)
         P = frame_params.build(self.cfg, frame, camera, self.width, self.height, self._cmode, self._cchan,
                                self.naive_float32, n_slots, segs[0].gx, segs[0].groups)
-        runs, bad, cut, crange = self._cull(frame, P, segs)
+        runs, bad, cut, crange = ([], 0, 0, None) if self._culling is None else \
+            self._culling.cut(frame, P, segs, self._chunk_table, self._nseg, self.render_capacity)
         if runs:
             groups_total = 0
             for g in runs:
@@ -396,38 +385,6 @@ class WgpuRenderer(IncrementalUpload, Renderer):
         self._stats[s] = stats  # drawn/removed_nonfinite filled in once the GPU is done
         self._last_stats = stats
         return stats
-
-    def _cull(self, frame: FrameInput, P: np.ndarray, segs: list[chunks.Segment]
-              ) -> tuple[list[chunks.Segment], int, int, Optional[tuple[int, int]]]:
-        """Batch culling: (the runs the point passes walk, empty when nothing is culled; the
-        culled points' non-finite count; the culled points; the culled batches' automatic
-        colour range as ord_f words, or None)."""
-        none: tuple[list[chunks.Segment], int, int, Optional[tuple[int, int]]] = ([], 0, 0, None)
-        bb = self._bounds
-        if bb is None:
-            return none
-        bb.note(frame)
-        if self._crange is not None:
-            self._crange.note(bb)
-        cap = int(frame.capacity)
-        auto = bool(int(P["flags"]) & Flag.RANGE_AUTO)
-        if int(frame.size) == 0 or cap > self.render_capacity:
-            return none
-        # the planes exactly as the shaders get them (float32), tested in float64 with a margin
-        ks, la = bb.culled(frame, np.asarray(P["planes"], np.float64).reshape(6, 4), rel=CULL_REL)
-        if not ks.size:
-            return none
-        B = bb.batch
-        n = np.minimum((ks + 1) * B, cap) - ks * B
-        room = [c + chunks.OUT_ALIGN for _, c in self._chunk_table]
-        runs = chunks.runs(segs, la.tolist(), n.tolist(), len(segs), room)
-        if runs is None or len(segs) + len(runs) > self._nseg:
-            return none
-        zr = None
-        if auto and self._crange is not None:
-            w = self._crange.words(frame, ks, B)
-            zr = w if w[0] <= w[1] else None
-        return runs, int(bb.bad[ks].sum()), int(n.sum()), zr
 
     def _segment_params(self, P: np.ndarray, segs: list[chunks.Segment], n_slots: int, groups_total: int,
                         n_segments: int) -> bytes:
