@@ -192,7 +192,6 @@ def select_points(frame: FrameInput, camera: Camera, cfg: RenderConfig, width: i
     else:
         logical, culled_bad, culled = cut
         counts["nonfinite"], counts["frustum"] = culled_bad, culled - culled_bad
-    all_slots = (int(frame.head) + np.arange(size, dtype=np.int64)) % cap if cut is not None else None
     slots = (int(frame.head) + logical) % cap
     pos = frame.positions[slots]
     keep = np.isfinite(pos).all(axis=1)
@@ -208,7 +207,7 @@ def select_points(frame: FrameInput, camera: Camera, cfg: RenderConfig, width: i
         keep &= lod
     if cfg.importance_sampling:
         lo, hi = frame.channel_ranges.get("importance") or _finite_range(
-            frame.importance[slots if all_slots is None else all_slots])
+            frame.importance[slots if cut is None else frame.occupied_slots()])  # the range: every point
         idx = np.flatnonzero(keep)
         p = keep_probability(frame.importance[slots[idx]], lo, hi)
         u = uniform01(slots[idx], seed_hash(frame.frame_seed))
