@@ -111,7 +111,7 @@ def test_a_broken_map_file_is_named_and_the_live_part_goes_on(tmp_path):
     with Pipeline.from_dict(_config(live, las), out_dir=str(tmp_path)) as pipe:
         pipe.wait(120, until=lambda: pipe.stats()["stages"]["map"].get("map_error") is not None
                   and pipe.stats()["accounting"]["ingest_written"] == len(live_pts)
-                  and pipe.stats()["stages"]["render"]["points_in"] >= len(live_pts))
+                  and pipe.stats()["stages"]["render"].get("drawn_count", 0) >= len(live_pts))
         st = pipe.stats()
         m = st["stages"]["map"]
         assert m["map_error"] and las in m["map_error"], m["map_error"]

@@ -161,6 +161,6 @@ def scene_pipeline(d: str, **serve):
     from pointflow import Pipeline
 
     with Pipeline.from_dict(config(file_source(scene(d)), **({"serve": serve} if serve else {})), out_dir=d) as p:
-        p.wait(90, until=lambda: p.stats()["stages"]["render"]["points_in"] >= 6401)
+        p.wait(90, until=lambda: p.stats()["stages"]["render"].get("drawn_count", 0) >= 6401)
         base_url(p)
         yield p

@@ -1,13 +1,17 @@
-"""The auto camera's clip box (render/process.py CameraController._bounds): the min/max of
-every occupied live slot, read in place over the slot ranges, equals the one from the
-gathered copy it replaced, for a ring that wraps, a map's live-slot limit and a
-non-finite position."""
+"""The auto camera's clip box (render/view/controller.py CameraController._clip_box): the
+min/max of every occupied live slot, read in place over the slot ranges, equals the one from
+the gathered copy it replaced, for a ring that wraps, a map's live-slot limit and a
+non-finite position; and it follows the ring at once, not a second later."""
 from __future__ import annotations
+
+import dataclasses
 
 import numpy as np
 import pytest
 
 from pointflow.render.base import FrameInput
+from pointflow.config import load_config
+from pointflow.render.view import controller
 from pointflow.render.view.controller import CameraController
 
 
@@ -35,7 +39,7 @@ def test_extent_equals_the_gathered_min_max(head, size, live):
     lo, hi = CameraController._extent(f)
     glo, ghi = _gathered(f)
     assert np.array_equal(lo, glo) and np.array_equal(hi, ghi)
-    box, clip = CameraController._bounds(f, clip=True)
+    clip = CameraController._clip_box(f)
     pad = 0.1 * (ghi - glo) + 0.5
     assert np.allclose(clip[0], glo - pad + f.origin) and np.allclose(clip[1], ghi + pad + f.origin)
 
@@ -46,6 +50,39 @@ def test_a_non_finite_position_is_left_out():
     pos[7] = [np.nan, 0.0, 1e9]  # a hidden point (NaN) with a far coordinate: not in the box
     f = _frame(pos, 0, 120_000)
     assert CameraController._extent(f) is None
-    _, clip = CameraController._bounds(f, clip=True)
+    clip = CameraController._clip_box(f)
     glo, ghi = _gathered(f)
     assert ghi[2] < 1e8 and np.allclose(clip[1], ghi + 0.1 * (ghi - glo) + 0.5 + f.origin)
+
+
+def test_the_planes_hold_points_that_came_a_moment_later(monkeypatch):
+    """Half a scene, then the other half 30 ms later (two sources): the planes of the next
+    camera hold both halves. Taken once a second, the later half (farther from a camera above)
+    fell behind the far plane and a still scene stayed half drawn."""
+    g = np.stack(np.meshgrid(np.arange(0, 20, 0.25), np.arange(0, 20, 0.25)), -1).reshape(-1, 2)
+    near_half = np.c_[g, np.full(len(g), 3.0)].astype(np.float32)
+    far_half = np.c_[g, np.zeros(len(g))].astype(np.float32)
+    pos = np.zeros((20_000, 3), np.float32)
+    pos[:len(g)] = near_half
+    ctl = CameraController(load_config({"source": {"transport": "synthetic"}}), 160, 120)
+    eye, target, up = np.array([10.0, 10.0, 40.0]), np.array([10.0, 10.0, 0.0]), np.array([0.0, 1.0, 0.0])
+    f = FrameInput(positions=pos, importance=None, t_ingest_ms=None, channels={}, head=0, size=len(g),
+                   capacity=len(pos), origin=np.zeros(3), now_ms=0.0)
+    ctl.refresh(f)
+    near, far = ctl.planes(eye, target, up, 60.0)
+    assert far < 40.0, "the first half alone: the plane z = 0 lies beyond the far plane"
+    pos[len(g):2 * len(g)] = far_half
+    f2 = FrameInput(positions=pos, importance=None, t_ingest_ms=None, channels={}, head=0, size=2 * len(g),
+                    capacity=len(pos), origin=np.zeros(3), now_ms=30.0)
+    monkeypatch.setattr(controller, "CLIP_SHARE", 1e12)  # a box that costs nothing (a small ring, idle)
+    ctl.refresh(f2)  # a handoff while the ring moves: the box is taken again
+    assert ctl.planes(eye, target, up, 60.0)[1] > 40.0
+    # a ring whose box costs much (as if huge, or a busy machine) waits while it moves ...
+    monkeypatch.setattr(controller, "CLIP_SHARE", 1e-12)
+    pos[2 * len(g):3 * len(g)] = far_half - [0.0, 0.0, 5.0]
+    f3 = dataclasses.replace(f2, size=3 * len(g), now_ms=60.0)
+    ctl.refresh(f3)
+    assert ctl.planes(eye, target, up, 60.0)[1] < 45.0, "the box was taken at once: the test shows nothing"
+    ctl.refresh(f3)  # ... and is taken at the next look at a ring that stopped (a handoff, the save's draw)
+    near, far = ctl.planes(eye, target, up, 60.0)
+    assert near < 37.0 and far > 45.0, (near, far)

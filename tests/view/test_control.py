@@ -58,8 +58,8 @@ def _is_bg(rgb) -> bool:
 
 
 def _wait_loaded(pipe, n):
-    pipe.wait(90, until=lambda: pipe.stats()["stages"]["render"]["points_in"] >= n)
-    assert pipe.stats()["stages"]["render"]["points_in"] >= n, "the scene never reached the renderer"
+    pipe.wait(90, until=lambda: pipe.stats()["stages"]["render"].get("drawn_count", 0) >= n)
+    assert pipe.stats()["stages"]["render"].get("drawn_count", 0) >= n, "the scene never reached the renderer"
 
 
 def test_each_control_message_shows_in_the_next_frame(tmp_path):

@@ -35,7 +35,7 @@ def test_idle_render_stage_uses_next_to_no_cpu(tmp_path, backend):
     with Pipeline.from_dict(cfg, out_dir=str(tmp_path)) as pipe:
         render = lambda: pipe.stats()["stages"]["render"]
         pipe.wait(120, until=lambda: not pipe.stats()["stages"]["cloud"]["alive"] and render()["frames"] >= 1
-                  and render()["points_in"] >= len(pts))
+                  and render().get("drawn_count", 0) >= len(pts))
         pipe.wait(2.0)  # the last handoffs of the input drawn
         proc = psutil.Process(render()["pid"])
         frames0 = render()["frames"]

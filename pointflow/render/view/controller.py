@@ -21,11 +21,17 @@ from .protocol import ViewState
 
 __all__ = ["CameraController", "SourceMask", "FollowFrame", "ViewController"]
 
+#: At most this share of the render loop's time goes to the planes' box (the min/max of every
+#: live position: about 1 ms per 300k points here), however often the ring moves.
+CLIP_SHARE = 0.05
+
+
 class CameraController:
     """Frames the scene automatically (``camera.mode: auto``/``orbit``) or uses the fixed
-    camera from the config. Bounds come from a strided sample of the occupied slots, checked
-    about once a second (not every frame); the camera refits when they changed by more than
-    10%, so it follows a growing map or a moving sensor without jitter. With a map, the live
+    camera from the config. The framing box comes from a strided sample of the occupied slots,
+    checked about once a second (not every frame); the camera refits when it changed by more
+    than 10%, so it follows a growing map or a moving sensor without jitter. The near and far
+    planes hold every live point's box, taken again whenever the ring moved (cost-bounded). With a map, the live
     points' box and the map's are kept apart: the camera frames the map when the two lie far
     apart (``apart_m``), and near and far planes follow what lies in front of the camera."""
 
@@ -36,6 +42,7 @@ class CameraController:
         self._last_fit = 0.0
         self._box = None
         self._clip = None  # the live points' min/max box (with a margin): what the planes must hold
+        self._clip_t, self._clip_cost, self._clip_sig, self._seen_sig = -1e9, 0.0, None, None
         self.map_box = None
         self.apart_m = 0.0  # how far apart map and live points are (0: not apart)
         self._t0 = time.monotonic()
@@ -44,33 +51,38 @@ class CameraController:
                                  fov_deg=self.cfg.fov_deg, near=self.cfg.near, far=self.cfg.far)
 
     @staticmethod
-    def _bounds(frame: FrameInput, clip: bool = False):
+    def _fit_box(frame: FrameInput):
         """1st-99th percentile box of a strided sample of the occupied live slots (world
-        coords); ``clip``: also the min/max box of every occupied slot, widened by a tenth (what
-        must not be clipped; about once a second)."""
+        coords): what the camera frames (about once a second)."""
+        p = CameraController._sample(frame)
+        if p is None:
+            return None
+        lo, hi = np.percentile(p, [1, 99], axis=0)
+        return lo + frame.origin, hi + frame.origin
+
+    @staticmethod
+    def _sample(frame: FrameInput, limit: int = 50_000):
         slots = frame.occupied_slots()
         if frame.live_slots is not None:
             slots = slots[slots < frame.live_slots]
-        step = max(1, slots.size // 50_000)
+        step = max(1, slots.size // limit)
         p = frame.positions[slots[::step]].astype(np.float64)
         p = p[np.isfinite(p).all(axis=1)]
-        if not p.size:
-            return (None, None) if clip else None
-        lo, hi = np.percentile(p, [1, 99], axis=0)
-        box = (lo + frame.origin, hi + frame.origin)
-        if not clip:
-            return box
-        if step > 1:  # the planes must hold every point, not the sample's: sparse far returns too
-            ext = CameraController._extent(frame)
-            if ext is None:  # some position is not finite: those rows are left out
-                q = frame.positions[slots]
-                q = q[np.isfinite(q).all(axis=1)]
-                ext = q.min(axis=0).astype(np.float64), q.max(axis=0).astype(np.float64)
-            mlo, mhi = ext
-        else:
-            mlo, mhi = p.min(axis=0), p.max(axis=0)
+        return p if p.size else None
+
+    @staticmethod
+    def _clip_box(frame: FrameInput):
+        """The min/max box of every occupied live slot, widened by a tenth (and 0.5 m): what
+        the near and far planes must hold. None without a finite position."""
+        ext = CameraController._extent(frame)
+        if ext is None:  # some position is not finite (or nothing is there): those rows are left out
+            p = CameraController._sample(frame, limit=1 << 62)
+            if p is None:
+                return None
+            ext = p.min(axis=0), p.max(axis=0)
+        mlo, mhi = ext
         pad = 0.1 * (mhi - mlo) + 0.5
-        return box, (mlo - pad + frame.origin, mhi + pad + frame.origin)
+        return mlo - pad + frame.origin, mhi + pad + frame.origin
 
     @staticmethod
     def _extent(frame: FrameInput):
@@ -98,15 +110,30 @@ class CameraController:
         return max(float(np.abs(box[0] - lo0).max()), float(np.abs(box[1] - hi0).max())) > 0.1 * diag
 
     def refresh(self, frame: FrameInput) -> None:
-        """Keep the data box current (about once a second; refit only on a >10% change)."""
+        """Keep the boxes current. The framing box about once a second (refit only on a >10%
+        change: no jitter). The planes' box whenever the ring moved (its head or size) since
+        it was taken: at once when the ring stopped moving (the next look, a handoff or a draw,
+        finds it where it was), while it moves with at most :data:`CLIP_SHARE` of the time spent
+        on it (a big ring waits longer between reductions), and at least once a second. Points
+        that came after it must not stay outside near and far (a still scene half drawn, seen
+        in a test: the box was taken once a second)."""
         now = time.monotonic()
         if frame.map_box is not None:
             self.map_box = frame.map_box
         if frame.size and (self._box is None or now - self._last_fit > 1.0):
             self._last_fit = now
-            box, self._clip = self._bounds(frame, clip=True)
+            box = self._fit_box(frame)
             if box is not None and (self._box is None or self._moved(box)):
                 self._box = box
+        sig = (int(frame.head), int(frame.size), int(frame.capacity), tuple(np.round(frame.origin, 9)))
+        since, settled = now - self._clip_t, sig == self._seen_sig  # the ring did not move since the last look
+        self._seen_sig = sig
+        if frame.size and (since > 1.0 or sig != self._clip_sig
+                           and (settled or since > self._clip_cost / CLIP_SHARE)):
+            t0 = time.perf_counter()
+            self._clip = self._clip_box(frame)
+            self._clip_cost = time.perf_counter() - t0
+            self._clip_t, self._clip_sig = now, sig
         self.apart_m = scene_box(self._box, self.map_box)[1]  # a user's camera is warned too
 
     def clip_boxes(self) -> list:

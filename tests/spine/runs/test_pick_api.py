@@ -63,7 +63,7 @@ def _pick_session(cfg, tmp_path, push, port, pts, eye, target) -> str:
         wire.send(push, PointChunk(positions=pts, channels={"intensity": np.arange(len(pts), dtype=np.float32)},
                                    source_id="remote", trace_id=new_trace_id(), t_sent_ns=time.monotonic_ns()))
         # one cloud, then nothing: the render stage draws it and then only when something changes
-        ready = lambda: pipe.stats()["frames"] >= 1 and pipe.stats()["stages"]["render"]["points_in"] >= len(pts)
+        ready = lambda: pipe.stats()["frames"] >= 1 and pipe.stats()["stages"]["render"].get("drawn_count", 0) >= len(pts)
         pipe.wait(60, until=ready)
         assert ready(), "the points never reached the renderer"
         cam = Camera(eye=eye, target=target, up=[0, 1, 0], near=1.0, far=100.0)
