@@ -81,8 +81,9 @@ class BatchBounds:
         for a, b in merge_ranges(frame.dirty, cap):  # a wrapping range (b < a) is split
             self.stale[a // B:(b - 1) // B + 1] = True
 
-    def _refresh(self, positions: np.ndarray, ks: np.ndarray) -> None:
-        """Reduce the stale batches among ``ks`` (float64 bounds of the finite positions)."""
+    def refresh(self, positions: np.ndarray, ks: np.ndarray) -> None:
+        """Reduce the stale batches among ``ks`` (float64 bounds of the finite positions;
+        also what the wgpu tier's compact positions are encoded against)."""
         ks = ks[self.stale[ks]]
         if not ks.size:
             return
@@ -117,7 +118,7 @@ class BatchBounds:
         ks = k[whole]
         if not ks.size:
             return ks, ks
-        self._refresh(frame.positions, ks)
+        self.refresh(frame.positions, ks)
         out = boxes_outside(self.lo[ks], self.hi[ks], planes, rel) | (self.bad[ks] == n[ks])
         ks = ks[out]
         order = np.argsort(la[ks], kind="stable")

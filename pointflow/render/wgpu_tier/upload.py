@@ -5,7 +5,7 @@ by the previous frame), each set catching up on the ranges it missed, chunk by c
 A part of :class:`~pointflow.render.wgpu_tier.renderer.WgpuRenderer`, which holds the state
 used here: ``queue``, ``_sets`` (per set, per chunk, the named buffers), ``_chunk_table``,
 ``_pending`` (per set, the ranges not yet written), ``_origin``, ``_last``,
-``render_capacity`` and the colour and time settings (``_cmode``, ``_cchan``, ``_need_t``,
+``render_capacity``, ``_compact`` (the compact positions, :mod:`.compact`, or None) and the colour and time settings (``_cmode``, ``_cchan``, ``_need_t``,
 ``_need_imp``).
 """
 from __future__ import annotations
@@ -25,6 +25,7 @@ class IncrementalUpload:
 
     queue: Any
     render_capacity: int
+    _compact: Any
 
     def _upload(self, frame: FrameInput, s: int) -> int:
         """Write the ranges set ``s`` has missed; returns bytes uploaded."""
@@ -32,6 +33,8 @@ class IncrementalUpload:
         ranges = merge_ranges(self._pending[s], cap)
         self._pending[s] = []
         total = 0
+        if self._compact is not None:
+            total += self._compact.upload(frame, s, ranges)
         for a, b in ranges:
             for c, (c0, n) in enumerate(self._chunk_table):
                 lo, hi = max(a, c0), min(b, c0 + n)
