@@ -24,7 +24,7 @@ its own bounds and table (lo, level; step), written per frame.
 from __future__ import annotations
 
 import os
-from typing import Any
+from typing import Any, Optional
 
 import numpy as np
 
@@ -68,11 +68,15 @@ def encode(p: np.ndarray, lo: np.ndarray, ext: np.ndarray) -> np.ndarray:
 
 
 def choose_levels(lo: np.ndarray, hi: np.ndarray, vp: np.ndarray, vw: float, vh: float,
-                  tol_px: float = TOL_PX) -> np.ndarray:
+                  planes: Optional[np.ndarray] = None, tol_px: float = TOL_PX) -> np.ndarray:
     """Per box (rows of ``lo``/``hi``; float64) the level the raster pass reads: the fewest
-    bits whose quantisation (half a step per axis) moves no point of the box by more than
-    ``tol_px`` pixels; 0 (float32) where 30 bits do not reach it or the box reaches behind
-    the camera; 1 for a box without a finite point. ``vp``: the view-projection (row-major)."""
+    bits whose quantisation (half a step per axis) moves no point of the box that projects
+    near the image (|ndc| <= 2) by more than ``tol_px`` pixels (first order); 0 (float32)
+    where 30 bits do not reach it, the box reaches behind the camera, or the near or far
+    plane of ``planes`` (the frustum's six, inside >= 0) cuts it (a point exactly on those
+    planes is kept as the float32 path keeps it; a decoded point stays inside its box, so
+    a box on one side stays there); 1 for a box without a finite point. ``vp``: the
+    view-projection (row-major)."""
     nb = lo.shape[0]
     lev = np.ones(nb, np.int64)
     ok = np.isfinite(lo).all(axis=1) & np.isfinite(hi).all(axis=1)
@@ -84,11 +88,16 @@ def choose_levels(lo: np.ndarray, hi: np.ndarray, vp: np.ndarray, vw: float, vh:
     w = clip[..., 3]
     wmin = w.min(axis=1)
     with np.errstate(divide="ignore", invalid="ignore"):
-        rx = np.abs(clip[..., 0] / w).max(axis=1)
-        ry = np.abs(clip[..., 1] / w).max(axis=1)
+        rx = np.minimum(np.abs(clip[..., 0] / w).max(axis=1), 2.0)
+        ry = np.minimum(np.abs(clip[..., 1] / w).max(axis=1), 2.0)
     ext = H - L
     out = np.zeros(L.shape[0], np.int64)
     front = wmin > 1e-6 * np.maximum(np.abs(w).max(axis=1), 1.0)
+    if planes is not None:
+        for pl in planes[4:6]:
+            d = corners @ pl[:3] + pl[3]
+            m = 1e-5 * (np.abs(pl[3]) + np.abs(corners).max(axis=(1, 2)) * np.abs(pl[:3]).sum() + 1.0)
+            front &= ~((d.min(axis=1) <= m) & (d.max(axis=1) >= -m))
     A = np.abs(vp)
     for level, bits in ((3, 30), (2, 20), (1, 10)):
         e = 0.5 * ext / float(1 << bits)  # the largest move per axis
@@ -156,11 +165,12 @@ class CompactPositions:
             self.queue.write_buffer(self.qpos[s][c], (i * n + at) * 4, words[i])
         return words.nbytes
 
-    def frame(self, s: int, vp: np.ndarray, vw: float, vh: float, forced: int = -1) -> None:
+    def frame(self, s: int, vp: np.ndarray, vw: float, vh: float, planes: Optional[np.ndarray] = None,
+              forced: int = -1) -> None:
         """Choose the levels for this frame's view from set ``s``'s boxes and write its table
         (``forced`` >= 0: that level for every box, tests)."""
         lo, hi = self.lo[s], self.hi[s]
-        lev = choose_levels(lo, hi, vp, vw, vh) if forced < 0 else np.full(self.nb, forced, np.int64)
+        lev = choose_levels(lo, hi, vp, vw, vh, planes) if forced < 0 else np.full(self.nb, forced, np.int64)
         fin = np.isfinite(lo).all(axis=1) & np.isfinite(hi).all(axis=1)
         T = np.zeros((self.nb, 8), np.float32)
         T[:, :3] = np.where(fin[:, None], lo, 0.0)

@@ -353,7 +353,8 @@ class WgpuRenderer(IncrementalUpload, Renderer):
                                self.naive_float32, n_slots, segs[0].gx, segs[0].groups)
         if self._compact is not None:  # per batch, the words the raster pass reads for this view
             self._compact.frame(s, np.asarray(P["vp"], np.float64).reshape(4, 4).T, float(self.width),
-                                float(self.height), self._compact_force)
+                                float(self.height), np.asarray(P["planes"], np.float64).reshape(6, 4),
+                                self._compact_force)
         runs, bad, cut, crange = ([], 0, 0, None) if self._culling is None else \
             self._culling.cut(frame, P, segs, self._chunk_table, self._nseg, self.render_capacity)
         if runs:
