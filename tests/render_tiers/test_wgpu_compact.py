@@ -154,13 +154,14 @@ def test_ring_rewritten_while_drawn_encodes_changed_batches_again(monkeypatch):
 
 
 def test_near_view_reads_fine_words_far_view_coarse(monkeypatch):
-    """Batches a few km wide seen from 2 m: the fine level (or float32 for a box reaching
-    behind the camera); the same ring from 40 km: coarse, 4 bytes per point. Both within the
-    bound of the full-precision path."""
+    """4 km of ground in batches of 256 points (a few hundred metres each, as a scanner's
+    points arrive) seen from 2 m: fine words for the nearest batch; from 9 km: coarse, near 4
+    bytes per point. Both within the bound of the full-precision path."""
+    monkeypatch.setattr(batches, "BATCH_SLOTS", 256)
     rng = np.random.default_rng(2)
     n = 30_000
     w = np.column_stack([rng.uniform(0, 4_000, n), rng.uniform(-2_000, 2_000, n), rng.uniform(0, 50, n)])
-    w = w[np.argsort(w[:, 0] // 500, kind="stable")] + GEO
+    w = w[np.lexsort([w[:, 1] // 250, w[:, 0] // 250])] + GEO
     f = make_frame(w, origin=GEO, intensity=np.linspace(0, 1, n, dtype=np.float32))
     cfg = render_cfg(size=[320, 240], point_size=2)
     a, b = pair(monkeypatch, cfg, f.capacity, f.channels)
@@ -168,12 +169,12 @@ def test_near_view_reads_fine_words_far_view_coarse(monkeypatch):
         near = Camera(eye=list(GEO + [-2.0, 0, 25]), target=list(GEO + [100.0, 0, 25]), near=0.5, far=5_000)
         _, _, st = compare(a, b, f, near)
         lv = st.extra["compact_levels"]
-        assert lv["fine"] >= 1 and lv["coarse"] == 0, lv
-        far = Camera(eye=list(GEO + [2_000.0, 0, 8_000]), target=list(GEO + [2_000.0, 0, 0]), near=100, far=20_000)
+        assert lv["fine"] >= 1 and lv["medium"] > lv["coarse"], lv
+        far = Camera(eye=list(GEO + [2_000.0, 0, 9_000]), target=list(GEO + [2_000.0, 0, 0]), near=100, far=20_000)
         _, _, st = compare(a, b, f, far)
         lv = st.extra["compact_levels"]
-        assert lv["coarse"] == sum(lv.values()), lv
-        assert st.extra["compact_position_bytes_per_point"] == 4.0
+        assert lv["coarse"] >= 0.8 * sum(lv.values()) and lv["fine"] == lv["float32"] == 0, lv
+        assert st.extra["compact_position_bytes_per_point"] < 5
     finally:
         a.close()
         b.close()
