@@ -13,7 +13,7 @@ import pytest
 
 from conftest import diff_fraction, draw
 from gpu_util import require_adapter
-from scenes import GEO, make_frame, render_cfg, terrain
+from scenes import GEO, SCENES, make_frame, render_cfg, terrain
 
 import pointflow.render.batches as batches
 from pointflow.render.base import FrameInput
@@ -180,14 +180,42 @@ def test_near_view_reads_fine_words_far_view_coarse(monkeypatch):
         b.close()
 
 
-def test_quads_and_switch_keep_full_precision(monkeypatch):
-    """The quads method and POINTFLOW_WGPU_COMPACT=0 draw from the float32 positions."""
+def test_quads_and_the_switch_keep_float32_positions(monkeypatch):
+    """The quads method, POINTFLOW_WGPU_COMPACT=0, and (unset) a CPU adapter such as lavapipe
+    draw from the float32 positions; info() says why."""
     require_adapter()
     from pointflow.render.wgpu_tier import WgpuRenderer
     monkeypatch.setenv(compact.ENV_COMPACT, "1")
     r = WgpuRenderer(render_cfg(raster="quads"), 100, ["intensity"])
     try:
-        assert r.info()["compact_positions"] is False
+        assert r.info()["compact_positions"] is False and "quads" in r.info()["compact_choice"]
+    finally:
+        r.close()
+    monkeypatch.delenv(compact.ENV_COMPACT)
+    r = WgpuRenderer(render_cfg(raster="compute"), 100, ["intensity"])
+    try:
+        cpu = r.adapter.info.get("adapter_type") == "CPU"
+        assert r.info()["compact_positions"] is (not cpu), r.info()["compact_choice"]
+    finally:
+        r.close()
+    assert compact.compact_choice("CPU")[0] is False and compact.compact_choice("DiscreteGPU")[0] is True
+
+
+@pytest.mark.parametrize("scene", list(SCENES))
+def test_agreement_scenes_match_the_cpu_reference(monkeypatch, scene):
+    """Every agreement scene (test_agreement.py) drawn with compact positions stays within the
+    bound of the cpu reference."""
+    require_adapter()
+    from pointflow.render.wgpu_tier import WgpuRenderer
+    frame, cam, kw = SCENES[scene]()
+    cfg = render_cfg(size=[320, 240], raster="compute", **kw)
+    monkeypatch.setenv(compact.ENV_COMPACT, "1")
+    r = WgpuRenderer(cfg, frame.capacity, list(frame.channels))
+    try:
+        img, st = draw(r, frame, cam)
+        assert st.extra["compact_position_bytes_per_point"] < 12
+        ref, _ = draw(CpuRenderer(cfg, frame.capacity, list(frame.channels)), frame, cam)
+        assert diff_fraction(img, ref) <= BOUND
     finally:
         r.close()
 

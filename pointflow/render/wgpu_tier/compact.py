@@ -19,7 +19,8 @@ A batch is encoded with the bounds its buffer set holds; when the bounds change 
 the batch rewritten), the whole batch is encoded again into that set. Each buffer set keeps
 its own bounds and table (lo, level; step), written per frame.
 
-``POINTFLOW_WGPU_COMPACT=0`` (:data:`ENV_COMPACT`) draws from the float32 positions only.
+``POINTFLOW_WGPU_COMPACT`` (:data:`ENV_COMPACT`): ``0`` draws from the float32 positions
+only, ``1`` compact; unset, compact except on a CPU adapter (:func:`compact_choice`).
 """
 from __future__ import annotations
 
@@ -31,10 +32,10 @@ import numpy as np
 from ..base import FrameInput
 from ..batches import BatchBounds
 
-__all__ = ["BITS", "ENV_COMPACT", "LEVEL_NAMES", "TOL_PX", "CompactPositions", "compact_enabled", "encode",
+__all__ = ["BITS", "ENV_COMPACT", "LEVEL_NAMES", "TOL_PX", "CompactPositions", "compact_choice", "encode",
            "choose_levels"]
 
-#: set to 0 to draw from the float32 positions only (the full-precision path)
+#: 0: the float32 positions only (the full-precision path); 1: compact; unset: auto
 ENV_COMPACT = "POINTFLOW_WGPU_COMPACT"
 #: bits per axis read at level 1, 2, 3
 BITS = (10, 20, 30)
@@ -50,24 +51,40 @@ LEVEL_BYTES = {0: 12, 1: 4, 2: 8, 3: 12}
 _Q = float(1 << 30)
 
 
-def compact_enabled() -> bool:
-    return os.environ.get(ENV_COMPACT, "1") not in ("0", "false", "no")
+def compact_choice(adapter_type: str) -> tuple[bool, str]:
+    """(compact on, why): ``POINTFLOW_WGPU_COMPACT=1`` on, ``0`` off; unset (``auto``): on
+    unless the adapter is a CPU (lavapipe), where the decode's arithmetic costs more than the
+    bytes it saves (measured: bench/bench_wgpu_compact.py, docs/render-tiers.md)."""
+    v = os.environ.get(ENV_COMPACT, "auto").strip().lower()
+    if v in ("0", "false", "no", "off"):
+        return False, f"{ENV_COMPACT}={v}"
+    if v in ("1", "true", "yes", "on"):
+        return True, f"{ENV_COMPACT}={v}"
+    if adapter_type == "CPU":
+        return False, "auto: off on a CPU adapter (slower there; POINTFLOW_WGPU_COMPACT=1 forces it)"
+    return True, f"auto: on ({adapter_type or 'unknown'} adapter)"
 
 
 def encode(p: np.ndarray, lo: np.ndarray, ext: np.ndarray) -> np.ndarray:
     """(3, n) uint32 words (coarse, medium, fine) of float positions ``p`` (n, 3) relative to
-    per-point boxes ``lo``/``ext`` (n, 3, float64); non-finite rows get bit 31 of coarse."""
-    p64 = np.asarray(p, np.float64)
-    fin = np.isfinite(p64).all(axis=1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        u = np.where(ext > 0, (p64 - lo) / np.where(ext > 0, ext, 1.0), 0.0)
-    u = np.where(fin[:, None], u, 0.0)
-    q = np.clip(np.floor(u * _Q), 0, _Q - 1).astype(np.uint32)  # 30 bits per axis
-    out = np.empty((3, p64.shape[0]), np.uint32)
-    for i, sh in enumerate((20, 10, 0)):
-        w = (q >> np.uint32(sh)) & np.uint32(0x3FF)
-        out[i] = w[:, 0] | (w[:, 1] << np.uint32(10)) | (w[:, 2] << np.uint32(20))
-    out[0, ~fin] |= np.uint32(0x80000000)
+    the box ``lo``/``ext`` (float64, (3,) or per point (n, 3)); non-finite rows get bit 31 of
+    coarse."""
+    lo, ext = np.asarray(lo, np.float64), np.asarray(ext, np.float64)
+    u = np.asarray(p, np.float64) - lo
+    bad = ~np.isfinite(u).all(axis=1)
+    u *= np.where(ext > 0, _Q / np.where(ext > 0, ext, 1.0), 0.0)
+    if bad.any():
+        u[bad] = 0.0
+    np.clip(u, 0.0, _Q - 1.0, out=u)
+    q = u.astype(np.uint32)  # floor: u >= 0; 30 bits per axis
+    out = np.empty((3, q.shape[0]), np.uint32)
+    m = np.uint32(0x3FF)
+    for i, sh in enumerate((np.uint32(20), np.uint32(10), np.uint32(0))):
+        w = (q >> sh) & m if sh else q & m
+        out[i] = w[:, 0]
+        out[i] |= w[:, 1] << np.uint32(10)
+        out[i] |= w[:, 2] << np.uint32(20)
+    out[0, bad] |= np.uint32(0x80000000)
     return out
 
 
@@ -160,12 +177,14 @@ class CompactPositions:
         return total
 
     def _write(self, frame: FrameInput, s: int, c: int, n: int, a: int, b: int, at: int) -> int:
-        k = np.arange(a, b) // self.batch
-        lo, hi = self.lo[s][k], self.hi[s][k]
-        fin = np.isfinite(lo).all(axis=1)
-        lo = np.where(fin[:, None], lo, 0.0)
-        ext = np.where(fin[:, None], hi - lo, 0.0)
-        words = encode(frame.positions[a:b], lo, ext)
+        B = self.batch
+        words = np.empty((3, b - a), np.uint32)
+        for k in range(a // B, (b - 1) // B + 1):  # per batch: its box
+            x, y = max(a, k * B), min(b, (k + 1) * B)
+            lo, hi = self.lo[s][k], self.hi[s][k]
+            fin = bool(np.isfinite(lo).all() and np.isfinite(hi).all())
+            words[:, x - a:y - a] = encode(frame.positions[x:y], lo if fin else np.zeros(3),
+                                           hi - lo if fin else np.zeros(3))
         for i in range(3):
             self.queue.write_buffer(self.qpos[s][c], (i * n + at) * 4, words[i])
         return words.nbytes

@@ -41,7 +41,7 @@ from ..camera import Camera
 from . import chunks, frame_params
 from .device import adapter_summary, request_device, select_adapter
 from .layout import PARAMS_DTYPE, ColourMode
-from .compact import CompactPositions, compact_enabled
+from .compact import CompactPositions, compact_choice
 from .culling import Culling
 from .pick import pick_block, resolve_pick
 from .upload import IncrementalUpload
@@ -110,7 +110,10 @@ class WgpuRenderer(IncrementalUpload, Renderer):
         self._setup_colour(channels)
         self._bounds = BatchBounds(batches.BATCH_SLOTS)  # culling's and the compact positions'
         self._culling = Culling(self._cmode, self._cchan, self._bounds) if batches.culling_enabled() else None
-        self._compact_on = compact_enabled() and self.raster == "compute" and not self.naive_float32
+        self._compact_on, self._compact_why = compact_choice(adapter.info.get("adapter_type", ""))
+        if self.raster != "compute" or self.naive_float32:  # (quads: float32 positions only)
+            self._compact_on = False
+            self._compact_why = "naive_float32 (tests)" if self.naive_float32 else f"not with the {self.raster} method"
         self._compact: Optional[CompactPositions] = None
         if self._culling is not None:  # Params/state windows: the segments, then their runs
             self._nseg = 2 * self._nseg + -(-self.render_capacity // self._culling.bounds.batch)
@@ -489,6 +492,7 @@ class WgpuRenderer(IncrementalUpload, Renderer):
                 "chunk_slots": self._chunk_table[0][1], "timestamps": self._ts, "naive_float32": self.naive_float32,
                 "size": [self.width, self.height], "raster": self.raster, "raster_choice": self._raster_why,
                 "compute_keys": None, "compact_positions": self._compact is not None,
+                "compact_choice": self._compact_why,
                 **(self._compact.stats if self._compact else {}), **self._method.info()}
 
     def close(self) -> None:
