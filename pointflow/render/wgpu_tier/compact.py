@@ -72,7 +72,8 @@ def encode(p: np.ndarray, lo: np.ndarray, ext: np.ndarray) -> np.ndarray:
     lo, ext = np.asarray(lo, np.float64), np.asarray(ext, np.float64)
     u = np.asarray(p, np.float64) - lo
     bad = ~np.isfinite(u).all(axis=1)
-    u *= np.where(ext > 0, _Q / np.where(ext > 0, ext, 1.0), 0.0)
+    with np.errstate(invalid="ignore"):  # (non-finite rows: zeroed next)
+        u *= np.where(ext > 0, _Q / np.where(ext > 0, ext, 1.0), 0.0)
     if bad.any():
         u[bad] = 0.0
     np.clip(u, 0.0, _Q - 1.0, out=u)
