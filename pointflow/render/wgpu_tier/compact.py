@@ -51,10 +51,13 @@ LEVEL_BYTES = {0: 12, 1: 4, 2: 8, 3: 12}
 _Q = float(1 << 30)
 
 
-def compact_choice(adapter_type: str) -> tuple[bool, str]:
-    """(compact on, why): ``POINTFLOW_WGPU_COMPACT=1`` on, ``0`` off; unset (``auto``): on
-    unless the adapter is a CPU (lavapipe), where the decode's arithmetic costs more than the
-    bytes it saves (measured: bench/bench_wgpu_compact.py, docs/render-tiers.md)."""
+def compact_choice(adapter_type: str, raster: str = "compute", naive_float32: bool = False) -> tuple[bool, str]:
+    """(compact on, why): only the compute method (quads: float32 positions), never with the
+    tests' naive float32 transform; ``POINTFLOW_WGPU_COMPACT=1`` on, ``0`` off; unset
+    (``auto``): on unless the adapter is a CPU (lavapipe), where the decode's arithmetic costs
+    more than the bytes it saves (measured: bench/bench_wgpu_compact.py, docs/render-tiers.md)."""
+    if raster != "compute" or naive_float32:
+        return False, "naive_float32 (tests)" if naive_float32 else f"not with the {raster} method"
     v = os.environ.get(ENV_COMPACT, "auto").strip().lower()
     if v in ("0", "false", "no", "off"):
         return False, f"{ENV_COMPACT}={v}"
@@ -190,10 +193,13 @@ class CompactPositions:
             self.queue.write_buffer(self.qpos[s][c], (i * n + at) * 4, words[i])
         return words.nbytes
 
-    def frame(self, s: int, vp: np.ndarray, vw: float, vh: float, planes: Optional[np.ndarray] = None,
-              forced: int = -1) -> None:
-        """Choose the levels for this frame's view from set ``s``'s boxes and write its table
-        (``forced`` >= 0: that level for every box, tests)."""
+    def frame(self, s: int, P: np.ndarray, forced: int = -1) -> None:
+        """Choose the levels for the view of the frame's ``Params`` ``P`` (its float32
+        view-projection, viewport and planes, as the shaders get them) from set ``s``'s boxes
+        and write its table (``forced`` >= 0: that level for every box, tests)."""
+        vp = np.asarray(P["vp"], np.float64).reshape(4, 4).T  # (stored column-major)
+        vw, vh = float(P["vw"]), float(P["vh"])
+        planes = np.asarray(P["planes"], np.float64).reshape(6, 4)
         lo, hi = self.lo[s], self.hi[s]
         lev = choose_levels(lo, hi, vp, vw, vh, planes) if forced < 0 else np.full(self.nb, forced, np.int64)
         fin = np.isfinite(lo).all(axis=1) & np.isfinite(hi).all(axis=1)

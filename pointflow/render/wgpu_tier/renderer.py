@@ -19,6 +19,8 @@ Batch culling (:mod:`.culling`): the passes over points walk only the runs of th
 between whole batches culled on the CPU; counters and the automatic colour range are those
 without culling.
 
+Compact positions (:mod:`.compact`): per batch 4, 8 or 12 B of position per point.
+
 At most two frames are in flight: before reusing buffer set ``s`` we wait for the frame
 that last read it, which also bounds latency when the GPU is slower than the cadence.
 The wait maps a 64-byte fence into which that frame copied its counters, so the
@@ -110,10 +112,8 @@ class WgpuRenderer(IncrementalUpload, Renderer):
         self._setup_colour(channels)
         self._bounds = BatchBounds(batches.BATCH_SLOTS)  # culling's and the compact positions'
         self._culling = Culling(self._cmode, self._cchan, self._bounds) if batches.culling_enabled() else None
-        self._compact_on, self._compact_why = compact_choice(adapter.info.get("adapter_type", ""))
-        if self.raster != "compute" or self.naive_float32:  # (quads: float32 positions only)
-            self._compact_on = False
-            self._compact_why = "naive_float32 (tests)" if self.naive_float32 else f"not with the {self.raster} method"
+        self._compact_on, self._compact_why = compact_choice(adapter.info.get("adapter_type", ""), self.raster,
+                                                             self.naive_float32)
         self._compact: Optional[CompactPositions] = None
         if self._culling is not None:  # Params/state windows: the segments, then their runs
             self._nseg = 2 * self._nseg + -(-self.render_capacity // self._culling.bounds.batch)
@@ -355,9 +355,7 @@ class WgpuRenderer(IncrementalUpload, Renderer):
         P = frame_params.build(self.cfg, frame, camera, self.width, self.height, self._cmode, self._cchan,
                                self.naive_float32, n_slots, segs[0].gx, segs[0].groups)
         if self._compact is not None:  # per batch, the words the raster pass reads for this view
-            self._compact.frame(s, np.asarray(P["vp"], np.float64).reshape(4, 4).T, float(self.width),
-                                float(self.height), np.asarray(P["planes"], np.float64).reshape(6, 4),
-                                self._compact_force)
+            self._compact.frame(s, P, self._compact_force)
         runs, bad, cut, crange = ([], 0, 0, None) if self._culling is None else \
             self._culling.cut(frame, P, segs, self._chunk_table, self._nseg, self.render_capacity)
         if runs:
