@@ -63,9 +63,10 @@ class BatchBounds:
         self.bad = np.zeros(0, np.int64)
         self.stale = np.zeros(0, bool)
 
-    def note(self, frame) -> None:
-        """Mark the batches this frame's dirty ranges touch (all of them for ``None`` or a new
-        capacity). Call once per frame handed to the tier, before :meth:`culled`."""
+    def note(self, frame, everything: bool = False) -> None:
+        """Mark the batches this frame's dirty ranges touch (all of them for ``None``, a new
+        capacity or ``everything``: e.g. a new origin moved every position). Call once per
+        frame handed to the tier, before :meth:`culled`."""
         cap = int(frame.capacity)
         if cap != self.cap:
             nb = -(-cap // self.batch)
@@ -74,7 +75,7 @@ class BatchBounds:
             self.bad = np.zeros(nb, np.int64)
             self.stale = np.ones(nb, bool)
             return
-        if frame.dirty is None:
+        if frame.dirty is None or everything:
             self.stale[:] = True
             return
         B = self.batch

@@ -153,6 +153,35 @@ def test_ring_rewritten_while_drawn_encodes_changed_batches_again(monkeypatch):
         b.close()
 
 
+def test_new_origin_encodes_every_batch_again(monkeypatch):
+    """A frame whose ring origin moved (every float32 position changed) though its dirty
+    ranges name a few slots: every batch's box is reduced and encoded again, so the image is
+    a fresh renderer's."""
+    monkeypatch.setattr(batches, "BATCH_SLOTS", 512)
+    require_adapter()
+    from pointflow.render.wgpu_tier import WgpuRenderer
+    w, centre = far_terrain(4_000, seed=6)
+    f = make_frame(w, origin=GEO, intensity=np.linspace(0, 1, 4_000, dtype=np.float32))
+    cam = Camera.fit([-60, -60, -4], [60, 60, 20], aspect=4 / 3).translated(centre)
+    cfg = render_cfg(size=[240, 180], point_size=3)
+    a, b = pair(monkeypatch, cfg, f.capacity, f.channels)
+    try:
+        compare(a, b, f, cam)
+        org = GEO + [1_000.0, 500.0, 0.0]
+        g = dataclasses.replace(f, positions=(w - org).astype(np.float32), origin=org, dirty=[(0, 10)])
+        for _ in range(2):  # both buffer sets
+            img, _, _ = compare(a, b, g, cam)
+        monkeypatch.setenv(compact.ENV_COMPACT, "1")
+        fresh = WgpuRenderer(dataclasses.replace(cfg, raster="compute"), f.capacity, list(f.channels))
+        try:
+            assert np.array_equal(draw(fresh, g, cam)[0], img)
+        finally:
+            fresh.close()
+    finally:
+        a.close()
+        b.close()
+
+
 def test_near_view_reads_fine_words_far_view_coarse(monkeypatch):
     """4 km of ground in batches of 256 points (a few hundred metres each, as a scanner's
     points arrive) seen from 2 m: fine words for the nearest batch; from 9 km: coarse, near 4

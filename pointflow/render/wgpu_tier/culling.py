@@ -93,10 +93,11 @@ class Culling:
         self.bounds = bounds if bounds is not None else BatchBounds(batches.BATCH_SLOTS)
         self.crange = BatchColourRange(cmode, chan)
 
-    def note(self, frame: FrameInput) -> None:
-        """Mark the batches this frame's dirty ranges touch (once per frame, before anything
-        reduces the bounds: the compact positions' upload may reduce them before :meth:`cut`)."""
-        self.bounds.note(frame)
+    def note(self, frame: FrameInput, everything: bool = False) -> None:
+        """Mark the batches this frame's dirty ranges touch (all with ``everything``: the tier
+        uploads the whole ring); once per frame, before anything reduces the bounds (the
+        compact positions' upload may, before :meth:`cut`)."""
+        self.bounds.note(frame, everything)
         self.crange.note(self.bounds)
 
     def cut(self, frame: FrameInput, P: np.ndarray, segs: list[chunks.Segment], chunk_table: list,

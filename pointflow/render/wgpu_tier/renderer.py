@@ -334,11 +334,11 @@ class WgpuRenderer(IncrementalUpload, Renderer):
         s = self._frame_no % 2
         self._wait_set(s)
         t_wait = time.perf_counter()
+        full = self._mark_dirty(frame)
         if self._culling is not None:  # before anything reduces the batch bounds
-            self._culling.note(frame)
+            self._culling.note(frame, full)
         elif self._compact is not None:
-            self._bounds.note(frame)
-        self._mark_dirty(frame)
+            self._bounds.note(frame, full)
         uploaded = self._upload(frame, s)
         n_slots = min(self.render_capacity, int(frame.capacity))
         segs = chunks.segments(int(frame.head), int(frame.size), int(frame.capacity), n_slots, self._chunk_table)

@@ -70,7 +70,9 @@ class IncrementalUpload:
             total += v.nbytes
         return total
 
-    def _mark_dirty(self, frame: FrameInput) -> None:
+    def _mark_dirty(self, frame: FrameInput) -> bool:
+        """Queue the frame's dirty ranges for both sets; True when that is the whole ring (no
+        ranges, a new origin or capacity: every position may have changed)."""
         cap = min(self.render_capacity, frame.capacity)
         origin = np.asarray(frame.origin, np.float64)
         full = frame.dirty is None or self._origin is None or not np.array_equal(origin, self._origin) \
@@ -81,3 +83,4 @@ class IncrementalUpload:
             if len(self._pending[s]) > 64:  # keep the list short
                 self._pending[s] = merge_ranges(self._pending[s], cap)
         self._origin = origin.copy()
+        return bool(full)
