@@ -25,14 +25,14 @@ from pointflow.render.wgpu_tier import compact
 BOUND = 0.01
 
 
-def pair(monkeypatch, cfg, capacity, channels):
+def pair(monkeypatch, cfg, capacity, channels, **kw):
     """(compact, full precision) compute-method renderers."""
     require_adapter()
     from pointflow.render.wgpu_tier import WgpuRenderer
     out = []
     for on in ("1", "0"):
         monkeypatch.setenv(compact.ENV_COMPACT, on)
-        out.append(WgpuRenderer(dataclasses.replace(cfg, raster="compute"), capacity, list(channels)))
+        out.append(WgpuRenderer(dataclasses.replace(cfg, raster="compute"), capacity, list(channels), **kw))
     assert out[0].info()["compact_positions"] and not out[1].info()["compact_positions"]
     return out
 
@@ -105,6 +105,27 @@ def test_batch_across_the_wrap_and_non_finite_points(monkeypatch):
         a._compact_force = 1  # coarse everywhere: what the level choice avoids at this footprint
         coarse, _ = draw(a, f, cam)
         assert diff_fraction(coarse, ib) > diff_fraction(ia, ib)
+    finally:
+        a.close()
+        b.close()
+
+
+def test_ring_in_chunks(monkeypatch):
+    """A ring split over several storage bindings (chunks of 1,280 slots, batches of 512: a
+    batch across a chunk's edge, the chunk of the head walked twice): each chunk's words at
+    its own slots, the batch table over the whole ring; within the bound, and at the fine
+    level the float32 image."""
+    monkeypatch.setattr(batches, "BATCH_SLOTS", 512)
+    w, centre = far_terrain(6_000, seed=3)
+    f = make_frame(w, origin=GEO, capacity=6_300, head=6_300 - 2_000, intensity=np.linspace(0, 1, 6_000, dtype=np.float32))
+    cam = Camera.fit([-50, -50, -4], [50, 50, 12], aspect=4 / 3).translated(centre)
+    cfg = render_cfg(size=[240, 180], point_size=3)
+    a, b = pair(monkeypatch, cfg, f.capacity, f.channels, max_binding=12 * 1_290)
+    try:
+        assert a.info()["chunks"] > 1 and a.info()["chunk_slots"] % 512 != 0
+        ia, ib, st = compare(a, b, f, cam)
+        a._compact_force = 3
+        assert diff_fraction(draw(a, f, cam)[0], ib) <= 0.001
     finally:
         a.close()
         b.close()
