@@ -63,9 +63,10 @@ class BatchBounds:
         self.bad = np.zeros(0, np.int64)
         self.stale = np.zeros(0, bool)
 
-    def note(self, frame) -> None:
-        """Mark the batches this frame's dirty ranges touch (all of them for ``None`` or a new
-        capacity). Call once per frame handed to the tier, before :meth:`culled`."""
+    def note(self, frame, everything: bool = False) -> None:
+        """Mark the batches this frame's dirty ranges touch (all of them for ``None``, a new
+        capacity or ``everything``: e.g. a new origin moved every position). Call once per
+        frame handed to the tier, before :meth:`culled`."""
         cap = int(frame.capacity)
         if cap != self.cap:
             nb = -(-cap // self.batch)
@@ -74,15 +75,16 @@ class BatchBounds:
             self.bad = np.zeros(nb, np.int64)
             self.stale = np.ones(nb, bool)
             return
-        if frame.dirty is None:
+        if frame.dirty is None or everything:
             self.stale[:] = True
             return
         B = self.batch
         for a, b in merge_ranges(frame.dirty, cap):  # a wrapping range (b < a) is split
             self.stale[a // B:(b - 1) // B + 1] = True
 
-    def _refresh(self, positions: np.ndarray, ks: np.ndarray) -> None:
-        """Reduce the stale batches among ``ks`` (float64 bounds of the finite positions)."""
+    def refresh(self, positions: np.ndarray, ks: np.ndarray) -> None:
+        """Reduce the stale batches among ``ks`` (float64 bounds of the finite positions;
+        also what the wgpu tier's compact positions are encoded against)."""
         ks = ks[self.stale[ks]]
         if not ks.size:
             return
@@ -117,7 +119,7 @@ class BatchBounds:
         ks = k[whole]
         if not ks.size:
             return ks, ks
-        self._refresh(frame.positions, ks)
+        self.refresh(frame.positions, ks)
         out = boxes_outside(self.lo[ks], self.hi[ks], planes, rel) | (self.bad[ks] == n[ks])
         ks = ks[out]
         order = np.argsort(la[ks], kind="stable")

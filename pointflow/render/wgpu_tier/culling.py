@@ -89,19 +89,24 @@ class BatchColourRange:
 class Culling:
     """One renderer's batch culling: the bounds and the colour range's share, per batch."""
 
-    def __init__(self, cmode: int, chan: Optional[str]):
-        self.bounds = BatchBounds(batches.BATCH_SLOTS)
+    def __init__(self, cmode: int, chan: Optional[str], bounds: Optional[BatchBounds] = None):
+        self.bounds = bounds if bounds is not None else BatchBounds(batches.BATCH_SLOTS)
         self.crange = BatchColourRange(cmode, chan)
+
+    def note(self, frame: FrameInput, everything: bool = False) -> None:
+        """Mark the batches this frame's dirty ranges touch (all with ``everything``: the tier
+        uploads the whole ring); once per frame, before anything reduces the bounds (the
+        compact positions' upload may, before :meth:`cut`)."""
+        self.bounds.note(frame, everything)
+        self.crange.note(self.bounds)
 
     def cut(self, frame: FrameInput, P: np.ndarray, segs: list[chunks.Segment], chunk_table: list,
             nseg: int, render_capacity: int) -> tuple[list[chunks.Segment], int, int, Optional[tuple[int, int]]]:
-        """(the runs the point passes walk, empty when nothing is culled; the culled points'
+        """(Call :meth:`note` first.) (the runs the point passes walk, empty when nothing is culled; the culled points'
         non-finite count; the culled points; the culled batches' automatic colour range as
         ``ord_f`` words, or None)."""
         none: tuple[list[chunks.Segment], int, int, Optional[tuple[int, int]]] = ([], 0, 0, None)
         bb = self.bounds
-        bb.note(frame)
-        self.crange.note(bb)
         cap = int(frame.capacity)
         auto = bool(int(P["flags"]) & Flag.RANGE_AUTO)
         if int(frame.size) == 0 or cap > render_capacity:

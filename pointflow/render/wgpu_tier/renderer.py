@@ -19,6 +19,8 @@ Batch culling (:mod:`.culling`): the passes over points walk only the runs of th
 between whole batches culled on the CPU; counters and the automatic colour range are those
 without culling.
 
+Compact positions (:mod:`.compact`): per batch 4, 8 or 12 B of position per point.
+
 At most two frames are in flight: before reusing buffer set ``s`` we wait for the frame
 that last read it, which also bounds latency when the GPU is slower than the cadence.
 The wait maps a 64-byte fence into which that frame copied its counters, so the
@@ -36,10 +38,12 @@ import numpy as np
 from ..config import RenderConfig
 from .. import batches, colormap
 from ..base import FrameInput, FrameStats, Range, Renderer, RenderError, merge_ranges
+from ..batches import BatchBounds
 from ..camera import Camera
 from . import chunks, frame_params
 from .device import adapter_summary, request_device, select_adapter
 from .layout import PARAMS_DTYPE, ColourMode
+from .compact import CompactPositions, compact_choice
 from .culling import Culling
 from .pick import pick_block, resolve_pick
 from .upload import IncrementalUpload
@@ -106,7 +110,11 @@ class WgpuRenderer(IncrementalUpload, Renderer):
         self._nseg = 1 if len(self._chunk_table) == 1 else len(self._chunk_table) + 1
         self._cut = [(0, 0), (0, 0)]  # per buffer set: the frame's culled (non-finite, points)
         self._setup_colour(channels)
-        self._culling = Culling(self._cmode, self._cchan) if batches.culling_enabled() else None
+        self._bounds = BatchBounds(batches.BATCH_SLOTS)  # culling's and the compact positions'
+        self._culling = Culling(self._cmode, self._cchan, self._bounds) if batches.culling_enabled() else None
+        self._compact_on, self._compact_why = compact_choice(adapter.info.get("adapter_type", ""), self.raster,
+                                                             self.naive_float32)
+        self._compact: Optional[CompactPositions] = None
         if self._culling is not None:  # Params/state windows: the segments, then their runs
             self._nseg = 2 * self._nseg + -(-self.render_capacity // self._culling.bounds.batch)
         self._need_t = cfg.time_window_ms > 0 or self._cmode == ColourMode.TIME or cfg.pick_strategy == "recent_first"
@@ -126,6 +134,7 @@ class WgpuRenderer(IncrementalUpload, Renderer):
         self._origin: Optional[np.ndarray] = None
         self._gpu_ms: dict[str, float] = {}
         self._closed = False
+        self._compact_force = -1  # tests: one level for every batch
         log.info("wgpu tier on %s (%s); capacity %d%s; timestamps %s", adapter.summary, why,
                  self.render_capacity, f" in {len(self._chunk_table)} chunks of up to "
                  f"{self._chunk_table[0][1]} slots ({self._chunk_why})" if len(self._chunk_table) > 1 else "",
@@ -210,6 +219,8 @@ class WgpuRenderer(IncrementalUpload, Renderer):
             self._ts_resolve = self._buf(32, BU.QUERY_RESOLVE | BU.COPY_SRC, "ts-resolve")
             self._ts_read = [self._buf(32, BU.MAP_READ | BU.COPY_DST, f"ts-read{s}") for s in range(2)]
         self._qs = qs
+        if self._compact_on:
+            self._compact = CompactPositions(self.device, self._bounds, cap, self._chunk_table)
         self._method = self._make_method()
 
     def _make_method(self) -> RasterMethod:
@@ -218,7 +229,7 @@ class WgpuRenderer(IncrementalUpload, Renderer):
                   capacity=self.render_capacity, cmode=int(self._cmode), naive_float32=self.naive_float32,
                   key64=self._key64, max_groups=self._max_groups, row_bytes=self._row_bytes, sets=self._sets,
                   params=self._params, state=self._state, rng=self._rng, dargs=self._dargs, lut=self._lut,
-                  timestamps=self._qs, chunks=list(self._chunk_table), max_segments=self._nseg)
+                  timestamps=self._qs, chunks=list(self._chunk_table), max_segments=self._nseg, compact=self._compact)
         return self._method_cls(gpu)
 
     def resize(self, width: int, height: int) -> bool:
@@ -323,7 +334,11 @@ class WgpuRenderer(IncrementalUpload, Renderer):
         s = self._frame_no % 2
         self._wait_set(s)
         t_wait = time.perf_counter()
-        self._mark_dirty(frame)
+        full = self._mark_dirty(frame)
+        if self._culling is not None:  # before anything reduces the batch bounds
+            self._culling.note(frame, full)
+        elif self._compact is not None:
+            self._bounds.note(frame, full)
         uploaded = self._upload(frame, s)
         n_slots = min(self.render_capacity, int(frame.capacity))
         segs = chunks.segments(int(frame.head), int(frame.size), int(frame.capacity), n_slots, self._chunk_table)
@@ -339,6 +354,8 @@ class WgpuRenderer(IncrementalUpload, Renderer):
         budget_on = self._method.plan(n_threads, frame.budget)[3]  # (as without culling)
         P = frame_params.build(self.cfg, frame, camera, self.width, self.height, self._cmode, self._cchan,
                                self.naive_float32, n_slots, segs[0].gx, segs[0].groups)
+        if self._compact is not None:  # per batch, the words the raster pass reads for this view
+            self._compact.frame(s, P, self._compact_force)
         runs, bad, cut, crange = ([], 0, 0, None) if self._culling is None else \
             self._culling.cut(frame, P, segs, self._chunk_table, self._nseg, self.render_capacity)
         if runs:
@@ -381,7 +398,7 @@ class WgpuRenderer(IncrementalUpload, Renderer):
         stats = FrameStats(drawn=None, timings_ms=timings, uploaded_bytes=uploaded,
                            extra={"buffer_set": s, "render_capacity": self.render_capacity, "raster": self.raster,
                                   "gpu_timings_lag_frames": 2 if self._ts else None, "culled_points": cut,
-                                  "runs": len(walk)})
+                                  "runs": len(walk), **(self._compact.stats if self._compact else {})})
         self._stats[s] = stats  # drawn/removed_nonfinite filled in once the GPU is done
         self._last_stats = stats
         return stats
@@ -472,7 +489,9 @@ class WgpuRenderer(IncrementalUpload, Renderer):
                 "caps": list(self._caps), "chunks": len(self._chunk_table),
                 "chunk_slots": self._chunk_table[0][1], "timestamps": self._ts, "naive_float32": self.naive_float32,
                 "size": [self.width, self.height], "raster": self.raster, "raster_choice": self._raster_why,
-                "compute_keys": None, **self._method.info()}
+                "compute_keys": None, "compact_positions": self._compact is not None,
+                "compact_choice": self._compact_why,
+                **(self._compact.stats if self._compact else {}), **self._method.info()}
 
     def close(self) -> None:
         if self._closed:
@@ -484,6 +503,8 @@ class WgpuRenderer(IncrementalUpload, Renderer):
             pass
         if self._method is not None:
             self._method.close()
+        if self._compact is not None:
+            self._compact.close()
         bufs = [b for per_set in getattr(self, "_sets", []) for S in per_set for b in S.values()]
         bufs += [getattr(self, n, None) for n in ("_state", "_rng", "_dargs", "_params", "_lut", "_readback",
                                                    "_ts_resolve")]

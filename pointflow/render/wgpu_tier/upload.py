@@ -5,7 +5,7 @@ by the previous frame), each set catching up on the ranges it missed, chunk by c
 A part of :class:`~pointflow.render.wgpu_tier.renderer.WgpuRenderer`, which holds the state
 used here: ``queue``, ``_sets`` (per set, per chunk, the named buffers), ``_chunk_table``,
 ``_pending`` (per set, the ranges not yet written), ``_origin``, ``_last``,
-``render_capacity`` and the colour and time settings (``_cmode``, ``_cchan``, ``_need_t``,
+``render_capacity``, ``_compact`` (the compact positions, :mod:`.compact`, or None) and the colour and time settings (``_cmode``, ``_cchan``, ``_need_t``,
 ``_need_imp``).
 """
 from __future__ import annotations
@@ -25,6 +25,7 @@ class IncrementalUpload:
 
     queue: Any
     render_capacity: int
+    _compact: Any
 
     def _upload(self, frame: FrameInput, s: int) -> int:
         """Write the ranges set ``s`` has missed; returns bytes uploaded."""
@@ -32,6 +33,8 @@ class IncrementalUpload:
         ranges = merge_ranges(self._pending[s], cap)
         self._pending[s] = []
         total = 0
+        if self._compact is not None:
+            total += self._compact.upload(frame, s, ranges)
         for a, b in ranges:
             for c, (c0, n) in enumerate(self._chunk_table):
                 lo, hi = max(a, c0), min(b, c0 + n)
@@ -67,7 +70,9 @@ class IncrementalUpload:
             total += v.nbytes
         return total
 
-    def _mark_dirty(self, frame: FrameInput) -> None:
+    def _mark_dirty(self, frame: FrameInput) -> bool:
+        """Queue the frame's dirty ranges for both sets; True when that is the whole ring (no
+        ranges, a new origin or capacity: every position may have changed)."""
         cap = min(self.render_capacity, frame.capacity)
         origin = np.asarray(frame.origin, np.float64)
         full = frame.dirty is None or self._origin is None or not np.array_equal(origin, self._origin) \
@@ -78,3 +83,4 @@ class IncrementalUpload:
             if len(self._pending[s]) > 64:  # keep the list short
                 self._pending[s] = merge_ranges(self._pending[s], cap)
         self._origin = origin.copy()
+        return bool(full)

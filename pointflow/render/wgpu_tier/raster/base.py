@@ -44,6 +44,7 @@ class Gpu:
     timestamps: Optional[Any] = None  #: query set of 4 (pass 1 begin/end, pass 2 begin/end) or None
     chunks: list[tuple[int, int]] = field(default_factory=lambda: [(0, 1)])  #: (first slot, slots) per chunk
     max_segments: int = 1            #: segments a frame can have (params/state windows)
+    compact: Optional[Any] = None    #: :class:`..compact.CompactPositions` (compute method) or None
 
     #: bytes between segments' Params records / state words (a multiple of every offset alignment)
     PARAMS_STRIDE: ClassVar[int] = 512

@@ -76,7 +76,9 @@ class ComputeRaster(RasterMethod):
         self.img = g.buffer(g.row_bytes * g.height, BU.STORAGE | BU.COPY_SRC, "image")  # readback pitch
         self.pick_buf: Optional[Any] = None
         head = ["uniform", "uniform", "read", "read", "read", "read"]
-        self.bgl_raster = g.layout(head + ["rw"] * 6, SS.COMPUTE)
+        # bindings 12, 13: the compact positions' words and batch table (dummies when off)
+        self.bgl_raster = g.layout(head + ["rw"] * 6 + ["read"] * 2, SS.COMPUTE)
+        self.dummy = g.buffer(32, BU.STORAGE, "no-compact")
         self.bgl_resolve = g.layout(head + ["read"] * 4 + ["rw", "uniform"], SS.COMPUTE)
         # eye-dome lighting in the resolve pass, from the key buffer's depths (EDL constant)
         self.edl_on = bool(g.cfg.edl.enabled)
@@ -88,7 +90,9 @@ class ComputeRaster(RasterMethod):
         self.resolve_files = ("common.wgsl", "lut_colour.wgsl", f"resolve_{kf}.wgsl", "resolve_head.wgsl")
         # constants of every variant: shape and size space (the splat loop carries no branch on them)
         self.fixed = {"ROUND": g.cfg.point_shape == "round", "WORLD": g.cfg.point_size_space == "world",
-                      "NAIVE": g.naive_float32, "K": K}
+                      "NAIVE": g.naive_float32, "K": K,
+                      "COMPACT": g.compact is not None,
+                      "BATCH": g.compact.batch if g.compact is not None else 16384}
         self.pipes: dict[Any, Any] = {}
         self.bg_cache: dict[tuple[int, int, int], dict[str, Any]] = {}
 
@@ -141,10 +145,15 @@ class ComputeRaster(RasterMethod):
         bg = self.bg_cache.get(key)
         if bg is None:
             g = self.gpu
-            bg = {"raster": g.bind(self.bgl_raster, self._head(s, seg) + [g.state_at(0), g.rng, self.wgc, self.dbg]),
+            bg = {"raster": g.bind(self.bgl_raster, self._head(s, seg) + [g.state_at(0), g.rng, self.wgc, self.dbg]
+                                   + self._compact_bufs(s, seg)),
                   "resolve": g.bind(self.bgl_resolve, self._head(s, seg) + [g.lut, g.rng, self.img, self.edl])}
             self.bg_cache[key] = bg
         return bg
+
+    def _compact_bufs(self, s: int, seg: Any) -> list[Any]:
+        c = self.gpu.compact
+        return [self.dummy, self.dummy] if c is None else [c.qpos[s][seg.chunk], c.table[s]]
 
     def write_cparams(self, gx: int, budget_on: bool, pick: tuple[int, int, int, int] = (0, 0, 0, 0)) -> None:
         b = self.gpu.cfg.background
@@ -235,7 +244,7 @@ class ComputeRaster(RasterMethod):
             cp.set_pipeline(self._raster_pipe("debug", self.variant(plan, g.cmode)))
             for seg in plan.walk:  # (culled batches: flags stay 0)
                 cp.set_bind_group(0, g.bind(self.bgl_raster, self._head(plan.set, seg)
-                                            + [g.state_at(0), g.rng, self.wgc, dbg]))
+                                            + [g.state_at(0), g.rng, self.wgc, dbg] + self._compact_bufs(plan.set, seg)))
                 cp.dispatch_workgroups(seg.gx, seg.gy, 1)
             cp.end()
             g.queue.submit([enc.finish()])
@@ -248,7 +257,7 @@ class ComputeRaster(RasterMethod):
         return np.sort((plan.head + logical.astype(np.int64)) % max(plan.capacity, 1))
 
     def info(self) -> dict[str, Any]:
-        return {"compute_keys": self.key_variant}
+        return {"compute_keys": self.key_variant}  # (compact positions: the core's info)
 
     @property
     def key_variant(self) -> str:
@@ -256,5 +265,5 @@ class ComputeRaster(RasterMethod):
         return "64-bit atomicMax" if self.key64 else "2x32-bit (depth pass, then index pass)"
 
     def close(self) -> None:
-        destroy_all([self.keys, self.ikeys, self.wgc, self.dbg, self.cparams, self.pick_buf, self.img, self.edl])
+        destroy_all([self.dummy, self.keys, self.ikeys, self.wgc, self.dbg, self.cparams, self.pick_buf, self.img, self.edl])
         self.bg_cache.clear()

@@ -12,6 +12,10 @@
 @group(0) @binding(9) var<storage, read_write> rng: array<atomic<u32>, 2>;
 @group(0) @binding(10) var<storage, read_write> wgc: array<u32>;
 @group(0) @binding(11) var<storage, read_write> dbg: array<u32>;
+// compact positions (compact.py): the chunk's coarse, medium, fine words one array after the
+// other; per batch (lo.xyz, level) and (ext / 2^10).xyz
+@group(0) @binding(12) var<storage, read> qpos: array<u32>;
+@group(0) @binding(13) var<storage, read> qtab: array<vec4<f32>>;
 
 // The variant of a pipeline: pipeline-overridable constants, so a test that is off is not
 // in the compiled code at all (CPU adapters flatten branches).
@@ -24,6 +28,8 @@ override HAS_LOD: bool = true;
 override HAS_IMP: bool = true;
 override RANGE_AUTO: bool = true;
 override CMODE: u32 = 2u;
+override COMPACT: bool = false;   // read the compact words at the batch's level (level 0: pos)
+override BATCH: u32 = 16384u;     // slots per batch of the compact table
 const MODE_COUNT: u32 = 0u;       // budget: survivors only (counters)
 const MODE_THIN_COUNT: u32 = 1u;  // budget: thinned survivors per workgroup
 const MODE_RASTER: u32 = 2u;      // tests + atomic write
@@ -44,7 +50,38 @@ fn slot_of(logical: u32) -> u32 {
   return select(s, s - P.capacity, s >= P.capacity);
 }
 
+fn ten_bits(w: u32) -> vec3<f32> {
+  return vec3<f32>(vec3<u32>(w, w >> 10u, w >> 20u) & vec3<u32>(1023u));
+}
+
+// the slot's position: the float32 positions, or its compact words at its batch's level
+// (each term exact in float32; the +0.5 centres the point in its last step)
+fn load_pos(slot: u32) -> vec3<f32> {
+  if (COMPACT) {
+    let b = 2u * ((slot + P.slot_base) / BATCH);
+    let t0 = qtab[b];
+    let level = bitcast<u32>(t0.w);
+    if (level != 0u) {
+      let c = qpos[slot];
+      if ((c & 0x80000000u) != 0u) {
+        let bad = bitcast<f32>(c | 0x7f800000u);
+        return vec3<f32>(bad, bad, bad);
+      }
+      let s1 = qtab[b + 1u].xyz;
+      if (level == 1u) { return t0.xyz + (ten_bits(c) + 0.5) * s1; }
+      let n = arrayLength(&qpos) / 3u;
+      let s2 = s1 * (1.0 / 1024.0);
+      let m = ten_bits(qpos[n + slot]);
+      if (level == 2u) { return t0.xyz + ten_bits(c) * s1 + (m + 0.5) * s2; }
+      let f = ten_bits(qpos[2u * n + slot]);
+      return t0.xyz + ten_bits(c) * s1 + m * s2 + (f + 0.5) * (s2 * (1.0 / 1024.0));
+    }
+  }
+  return vec3<f32>(pos[3u * slot], pos[3u * slot + 1u], pos[3u * slot + 2u]);
+}
+
 fn colour_value(slot: u32, p: vec3<f32>) -> f32 {
+  if (CMODE == C_Z && COMPACT) { return pos[3u * slot + 2u]; }  // the exact z the resolve colours by
   if (CMODE == C_Z) { return p.z; }
   if (CMODE == C_TIME) { return tms[slot].x; }
   return bitcast<f32>(col[slot]);
@@ -69,7 +106,7 @@ fn test_point(logical: u32, count: bool) -> Pt {
   r.slot = slot;
   if (slot >= P.n_slots) { return r; }
   r.occupied = true;
-  let p = vec3<f32>(pos[3u * slot], pos[3u * slot + 1u], pos[3u * slot + 2u]);
+  let p = load_pos(slot);
   var keep = is_finite(p.x) && is_finite(p.y) && is_finite(p.z);
   r.finite = keep;
   if (!keep) { return r; }

@@ -1,0 +1,232 @@
+"""Compact positions for the compute raster method (Schütz et al. 2022, precision levels).
+
+Per batch of ring slots (:class:`~pointflow.render.batches.BatchBounds`, the culling's own
+bounds) each position is stored relative to its batch's box in 30 bits per axis, split over
+three u32 words per point: ``coarse`` (the 10 high bits of x, y, z), ``medium`` (the next
+10) and ``fine`` (the low 10); bit 31 of ``coarse`` marks a non-finite position. Per frame
+the tier picks per batch how many words the raster pass reads, from the box's projected size
+in pixels: the fewest whose quantisation moves no point by more than :data:`TOL_PX` pixels
+(first-order bound over the box), or the float32 positions (level 0) where even 30 bits do
+not reach it or the box reaches behind the camera. A far batch then costs 4 bytes per point,
+a near one 8 or 12, instead of 12 for three floats. The float32 positions stay uploaded
+(resolve, picking, colour by z and level 0 read them), so memory grows by 12 B per slot.
+
+Decoding (raster.wgsl ``load_pos``): ``lo + (c + 0.5) * ext / 2^10`` for coarse only,
+``lo + c * ext / 2^10 + (m + 0.5) * ext / 2^20`` with medium, and so on; each term is exact
+in float32, so level 3 is as precise as the float32 positions.
+
+A batch is encoded with the bounds its buffer set holds; when the bounds change (a slot of
+the batch rewritten), the whole batch is encoded again into that set. Each buffer set keeps
+its own bounds and table (lo, level; step), written per frame.
+
+``POINTFLOW_WGPU_COMPACT`` (:data:`ENV_COMPACT`): ``0`` draws from the float32 positions
+only, ``1`` compact; unset, compact except on a CPU adapter (:func:`compact_choice`).
+"""
+from __future__ import annotations
+
+import os
+from typing import Any, Optional
+
+import numpy as np
+
+from ..base import FrameInput
+from ..batches import BatchBounds
+
+__all__ = ["BITS", "ENV_COMPACT", "LEVEL_NAMES", "TOL_PX", "CompactPositions", "compact_choice", "encode",
+           "choose_levels"]
+
+#: 0: the float32 positions only (the full-precision path); 1: compact; unset: auto
+ENV_COMPACT = "POINTFLOW_WGPU_COMPACT"
+#: bits per axis read at level 1, 2, 3
+BITS = (10, 20, 30)
+#: the largest move of a point (pixels, first-order bound over the batch's box) a level may
+#: cause. Measured (bench_wgpu_compact.py scene, 4M points, whole ring in view at 1280x720):
+#: 1/16 px let 85% of the batches read coarse words and changed 1.7% of the pixels (dense
+#: points: footprint edges and near-equal depths), over the agreement tests' 1%; 1/64 px
+#: changed 0.005%
+TOL_PX = 1.0 / 64.0
+#: level -> name, bytes of position read per point in the raster pass
+LEVEL_NAMES = {0: "float32", 1: "coarse", 2: "medium", 3: "fine"}
+LEVEL_BYTES = {0: 12, 1: 4, 2: 8, 3: 12}
+_Q = float(1 << 30)
+
+
+def compact_choice(adapter_type: str, raster: str = "compute", naive_float32: bool = False) -> tuple[bool, str]:
+    """(compact on, why): only the compute method (quads: float32 positions), never with the
+    tests' naive float32 transform; ``POINTFLOW_WGPU_COMPACT=1`` on, ``0`` off; unset
+    (``auto``): on unless the adapter is a CPU (lavapipe), where the decode's arithmetic costs
+    more than the bytes it saves (measured: bench/bench_wgpu_compact.py, docs/render-tiers.md)."""
+    if raster != "compute" or naive_float32:
+        return False, "naive_float32 (tests)" if naive_float32 else f"not with the {raster} method"
+    v = os.environ.get(ENV_COMPACT, "auto").strip().lower()
+    if v in ("0", "false", "no", "off"):
+        return False, f"{ENV_COMPACT}={v}"
+    if v in ("1", "true", "yes", "on"):
+        return True, f"{ENV_COMPACT}={v}"
+    if adapter_type == "CPU":
+        return False, "auto: off on a CPU adapter (slower there; POINTFLOW_WGPU_COMPACT=1 forces it)"
+    return True, f"auto: on ({adapter_type or 'unknown'} adapter)"
+
+
+def encode(p: np.ndarray, lo: np.ndarray, ext: np.ndarray) -> np.ndarray:
+    """(3, n) uint32 words (coarse, medium, fine) of float positions ``p`` (n, 3) relative to
+    the box ``lo``/``ext`` (float64, (3,) or per point (n, 3)); non-finite rows get bit 31 of
+    coarse."""
+    lo, ext = np.asarray(lo, np.float64), np.asarray(ext, np.float64)
+    u = np.asarray(p, np.float64) - lo
+    bad = ~np.isfinite(u).all(axis=1)
+    with np.errstate(invalid="ignore"):  # (non-finite rows: zeroed next)
+        u *= np.where(ext > 0, _Q / np.where(ext > 0, ext, 1.0), 0.0)
+    if bad.any():
+        u[bad] = 0.0
+    np.clip(u, 0.0, _Q - 1.0, out=u)
+    q = u.astype(np.uint32)  # floor: u >= 0; 30 bits per axis
+    out = np.empty((3, q.shape[0]), np.uint32)
+    m = np.uint32(0x3FF)
+    for i, sh in enumerate((np.uint32(20), np.uint32(10), np.uint32(0))):
+        w = (q >> sh) & m if sh else q & m
+        out[i] = w[:, 0]
+        out[i] |= w[:, 1] << np.uint32(10)
+        out[i] |= w[:, 2] << np.uint32(20)
+    out[0, bad] |= np.uint32(0x80000000)
+    return out
+
+
+def choose_levels(lo: np.ndarray, hi: np.ndarray, vp: np.ndarray, vw: float, vh: float,
+                  planes: Optional[np.ndarray] = None, tol_px: Optional[float] = None) -> np.ndarray:
+    """Per box (rows of ``lo``/``hi``; float64) the level the raster pass reads: the fewest
+    bits whose quantisation (half a step per axis) moves no point of the box that projects
+    near the image (|ndc| <= 2) by more than ``tol_px`` pixels (first order); 0 (float32)
+    where 30 bits do not reach it, the box reaches behind the camera, or the near or far
+    plane of ``planes`` (the frustum's six, inside >= 0) cuts it (a point exactly on those
+    planes is kept as the float32 path keeps it; a decoded point stays inside its box, so
+    a box on one side stays there); 1 for a box without a finite point. ``vp``: the
+    view-projection (row-major)."""
+    tol_px = TOL_PX if tol_px is None else float(tol_px)
+    nb = lo.shape[0]
+    lev = np.ones(nb, np.int64)
+    ok = np.isfinite(lo).all(axis=1) & np.isfinite(hi).all(axis=1)
+    if not ok.any():
+        return lev
+    L, H = lo[ok], hi[ok]
+    corners = np.stack([np.where(np.array([(c >> i) & 1 for i in range(3)], bool), H, L) for c in range(8)], 1)
+    clip = np.concatenate([corners, np.ones(corners.shape[:2] + (1,))], axis=2) @ vp.T
+    w = clip[..., 3]
+    wmin = w.min(axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rx = np.minimum(np.abs(clip[..., 0] / w).max(axis=1), 2.0)
+        ry = np.minimum(np.abs(clip[..., 1] / w).max(axis=1), 2.0)
+    ext = H - L
+    out = np.zeros(L.shape[0], np.int64)
+    front = wmin > 1e-6 * np.maximum(np.abs(w).max(axis=1), 1.0)
+    if planes is not None:
+        for pl in planes[4:6]:
+            d = corners @ pl[:3] + pl[3]
+            m = 1e-5 * (np.abs(pl[3]) + np.abs(corners).max(axis=(1, 2)) * np.abs(pl[:3]).sum() + 1.0)
+            front &= ~((d.min(axis=1) <= m) & (d.max(axis=1) >= -m))
+    A = np.abs(vp)
+    for level, bits in ((3, 30), (2, 20), (1, 10)):
+        e = 0.5 * ext / float(1 << bits)  # the largest move per axis
+        dx = 0.5 * vw / np.where(front, wmin, 1.0) * (e @ A[0, :3] + rx * (e @ A[3, :3]))
+        dy = 0.5 * vh / np.where(front, wmin, 1.0) * (e @ A[1, :3] + ry * (e @ A[3, :3]))
+        fits = front & (np.maximum(dx, dy) <= tol_px)
+        out = np.where(fits, level, out)
+    lev[ok] = out
+    return lev
+
+
+class CompactPositions:
+    """The compact words of one renderer: per buffer set, per chunk a ``qpos`` buffer (coarse,
+    medium and fine arrays of the chunk's length, one after the other), per set a table of
+    two vec4 per batch (lo.xyz, level; ext / 2^10 .xyz, 0) and the bounds it was encoded with."""
+
+    def __init__(self, device: Any, bounds: BatchBounds, capacity: int, chunk_table: list[tuple[int, int]]):
+        import wgpu
+        BU = wgpu.BufferUsage
+        self.device, self.queue, self.bounds = device, device.queue, bounds
+        self.batch = bounds.batch
+        self.capacity = int(capacity)
+        self.chunk_table = chunk_table
+        self.nb = -(-self.capacity // self.batch)
+        sto = BU.STORAGE | BU.COPY_DST
+        self.qpos = [[device.create_buffer(size=max(n * 12, 16), usage=sto, label=f"qpos{s}.{c}")
+                      for c, (_, n) in enumerate(chunk_table)] for s in range(2)]
+        self.table = [device.create_buffer(size=max(self.nb * 32, 32), usage=sto, label=f"qtab{s}") for s in range(2)]
+        self.lo = [np.full((self.nb, 3), np.nan) for _ in range(2)]
+        self.hi = [np.full((self.nb, 3), np.nan) for _ in range(2)]
+        self.levels = np.zeros(self.nb, np.int64)
+        self.stats: dict[str, Any] = {}
+
+    def upload(self, frame: FrameInput, s: int, ranges: list[tuple[int, int]]) -> int:
+        """Encode the slots of ``ranges`` (merged, within the tier's slots) into set ``s``;
+        a batch whose bounds changed since set ``s`` encoded it is encoded whole. Bytes written."""
+        if not ranges:
+            return 0
+        B, cap = self.batch, min(self.capacity, int(frame.capacity))
+        ks = np.unique(np.concatenate([np.arange(a // B, (b - 1) // B + 1) for a, b in ranges]))
+        ks = ks[ks < min(self.nb, self.bounds.lo.shape[0])]
+        self.bounds.refresh(frame.positions, ks)
+        lo, hi = self.bounds.lo[ks], self.bounds.hi[ks]
+        same = ((lo == self.lo[s][ks]) | (np.isinf(lo) & np.isinf(self.lo[s][ks]))).all(axis=1) & \
+               ((hi == self.hi[s][ks]) | (np.isinf(hi) & np.isinf(self.hi[s][ks]))).all(axis=1)
+        whole = [(int(k) * B, min((int(k) + 1) * B, cap)) for k in ks[~same]]
+        self.lo[s][ks], self.hi[s][ks] = lo, hi
+        writes = _merge(list(ranges) + whole)
+        total = 0
+        for a, b in writes:
+            for c, (c0, n) in enumerate(self.chunk_table):
+                x, y = max(a, c0), min(b, c0 + n)
+                if x < y:
+                    total += self._write(frame, s, c, n, x, y, x - c0)
+        return total
+
+    def _write(self, frame: FrameInput, s: int, c: int, n: int, a: int, b: int, at: int) -> int:
+        B = self.batch
+        words = np.empty((3, b - a), np.uint32)
+        for k in range(a // B, (b - 1) // B + 1):  # per batch: its box
+            x, y = max(a, k * B), min(b, (k + 1) * B)
+            lo, hi = self.lo[s][k], self.hi[s][k]
+            fin = bool(np.isfinite(lo).all() and np.isfinite(hi).all())
+            words[:, x - a:y - a] = encode(frame.positions[x:y], lo if fin else np.zeros(3),
+                                           hi - lo if fin else np.zeros(3))
+        for i in range(3):
+            self.queue.write_buffer(self.qpos[s][c], (i * n + at) * 4, words[i])
+        return words.nbytes
+
+    def frame(self, s: int, P: np.ndarray, forced: int = -1) -> None:
+        """Choose the levels for the view of the frame's ``Params`` ``P`` (its float32
+        view-projection, viewport and planes, as the shaders get them) from set ``s``'s boxes
+        and write its table (``forced`` >= 0: that level for every box, tests)."""
+        vp = np.asarray(P["vp"], np.float64).reshape(4, 4).T  # (stored column-major)
+        vw, vh = float(P["vw"]), float(P["vh"])
+        planes = np.asarray(P["planes"], np.float64).reshape(6, 4)
+        lo, hi = self.lo[s], self.hi[s]
+        lev = choose_levels(lo, hi, vp, vw, vh, planes) if forced < 0 else np.full(self.nb, forced, np.int64)
+        fin = np.isfinite(lo).all(axis=1) & np.isfinite(hi).all(axis=1)
+        T = np.zeros((self.nb, 8), np.float32)
+        T[:, :3] = np.where(fin[:, None], lo, 0.0)
+        T[:, 3] = lev.astype(np.uint32).view(np.float32)
+        T[:, 4:7] = np.where(fin[:, None], (hi - lo) / 1024.0, 0.0)
+        self.queue.write_buffer(self.table[s], 0, T)
+        self.levels = lev
+        n = np.minimum((np.arange(self.nb) + 1) * self.batch, self.capacity) - np.arange(self.nb) * self.batch
+        counts = {LEVEL_NAMES[v]: int(np.count_nonzero(lev == v)) for v in LEVEL_NAMES}
+        bpp = float(sum(LEVEL_BYTES[int(v)] * int(m) for v, m in zip(lev, n)) / max(int(n.sum()), 1))
+        self.stats = {"compact_levels": counts, "compact_position_bytes_per_point": bpp}
+
+    def close(self) -> None:
+        for b in [*self.table, *(x for per in self.qpos for x in per)]:
+            try:
+                b.destroy()
+            except Exception:
+                pass
+
+
+def _merge(ranges: list[tuple[int, int]]) -> list[tuple[int, int]]:
+    out: list[tuple[int, int]] = []
+    for a, b in sorted(ranges):
+        if out and a <= out[-1][1]:
+            out[-1] = (out[-1][0], max(out[-1][1], b))
+        else:
+            out.append((a, b))
+    return out
