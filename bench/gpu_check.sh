@@ -4,6 +4,8 @@
 #   2. the GPU tests (tests/render_wgpu, tests/render_tiers; a missing adapter fails them),
 #   3. the render benchmark at 1M, 4M and 16M points for every method -- wgpu compute, wgpu
 #      quads, the cpu tier's compiled raster -- against the bare quad floor, interleaved,
+#   4. compact positions against float32 in the compute method (bench/bench_wgpu_compact.py,
+#      GPU_CHECK_COMPACT_POINTS, default 16M; 0 skips it),
 # and writes ONE JSON (bench/results/gpu_check.json) plus a short table on stdout: frame
 # times and G points/s per method and size (``gpoints_per_s`` in the JSON).
 #
@@ -52,6 +54,13 @@ echo "== render benchmark: $SIZES points" >&2
   >"$WORK/bench.txt" 2>&1
 BENCH_RC=$?
 tail -n 8 "$WORK/bench.txt" >&2
+COMPACT_N="${GPU_CHECK_COMPACT_POINTS:-16000000}"
+if [ "$COMPACT_N" != "0" ]; then
+  echo "== compact positions against float32: $COMPACT_N points" >&2
+  "$PY" bench/bench_wgpu_compact.py --points "$COMPACT_N" --rounds 7 --out "$WORK/compact.json" \
+    >"$WORK/compact.txt" 2>&1 || echo "compact bench failed (rc $?)" >>"$WORK/compact.txt"
+  tail -n 6 "$WORK/compact.txt" >&2
+fi
 T3=$(date +%s)
 
 "$PY" - "$WORK" "$OUT" "$INFO_RC" "$TEST_RC" "$BENCH_RC" "$T0" "$T1" "$T2" "$T3" <<'EOF'
@@ -72,7 +81,8 @@ res = {"measured_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "host"
        "platform": platform.platform(), "cpu_count": os.cpu_count(),
        "gpu": read("nvidia.txt").strip() or None, "info": read("info.txt"), "info_rc": info_rc,
        "tests": {"rc": test_rc, **tests, "tail": read("tests.txt")[-3000:]},
-       "bench_rc": bench_rc, "bench": bench, "bench_tail": None if bench else read("bench.txt")[-3000:],
+       "bench_rc": bench_rc, "bench": bench,
+       "compact": json.loads(read("compact.json")) if read("compact.json") else read("compact.txt")[-2000:] or None, "bench_tail": None if bench else read("bench.txt")[-3000:],
        "seconds": {"info": t1 - t0, "tests": t2 - t1, "bench": t3 - t2, "total": t3 - t0},
        "load": subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()}
 # G points/s per method and size (issue 41): points over the median frame time
