@@ -76,31 +76,30 @@ def _show_window(p, total: int, path: Optional[str], timeout_s: float) -> Option
             print("pointflow.show: the window did not open; writing a PNG instead", file=sys.stderr)
             return _show_png(p, total, path, timeout_s)
         p.wait(0.05)
-    print("pointflow.show: window open; close it to return", file=sys.stderr, flush=True)
-    _until_closed(p)
+    _until_closed(p, "pointflow.show: window open; close it to return")
     return None
 
 
-def _until_closed(p) -> None:
-    """Until the window is closed (a stop request) or Ctrl-C. In the main thread Ctrl-C only
-    sets a flag the wait checks, as ``pointflow run`` does: a KeyboardInterrupt raised inside
-    the supervisor's loop can leave it half way through a step, and the stop after it hung
-    (once, in CI, on a loaded machine)."""
+def _until_closed(p, say: str) -> None:
+    """Say ``say``, then wait until the window is closed (a stop request) or Ctrl-C. In the
+    main thread Ctrl-C only sets a flag the wait checks, as ``pointflow run`` does (set before
+    ``say``: a Ctrl-C right after it is caught too): a KeyboardInterrupt raised inside the
+    supervisor's loop can leave it half way through a step, and the stop after it hung (once,
+    in CI, on a loaded machine)."""
     import signal
     import threading
 
-    if threading.current_thread() is not threading.main_thread():
-        try:
-            p.wait(None)
-        except KeyboardInterrupt:
-            pass
-        return
+    main = threading.current_thread() is threading.main_thread()
     hit: list[int] = []
-    old = signal.signal(signal.SIGINT, lambda signum, _frame: hit.append(signum))
+    old = signal.signal(signal.SIGINT, lambda signum, _frame: hit.append(signum)) if main else None
     try:
+        print(say, file=sys.stderr, flush=True)
         p.wait(None, until=lambda: bool(hit))
+    except KeyboardInterrupt:  # not the main thread: Python's own handler
+        pass
     finally:
-        signal.signal(signal.SIGINT, old)
+        if main:
+            signal.signal(signal.SIGINT, old)
 
 
 def _png_path(path: Optional[str]) -> str:

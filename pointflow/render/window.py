@@ -152,3 +152,12 @@ class PointWindow:
             self.canvas._process_events()
         except Exception:
             pass
+        # The window's wgpu surface goes now, while its display connection lives: left to the
+        # garbage collector it can go after the display (an Xvfb that ended) and crash the
+        # process in wgpuSurfaceRelease (seen in a test run: a segfault in a later test).
+        release = getattr(getattr(self._ctx, "_wgpu_context", None), "_release", None)
+        if callable(release):
+            try:
+                release()
+            except Exception:  # noqa: BLE001 - closing must not fail
+                pass

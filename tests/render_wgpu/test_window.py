@@ -1,4 +1,6 @@
 """The optional window under Xvfb: it presents frames, orbits/pans/zooms and picks on click."""
+import gc
+
 import numpy as np
 import pytest
 
@@ -24,6 +26,7 @@ def display():
     # a second private Xvfb in the same process made Xlib abort (BadRequest on a stale one)
     with xvfb_display() as d:
         yield d
+        gc.collect()  # what the windows left goes while their display lives (not in a later test)
 
 
 def test_window_presents_orbits_and_picks(make_renderer, display):
