@@ -29,7 +29,7 @@ from typing import Any, Optional
 
 import numpy as np
 
-from ..base import FrameInput
+from ..base import FrameInput, merge_ranges
 from ..batches import BatchBounds
 
 __all__ = ["BITS", "ENV_COMPACT", "LEVEL_NAMES", "TOL_PX", "CompactPositions", "compact_choice", "encode",
@@ -171,7 +171,7 @@ class CompactPositions:
                ((hi == self.hi[s][ks]) | (np.isinf(hi) & np.isinf(self.hi[s][ks]))).all(axis=1)
         whole = [(int(k) * B, min((int(k) + 1) * B, cap)) for k in ks[~same]]
         self.lo[s][ks], self.hi[s][ks] = lo, hi
-        writes = _merge(list(ranges) + whole)
+        writes = merge_ranges(list(ranges) + whole, cap)
         total = 0
         for a, b in writes:
             for c, (c0, n) in enumerate(self.chunk_table):
@@ -221,12 +221,3 @@ class CompactPositions:
             except Exception:
                 pass
 
-
-def _merge(ranges: list[tuple[int, int]]) -> list[tuple[int, int]]:
-    out: list[tuple[int, int]] = []
-    for a, b in sorted(ranges):
-        if out and a <= out[-1][1]:
-            out[-1] = (out[-1][0], max(out[-1][1], b))
-        else:
-            out.append((a, b))
-    return out
