@@ -35,6 +35,9 @@ STOP_QUIET_S = 0.15
 STOP_GRACE_S = 1.0
 #: On stop, try this long to hand the queue and the final syncs to the link.
 FLUSH_S = 2.0
+#: On stop, wait at most this long for a link that carried data and is down (a heartbeat
+#: dropped it; ZeroMQ is reconnecting) to have its peer again, so the final sync arrives.
+RECONNECT_WAIT_S = 8.0
 
 
 class LinkSender:
@@ -251,6 +254,8 @@ def main(ctx) -> None:
             ctx.counters.drop("unsent_at_stop", snd.queued_points)
             ctx.log.warning("%d queued point(s) could not be sent before stopping", snd.queued_points)
             snd.queue.clear()
+        else:
+            hand_over_end(ctx, snd, link, out, RECONNECT_WAIT_S)
     finally:
         _stats()
         ctx.log.info("link closing: %d message(s), %d point(s) handed to the link; ZeroMQ lingers up to 1.5 s",
@@ -258,6 +263,41 @@ def main(ctx) -> None:
         link.close()
         out.close()  # lingers up to FLUSH_S for what ZeroMQ still holds
         pull.close()
+
+
+def hand_over_end(ctx, snd: LinkSender, link: LinkSecurity, out: zmq.Socket, wait_s: float) -> bool:
+    """Close only with a peer on the link: the final sync is handed to ZeroMQ, but a link that
+    a heartbeat dropped a moment before is mid-reconnect, and the close's linger would drop
+    the sync with the pipe. Wait (bounded) for the peer; if the link went down after the sync
+    was handed over, hand it over again (a repeated sync changes nothing at the receiver).
+    A link that never had a peer (a PUB nobody joined) is not waited for. True if the last
+    hand-over had a peer."""
+    link.poll()
+    c = link.counters
+    if not c["handshakes"]:
+        return False
+    handed = c["disconnects"]
+    end = time.monotonic() + wait_s
+    waited = False
+    while time.monotonic() < end:
+        link.poll()
+        if c["peers"] > 0 and not snd.queue:
+            if c["disconnects"] == handed:
+                if waited:
+                    ctx.log.info("link back before closing; the final sync was handed over again")
+                return True
+            snd.sync(end=True)  # the link went down since the last hand-over: again
+            handed = c["disconnects"]
+        if not waited and c["peers"] == 0:
+            ctx.log.info("link down at stop; waiting up to %.0f s for its peer to hand over the final sync", wait_s)
+            waited = True
+        if not snd.pump():
+            out.poll(20, zmq.POLLOUT)
+        else:
+            time.sleep(0.02)
+        ctx.beat()
+    ctx.log.warning("the link had no peer for %.0f s at stop: the final sync may not arrive", wait_s)
+    return False
 
 
 def send_summary(stats: dict) -> str:

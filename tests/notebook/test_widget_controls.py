@@ -87,7 +87,9 @@ def test_widget_controls_in_jupyterlab(tmp_path):
         for name in ("Click", "Colour", "Map", "Size", "EDL", "Time", "Speed", "Loop"):
             assert name in labels, labels
         assert page.locator(f"{view} button", has_text="Reset").count() == 1
-        assert page.locator(f"{view} .pf-value").inner_text().strip() == "3 px"  # the size slider's value
+        # the size slider's value, once the view's first state has come (shown as "… px" before it)
+        _wait_attr(page, ".pointflow-view", "e.dataset.state === '1'")
+        assert page.locator(f"{view} .pf-value").inner_text().strip() == "3 px"
 
         # axes, grid, compass and the legend over the picture, each switched off by its box
         if OVERLAY:

@@ -257,3 +257,112 @@ def test_curve_server_refuses_clients_without_the_right_keys(tmp_path, client):
         push.close(0)
         ctx.term()
         t.close()
+
+
+def test_stop_waits_for_a_link_mid_reconnect_to_hand_over_the_final_sync():
+    """A link a heartbeat dropped just before the stop is mid-reconnect: the sender keeps the
+    final sync until the peer is back (here 2.5 s later, past the close's 1.5-s linger that
+    lost it before) and the receiver gets it; a link that never had a peer is not waited for."""
+    import logging
+    import threading
+    import time
+    import types
+
+    import zmq
+
+    from pointflow.remote.options import SendConfig
+    from pointflow.remote.security import LinkSecurity
+    from pointflow.remote.sender import LinkSender, hand_over_end
+    from pointflow.stage.context import StageCounters
+
+    log = logging.getLogger("test")
+    stage = types.SimpleNamespace(log=log, beat=lambda: None)
+    ep = f"tcp://127.0.0.1:{_free_port()}"
+    ctx = zmq.Context()
+    cfg = SendConfig(endpoint=ep, bind=False, socket="push", heartbeat_ivl_s=0.2, heartbeat_timeout_s=1.0,
+                     heartbeat_ttl_s=1.0)
+    out = ctx.socket(zmq.PUSH)
+    out.setsockopt(zmq.LINGER, 1500)
+    link = LinkSecurity(ctx, cfg, False, log, 0.1, 0.5)
+    link.apply(out)
+    out.connect(ep)
+    got: list = []
+    done = threading.Event()
+
+    def receive(delay: float) -> None:
+        """A receiver that binds after ``delay`` and stays until the test is done with it."""
+        time.sleep(delay)
+        pull = ctx.socket(zmq.PULL)
+        pull.setsockopt(zmq.LINGER, 0)
+        pull.bind(ep)
+        try:
+            while not done.is_set():
+                if pull.poll(50):
+                    got.append(wire.decode_message(pull.recv_multipart())[1]["link"])
+        finally:
+            pull.close()
+
+    try:
+        snd = LinkSender(out, cfg, StageCounters(), log)
+        first = threading.Thread(target=receive, args=(0,))
+        first.start()
+        deadline = time.monotonic() + 20
+        while not link.counters["handshakes"] and time.monotonic() < deadline:
+            link.poll()
+            time.sleep(0.02)
+        snd.add(_chunk(100, seed=1))
+        snd.sync(end=True)
+        assert snd.pump()
+        assert hand_over_end(stage, snd, link, out, 15.0)  # a peer is there
+        deadline = time.monotonic() + 20
+        while not (got and got[-1].get("end")) and time.monotonic() < deadline:
+            time.sleep(0.02)
+        done.set()
+        first.join(20)
+        assert got and got[-1]["end"], got
+        pull = ctx.socket(zmq.PULL)  # a receiver that comes and goes: the link drops
+        pull.setsockopt(zmq.LINGER, 0)
+        pull.bind(ep)
+        deadline = time.monotonic() + 20
+        while link.counters["handshakes"] < 2 and time.monotonic() < deadline:
+            link.poll()
+            time.sleep(0.02)
+        pull.close()
+        while link.counters["peers"] and time.monotonic() < deadline:
+            link.poll()
+            time.sleep(0.02)
+        assert link.counters["peers"] == 0, link.counters
+        got.clear()
+        done.clear()
+        snd.add(_chunk(50, seed=2))
+        snd.sync(end=True)
+        assert snd.pump()  # into the pipe, no peer to take it
+        later = threading.Thread(target=receive, args=(2.5,))
+        later.start()
+        assert hand_over_end(stage, snd, link, out, 15.0)
+        out.close()  # as the stage does: lingers for what ZeroMQ still holds
+        deadline = time.monotonic() + 20
+        while not (got and got[-1].get("end")) and time.monotonic() < deadline:
+            time.sleep(0.02)
+        done.set()
+        later.join(20)
+        assert got and got[-1] == {"epoch": snd.epoch, "seq": 2, "sent": 150, "sync": True, "end": True}, got
+    finally:
+        link.close()
+        out.close(0)
+        ctx.term()
+    nobody = zmq.Context()
+    try:
+        pub = nobody.socket(zmq.PUB)
+        quiet = LinkSecurity(nobody, cfg, True, log)
+        quiet.apply(pub)
+        pub.bind(f"tcp://127.0.0.1:{_free_port()}")
+        lone = LinkSender(pub, cfg, StageCounters(), log)
+        lone.sync(end=True)
+        t0 = time.monotonic()
+        assert not hand_over_end(stage, lone, quiet, pub, 15.0)
+        assert time.monotonic() - t0 < 10  # not the 15-s wait: no peer ever joined
+        quiet.close()
+        pub.close(0)
+    finally:
+        nobody.term()

@@ -49,7 +49,8 @@ function render({ model, el: root }) {
   const cmap = el("select", { class: "pf-colormap" });
   labelled("Map", cmap, bar, "colormap");
   const size = el("input", { class: "pf-size", type: "range", min: "1", max: "12", step: "1", value: "2" });
-  const sizeVal = el("span", { class: "pf-value", text: "2 px" });
+  // the style is not known until the view's first state arrives: no number is shown before it
+  const sizeVal = el("span", { class: "pf-value", text: "… px" });
   labelled("Size", size, bar, "point size (pixels)").appendChild(sizeVal);
   const edl = el("input", { class: "pf-edl", type: "checkbox" });
   labelled("EDL", edl, bar, "eye-dome lighting: shades depth edges");
@@ -149,6 +150,7 @@ function render({ model, el: root }) {
     if (![...colorBy.options].some((o) => o.value === cb)) el("option", { value: cb, text: cb }, colorBy);
     colorBy.value = cb; cmap.value = s.style.colormap; size.value = s.style.point_size; edl.checked = !!s.style.edl;
     sizeVal.textContent = `${s.style.point_size} px`;
+    root.dataset.state = "1";
     const cam = JSON.stringify(s.camera || null);
     if (!frameCam && lastCamera !== null && cam !== lastCamera) clearMarks();
     lastCamera = cam;
