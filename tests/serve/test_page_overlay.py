@@ -236,7 +236,8 @@ def test_help_names_tooltip_favicon_and_refusal_text(browser, pipe):
     page.click("#help_button")
     assert page.locator("#help").is_visible()
     page.click("#help_close")
-    # the size slider shows its value
+    # the size slider shows its value (once the view's state came; "…" before it)
+    page.wait_for_function("document.getElementById('point_size_value').textContent !== '…'", timeout=30000)
     assert page.locator("#point_size_value").inner_text() == "3"
     # the stats line: "source: scene", drops explained in a tooltip
     page.wait_for_function("document.getElementById('stats').textContent.includes('source: scene')", timeout=30000)
