@@ -288,13 +288,28 @@ def test_stop_waits_for_a_link_mid_reconnect_to_hand_over_the_final_sync():
     out.connect(ep)
     got: list = []
     done = threading.Event()
+    threads: list[threading.Thread] = []
+
+    def bind_pull():
+        """A PULL on ``ep``: a socket closed a moment ago may still hold the port (ZeroMQ
+        closes it in its I/O thread), so bind again until it is free."""
+        pull = ctx.socket(zmq.PULL)
+        pull.setsockopt(zmq.LINGER, 0)
+        deadline = time.monotonic() + 30
+        while True:
+            try:
+                pull.bind(ep)
+                return pull
+            except zmq.ZMQError:
+                if time.monotonic() > deadline:
+                    pull.close(0)
+                    raise
+                time.sleep(0.05)
 
     def receive(delay: float) -> None:
         """A receiver that binds after ``delay`` and stays until the test is done with it."""
         time.sleep(delay)
-        pull = ctx.socket(zmq.PULL)
-        pull.setsockopt(zmq.LINGER, 0)
-        pull.bind(ep)
+        pull = bind_pull()
         try:
             while not done.is_set():
                 if pull.poll(50):
@@ -305,6 +320,7 @@ def test_stop_waits_for_a_link_mid_reconnect_to_hand_over_the_final_sync():
     try:
         snd = LinkSender(out, cfg, StageCounters(), log)
         first = threading.Thread(target=receive, args=(0,))
+        threads.append(first)
         first.start()
         deadline = time.monotonic() + 20
         while not link.counters["handshakes"] and time.monotonic() < deadline:
@@ -320,9 +336,7 @@ def test_stop_waits_for_a_link_mid_reconnect_to_hand_over_the_final_sync():
         done.set()
         first.join(20)
         assert got and got[-1]["end"], got
-        pull = ctx.socket(zmq.PULL)  # a receiver that comes and goes: the link drops
-        pull.setsockopt(zmq.LINGER, 0)
-        pull.bind(ep)
+        pull = bind_pull()  # a receiver that comes and goes: the link drops
         deadline = time.monotonic() + 20
         while link.counters["handshakes"] < 2 and time.monotonic() < deadline:
             link.poll()
@@ -338,6 +352,7 @@ def test_stop_waits_for_a_link_mid_reconnect_to_hand_over_the_final_sync():
         snd.sync(end=True)
         assert snd.pump()  # into the pipe, no peer to take it
         later = threading.Thread(target=receive, args=(2.5,))
+        threads.append(later)
         later.start()
         assert hand_over_end(stage, snd, link, out, 15.0)
         out.close()  # as the stage does: lingers for what ZeroMQ still holds
@@ -348,9 +363,11 @@ def test_stop_waits_for_a_link_mid_reconnect_to_hand_over_the_final_sync():
         later.join(20)
         assert got and got[-1] == {"epoch": snd.epoch, "seq": 2, "sent": 150, "sync": True, "end": True}, got
     finally:
+        done.set()
+        for th in threads:
+            th.join(40)
         link.close()
-        out.close(0)
-        ctx.term()
+        ctx.destroy(linger=0)  # every socket left open by a failed step, so the test ends
     nobody = zmq.Context()
     try:
         pub = nobody.socket(zmq.PUB)
@@ -365,4 +382,4 @@ def test_stop_waits_for_a_link_mid_reconnect_to_hand_over_the_final_sync():
         quiet.close()
         pub.close(0)
     finally:
-        nobody.term()
+        nobody.destroy(linger=0)
