@@ -194,12 +194,12 @@ def _splat(kb, logical, cx, cy, w, W, H, half_px, world, size_scale, round_, ylo
 #: points per block of the lean loops' vectorised first pass (:func:`_sq_block`): its nine
 #: scratch rows (18 KB) stay in the core's first-level cache
 SQ_BLOCK = 256
-#: :func:`_sq_block`'s verdict per point
-SQ_OUT, SQ_IN, SQ_EDGE, SQ_BAD = 0, 1, 2, 3
+#: :func:`_sq_block`'s verdict per point (SQ_IN2: clearly inside, a 2x2 box)
+SQ_OUT, SQ_IN, SQ_EDGE, SQ_BAD, SQ_IN2 = 0, 1, 2, 3, 4
 
 
-def _sq_block(pos, base, s0, n, X, Y, Z, code, bx0, by0, bx1, by1, bkey, v00, v01, v02, v03, v10, v11, v12, v13,
-              v20, v21, v22, v23, v30, v31, v32, v33, eps_s, half, Wf, Hf):
+def _sq_block(pos, base, s0, n, X, Y, Z, code, bx0, by0, bx1, by1, bkey, bi, W, v00, v01, v02, v03, v10, v11, v12,
+              v13, v20, v21, v22, v23, v30, v31, v32, v33, eps_s, half, Wf, Hf):
     """The per-point arithmetic of the lean loops for slots [base, base + n) (logical from
     ``s0``), with no branch, so that the compiler vectorises it: the positions copied into
     float64 rows first (contiguous), then per point the verdict (``code``: non-finite,
@@ -236,13 +236,22 @@ def _sq_block(pos, base, s0, n, X, Y, Z, code, bx0, by0, bx1, by1, bkey, v00, v0
             c = SQ_IN
         if not (np.isfinite(x) & np.isfinite(y) & np.isfinite(z)):
             c = SQ_BAD
-        code[k] = c
         px = (cx / w * 0.5 + 0.5) * Wf
         py = (0.5 - cy / w * 0.5) * Hf
-        bx0[k] = int(min(max(np.ceil(px - half - 0.5), 0.0), Wf))
-        by0[k] = int(min(max(np.ceil(py - half - 0.5), 0.0), Hf))
-        bx1[k] = int(min(max(np.ceil(px + half - 0.5), 0.0), Wf))
-        by1[k] = int(min(max(np.ceil(py + half - 0.5), 0.0), Hf))
+        fx0 = min(max(np.ceil(px - half - 0.5), 0.0), Wf)
+        fy0 = min(max(np.ceil(py - half - 0.5), 0.0), Hf)
+        fx1 = min(max(np.ceil(px + half - 0.5), 0.0), Wf)
+        fy1 = min(max(np.ceil(py + half - 0.5), 0.0), Hf)
+        if (c == SQ_IN) & (fx1 - fx0 == 2.0) & (fy1 - fy0 == 2.0):  # compared as floats: NaN is no 2
+            c = SQ_IN2
+        code[k] = c
+        x0 = int(fx0)
+        y0 = int(fy0)
+        bx0[k] = x0
+        by0[k] = y0
+        bx1[k] = int(fx1)
+        by1[k] = int(fy1)
+        bi[k] = y0 * W + x0
         wf = np.float32(w)
         if wf < _F0:
             wf = _F0
@@ -292,6 +301,7 @@ def _chunk_sq(kb, a, b, head, cap, pos, tms, cval, vp, planes, eps_s, W, H, half
     bx1 = np.empty(SQ_BLOCK, np.int64)
     by1 = np.empty(SQ_BLOCK, np.int64)
     bkey = np.empty(SQ_BLOCK, np.uint64)
+    bi = np.empty(SQ_BLOCK, np.int64)
     for seg in range(2):  # the ring's two runs of slots: no wrap test per point
         if seg == 0:
             la, lb, off = a, min(b, cap - head), head
@@ -300,10 +310,19 @@ def _chunk_sq(kb, a, b, head, cap, pos, tms, cval, vp, planes, eps_s, W, H, half
         for s0 in range(la, lb, SQ_BLOCK):
             n = min(SQ_BLOCK, lb - s0)
             base = s0 + off
-            _sq_block(pos, base, s0, n, X, Y, Z, code, bx0, by0, bx1, by1, bkey, v00, v01, v02, v03, v10, v11, v12,
-                      v13, v20, v21, v22, v23, v30, v31, v32, v33, eps_s, half, Wf, Hf)
+            _sq_block(pos, base, s0, n, X, Y, Z, code, bx0, by0, bx1, by1, bkey, bi, W, v00, v01, v02, v03, v10, v11,
+                      v12, v13, v20, v21, v22, v23, v30, v31, v32, v33, eps_s, half, Wf, Hf)
             for k in range(n):
                 c = code[k]
+                if c == SQ_IN2 and not rows and range_mode == 0:  # the common case: four stores
+                    n_keep += 1
+                    key = bkey[k]
+                    i = bi[k]
+                    kb[i] = min(key, kb[i])
+                    kb[i + 1] = min(key, kb[i + 1])
+                    kb[i + W] = min(key, kb[i + W])
+                    kb[i + W + 1] = min(key, kb[i + W + 1])
+                    continue
                 if c == SQ_BAD:
                     n_bad += 1
                     continue
@@ -312,9 +331,9 @@ def _chunk_sq(kb, a, b, head, cap, pos, tms, cval, vp, planes, eps_s, W, H, half
                     if np.isfinite(v):
                         vmin = min(vmin, v)
                         vmax = max(vmax, v)
-                if c != SQ_IN and not _sq_keep(c, base + k, X, Y, Z, k, pos, tms, cval, planes, eps_s, v00, v01,
-                                               v02, v03, v10, v11, v12, v13, v20, v21, v22, v23, v30, v31, v32,
-                                               v33):
+                if c < SQ_IN2 and c != SQ_IN and not _sq_keep(c, base + k, X, Y, Z, k, pos, tms, cval, planes, eps_s,
+                                                              v00, v01, v02, v03, v10, v11, v12, v13, v20, v21, v22,
+                                                              v23, v30, v31, v32, v33):
                     continue
                 n_keep += 1
                 x0 = bx0[k]
@@ -661,6 +680,7 @@ def _bin_sq(sk, sb, cnt, a, b, head, cap, pos, tms, cval, vp, planes, eps_s, W, 
     bx1 = np.empty(SQ_BLOCK, np.int64)
     by1 = np.empty(SQ_BLOCK, np.int64)
     bkey = np.empty(SQ_BLOCK, np.uint64)
+    bi = np.empty(SQ_BLOCK, np.int64)
     for seg in range(2):  # the ring's two runs of slots: no wrap test per point
         if seg == 0:
             la, lb, off = a, min(b, cap - head), head
@@ -669,8 +689,8 @@ def _bin_sq(sk, sb, cnt, a, b, head, cap, pos, tms, cval, vp, planes, eps_s, W, 
         for s0 in range(la, lb, SQ_BLOCK):
             n = min(SQ_BLOCK, lb - s0)
             base = s0 + off
-            _sq_block(pos, base, s0, n, X, Y, Z, code, bx0, by0, bx1, by1, bkey, v00, v01, v02, v03, v10, v11, v12,
-                      v13, v20, v21, v22, v23, v30, v31, v32, v33, eps_s, half, Wf, Hf)
+            _sq_block(pos, base, s0, n, X, Y, Z, code, bx0, by0, bx1, by1, bkey, bi, W, v00, v01, v02, v03, v10, v11,
+                      v12, v13, v20, v21, v22, v23, v30, v31, v32, v33, eps_s, half, Wf, Hf)
             for k in range(n):
                 c = code[k]
                 if c == SQ_BAD:
@@ -681,9 +701,9 @@ def _bin_sq(sk, sb, cnt, a, b, head, cap, pos, tms, cval, vp, planes, eps_s, W, 
                     if np.isfinite(v):
                         vmin = min(vmin, v)
                         vmax = max(vmax, v)
-                if c != SQ_IN and not _sq_keep(c, base + k, X, Y, Z, k, pos, tms, cval, planes, eps_s, v00, v01,
-                                               v02, v03, v10, v11, v12, v13, v20, v21, v22, v23, v30, v31, v32,
-                                               v33):
+                if c < SQ_IN2 and c != SQ_IN and not _sq_keep(c, base + k, X, Y, Z, k, pos, tms, cval, planes, eps_s,
+                                                              v00, v01, v02, v03, v10, v11, v12, v13, v20, v21, v22,
+                                                              v23, v30, v31, v32, v33):
                     continue
                 x0 = bx0[k]
                 y0 = by0[k]
