@@ -153,13 +153,40 @@ def open_notebook(page, url: str, token: str, page_path: str, name: str) -> None
         page.wait_for_selector(".jp-Notebook-ExecutionIndicator[data-status='idle']", timeout=60000)
 
 
+def dismiss_dialogs(page) -> list[str]:
+    """Answer the front end's own modal dialogs with their default button (on a busy machine
+    Notebook 7 can ask which kernel to start when its kernel list came after the notebook:
+    the default is the notebook's own, Python 3); their texts are returned and printed, so a
+    failure shows what was asked."""
+    said = []
+    dialogs = page.locator(".jp-Dialog")
+    for _ in range(4):
+        if not dialogs.count() or not dialogs.first.is_visible():
+            break
+        said.append(dialogs.first.inner_text().strip())
+        accept = dialogs.first.locator("button.jp-mod-accept")
+        if accept.count():
+            accept.first.click()
+        else:
+            page.keyboard.press("Escape")
+        with contextlib.suppress(Exception):
+            dialogs.first.wait_for(state="detached", timeout=10000)
+    for text in said:
+        print("answered a front-end dialog:", text.replace("\n", " | "))
+    return said
+
+
 def run_cell(page, index: int) -> None:
     """Run cell ``index`` (Ctrl+Enter in it); a kernel that was not quite connected yet may drop
     the request, so run it again until the prompt says it runs or ran ([*] or [n])."""
     cell = page.locator(".jp-Notebook .jp-Cell").nth(index)
     prompt = cell.locator(".jp-InputPrompt").first
     for _ in range(8):
-        cell.locator(".cm-content").click()
+        dismiss_dialogs(page)
+        try:
+            cell.locator(".cm-content").click(timeout=15000)
+        except Exception:  # noqa: BLE001 - a dialog came up in between: answer it, then again
+            continue
         page.keyboard.press("Control+Enter")
         end = time.monotonic() + 15
         while time.monotonic() < end and prompt.inner_text().strip() in ("[ ]:", ""):
