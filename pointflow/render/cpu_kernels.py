@@ -126,6 +126,24 @@ def _f32_bits(typingctx, v):
     return types.uint32(types.float32), codegen
 
 
+def _store_box(kb, key, i, dx, dy, W):
+    """``key`` min()-stored over the dx x dy box whose first pixel is ``i``: min() stores
+    instead of a compare-and-branch (unpredictable), the 2x2 and 1x1 boxes of 2 px and 1 px
+    points unrolled. An empty box stores nothing."""
+    if dx == 2 and dy == 2:
+        kb[i] = min(key, kb[i])
+        kb[i + 1] = min(key, kb[i + 1])
+        kb[i + W] = min(key, kb[i + W])
+        kb[i + W + 1] = min(key, kb[i + W + 1])
+    elif dx == 1 and dy == 1:
+        kb[i] = min(key, kb[i])
+    else:
+        for yy in range(dy):
+            row = i + yy * W
+            for xx in range(dx):
+                kb[row + xx] = min(key, kb[row + xx])
+
+
 def _splat(kb, logical, cx, cy, w, W, H, half_px, world, size_scale, round_, ylo, yhi):
     """Write the point's key into every pixel of its footprint (rules.footprint_box) within
     rows [ylo, yhi) (a thread's band of the screen); (cx, cy, w) its clip coordinates."""
@@ -162,21 +180,7 @@ def _splat(kb, logical, cx, cy, w, W, H, half_px, world, size_scale, round_, ylo
     if not round_:
         # square: every pixel of the box; the 2x2 and 1x1 boxes of 2 px and 1 px points
         # unrolled, min() stores instead of a compare-and-branch (unpredictable)
-        dx = x1 - x0
-        dy = y1 - y0
-        i = y0 * W + x0
-        if dx == 2 and dy == 2:
-            kb[i] = min(key, kb[i])
-            kb[i + 1] = min(key, kb[i + 1])
-            kb[i + W] = min(key, kb[i + W])
-            kb[i + W + 1] = min(key, kb[i + W + 1])
-        elif dx == 1 and dy == 1:
-            kb[i] = min(key, kb[i])
-        else:
-            for yy in range(y0, y1):
-                row = yy * W
-                for xx in range(x0, x1):
-                    kb[row + xx] = min(key, kb[row + xx])
+        _store_box(kb, key, y0 * W + x0, x1 - x0, y1 - y0, W)
         return
     hh = half * half
     for yy in range(y0, y1):
@@ -345,22 +349,7 @@ def _chunk_sq(kb, a, b, head, cap, pos, tms, cval, vp, planes, eps_s, W, H, half
                         y0 = ylo
                     if y1 > yhi:
                         y1 = yhi
-                key = bkey[k]
-                dx = x1 - x0
-                dy = y1 - y0
-                i = y0 * W + x0
-                if dx == 2 and dy == 2:
-                    kb[i] = min(key, kb[i])
-                    kb[i + 1] = min(key, kb[i + 1])
-                    kb[i + W] = min(key, kb[i + W])
-                    kb[i + W + 1] = min(key, kb[i + W + 1])
-                elif dx == 1 and dy == 1:
-                    kb[i] = min(key, kb[i])
-                else:
-                    for yy in range(y0, y1):
-                        row = yy * W
-                        for xx in range(x0, x1):
-                            kb[row + xx] = min(key, kb[row + xx])
+                _store_box(kb, bkey[k], y0 * W + x0, x1 - x0, y1 - y0, W)
     return b - a, n_bad, n_keep, vmin, vmax
 
 
@@ -1140,8 +1129,8 @@ def _compile(cache: bool) -> Kernels:
     opts = dict(cache=cache, nogil=True, boundscheck=False, error_model="numpy")
     from numba.extending import intrinsic
     g["_f32_bits"] = intrinsic(_F32_BITS_PY)
-    for name in ("_pcg", "_u01", "_colour_value", "_frustum", "_test", "_splat", "_box_pack", "_band_splat",
-                 "_band_splat_sq", "_band_fill"):
+    for name in ("_pcg", "_u01", "_colour_value", "_frustum", "_test", "_store_box", "_splat", "_box_pack",
+                 "_band_splat", "_band_splat_sq", "_band_fill"):
         g[name] = nb.njit(inline="always", **opts)(g[name])
     # called from parallel loops, each compiled on its own (numba's inliner takes no functions
     # with as many arguments as the _sq_ pair)
