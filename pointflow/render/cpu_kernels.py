@@ -128,13 +128,16 @@ def _f32_bits(typingctx, v):
 
 def _store_box(kb, key, i, dx, dy, W):
     """``key`` min()-stored over the dx x dy box whose first pixel is ``i``: min() stores
-    instead of a compare-and-branch (unpredictable), the 2x2 and 1x1 boxes of 2 px and 1 px
-    points unrolled. An empty box stores nothing."""
+    instead of a compare-and-branch (unpredictable), the 2x2, 2x1 and 1x1 boxes of 2 px and
+    1 px points (2x1: a 2 px point cut by a band's edge) unrolled. An empty box stores nothing."""
     if dx == 2 and dy == 2:
         kb[i] = min(key, kb[i])
         kb[i + 1] = min(key, kb[i + 1])
         kb[i + W] = min(key, kb[i + W])
         kb[i + W + 1] = min(key, kb[i + W + 1])
+    elif dx == 2 and dy == 1:
+        kb[i] = min(key, kb[i])
+        kb[i + 1] = min(key, kb[i + 1])
     elif dx == 1 and dy == 1:
         kb[i] = min(key, kb[i])
     else:
@@ -262,20 +265,35 @@ def _sq_block(pos, base, s0, n, X, Y, Z, code, bx0, by0, bx1, by1, bkey, bi, W, 
         bkey[k] = (np.uint64(_f32_bits(wf)) << _U32) | np.uint64(s0 + k)
 
 
-def _sq_keep(c, slot, X, Y, Z, k, pos, tms, cval, planes, eps_s, v00, v01, v02, v03, v10, v11, v12, v13, v20, v21,
-             v22, v23, v30, v31, v32, v33):
-    """Whether a finite point that :func:`_sq_block` did not find clearly inside is kept:
-    clearly outside no; near a plane, :func:`_frustum` decides (as the scalar loop)."""
+def _sq_scratch():
+    """The rows :func:`_sq_block` fills for one block: positions (X, Y, Z), verdict, box
+    (x0, y0, x1, y1), key and first pixel."""
+    i64 = np.int64
+    return (np.empty(SQ_BLOCK, np.float64), np.empty(SQ_BLOCK, np.float64), np.empty(SQ_BLOCK, np.float64),
+            np.empty(SQ_BLOCK, i64), np.empty(SQ_BLOCK, i64), np.empty(SQ_BLOCK, i64), np.empty(SQ_BLOCK, i64),
+            np.empty(SQ_BLOCK, i64), np.empty(SQ_BLOCK, np.uint64), np.empty(SQ_BLOCK, i64))
+
+
+def _sq_keep(c, x, y, z, vp, planes, eps_s):
+    """Whether a finite point with :func:`_sq_block`'s verdict ``c`` is kept: clearly inside
+    yes, clearly outside no; near a plane, :func:`_frustum` decides (as the scalar loop)."""
+    if c == SQ_IN or c == SQ_IN2:
+        return True
     if c == SQ_OUT:
         return False
-    x = X[k]
-    y = Y[k]
-    z = Z[k]
-    cx = v00 * x + v01 * y + v02 * z + v03
-    cy = v10 * x + v11 * y + v12 * z + v13
-    cz = v20 * x + v21 * y + v22 * z + v23
-    w = v30 * x + v31 * y + v32 * z + v33
+    cx = vp[0, 0] * x + vp[0, 1] * y + vp[0, 2] * z + vp[0, 3]
+    cy = vp[1, 0] * x + vp[1, 1] * y + vp[1, 2] * z + vp[1, 3]
+    cz = vp[2, 0] * x + vp[2, 1] * y + vp[2, 2] * z + vp[2, 3]
+    w = vp[3, 0] * x + vp[3, 1] * y + vp[3, 2] * z + vp[3, 3]
     return _frustum(x, y, z, cx, cy, cz, w, planes, eps_s * (abs(x) + abs(y) + abs(z) + 1.0))
+
+
+def _grow_range(range_mode, slot, pos, tms, cval, vmin, vmax):
+    """The automatic colour range grown by one point's value (non-finite values leave it)."""
+    v = _colour_value(range_mode, slot, pos, tms, cval)
+    if np.isfinite(v):
+        return min(vmin, v), max(vmax, v)
+    return vmin, vmax
 
 
 def _chunk_sq(kb, a, b, head, cap, pos, tms, cval, vp, planes, eps_s, W, H, half, range_mode, ylo, yhi):
@@ -296,16 +314,7 @@ def _chunk_sq(kb, a, b, head, cap, pos, tms, cval, vp, planes, eps_s, W, H, half
     vmin = np.inf
     vmax = -np.inf
     rows = ylo > 0 or yhi < H
-    X = np.empty(SQ_BLOCK, np.float64)
-    Y = np.empty(SQ_BLOCK, np.float64)
-    Z = np.empty(SQ_BLOCK, np.float64)
-    code = np.empty(SQ_BLOCK, np.int64)
-    bx0 = np.empty(SQ_BLOCK, np.int64)
-    by0 = np.empty(SQ_BLOCK, np.int64)
-    bx1 = np.empty(SQ_BLOCK, np.int64)
-    by1 = np.empty(SQ_BLOCK, np.int64)
-    bkey = np.empty(SQ_BLOCK, np.uint64)
-    bi = np.empty(SQ_BLOCK, np.int64)
+    X, Y, Z, code, bx0, by0, bx1, by1, bkey, bi = _sq_scratch()
     for seg in range(2):  # the ring's two runs of slots: no wrap test per point
         if seg == 0:
             la, lb, off = a, min(b, cap - head), head
@@ -331,13 +340,8 @@ def _chunk_sq(kb, a, b, head, cap, pos, tms, cval, vp, planes, eps_s, W, H, half
                     n_bad += 1
                     continue
                 if range_mode != 0:
-                    v = _colour_value(range_mode, base + k, pos, tms, cval)
-                    if np.isfinite(v):
-                        vmin = min(vmin, v)
-                        vmax = max(vmax, v)
-                if c < SQ_IN2 and c != SQ_IN and not _sq_keep(c, base + k, X, Y, Z, k, pos, tms, cval, planes, eps_s,
-                                                              v00, v01, v02, v03, v10, v11, v12, v13, v20, v21, v22,
-                                                              v23, v30, v31, v32, v33):
+                    vmin, vmax = _grow_range(range_mode, base + k, pos, tms, cval, vmin, vmax)
+                if not _sq_keep(c, X[k], Y[k], Z[k], vp, planes, eps_s):
                     continue
                 n_keep += 1
                 x0 = bx0[k]
@@ -660,16 +664,7 @@ def _bin_sq(sk, sb, cnt, a, b, head, cap, pos, tms, cval, vp, planes, eps_s, W, 
     ns = 0
     vmin = np.inf
     vmax = -np.inf
-    X = np.empty(SQ_BLOCK, np.float64)
-    Y = np.empty(SQ_BLOCK, np.float64)
-    Z = np.empty(SQ_BLOCK, np.float64)
-    code = np.empty(SQ_BLOCK, np.int64)
-    bx0 = np.empty(SQ_BLOCK, np.int64)
-    by0 = np.empty(SQ_BLOCK, np.int64)
-    bx1 = np.empty(SQ_BLOCK, np.int64)
-    by1 = np.empty(SQ_BLOCK, np.int64)
-    bkey = np.empty(SQ_BLOCK, np.uint64)
-    bi = np.empty(SQ_BLOCK, np.int64)
+    X, Y, Z, code, bx0, by0, bx1, by1, bkey, bi = _sq_scratch()
     for seg in range(2):  # the ring's two runs of slots: no wrap test per point
         if seg == 0:
             la, lb, off = a, min(b, cap - head), head
@@ -686,13 +681,8 @@ def _bin_sq(sk, sb, cnt, a, b, head, cap, pos, tms, cval, vp, planes, eps_s, W, 
                     n_bad += 1
                     continue
                 if range_mode != 0:
-                    v = _colour_value(range_mode, base + k, pos, tms, cval)
-                    if np.isfinite(v):
-                        vmin = min(vmin, v)
-                        vmax = max(vmax, v)
-                if c < SQ_IN2 and c != SQ_IN and not _sq_keep(c, base + k, X, Y, Z, k, pos, tms, cval, planes, eps_s,
-                                                              v00, v01, v02, v03, v10, v11, v12, v13, v20, v21, v22,
-                                                              v23, v30, v31, v32, v33):
+                    vmin, vmax = _grow_range(range_mode, base + k, pos, tms, cval, vmin, vmax)
+                if not _sq_keep(c, X[k], Y[k], Z[k], vp, planes, eps_s):
                     continue
                 x0 = bx0[k]
                 y0 = by0[k]
@@ -968,29 +958,11 @@ def _band_splat(kb, row0, ylo, yhi, ra, rb, rkey, rbox, rf, W, round_):
 
 
 def _band_splat_sq(kb, ra, rb, rkey, rbox, W):
-    """Square records [ra, rb) of one band (index in the band, dx, dy) into its keys ``kb``:
-    min() stores, the 2x2 and 2x1 boxes of a 2 px point unrolled."""
+    """Square records [ra, rb) of one band (index in the band, dx, dy) into its keys ``kb``
+    (:func:`_store_box`)."""
     for r in range(ra, rb):
         p = rbox[r]
-        key = rkey[r]
-        i = np.int64(p & _M32)
-        dx = np.int64((p >> _U32) & _M16)
-        dy = np.int64(p >> _U48)
-        if dx == 2 and dy == 2:
-            kb[i] = min(key, kb[i])
-            kb[i + 1] = min(key, kb[i + 1])
-            kb[i + W] = min(key, kb[i + W])
-            kb[i + W + 1] = min(key, kb[i + W + 1])
-        elif dx == 2 and dy == 1:
-            kb[i] = min(key, kb[i])
-            kb[i + 1] = min(key, kb[i + 1])
-        elif dx == 1 and dy == 1:
-            kb[i] = min(key, kb[i])
-        else:
-            for yy in range(dy):
-                row = i + yy * W
-                for xx in range(dx):
-                    kb[row + xx] = min(key, kb[row + xx])
+        _store_box(kb, rkey[r], np.int64(p & _M32), np.int64((p >> _U32) & _M16), np.int64(p >> _U48), W)
 
 
 def _band_fill(kb, j, H, W, BS, NB, rkey, rbox, rf, off, round_):
@@ -1130,11 +1102,12 @@ def _compile(cache: bool) -> Kernels:
     from numba.extending import intrinsic
     g["_f32_bits"] = intrinsic(_F32_BITS_PY)
     for name in ("_pcg", "_u01", "_colour_value", "_frustum", "_test", "_store_box", "_splat", "_box_pack",
-                 "_band_splat", "_band_splat_sq", "_band_fill"):
+                 "_band_splat", "_band_splat_sq", "_band_fill", "_sq_keep", "_grow_range",
+                 "_sq_scratch"):
         g[name] = nb.njit(inline="always", **opts)(g[name])
     # called from parallel loops, each compiled on its own (numba's inliner takes no functions
-    # with as many arguments as the _sq_ pair)
-    for name in ("_sq_block", "_sq_keep", "_band", "_bin_sq", "_chunk_sq"):
+    # with as many arguments as _sq_block)
+    for name in ("_sq_block", "_band", "_bin_sq", "_chunk_sq"):
         g[name] = nb.njit(**opts)(g[name])
     out = {}
     for name in ("_raster", "_select", "_thin", "_cap", "_resolve", "_edl", "_bin", "_bands",
