@@ -127,10 +127,12 @@ class CpuComputeRenderer(Renderer):
         self._lut = np.ascontiguousarray(colormap.lut(cfg.colormap)).view(np.uint32).reshape(256)
         self._img = np.empty((H, W), np.uint32)
         self._img[:] = self._bg
+        self._shown = self._tiles(W, H)  # tiles of the image that may hold more than background
         self._last_ring = (0, 1)  # head, capacity of the last frame (slots from its keys)
         self._edl = edl_offsets(cfg.edl.radius_px).astype(np.int64) if cfg.edl.enabled else None
         self._logz = np.zeros(H * W if self._edl is not None else 1, np.float64)
         self._keys = np.empty((0, H * W), np.uint64)
+        self._marks = np.ones((0, 1), np.uint8)  # per key buffer, the tiles it may hold keys in
         #: how the threads share the work: bins (records sorted by screen band, then each band
         #: keyed and resolved by one thread), points (one key buffer per thread, merged in the
         #: resolve), bands (one key buffer, every thread runs every point and writes its rows),
@@ -264,14 +266,24 @@ class CpuComputeRenderer(Renderer):
             return ranked[1 + (self._tune_n // RETRY_EVERY) % (len(ranked) - 1)]
         return ranked[0]
 
+    @staticmethod
+    def _tiles(W: int, H: int) -> np.ndarray:
+        """A flag per tile of a W x H target (cpu_kernels.TILE_XS/TILE_YS), all set."""
+        TW, TH = cpu_kernels.tile_grid(W, H)
+        return np.ones(TW * TH, np.uint8)
+
     def _buffers(self, threads: Optional[int] = None) -> np.ndarray:
-        """The key buffers for this frame's thread count: one (bands) or one per thread."""
+        """The key buffers for this frame's thread count: one (bands) or one per thread, with
+        their tile marks (a row per thread numba may run: the bands split's threads mark rows
+        that are not buffers; new buffers are marked whole, so their first frame clears them)."""
         self.threads = T = max(1, int(self._k_numba().get_num_threads())) if threads is None else threads
         nb = 1 if self.bands else T
         # grown, never shrunk: a frame at another thread count takes the first rows (reallocating
         # here cost page faults over every buffer each time the count changed)
         if self._keys.base is None or self._keys.base.shape[0] < nb or self._keys.shape[1] != self.width * self.height:
             self._keys = np.empty((max(nb, self._keys.shape[0]), self.width * self.height), np.uint64)[:nb]
+            rows = max(self._keys.base.shape[0], int(cpu_kernels.numba.config.NUMBA_NUM_THREADS))
+            self._marks = np.ones((rows, self._tiles(self.width, self.height).shape[0]), np.uint8)
         else:
             self._keys = self._keys.base[:nb]
         return self._keys
@@ -296,14 +308,18 @@ class CpuComputeRenderer(Renderer):
             one = np.zeros((1, 3))  # the batch bounds (culling: not reached by the frames above)
             self._k.batch_stats(np.zeros(1, np.int64), BIN_CHUNK, cap, f.positions, np.zeros(1), np.zeros(1, np.float32),
                                 cpu_kernels.C_SINGLE, one, one.copy(), np.zeros(1, np.int64), np.zeros(1), np.zeros(1))
-            # the one-thread scalar resolve (not reached by the frame above)
+            # the one-thread resolve (not reached by the frames above, drawn with every thread)
             empty = np.full((1, self.width * self.height), cpu_kernels.EMPTY, np.uint64)
-            self._k.resolve_scalar_1(empty, self._img, 0, cap, self._single, self._bg,
-                                     np.zeros(cap, np.float32), np.float32(0), np.float32(1), False, self._lut)
+            self._k.resolve_1(empty, self._tiles(self.width, self.height)[None], self._shown, self._img, self._logz,
+                              self._edl is not None, np.eye(4), 0, cap, cpu_kernels.C_SCALAR, self._single, self._bg,
+                              self._rgb, f.positions, np.zeros(cap), np.zeros(cap, np.float32), np.float32(0),
+                              np.float32(1), False, self._lut)
         finally:
             self._cap, self._pos, self._t, self._imp, self._cval, self._rgb, self._origin, self.split_mode = saved
             self._img[:] = self._bg
+            self._shown[:] = 1
             self._keys[:] = cpu_kernels.EMPTY
+            self._marks[:] = 0
             self._bins, self._drew = _Bins(), False
             self._synced_mode = None
             self.frames = 0
@@ -496,11 +512,13 @@ class CpuComputeRenderer(Renderer):
                                round_, has_window, now, window, lod, has_imp, imp_deg, imp_lo, imp_scale, seed_h,
                                range_mode, eps_s)
             else:
-                k.raster(keys, T, C, self.bands, st, vr, mask, use_mask, self._pos, self._t, self._imp, self._cval,
+                k.raster(keys, self._marks, T, C, self.bands, st, vr, mask, use_mask, self._pos, self._t, self._imp, self._cval,
                          head, size, cap, W, H, vp, planes, half, world, size_scale, round_, has_window, now, window,
                          lod, has_imp, imp_deg, imp_lo, imp_scale, seed_h, range_mode, eps_s)
         finally:
             nb.set_parallel_chunksize(prev)
+        if self.bands:  # one buffer, written by every thread: the resolve reads all of it
+            self._marks[0] = 1
         t3 = time.perf_counter()
         drawn = int(st[:, cpu_kernels.ST_DRAWN].sum())
         if use_mask:
@@ -525,13 +543,19 @@ class CpuComputeRenderer(Renderer):
                         self._pos, self._t, self._cval, lo32, scale32, degenerate, self._lut)
             finally:
                 nb.set_parallel_chunksize(prev)
-        elif cmode == cpu_kernels.C_SCALAR and self._edl is None and T == 1:  # the same rule, serial build
-            k.resolve_scalar_1(keys, self._img, head, cap, self._single, self._bg, self._cval, lo32, scale32,
-                               degenerate, self._lut)
+            self._shown[:] = 1  # every pixel written
+        elif T == 1:  # the same rule; one thread: the serial build
+            k.resolve_1(keys, self._marks, self._shown, self._img, self._logz, self._edl is not None, vp, head, cap,
+                        cmode, self._single, self._bg, self._rgb, self._pos, self._t, self._cval, lo32, scale32,
+                        degenerate, self._lut)
         else:
-            k.resolve(keys, self._img, self._logz, self._edl is not None, vp, head, cap, cmode,
-                      self._single, self._bg, self._rgb, self._pos, self._t, self._cval, lo32, scale32, degenerate,
-                      self._lut)
+            prev = nb.set_parallel_chunksize(1)  # rows of tiles as threads come free: the drawn ones cluster
+            try:
+                k.resolve(keys, self._marks, self._shown, self._img, self._logz, self._edl is not None, vp, head, cap,
+                          cmode, self._single, self._bg, self._rgb, self._pos, self._t, self._cval, lo32, scale32,
+                          degenerate, self._lut)
+            finally:
+                nb.set_parallel_chunksize(prev)
         t4 = time.perf_counter()
         if self._edl is not None:
             k.edl(self._logz, self._img, self._edl, -EDL_SCALE * float(cfg.edl.strength))
@@ -558,14 +582,17 @@ class CpuComputeRenderer(Renderer):
         targets = self.__dict__.setdefault("_targets", {})
         # the binned records are one buffer for every size (they scale with the ring, not the
         # view): a size whose last frame was binned answers picks again once it has drawn
-        targets[(self.width, self.height)] = (self._img, self._logz, self._keys, self._last_ring,
-                                              self._drew and self.split != "bins", self.split)
+        targets[(self.width, self.height)] = (self._img, self._shown, self._logz, self._keys, self._marks,
+                                              self._last_ring, self._drew and self.split != "bins", self.split)
         if size in targets:
-            self._img, self._logz, self._keys, self._last_ring, self._drew, self.split = targets[size]
+            (self._img, self._shown, self._logz, self._keys, self._marks, self._last_ring, self._drew,
+             self.split) = targets[size]
         else:
             W, H = size
             self._img = np.empty((H, W), np.uint32)
             self._img[:] = self._bg
+            self._shown = self._tiles(W, H)
+            self._marks = np.ones((0, 1), np.uint8)
             self._logz = np.zeros(H * W if self._edl is not None else 1, np.float64)
             self._keys, self._last_ring = np.empty((0, H * W), np.uint64), (0, 1)
             self._drew = False

@@ -147,9 +147,47 @@ def _store_box(kb, key, i, dx, dy, W):
                 kb[row + xx] = min(key, kb[row + xx])
 
 
-def _splat(kb, logical, cx, cy, w, W, H, half_px, world, size_scale, round_, ylo, yhi):
+#: the points split's key buffers in tiles of 2^TILE_XS x 2^TILE_YS pixels: each thread marks the
+#: tiles it writes, so the clear and the resolve touch only those (a view whose points cover a
+#: tenth of the screen clears and merges a tenth of the buffers: the full passes did not scale
+#: with threads, T buffers of 8 bytes a pixel through memory)
+TILE_XS = 5
+TILE_YS = 4
+
+
+def tile_grid(W, H):
+    """(columns, rows) of tiles over a W x H target."""
+    return (W + (1 << TILE_XS) - 1) >> TILE_XS, (H + (1 << TILE_YS) - 1) >> TILE_YS
+
+
+def _tile_on(tm, ty, tx, TW):
+    """Whether a buffer whose marks are ``tm`` may hold keys in tile (ty, tx): its own mark or
+    the mark of the tile left, above or above-left of it (the hot loop marks a 2x2 box by the
+    tile of its first pixel only; it reaches one tile right and down at most)."""
+    i = ty * TW + tx
+    if tm[i] != 0:
+        return True
+    if tx > 0 and tm[i - 1] != 0:
+        return True
+    if ty > 0:
+        if tm[i - TW] != 0:
+            return True
+        if tx > 0 and tm[i - TW - 1] != 0:
+            return True
+    return False
+
+
+def _mark_box(tm, x0, y0, x1, y1, TW):
+    """Mark every tile of the (non-empty) box [x0, x1) x [y0, y1)."""
+    for ty in range(y0 >> TILE_YS, ((y1 - 1) >> TILE_YS) + 1):
+        for tx in range(x0 >> TILE_XS, ((x1 - 1) >> TILE_XS) + 1):
+            tm[ty * TW + tx] = 1
+
+
+def _splat(kb, tm, TW, logical, cx, cy, w, W, H, half_px, world, size_scale, round_, ylo, yhi):
     """Write the point's key into every pixel of its footprint (rules.footprint_box) within
-    rows [ylo, yhi) (a thread's band of the screen); (cx, cy, w) its clip coordinates."""
+    rows [ylo, yhi) (a thread's band of the screen) and mark its tiles in ``tm``; (cx, cy, w)
+    its clip coordinates."""
     px = (cx / w * 0.5 + 0.5) * W
     py = (0.5 - cy / w * 0.5) * H
     half = half_px
@@ -176,6 +214,7 @@ def _splat(kb, logical, cx, cy, w, W, H, half_px, world, size_scale, round_, ylo
         y1 = yhi
     if x1 <= x0 or y1 <= y0:
         return
+    _mark_box(tm, x0, y0, x1, y1, TW)
     wf = np.float32(w)
     if wf < _F0:
         wf = _F0
@@ -296,13 +335,14 @@ def _grow_range(range_mode, slot, pos, tms, cval, vmin, vmax):
     return vmin, vmax
 
 
-def _chunk_sq(kb, a, b, head, cap, pos, tms, cval, vp, planes, eps_s, W, H, half, range_mode, ylo, yhi):
+def _chunk_sq(kb, tm, a, b, head, cap, pos, tms, cval, vp, planes, eps_s, W, H, half, range_mode, ylo, yhi):
     """:func:`_raster`'s loop over logical [a, b) when no per-point test but the finite and
     frustum ones applies and the footprint is a screen-space square: the same decisions,
     bounds and keys, the arithmetic in blocks of :data:`SQ_BLOCK` points vectorised
     (:func:`_sq_block`: 0.56 of the scalar loop's time at 1M, one thread), then per point
-    the branches and :func:`_splat`'s square stores. Returns (occupied, non-finite, kept,
-    vmin, vmax)."""
+    the branches and :func:`_splat`'s square stores, each box's tiles marked in ``tm`` (a 2x2
+    box by its first pixel's: :func:`_tile_on`). Returns (occupied, non-finite, kept, vmin,
+    vmax)."""
     v00, v01, v02, v03 = vp[0, 0], vp[0, 1], vp[0, 2], vp[0, 3]
     v10, v11, v12, v13 = vp[1, 0], vp[1, 1], vp[1, 2], vp[1, 3]
     v20, v21, v22, v23 = vp[2, 0], vp[2, 1], vp[2, 2], vp[2, 3]
@@ -314,6 +354,7 @@ def _chunk_sq(kb, a, b, head, cap, pos, tms, cval, vp, planes, eps_s, W, H, half
     vmin = np.inf
     vmax = -np.inf
     rows = ylo > 0 or yhi < H
+    TW = (W + (1 << TILE_XS) - 1) >> TILE_XS
     X, Y, Z, code, bx0, by0, bx1, by1, bkey, bi = _sq_scratch()
     for seg in range(2):  # the ring's two runs of slots: no wrap test per point
         if seg == 0:
@@ -335,6 +376,7 @@ def _chunk_sq(kb, a, b, head, cap, pos, tms, cval, vp, planes, eps_s, W, H, half
                     kb[i + 1] = min(key, kb[i + 1])
                     kb[i + W] = min(key, kb[i + W])
                     kb[i + W + 1] = min(key, kb[i + W + 1])
+                    tm[(by0[k] >> TILE_YS) * TW + (bx0[k] >> TILE_XS)] = 1
                     continue
                 if c == SQ_BAD:
                     n_bad += 1
@@ -353,28 +395,45 @@ def _chunk_sq(kb, a, b, head, cap, pos, tms, cval, vp, planes, eps_s, W, H, half
                         y0 = ylo
                     if y1 > yhi:
                         y1 = yhi
+                if x1 > x0 and y1 > y0:
+                    _mark_box(tm, x0, y0, x1, y1, TW)
                 _store_box(kb, bkey[k], y0 * W + x0, x1 - x0, y1 - y0, W)
     return b - a, n_bad, n_keep, vmin, vmax
 
 
-def _raster(keys, T, C, bands, st, vrange, mask, use_mask, pos, tms, imp, cval, head, size, cap, W, H, vp, planes,
+def _raster(keys, marks, T, C, bands, st, vrange, mask, use_mask, pos, tms, imp, cval, head, size, cap, W, H, vp, planes,
             half_px, world, size_scale, round_, has_window, now_ms, window_ms, lod, has_imp, imp_degenerate,
             imp_lo, imp_scale, seed_h, range_mode, eps_s):
     """T threads. ``bands`` (C = T): one key buffer, thread c owns rows [H c/T, H (c+1)/T),
     clears them and runs every point (counting only in thread 0). Else one key buffer per
-    thread, cleared first, and C chunks of logical indices handed out as threads come free
-    (the caller sets a parallel chunk size of 1: a thread slowed by other work takes fewer
-    chunks), each written into the buffer of the thread that runs it. Tests + splat (or
-    splat the points ``mask`` keeps when ``use_mask``: the budget's passes did the tests).
-    Counters per chunk in ``st``; the auto colour range in ``vrange``."""
+    thread, and C chunks of logical indices handed out as threads come free (the caller sets
+    a parallel chunk size of 1: a thread slowed by other work takes fewer chunks), each
+    written into the buffer of the thread that runs it, which marks the tiles it writes in
+    its row of ``marks``; a buffer's tiles its last frame marked (:func:`_tile_on`) are
+    cleared first. Tests + splat (or splat the points ``mask`` keeps when ``use_mask``: the
+    budget's passes did the tests). Counters per chunk in ``st``; the auto colour range in
+    ``vrange``."""
     lean = not use_mask and not world and not round_ and not has_window and lod <= 1 and not has_imp
+    TW = (W + (1 << TILE_XS) - 1) >> TILE_XS
+    TH = (H + (1 << TILE_YS) - 1) >> TILE_YS
     if not bands:
-        for r in numba.prange(T * H):
-            t = r // H
-            y = r - t * H
-            for i in range(y * W, (y + 1) * W):
-                keys[t, i] = EMPTY
+        for r in numba.prange(T * TH):
+            t = r // TH
+            ty = r - t * TH
+            tm = marks[t]
+            ya = ty << TILE_YS
+            yb = min(ya + (1 << TILE_YS), H)
+            for tx in range(TW):
+                if _tile_on(tm, ty, tx, TW):
+                    xa = tx << TILE_XS
+                    xb = min(xa + (1 << TILE_XS), W)
+                    for y in range(ya, yb):
+                        for i in range(y * W + xa, y * W + xb):
+                            keys[t, i] = EMPTY
+        for t in numba.prange(T):
+            marks[t, :] = 0
     for c in numba.prange(C):
+        tm = marks[numba.get_thread_id()]
         if bands:
             kb = keys[0]
             ylo = H * c // T
@@ -396,7 +455,7 @@ def _raster(keys, T, C, bands, st, vrange, mask, use_mask, pos, tms, imp, cval, 
         vmin = np.inf
         vmax = -np.inf
         if lean:
-            n_occ, n_bad, n_keep, vmin, vmax = _chunk_sq(kb, a, b, head, cap, pos, tms, cval, vp, planes, eps_s, W, H,
+            n_occ, n_bad, n_keep, vmin, vmax = _chunk_sq(kb, tm, a, b, head, cap, pos, tms, cval, vp, planes, eps_s, W, H,
                                                          half_px, range_mode, ylo, yhi)
             n_drawn = n_keep
             a = b  # done: skip the general loop
@@ -431,7 +490,7 @@ def _raster(keys, T, C, bands, st, vrange, mask, use_mask, pos, tms, imp, cval, 
                              imp_lo, imp_scale, seed_h):
                     continue
                 n_keep += 1
-            _splat(kb, logical, cx, cy, w, W, H, half_px, world, size_scale, round_, ylo, yhi)
+            _splat(kb, tm, TW, logical, cx, cy, w, W, H, half_px, world, size_scale, round_, ylo, yhi)
             n_drawn += 1
         if bands and c != 0:  # every band saw every point: count once
             n_occ = n_bad = n_keep = n_drawn = 0
@@ -523,40 +582,67 @@ def _cap(mask, base, size, T, budget):
                 run += 1
 
 
-def _resolve(keys, img, logz, edl, vp, head, cap, cmode, single, bg, rgbp, pos, tms, cval, lo, scale, degenerate,
-             lut):
-    """Per pixel: the smallest key over the buffers -> the winner's colour (or the
-    background); with EDL, log2 of the winner's linear depth (clip w, float64 as the
-    reference), +inf on the background. (Picking reads the keys themselves.)"""
+def _resolve_row(keys, marks, drawn, ty, W, H, fl, logz, edl, vp, head, cap, cmode, single, bg, rgbp, pos, tms, cval,
+                 lo, scale, degenerate, lut):
+    """A row of tiles of :func:`_resolve`. Per tile the buffers that may hold keys there
+    (:func:`_tile_on`); none: the tile is background, written only if it was drawn last frame
+    (``drawn``); else per pixel the smallest key over those buffers (the others are empty
+    there: the same minimum) -> the winner's colour (or the background); with EDL, log2 of
+    the winner's linear depth (clip w, float64 as the reference), +inf on the background."""
     T = keys.shape[0]
-    H = img.shape[0]
-    W = img.shape[1]
-    for y in numba.prange(H):
-        for x in range(W):
-            i = y * W + x
-            k = keys[0, i]
-            for c in range(1, T):
-                k2 = keys[c, i]
-                if k2 < k:
-                    k = k2
-            if k == EMPTY:
-                img[y, x] = bg
+    TW = (W + (1 << TILE_XS) - 1) >> TILE_XS
+    ya = ty << TILE_YS
+    yb = min(ya + (1 << TILE_YS), H)
+    for tx in range(TW):
+        xa = tx << TILE_XS
+        xb = min(xa + (1 << TILE_XS), W)
+        c0 = -1
+        c1 = -1
+        n_on = 0
+        for c in range(T):
+            if _tile_on(marks[c], ty, tx, TW):
+                if n_on == 0:
+                    c0 = c
+                elif n_on == 1:
+                    c1 = c
+                n_on += 1
+        ti = ty * TW + tx
+        if n_on == 0:
+            if drawn[ti] != 0:
+                for y in range(ya, yb):
+                    for i in range(y * W + xa, y * W + xb):
+                        fl[i] = bg
+                        if edl:
+                            logz[i] = np.inf
+                drawn[ti] = 0
+            continue
+        drawn[ti] = 1
+        for y in range(ya, yb):
+            for i in range(y * W + xa, y * W + xb):  # the pixel's code written out here: a
+                k = keys[c0, i]                       # function taking arrays cost ~40 ns a call
+                if n_on == 2:
+                    k = min(k, keys[c1, i])
+                elif n_on > 2:
+                    for c in range(c1, T):
+                        k = min(k, keys[c, i])
+                if k == EMPTY:
+                    fl[i] = bg
+                    if edl:
+                        logz[i] = np.inf
+                    continue
+                slot = head + np.int64(k & _M32)
+                if slot >= cap:
+                    slot -= cap
                 if edl:
-                    logz[i] = np.inf
-                continue
-            logical = np.int64(k & _M32)
-            slot = head + logical
-            if slot >= cap:
-                slot -= cap
-            if edl:
-                w = (vp[3, 0] * np.float64(pos[slot, 0]) + vp[3, 1] * np.float64(pos[slot, 1])
-                     + vp[3, 2] * np.float64(pos[slot, 2]) + vp[3, 3])
-                logz[i] = np.log2(w)
-            if cmode == C_SINGLE:
-                img[y, x] = single
-            elif cmode == C_RGB:
-                img[y, x] = rgbp[slot]
-            else:
+                    w = (vp[3, 0] * np.float64(pos[slot, 0]) + vp[3, 1] * np.float64(pos[slot, 1])
+                         + vp[3, 2] * np.float64(pos[slot, 2]) + vp[3, 3])
+                    logz[i] = np.log2(w)
+                if cmode == C_SINGLE:
+                    fl[i] = single
+                    continue
+                if cmode == C_RGB:
+                    fl[i] = rgbp[slot]
+                    continue
                 if cmode == C_Z:
                     v = pos[slot, 2]
                 elif cmode == C_TIME:
@@ -564,47 +650,27 @@ def _resolve(keys, img, logz, edl, vp, head, cap, cmode, single, bg, rgbp, pos, 
                 else:
                     v = cval[slot]
                 if not np.isfinite(v):
-                    img[y, x] = single
+                    fl[i] = single
                 elif degenerate:
-                    img[y, x] = lut[255]
+                    fl[i] = lut[255]
                 else:
                     t = (v - lo) * scale
                     t = min(max(t, _F0), _F1)
-                    img[y, x] = lut[int(np.floor(t * _F255 + _FH))]
+                    fl[i] = lut[int(np.floor(t * _F255 + _FH))]
 
 
-def _resolve_scalar(keys, img, head, cap, single, bg, cval, lo, scale, degenerate, lut):
-    """:func:`_resolve` for the commonest case, a colormap of a scalar channel without EDL:
-    the same per-pixel rule without the per-pixel mode and EDL branches, over flat rows.
-    Compiled without ``parallel`` (``resolve_scalar_1``) for frames drawn with one thread:
-    measured 0.47 of the parallel resolve's time there (the parallel build of this loop is
-    no faster than :func:`_resolve`'s)."""
-    T = keys.shape[0]
+def _resolve(keys, marks, drawn, img, logz, edl, vp, head, cap, cmode, single, bg, rgbp, pos, tms, cval, lo, scale,
+             degenerate, lut):
+    """The image from the key buffers (:func:`_resolve_row` per row of tiles; picking reads
+    the keys themselves). Compiled without ``parallel`` as ``resolve_1`` too, for frames
+    drawn with one thread (the parallel build's overhead is not repaid there)."""
     H = img.shape[0]
     W = img.shape[1]
     fl = img.reshape(H * W)
-    for y in numba.prange(H):
-        for i in range(y * W, (y + 1) * W):
-            k = keys[0, i]
-            for c in range(1, T):
-                k2 = keys[c, i]
-                if k2 < k:
-                    k = k2
-            if k == EMPTY:
-                fl[i] = bg
-                continue
-            slot = head + np.int64(k & _M32)
-            if slot >= cap:
-                slot -= cap
-            v = cval[slot]
-            if not np.isfinite(v):
-                fl[i] = single
-            elif degenerate:
-                fl[i] = lut[255]
-            else:
-                t = (v - lo) * scale
-                t = min(max(t, _F0), _F1)
-                fl[i] = lut[int(np.floor(t * _F255 + _FH))]
+    TH = (H + (1 << TILE_YS) - 1) >> TILE_YS
+    for ty in numba.prange(TH):
+        _resolve_row(keys, marks, drawn, ty, W, H, fl, logz, edl, vp, head, cap, cmode, single, bg, rgbp, pos, tms,
+                     cval, lo, scale, degenerate, lut)
 
 
 def _edl(logz, img, offsets, k_shade):
@@ -1102,24 +1168,25 @@ def _compile(cache: bool) -> Kernels:
     from numba.extending import intrinsic
     g["_f32_bits"] = intrinsic(_F32_BITS_PY)
     for name in ("_pcg", "_u01", "_colour_value", "_frustum", "_test", "_store_box", "_splat", "_box_pack",
+                 "_tile_on", "_mark_box",
                  "_band_splat", "_band_splat_sq", "_band_fill", "_sq_keep", "_grow_range",
                  "_sq_scratch"):
         g[name] = nb.njit(inline="always", **opts)(g[name])
     # called from parallel loops, each compiled on its own (numba's inliner takes no functions
     # with as many arguments as _sq_block)
-    for name in ("_sq_block", "_band", "_bin_sq", "_chunk_sq"):
+    for name in ("_sq_block", "_band", "_bin_sq", "_chunk_sq", "_resolve_row"):
         g[name] = nb.njit(**opts)(g[name])
     out = {}
     for name in ("_raster", "_select", "_thin", "_cap", "_resolve", "_edl", "_bin", "_bands",
                  "_batch_stats"):
         out[name[1:]] = nb.njit(parallel=True, **opts)(g[name])
-    out["resolve_scalar_1"] = nb.njit(**opts)(g["_resolve_scalar"])  # one thread: prange runs as range
+    out["resolve_1"] = nb.njit(**opts)(g["_resolve"])  # one thread: prange runs as range
     out["keys_rows"] = nb.njit(**opts)(g["_keys_rows"])
     return Kernels(**out)
 
 
 #: the loops a render stage runs: all cached = ready
-REQUIRED = ("raster", "select", "thin", "cap", "resolve", "edl", "resolve_scalar_1", "bin", "bands", "batch_stats",
+REQUIRED = ("raster", "select", "thin", "cap", "resolve", "edl", "resolve_1", "bin", "bands", "batch_stats",
             "keys_rows")
 
 

@@ -225,3 +225,88 @@ def test_auto_times_both_splits_at_both_thread_counts_and_keeps_the_image(monkey
     picks = [r._pick(frame.size) for _ in range(3 * cc.RETRY_EVERY)]
     assert picks.count(("bins", 2)) == 3 * cc.RETRY_EVERY - 3
     assert sorted(p for p in picks if p != ("bins", 2)) == sorted(first[1:])  # each other one re-tried
+
+
+def _sparse():
+    """A few hundred points: most tiles a box reaches from the next tile are not marked."""
+    w = terrain(600, seed=5)
+    return make_frame(w, intensity=((w[:, 2] + 3) / 14).astype(np.float32)), terrain_camera(), dict(point_size=2)
+
+
+@pytest.mark.parametrize("name,edl,fixed", [("terrain", False, False), ("terrain", True, True),
+                                            ("sparse", False, True), ("world_rgb_filters", True, False)])
+def test_tiles_written_last_frame_are_cleared_whatever_comes_next(monkeypatch, name, edl, fixed):
+    """The points split clears and resolves only the tiles its buffers marked: one renderer
+    drawing a camera that zooms in, pans away and back, at 2, 1 and 2 threads, after a frame of
+    the bins and of the bands split, on a size the tiles do not divide, draws every frame as a
+    fresh renderer does (image and winners), EDL on or off; a fixed colour range takes the
+    lean loop's 2x2 path (a box marked by its first pixel's tile only), an automatic one and
+    round world-size points the general one."""
+    frame, cam, kw = _sparse() if name == "sparse" else SCENES[name]()
+    if fixed:
+        kw = dict(kw, color_range=[-3.0, 11.0])
+    cfg = render_cfg(size=[331, 243], edl=EdlConfig(enabled=edl), **kw)
+    got = renderer(monkeypatch, "points", cfg, frame)
+    eye, target = np.asarray(cam.eye, float), np.asarray(cam.target, float)
+    cams = [cam, Camera(eye=list(target + (eye - target) * 0.4), target=list(target), near=cam.near, far=cam.far),
+            Camera(eye=list(eye + [40.0, 0, 0]), target=list(target + [40.0, 0, 0]), near=cam.near, far=cam.far),
+            cam, Camera(eye=list(target + (eye - target) * 0.6), target=list(target + [3.0, 2.0, 0]),
+                        near=cam.near, far=cam.far)]
+    most = max(2, min(4, numba.config.NUMBA_NUM_THREADS))
+    plan = [("points", most), ("points", 1), ("bins", most), ("points", most), ("bands", most), ("points", 1),
+            ("points", most)]
+    for k, (split, t) in enumerate(plan):
+        c = cams[k % len(cams)]
+        numba.set_num_threads(min(t, numba.config.NUMBA_NUM_THREADS))
+        got.split_mode, got.bands = split, split == "bands"
+        frame.dirty = None if k == 0 else []
+        img, st = draw(got, frame, c)
+        fresh = renderer(monkeypatch, split, cfg, frame)
+        frame.dirty = None
+        want, _ = draw(fresh, frame, c)
+        assert np.array_equal(img, want), f"frame {k} ({split}, {t} threads)"
+        assert np.array_equal(got.winners(), fresh.winners()), f"frame {k}"
+        assert st.drawn > 0
+
+
+@pytest.mark.parametrize("point_size", [2, 37])
+def test_boxes_that_reach_into_the_next_tile_are_drawn_and_cleared(monkeypatch, point_size):
+    """Points alone in their tile whose box reaches one pixel into the tile right of, below,
+    or below-right of it (a 2x2 box is marked by its first pixel's tile only; a 37x37 one by every
+    tile it covers): drawn as the bands split draws them (one buffer, read whole), then cleared
+    when the ring moves them."""
+    from pointflow.render import cpu_kernels as ck
+    W, H = 8 * (1 << ck.TILE_XS) + 5, 6 * (1 << ck.TILE_YS) + 3
+    cam = Camera(eye=[0, -20, 5], target=[0, 0, 0], near=1, far=100)
+    inv = np.linalg.inv(cam.view_proj(W, H, np.zeros(3)))
+    tx, ty = 1 << ck.TILE_XS, 1 << ck.TILE_YS
+    px = []
+    for j in range(0, 6, 2):
+        for i in range(0, 8, 2):
+            kind = (i // 2 + j // 2) % 3  # right, below, below-right
+            x = i * tx + (tx - 0.1 if kind != 1 else 7.5)
+            y = j * ty + (ty - 0.1 if kind != 0 else 5.5)
+            px.append((x, y))
+    px = np.array(px)
+    ndc = np.c_[px[:, 0] / W * 2 - 1, 1 - px[:, 1] / H * 2, np.full(len(px), 0.9), np.ones(len(px))]
+    world = ndc @ inv.T
+    world = (world[:, :3] / world[:, 3:]).astype(np.float32)
+    cap = len(world)
+    pos = world.copy()
+    inten = np.linspace(0, 1, cap, dtype=np.float32)
+    f = FrameInput(positions=pos, importance=np.zeros(cap, np.float32), t_ingest_ms=np.zeros(cap),
+                   channels={"intensity": inten}, head=0, size=cap, capacity=cap, origin=np.zeros(3), now_ms=0.0)
+    cfg = render_cfg(size=[W, H], point_size=point_size, color_range=[0.0, 1.0])
+    numba.set_num_threads(1)
+    got = renderer(monkeypatch, "points", cfg, f)
+    ref = renderer(monkeypatch, "bands", cfg, f)
+    for k in range(3):
+        if k == 1:
+            pos[:] = world + np.float32(0.35)  # every point moves: last frame's tiles must be cleared
+        if k == 2:
+            pos[:] = world
+        f.dirty = None if k == 0 else [(0, cap)]
+        img, st = draw(got, f, cam)
+        want, _ = draw(ref, f, cam)
+        assert st.drawn == cap
+        assert np.array_equal(img, want), f"frame {k}"

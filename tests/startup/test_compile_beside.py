@@ -99,7 +99,9 @@ def _draw_then_switch(tmp: Path, tag: str) -> dict:
     p.start()
     try:
         p.send(pos, intensity=inten)
-        r = _wait(p, lambda r: r.get("frames", 0) >= 1, 120, "a first frame")
+        # a frame of the whole cloud (one drawn while ingest was still writing it is a part)
+        r = _wait(p, lambda r: r.get("frames", 0) >= 1 and r.get("drawn_count", 0) >= len(pos), 120,
+                  "a first frame of the whole cloud")
         assert r["raster"] in ("compiling", "compiled"), r["raster"]
         meanwhile = _saved(p, tmp / f"{tag}-meanwhile.png")
         if _render(p)["raster"] == "compiling":  # still the reference's picture
@@ -207,7 +209,9 @@ def test_a_cache_numba_cannot_write_is_said_once_and_the_reference_draws(tmp_pat
     p.start()
     try:
         p.send(pos, intensity=inten)
-        r = _wait(p, lambda r: r.get("frames", 0) >= 1, 120, "a first frame")
+        # a frame of the whole cloud (one drawn while ingest was still writing it is a part)
+        r = _wait(p, lambda r: r.get("frames", 0) >= 1 and r.get("drawn_count", 0) >= len(pos), 120,
+                  "a first frame of the whole cloud")
         assert r["raster"] == "reference" and "raster_compiler_pid" not in r and r["raster_meanwhile"] is None
         assert _diff(_saved(p, tmp_path / "ref.png"), want) <= BOUND
         at = r["frames"]
