@@ -77,11 +77,7 @@ class Camera:
     def frustum_planes(self, width: int, height: int, origin=None) -> np.ndarray:
         """(6, 4) float64 planes (left, right, bottom, top, near, far), normalised, in
         origin-relative coordinates; derived from the matrix (Gribb-Hartmann, z in [0, 1])."""
-        m = self.view_proj(width, height, origin)
-        r0, r1, r2, r3 = m
-        planes = np.array([r3 + r0, r3 - r0, r3 + r1, r3 - r1, r2, r3 - r2])
-        planes /= np.linalg.norm(planes[:, :3], axis=1, keepdims=True)
-        return planes
+        return planes_of(self.view_proj(width, height, origin))
 
     def translated(self, offset) -> "Camera":
         o = np.asarray(offset, np.float64)
@@ -249,3 +245,11 @@ def _rotate(v: np.ndarray, axis: np.ndarray, angle: float) -> np.ndarray:
     """Rodrigues rotation of v about a unit axis."""
     k = axis / (np.linalg.norm(axis) or 1.0)
     return v * math.cos(angle) + np.cross(k, v) * math.sin(angle) + k * np.dot(k, v) * (1 - math.cos(angle))
+
+
+def planes_of(m: np.ndarray) -> np.ndarray:
+    """:meth:`Camera.frustum_planes` of a view-projection matrix already at hand."""
+    r0, r1, r2, r3 = np.asarray(m, np.float64)
+    planes = np.array([r3 + r0, r3 - r0, r3 + r1, r3 - r1, r2, r3 - r2])
+    planes /= np.linalg.norm(planes[:, :3], axis=1, keepdims=True)
+    return planes

@@ -34,7 +34,7 @@ from .config import RenderConfig
 from . import colormap, cpu_kernels
 from .base import FrameInput, FrameStats, Renderer, RenderError, merge_ranges
 from .batches import BATCH_SLOTS, boxes_outside, culling_enabled
-from .camera import Camera
+from .camera import Camera, planes_of
 from .rules import (EDL_SCALE, budget_fraction, budget_seed, check_frame, edl_offsets, in_pick_circle, pick_window,
                     resolve_pick, rgba_u8, seed_hash)
 
@@ -440,7 +440,7 @@ class CpuComputeRenderer(Renderer):
         head = int(frame.head)
         origin = np.asarray(frame.origin, np.float64)
         vp = np.ascontiguousarray(camera.view_proj(W, H, origin), np.float64)
-        planes = np.ascontiguousarray(camera.frustum_planes(W, H, origin), np.float64).reshape(6, 4)
+        planes = np.ascontiguousarray(planes_of(vp), np.float64).reshape(6, 4)  # frustum_planes, one matrix
         # clip-space frustum decisions need a margin far above float64 rounding of a dot
         # product with these coefficients (|error| <= ~4e-16 * sum |terms|); the planes decide
         # the points inside the margin (cpu_kernels._frustum)

@@ -327,11 +327,24 @@ def _sq_keep(c, x, y, z, vp, planes, eps_s):
     return _frustum(x, y, z, cx, cy, cz, w, planes, eps_s * (abs(x) + abs(y) + abs(z) + 1.0))
 
 
-def _grow_range(range_mode, slot, pos, tms, cval, vmin, vmax):
-    """The automatic colour range grown by one point's value (non-finite values leave it)."""
-    v = _colour_value(range_mode, slot, pos, tms, cval)
-    if np.isfinite(v):
-        return min(vmin, v), max(vmax, v)
+def _block_range(range_mode, code, Z, base, n, tms, cval, vmin, vmax):
+    """The automatic colour range grown by the values of a block's finite points (non-finite
+    values leave it), in loops of their own, point by point in the same order as before: the
+    lean loops then take their fast path whatever the colour range mode."""
+    if range_mode == C_Z:
+        for k in range(n):
+            if code[k] != SQ_BAD:
+                vmin = min(vmin, Z[k])
+                vmax = max(vmax, Z[k])
+    elif range_mode != 0:
+        for k in range(n):
+            if range_mode == C_TIME:
+                v = np.float64(tms[base + k])
+            else:
+                v = np.float64(cval[base + k])
+            if code[k] != SQ_BAD and np.isfinite(v):
+                vmin = min(vmin, v)
+                vmax = max(vmax, v)
     return vmin, vmax
 
 
@@ -366,9 +379,10 @@ def _chunk_sq(kb, tm, a, b, head, cap, pos, tms, cval, vp, planes, eps_s, W, H, 
             base = s0 + off
             _sq_block(pos, base, s0, n, X, Y, Z, code, bx0, by0, bx1, by1, bkey, bi, W, v00, v01, v02, v03, v10, v11,
                       v12, v13, v20, v21, v22, v23, v30, v31, v32, v33, eps_s, half, Wf, Hf)
+            vmin, vmax = _block_range(range_mode, code, Z, base, n, tms, cval, vmin, vmax)
             for k in range(n):
                 c = code[k]
-                if c == SQ_IN2 and not rows and range_mode == 0:  # the common case: four stores
+                if c == SQ_IN2 and not rows:  # the common case: four stores
                     n_keep += 1
                     key = bkey[k]
                     i = bi[k]
@@ -381,8 +395,6 @@ def _chunk_sq(kb, tm, a, b, head, cap, pos, tms, cval, vp, planes, eps_s, W, H, 
                 if c == SQ_BAD:
                     n_bad += 1
                     continue
-                if range_mode != 0:
-                    vmin, vmax = _grow_range(range_mode, base + k, pos, tms, cval, vmin, vmax)
                 if not _sq_keep(c, X[k], Y[k], Z[k], vp, planes, eps_s):
                     continue
                 n_keep += 1
@@ -741,13 +753,12 @@ def _bin_sq(sk, sb, cnt, a, b, head, cap, pos, tms, cval, vp, planes, eps_s, W, 
             base = s0 + off
             _sq_block(pos, base, s0, n, X, Y, Z, code, bx0, by0, bx1, by1, bkey, bi, W, v00, v01, v02, v03, v10, v11,
                       v12, v13, v20, v21, v22, v23, v30, v31, v32, v33, eps_s, half, Wf, Hf)
+            vmin, vmax = _block_range(range_mode, code, Z, base, n, tms, cval, vmin, vmax)
             for k in range(n):
                 c = code[k]
                 if c == SQ_BAD:
                     n_bad += 1
                     continue
-                if range_mode != 0:
-                    vmin, vmax = _grow_range(range_mode, base + k, pos, tms, cval, vmin, vmax)
                 if not _sq_keep(c, X[k], Y[k], Z[k], vp, planes, eps_s):
                     continue
                 x0 = bx0[k]
@@ -1169,7 +1180,7 @@ def _compile(cache: bool) -> Kernels:
     g["_f32_bits"] = intrinsic(_F32_BITS_PY)
     for name in ("_pcg", "_u01", "_colour_value", "_frustum", "_test", "_store_box", "_splat", "_box_pack",
                  "_tile_on", "_mark_box",
-                 "_band_splat", "_band_splat_sq", "_band_fill", "_sq_keep", "_grow_range",
+                 "_band_splat", "_band_splat_sq", "_band_fill", "_sq_keep", "_block_range",
                  "_sq_scratch"):
         g[name] = nb.njit(inline="always", **opts)(g[name])
     # called from parallel loops, each compiled on its own (numba's inliner takes no functions
