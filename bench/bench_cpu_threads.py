@@ -7,6 +7,12 @@ squares, turbo by intensity, 1% of the ring rewritten per frame, output = read_i
 
     PYTHONPATH=$PWD .venv/bin/python bench/bench_cpu_threads.py --sizes 100000 1000000
     NUMBA_NUM_THREADS=4 PYTHONPATH=$PWD .venv/bin/python bench/bench_cpu_threads.py   # up to 4 threads
+    PYTHONPATH=$PWD .venv/bin/python bench/bench_cpu_threads.py --by-split   # one renderer's data warm
+
+Every pair interleaved (the default), each frame reads its renderer's ring copy and buffers back
+from memory (three renderers of 1M points do not fit the last-level cache); ``--by-split`` runs
+one split after the other, interleaving only the thread counts, as a render stage (one renderer)
+draws.
 
 ``--cull N`` instead: batch culling (issue 41) on a ring of N points, the whole ring in view
 against a view of about a tenth of it (the same ring, the camera fitted to a corner block of
@@ -46,7 +52,7 @@ from pointflow.config import RenderConfig
 SPLITS = ("auto", "bins", "points")
 
 
-def measure(sizes: list[int], rounds: int, splits: tuple[str, ...]) -> dict[str, Any]:
+def measure(sizes: list[int], rounds: int, splits: tuple[str, ...], by_split: bool = False) -> dict[str, Any]:
     import numba
 
     from pointflow.render.cpu_compute import CpuComputeRenderer
@@ -77,8 +83,13 @@ def measure(sizes: list[int], rounds: int, splits: tuple[str, ...]) -> dict[str,
             numba.set_num_threads(p[1])
             f.dirty = None
             rs[p[0]].render(f, cam)
-        for i in range(rounds):
-            for sp, t in pairs[i % len(pairs):] + pairs[:i % len(pairs)]:
+        if by_split:  # one split after the other, its thread counts interleaved (one renderer's data warm)
+            order = [[(sp, t) for t in (threads[i % len(threads):] + threads[:i % len(threads)])]
+                     for sp in splits for i in range(rounds)]
+        else:
+            order = [pairs[i % len(pairs):] + pairs[:i % len(pairs)] for i in range(rounds)]
+        for batch in order:
+            for sp, t in batch:
                 a, b = head, min(head + step, n)
                 head = b % n
                 f.dirty = [(a, b)]
@@ -92,6 +103,7 @@ def measure(sizes: list[int], rounds: int, splits: tuple[str, ...]) -> dict[str,
         numba.set_num_threads(most)
         imgs = {sp: r.read_image().tobytes() for sp, r in rs.items()}
         row: dict[str, Any] = {"points": n, "rounds": rounds, "threads": threads, "same_image": len(set(imgs.values())) == 1,
+                               "interleaved": "threads within a split" if by_split else "every (split, threads) pair",
                                "load_after": [round(x, 2) for x in os.getloadavg()], "splits": {}}
         for sp in splits:
             one = np.asarray(wall[(sp, 1)])
@@ -266,6 +278,10 @@ def main(argv: Optional[list[str]] = None) -> int:
     ap.add_argument("--sizes", type=int, nargs="*", default=[100_000, 1_000_000])
     ap.add_argument("--rounds", type=int, default=15, help="frames per (split, threads) pair, interleaved")
     ap.add_argument("--splits", default=",".join(SPLITS))
+    ap.add_argument("--by-split", action="store_true",
+                    help="one split after the other, only its thread counts interleaved: the data of one renderer "
+                         "stays in the caches, as in a render stage (default: every pair interleaved, each frame "
+                         "reading its renderer's data back from memory)")
     ap.add_argument("--out", default=None, help="default bench/results/cpu_threads.json (cpu_cull.json with --cull)")
     ap.add_argument("--cull", type=int, default=0, metavar="N", help="batch culling on a ring of N points instead")
     ap.add_argument("--tiers", default="cpu-compute",
@@ -278,7 +294,7 @@ def main(argv: Optional[list[str]] = None) -> int:
         _harness.write_result(a.out or _harness.RESULTS / name, cull(a.cull, a.rounds, tiers))
         return 0
     a.out = a.out or str(_harness.RESULTS / "cpu_threads.json")
-    res = measure(a.sizes, a.rounds, tuple(a.splits.split(",")))
+    res = measure(a.sizes, a.rounds, tuple(a.splits.split(",")), a.by_split)
     path = _harness.write_result(a.out, res)
     chart(res, path.with_suffix(".png"))
     return 0
