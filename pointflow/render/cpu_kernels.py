@@ -178,7 +178,12 @@ def _tile_on(tm, ty, tx, TW):
 
 
 def _mark_box(tm, x0, y0, x1, y1, TW):
-    """Mark every tile of the (non-empty) box [x0, x1) x [y0, y1)."""
+    """Mark the tiles of the (non-empty) box [x0, x1) x [y0, y1): the tile of its first pixel
+    when the box is no larger than a tile (it reaches one tile right and down at most:
+    :func:`_tile_on`), else every tile it covers."""
+    if x1 - x0 <= (1 << TILE_XS) and y1 - y0 <= (1 << TILE_YS):
+        tm[(y0 >> TILE_YS) * TW + (x0 >> TILE_XS)] = 1
+        return
     for ty in range(y0 >> TILE_YS, ((y1 - 1) >> TILE_YS) + 1):
         for tx in range(x0 >> TILE_XS, ((x1 - 1) >> TILE_XS) + 1):
             tm[ty * TW + tx] = 1
