@@ -26,7 +26,9 @@ def _floor(keys, T, C, bands, pos, size, head, cap, W, H, vp, half_px):
             y = r - t * H
             for i in range(y * W, (y + 1) * W):
                 keys[t, i] = EMPTY
+    TW = (W + 31) >> 5
     for c in numba.prange(C):
+        tm = np.zeros(TW * ((H + 15) >> 4), np.uint8)  # the tiles _splat marks (a scratch: cleared whole)
         if bands:
             kb = keys[0]
             ylo = H * c // T
@@ -53,7 +55,7 @@ def _floor(keys, T, C, bands, pos, size, head, cap, W, H, vp, half_px):
                 continue
             cx = vp[0, 0] * x + vp[0, 1] * y + vp[0, 2] * z + vp[0, 3]
             cy = vp[1, 0] * x + vp[1, 1] * y + vp[1, 2] * z + vp[1, 3]
-            _splat(kb, logical, cx, cy, w, W, H, half_px, False, 0.0, False, ylo, yhi)
+            _splat(kb, tm, TW, logical, cx, cy, w, W, H, half_px, False, 0.0, False, ylo, yhi)
 
 
 def floor_kernel() -> Callable[..., None] | None:
