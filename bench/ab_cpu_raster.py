@@ -15,7 +15,6 @@ medians over rounds of each side and head/base into ``bench/results/ab_cpu_raste
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import os
 import sys
@@ -70,15 +69,6 @@ def child(n: int, only: list[str], splits: list[str]) -> dict[str, float]:
     return out
 
 
-@contextlib.contextmanager
-def _tree(rev: str):
-    if rev == ".":
-        yield H.ROOT, H.git_revision() or "."
-        return
-    with H.revision_tree(rev) as d:
-        yield d, H.resolve_revision(rev)
-
-
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--base", help="the revision to compare against (required)")
@@ -99,7 +89,7 @@ def main(argv: list[str] | None = None) -> int:
     machine = H.machine()
     me = str(Path(__file__).resolve())
     rows = []
-    with _tree(a.base) as (bdir, bsha), _tree(a.head) as (hdir, hsha):
+    with H.checkout_or_revision(a.base) as (bdir, bsha), H.checkout_or_revision(a.head) as (hdir, hsha):
         sides = {"base": bdir, "head": hdir}
         for side, d in sides.items():  # compile (or load) each side's loops before timing
             H.run_json([me, "--child", "1000", "--only", only[0], "--splits", splits[0]], d)

@@ -15,7 +15,6 @@ before and after: the machine is shared, so read the figures with the load.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import os
 import subprocess
@@ -82,16 +81,6 @@ def compare(base: list[float], head: list[float], lower_better: bool) -> dict[st
             "within_spread": abs(h["median"] - b["median"]) <= run_to_run if min(b["n"], h["n"]) > 1 else None}
 
 
-@contextlib.contextmanager
-def tree(rev: str):
-    """(folder, full commit) of a revision; ``.`` is this checkout as it is."""
-    if rev == ".":
-        yield H.ROOT, H.git_revision() or "."
-        return
-    with H.revision_tree(rev) as d:
-        yield d, H.resolve_revision(rev)
-
-
 def run_bench(name: str, root: Path, quick: bool, log: Path) -> dict[str, float]:
     script, full, small, figures, _ = BENCHES[name]
     with tempfile.TemporaryDirectory() as tmp:
@@ -117,7 +106,8 @@ def main(argv: list[str] | None = None) -> int:
     log = Path(a.out).with_suffix(".log")
     log.parent.mkdir(parents=True, exist_ok=True)
     log.write_text("")
-    with tree(a.base) as (base_root, base_sha), tree(a.head) as (head_root, head_sha):
+    with H.checkout_or_revision(a.base) as (base_root, base_sha), \
+            H.checkout_or_revision(a.head) as (head_root, head_sha):
         roots = {"base": base_root, "head": head_root}
         samples: dict[str, dict[str, dict[str, list[float]]]] = {b: {"base": {}, "head": {}} for b in a.benches}
 

@@ -290,6 +290,17 @@ def revision_tree(rev: str, root: Path | str = ROOT) -> Iterator[Path]:
         shutil.rmtree(d, ignore_errors=True)
 
 
+@contextlib.contextmanager
+def checkout_or_revision(rev: str, root: Path | str = ROOT) -> Iterator[tuple[Path, str]]:
+    """(folder, full commit) of a revision for an A/B run: ``.`` is this checkout as it is
+    (uncommitted changes included), anything else a private copy (:func:`revision_tree`)."""
+    if rev == ".":
+        yield Path(root), git_revision(root) or "."
+        return
+    with revision_tree(rev, root) as d:
+        yield d, resolve_revision(rev, root)
+
+
 # ----------------------------------------------------------------------------- results
 def write_result(path: Path | str, res: dict[str, Any], indent: int = 2) -> Path:
     """Write a result JSON (folders made), say where."""
