@@ -319,7 +319,7 @@ class CpuComputeRenderer(Renderer):
             self._img[:] = self._bg
             self._shown[:] = 1
             self._keys[:] = cpu_kernels.EMPTY
-            self._marks[:] = 0
+            self._marks[:] = 1  # every tile of every buffer (rows beyond these too) cleared by its next frame
             self._bins, self._drew = _Bins(), False
             self._synced_mode = None
             self.frames = 0
