@@ -12,7 +12,11 @@ squares, turbo by intensity, 1% of the ring rewritten per frame, output = read_i
 Every pair interleaved (the default), each frame reads its renderer's ring copy and buffers back
 from memory (three renderers of 1M points do not fit the last-level cache); ``--by-split`` runs
 one split after the other, interleaving only the thread counts, as a render stage (one renderer)
-draws.
+draws. ``--block K``: K consecutive frames per turn (their median is the turn's figure): a render
+stage keeps its thread count from frame to frame, and a second core left idle for a frame at one
+thread is slower to start the next frame's work than one that drew the frame before:
+
+    PYTHONPATH=$PWD .venv/bin/python bench/bench_cpu_threads.py --by-split --block 10 --rounds 9
 
 ``--cull N`` instead: batch culling (issue 41) on a ring of N points, the whole ring in view
 against a view of about a tenth of it (the same ring, the camera fitted to a corner block of
@@ -52,7 +56,8 @@ from pointflow.config import RenderConfig
 SPLITS = ("auto", "bins", "points")
 
 
-def measure(sizes: list[int], rounds: int, splits: tuple[str, ...], by_split: bool = False) -> dict[str, Any]:
+def measure(sizes: list[int], rounds: int, splits: tuple[str, ...], by_split: bool = False,
+            block: int = 1) -> dict[str, Any]:
     import numba
 
     from pointflow.render.cpu_compute import CpuComputeRenderer
@@ -90,20 +95,25 @@ def measure(sizes: list[int], rounds: int, splits: tuple[str, ...], by_split: bo
             order = [pairs[i % len(pairs):] + pairs[:i % len(pairs)] for i in range(rounds)]
         for batch in order:
             for sp, t in batch:
-                a, b = head, min(head + step, n)
-                head = b % n
-                f.dirty = [(a, b)]
                 numba.set_num_threads(t)
-                t0, c0 = time.perf_counter(), time.process_time()
-                st = rs[sp].render(f, cam)
-                rs[sp].read_image()
-                wall[(sp, t)].append((time.perf_counter() - t0) * 1e3)
-                cpu[(sp, t)].append((time.process_time() - c0) * 1e3)
-                used[(sp, t)].add(st.extra["split"])
+                ws, cs = [], []
+                for _ in range(block):  # consecutive frames at one thread count (a block's median counts)
+                    a, b = head, min(head + step, n)
+                    head = b % n
+                    f.dirty = [(a, b)]
+                    t0, c0 = time.perf_counter(), time.process_time()
+                    st = rs[sp].render(f, cam)
+                    rs[sp].read_image()
+                    ws.append((time.perf_counter() - t0) * 1e3)
+                    cs.append((time.process_time() - c0) * 1e3)
+                    used[(sp, t)].add(st.extra["split"])
+                wall[(sp, t)].append(float(np.median(ws)))
+                cpu[(sp, t)].append(float(np.median(cs)))
         numba.set_num_threads(most)
         imgs = {sp: r.read_image().tobytes() for sp, r in rs.items()}
         row: dict[str, Any] = {"points": n, "rounds": rounds, "threads": threads, "same_image": len(set(imgs.values())) == 1,
                                "interleaved": "threads within a split" if by_split else "every (split, threads) pair",
+                               "frames_per_block": block,
                                "load_after": [round(x, 2) for x in os.getloadavg()], "splits": {}}
         for sp in splits:
             one = np.asarray(wall[(sp, 1)])
@@ -286,6 +296,10 @@ def main(argv: Optional[list[str]] = None) -> int:
     ap.add_argument("--cull", type=int, default=0, metavar="N", help="batch culling on a ring of N points instead")
     ap.add_argument("--tiers", default="cpu-compute",
                     help=f"with --cull: some of {','.join(CULL_TIERS)} (any wgpu one: wgpu_cull.json)")
+    ap.add_argument("--block", type=int, default=1,
+                    help="consecutive frames per (split, threads) turn; its median is the round's figure (default 1: "
+                         "the thread count changes every frame, as a render stage never does; its adaptive choice "
+                         "keeps one count and re-tries the other every 30 frames)")
     a = ap.parse_args(argv)
     if a.cull:
         tiers = tuple(t.strip() for t in a.tiers.split(",") if t.strip())
@@ -294,7 +308,7 @@ def main(argv: Optional[list[str]] = None) -> int:
         _harness.write_result(a.out or _harness.RESULTS / name, cull(a.cull, a.rounds, tiers))
         return 0
     a.out = a.out or str(_harness.RESULTS / "cpu_threads.json")
-    res = measure(a.sizes, a.rounds, tuple(a.splits.split(",")), a.by_split)
+    res = measure(a.sizes, a.rounds, tuple(a.splits.split(",")), a.by_split, max(1, a.block))
     path = _harness.write_result(a.out, res)
     chart(res, path.with_suffix(".png"))
     return 0
