@@ -13,6 +13,7 @@ from pointflow.render import cpu_kernels
 numba: Any = None
 EMPTY = cpu_kernels.EMPTY
 _splat: Any = None
+_tile_grid: Any = None
 _compiled: Callable[..., None] | None = None
 
 
@@ -26,9 +27,9 @@ def _floor(keys, T, C, bands, pos, size, head, cap, W, H, vp, half_px):
             y = r - t * H
             for i in range(y * W, (y + 1) * W):
                 keys[t, i] = EMPTY
-    TW = (W + 31) >> 5
+    TW, TH = _tile_grid(W, H)
     for c in numba.prange(C):
-        tm = np.zeros(TW * ((H + 15) >> 4), np.uint8)  # the tiles _splat marks (a scratch: cleared whole)
+        tm = np.zeros(TW * TH, np.uint8)  # the tiles _splat marks (a scratch: cleared whole)
         if bands:
             kb = keys[0]
             ylo = H * c // T
@@ -61,12 +62,12 @@ def _floor(keys, T, C, bands, pos, size, head, cap, W, H, vp, half_px):
 def floor_kernel() -> Callable[..., None] | None:
     """The compiled floor (None without numba): ``fn(keys, T, C, bands, pos, size, head,
     cap, W, H, vp, half_px)``."""
-    global numba, _splat, _compiled
+    global numba, _splat, _tile_grid, _compiled
     if _compiled is None:
         if cpu_kernels.load() is None:  # compiles the render loops and their inline helpers
             return None
         import numba as nb
 
-        numba, _splat = nb, cpu_kernels._splat
+        numba, _splat, _tile_grid = nb, cpu_kernels._splat, cpu_kernels._tile_grid
         _compiled = nb.njit(parallel=True, nogil=True, boundscheck=False, error_model="numpy")(_floor)
     return _compiled

@@ -155,9 +155,12 @@ TILE_XS = 5
 TILE_YS = 4
 
 
-def tile_grid(W, H):
+def _tile_grid(W, H):
     """(columns, rows) of tiles over a W x H target."""
     return (W + (1 << TILE_XS) - 1) >> TILE_XS, (H + (1 << TILE_YS) - 1) >> TILE_YS
+
+
+tile_grid = _tile_grid  # the Python function, for callers outside the loops (load() compiles _tile_grid)
 
 
 def _tile_on(tm, ty, tx, TW):
@@ -372,7 +375,7 @@ def _chunk_sq(kb, tm, a, b, head, cap, pos, tms, cval, vp, planes, eps_s, W, H, 
     vmin = np.inf
     vmax = -np.inf
     rows = ylo > 0 or yhi < H
-    TW = (W + (1 << TILE_XS) - 1) >> TILE_XS
+    TW = _tile_grid(W, H)[0]
     X, Y, Z, code, bx0, by0, bx1, by1, bkey, bi = _sq_scratch()
     for seg in range(2):  # the ring's two runs of slots: no wrap test per point
         if seg == 0:
@@ -431,8 +434,7 @@ def _raster(keys, marks, T, C, bands, st, vrange, mask, use_mask, pos, tms, imp,
     budget's passes did the tests). Counters per chunk in ``st``; the auto colour range in
     ``vrange``."""
     lean = not use_mask and not world and not round_ and not has_window and lod <= 1 and not has_imp
-    TW = (W + (1 << TILE_XS) - 1) >> TILE_XS
-    TH = (H + (1 << TILE_YS) - 1) >> TILE_YS
+    TW, TH = _tile_grid(W, H)
     if not bands:
         for r in numba.prange(T * TH):
             t = r // TH
@@ -607,7 +609,7 @@ def _resolve_row(keys, marks, drawn, ty, W, H, fl, logz, edl, vp, head, cap, cmo
     there: the same minimum) -> the winner's colour (or the background); with EDL, log2 of
     the winner's linear depth (clip w, float64 as the reference), +inf on the background."""
     T = keys.shape[0]
-    TW = (W + (1 << TILE_XS) - 1) >> TILE_XS
+    TW = _tile_grid(W, H)[0]
     ya = ty << TILE_YS
     yb = min(ya + (1 << TILE_YS), H)
     for tx in range(TW):
@@ -684,7 +686,7 @@ def _resolve(keys, marks, drawn, img, logz, edl, vp, head, cap, cmode, single, b
     H = img.shape[0]
     W = img.shape[1]
     fl = img.reshape(H * W)
-    TH = (H + (1 << TILE_YS) - 1) >> TILE_YS
+    TH = _tile_grid(W, H)[1]
     for ty in numba.prange(TH):
         _resolve_row(keys, marks, drawn, ty, W, H, fl, logz, edl, vp, head, cap, cmode, single, bg, rgbp, pos, tms,
                      cval, lo, scale, degenerate, lut)
@@ -1184,7 +1186,7 @@ def _compile(cache: bool) -> Kernels:
     from numba.extending import intrinsic
     g["_f32_bits"] = intrinsic(_F32_BITS_PY)
     for name in ("_pcg", "_u01", "_colour_value", "_frustum", "_test", "_store_box", "_splat", "_box_pack",
-                 "_tile_on", "_mark_box",
+                 "_tile_grid", "_tile_on", "_mark_box",
                  "_band_splat", "_band_splat_sq", "_band_fill", "_sq_keep", "_block_range",
                  "_sq_scratch"):
         g[name] = nb.njit(inline="always", **opts)(g[name])
