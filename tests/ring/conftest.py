@@ -1,4 +1,5 @@
 import os
+import time
 
 import pytest
 
@@ -34,11 +35,7 @@ def _alive(pid: int) -> bool:
         return True
 
 
-def leaked_since(before: set[str]) -> list[str]:
-    """New segments owned by this process or by a process that no longer exists.
-
-    Segments of other live processes (other engineers' test runs on the same machine) are ignored.
-    """
+def _suspects(before: set[str]) -> list[str]:
     out = []
     for n in ring_segments() - before:
         pid = _owner_pid(n)
@@ -47,6 +44,22 @@ def leaked_since(before: set[str]) -> list[str]:
         if pid == os.getpid() or pid == 0 or not _alive(pid):
             out.append(n)
     return sorted(out)
+
+
+def leaked_since(before: set[str], settle_s: float = 5.0) -> list[str]:
+    """New segments owned by this process or by a process that no longer exists.
+
+    Segments of other live processes (the other xdist worker, other engineers' runs) are ignored.
+    A suspect must stay one for ``settle_s``: a ring another process is still building reads
+    owner pid 0 until its header is written (a 4M-point ring takes a while to fill with NaN), and
+    a killed pipeline's segments stay until its stages or the next supervisor sweep them.
+    """
+    deadline = time.monotonic() + settle_s
+    while True:
+        out = _suspects(before)
+        if not out or time.monotonic() >= deadline:
+            return out
+        time.sleep(0.1)
 
 
 @pytest.fixture(autouse=True)
