@@ -36,7 +36,11 @@ the tiles), each with culling on and off (``POINTFLOW_CPU_RASTER_CULL``), interl
 N is numba's thread count (``NUMBA_NUM_THREADS``, default the cores). Per pair: the median wall
 time and process CPU time per frame; per split the speed-up at t threads = the median of the
 per-round ratios (1-thread frame / t-thread frame of the same round), so load that changes
-between rounds cancels. Writes ``bench/results/cpu_threads.json`` and the chart ``.png``.
+between rounds cancels. Beside it, what the machine itself gave t threads in the same round
+(``_harness/machine_ceiling.py``: a compute-bound and a streaming loop of about a frame's
+length, timed after each round's frames): ``machine_speedup_compute`` / ``_stream``, and
+``speedup_over_machine_compute``, the median of the per-round raster speed-up over the
+compute loop's (1.0: the raster gains what the cores give). Writes ``bench/results/cpu_threads.json`` and the chart ``.png``.
 """
 from __future__ import annotations
 
@@ -50,6 +54,7 @@ from typing import Any, Optional
 import numpy as np
 
 import _harness
+from _harness.machine_ceiling import Ceiling
 from _harness.scenes import H, W, base_cloud, camera_for, make_frame, tiled
 from pointflow.config import RenderConfig
 
@@ -68,6 +73,7 @@ def measure(sizes: list[int], rounds: int, splits: tuple[str, ...], by_split: bo
     cfg = RenderConfig(size=[W, H], color_by="intensity", colormap="turbo", point_size=2.0, gpu_timestamps=False,
                        backend="cpu", raster="compute")
     rows = []
+    ceiling = Ceiling()
     os.environ["POINTFLOW_CPU_RASTER_ADAPTIVE"] = "0"  # the thread count this bench sets, every frame
     for n in sizes:
         world, inten = tiled(base, inten0, n)
@@ -83,6 +89,9 @@ def measure(sizes: list[int], rounds: int, splits: tuple[str, ...], by_split: bo
         wall: dict[tuple[str, int], list[float]] = {p: [] for p in pairs}
         cpu: dict[tuple[str, int], list[float]] = {p: [] for p in pairs}
         used: dict[tuple[str, int], set] = {p: set() for p in pairs}
+        # the machine's own gain in each turn's round: {loop: {(split, t): [1-thread ms / t-thread ms]}}
+        gain: dict[str, dict[tuple[str, int], list[float]]] = {"compute": {p: [] for p in pairs},
+                                                                "stream": {p: [] for p in pairs}}
         step, head = max(n // 100, 1), 0
         for p in pairs:  # warm-up
             numba.set_num_threads(p[1])
@@ -109,6 +118,13 @@ def measure(sizes: list[int], rounds: int, splits: tuple[str, ...], by_split: bo
                     used[(sp, t)].add(st.extra["split"])
                 wall[(sp, t)].append(float(np.median(ws)))
                 cpu[(sp, t)].append(float(np.median(cs)))
+            ceil = {}
+            for t in sorted({t for _, t in batch}):  # the same round: what the machine gave t threads
+                numba.set_num_threads(t)
+                ceil[t] = ceiling.time()
+            for sp, t in batch:
+                for loop in gain:
+                    gain[loop][(sp, t)].append(ceil[1][loop] / ceil[t][loop])
         numba.set_num_threads(most)
         imgs = {sp: r.read_image().tobytes() for sp, r in rs.items()}
         row: dict[str, Any] = {"points": n, "rounds": rounds, "threads": threads, "same_image": len(set(imgs.values())) == 1,
@@ -122,12 +138,16 @@ def measure(sizes: list[int], rounds: int, splits: tuple[str, ...], by_split: bo
                 w = np.asarray(wall[(sp, t)])
                 d[str(t)] = {"wall_ms": float(np.median(w)), "cpu_ms": float(np.median(cpu[(sp, t)])),
                              "speedup_per_round_median": float(np.median(one / w)),
+                             "machine_speedup_compute": float(np.median(gain["compute"][(sp, t)])),
+                             "machine_speedup_stream": float(np.median(gain["stream"][(sp, t)])),
+                             "speedup_over_machine_compute": float(np.median(one / w / gain["compute"][(sp, t)])),
                              "drawn_with": sorted(used[(sp, t)]), "all_wall_ms": w.round(3).tolist(),
                              "all_cpu_ms": np.round(cpu[(sp, t)], 3).tolist()}
             row["splits"][sp] = d
             print(f"  {n:>9,} {sp:6s} " + "  ".join(
-                f"{t}T {d[str(t)]['wall_ms']:6.1f} ms (x{d[str(t)]['speedup_per_round_median']:.2f})" for t in threads),
-                flush=True)
+                f"{t}T {d[str(t)]['wall_ms']:6.1f} ms (x{d[str(t)]['speedup_per_round_median']:.2f}; machine "
+                f"x{d[str(t)]['machine_speedup_compute']:.2f} compute, x{d[str(t)]['machine_speedup_stream']:.2f} "
+                f"stream)" for t in threads), flush=True)
         rows.append(row)
         del f, rs
     return {"scene": scene, "size": [W, H], "numba": numba.__version__,
