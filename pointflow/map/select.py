@@ -3,7 +3,9 @@
 Potree's rule: from the roots, visit nodes in order of their size on screen (biggest first);
 take a node while the points taken stay within the budget, and queue its children; a node
 outside the view frustum is dropped with its subtree. A parent is always taken before its
-children, so the list is coarse first and any prefix of it is a usable picture."""
+children, so the list is coarse first and any prefix of it is a usable picture. A node's box
+is tested against the frustum by the same plane test that culls the ring's batches in every
+render tier (:func:`pointflow.render.batches.boxes_outside`): one idea for boxes of points."""
 from __future__ import annotations
 
 import heapq
@@ -11,24 +13,8 @@ from typing import Iterable, Optional
 
 import numpy as np
 
-_CORNERS = np.array([[i & 1, (i >> 1) & 1, (i >> 2) & 1] for i in range(8)], np.float64)
-
-
-def _clip_corners(vp: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    pts = lo + _CORNERS * (hi - lo)
-    return pts @ vp[:3, :3].T + vp[:3, 3], pts @ vp[3, :3] + vp[3, 3]
-
-
-def in_frustum(vp: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> bool:
-    """False when the box is wholly outside one clip plane (left/right/bottom/top, behind the
-    eye, beyond the far plane). Conservative: a box it keeps may still be just outside."""
-    xyz, w = _clip_corners(vp, lo, hi)
-    if np.all(w <= 0):
-        return False
-    for a in range(2):
-        if np.all(xyz[:, a] < -w) or np.all(xyz[:, a] > w):
-            return False
-    return not np.all(xyz[:, 2] > w)
+from ..render.batches import boxes_outside
+from ..render.camera import planes_of
 
 
 def select_nodes(source, view_proj, viewport, eye, budget: int, loaded: Optional[Iterable] = None, *,
@@ -47,6 +33,7 @@ def select_nodes(source, view_proj, viewport, eye, budget: int, loaded: Optional
     eye = np.asarray(eye, np.float64)
     shift = np.zeros(3) if origin is None else np.asarray(origin, np.float64)
     loaded = set(loaded or ())
+    planes = planes_of(vp)  # the frustum of the coordinates vp maps (origin-relative with origin)
     heap: list = []
     tie = 0
 
@@ -54,8 +41,8 @@ def select_nodes(source, view_proj, viewport, eye, budget: int, loaded: Optional
         nonlocal tie
         n = source.node(key)
         lo, hi = n.lo - shift, n.hi - shift
-        if not in_frustum(vp, lo, hi):
-            return
+        if boxes_outside(lo[None], hi[None], planes)[0]:
+            return  # wholly outside one plane: no point of it or its subtree is drawn
         centre = (lo + hi) / 2
         radius = float(np.linalg.norm(hi - lo)) / 2
         wc = float(centre @ vp[3, :3] + vp[3, 3])

@@ -89,6 +89,46 @@ def test_nothing_when_looking_away(big):
     assert select_nodes(big, cam.view_proj(W, H), (W, H), cam.eye, 10 ** 7) == []
 
 
+class _Boxes:
+    """A map of root nodes only, one per box (what select_nodes reads of a source)."""
+
+    def __init__(self, boxes):
+        from types import SimpleNamespace
+        self.nodes = {(i, 0, 0, 0, 0): SimpleNamespace(lo=np.asarray(lo, float), hi=np.asarray(hi, float), count=10,
+                                                       spacing=1.0) for i, (lo, hi) in enumerate(boxes)}
+
+    def node(self, k):
+        return self.nodes[k]
+
+    def root_keys(self):
+        return list(self.nodes)
+
+    def children(self, k):
+        return []
+
+
+def test_nodes_are_culled_by_the_planes_that_cull_ring_batches():
+    """The map and the render tiers decide a box by one test (render.batches.boxes_outside):
+    a box between the eye and the near plane is dropped, as no tier draws its points; a box
+    the frustum cuts, and one a hair inside the far plane, are kept."""
+    from pointflow.render.batches import boxes_outside
+    from pointflow.render.camera import planes_of
+
+    cam = Camera(eye=[0.0, -10.0, 0.0], target=[0.0, 0.0, 0.0], up=[0.0, 0.0, 1.0], near=2.0, far=50.0)
+    vp = cam.view_proj(W, H)
+    boxes = [([-0.1, -9.5, -0.1], [0.1, -9.0, 0.1]),     # 0.5-1 in front of the eye: before the near plane
+             ([-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]),       # in view
+             ([-0.1, 39.9, -0.1], [0.1, 40.2, 0.1]),      # cut by the far plane (at y = 40)
+             ([-0.1, 40.01, -0.1], [0.1, 41.0, 0.1]),     # beyond it
+             ([50.0, 0.0, -1.0], [60.0, 1.0, 1.0]),       # right of the view
+             ([-0.1, -12.0, -0.1], [0.1, -11.0, 0.1])]    # behind the eye
+    src = _Boxes(boxes)
+    got = {k[0] for k in select_nodes(src, vp, (W, H), cam.eye, 10 ** 6)}
+    assert got == {1, 2}
+    lo, hi = (np.array([b[i] for b in boxes]) for i in (0, 1))
+    assert got == set(np.flatnonzero(~boxes_outside(lo, hi, planes_of(vp))))  # the tiers' own test
+
+
 def test_origin_relative_matrices_select_the_same(big):
     cam = close_camera()
     o = big.origin
