@@ -26,6 +26,7 @@ from typing import Any, Callable, Optional, Sequence
 
 import numpy as np
 
+from .arrays import finite_rows
 from .ingest.transports.api import SendError, check_cloud
 from .notebook import in_notebook
 from .render.view.protocol import BUILTIN_COLOR
@@ -128,7 +129,7 @@ def _frame_of(clouds: list[tuple[np.ndarray, dict]], cfg):
 
     pos = np.concatenate([c[0] for c in clouds]).astype(np.float64, copy=False)
     n = len(pos)
-    ok = np.isfinite(pos).all(axis=1)
+    ok = finite_rows(pos)
     origin = np.round(np.median(pos[ok], axis=0)) if ok.any() else np.zeros(3)
     rel = pos - origin
     with np.errstate(invalid="ignore"):

@@ -9,6 +9,7 @@ from typing import Iterator
 
 import numpy as np
 
+from ..arrays import column_max, column_min, finite_rows
 from .errors import MapError
 
 CHUNK_POINTS = 1 << 20     # points per read
@@ -142,10 +143,10 @@ class _TableInput(_Input):
             rec[k] = v
         self._rec = rec
         self.count = int(rec.shape[0])
-        finite = np.isfinite(pos).all(axis=1)
+        finite = finite_rows(pos)
         if not finite.all():
             raise MapError(path, f"{int((~finite).sum())} points have a NaN or infinite coordinate")
-        self.bounds = ((pos.min(axis=0).astype(np.float64), pos.max(axis=0).astype(np.float64)) if self.count
+        self.bounds = ((column_min(pos).astype(np.float64), column_max(pos).astype(np.float64)) if self.count
                        else (np.zeros(3), np.zeros(3)))
         self.header_bytes = 65536
 
@@ -205,10 +206,10 @@ class _PlyStream(_Input):
         for a in range(0, self.count, CHUNK_POINTS):
             part = self._read(a, min(CHUNK_POINTS, self.count - a))
             pos = np.column_stack([np.asarray(part[self._lower[k]], np.float64) for k in ("x", "y", "z")])
-            bad = ~np.isfinite(pos).all(axis=1)
+            bad = ~finite_rows(pos)
             if bad.any():
                 raise MapError(path, f"{int(bad.sum())} points have a NaN or infinite coordinate")
-            lo, hi = np.minimum(lo, pos.min(axis=0)), np.maximum(hi, pos.max(axis=0))
+            lo, hi = np.minimum(lo, column_min(pos)), np.maximum(hi, column_max(pos))
         self.bounds = (lo, hi) if self.count else (np.zeros(3), np.zeros(3))
         self.header_bytes = 65536
 

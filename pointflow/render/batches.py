@@ -22,6 +22,7 @@ from typing import Optional
 
 import numpy as np
 
+from ..arrays import column_max, column_min, finite_rows
 from .base import merge_ranges
 
 __all__ = ["BATCH_SLOTS", "ENV_CULL", "BatchBounds", "boxes_outside", "culling_enabled"]
@@ -91,15 +92,17 @@ class BatchBounds:
         B = self.batch
         for k in ks:
             p = positions[k * B:min((k + 1) * B, self.cap)]
-            fin = np.isfinite(p).all(axis=1)
-            self.bad[k] = int(p.shape[0] - np.count_nonzero(fin))
-            if self.bad[k] == p.shape[0]:
-                self.lo[k], self.hi[k] = np.inf, -np.inf
-            elif self.bad[k]:
-                q = p[fin]
-                self.lo[k], self.hi[k] = q.min(axis=0), q.max(axis=0)
+            n = p.shape[0]
+            if np.isfinite(p).all():  # (one flat test; the per-row one only when it fails)
+                self.bad[k] = 0
             else:
-                self.lo[k], self.hi[k] = p.min(axis=0), p.max(axis=0)
+                fin = finite_rows(p)
+                self.bad[k] = int(n - np.count_nonzero(fin))
+                p = p[fin]
+            if self.bad[k] == n:
+                self.lo[k], self.hi[k] = np.inf, -np.inf
+            else:  # column by column (pointflow.arrays): this runs every frame
+                self.lo[k], self.hi[k] = column_min(p), column_max(p)
         self.stale[ks] = False
 
     def culled(self, frame, planes: np.ndarray, rel: float = 1e-9) -> tuple[np.ndarray, np.ndarray]:

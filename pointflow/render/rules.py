@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Optional
 
 import numpy as np
 
+from ..arrays import finite_rows
 from .config import RenderConfig
 from . import colormap
 from .base import FrameInput
@@ -194,7 +195,7 @@ def select_points(frame: FrameInput, camera: Camera, cfg: RenderConfig, width: i
         counts["nonfinite"], counts["frustum"] = culled_bad, culled - culled_bad
     slots = (int(frame.head) + logical) % cap
     pos = frame.positions[slots]
-    keep = np.isfinite(pos).all(axis=1)
+    keep = finite_rows(pos)
     counts["nonfinite"] += int(logical.size - np.count_nonzero(keep))
     if cfg.time_window_ms > 0:
         t = np.asarray(frame.t_ingest_ms[slots], np.float64)
@@ -264,7 +265,7 @@ def color_values(frame: FrameInput, cfg: RenderConfig, slots: np.ndarray, all_sl
         lo, hi = (float(x) for x in frame.channel_ranges[cb])
     else:
         occ = frame.occupied_slots() if all_slots is None else all_slots
-        occ = occ[np.isfinite(frame.positions[occ]).all(axis=1)]
+        occ = occ[finite_rows(frame.positions[occ])]
         lo, hi = _finite_range(np.asarray(src[occ], np.float64) + shift)
     return np.asarray(src[slots]), (lo - shift, hi - shift)
 

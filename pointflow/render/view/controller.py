@@ -14,6 +14,7 @@ from typing import Optional
 import numpy as np
 import zmq
 
+from ...arrays import column_max, column_min, finite_rows
 from ..base import FrameInput, Renderer
 from ..camera import Camera, clip_planes, scene_box
 from . import protocol
@@ -67,7 +68,7 @@ class CameraController:
             slots = slots[slots < frame.live_slots]
         step = max(1, slots.size // limit)
         p = frame.positions[slots[::step]].astype(np.float64)
-        p = p[np.isfinite(p).all(axis=1)]
+        p = p[finite_rows(p)]
         return p if p.size else None
 
     @staticmethod
@@ -79,7 +80,7 @@ class CameraController:
             p = CameraController._sample(frame, limit=1 << 62)
             if p is None:
                 return None
-            ext = p.min(axis=0), p.max(axis=0)
+            ext = column_min(p), column_max(p)
         mlo, mhi = ext
         pad = 0.1 * (mhi - mlo) + 0.5
         return mlo - pad + frame.origin, mhi + pad + frame.origin

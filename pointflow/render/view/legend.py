@@ -10,6 +10,7 @@ from typing import Any, Optional
 
 import numpy as np
 
+from ...arrays import finite_rows
 from .. import colormap
 from ..base import FrameInput
 from ..camera import Camera
@@ -70,7 +71,7 @@ def _auto_range(frame: FrameInput, cb: str) -> tuple[float, float]:
     else:
         occ = frame.occupied_slots()
         pos, t = frame.positions[occ], frame.t_ingest_ms[occ]
-    ok = np.isfinite(pos).all(axis=1)
+    ok = finite_rows(pos)
     v = pos[:, 2] if cb in ("z", "height") else t
     v = v[ok] if not ok.all() else v
     if cb == "ingest_time":

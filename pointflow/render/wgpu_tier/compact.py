@@ -29,6 +29,7 @@ from typing import Any, Optional
 
 import numpy as np
 
+from ...arrays import finite_rows
 from ..base import FrameInput, merge_ranges
 from ..batches import BatchBounds
 
@@ -74,7 +75,7 @@ def encode(p: np.ndarray, lo: np.ndarray, ext: np.ndarray) -> np.ndarray:
     coarse."""
     lo, ext = np.asarray(lo, np.float64), np.asarray(ext, np.float64)
     u = np.asarray(p, np.float64) - lo
-    bad = ~np.isfinite(u).all(axis=1)
+    bad = ~finite_rows(u)
     with np.errstate(invalid="ignore"):  # (non-finite rows: zeroed next)
         u *= np.where(ext > 0, _Q / np.where(ext > 0, ext, 1.0), 0.0)
     if bad.any():

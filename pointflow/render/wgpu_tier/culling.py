@@ -22,6 +22,7 @@ from typing import Optional
 
 import numpy as np
 
+from ...arrays import finite_rows
 from .. import batches
 from ..base import FrameInput
 from ..batches import BatchBounds
@@ -74,7 +75,7 @@ class BatchColourRange:
         for k in ks[self.stale[ks]]:
             a, b = int(k) * batch, min((int(k) + 1) * batch, cap)
             v = self.values(frame, a, b)
-            ok = np.isfinite(frame.positions[a:b]).all(axis=1) & np.isfinite(v)
+            ok = finite_rows(frame.positions[a:b]) & np.isfinite(v)
             if ok.any():
                 w = ord_f(v[ok])
                 self.lo[k], self.hi[k] = w.min(), w.max()

@@ -28,6 +28,7 @@ from typing import Optional
 
 import numpy as np
 
+from ...arrays import finite_rows
 from ..rules import budget_fraction, budget_seed, keep_probability, pcg, seed_hash, uniform01
 
 #: The WGSL ``pcg(v)`` (tests and callers of this module know it by this name).
@@ -54,7 +55,7 @@ def keep_mask(positions: np.ndarray, head: int, size: int, capacity: int, planes
     logical = (slots - int(head)) % max(cap, 1)
     keep = logical < int(size)
     p = np.asarray(positions, np.float64)
-    keep &= np.isfinite(p).all(axis=1)
+    keep &= finite_rows(p)
     if window_ms > 0 and t_ingest_ms is not None:
         with np.errstate(invalid="ignore"):
             keep &= (float(now_ms) - np.asarray(t_ingest_ms, np.float64)) <= float(window_ms)

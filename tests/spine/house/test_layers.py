@@ -128,6 +128,8 @@ LAYERS = {
     "pointflow.wire": 0,
     # numba's cache of the compiled loops (render and frames use it; imports nothing of pointflow)
     "pointflow.jitcache": 0,
+    # reductions over (n, 3) point arrays column by column (imports nothing of pointflow)
+    "pointflow.arrays": 0,
     # shared data structures and the point-file readers
     "pointflow.ring": 1, "pointflow.frames": 1, "pointflow.profiling": 1, "pointflow.formats": 1,
     # the stage kit: what a stage is and what every stage process shares (context, kinds,
