@@ -27,10 +27,10 @@ def finite_rows(p: np.ndarray) -> np.ndarray:
 def column_min(p: np.ndarray) -> np.ndarray:
     """``p.min(axis=0)`` of an (n, k) array with n >= 1 (NaN in a column gives NaN)."""
     p = np.asarray(p)
-    return np.array([p[:, i].min() for i in range(p.shape[1])], dtype=p.dtype)
+    return np.array([p[:, i].min() for i in range(p.shape[1])], dtype=p.dtype.newbyteorder("="))
 
 
 def column_max(p: np.ndarray) -> np.ndarray:
     """``p.max(axis=0)`` of an (n, k) array with n >= 1 (NaN in a column gives NaN)."""
     p = np.asarray(p)
-    return np.array([p[:, i].max() for i in range(p.shape[1])], dtype=p.dtype)
+    return np.array([p[:, i].max() for i in range(p.shape[1])], dtype=p.dtype.newbyteorder("="))

@@ -1,0 +1,120 @@
+"""A/B of the tiers' per-frame cost between two git revisions in one run: the numpy
+reference (``cpu``), the gl tier and the wgpu compute method (whole frame, and its CPU side
+``cpu_total``: planning, culling, compact positions, upload, encode, submit), each side's
+own ``pointflow`` in a fresh process per round, the sides alternating (ABBA):
+
+    PYTHONPATH=$PWD .venv/bin/python bench/ab_tier_frames.py --base 03fc4c6 --sizes 1000000
+
+The measuring code is this file's (``--child``), run against either side's package. Scene:
+``bench_cpu_threads.py``'s (the autzen tile repeated to N points, 1280x720, 2 px, 1% of the
+ring rewritten per frame, output = read_image), coloured by intensity (the handoff's range)
+and by height (the range reduced from the points); the wgpu tier with compact positions off
+and on (``POINTFLOW_WGPU_COMPACT``: ``auto`` turns them on on a real GPU, off on lavapipe).
+Per (tier, colour) 7 frames, the median of the last 5. Writes per size the medians over
+rounds of each side and head/base into ``bench/results/ab_tier_frames.json``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+import _harness as H
+
+TIERS = ("cpu", "gl", "wgpu", "wgpu_compact")
+COLOURS = ("intensity", "z")
+
+
+def child(n: int, tiers: list[str]) -> dict[str, float]:
+    """One side, one round: median frame ms per tier/colour (and the wgpu CPU side)."""
+    from dataclasses import replace
+
+    from _harness.scenes import H as HH, W, base_cloud, camera_for, make_frame, tiled
+    from pointflow.config import RenderConfig
+    base, inten0, _ = base_cloud()
+    world, inten = tiled(base, inten0, n)
+    f = make_frame(world, inten)
+    cam = camera_for(world)
+    out = {}
+    for tier in tiers:
+        for colour in COLOURS:
+            cfg = RenderConfig(size=[W, HH], color_by=colour, colormap="turbo", point_size=2.0, gpu_timestamps=False)
+            if tier == "cpu":
+                from pointflow.render.cpu import CpuRenderer
+                r = CpuRenderer(replace(cfg, backend="cpu"), n, ["intensity"])
+            elif tier == "gl":
+                from pointflow.render.gl import GlRenderer
+                r = GlRenderer(replace(cfg, backend="gl"), n, ["intensity"])
+            else:
+                os.environ["POINTFLOW_WGPU_COMPACT"] = "1" if tier == "wgpu_compact" else "0"
+                from pointflow.render.wgpu_tier import WgpuRenderer
+                r = WgpuRenderer(replace(cfg, backend="wgpu", raster="compute"), n, ["intensity"])
+            step, head = max(n // 100, 1), 0
+            f.dirty = None
+            r.render(f, cam)
+            r.read_image()
+            ts, cpu_side = [], []
+            for _ in range(7):
+                f.dirty = [(head, min(head + step, n))]
+                head = (head + step) % n
+                t0 = time.perf_counter()
+                st = r.render(f, cam)
+                r.read_image()
+                ts.append((time.perf_counter() - t0) * 1e3)
+                cpu_side.append(st.timings_ms.get("cpu_total", np.nan))
+            out[f"{tier}/{colour}"] = float(np.median(ts[2:]))
+            if tier.startswith("wgpu"):
+                out[f"{tier}/{colour}/cpu_side"] = float(np.median(cpu_side[2:]))
+            r.close()
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--base", help="the revision to compare against (required)")
+    ap.add_argument("--head", default=".", help="a revision, or . for this checkout as it is (default)")
+    ap.add_argument("--sizes", type=int, nargs="*", default=[1_000_000])
+    ap.add_argument("--rounds", type=int, default=4, help="rounds per size (each: one process per side)")
+    ap.add_argument("--tiers", default=",".join(TIERS))
+    ap.add_argument("--out", default=str(H.RESULTS / "ab_tier_frames.json"))
+    ap.add_argument("--child", type=int, default=0, help=argparse.SUPPRESS)
+    a = ap.parse_args(argv)
+    tiers = a.tiers.split(",")
+    if a.child:
+        print(json.dumps(child(a.child, tiers)))
+        return 0
+    if not a.base:
+        ap.error("--base is required")
+    machine = H.machine()
+    me = str(Path(__file__).resolve())
+    rows = []
+    with H.checkout_or_revision(a.base) as (bdir, bsha), H.checkout_or_revision(a.head) as (hdir, hsha):
+        sides = {"base": bdir, "head": hdir}
+        for n in a.sizes:
+            got: dict[str, list[dict[str, float]]] = {"base": [], "head": []}
+            for i in range(a.rounds):
+                for side in (("base", "head") if i % 2 == 0 else ("head", "base")):
+                    got[side].append(H.run_json([me, "--child", str(n), "--tiers", a.tiers], sides[side]))
+            row: dict[str, Any] = {"points": n, "rounds": a.rounds, "load_after": [round(x, 2) for x in os.getloadavg()],
+                                   "figures": {}}
+            for k in got["base"][0]:
+                b = float(np.median([r[k] for r in got["base"]]))
+                h = float(np.median([r[k] for r in got["head"]]))
+                row["figures"][k] = {"base_ms": round(b, 3), "head_ms": round(h, 3), "head_over_base": round(h / b, 3),
+                                     "base_samples": [round(r[k], 3) for r in got["base"]],
+                                     "head_samples": [round(r[k], 3) for r in got["head"]]}
+                print(f"{n:>9,} {k:28s} base {b:8.2f} ms  head {h:8.2f} ms  x{h / b:.2f}", flush=True)
+            rows.append(row)
+    H.write_result(a.out, {"base": bsha, "head": hsha, "rows": rows, "machine": H.machine_done(machine),
+                           "measured_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "command": H.command()})
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
