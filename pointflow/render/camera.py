@@ -24,12 +24,18 @@ def _normalize(v: np.ndarray) -> np.ndarray:
     return v / n if n > 0 else v
 
 
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``np.cross`` of two 3-vectors, the same products and differences (np.cross's argument
+    handling costs ~20 us a call, and every frame builds its matrices)."""
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+
+
 def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
     f = _normalize(target - eye)
     if abs(np.dot(f, _normalize(up))) > 0.999:  # looking along up: pick another up
         up = np.array([0.0, 1.0, 0.0]) if abs(f[1]) < 0.9 else np.array([1.0, 0.0, 0.0])
-    s = _normalize(np.cross(f, up))
-    u = np.cross(s, f)
+    s = _normalize(_cross(f, up))
+    u = _cross(s, f)
     m = np.eye(4)
     m[0, :3], m[1, :3], m[2, :3] = s, u, -f
     m[:3, 3] = -m[:3, :3] @ eye

@@ -7,7 +7,7 @@ import numpy as np
 
 from ..config import RenderConfig
 from ..base import FrameInput
-from ..camera import Camera
+from ..camera import Camera, planes_of
 from .layout import NO_BUDGET, PARAMS_DTYPE, ColourMode, Flag
 from .reference import budget_seed, seed_hash
 
@@ -60,9 +60,12 @@ def build(cfg: RenderConfig, frame: FrameInput, camera: Camera, w: int, h: int, 
         model = np.eye(4)
         model[:3, 3] = origin.astype(np.float32)
         P["vp"], P["model"] = mat_cols(vp), mat_cols(model)
+        planes = camera.frustum_planes(w, h, origin)
     else:
-        P["vp"], P["model"] = mat_cols(camera.view_proj(w, h, origin)), mat_cols(np.eye(4))
-    P["planes"] = camera.frustum_planes(w, h, origin).astype(np.float32).reshape(6, 4)
+        vp = camera.view_proj(w, h, origin)
+        P["vp"], P["model"] = mat_cols(vp), mat_cols(np.eye(4))
+        planes = planes_of(vp)  # frustum_planes of the same matrix, not built a second time
+    P["planes"] = planes.astype(np.float32).reshape(6, 4)
     c = list(cfg.color) + [1.0] * (4 - len(cfg.color))
     P["fixed_color"] = np.round(np.clip(np.asarray(c[:4], np.float64), 0, 1) * 255.0) / 255.0
     P["vw"], P["vh"], P["point_size"] = w, h, cfg.point_size
