@@ -20,7 +20,6 @@ import os
 import sys
 import time
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -33,16 +32,13 @@ def child(n: int, only: list[str], splits: list[str]) -> dict[str, float]:
     """One side, one round: median frame ms per configuration/split/threads."""
     import numba
 
-    from _harness.scenes import H as HH, W, base_cloud, camera_for, make_frame, tiled
+    from _harness.scenes import H as HH, W, rewritten_frames, tiled_scene
     from pointflow.config import EdlConfig, RenderConfig
     from pointflow.render.cpu_compute import CpuComputeRenderer
     conf = {"squares2": {}, "round3": dict(point_size=3.0, point_shape="round"), "edl": dict(edl=EdlConfig(enabled=True)),
             "by_z": dict(color_by="z"), "world": dict(point_size_space="world", point_size=0.5)}
     os.environ["POINTFLOW_CPU_RASTER_ADAPTIVE"] = "0"
-    base, inten0, _ = base_cloud()
-    world, inten = tiled(base, inten0, n)
-    f = make_frame(world, inten)
-    cam = camera_for(world)
+    f, cam = tiled_scene(n)
     out = {}
     for name in only:
         cfg = RenderConfig(**{**dict(size=[W, HH], color_by="intensity", colormap="turbo", point_size=2.0,
@@ -50,20 +46,12 @@ def child(n: int, only: list[str], splits: list[str]) -> dict[str, float]:
         for sp in splits:
             os.environ["POINTFLOW_CPU_RASTER_SPLIT"] = sp
             r = CpuComputeRenderer(cfg, n, ["intensity"])
-            step, head = max(n // 100, 1), 0
+            head = 0
             for t in (1, 2):
                 numba.set_num_threads(min(t, numba.config.NUMBA_NUM_THREADS))
                 f.dirty = None
                 r.render(f, cam)
-                ts = []
-                for _ in range(12):
-                    a = head
-                    f.dirty = [(a, min(a + step, n))]
-                    head = (head + step) % n
-                    t0 = time.perf_counter()
-                    r.render(f, cam)
-                    r.read_image()
-                    ts.append((time.perf_counter() - t0) * 1e3)
+                ts, _, head = rewritten_frames(r, f, cam, 12, head)
                 out[f"{name}/{sp}/{t}T"] = float(np.median(ts[2:]))
             r.close()
     return out
@@ -71,14 +59,9 @@ def child(n: int, only: list[str], splits: list[str]) -> dict[str, float]:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--base", help="the revision to compare against (required)")
-    ap.add_argument("--head", default=".", help="a revision, or . for this checkout as it is (default)")
-    ap.add_argument("--sizes", type=int, nargs="*", default=[1_000_000, 100_000])
-    ap.add_argument("--rounds", type=int, default=8, help="rounds per size (each: one process per side)")
+    H.ab_arguments(ap, [1_000_000, 100_000], 8, "ab_cpu_raster.json")
     ap.add_argument("--only", default=",".join(CONFIGS))
     ap.add_argument("--splits", default="points,bins")
-    ap.add_argument("--out", default=str(H.RESULTS / "ab_cpu_raster.json"))
-    ap.add_argument("--child", type=int, default=0, help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
     only, splits = a.only.split(","), a.splits.split(",")
     if a.child:
@@ -88,27 +71,9 @@ def main(argv: list[str] | None = None) -> int:
         ap.error("--base is required")
     machine = H.machine()
     me = str(Path(__file__).resolve())
-    rows = []
-    with H.checkout_or_revision(a.base) as (bdir, bsha), H.checkout_or_revision(a.head) as (hdir, hsha):
-        sides = {"base": bdir, "head": hdir}
-        for side, d in sides.items():  # compile (or load) each side's loops before timing
-            H.run_json([me, "--child", "1000", "--only", only[0], "--splits", splits[0]], d)
-        for n in a.sizes:
-            got: dict[str, list[dict[str, float]]] = {"base": [], "head": []}
-            for i in range(a.rounds):
-                for side in (("base", "head") if i % 2 == 0 else ("head", "base")):
-                    got[side].append(H.run_json([me, "--child", str(n), "--only", a.only, "--splits", a.splits],
-                                                sides[side]))
-            row: dict[str, Any] = {"points": n, "rounds": a.rounds, "load_after": [round(x, 2) for x in os.getloadavg()],
-                                   "figures": {}}
-            for k in got["base"][0]:
-                b = float(np.median([r[k] for r in got["base"]]))
-                h = float(np.median([r[k] for r in got["head"]]))
-                row["figures"][k] = {"base_ms": round(b, 2), "head_ms": round(h, 2), "head_over_base": round(h / b, 3),
-                                     "base_samples": [round(r[k], 2) for r in got["base"]],
-                                     "head_samples": [round(r[k], 2) for r in got["head"]]}
-                print(f"{n:>9,} {k:22s} base {b:7.2f} ms  head {h:7.2f} ms  x{h / b:.2f}", flush=True)
-            rows.append(row)
+    bsha, hsha, rows = H.ab_child_rounds(
+        me, a.base, a.head, a.sizes, a.rounds, lambda n: ["--child", str(n), "--only", a.only, "--splits", a.splits],
+        warm=["--child", "1000", "--only", only[0], "--splits", splits[0]])  # compile (or load) each side's loops
     H.write_result(a.out, {"base": bsha, "head": hsha, "rows": rows, "machine": H.machine_done(machine),
                            "measured_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "command": H.command()})
     return 0

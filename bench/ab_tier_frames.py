@@ -21,7 +21,6 @@ import os
 import sys
 import time
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -35,12 +34,9 @@ def child(n: int, tiers: list[str]) -> dict[str, float]:
     """One side, one round: median frame ms per tier/colour (and the wgpu CPU side)."""
     from dataclasses import replace
 
-    from _harness.scenes import H as HH, W, base_cloud, camera_for, make_frame, tiled
+    from _harness.scenes import H as HH, W, rewritten_frames, tiled_scene
     from pointflow.config import RenderConfig
-    base, inten0, _ = base_cloud()
-    world, inten = tiled(base, inten0, n)
-    f = make_frame(world, inten)
-    cam = camera_for(world)
+    f, cam = tiled_scene(n)
     out = {}
     for tier in tiers:
         for colour in COLOURS:
@@ -55,19 +51,11 @@ def child(n: int, tiers: list[str]) -> dict[str, float]:
                 os.environ["POINTFLOW_WGPU_COMPACT"] = "1" if tier == "wgpu_compact" else "0"
                 from pointflow.render.wgpu_tier import WgpuRenderer
                 r = WgpuRenderer(replace(cfg, backend="wgpu", raster="compute"), n, ["intensity"])
-            step, head = max(n // 100, 1), 0
             f.dirty = None
             r.render(f, cam)
             r.read_image()
-            ts, cpu_side = [], []
-            for _ in range(7):
-                f.dirty = [(head, min(head + step, n))]
-                head = (head + step) % n
-                t0 = time.perf_counter()
-                st = r.render(f, cam)
-                r.read_image()
-                ts.append((time.perf_counter() - t0) * 1e3)
-                cpu_side.append(st.timings_ms.get("cpu_total", np.nan))
+            ts, stats, _ = rewritten_frames(r, f, cam, 7)
+            cpu_side = [st.timings_ms.get("cpu_total", np.nan) for st in stats]
             out[f"{tier}/{colour}"] = float(np.median(ts[2:]))
             if tier.startswith("wgpu"):
                 out[f"{tier}/{colour}/cpu_side"] = float(np.median(cpu_side[2:]))
@@ -77,13 +65,8 @@ def child(n: int, tiers: list[str]) -> dict[str, float]:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--base", help="the revision to compare against (required)")
-    ap.add_argument("--head", default=".", help="a revision, or . for this checkout as it is (default)")
-    ap.add_argument("--sizes", type=int, nargs="*", default=[1_000_000])
-    ap.add_argument("--rounds", type=int, default=4, help="rounds per size (each: one process per side)")
+    H.ab_arguments(ap, [1_000_000], 4, "ab_tier_frames.json")
     ap.add_argument("--tiers", default=",".join(TIERS))
-    ap.add_argument("--out", default=str(H.RESULTS / "ab_tier_frames.json"))
-    ap.add_argument("--child", type=int, default=0, help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
     tiers = a.tiers.split(",")
     if a.child:
@@ -93,24 +76,8 @@ def main(argv: list[str] | None = None) -> int:
         ap.error("--base is required")
     machine = H.machine()
     me = str(Path(__file__).resolve())
-    rows = []
-    with H.checkout_or_revision(a.base) as (bdir, bsha), H.checkout_or_revision(a.head) as (hdir, hsha):
-        sides = {"base": bdir, "head": hdir}
-        for n in a.sizes:
-            got: dict[str, list[dict[str, float]]] = {"base": [], "head": []}
-            for i in range(a.rounds):
-                for side in (("base", "head") if i % 2 == 0 else ("head", "base")):
-                    got[side].append(H.run_json([me, "--child", str(n), "--tiers", a.tiers], sides[side]))
-            row: dict[str, Any] = {"points": n, "rounds": a.rounds, "load_after": [round(x, 2) for x in os.getloadavg()],
-                                   "figures": {}}
-            for k in got["base"][0]:
-                b = float(np.median([r[k] for r in got["base"]]))
-                h = float(np.median([r[k] for r in got["head"]]))
-                row["figures"][k] = {"base_ms": round(b, 3), "head_ms": round(h, 3), "head_over_base": round(h / b, 3),
-                                     "base_samples": [round(r[k], 3) for r in got["base"]],
-                                     "head_samples": [round(r[k], 3) for r in got["head"]]}
-                print(f"{n:>9,} {k:28s} base {b:8.2f} ms  head {h:8.2f} ms  x{h / b:.2f}", flush=True)
-            rows.append(row)
+    bsha, hsha, rows = H.ab_child_rounds(me, a.base, a.head, a.sizes, a.rounds,
+                                         lambda n: ["--child", str(n), "--tiers", a.tiers], digits=3)
     H.write_result(a.out, {"base": bsha, "head": hsha, "rows": rows, "machine": H.machine_done(machine),
                            "measured_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "command": H.command()})
     return 0

@@ -301,6 +301,49 @@ def checkout_or_revision(rev: str, root: Path | str = ROOT) -> Iterator[tuple[Pa
         yield d, resolve_revision(rev, root)
 
 
+def ab_arguments(ap: Any, sizes: Sequence[int], rounds: int, out: str) -> None:
+    """The options every ``--child`` A/B driver takes (:func:`ab_child_rounds`)."""
+    ap.add_argument("--base", help="the revision to compare against (required)")
+    ap.add_argument("--head", default=".", help="a revision, or . for this checkout as it is (default)")
+    ap.add_argument("--sizes", type=int, nargs="*", default=list(sizes))
+    ap.add_argument("--rounds", type=int, default=rounds, help="rounds per size (each: one process per side)")
+    ap.add_argument("--out", default=str(RESULTS / out))
+    ap.add_argument("--child", type=int, default=0, help="(internal: one side's measurement at this size)")
+
+
+def ab_child_rounds(me: str, base: str, head: str, sizes: Sequence[int], rounds: int,
+                    args: Callable[[int], list[str]], warm: Sequence[str] | None = None,
+                    digits: int = 2) -> tuple[str, str, list[dict[str, Any]]]:
+    """An A/B of a driver's ``--child`` between revisions ``base`` and ``head``: per size,
+    ``rounds`` rounds of one fresh process per side (``me`` + ``args(n)``, run against that
+    side's checkout, printing a JSON dict of figures in ms), the sides alternating (ABBA);
+    ``warm`` is run once per side first (e.g. to compile). Returns (base commit, head commit,
+    one row per size: the figures' medians over rounds, head/base and every sample)."""
+    rows = []
+    with checkout_or_revision(base) as (bdir, bsha), checkout_or_revision(head) as (hdir, hsha):
+        sides = {"base": bdir, "head": hdir}
+        if warm:
+            for d in sides.values():
+                run_json([me, *warm], d)
+        for n in sizes:
+            got: dict[str, list[dict[str, float]]] = {"base": [], "head": []}
+            for i in range(rounds):
+                for side in (("base", "head") if i % 2 == 0 else ("head", "base")):
+                    got[side].append(run_json([me, *args(n)], sides[side]))
+            row: dict[str, Any] = {"points": n, "rounds": rounds, "load_after": [round(x, 2) for x in os.getloadavg()],
+                                   "figures": {}}
+            for k in got["base"][0]:
+                b = float(statistics.median([r[k] for r in got["base"]]))
+                h = float(statistics.median([r[k] for r in got["head"]]))
+                row["figures"][k] = {"base_ms": round(b, digits), "head_ms": round(h, digits),
+                                     "head_over_base": round(h / b, 3),
+                                     "base_samples": [round(r[k], digits) for r in got["base"]],
+                                     "head_samples": [round(r[k], digits) for r in got["head"]]}
+                print(f"{n:>9,} {k:28s} base {b:8.2f} ms  head {h:8.2f} ms  x{h / b:.2f}", flush=True)
+            rows.append(row)
+    return bsha, hsha, rows
+
+
 # ----------------------------------------------------------------------------- results
 def write_result(path: Path | str, res: dict[str, Any], indent: int = 2) -> Path:
     """Write a result JSON (folders made), say where."""

@@ -144,3 +144,29 @@ def make_frame(world: np.ndarray, inten: np.ndarray) -> FrameInput:
 def camera_for(world: np.ndarray) -> Camera:
     lo, hi = world.min(0), world.max(0)
     return Camera.fit(lo, hi, aspect=W / H)
+
+
+def rewritten_frames(r, f: FrameInput, cam: Camera, frames: int, head: int = 0) -> tuple[list[float], list, int]:
+    """The frame-time runs' steady state: ``frames`` frames of renderer ``r``, each with the
+    next 1% of the ring marked rewritten (a dirty range) and its image read back
+    (``read_image``). Returns (wall ms per frame, FrameStats per frame, the next head)."""
+    n = int(f.capacity)
+    step = max(n // 100, 1)
+    import time
+    ts, stats = [], []
+    for _ in range(frames):
+        f.dirty = [(head, min(head + step, n))]
+        head = (head + step) % n
+        t0 = time.perf_counter()
+        stats.append(r.render(f, cam))
+        r.read_image()
+        ts.append((time.perf_counter() - t0) * 1e3)
+    return ts, stats, head
+
+
+def tiled_scene(n: int) -> tuple[FrameInput, Camera]:
+    """The frame-time runs' scene at n points: the base cloud tiled (:func:`tiled`), as a
+    full ring (:func:`make_frame`), with the camera that frames it."""
+    base, inten0, _ = base_cloud()
+    world, inten = tiled(base, inten0, n)
+    return make_frame(world, inten), camera_for(world)
