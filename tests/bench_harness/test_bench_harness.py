@@ -107,23 +107,24 @@ def test_driver_runs_without_sys_path_help(tmp_path):
     assert res["command"].startswith("bench/bench_ring.py") and res["ingest"] and res["snapshot"]
 
 
-def test_machine_ceiling_sizes_its_loops_to_a_frame_and_times_both(monkeypatch):
-    """The thread bench's same-round baseline (bench_cpu_threads.py): both loops are sized
-    from a one-thread timing, so a 2 ms target gives far fewer compute items than the
-    8 ms default would, and each call reports both loops at the current thread count."""
+def test_machine_ceiling_sizes_its_loops_and_times_both(monkeypatch):
+    """The thread bench's same-round baseline (bench_cpu_threads.py): both loops are sized from
+    a one-thread timing within their bounds (no timing is compared here: the machine is shared),
+    the caller's thread count is left as it was, and each call reports both loops at the current
+    thread count, the compute loop having done its work."""
     monkeypatch.syspath_prepend(str(BENCH))
     import numba
     import numpy as np
     from _harness.machine_ceiling import Ceiling
 
     prev = numba.get_num_threads()
-    short, long_ = Ceiling(ms=2.0), Ceiling(ms=8.0)
+    c = Ceiling(ms=2.0)
     assert numba.get_num_threads() == prev  # sizing leaves the caller's thread count
-    assert len(short._a) < len(long_._a) and len(short._x) <= len(long_._x)
+    assert 256 <= len(c._a) <= 1 << 20 and (1 << 16) <= len(c._x) <= 1 << 25
     for t in sorted({1, numba.config.NUMBA_NUM_THREADS}):
         numba.set_num_threads(t)
-        got = long_.time(repeat=1)
+        got = c.time(repeat=1)
         assert set(got) == {"compute", "stream"} and all(v > 0 for v in got.values())
+        ref = np.array([sum(np.sin(x + j) for j in range(256)) for x in c._a[:4]])
+        assert np.allclose(c._out[:4], ref) and np.array_equal(c._y[:8], c._x[:8] * 2.0 + 1.0)
     numba.set_num_threads(prev)
-    ref = np.array([sum(np.sin(x + j) for j in range(256)) for x in long_._a[:4]])
-    assert np.allclose(long_._out[:4], ref)  # the compute loop did its work
