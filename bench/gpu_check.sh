@@ -7,7 +7,8 @@
 #   4. compact positions against float32 in the compute method (bench/bench_wgpu_compact.py,
 #      GPU_CHECK_COMPACT_POINTS, default 16M; 0 skips it),
 # and writes ONE JSON (bench/results/gpu_check.json) plus a short table on stdout: frame
-# times and G points/s per method and size (``gpoints_per_s`` in the JSON).
+# times and G points/s per method and size (``gpoints_per_s`` in the JSON), and per size and
+# method the GPU passes by timestamp queries, the CPU side and G points/s of GPU time (``by_pass``).
 #
 #   bench/gpu_check.sh                                  # the real check
 #   GPU_CHECK_SIZES="100000 1000000" GPU_CHECK_TESTS=tests/render_tiers/test_agreement.py \
@@ -89,6 +90,17 @@ res = {"measured_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "host"
 METHODS = (("floor", "floor_ms"), ("quads", "quads_ms"), ("compute", "compute_ms"), ("cpu_compute", "cpu_compute_ms"))
 res["gpoints_per_s"] = [{"points": r["points"], **{m: round(r["points"] / r[k] / 1e6, 3) for m, k in METHODS
                                                    if r.get(k)}} for r in (bench or {}).get("rows", [])]
+# by pass (issue 41, item 4): the GPU's passes by timestamp queries (the key clear and the
+# readback copy lie outside them), the CPU side (planning, culling, compact positions, upload,
+# encode, submit: ``cpu_total``), and G points/s of GPU time
+res["by_pass"] = []
+for r in (bench or {}).get("rows", []):
+    for m in ("quads", "compute"):
+        g = r.get(f"{m}_gpu_ms") or {}
+        gpu = sum(g.values()) if g else None
+        res["by_pass"].append({"points": r["points"], "method": m, "gpu_passes_ms": gpu, "gpu": g,
+                               "cpu_side_ms": r.get(f"{m}_cpu_ms"), "frame_ms": r.get(f"{m}_ms"),
+                               "gpoints_per_s_gpu_time": round(r["points"] / gpu / 1e6, 3) if gpu else None})
 os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
 with open(out, "w") as f:
     json.dump(res, f, indent=1)
@@ -104,6 +116,11 @@ if bench:
     print(f"{'points':>11} " + " ".join(f"{m + ' Gpt/s':>16}" for m, _ in METHODS))
     for g in res["gpoints_per_s"]:
         print(f"{g['points']:>11,} " + " ".join(f"{g.get(m, float('nan')):>16.3f}" for m, _ in METHODS))
+    print(f"{'points':>11} {'method':>8} {'GPU passes ms':>13} {'CPU side ms':>11} {'frame ms':>9} {'Gpt/s GPU time':>14}")
+    for b in res["by_pass"]:
+        na = float("nan")
+        print(f"{b['points']:>11,} {b['method']:>8} {b['gpu_passes_ms'] or na:>13.3f} {b['cpu_side_ms'] or na:>11.2f} "
+              f"{b['frame_ms'] or na:>9.1f} {b['gpoints_per_s_gpu_time'] or na:>14.3f}")
 print(f"wrote {out}")
 sys.exit(1 if (test_rc or bench_rc) else 0)
 EOF
