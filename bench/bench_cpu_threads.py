@@ -287,8 +287,9 @@ def chart(res: dict[str, Any], path: Path) -> None:
             ts = [int(t) for t in d]
             ax.plot(ts, [d[str(t)]["wall_ms"] for t in ts], "o-", label=sp)
             for t in ts[1:]:
-                ax.annotate(f"x{d[str(t)]['speedup_per_round_median']:.2f}", (t, d[str(t)]["wall_ms"]),
-                            xytext=(4, 4), textcoords="offset points", fontsize=7)
+                mach = d[str(t)].get("machine_speedup_compute")  # (results before wave 5g lack it)
+                ax.annotate(f"x{d[str(t)]['speedup_per_round_median']:.2f}" + (f" (machine x{mach:.2f})" if mach else ""),
+                            (t, d[str(t)]["wall_ms"]), xytext=(4, 4), textcoords="offset points", fontsize=7)
         ax.set_title(f"{row['points']:,} points", fontsize=9)
         ax.set_xlabel("numba threads")
         ax.set_ylabel("median frame ms (interleaved)")

@@ -43,11 +43,12 @@ __all__ = ["CpuComputeRenderer"]
 ENV_SPLIT = "POINTFLOW_CPU_RASTER_SPLIT"
 #: how the threads share the work (bench/bench_render.py --cpu-raster measures them)
 SPLITS = ("auto", "bins", "points", "bands")
-#: auto without measurements: bins, but points for a frame drawn with at most
-#: POINTS_UP_TO_THREADS threads over more than POINTS_ABOVE points (measured faster here, 2
-#: cores: few buffers to clear and merge, no records to sort)
+#: auto without measurements: points for a frame drawn with at most POINTS_UP_TO_THREADS
+#: threads, else bins (points measured faster here at every size from 10k to 1M points with
+#: the ring in view, at 1 and 2 threads, since its key buffers are cleared and resolved by
+#: tile: few buffers, no records to sort; bins culls whole batches, so a view of a small
+#: part of a big ring favours it: the adaptive choice measures both)
 DEFAULT_SPLIT = "auto"
-POINTS_ABOVE = 250_000
 POINTS_UP_TO_THREADS = 2
 #: split by bins: logical indices per chunk of the binning pass (its scratch stays in cache)
 BIN_CHUNK = BATCH_SLOTS
@@ -239,12 +240,12 @@ class CpuComputeRenderer(Renderer):
         self._synced_mode = (cmode, chan)
         return total
 
-    def _rule(self, T: int, size: int) -> str:
-        """The split without measurements: the forced one, else bins (points for at most
-        POINTS_UP_TO_THREADS threads over more than POINTS_ABOVE points)."""
+    def _rule(self, T: int) -> str:
+        """The split without measurements: the forced one, else points for at most
+        POINTS_UP_TO_THREADS threads, bins for more."""
         if self.split_mode != "auto":
             return self.split_mode
-        return "points" if T <= POINTS_UP_TO_THREADS and size > POINTS_ABOVE else "bins"
+        return "points" if T <= POINTS_UP_TO_THREADS else "bins"
 
     def _pick(self, size: int) -> tuple[str, int]:
         """This frame's (split, thread count): every thread numba has (``numba.get_num_threads()``)
@@ -254,7 +255,7 @@ class CpuComputeRenderer(Renderer):
         others is re-tried in rotation, so a machine whose other load changes is followed."""
         most = max(1, int(self._k_numba().get_num_threads()))
         if most == 1 or not self._adaptive:
-            return self._rule(most, size), most
+            return self._rule(most), most
         splits = ("bins", "points") if self.split_mode == "auto" else (self.split_mode,)
         cands = [(sp, t) for t in (most, 1) for sp in splits]
         for c in cands:
