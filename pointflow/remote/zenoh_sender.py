@@ -19,6 +19,7 @@ syncs.
 from __future__ import annotations
 
 import time
+from typing import Callable, Optional
 
 import zmq
 
@@ -89,15 +90,19 @@ class ZenohLinkSender(LinkSender):
         return {**super().stats(), "link_publishers": len(self.publishers)}
 
 
-def confirm_delivery(session, sources: dict[str, str], timeout: float, log) -> None:
+def confirm_delivery(session, sources: dict[str, str], timeout: float, log,
+                     matching: Optional[Callable[[str], bool]] = None) -> None:
     """Wait until the receivers of each source took its final sync, or ``timeout``.
 
     Closing a Zenoh session drops what its transmit queue still holds, and with a slow
     receiver (a replay with backpressure) that is the tail of the data and the final sync.
     Zenoh gives no delivery receipt, and a query may overtake earlier samples (callbacks run
     on several threads), so the sender asks each source's receivers, again and again, whether
-    the source's end has been taken; each answers ``ended`` or ``pending``. No answer (no
-    receiver, or one without the queryable) ends the wait at once."""
+    the source's end has been taken; each answers ``ended`` or ``pending``. No answer ends the
+    wait at once only when no subscriber matches the key (``matching``: no receiver): a query
+    can time out while a receiver is busy (its Zenoh thread held by a full queue), and closing
+    then would drop what is still in transit. A matched receiver without the queryable (an
+    older pointflow) keeps the sender waiting until ``timeout``."""
     import zenoh
 
     end = time.monotonic() + timeout
@@ -114,8 +119,10 @@ def confirm_delivery(session, sources: dict[str, str], timeout: float, log) -> N
                 log.warning("could not ask the receivers of %s whether they took everything: %s", key, exc)
                 answers = []
             answered[key] = len(answers)
-            if all(a == b"ended" for a in answers):  # also: nobody answers
+            if answers and all(a == b"ended" for a in answers):
                 del pending[key]
+            elif not answers and not (matching is not None and matching(key)):
+                del pending[key]  # nobody to ask
         if pending:
             time.sleep(0.05)
     for key in sources:
@@ -203,8 +210,9 @@ def main(ctx) -> None:
             ctx.counters.drop("unsent_at_stop", snd.queued_points)
             ctx.log.warning("%d queued point(s) could not be sent before stopping", snd.queued_points)
             snd.queue.clear()
+        pubs = {source_key(s.key, src): pub for src, pub in snd.publishers.items()}
         confirm_delivery(session, {source_key(s.key, src): src for src in snd.publishers}, CONFIRM_S[s.backpressure],
-                         ctx.log)
+                         ctx.log, matching=lambda k: k in pubs and _matching(pubs[k]))
         time.sleep(CLOSE_SETTLE_S)
     finally:
         _stats()
