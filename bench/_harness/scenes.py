@@ -3,6 +3,7 @@ bench_edl_cpu_gl.py, quads_agreement.py) and the tiled cloud of the wgpu frame-t
 (bench_render.py, ab_raster.py)."""
 from __future__ import annotations
 
+import time
 from typing import Optional
 
 import numpy as np
@@ -152,7 +153,6 @@ def rewritten_frames(r, f: FrameInput, cam: Camera, frames: int, head: int = 0) 
     (``read_image``). Returns (wall ms per frame, FrameStats per frame, the next head)."""
     n = int(f.capacity)
     step = max(n // 100, 1)
-    import time
     ts, stats = [], []
     for _ in range(frames):
         f.dirty = [(head, min(head + step, n))]

@@ -247,7 +247,7 @@ class CpuComputeRenderer(Renderer):
             return self.split_mode
         return "points" if T <= POINTS_UP_TO_THREADS else "bins"
 
-    def _pick(self, size: int) -> tuple[str, int]:
+    def _pick(self) -> tuple[str, int]:
         """This frame's (split, thread count): every thread numba has (``numba.get_num_threads()``)
         or one, and with ``auto`` the bins or the points split, whichever drew faster lately
         (the image is the same either way). The first frames try each in turn (all threads
@@ -411,7 +411,7 @@ class CpuComputeRenderer(Renderer):
     def render(self, frame: FrameInput, camera: Camera) -> FrameStats:
         nb = self._k_numba()
         caller = nb.get_num_threads()
-        split, T = self._pick(int(frame.size))
+        split, T = self._pick()
         nb.set_num_threads(T)
         try:
             st = self._render(frame, camera, T, split)

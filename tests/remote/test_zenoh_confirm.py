@@ -9,7 +9,7 @@ import time
 
 import pytest
 
-zenoh = pytest.importorskip("zenoh")
+zenoh = pytest.importorskip("zenoh", reason="eclipse-zenoh comes with the remote extra: pip install 'pointflow[remote]'")
 
 from pointflow.remote.zenoh_sender import _matching, confirm_delivery  # noqa: E402
 

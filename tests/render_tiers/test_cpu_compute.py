@@ -380,7 +380,7 @@ def test_thread_count_follows_the_faster_one_and_keeps_the_image(monkeypatch):
     assert sorted(r._tune) == [("points", 1), ("points", 2)] and all(len(v) == cc.TUNE_FRAMES for v in r._tune.values())
     # then the faster count, with the other re-tried every RETRY_EVERY frames
     r._tune = {("points", 1): [1.0] * cc.TUNE_FRAMES, ("points", 2): [9.0] * cc.TUNE_FRAMES}
-    picks = [r._pick(frame.size)[1] for _ in range(2 * cc.RETRY_EVERY)]
+    picks = [r._pick()[1] for _ in range(2 * cc.RETRY_EVERY)]
     assert picks.count(2) == 2 and picks.count(1) == 2 * cc.RETRY_EVERY - 2
     r._tune = {("points", 1): [9.0] * cc.TUNE_FRAMES, ("points", 2): [1.0] * cc.TUNE_FRAMES}
-    assert r._pick(frame.size) == ("points", 2)
+    assert r._pick() == ("points", 2)

@@ -222,7 +222,7 @@ def test_auto_times_both_splits_at_both_thread_counts_and_keeps_the_image(monkey
     first = [("bins", 2), ("points", 2), ("bins", 1), ("points", 1)]
     assert used == [c for c in first for _ in range(cc.TUNE_FRAMES)] and len(imgs) == 1
     r._tune = {c: [float(k + 1)] * cc.TUNE_FRAMES for k, c in enumerate(first)}  # bins at 2 threads fastest
-    picks = [r._pick(frame.size) for _ in range(3 * cc.RETRY_EVERY)]
+    picks = [r._pick() for _ in range(3 * cc.RETRY_EVERY)]
     assert picks.count(("bins", 2)) == 3 * cc.RETRY_EVERY - 3
     assert sorted(p for p in picks if p != ("bins", 2)) == sorted(first[1:])  # each other one re-tried
 
