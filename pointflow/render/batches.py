@@ -14,6 +14,12 @@ through :class:`BatchBounds` (its passes then walk only the surviving runs of th
 
 ``POINTFLOW_CPU_RASTER_CULL=0`` (:data:`ENV_CULL`) turns culling off in every tier (same
 image: tested).
+
+The same bounds give the footprint LOD (``render.lod_fill``, off by default): a batch whose
+box covers few pixels for its points keeps only the slots ``slot % s == 0``, s a power of two
+per batch (:func:`lod_masks`), as the map layer picks coarser nodes for far tiles. One
+function decides the strides from the bounds, and every tier applies them with the same
+per-point test, so the tiers still draw the same points.
 """
 from __future__ import annotations
 
@@ -25,11 +31,17 @@ import numpy as np
 from ..arrays import column_max, column_min, finite_rows
 from .base import merge_ranges
 
-__all__ = ["BATCH_SLOTS", "ENV_CULL", "BatchBounds", "boxes_outside", "culling_enabled"]
+__all__ = ["BATCH_SLOTS", "BATCH_SHIFT", "ENV_CULL", "LOD_MAX_STRIDE", "BatchBounds", "boxes_outside",
+           "culling_enabled", "lod_masks", "frame_lod_masks", "occupied_per_batch"]
 
 #: Slots per batch: small enough that a view of a tenth of a ring skips most of it, large
 #: enough that the per-batch work (bounds, the plane test, one run per batch) stays small.
 BATCH_SLOTS = 16384
+#: ``slot >> BATCH_SHIFT`` is the slot's batch (the compiled and GPU tests shift, not divide).
+BATCH_SHIFT = 14
+assert BATCH_SLOTS == 1 << BATCH_SHIFT
+#: Footprint LOD: the most a batch is thinned (a power of two, so a stride divides a batch).
+LOD_MAX_STRIDE = 64
 #: Set to 0 to draw without batch culling (the images are the same).
 ENV_CULL = "POINTFLOW_CPU_RASTER_CULL"
 
@@ -51,6 +63,73 @@ def boxes_outside(lo: np.ndarray, hi: np.ndarray, planes: np.ndarray, rel: float
         most = d + np.maximum(lo[:, None, :] * nrm, hi[:, None, :] * nrm).sum(axis=2)
         scale = np.abs(d) + (np.maximum(np.abs(lo), np.abs(hi))[:, None, :] * np.abs(nrm)).sum(axis=2)
         return (most < -rel * (scale + 1.0)).any(axis=1)
+
+
+def occupied_per_batch(head: int, size: int, cap: int, batch: int = BATCH_SLOTS) -> np.ndarray:
+    """Occupied slots per batch of a ring (``size`` slots from ``head``, wrapping at ``cap``)."""
+    nb = -(-cap // batch) if cap > 0 else 0
+    first = np.arange(nb, dtype=np.int64) * batch
+    end = np.minimum(first + batch, cap)
+    occ = np.zeros(nb, np.int64)
+    a = head % cap if cap > 0 else 0
+    for s0, s1 in ((a, min(a + size, cap)), (0, max(a + size - cap, 0))):
+        occ += np.clip(np.minimum(end, s1) - np.maximum(first, s0), 0, None)
+    return occ
+
+
+def lod_masks(lo: np.ndarray, hi: np.ndarray, occupied: np.ndarray, vp: np.ndarray, width: int, height: int,
+              point_px: float, size_scale: float, fill: float) -> np.ndarray:
+    """Footprint LOD: per batch the mask ``s - 1`` (uint32) of its stride s, a power of two
+    in 1..:data:`LOD_MAX_STRIDE`: a slot is drawn iff ``slot & mask == 0``. s is the largest
+    power of two with ``occupied / s >= fill * area / point_px**2``, ``area`` the pixels of
+    the box's projected corners' bounding rectangle (not clipped to the screen: the points'
+    density over the box), so about ``fill`` points stay per point-sized cell. A box that
+    reaches behind the eye, or has no finite point, keeps every slot. ``size_scale > 0``:
+    world-size points, their size in pixels at the box's farthest corner (the smallest, so
+    the most points kept), clamped to [1, 4096] as the tiers draw them."""
+    nb = lo.shape[0]
+    out = np.zeros(nb, np.uint32)
+    ok = np.isfinite(lo).all(axis=1) & np.isfinite(hi).all(axis=1) & (occupied > 1)
+    if not ok.any() or not fill > 0:
+        return out
+    bl, bh = lo[ok], hi[ok]
+    pick = np.array([[(c >> i) & 1 for i in range(3)] for c in range(8)], bool)  # the 8 corners
+    corners = np.where(pick[None], bh[:, None, :], bl[:, None, :])  # (m, 8, 3)
+    vp = np.asarray(vp, np.float64)
+    cx = corners @ vp[0, :3] + vp[0, 3]
+    cy = corners @ vp[1, :3] + vp[1, 3]
+    w = corners @ vp[3, :3] + vp[3, 3]
+    front = (w > 1e-9).all(axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        px = (cx / w * 0.5 + 0.5) * width
+        py = (0.5 - cy / w * 0.5) * height
+        area = (px.max(axis=1) - px.min(axis=1)) * (py.max(axis=1) - py.min(axis=1))
+        if size_scale > 0:
+            size = np.clip(size_scale / w.max(axis=1), 1.0, 4096.0)
+        else:
+            size = np.full(bl.shape[0], float(point_px))
+        cells = np.maximum(area / (size * size), 1.0)
+        stride = occupied[ok] / (float(fill) * cells)
+    stride = np.where(front & np.isfinite(stride), stride, 1.0)
+    s = np.exp2(np.floor(np.log2(np.clip(stride, 1.0, LOD_MAX_STRIDE)))).astype(np.uint32)
+    out[ok] = s - 1
+    return out
+
+
+def frame_lod_masks(lo: np.ndarray, hi: np.ndarray, frame, camera, cfg, width: int, height: int,
+                    batch: int = BATCH_SLOTS) -> Optional[np.ndarray]:
+    """:func:`lod_masks` for a frame drawn with ``cfg`` (None when ``cfg.lod_fill`` is off),
+    from the bounds of every batch of the ring (float64 rows, :class:`BatchBounds` or the
+    compiled tier's own)."""
+    fill = float(getattr(cfg, "lod_fill", 0.0) or 0.0)
+    if not fill > 0:
+        return None
+    cap = int(frame.capacity)
+    vp = camera.view_proj(width, height, frame.origin)
+    world = cfg.point_size_space == "world"
+    scale = float(cfg.point_size) * float(camera.proj(width, height)[1, 1]) * height * 0.5 if world else 0.0
+    occ = occupied_per_batch(int(frame.head), int(frame.size), cap, batch)
+    return lod_masks(lo, hi, occ, vp, width, height, float(cfg.point_size), scale, fill)
 
 
 class BatchBounds:
@@ -104,6 +183,13 @@ class BatchBounds:
             else:  # column by column (pointflow.arrays): this runs every frame
                 self.lo[k], self.hi[k] = column_min(p), column_max(p)
         self.stale[ks] = False
+
+    def lod_masks(self, frame, camera, cfg, width: int, height: int) -> Optional[np.ndarray]:
+        """:func:`frame_lod_masks` from these bounds, every batch reduced (None when off)."""
+        if not float(getattr(cfg, "lod_fill", 0.0) or 0.0) > 0 or int(frame.capacity) <= 0:
+            return None
+        self.refresh(frame.positions, np.arange(self.lo.shape[0], dtype=np.int64))
+        return frame_lod_masks(self.lo, self.hi, frame, camera, cfg, width, height, self.batch)
 
     def culled(self, frame, planes: np.ndarray, rel: float = 1e-9) -> tuple[np.ndarray, np.ndarray]:
         """(batch indices culled whole, their first logical indices), ascending by logical

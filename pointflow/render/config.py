@@ -82,6 +82,11 @@ class RenderConfig:
     camera: CameraConfig = field(default_factory=CameraConfig)
     time_window_ms: float = field(default=0.0, metadata=check(non_negative))
     lod_stride: int = field(default=1, metadata=check(at_least_one))
+    #: Footprint LOD (off at 0): a batch of ring slots whose box covers few pixels keeps about
+    #: this many points per point-sized cell of its box on screen, by a power-of-two stride per
+    #: batch (render/batches.py ``lod_masks``; e.g. 2: a far batch draws a half or less of the
+    #: points that could show). Every tier draws the same points.
+    lod_fill: float = field(default=0.0, metadata=check(non_negative))
     importance_sampling: bool = False
     power_preference: Literal["high-performance", "low-power"] = "high-performance"
     output: OutputConfig = field(default_factory=OutputConfig)

@@ -33,7 +33,7 @@ import numpy as np
 from .config import RenderConfig
 from . import colormap, cpu_kernels
 from .base import FrameInput, FrameStats, Renderer, RenderError, merge_ranges
-from .batches import BATCH_SLOTS, boxes_outside, culling_enabled
+from .batches import BATCH_SLOTS, boxes_outside, culling_enabled, frame_lod_masks
 from .camera import Camera, planes_of
 from .rules import (EDL_SCALE, budget_fraction, budget_seed, check_frame, edl_offsets, in_pick_circle, pick_window,
                     resolve_pick, rgba_u8, seed_hash)
@@ -65,6 +65,8 @@ ENV_ADAPTIVE = "POINTFLOW_CPU_RASTER_ADAPTIVE"
 #: frames timed per thread count before choosing; the other count is re-tried every RETRY_EVERY
 TUNE_FRAMES = 3
 RETRY_EVERY = 30
+#: the footprint LOD off: no masks (the kernels' per-batch test is skipped)
+_NO_LOD = np.zeros(0, np.uint32)
 
 
 
@@ -188,6 +190,20 @@ class CpuComputeRenderer(Renderer):
             self._blo, self._bhi = np.zeros((nbat, 3)), np.zeros((nbat, 3))
             self._bbad, self._bvlo, self._bvhi = np.zeros(nbat, np.int64), np.zeros(nbat), np.zeros(nbat)
             self._bstale = np.ones(nbat, bool)
+
+    def _lod_masks(self, frame: FrameInput, camera: Camera, cmode: int) -> np.ndarray:
+        """The footprint LOD's mask per batch (batches.lod_masks) from the copy's own batch
+        bounds, every batch reduced; empty when ``render.lod_fill`` is off."""
+        if not self.cfg.lod_fill > 0:
+            return _NO_LOD
+        cap = self._cap
+        self._batches(cap)
+        stale = np.flatnonzero(self._bstale)
+        if stale.size:
+            self._k.batch_stats(stale.astype(np.int64), BIN_CHUNK, cap, self._pos, self._t, self._cval, cmode,
+                                self._blo, self._bhi, self._bbad, self._bvlo, self._bvhi)
+            self._bstale[stale] = False
+        return frame_lod_masks(self._blo, self._bhi, frame, camera, self.cfg, self.width, self.height, BIN_CHUNK)
 
     def _colour_mode(self, frame: FrameInput) -> tuple[int, Optional[str]]:
         cb = self.cfg.color_by
@@ -370,7 +386,7 @@ class CpuComputeRenderer(Renderer):
         return ca, cb, flag, cbad, cvr
 
     def _bin_pass(self, chunks, st, vr, mask, use_mask, head, size, cap, vp, planes, half, world, size_scale, round_,
-                  has_window, now, window, lod, has_imp, imp_deg, imp_lo, imp_scale, seed_h, range_mode,
+                  has_window, now, window, lod, blod, has_imp, imp_deg, imp_lo, imp_scale, seed_h, range_mode,
                   eps_s) -> None:
         """Pass 1 (rules, projection, boxes, records sorted by band); run again with larger
         chunk regions when a chunk needed more records than its region holds."""
@@ -390,7 +406,7 @@ class CpuComputeRenderer(Renderer):
             self._k.bin(bn.rkey, bn.rbox, bn.rf, bn.off, need, st, vr, ca, cb, cull, cbad, cvr, mask, use_mask, sk, sb,
                         sf, scur, self._pos,
                         self._t, self._imp, self._cval, head, size, cap, W, H, vp, planes, half, world, size_scale,
-                        round_, has_window, now, window, lod, has_imp, imp_deg, imp_lo, imp_scale, seed_h,
+                        round_, has_window, now, window, lod, blod, has_imp, imp_deg, imp_lo, imp_scale, seed_h,
                         range_mode, eps_s, BIN_CHUNK, bn.RC, bn.BS, bn.NB)
             most = int(need.max()) if C else 0
             if most <= bn.RC:
@@ -486,6 +502,7 @@ class CpuComputeRenderer(Renderer):
         has_window = cfg.time_window_ms > 0
         now, window = float(frame.now_ms), float(cfg.time_window_ms)
         lod = max(int(cfg.lod_stride), 1)
+        blod = self._lod_masks(frame, camera, cmode)
         half = float(cfg.point_size) * 0.5
         round_ = cfg.point_shape == "round"
         use_mask = use_mask_of(frame, size)
@@ -494,7 +511,7 @@ class CpuComputeRenderer(Renderer):
         if use_mask:  # budget: tests -> thinning -> the first b in logical order
             b = max(int(frame.budget), 0)
             k.select(mask, st, vr, self._pos, self._t, self._imp, self._cval, head, size, cap, T, vp, planes,
-                     has_window, now, window, lod, has_imp, imp_deg, imp_lo, imp_scale, seed_h, range_mode, eps_s)
+                     has_window, now, window, lod, blod, has_imp, imp_deg, imp_lo, imp_scale, seed_h, range_mode, eps_s)
             n = int(st[:, cpu_kernels.ST_KEEP].sum())
             if n > b:
                 per = np.zeros(T, np.int64)
@@ -510,12 +527,12 @@ class CpuComputeRenderer(Renderer):
         try:
             if bins:
                 self._bin_pass(chunks, st, vr, mask, use_mask, head, size, cap, vp, planes, half, world, size_scale,
-                               round_, has_window, now, window, lod, has_imp, imp_deg, imp_lo, imp_scale, seed_h,
+                               round_, has_window, now, window, lod, blod, has_imp, imp_deg, imp_lo, imp_scale, seed_h,
                                range_mode, eps_s)
             else:
                 k.raster(keys, self._marks, T, C, self.bands, st, vr, mask, use_mask, self._pos, self._t, self._imp, self._cval,
                          head, size, cap, W, H, vp, planes, half, world, size_scale, round_, has_window, now, window,
-                         lod, has_imp, imp_deg, imp_lo, imp_scale, seed_h, range_mode, eps_s)
+                         lod, blod, has_imp, imp_deg, imp_lo, imp_scale, seed_h, range_mode, eps_s)
         finally:
             nb.set_parallel_chunksize(prev)
         if self.bands:  # one buffer, written by every thread: the resolve reads all of it

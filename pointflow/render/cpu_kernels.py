@@ -27,6 +27,8 @@ from typing import Any, Optional
 
 import numpy as np
 
+from .batches import BATCH_SHIFT
+
 log = logging.getLogger("pointflow.render.cpu_kernels")
 
 #: an empty pixel (every real key is smaller: bits(w) of a finite w < 0x7f800000)
@@ -94,12 +96,15 @@ def _frustum(x, y, z, cx, cy, cz, w, planes, eps):
     return True
 
 
-def _test(logical, slot, tms, imp, has_window, now_ms, window_ms, lod, has_imp, imp_degenerate, imp_lo, imp_scale,
-          seed_h):
-    """The tests after the frustum and before the budget (rules.select_points)."""
+def _test(logical, slot, tms, imp, has_window, now_ms, window_ms, lod, blod, has_imp, imp_degenerate, imp_lo,
+          imp_scale, seed_h):
+    """The tests after the frustum and before the budget (rules.select_points). ``blod``: the
+    footprint LOD's mask per batch of slots (batches.lod_masks; empty when off)."""
     if has_window and not (now_ms - tms[slot]) <= window_ms:
         return False
     if lod > 1 and logical % lod != 0:
+        return False
+    if blod.shape[0] != 0 and (slot & blod[slot >> BATCH_SHIFT]) != 0:
         return False
     if has_imp:
         p = _F1
@@ -422,7 +427,7 @@ def _chunk_sq(kb, tm, a, b, head, cap, pos, tms, cval, vp, planes, eps_s, W, H, 
 
 
 def _raster(keys, marks, T, C, bands, st, vrange, mask, use_mask, pos, tms, imp, cval, head, size, cap, W, H, vp, planes,
-            half_px, world, size_scale, round_, has_window, now_ms, window_ms, lod, has_imp, imp_degenerate,
+            half_px, world, size_scale, round_, has_window, now_ms, window_ms, lod, blod, has_imp, imp_degenerate,
             imp_lo, imp_scale, seed_h, range_mode, eps_s):
     """T threads. ``bands`` (C = T): one key buffer, thread c owns rows [H c/T, H (c+1)/T),
     clears them and runs every point (counting only in thread 0). Else one key buffer per
@@ -433,7 +438,7 @@ def _raster(keys, marks, T, C, bands, st, vrange, mask, use_mask, pos, tms, imp,
     cleared first. Tests + splat (or splat the points ``mask`` keeps when ``use_mask``: the
     budget's passes did the tests). Counters per chunk in ``st``; the auto colour range in
     ``vrange``."""
-    lean = not use_mask and not world and not round_ and not has_window and lod <= 1 and not has_imp
+    lean = not use_mask and not world and not round_ and not has_window and lod <= 1 and blod.shape[0] == 0 and not has_imp
     TW, TH = _tile_grid(W, H)
     if not bands:
         for r in numba.prange(T * TH):
@@ -505,7 +510,7 @@ def _raster(keys, marks, T, C, bands, st, vrange, mask, use_mask, pos, tms, imp,
                 cz = vp[2, 0] * x + vp[2, 1] * y + vp[2, 2] * z + vp[2, 3]
                 if not _frustum(x, y, z, cx, cy, cz, w, planes, eps_s * (abs(x) + abs(y) + abs(z) + 1.0)):
                     continue
-                if not _test(logical, slot, tms, imp, has_window, now_ms, window_ms, lod, has_imp, imp_degenerate,
+                if not _test(logical, slot, tms, imp, has_window, now_ms, window_ms, lod, blod, has_imp, imp_degenerate,
                              imp_lo, imp_scale, seed_h):
                     continue
                 n_keep += 1
@@ -524,7 +529,7 @@ def _raster(keys, marks, T, C, bands, st, vrange, mask, use_mask, pos, tms, imp,
 
 
 def _select(mask, st, vrange, pos, tms, imp, cval, head, size, cap, T, vp, planes, has_window, now_ms, window_ms, lod,
-            has_imp, imp_degenerate, imp_lo, imp_scale, seed_h, range_mode, eps_s):
+            blod, has_imp, imp_degenerate, imp_lo, imp_scale, seed_h, range_mode, eps_s):
     """The budget's first pass: the tests only, a keep flag per logical index."""
     for c in numba.prange(T):
         a = size * c // T
@@ -557,7 +562,7 @@ def _select(mask, st, vrange, pos, tms, imp, cval, head, size, cap, T, vp, plane
             w = vp[3, 0] * x + vp[3, 1] * y + vp[3, 2] * z + vp[3, 3]
             if not _frustum(x, y, z, cx, cy, cz, w, planes, eps_s * (abs(x) + abs(y) + abs(z) + 1.0)):
                 continue
-            if _test(logical, slot, tms, imp, has_window, now_ms, window_ms, lod, has_imp, imp_degenerate, imp_lo,
+            if _test(logical, slot, tms, imp, has_window, now_ms, window_ms, lod, blod, has_imp, imp_degenerate, imp_lo,
                      imp_scale, seed_h):
                 mask[logical] = 1
                 n_keep += 1
@@ -790,7 +795,7 @@ def _bin_sq(sk, sb, cnt, a, b, head, cap, pos, tms, cval, vp, planes, eps_s, W, 
 
 
 def _bin(rkey, rbox, rf, off, need, st, vrange, ca, cb, cull, cbad, cvr, mask, use_mask, skey, sbox, sf, scur, pos, tms, imp, cval, head,
-         size, cap, W, H, vp, planes, half_px, world, size_scale, round_, has_window, now_ms, window_ms, lod, has_imp,
+         size, cap, W, H, vp, planes, half_px, world, size_scale, round_, has_window, now_ms, window_ms, lod, blod, has_imp,
          imp_degenerate, imp_lo, imp_scale, seed_h, range_mode, eps_s, L, RC, BS, NB):
     """Pass 1 of the binned raster: chunks of logical indices ``[ca[c], cb[c])`` (at most
     ``L``; each within one batch of slots), handed to threads as they come free. A chunk with
@@ -810,7 +815,7 @@ def _bin(rkey, rbox, rf, off, need, st, vrange, ca, cb, cull, cbad, cvr, mask, u
     v30, v31, v32, v33 = vp[3, 0], vp[3, 1], vp[3, 2], vp[3, 3]
     Wf = np.float64(W)
     Hf = np.float64(H)
-    lean = not use_mask and not world and not round_ and not has_window and lod <= 1 and not has_imp
+    lean = not use_mask and not world and not round_ and not has_window and lod <= 1 and blod.shape[0] == 0 and not has_imp
     for c in numba.prange(C):
         tid = numba.get_thread_id()
         sk = skey[tid]
@@ -873,7 +878,7 @@ def _bin(rkey, rbox, rf, off, need, st, vrange, ca, cb, cull, cbad, cvr, mask, u
                     cz = v20 * x + v21 * y + v22 * z + v23
                     if not _frustum(x, y, z, cx, cy, cz, w, planes, eps_s * (abs(x) + abs(y) + abs(z) + 1.0)):
                         continue
-                    if not _test(logical, slot, tms, imp, has_window, now_ms, window_ms, lod, has_imp,
+                    if not _test(logical, slot, tms, imp, has_window, now_ms, window_ms, lod, blod, has_imp,
                                  imp_degenerate, imp_lo, imp_scale, seed_h):
                         continue
                 n_keep += 1

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Optional
+from typing import Optional
 
 import numpy as np
 
@@ -18,10 +18,8 @@ from ..arrays import finite_rows
 from .config import RenderConfig
 from . import colormap
 from .base import FrameInput
+from .batches import BATCH_SHIFT, BatchBounds
 from .camera import Camera
-
-if TYPE_CHECKING:
-    from .batches import BatchBounds
 
 __all__ = ["Selection", "check_frame", "select_points", "pcg", "pcg_hash", "seed_hash", "budget_seed", "uniform01",
            "keep_probability", "importance_range_for_budget", "budget_fraction", "rgba_u8", "color_values",
@@ -169,9 +167,10 @@ def check_frame(frame: FrameInput) -> tuple[int, int]:
 
 
 def select_points(frame: FrameInput, camera: Camera, cfg: RenderConfig, width: int, height: int,
-                  bounds: Optional["BatchBounds"] = None) -> Selection:
+                  bounds: Optional[BatchBounds] = None) -> Selection:
     """Apply, in order: finite positions, time window (``now - t <= window``, off when 0),
-    LOD stride (``logical % stride == 0``), importance sampling (``uniform01(slot,
+    LOD stride (``logical % stride == 0``), footprint LOD (``render.lod_fill``: ``slot &
+    mask == 0``, the slot's batch's mask from :func:`pointflow.render.batches.lod_masks`), importance sampling (``uniform01(slot,
     seed_hash(seed)) <= p`` in float32, p from :func:`keep_probability` over the
     ``importance`` range), frustum (all six planes ``>= 0``, float64, a point on a plane is
     kept), and the budget, only when survivors n > budget b: keep iff ``uniform01(slot,
@@ -205,6 +204,15 @@ def select_points(frame: FrameInput, camera: Camera, cfg: RenderConfig, width: i
     if cfg.lod_stride > 1:
         lod = (logical % int(cfg.lod_stride)) == 0
         counts["lod"] = int(np.count_nonzero(keep & ~lod))
+        keep &= lod
+    if cfg.lod_fill > 0 and size:
+        bb = bounds  # the batches every tier thins by (BATCH_SHIFT: the compiled and GPU tests shift)
+        if bb is None or bb.batch != 1 << BATCH_SHIFT:
+            bb = BatchBounds(1 << BATCH_SHIFT)
+            bb.note(frame)
+        masks = bb.lod_masks(frame, camera, cfg, width, height)
+        lod = (slots & masks[slots // bb.batch].astype(np.int64)) == 0
+        counts["lod"] += int(np.count_nonzero(keep & ~lod))
         keep &= lod
     if cfg.importance_sampling:
         lo, hi = frame.channel_ranges.get("importance") or _finite_range(

@@ -89,6 +89,8 @@ def build(cfg: RenderConfig, frame: FrameInput, camera: Camera, w: int, h: int, 
         flags |= Flag.WORLD_SIZE
     if cfg.point_shape == "round":
         flags |= Flag.ROUND
+    if cfg.lod_fill > 0:
+        flags |= Flag.BATCH_LOD
     rflags, lo, hi, scale = colour_range(cfg, cmode, chan, frame)
     flags |= rflags
     if rflags & Flag.RANGE_AUTO:  # the range is reduced during the cull: colour in the draw

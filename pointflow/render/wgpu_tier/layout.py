@@ -89,6 +89,7 @@ class Flag(enum.IntFlag):
     RANGE_AUTO = 64
     RANGE_DEGENERATE = 128
     COLOUR_IN_VS = 256
+    BATCH_LOD = 512  #: footprint LOD: a slot is drawn iff ``slot & blod[slot >> 14] == 0``
 
 
 class ColourMode(enum.IntEnum):

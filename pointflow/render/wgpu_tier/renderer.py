@@ -205,6 +205,7 @@ class WgpuRenderer(IncrementalUpload, Renderer):
         self._dargs = self._buf(16, BU.STORAGE | BU.INDIRECT | BU.COPY_DST, "dispatch-args")
         self._params = self._buf(Gpu.PARAMS_STRIDE * nseg, BU.UNIFORM | BU.COPY_DST, "params")
         self._lut = self._buf(1024, sto, "lut")
+        self._blod = self._buf(-(-cap // batches.BATCH_SLOTS) * 4, sto, "batch-lod")  # footprint LOD masks
         self.queue.write_buffer(self._lut, 0, np.ascontiguousarray(colormap.lut(self.cfg.colormap)).view(np.uint32))
         one = np.zeros(Gpu.STATE_STRIDE // 4, np.uint32)
         one[:16] = [6, 0, 0, 0, 0, 1, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0]
@@ -229,7 +230,8 @@ class WgpuRenderer(IncrementalUpload, Renderer):
                   capacity=self.render_capacity, cmode=int(self._cmode), naive_float32=self.naive_float32,
                   key64=self._key64, max_groups=self._max_groups, row_bytes=self._row_bytes, sets=self._sets,
                   params=self._params, state=self._state, rng=self._rng, dargs=self._dargs, lut=self._lut,
-                  timestamps=self._qs, chunks=list(self._chunk_table), max_segments=self._nseg, compact=self._compact)
+                  timestamps=self._qs, chunks=list(self._chunk_table), max_segments=self._nseg, compact=self._compact,
+                  blod=self._blod)
         return self._method_cls(gpu)
 
     def resize(self, width: int, height: int) -> bool:
@@ -337,8 +339,16 @@ class WgpuRenderer(IncrementalUpload, Renderer):
         full = self._mark_dirty(frame)
         if self._culling is not None:  # before anything reduces the batch bounds
             self._culling.note(frame, full)
-        elif self._compact is not None:
+        elif self._compact is not None or self.cfg.lod_fill > 0:
             self._bounds.note(frame, full)
+        if self.cfg.lod_fill > 0:  # the footprint LOD's masks (batches.lod_masks), from the same bounds
+            lb = self._bounds
+            if lb.batch != 1 << batches.BATCH_SHIFT:  # (tests with small batches: the shaders shift by 14)
+                lb = self.__dict__.setdefault("_lod_bounds", BatchBounds(1 << batches.BATCH_SHIFT))
+                lb.note(frame, full)
+            masks = lb.lod_masks(frame, camera, self.cfg, self.width, self.height)
+            n = min(masks.size, self._blod.size // 4)
+            self.queue.write_buffer(self._blod, 0, np.ascontiguousarray(masks[:n], np.uint32))
         uploaded = self._upload(frame, s)
         n_slots = min(self.render_capacity, int(frame.capacity))
         segs = chunks.segments(int(frame.head), int(frame.size), int(frame.capacity), n_slots, self._chunk_table)
@@ -506,7 +516,7 @@ class WgpuRenderer(IncrementalUpload, Renderer):
         if self._compact is not None:
             self._compact.close()
         bufs = [b for per_set in getattr(self, "_sets", []) for S in per_set for b in S.values()]
-        bufs += [getattr(self, n, None) for n in ("_state", "_rng", "_dargs", "_params", "_lut", "_readback",
+        bufs += [getattr(self, n, None) for n in ("_state", "_rng", "_dargs", "_params", "_lut", "_blod", "_readback",
                                                    "_ts_resolve")]
         bufs += list(getattr(self, "_ts_read", [])) + list(getattr(self, "_fence", []))
         for b in bufs:

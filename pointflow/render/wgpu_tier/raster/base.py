@@ -45,6 +45,7 @@ class Gpu:
     chunks: list[tuple[int, int]] = field(default_factory=lambda: [(0, 1)])  #: (first slot, slots) per chunk
     max_segments: int = 1            #: segments a frame can have (params/state windows)
     compact: Optional[Any] = None    #: :class:`..compact.CompactPositions` (compute method) or None
+    blod: Optional[Any] = None       #: the footprint LOD's mask per batch of slots (u32; batches.lod_masks)
 
     #: bytes between segments' Params records / state words (a multiple of every offset alignment)
     PARAMS_STRIDE: ClassVar[int] = 512

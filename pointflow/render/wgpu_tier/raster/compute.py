@@ -77,7 +77,7 @@ class ComputeRaster(RasterMethod):
         self.pick_buf: Optional[Any] = None
         head = ["uniform", "uniform", "read", "read", "read", "read"]
         # bindings 12, 13: the compact positions' words and batch table (dummies when off)
-        self.bgl_raster = g.layout(head + ["rw"] * 6 + ["read"] * 2, SS.COMPUTE)
+        self.bgl_raster = g.layout(head + ["rw"] * 6 + ["read"] * 3, SS.COMPUTE)
         self.dummy = g.buffer(32, BU.STORAGE, "no-compact")
         self.bgl_resolve = g.layout(head + ["read"] * 4 + ["rw", "uniform"], SS.COMPUTE)
         # eye-dome lighting in the resolve pass, from the key buffer's depths (EDL constant)
@@ -111,6 +111,7 @@ class ComputeRaster(RasterMethod):
         """Which per-point tests and colour this frame's pipelines carry (override constants)."""
         fl = int(plan.params["flags"])
         return {"HAS_WINDOW": bool(fl & Flag.WINDOW), "HAS_LOD": int(plan.params["lod_stride"]) > 1,
+                "HAS_BLOD": bool(fl & Flag.BATCH_LOD),
                 "HAS_IMP": bool(fl & Flag.IMPORTANCE), "RANGE_AUTO": bool(fl & Flag.RANGE_AUTO), "CMODE": int(cmode)}
 
     def _raster_pipe(self, name: str, var: dict[str, Any]) -> Any:
@@ -153,7 +154,8 @@ class ComputeRaster(RasterMethod):
 
     def _compact_bufs(self, s: int, seg: Any) -> list[Any]:
         c = self.gpu.compact
-        return [self.dummy, self.dummy] if c is None else [c.qpos[s][seg.chunk], c.table[s]]
+        bufs = [self.dummy, self.dummy] if c is None else [c.qpos[s][seg.chunk], c.table[s]]
+        return bufs + [self.gpu.blod]
 
     def write_cparams(self, gx: int, budget_on: bool, pick: tuple[int, int, int, int] = (0, 0, 0, 0)) -> None:
         b = self.gpu.cfg.background

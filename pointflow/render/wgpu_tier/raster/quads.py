@@ -59,7 +59,8 @@ class QuadsRaster(RasterMethod):
         self.wgc = g.buffer((groups + _EMIT_K) * 4, BU.STORAGE, "workgroup-counts")  # -> offsets (scan)
         self.idx2: list[Any] = []  # thinned survivors (made with the first budget)
         self.clip2: list[Any] = []
-        self.bgl_cull = g.layout(["uniform"] + ["read"] * 4 + ["rw"] * 4 + ["read"] + ["rw"] * 3, SS.COMPUTE)
+        self.bgl_cull = g.layout(["uniform"] + ["read"] * 4 + ["rw"] * 4 + ["read"] + ["rw"] * 3 + ["read"],
+                                 SS.COMPUTE)
         self.bgl_thin = g.layout(["uniform", "read", "rw", "rw", "read", "rw", "rw", "rw", "rw"], SS.COMPUTE)
         # only the pick fragment shader reads storage (t_ingest, importance) and Params (slot_base)
         self.bgl_draw = g.layout(["uniform"] + ["read"] * 8, SS.VERTEX,
@@ -153,7 +154,7 @@ class QuadsRaster(RasterMethod):
             data, P, st, win = g.data(s, c), g.params_at(seg.index), g.state_at(seg.index), g.window
             idx1, clip1 = win(self.idx1[c], off, 8), win(self.clip1[c], off, 16)
             bg = {"cull": g.bind(self.bgl_cull, [P, *data, idx1, st, g.rng, g.dargs, g.lut, clip1, self.flags,
-                                                 self.wgc])}
+                                                 self.wgc, g.blod])}
             drawn_idx, drawn_clip = idx1, clip1
             if budget:
                 if not self.idx2:

@@ -17,6 +17,8 @@ const G_USED: u32 = 5u;
 @group(0) @binding(10) var<storage, read_write> clip_out: array<vec4<f32>>;
 @group(0) @binding(11) var<storage, read_write> flags: array<u32>;
 @group(0) @binding(12) var<storage, read_write> wgc: array<u32>;
+// the footprint LOD's mask per batch of slots of the whole ring (render/batches.py lod_masks)
+@group(0) @binding(13) var<storage, read> blod: array<u32>;
 
 var<workgroup> wg_count: atomic<u32>;
 var<workgroup> wg_bad: atomic<u32>;
@@ -92,6 +94,10 @@ fn cull(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: v
       }
       if (keep && P.lod_stride > 1u) {
         keep = ((logical + P.logical_base) % P.lod_stride) == 0u;
+      }
+      if (keep && (P.flags & F_BATCH_LOD) != 0u) {
+        let gs = slot + P.slot_base;
+        keep = (gs & blod[gs >> 14u]) == 0u;
       }
       if (keep && (P.flags & F_IMPORTANCE) != 0u) {
         var n = 1.0;

@@ -16,6 +16,8 @@
 // other; per batch (lo.xyz, level) and (ext / 2^10).xyz
 @group(0) @binding(12) var<storage, read> qpos: array<u32>;
 @group(0) @binding(13) var<storage, read> qtab: array<vec4<f32>>;
+// the footprint LOD's mask per batch of slots of the whole ring (render/batches.py lod_masks)
+@group(0) @binding(14) var<storage, read> blod: array<u32>;
 
 // The variant of a pipeline: pipeline-overridable constants, so a test that is off is not
 // in the compiled code at all (CPU adapters flatten branches).
@@ -25,6 +27,7 @@ override ROUND: bool = false;
 override WORLD: bool = false;
 override HAS_WINDOW: bool = true;
 override HAS_LOD: bool = true;
+override HAS_BLOD: bool = false;
 override HAS_IMP: bool = true;
 override RANGE_AUTO: bool = true;
 override CMODE: u32 = 2u;
@@ -122,6 +125,10 @@ fn test_point(logical: u32, count: bool) -> Pt {
   }
   if (HAS_LOD && keep) {
     keep = ((logical + P.logical_base) % P.lod_stride) == 0u;
+  }
+  if (HAS_BLOD && keep) {
+    let gs = slot + P.slot_base;
+    keep = (gs & blod[gs >> 14u]) == 0u;
   }
   if (HAS_IMP && keep) {
     var n = 1.0;

@@ -1,0 +1,176 @@
+"""Footprint LOD (``render.lod_fill``, issue 41: LOD picks by batch, as the map layer picks
+nodes). One function (render/batches.py ``lod_masks``) turns each batch's bounds into a
+power-of-two stride; every tier applies it with the same per-slot test, so every tier draws
+the points the numpy reference keeps: across the ring's wrap, over a wgpu ring split in
+chunks (slots offset by the chunk's base), and on a ring rewritten between frames."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from conftest import diff_fraction, draw
+from gpu_util import require_adapter
+from scenes import make_frame, render_cfg, terrain
+
+from pointflow.config import ConfigError, load_config
+from pointflow.render import batches
+from pointflow.render.base import FrameInput
+from pointflow.render.camera import Camera, project_to_pixels
+from pointflow.render.cpu import CpuRenderer
+from pointflow.render.rules import select_points
+
+B = batches.BATCH_SLOTS
+#: a grazing view over a wide terrain: far batches cover few pixels for their points
+CAM = Camera(eye=[0, -330, 40], target=[0, 0, 0], near=1, far=1000, fov_deg=50)
+
+
+def _scene(n: int = 150_000, extra: int = 6_000) -> FrameInput:
+    """A terrain in strips along y (a batch holds a few strips: near batches and far ones),
+    in a ring whose occupied range wraps past its end with the head inside a batch."""
+    w = terrain(n, seed=2, extent=300)
+    w = w[np.lexsort((w[:, 0], w[:, 1] // 20))]
+    cap = n + extra
+    f = make_frame(w, capacity=cap, head=cap - 20_000)
+    assert f.head + f.size > f.capacity and f.head % B != 0
+    return f
+
+
+def _stats(r, st):
+    return (r.finish() or st) if hasattr(r, "finish") else st
+
+
+def test_the_reference_thins_far_batches_and_keeps_near_ones():
+    f = _scene()
+    full = select_points(f, CAM, render_cfg(size=[320, 240]), 320, 240)
+    lod = select_points(f, CAM, render_cfg(size=[320, 240], lod_fill=1.0), 320, 240)
+    assert lod.counts["lod"] > full.counts["drawn"] // 3 and lod.counts["drawn"] < full.counts["drawn"]
+    assert set(lod.slots.tolist()) <= set(full.slots.tolist())
+    # a slot is dropped only by its batch's stride
+    bb = batches.BatchBounds()
+    bb.note(f)
+    masks = bb.lod_masks(f, CAM, render_cfg(size=[320, 240], lod_fill=1.0), 320, 240)
+    dropped = np.setdiff1d(full.slots, lod.slots)
+    assert (dropped & masks[dropped // B].astype(np.int64)).all()
+    assert not (lod.slots & masks[lod.slots // B].astype(np.int64)).any()
+    # the batch nearest the eye keeps every point, the farthest is thinned
+    near = np.argmin(bb.lo[:, 1])
+    far = np.argmax(bb.hi[:, 1])
+    assert masks[near] == 0 < masks[far]
+
+
+def test_lod_off_changes_nothing():
+    f = _scene(60_000)
+    a = select_points(f, CAM, render_cfg(size=[320, 240]), 320, 240)
+    b = select_points(f, CAM, render_cfg(size=[320, 240], lod_fill=0.0), 320, 240)
+    assert np.array_equal(a.slots, b.slots) and b.counts["lod"] == 0
+
+
+def test_strides_keep_about_fill_points_per_cell():
+    """Checked against the reference projection (camera.project_to_pixels), not the
+    function's own: a stride above 1 keeps at least ``fill`` points per point-sized cell of its
+    box's rectangle on screen, and twice the stride would keep fewer (unless at the largest)."""
+    rng = np.random.default_rng(4)
+    W, H, px, fill = 640, 480, 2.0, 1.5
+    vp = CAM.view_proj(W, H)
+    lo = rng.uniform(-300, 300, (400, 3)) * [1, 1, 0.05] + [0, 200, 0]
+    hi = lo + rng.uniform(0.5, 60, (400, 3))
+    occ = rng.integers(2, B + 1, 400)
+    masks = batches.lod_masks(lo, hi, occ, vp, W, H, px, 0.0, fill)
+    s = masks.astype(np.int64) + 1
+    assert ((s & (s - 1)) == 0).all() and s.max() <= batches.LOD_MAX_STRIDE and s.max() > 1
+    for k in range(400):
+        corners = np.array([[(hi if (c >> i) & 1 else lo)[k, i] for i in range(3)] for c in range(8)])
+        x, y, _, w = project_to_pixels(corners, vp, W, H)
+        if (w <= 0).any():
+            assert s[k] == 1
+            continue
+        cells = max((x.max() - x.min()) * (y.max() - y.min()) / px ** 2, 1.0)
+        if s[k] > 1:  # (stride 1: every point, however few)
+            assert occ[k] / s[k] >= fill * cells * (1 - 1e-9)
+        if s[k] < batches.LOD_MAX_STRIDE:
+            assert occ[k] / (2 * s[k]) < fill * cells
+    # a box reaching behind the eye, or without a finite point, keeps every slot
+    eye = np.asarray(CAM.eye, float)
+    m = batches.lod_masks(np.array([eye - 1, [np.inf] * 3]), np.array([eye + 1, [-np.inf] * 3]),
+                          np.array([B, B]), vp, W, H, px, 0.0, 1.0)
+    assert (m == 0).all()
+
+
+def test_world_size_points_thin_less_when_bigger():
+    """World-size points: a bigger point covers more pixels, so fewer are needed (sizes
+    that stay above the 1 px clamp at the far batches)."""
+    f = _scene()
+    small = select_points(f, CAM, render_cfg(size=[320, 240], point_size_space="world", point_size=1.0,
+                                             lod_fill=1.0), 320, 240)
+    big = select_points(f, CAM, render_cfg(size=[320, 240], point_size_space="world", point_size=4.0,
+                                           lod_fill=1.0), 320, 240)
+    assert big.counts["lod"] > small.counts["lod"] > 0
+
+
+def test_every_tier_draws_what_the_reference_keeps(make, tier):
+    f = _scene()
+    cfg = render_cfg(size=[320, 240], point_size=2, lod_fill=1.0)
+    ref = CpuRenderer(cfg, f.capacity, list(f.channels))
+    full = CpuRenderer(dataclasses.replace(cfg, lod_fill=0.0), f.capacity, list(f.channels))
+    ref_img, ref_st = draw(ref, f, CAM)
+    full_img, full_st = draw(full, f, CAM)
+    assert ref_st.drawn < 0.8 * full_st.drawn and ref_st.extra["removed_lod"] > 0
+    assert diff_fraction(ref_img, full_img) > 0.01  # the LOD shows
+    r = make(cfg, f.capacity, list(f.channels))
+    img, st = draw(r, f, CAM)
+    st = _stats(r, st)
+    assert st.drawn == ref_st.drawn
+    assert diff_fraction(img, ref_img) <= 0.002, tier
+    if tier.startswith("wgpu"):
+        assert np.array_equal(r.debug_survivors(), np.sort(select_points(f, CAM, cfg, 320, 240).slots))
+
+
+@pytest.mark.parametrize("method", ["compute", "quads"])
+def test_a_wgpu_ring_in_chunks_thins_by_the_whole_rings_slots(method):
+    """Chunks of slots: a chunk's shader sees slots from 0, the masks index the whole ring's."""
+    require_adapter()
+    from pointflow.render.wgpu_tier import WgpuRenderer
+    f = _scene()
+    cfg = render_cfg(size=[320, 240], point_size=2, lod_fill=1.0, raster=method)
+    r = WgpuRenderer(cfg, f.capacity, list(f.channels), max_binding=3 * B * 16)
+    try:
+        assert r.info()["chunks"] > 1
+        draw(r, f, CAM)
+        want = np.sort(select_points(f, CAM, cfg, 320, 240).slots)
+        assert np.array_equal(r.debug_survivors(), want)
+    finally:
+        r.close()
+
+
+def test_a_ring_rewritten_between_frames(make, tier):
+    """Frames rewrite part of the ring (a far strip moved near, dirty ranges, one wrapping):
+    the strides follow the new bounds and every tier keeps drawing what the reference keeps."""
+    f0 = _scene(100_000)
+    cap = f0.capacity
+    cfg = render_cfg(size=[240, 180], point_size=2, lod_fill=2.0)
+    r = make(cfg, cap, list(f0.channels))
+    ref = CpuRenderer(cfg, cap, list(f0.channels))
+    pos, head = f0.positions, int(f0.head)
+    drawn = []
+    for k, n in enumerate((0, 30_000, 25_000)):
+        pos = pos.copy()
+        slots = (head + np.arange(n)) % cap
+        pos[slots] = (terrain(n, seed=20 + k, extent=60) + [0, -200, 0]).astype(np.float32) if n else pos[slots]
+        dirty = None if k == 0 else [(head, (head + n) % cap)]
+        head = (head + n) % cap
+        f = FrameInput(positions=pos, importance=f0.importance, t_ingest_ms=f0.t_ingest_ms, channels=f0.channels,
+                       head=head, size=f0.size, capacity=cap, origin=f0.origin, now_ms=0.0, dirty=dirty)
+        ref_img, ref_st = draw(ref, f, CAM)
+        img, st = draw(r, f, CAM)
+        assert _stats(r, st).drawn == ref_st.drawn, f"frame {k}"
+        assert diff_fraction(img, ref_img) <= 0.002, f"frame {k}"
+        drawn.append(ref_st.drawn)
+    assert len(set(drawn)) == 3  # the rewrites changed what LOD keeps
+    ref.close()
+
+
+def test_a_negative_fill_is_refused_naming_the_key():
+    with pytest.raises(ConfigError, match="render.lod_fill"):
+        load_config({"source": {"transport": "synthetic"}, "render": {"lod_fill": -1}})
