@@ -92,27 +92,28 @@ def lod_masks(lo: np.ndarray, hi: np.ndarray, occupied: np.ndarray, vp: np.ndarr
     ok = np.isfinite(lo).all(axis=1) & np.isfinite(hi).all(axis=1) & (occupied > 1)
     if not ok.any() or not fill > 0:
         return out
-    bl, bh = lo[ok], hi[ok]
-    pick = np.array([[(c >> i) & 1 for i in range(3)] for c in range(8)], bool)  # the 8 corners
-    corners = np.where(pick[None], bh[:, None, :], bl[:, None, :])  # (m, 8, 3)
+    everything = ok.all()
+    bl, bh, occ = (lo, hi, occupied) if everything else (lo[ok], hi[ok], occupied[ok])
+    corners = np.where(_CORNERS, bh[:, None, :], bl[:, None, :])  # (m, 8, 3)
     vp = np.asarray(vp, np.float64)
-    cx = corners @ vp[0, :3] + vp[0, 3]
-    cy = corners @ vp[1, :3] + vp[1, 3]
-    w = corners @ vp[3, :3] + vp[3, 3]
+    c = corners @ vp[(0, 1, 3), :3].T + vp[(0, 1, 3), 3]  # clip x, y, w of every corner
+    w = c[..., 2]
     front = (w > 1e-9).all(axis=1)
     with np.errstate(divide="ignore", invalid="ignore"):
-        px = (cx / w * 0.5 + 0.5) * width
-        py = (0.5 - cy / w * 0.5) * height
-        area = (px.max(axis=1) - px.min(axis=1)) * (py.max(axis=1) - py.min(axis=1))
+        ndc = c[..., :2] / w[..., None]
+        ext = ndc.max(axis=1) - ndc.min(axis=1)  # (m, 2): the rectangle in NDC
+        area = ext[:, 0] * ext[:, 1] * (0.25 * width * height)
         if size_scale > 0:
             size = np.clip(size_scale / w.max(axis=1), 1.0, 4096.0)
         else:
-            size = np.full(bl.shape[0], float(point_px))
+            size = float(point_px)
         cells = np.maximum(area / (size * size), 1.0)
-        stride = occupied[ok] / (float(fill) * cells)
+        stride = occ / (float(fill) * cells)
     stride = np.where(front & np.isfinite(stride), stride, 1.0)
-    s = np.exp2(np.floor(np.log2(np.clip(stride, 1.0, LOD_MAX_STRIDE)))).astype(np.uint32)
-    out[ok] = s - 1
+    s = np.exp2(np.floor(np.log2(np.clip(stride, 1.0, LOD_MAX_STRIDE)))).astype(np.uint32) - np.uint32(1)
+    if everything:
+        return s
+    out[ok] = s
     return out
 
 
@@ -130,6 +131,10 @@ def frame_lod_masks(lo: np.ndarray, hi: np.ndarray, frame, camera, cfg, width: i
     scale = float(cfg.point_size) * float(camera.proj(width, height)[1, 1]) * height * 0.5 if world else 0.0
     occ = occupied_per_batch(int(frame.head), int(frame.size), cap, batch)
     return lod_masks(lo, hi, occ, vp, width, height, float(cfg.point_size), scale, fill)
+
+
+#: which of a box's 8 corners take the high bound, per axis
+_CORNERS = np.array([[(c >> i) & 1 for i in range(3)] for c in range(8)], bool)[None]
 
 
 class BatchBounds:

@@ -203,7 +203,8 @@ class CpuComputeRenderer(Renderer):
             self._k.batch_stats(stale.astype(np.int64), BIN_CHUNK, cap, self._pos, self._t, self._cval, cmode,
                                 self._blo, self._bhi, self._bbad, self._bvlo, self._bvhi)
             self._bstale[stale] = False
-        return frame_lod_masks(self._blo, self._bhi, frame, camera, self.cfg, self.width, self.height, BIN_CHUNK)
+        masks = frame_lod_masks(self._blo, self._bhi, frame, camera, self.cfg, self.width, self.height, BIN_CHUNK)
+        return masks if masks.any() else _NO_LOD  # (nothing thinned: the loops skip the test)
 
     def _colour_mode(self, frame: FrameInput) -> tuple[int, Optional[str]]:
         cb = self.cfg.color_by

@@ -255,22 +255,32 @@ def _splat(kb, tm, TW, logical, cx, cy, w, W, H, half_px, world, size_scale, rou
 SQ_BLOCK = 256
 #: :func:`_sq_block`'s verdict per point (SQ_IN2: clearly inside, a 2x2 box)
 SQ_OUT, SQ_IN, SQ_EDGE, SQ_BAD, SQ_IN2 = 0, 1, 2, 3, 4
+#: the footprint LOD's smallest stride whose kept slots the lean loops gather (:func:`_sq_span`)
+LOD_GATHER_FROM = 4
 
 
-def _sq_block(pos, base, s0, n, X, Y, Z, code, bx0, by0, bx1, by1, bkey, bi, W, v00, v01, v02, v03, v10, v11, v12,
-              v13, v20, v21, v22, v23, v30, v31, v32, v33, eps_s, half, Wf, Hf):
-    """The per-point arithmetic of the lean loops for slots [base, base + n) (logical from
-    ``s0``), with no branch, so that the compiler vectorises it: the positions copied into
+def _sq_block(pos, base, s0, n, step, X, Y, Z, code, bx0, by0, bx1, by1, bkey, bi, W, v00, v01, v02, v03, v10, v11,
+              v12, v13, v20, v21, v22, v23, v30, v31, v32, v33, eps_s, half, Wf, Hf):
+    """The per-point arithmetic of the lean loops for the n slots ``base + k step`` (logical
+    ``s0 + k step``; step > 1: the footprint LOD's stride), with no branch, so that the
+    compiler vectorises it: the positions copied into
     float64 rows first (contiguous), then per point the verdict (``code``: non-finite,
     clearly outside, clearly inside the frustum, or near a plane: the caller asks
     :func:`_frustum`), the clipped box and the key: the same float64 operations in the same
     order as the scalar code, lane by lane, so the same bits (values of points that are
     dropped are never read)."""
-    for k in range(n):
-        slot = np.uint64(base + k)
-        X[k] = pos[slot, 0]
-        Y[k] = pos[slot, 1]
-        Z[k] = pos[slot, 2]
+    if step == 1:
+        for k in range(n):
+            slot = np.uint64(base + k)
+            X[k] = pos[slot, 0]
+            Y[k] = pos[slot, 1]
+            Z[k] = pos[slot, 2]
+    else:
+        for k in range(n):
+            slot = np.uint64(base + k * step)
+            X[k] = pos[slot, 0]
+            Y[k] = pos[slot, 1]
+            Z[k] = pos[slot, 2]
     for k in range(n):
         x = X[k]
         y = Y[k]
@@ -314,7 +324,7 @@ def _sq_block(pos, base, s0, n, X, Y, Z, code, bx0, by0, bx1, by1, bkey, bi, W, 
         wf = np.float32(w)
         if wf < _F0:
             wf = _F0
-        bkey[k] = (np.uint64(_f32_bits(wf)) << _U32) | np.uint64(s0 + k)
+        bkey[k] = (np.uint64(_f32_bits(wf)) << _U32) | np.uint64(s0 + k * step)
 
 
 def _sq_scratch():
@@ -340,7 +350,7 @@ def _sq_keep(c, x, y, z, vp, planes, eps_s):
     return _frustum(x, y, z, cx, cy, cz, w, planes, eps_s * (abs(x) + abs(y) + abs(z) + 1.0))
 
 
-def _block_range(range_mode, code, Z, base, n, tms, cval, vmin, vmax):
+def _block_range(range_mode, code, Z, base, n, step, tms, cval, vmin, vmax):
     """The automatic colour range grown by the values of a block's finite points (non-finite
     values leave it), in loops of their own, point by point in the same order as before: the
     lean loops then take their fast path whatever the colour range mode."""
@@ -352,16 +362,59 @@ def _block_range(range_mode, code, Z, base, n, tms, cval, vmin, vmax):
     elif range_mode != 0:
         for k in range(n):
             if range_mode == C_TIME:
-                v = np.float64(tms[base + k])
+                v = np.float64(tms[base + k * step])
             else:
-                v = np.float64(cval[base + k])
+                v = np.float64(cval[base + k * step])
             if code[k] != SQ_BAD and np.isfinite(v):
                 vmin = min(vmin, v)
                 vmax = max(vmax, v)
     return vmin, vmax
 
 
-def _chunk_sq(kb, tm, a, b, head, cap, pos, tms, cval, vp, planes, eps_s, W, H, half, range_mode, ylo, yhi):
+def _thinned(pos, tms, cval, base, n, m, range_mode, n_bad, vmin, vmax):
+    """The slots of [base, base + n) the footprint LOD's mask ``m`` drops: counted (non-finite)
+    and in the automatic colour range as every tier counts them, never projected."""
+    for k in range(n):
+        slot = base + k
+        if (slot & m) == 0:
+            continue
+        x = pos[slot, 0]
+        y = pos[slot, 1]
+        z = pos[slot, 2]
+        if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
+            n_bad += 1
+            continue
+        if range_mode != 0:
+            v = _colour_value(range_mode, slot, pos, tms, cval)
+            if np.isfinite(v):
+                vmin = min(vmin, v)
+                vmax = max(vmax, v)
+    return n_bad, vmin, vmax
+
+
+def _sq_span(blod, base, left):
+    """A lean block from slot ``base`` with ``left`` slots to go: (slots it spans, the
+    footprint LOD's mask there, the first kept slot's offset, slots to project, their step,
+    the mask the per-point loop skips by). A block stays in one batch of slots, so one mask
+    holds for it. A stride of :data:`LOD_GATHER_FROM` or more projects only the kept slots
+    (the dropped ones are counted by :func:`_thinned`); a smaller one projects the block
+    and skips the dropped slots' stores (measured cheaper than reading the block twice)."""
+    if blod.shape[0] == 0:
+        n = min(left, SQ_BLOCK)
+        return n, 0, 0, n, 1, 0
+    m = np.int64(blod[base >> BATCH_SHIFT])
+    step = m + 1
+    rem = (np.int64(1) << BATCH_SHIFT) - (base & ((np.int64(1) << BATCH_SHIFT) - 1))
+    if step < LOD_GATHER_FROM:
+        n = min(left, rem, SQ_BLOCK)
+        return n, m, 0, n, 1, m
+    span = min(left, rem, SQ_BLOCK * step)
+    k0 = (step - (base & m)) & m
+    n = 0 if k0 >= span else (span - k0 + m) // step
+    return span, m, k0, n, step, 0
+
+
+def _chunk_sq(kb, tm, a, b, head, cap, pos, tms, cval, vp, planes, eps_s, W, H, half, range_mode, ylo, yhi, blod):
     """:func:`_raster`'s loop over logical [a, b) when no per-point test but the finite and
     frustum ones applies and the footprint is a screen-space square: the same decisions,
     bounds and keys, the arithmetic in blocks of :data:`SQ_BLOCK` points vectorised
@@ -387,14 +440,25 @@ def _chunk_sq(kb, tm, a, b, head, cap, pos, tms, cval, vp, planes, eps_s, W, H, 
             la, lb, off = a, min(b, cap - head), head
         else:
             la, lb, off = max(a, cap - head), b, head - cap
-        for s0 in range(la, lb, SQ_BLOCK):
-            n = min(SQ_BLOCK, lb - s0)
+        s0 = la
+        while s0 < lb:
             base = s0 + off
-            _sq_block(pos, base, s0, n, X, Y, Z, code, bx0, by0, bx1, by1, bkey, bi, W, v00, v01, v02, v03, v10, v11,
-                      v12, v13, v20, v21, v22, v23, v30, v31, v32, v33, eps_s, half, Wf, Hf)
-            vmin, vmax = _block_range(range_mode, code, Z, base, n, tms, cval, vmin, vmax)
+            span, m, k0, n, step, skip = _sq_span(blod, base, lb - s0)
+            if step > 1:  # the footprint LOD's dropped slots: counted, not projected
+                n_bad, vmin, vmax = _thinned(pos, tms, cval, base, span, m, range_mode, n_bad, vmin, vmax)
+            first = s0 + k0
+            s0 += span
+            if n == 0:
+                continue
+            _sq_block(pos, base + k0, first, n, step, X, Y, Z, code, bx0, by0, bx1, by1, bkey, bi, W, v00, v01, v02,
+                      v03, v10, v11, v12, v13, v20, v21, v22, v23, v30, v31, v32, v33, eps_s, half, Wf, Hf)
+            vmin, vmax = _block_range(range_mode, code, Z, base + k0, n, step, tms, cval, vmin, vmax)
             for k in range(n):
                 c = code[k]
+                if skip != 0 and ((base + k) & skip) != 0:  # dropped by a small stride: counted only
+                    if c == SQ_BAD:
+                        n_bad += 1
+                    continue
                 if c == SQ_IN2 and not rows:  # the common case: four stores
                     n_keep += 1
                     key = bkey[k]
@@ -438,7 +502,7 @@ def _raster(keys, marks, T, C, bands, st, vrange, mask, use_mask, pos, tms, imp,
     cleared first. Tests + splat (or splat the points ``mask`` keeps when ``use_mask``: the
     budget's passes did the tests). Counters per chunk in ``st``; the auto colour range in
     ``vrange``."""
-    lean = not use_mask and not world and not round_ and not has_window and lod <= 1 and blod.shape[0] == 0 and not has_imp
+    lean = not use_mask and not world and not round_ and not has_window and lod <= 1 and not has_imp
     TW, TH = _tile_grid(W, H)
     if not bands:
         for r in numba.prange(T * TH):
@@ -480,7 +544,7 @@ def _raster(keys, marks, T, C, bands, st, vrange, mask, use_mask, pos, tms, imp,
         vmax = -np.inf
         if lean:
             n_occ, n_bad, n_keep, vmin, vmax = _chunk_sq(kb, tm, a, b, head, cap, pos, tms, cval, vp, planes, eps_s, W, H,
-                                                         half_px, range_mode, ylo, yhi)
+                                                         half_px, range_mode, ylo, yhi, blod)
             n_drawn = n_keep
             a = b  # done: skip the general loop
         for logical in range(a, b):
@@ -739,7 +803,7 @@ def _box_pack(x0, x1, y0, y1):
     return np.uint64(x0) | (np.uint64(x1) << _U16) | (np.uint64(y0) << _U32) | (np.uint64(y1) << _U48)
 
 
-def _bin_sq(sk, sb, cnt, a, b, head, cap, pos, tms, cval, vp, planes, eps_s, W, H, half, range_mode, BS, NB):
+def _bin_sq(sk, sb, cnt, a, b, head, cap, pos, tms, cval, vp, planes, eps_s, W, H, half, range_mode, BS, NB, blod):
     """:func:`_bin`'s loop over logical [a, b) when only the finite and frustum tests apply
     and the footprint is a screen-space square (as :func:`_chunk_sq`: the same decisions,
     boxes and keys, the arithmetic vectorised in blocks by :func:`_sq_block`). Returns
@@ -760,14 +824,25 @@ def _bin_sq(sk, sb, cnt, a, b, head, cap, pos, tms, cval, vp, planes, eps_s, W, 
             la, lb, off = a, min(b, cap - head), head
         else:
             la, lb, off = max(a, cap - head), b, head - cap
-        for s0 in range(la, lb, SQ_BLOCK):
-            n = min(SQ_BLOCK, lb - s0)
+        s0 = la
+        while s0 < lb:
             base = s0 + off
-            _sq_block(pos, base, s0, n, X, Y, Z, code, bx0, by0, bx1, by1, bkey, bi, W, v00, v01, v02, v03, v10, v11,
-                      v12, v13, v20, v21, v22, v23, v30, v31, v32, v33, eps_s, half, Wf, Hf)
-            vmin, vmax = _block_range(range_mode, code, Z, base, n, tms, cval, vmin, vmax)
+            span, m, k0, n, step, skip = _sq_span(blod, base, lb - s0)
+            if step > 1:  # the footprint LOD's dropped slots: counted, not projected
+                n_bad, vmin, vmax = _thinned(pos, tms, cval, base, span, m, range_mode, n_bad, vmin, vmax)
+            first = s0 + k0
+            s0 += span
+            if n == 0:
+                continue
+            _sq_block(pos, base + k0, first, n, step, X, Y, Z, code, bx0, by0, bx1, by1, bkey, bi, W, v00, v01, v02,
+                      v03, v10, v11, v12, v13, v20, v21, v22, v23, v30, v31, v32, v33, eps_s, half, Wf, Hf)
+            vmin, vmax = _block_range(range_mode, code, Z, base + k0, n, step, tms, cval, vmin, vmax)
             for k in range(n):
                 c = code[k]
+                if skip != 0 and ((base + k) & skip) != 0:  # dropped by a small stride: counted only
+                    if c == SQ_BAD:
+                        n_bad += 1
+                    continue
                 if c == SQ_BAD:
                     n_bad += 1
                     continue
@@ -815,7 +890,7 @@ def _bin(rkey, rbox, rf, off, need, st, vrange, ca, cb, cull, cbad, cvr, mask, u
     v30, v31, v32, v33 = vp[3, 0], vp[3, 1], vp[3, 2], vp[3, 3]
     Wf = np.float64(W)
     Hf = np.float64(H)
-    lean = not use_mask and not world and not round_ and not has_window and lod <= 1 and blod.shape[0] == 0 and not has_imp
+    lean = not use_mask and not world and not round_ and not has_window and lod <= 1 and not has_imp
     for c in numba.prange(C):
         tid = numba.get_thread_id()
         sk = skey[tid]
@@ -844,7 +919,7 @@ def _bin(rkey, rbox, rf, off, need, st, vrange, ca, cb, cull, cbad, cvr, mask, u
         vmax = -np.inf
         if lean:
             ns, n_bad, vmin, vmax = _bin_sq(sk, sb, cnt, a, b, head, cap, pos, tms, cval, vp, planes, eps_s, W, H,
-                                            half_px, range_mode, BS, NB)
+                                            half_px, range_mode, BS, NB, blod)
             n_occ = b - a
             n_keep = ns
             a = b  # done: skip the general loop
@@ -1193,11 +1268,11 @@ def _compile(cache: bool) -> Kernels:
     for name in ("_pcg", "_u01", "_colour_value", "_frustum", "_test", "_store_box", "_splat", "_box_pack",
                  "_tile_grid", "_tile_on", "_mark_box",
                  "_band_splat", "_band_splat_sq", "_band_fill", "_sq_keep", "_block_range",
-                 "_sq_scratch"):
+                 "_sq_scratch", "_sq_span"):
         g[name] = nb.njit(inline="always", **opts)(g[name])
     # called from parallel loops, each compiled on its own (numba's inliner takes no functions
     # with as many arguments as _sq_block)
-    for name in ("_sq_block", "_band", "_bin_sq", "_chunk_sq", "_resolve_row"):
+    for name in ("_sq_block", "_thinned", "_band", "_bin_sq", "_chunk_sq", "_resolve_row"):
         g[name] = nb.njit(**opts)(g[name])
     out = {}
     for name in ("_raster", "_select", "_thin", "_cap", "_resolve", "_edl", "_bin", "_bands",

@@ -127,6 +127,37 @@ def test_every_tier_draws_what_the_reference_keeps(make, tier):
         assert np.array_equal(r.debug_survivors(), np.sort(select_points(f, CAM, cfg, 320, 240).slots))
 
 
+@pytest.mark.parametrize("color_by", ["intensity", "z"])
+def test_dropped_slots_still_count_and_set_the_automatic_colour_range(make, tier, color_by):
+    """Slots the LOD drops are never drawn, yet their non-finite positions are counted and
+    their values belong to the automatic colour range (the tiers' fast loops skip their
+    projection, not their reading): the extremes sit in dropped slots of the far batch."""
+    f = _scene()
+    cfg = render_cfg(size=[320, 240], point_size=2, lod_fill=1.0, color_by=color_by, color_range="auto")
+    bb = batches.BatchBounds()
+    bb.note(f)
+    masks = bb.lod_masks(f, CAM, cfg, 320, 240)
+    far = int(np.argmax(masks))
+    assert masks[far] > 0
+    slots = far * B + np.arange(1, 40, 2)  # odd slots: dropped by any stride
+    occupied = (slots - f.head) % f.capacity < f.size
+    slots = slots[occupied]
+    f.channels["intensity"][slots[:5]] = [-50.0, 60.0, -50.0, 60.0, 60.0]
+    f.positions[slots[5:10], 2] = [900.0, -900.0, 900.0, -900.0, 900.0]
+    f.positions[slots[10:13]] = np.nan
+    ref_img, ref_st = draw(CpuRenderer(cfg, f.capacity, list(f.channels)), f, CAM)
+    r = make(cfg, f.capacity, list(f.channels))
+    img, st = draw(r, f, CAM)
+    st = _stats(r, st)
+    assert ref_st.extra["removed_nonfinite"] == 3 and st.extra["removed_nonfinite"] == 3
+    assert st.drawn == ref_st.drawn
+    assert diff_fraction(img, ref_img) <= 0.002, tier
+    # the extremes set the range: without them the picture's colours change
+    g = dataclasses.replace(cfg, color_range=[-50.0, 60.0] if color_by == "intensity" else [-900.0, 900.0])
+    fixed_img, _ = draw(CpuRenderer(g, f.capacity, list(f.channels)), f, CAM)
+    assert np.array_equal(fixed_img, ref_img)
+
+
 @pytest.mark.parametrize("method", ["compute", "quads"])
 def test_a_wgpu_ring_in_chunks_thins_by_the_whole_rings_slots(method):
     """Chunks of slots: a chunk's shader sees slots from 0, the masks index the whole ring's."""
