@@ -26,7 +26,7 @@ from typing import Any, Optional
 import numpy as np
 
 import _harness
-from _harness.scenes import H, W, base_cloud, camera_for, make_frame, tiled
+from _harness.scenes import H, W, camera_for, tiled_frame
 from pointflow.config import RenderConfig
 
 FILLS = (0.0, 8.0, 4.0, 2.0, 1.0, 0.5)
@@ -69,9 +69,7 @@ def errors(img: np.ndarray, ref: np.ndarray, bg: np.ndarray) -> dict[str, float]
 
 def run(n: int, rounds: int, tiers: tuple[str, ...]) -> dict[str, Any]:
     machine = _harness.machine()
-    base, inten0, scene = base_cloud()
-    world, inten = tiled(base, inten0, n)
-    f = make_frame(world, inten)
+    f, world, scene = tiled_frame(n)
     cams = cameras(world)
     del world
     cfg = RenderConfig(size=[W, H], color_by="intensity", colormap="turbo", point_size=2.0, gpu_timestamps=False)

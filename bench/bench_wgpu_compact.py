@@ -22,7 +22,7 @@ from typing import Any, Optional
 import numpy as np
 
 import _harness
-from _harness.scenes import H, W, base_cloud, camera_for, make_frame, tiled
+from _harness.scenes import H, W, camera_for, tiled_frame
 from pointflow.config import RenderConfig
 
 
@@ -44,9 +44,7 @@ def cameras(world: np.ndarray) -> dict[str, Any]:
 def run(n: int, rounds: int) -> dict[str, Any]:
     from pointflow.render.wgpu_tier import WgpuRenderer
     machine = _harness.machine()
-    base, inten0, scene = base_cloud()
-    world, inten = tiled(base, inten0, n)
-    f = make_frame(world, inten)
+    f, world, scene = tiled_frame(n)
     cams = cameras(world)
     del world
     cfg = RenderConfig(size=[W, H], color_by="intensity", colormap="turbo", point_size=2.0, gpu_timestamps=True,

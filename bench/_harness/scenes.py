@@ -164,6 +164,14 @@ def rewritten_frames(r, f: FrameInput, cam: Camera, frames: int, head: int = 0) 
     return ts, stats, head
 
 
+def tiled_frame(n: int) -> tuple[FrameInput, np.ndarray, str]:
+    """The base cloud tiled to n points as a full ring (:func:`tiled`, :func:`make_frame`), with
+    its float64 world coordinates (to place cameras) and the scene's name."""
+    base, inten0, name = base_cloud()
+    world, inten = tiled(base, inten0, n)
+    return make_frame(world, inten), world, name
+
+
 def tiled_scene(n: int) -> tuple[FrameInput, Camera]:
     """The frame-time runs' scene at n points: the base cloud tiled (:func:`tiled`), as a
     full ring (:func:`make_frame`), with the camera that frames it."""

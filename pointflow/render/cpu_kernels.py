@@ -414,6 +414,25 @@ def _sq_span(blod, base, left):
     return span, m, k0, n, step, 0
 
 
+def _sq_next(blod, pos, tms, cval, s0, lb, off, range_mode, n_bad, vmin, vmax, sc, W, vs, eps_s, half, Wf, Hf):
+    """The lean loops' next block from logical ``s0`` (slot ``s0 + off``) up to ``lb``
+    (:func:`_sq_span`): the footprint LOD's dropped slots counted (:func:`_thinned`), the
+    projected ones' arithmetic done into the scratch ``sc`` (:func:`_sq_block`) and their
+    colour range taken. Returns (the next block's s0, the block's first projected slot, the
+    slots projected, the mask the per-point loop skips by, n_bad, vmin, vmax)."""
+    X, Y, Z, code, bx0, by0, bx1, by1, bkey, bi = sc
+    base = s0 + off
+    span, m, k0, n, step, skip = _sq_span(blod, base, lb - s0)
+    if step > 1:  # the footprint LOD's dropped slots: counted, not projected
+        n_bad, vmin, vmax = _thinned(pos, tms, cval, base, span, m, range_mode, n_bad, vmin, vmax)
+    if n > 0:
+        _sq_block(pos, base + k0, s0 + k0, n, step, X, Y, Z, code, bx0, by0, bx1, by1, bkey, bi, W, vs[0], vs[1],
+                  vs[2], vs[3], vs[4], vs[5], vs[6], vs[7], vs[8], vs[9], vs[10], vs[11], vs[12], vs[13], vs[14],
+                  vs[15], eps_s, half, Wf, Hf)
+        vmin, vmax = _block_range(range_mode, code, Z, base + k0, n, step, tms, cval, vmin, vmax)
+    return s0 + span, base + k0, n, skip, n_bad, vmin, vmax
+
+
 def _chunk_sq(kb, tm, a, b, head, cap, pos, tms, cval, vp, planes, eps_s, W, H, half, range_mode, ylo, yhi, blod):
     """:func:`_raster`'s loop over logical [a, b) when no per-point test but the finite and
     frustum ones applies and the footprint is a screen-space square: the same decisions,
@@ -434,7 +453,9 @@ def _chunk_sq(kb, tm, a, b, head, cap, pos, tms, cval, vp, planes, eps_s, W, H, 
     vmax = -np.inf
     rows = ylo > 0 or yhi < H
     TW = _tile_grid(W, H)[0]
-    X, Y, Z, code, bx0, by0, bx1, by1, bkey, bi = _sq_scratch()
+    sc = _sq_scratch()
+    X, Y, Z, code, bx0, by0, bx1, by1, bkey, bi = sc
+    vs = (v00, v01, v02, v03, v10, v11, v12, v13, v20, v21, v22, v23, v30, v31, v32, v33)
     for seg in range(2):  # the ring's two runs of slots: no wrap test per point
         if seg == 0:
             la, lb, off = a, min(b, cap - head), head
@@ -442,17 +463,8 @@ def _chunk_sq(kb, tm, a, b, head, cap, pos, tms, cval, vp, planes, eps_s, W, H, 
             la, lb, off = max(a, cap - head), b, head - cap
         s0 = la
         while s0 < lb:
-            base = s0 + off
-            span, m, k0, n, step, skip = _sq_span(blod, base, lb - s0)
-            if step > 1:  # the footprint LOD's dropped slots: counted, not projected
-                n_bad, vmin, vmax = _thinned(pos, tms, cval, base, span, m, range_mode, n_bad, vmin, vmax)
-            first = s0 + k0
-            s0 += span
-            if n == 0:
-                continue
-            _sq_block(pos, base + k0, first, n, step, X, Y, Z, code, bx0, by0, bx1, by1, bkey, bi, W, v00, v01, v02,
-                      v03, v10, v11, v12, v13, v20, v21, v22, v23, v30, v31, v32, v33, eps_s, half, Wf, Hf)
-            vmin, vmax = _block_range(range_mode, code, Z, base + k0, n, step, tms, cval, vmin, vmax)
+            s0, base, n, skip, n_bad, vmin, vmax = _sq_next(blod, pos, tms, cval, s0, lb, off, range_mode, n_bad,
+                                                            vmin, vmax, sc, W, vs, eps_s, half, Wf, Hf)
             for k in range(n):
                 c = code[k]
                 if skip != 0 and ((base + k) & skip) != 0:  # dropped by a small stride: counted only
@@ -818,7 +830,9 @@ def _bin_sq(sk, sb, cnt, a, b, head, cap, pos, tms, cval, vp, planes, eps_s, W, 
     ns = 0
     vmin = np.inf
     vmax = -np.inf
-    X, Y, Z, code, bx0, by0, bx1, by1, bkey, bi = _sq_scratch()
+    sc = _sq_scratch()
+    X, Y, Z, code, bx0, by0, bx1, by1, bkey, bi = sc
+    vs = (v00, v01, v02, v03, v10, v11, v12, v13, v20, v21, v22, v23, v30, v31, v32, v33)
     for seg in range(2):  # the ring's two runs of slots: no wrap test per point
         if seg == 0:
             la, lb, off = a, min(b, cap - head), head
@@ -826,17 +840,8 @@ def _bin_sq(sk, sb, cnt, a, b, head, cap, pos, tms, cval, vp, planes, eps_s, W, 
             la, lb, off = max(a, cap - head), b, head - cap
         s0 = la
         while s0 < lb:
-            base = s0 + off
-            span, m, k0, n, step, skip = _sq_span(blod, base, lb - s0)
-            if step > 1:  # the footprint LOD's dropped slots: counted, not projected
-                n_bad, vmin, vmax = _thinned(pos, tms, cval, base, span, m, range_mode, n_bad, vmin, vmax)
-            first = s0 + k0
-            s0 += span
-            if n == 0:
-                continue
-            _sq_block(pos, base + k0, first, n, step, X, Y, Z, code, bx0, by0, bx1, by1, bkey, bi, W, v00, v01, v02,
-                      v03, v10, v11, v12, v13, v20, v21, v22, v23, v30, v31, v32, v33, eps_s, half, Wf, Hf)
-            vmin, vmax = _block_range(range_mode, code, Z, base + k0, n, step, tms, cval, vmin, vmax)
+            s0, base, n, skip, n_bad, vmin, vmax = _sq_next(blod, pos, tms, cval, s0, lb, off, range_mode, n_bad,
+                                                            vmin, vmax, sc, W, vs, eps_s, half, Wf, Hf)
             for k in range(n):
                 c = code[k]
                 if skip != 0 and ((base + k) & skip) != 0:  # dropped by a small stride: counted only
@@ -1272,7 +1277,7 @@ def _compile(cache: bool) -> Kernels:
         g[name] = nb.njit(inline="always", **opts)(g[name])
     # called from parallel loops, each compiled on its own (numba's inliner takes no functions
     # with as many arguments as _sq_block)
-    for name in ("_sq_block", "_thinned", "_band", "_bin_sq", "_chunk_sq", "_resolve_row"):
+    for name in ("_sq_block", "_thinned", "_sq_next", "_band", "_bin_sq", "_chunk_sq", "_resolve_row"):
         g[name] = nb.njit(**opts)(g[name])
     out = {}
     for name in ("_raster", "_select", "_thin", "_cap", "_resolve", "_edl", "_bin", "_bands",
