@@ -20,6 +20,7 @@ from pointflow.render.base import FrameInput
 from pointflow.render.camera import Camera, project_to_pixels
 from pointflow.render.cpu import CpuRenderer
 from pointflow.render.rules import select_points
+from pointflow.render.wgpu_tier.reference import keep_mask
 
 B = batches.BATCH_SLOTS
 #: a grazing view over a wide terrain: far batches cover few pixels for their points
@@ -202,6 +203,12 @@ def test_a_wgpu_ring_in_chunks_thins_by_the_whole_rings_slots(method):
         draw(r, f, CAM)
         want = np.sort(select_points(f, CAM, cfg, 320, 240).slots)
         assert np.array_equal(r.debug_survivors(), want)
+        # the same set by the wgpu tier's per-slot reference of its rules
+        bb = batches.BatchBounds()
+        bb.note(f)
+        per_slot = keep_mask(f.positions, f.head, f.size, f.capacity, CAM.frustum_planes(320, 240, f.origin),
+                             batch_lod=bb.lod_masks(f, CAM, cfg, 320, 240))
+        assert np.array_equal(np.flatnonzero(per_slot), want)
     finally:
         r.close()
 

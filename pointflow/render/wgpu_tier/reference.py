@@ -10,6 +10,8 @@ way ``shaders.CULL`` computes them on the GPU:
 * time window (``window_ms > 0``): keep iff ``now_ms - t_ingest_ms <= window_ms``.
 * frustum: keep iff ``a*x + b*y + c*z + d >= 0`` for all 6 planes (origin-relative).
 * LOD stride: keep iff ``logical % lod_stride == 0``.
+* footprint LOD (``render.lod_fill``): keep iff ``slot & masks[slot >> 14] == 0``, the masks
+  per batch of the whole ring from :func:`pointflow.render.batches.lod_masks`.
 * importance sampling: ``u = (pcg_hash(slot ^ seed_hash(frame_seed)) >> 8) * 2**-24`` and
   keep iff ``u <= clip((imp - lo) / (hi - lo), 0, 1)`` (1.0 when ``hi <= lo``; a NaN
   importance counts as 0). The *slot* (not the logical index) is hashed, so with a fixed
@@ -29,6 +31,7 @@ from typing import Optional
 import numpy as np
 
 from ...arrays import finite_rows
+from ..batches import BATCH_SHIFT
 from ..rules import budget_fraction, budget_seed, keep_probability, pcg, seed_hash, uniform01
 
 #: The WGSL ``pcg(v)`` (tests and callers of this module know it by this name).
@@ -47,7 +50,7 @@ def normalised_importance(imp: np.ndarray, rng: Optional[tuple[float, float]]) -
 
 def keep_mask(positions: np.ndarray, head: int, size: int, capacity: int, planes: np.ndarray, *,
               t_ingest_ms: Optional[np.ndarray] = None, now_ms: float = 0.0, window_ms: float = 0.0,
-              lod_stride: int = 1, importance: Optional[np.ndarray] = None,
+              lod_stride: int = 1, batch_lod: Optional[np.ndarray] = None, importance: Optional[np.ndarray] = None,
               importance_range: Optional[tuple[float, float]] = None, frame_seed: int = 0) -> np.ndarray:
     """(capacity,) bool: points that survive the cull (before the budget), float64 maths."""
     cap = int(capacity)
@@ -64,6 +67,8 @@ def keep_mask(positions: np.ndarray, head: int, size: int, capacity: int, planes
         keep &= (d >= 0).all(axis=1)
     if lod_stride > 1:
         keep &= (logical % int(lod_stride)) == 0
+    if batch_lod is not None:
+        keep &= (slots & np.asarray(batch_lod, np.int64)[slots >> BATCH_SHIFT]) == 0
     if importance is not None:
         u = uniform01(slots, seed_hash(frame_seed))
         keep &= u <= normalised_importance(importance, importance_range)
