@@ -180,7 +180,11 @@ def test_plain_compressed_and_quantised_chunks(loop, codec, resolution):
 
 def test_two_senders_on_a_wildcard(loop):
     """Two sensor hosts under one prefix, one viewer subscribing pftest/**: each sensor is its
-    own source id with its own link accounting, and every point arrives."""
+    own source id with its own link accounting, and every point is accounted for: received,
+    or counted lost in transit against its source. (A live link publishes with congestion
+    control ``drop``: three CI runs out of some thirty lost 7 of one sender's 25 chunks, the
+    burst it sends when its subscriber appears, and counted them; the exact-count tests use
+    one sender.)"""
     p1, p2 = _port(), _port()
     recv = start_view(loop, zview_cfg([p1, p2]))
     a = start_send(loop, zsend_cfg(synthetic_source("left"), p1, key="pftest/site1"), name="a")
@@ -188,12 +192,13 @@ def test_two_senders_on_a_wildcard(loop):
     (sa, sb), rcv = finish(loop, [(a, "a"), (b, "b")], recv, ended=2)
     ra = rcv["accounting"]
     total = sa["accounting"]["sender_received"] + sb["accounting"]["sender_received"]
-    assert ra["link_received"] == total == ra["link_sent"] and ra["link_balanced"], ra
-    assert ra["lost_in_transit_by_source"] == {"left": 0, "right": 0}
+    assert ra["link_sent"] == total == ra["link_received"] + ra["lost_in_transit"] and ra["link_balanced"], ra
+    lost = ra["lost_in_transit_by_source"]
+    assert set(lost) == {"left", "right"} and ra["link_received"] > total // 2, ra
     link = rcv["stages"]["link"]
-    assert link["transport_link_sent:left"] == sa["accounting"]["link_sent"] > 0
-    assert link["transport_link_sent:right"] == sb["accounting"]["link_sent"] > 0
-    assert ra["ingest_received"] + ra["sources_dropped"] == total
+    assert link["transport_link_sent:left"] == sa["accounting"]["link_sent"] > lost["left"]
+    assert link["transport_link_sent:right"] == sb["accounting"]["link_sent"] > lost["right"]
+    assert ra["ingest_received"] + ra["sources_dropped"] == ra["link_received"]
     assert "publishing source 'left' on zenoh key pftest/site1/left" in loop.log("a.log")
 
 
