@@ -42,6 +42,7 @@ _U8 = np.uint64(8)
 _U22 = np.uint64(22)
 _U28 = np.uint64(28)
 _U32 = np.uint64(32)
+_HI32 = np.uint64(0xFFFFFFFF00000000)
 _INV24 = np.float32(2.0 ** -24)
 _F0 = np.float32(0.0)
 _F1 = np.float32(1.0)
@@ -324,7 +325,10 @@ def _sq_block(pos, base, s0, n, step, X, Y, Z, code, bx0, by0, bx1, by1, bkey, b
         wf = np.float32(w)
         if wf < _F0:
             wf = _F0
-        bkey[k] = (np.uint64(_f32_bits(wf)) << _U32) | np.uint64(s0 + k * step)
+        bkey[k] = (np.uint64(_f32_bits(wf)) << _U32) | np.uint64(s0 + k)
+    if step != 1:  # (a loop of its own: a 64-bit multiply in the loop above costs its vectorisation)
+        for k in range(n):
+            bkey[k] = (bkey[k] & _HI32) | np.uint64(s0 + k * step)
 
 
 def _sq_scratch():
@@ -387,24 +391,29 @@ def _finite_in_range(x, y, z, slot, range_mode, pos, tms, cval, vmin, vmax):
 def _thinned(pos, tms, cval, base, n, m, range_mode, n_bad, vmin, vmax):
     """The slots of [base, base + n) the footprint LOD's mask ``m`` drops: counted (non-finite)
     and in the automatic colour range as every tier counts them, never projected."""
-    for k in range(n):
+    for k in range(n):  # (a loop of its own: it runs over most of a far view's points)
         slot = base + k
-        if (slot & m) == 0:
-            continue
-        ok, vmin, vmax = _finite_in_range(pos[slot, 0], pos[slot, 1], pos[slot, 2], slot, range_mode, pos, tms,
-                                          cval, vmin, vmax)
-        if not ok:
+        if (slot & m) != 0 and not (np.isfinite(pos[slot, 0]) & np.isfinite(pos[slot, 1]) & np.isfinite(pos[slot, 2])):
             n_bad += 1
+    if range_mode != 0:
+        for k in range(n):
+            slot = base + k
+            if (slot & m) != 0 and np.isfinite(pos[slot, 0]) and np.isfinite(pos[slot, 1]) and \
+                    np.isfinite(pos[slot, 2]):
+                v = _colour_value(range_mode, slot, pos, tms, cval)
+                if np.isfinite(v):
+                    vmin = min(vmin, v)
+                    vmax = max(vmax, v)
     return n_bad, vmin, vmax
 
 
 def _sq_span(blod, base, left):
     """A lean block from slot ``base`` with ``left`` slots to go: (slots it spans, the
     footprint LOD's mask there, the first kept slot's offset, slots to project, their step,
-    the mask the per-point loop skips by). A block stays in one batch of slots, so one mask
+    the mask of the slots a small stride drops). A block stays in one batch of slots, so one mask
     holds for it. A stride of :data:`LOD_GATHER_FROM` or more projects only the kept slots
     (the dropped ones are counted by :func:`_thinned`); a smaller one projects the block
-    and skips the dropped slots' stores (measured cheaper than reading the block twice)."""
+    and drops the others' stores (measured cheaper than reading the block twice)."""
     if blod.shape[0] == 0:
         n = min(left, SQ_BLOCK)
         return n, 0, 0, n, 1, 0
@@ -424,8 +433,9 @@ def _sq_next(blod, pos, tms, cval, s0, lb, off, range_mode, n_bad, vmin, vmax, s
     """The lean loops' next block from logical ``s0`` (slot ``s0 + off``) up to ``lb``
     (:func:`_sq_span`): the footprint LOD's dropped slots counted (:func:`_thinned`), the
     projected ones' arithmetic done into the scratch ``sc`` (:func:`_sq_block`) and their
-    colour range taken. Returns (the next block's s0, the block's first projected slot, the
-    slots projected, the mask the per-point loop skips by, n_bad, vmin, vmax)."""
+    colour range taken; a small stride's dropped slots are marked :data:`SQ_OUT` (the
+    per-point loop then passes them by as points off screen). Returns (the next block's s0,
+    the slots projected, n_bad, vmin, vmax)."""
     X, Y, Z, code, bx0, by0, bx1, by1, bkey, bi = sc
     base = s0 + off
     span, m, k0, n, step, skip = _sq_span(blod, base, lb - s0)
@@ -436,7 +446,11 @@ def _sq_next(blod, pos, tms, cval, s0, lb, off, range_mode, n_bad, vmin, vmax, s
                   vs[2], vs[3], vs[4], vs[5], vs[6], vs[7], vs[8], vs[9], vs[10], vs[11], vs[12], vs[13], vs[14],
                   vs[15], eps_s, half, Wf, Hf)
         vmin, vmax = _block_range(range_mode, code, Z, base + k0, n, step, tms, cval, vmin, vmax)
-    return s0 + span, base + k0, n, skip, n_bad, vmin, vmax
+        if skip != 0:  # a small stride's dropped slots: never drawn (a non-finite one still counts)
+            for k in range(n):
+                if ((base + k) & skip) != 0 and code[k] != SQ_BAD:
+                    code[k] = SQ_OUT
+    return s0 + span, n, n_bad, vmin, vmax
 
 
 def _chunk_sq(kb, tm, a, b, head, cap, pos, tms, cval, vp, planes, eps_s, W, H, half, range_mode, ylo, yhi, blod):
@@ -469,14 +483,10 @@ def _chunk_sq(kb, tm, a, b, head, cap, pos, tms, cval, vp, planes, eps_s, W, H, 
             la, lb, off = max(a, cap - head), b, head - cap
         s0 = la
         while s0 < lb:
-            s0, base, n, skip, n_bad, vmin, vmax = _sq_next(blod, pos, tms, cval, s0, lb, off, range_mode, n_bad,
-                                                            vmin, vmax, sc, W, vs, eps_s, half, Wf, Hf)
+            s0, n, n_bad, vmin, vmax = _sq_next(blod, pos, tms, cval, s0, lb, off, range_mode, n_bad, vmin, vmax,
+                                                sc, W, vs, eps_s, half, Wf, Hf)
             for k in range(n):
                 c = code[k]
-                if skip != 0 and ((base + k) & skip) != 0:  # dropped by a small stride: counted only
-                    if c == SQ_BAD:
-                        n_bad += 1
-                    continue
                 if c == SQ_IN2 and not rows:  # the common case: four stores
                     n_keep += 1
                     key = bkey[k]
@@ -846,14 +856,10 @@ def _bin_sq(sk, sb, cnt, a, b, head, cap, pos, tms, cval, vp, planes, eps_s, W, 
             la, lb, off = max(a, cap - head), b, head - cap
         s0 = la
         while s0 < lb:
-            s0, base, n, skip, n_bad, vmin, vmax = _sq_next(blod, pos, tms, cval, s0, lb, off, range_mode, n_bad,
-                                                            vmin, vmax, sc, W, vs, eps_s, half, Wf, Hf)
+            s0, n, n_bad, vmin, vmax = _sq_next(blod, pos, tms, cval, s0, lb, off, range_mode, n_bad, vmin, vmax,
+                                                sc, W, vs, eps_s, half, Wf, Hf)
             for k in range(n):
                 c = code[k]
-                if skip != 0 and ((base + k) & skip) != 0:  # dropped by a small stride: counted only
-                    if c == SQ_BAD:
-                        n_bad += 1
-                    continue
                 if c == SQ_BAD:
                     n_bad += 1
                     continue
