@@ -27,6 +27,7 @@ import numpy as np
 
 import _harness
 from _harness.scenes import H, W, camera_for, tiled_frame
+from _harness.tiers import errors, make_tier
 from pointflow.config import RenderConfig
 
 FILLS = (0.0, 8.0, 4.0, 2.0, 1.0, 0.5)
@@ -46,27 +47,6 @@ def cameras(world: np.ndarray) -> dict[str, Any]:
     return {"whole": whole, "far": far, "oblique": low}
 
 
-def make(tier: str, cfg: RenderConfig, n: int):
-    if tier == "cpu-compute":
-        from pointflow.render.cpu_compute import CpuComputeRenderer
-        return CpuComputeRenderer(replace(cfg, backend="cpu", raster="compute"), n, ["intensity"])
-    if tier == "cpu":
-        from pointflow.render.cpu import CpuRenderer
-        return CpuRenderer(replace(cfg, backend="cpu", raster="reference"), n, ["intensity"])
-    from pointflow.render.wgpu_tier import WgpuRenderer
-    return WgpuRenderer(replace(cfg, backend="wgpu", raster=tier.split("-", 1)[1]), n, ["intensity"])
-
-
-def errors(img: np.ndarray, ref: np.ndarray, bg: np.ndarray) -> dict[str, float]:
-    d = img[..., :3].astype(np.float64) - ref[..., :3]
-    mse = float((d * d).mean())
-    a, b = (img != bg).any(axis=-1), (ref != bg).any(axis=-1)
-    union = int((a | b).sum())
-    return {"psnr_db": float("inf") if mse == 0 else float(10 * np.log10(255.0 ** 2 / mse)),
-            "diff_fraction": float((img != ref).any(axis=-1).mean()),
-            "coverage_iou": float((a & b).sum() / union) if union else 1.0}
-
-
 def run(n: int, rounds: int, tiers: tuple[str, ...]) -> dict[str, Any]:
     machine = _harness.machine()
     f, world, scene = tiled_frame(n)
@@ -76,7 +56,12 @@ def run(n: int, rounds: int, tiers: tuple[str, ...]) -> dict[str, Any]:
     out: dict[str, Any] = {}
     step = max(n // 100, 1)
     for tier in tiers:
-        rs = {fill: make(tier, replace(cfg, lod_fill=fill), n) for fill in FILLS}
+        rs = {fill: make_tier(tier, replace(cfg, lod_fill=fill), n) for fill in FILLS}
+        if any(r is None for r in rs.values()):  # (make_tier said why)
+            for r in rs.values():
+                if r is not None:
+                    r.close()
+            continue
         try:
             for v, cam in cams.items():
                 wall: dict[float, list[float]] = {k: [] for k in FILLS}

@@ -32,6 +32,7 @@ import numpy as np
 
 import _harness as H
 from _harness.scenes import scene_autzen, scene_demo, scene_dense, scene_ouster
+from _harness.tiers import errors, make_tier
 from pointflow.config import RenderConfig
 from pointflow.render.base import FrameInput, Renderer
 from pointflow.render.camera import Camera
@@ -41,28 +42,7 @@ from pointflow.render.rules import importance_range_for_budget
 RESULTS = H.RESULTS
 
 
-# ----------------------------------------------------------------------------- tiers & methods
-def make_tier(tier: str, cfg: RenderConfig, capacity: int) -> Optional[Renderer]:
-    try:
-        if tier == "cpu":  # the float64 reference (render.raster: reference)
-            return CpuRenderer(cfg, capacity, ["intensity"])
-        if tier == "cpu-compute":  # the cpu tier's compiled raster (render.raster: compute)
-            from pointflow.render.cpu_compute import CpuComputeRenderer
-            return CpuComputeRenderer(cfg, capacity, ["intensity"])
-        if tier == "gl":
-            from pointflow.render.gl import GlRenderer
-            return GlRenderer(cfg, capacity, ["intensity"])
-        from dataclasses import replace
-
-        from pointflow.render.wgpu_tier import WgpuRenderer
-        if tier.startswith("wgpu-"):  # wgpu-quads / wgpu-compute: one raster method
-            cfg = replace(cfg, raster=tier[5:])
-        return WgpuRenderer(cfg, capacity, ["intensity"])
-    except Exception as exc:  # noqa: BLE001 - report and go on with the other tiers
-        print(f"  [{tier}] unavailable: {type(exc).__name__}: {exc}", file=sys.stderr)
-        return None
-
-
+# ----------------------------------------------------------------------------- methods
 def methods(n: int, now_ms: float, span_ms: float) -> list[tuple[str, str, float, dict, Optional[int]]]:
     """(family, label, x, render-config overrides, budget)."""
     out = [("full", "full", 1.0, {}, None)]
@@ -89,16 +69,6 @@ def timed(r: Renderer, frame: FrameInput, cam: Camera, repeats: int) -> tuple[fl
         ts.append((time.perf_counter() - t0) * 1e3)
     frame.dirty = None
     return float(np.median(ts)), img
-
-
-def errors(img: np.ndarray, ref: np.ndarray, bg: np.ndarray) -> dict[str, float]:
-    d = img[..., :3].astype(np.float64) - ref[..., :3]
-    mse = float((d * d).mean())
-    psnr = float("inf") if mse == 0 else 10 * np.log10(255.0 ** 2 / mse)
-    a, b = (img != bg).any(axis=-1), (ref != bg).any(axis=-1)
-    union = int((a | b).sum())
-    return {"psnr_db": psnr, "diff_fraction": float((img != ref).any(axis=-1).mean()),
-            "coverage_iou": float((a & b).sum() / union) if union else 1.0}
 
 
 def pareto(points: list[tuple[float, float]]) -> list[int]:

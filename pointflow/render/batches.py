@@ -77,6 +77,10 @@ def occupied_per_batch(head: int, size: int, cap: int, batch: int = BATCH_SLOTS)
     return occ
 
 
+#: which of a box's 8 corners take the high bound, per axis
+_CORNERS = np.array([[(c >> i) & 1 for i in range(3)] for c in range(8)], bool)[None]
+
+
 def lod_masks(lo: np.ndarray, hi: np.ndarray, occupied: np.ndarray, vp: np.ndarray, width: int, height: int,
               point_px: float, size_scale: float, fill: float) -> np.ndarray:
     """Footprint LOD: per batch the mask ``s - 1`` (uint32) of its stride s, a power of two
@@ -109,7 +113,8 @@ def lod_masks(lo: np.ndarray, hi: np.ndarray, occupied: np.ndarray, vp: np.ndarr
             size = float(point_px)
         cells = np.maximum(area / (size * size), 1.0)
         stride = occ / (float(fill) * cells)
-    stride = np.where(front & np.isfinite(stride), stride, 1.0)
+    # a subnormal fill overflows to +inf: the most thinning, as a tiny fill asks
+    stride = np.where(front, np.nan_to_num(stride, nan=1.0, posinf=LOD_MAX_STRIDE), 1.0)
     s = np.exp2(np.floor(np.log2(np.clip(stride, 1.0, LOD_MAX_STRIDE)))).astype(np.uint32) - np.uint32(1)
     if everything:
         return s
@@ -122,7 +127,7 @@ def frame_lod_masks(lo: np.ndarray, hi: np.ndarray, frame, camera, cfg, width: i
     """:func:`lod_masks` for a frame drawn with ``cfg`` (None when ``cfg.lod_fill`` is off),
     from the bounds of every batch of the ring (float64 rows, :class:`BatchBounds` or the
     compiled tier's own)."""
-    fill = float(getattr(cfg, "lod_fill", 0.0) or 0.0)
+    fill = float(cfg.lod_fill)
     if not fill > 0:
         return None
     cap = int(frame.capacity)
@@ -131,10 +136,6 @@ def frame_lod_masks(lo: np.ndarray, hi: np.ndarray, frame, camera, cfg, width: i
     scale = float(cfg.point_size) * float(camera.proj(width, height)[1, 1]) * height * 0.5 if world else 0.0
     occ = occupied_per_batch(int(frame.head), int(frame.size), cap, batch)
     return lod_masks(lo, hi, occ, vp, width, height, float(cfg.point_size), scale, fill)
-
-
-#: which of a box's 8 corners take the high bound, per axis
-_CORNERS = np.array([[(c >> i) & 1 for i in range(3)] for c in range(8)], bool)[None]
 
 
 class BatchBounds:
@@ -191,7 +192,7 @@ class BatchBounds:
 
     def lod_masks(self, frame, camera, cfg, width: int, height: int) -> Optional[np.ndarray]:
         """:func:`frame_lod_masks` from these bounds, every batch reduced (None when off)."""
-        if not float(getattr(cfg, "lod_fill", 0.0) or 0.0) > 0 or int(frame.capacity) <= 0:
+        if not cfg.lod_fill > 0 or int(frame.capacity) <= 0:
             return None
         self.refresh(frame.positions, np.arange(self.lo.shape[0], dtype=np.int64))
         return frame_lod_masks(self.lo, self.hi, frame, camera, cfg, width, height, self.batch)

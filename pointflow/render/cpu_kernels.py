@@ -375,19 +375,6 @@ def _block_range(range_mode, code, Z, base, n, step, tms, cval, vmin, vmax):
     return vmin, vmax
 
 
-def _finite_in_range(x, y, z, slot, range_mode, pos, tms, cval, vmin, vmax):
-    """Whether a position is finite, and the automatic colour range grown by its point's value
-    when it is (a non-finite value leaves the range), as every pass counts a point."""
-    if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
-        return False, vmin, vmax
-    if range_mode != 0:
-        v = _colour_value(range_mode, slot, pos, tms, cval)
-        if np.isfinite(v):
-            vmin = min(vmin, v)
-            vmax = max(vmax, v)
-    return True, vmin, vmax
-
-
 def _thinned(pos, tms, cval, base, n, m, range_mode, n_bad, vmin, vmax):
     """The slots of [base, base + n) the footprint LOD's mask ``m`` drops: counted (non-finite)
     and in the automatic colour range as every tier counts them, never projected."""
@@ -955,10 +942,14 @@ def _bin(rkey, rbox, rf, off, need, st, vrange, ca, cb, cull, cbad, cvr, mask, u
                 z = np.float64(pos[slot, 2])
                 if not use_mask:
                     n_occ += 1
-                    ok, vmin, vmax = _finite_in_range(x, y, z, slot, range_mode, pos, tms, cval, vmin, vmax)
-                    if not ok:
+                    if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
                         n_bad += 1
                         continue
+                    if range_mode != 0:
+                        v = _colour_value(range_mode, slot, pos, tms, cval)
+                        if np.isfinite(v):
+                            vmin = min(vmin, v)
+                            vmax = max(vmax, v)
                 cx = v00 * x + v01 * y + v02 * z + v03
                 cy = v10 * x + v11 * y + v12 * z + v13
                 w = v30 * x + v31 * y + v32 * z + v33
@@ -1281,7 +1272,7 @@ def _compile(cache: bool) -> Kernels:
     for name in ("_pcg", "_u01", "_colour_value", "_frustum", "_test", "_store_box", "_splat", "_box_pack",
                  "_tile_grid", "_tile_on", "_mark_box",
                  "_band_splat", "_band_splat_sq", "_band_fill", "_sq_keep", "_block_range",
-                 "_sq_scratch", "_sq_span", "_finite_in_range"):
+                 "_sq_scratch", "_sq_span"):
         g[name] = nb.njit(inline="always", **opts)(g[name])
     # called from parallel loops, each compiled on its own (numba's inliner takes no functions
     # with as many arguments as _sq_block)

@@ -99,6 +99,15 @@ def test_strides_keep_about_fill_points_per_cell():
     assert (m == 0).all()
 
 
+def test_the_smallest_fills_thin_the_most_and_the_largest_not_at_all():
+    """Extremes that pass validation: a subnormal fill (its stride overflows) thins the most,
+    an infinite one keeps every slot."""
+    vp = CAM.view_proj(320, 240)
+    lo, hi, occ = np.array([[-10.0, 200.0, 0.0]]), np.array([[-5.0, 205.0, 5.0]]), np.array([B])
+    assert batches.lod_masks(lo, hi, occ, vp, 320, 240, 2.0, 0.0, 1e-320)[0] == batches.LOD_MAX_STRIDE - 1
+    assert batches.lod_masks(lo, hi, occ, vp, 320, 240, 2.0, 0.0, float("inf"))[0] == 0
+
+
 def test_world_size_points_thin_less_when_bigger():
     """World-size points: a bigger point covers more pixels, so fewer are needed (sizes
     that stay above the 1 px clamp at the far batches)."""
@@ -167,7 +176,8 @@ def test_the_compiled_raster_draws_the_reference_bytes_in_every_split(monkeypatc
     skip a small stride's stores) and its general loop (world-size round points), in every
     split and at 1 and 2 threads: the reference's image byte for byte and its drawn count;
     colour by z with the automatic range, non-finite points in dropped slots."""
-    numba = pytest.importorskip("numba")
+    import numba  # (a core dependency: the compiled raster's kernels)
+
     from pointflow.render.cpu_compute import CpuComputeRenderer
     f = _scene()
     bad = (f.head + np.arange(10, f.size, 9_973)) % f.capacity

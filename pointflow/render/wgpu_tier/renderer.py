@@ -111,6 +111,10 @@ class WgpuRenderer(IncrementalUpload, Renderer):
         self._cut = [(0, 0), (0, 0)]  # per buffer set: the frame's culled (non-finite, points)
         self._setup_colour(channels)
         self._bounds = BatchBounds(batches.BATCH_SLOTS)  # culling's and the compact positions'
+        # the footprint LOD's: the shaders find a slot's batch by a shift of BATCH_SHIFT (tests
+        # that shrink BATCH_SLOTS get a second BatchBounds of the shaders' batches)
+        self._lod_bounds = self._bounds if self._bounds.batch == 1 << batches.BATCH_SHIFT else \
+            BatchBounds(1 << batches.BATCH_SHIFT)
         self._culling = Culling(self._cmode, self._cchan, self._bounds) if batches.culling_enabled() else None
         self._compact_on, self._compact_why = compact_choice(adapter.info.get("adapter_type", ""), self.raster,
                                                              self.naive_float32)
@@ -342,11 +346,9 @@ class WgpuRenderer(IncrementalUpload, Renderer):
         elif self._compact is not None or self.cfg.lod_fill > 0:
             self._bounds.note(frame, full)
         if self.cfg.lod_fill > 0:  # the footprint LOD's masks (batches.lod_masks), from the same bounds
-            lb = self._bounds
-            if lb.batch != 1 << batches.BATCH_SHIFT:  # (tests with small batches: the shaders shift by 14)
-                lb = self.__dict__.setdefault("_lod_bounds", BatchBounds(1 << batches.BATCH_SHIFT))
-                lb.note(frame, full)
-            masks = lb.lod_masks(frame, camera, self.cfg, self.width, self.height)
+            if self._lod_bounds is not self._bounds:
+                self._lod_bounds.note(frame, full)
+            masks = self._lod_bounds.lod_masks(frame, camera, self.cfg, self.width, self.height)
             n = min(masks.size, self._blod.size // 4)
             self.queue.write_buffer(self._blod, 0, np.ascontiguousarray(masks[:n], np.uint32))
         uploaded = self._upload(frame, s)
