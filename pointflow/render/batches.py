@@ -103,7 +103,7 @@ def lod_masks(lo: np.ndarray, hi: np.ndarray, occupied: np.ndarray, vp: np.ndarr
     c = corners @ vp[(0, 1, 3), :3].T + vp[(0, 1, 3), 3]  # clip x, y, w of every corner
     w = c[..., 2]
     front = (w > 1e-9).all(axis=1)
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # (inf strides: handled below)
         ndc = c[..., :2] / w[..., None]
         ext = ndc.max(axis=1) - ndc.min(axis=1)  # (m, 2): the rectangle in NDC
         area = ext[:, 0] * ext[:, 1] * (0.25 * width * height)
