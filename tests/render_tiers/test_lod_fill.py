@@ -27,13 +27,14 @@ B = batches.BATCH_SLOTS
 CAM = Camera(eye=[0, -330, 40], target=[0, 0, 0], near=1, far=1000, fov_deg=50)
 
 
-def _scene(n: int = 150_000, extra: int = 6_000) -> FrameInput:
+def _scene(n: int = 150_000, extra: int = 6_000, behind: int = 20_000) -> FrameInput:
     """A terrain in strips along y (a batch holds a few strips: near batches and far ones),
-    in a ring whose occupied range wraps past its end with the head inside a batch."""
+    in a ring whose occupied range wraps past its end with the head inside a batch
+    (``behind`` slots before the end)."""
     w = terrain(n, seed=2, extent=300)
     w = w[np.lexsort((w[:, 0], w[:, 1] // 20))]
     cap = n + extra
-    f = make_frame(w, capacity=cap, head=cap - 20_000)
+    f = make_frame(w, capacity=cap, head=cap - behind)
     assert f.head + f.size > f.capacity and f.head % B != 0
     return f
 
@@ -253,3 +254,77 @@ def test_a_ring_rewritten_between_frames(make, tier):
 def test_a_negative_fill_is_refused_naming_the_key():
     with pytest.raises(ConfigError, match="render.lod_fill"):
         load_config({"source": {"transport": "synthetic"}, "render": {"lod_fill": -1}})
+
+
+@pytest.mark.parametrize("tier", ["wgpu-compute", "wgpu-quads"])
+@pytest.mark.parametrize("color_by", ["intensity", "ingest_time"])
+def test_thinned_batches_the_cpu_counts_are_not_read_yet_count(make, tier, color_by):
+    """wgpu: a thinned batch whose slots are all occupied takes its non-finite count and its
+    share of the automatic colour range from the CPU's bounds (culling.py ``CPU_COUNTED``), so
+    the passes skip its dropped slots without reading them. The counts and colours stay the
+    reference's with the extremes and non-finite points in such slots, and follow a rewrite
+    of that batch (dirty range)."""
+    f = _scene(behind=20_001)  # odd: the workgroups' ranges start between kept slots
+    f.t_ingest_ms = np.linspace(0.0, 5_000.0, f.capacity)
+    cfg = render_cfg(size=[320, 240], point_size=2, lod_fill=1.0, color_by=color_by, color_range="auto")
+    bb = batches.BatchBounds()
+    bb.note(f)
+    masks = bb.lod_masks(f, CAM, cfg, 320, 240)
+    k = np.arange(masks.size)
+    whole = batches.occupied_per_batch(f.head, f.size, f.capacity) == np.minimum((k + 1) * B, f.capacity) - k * B
+    cand = np.flatnonzero((masks > 0) & whole)
+    far = int(cand[np.argmax(masks[cand])])
+    slots = far * B + np.arange(1, 40, 2)  # odd slots: dropped by any stride
+    values = f.t_ingest_ms if color_by == "ingest_time" else f.channels["intensity"]
+    before = values[slots[:4]].copy()
+    values[slots[:4]] = [-50.0, 9_000.0, -50.0, 9_000.0]
+    f.positions[slots[10:13]] = np.nan
+    ref = CpuRenderer(cfg, f.capacity, list(f.channels))
+    r = make(cfg, f.capacity, list(f.channels))
+    for step in ("extremes", "rewritten"):
+        ref_img, ref_st = draw(ref, f, CAM)
+        img, st = draw(r, f, CAM)
+        assert st.extra["lod_cpu_counted_batches"] >= 1, step
+        st = _stats(r, st)
+        assert st.extra["occupied"] == f.size, step
+        assert st.extra["removed_nonfinite"] == ref_st.extra["removed_nonfinite"] == (3 if step == "extremes" else 1)
+        assert st.drawn == ref_st.drawn, step
+        assert diff_fraction(img, ref_img) <= 0.002, step
+        fixed = dataclasses.replace(cfg, color_range=[-50.0, 9_000.0])
+        fixed_img, _ = draw(CpuRenderer(fixed, f.capacity, list(f.channels)), f, CAM)
+        # with the extremes the range is theirs; rewritten without them it is not
+        assert np.array_equal(fixed_img, ref_img) == (step == "extremes"), step
+        values[slots[:4]] = before
+        f.positions[slots[10:12]] = f.positions[slots[14:16]]
+        f.dirty = [(far * B, far * B + B)]
+    ref.close()
+
+
+@pytest.mark.parametrize("method", ["compute", "quads"])
+@pytest.mark.parametrize("chunked", [False, True])
+@pytest.mark.parametrize("budget", [None, 20_000])
+def test_the_wgpu_passes_walk_kept_slots_only_in_chunks_and_under_a_budget(method, chunked, budget):
+    """The compute method walks a CPU-counted batch at its stride (its dropped slots get no
+    thread; workgroups split where a batch ends and the slots wrap): in one binding or in
+    chunks, with a budget that bites (ranks in logical order) or none, it keeps the
+    reference's slots, and every occupied slot is counted once."""
+    require_adapter()
+    from pointflow.render.wgpu_tier import WgpuRenderer
+    f = _scene(behind=20_001)  # odd: the workgroups' ranges start between kept slots
+    f.budget = budget
+    cfg = render_cfg(size=[320, 240], point_size=2, lod_fill=1.0, raster=method)
+    r = WgpuRenderer(cfg, f.capacity, list(f.channels), max_binding=3 * B * 16 if chunked else None)
+    try:
+        assert (r.info()["chunks"] > 1) == chunked
+        img, st = draw(r, f, CAM)
+        assert st.extra["lod_cpu_counted_batches"] >= 3
+        st = _stats(r, st)
+        ref_img, ref_st = draw(CpuRenderer(cfg, f.capacity, list(f.channels)), f, CAM)
+        assert st.extra["occupied"] == f.size
+        assert st.drawn == ref_st.drawn
+        if budget is not None:
+            assert st.drawn <= budget < st.extra["survivors_before_budget"]
+        assert diff_fraction(img, ref_img) <= 0.002
+        assert np.array_equal(r.debug_survivors(), np.sort(select_points(f, CAM, cfg, 320, 240).slots))
+    finally:
+        r.close()

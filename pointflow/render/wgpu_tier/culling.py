@@ -29,13 +29,18 @@ from ..batches import BatchBounds
 from . import chunks
 from .layout import ColourMode, Flag
 
-__all__ = ["BatchColourRange", "CULL_REL", "Culling", "ord_f"]
+__all__ = ["BatchColourRange", "CPU_COUNTED", "CULL_REL", "Culling", "ord_f"]
 
 #: the plane margin relative to the sum's magnitude: far above the rounding of the shaders'
 #: float32 plane test (a few units of 2^-24), so no point they keep is culled
 CULL_REL = 1e-5
 
 _EMPTY = (0xFFFFFFFF, 0)
+
+#: the footprint LOD mask word's flag (bit 31, above every slot index the tier takes): this
+#: batch's non-finite count and colour range are the CPU's (:meth:`Culling.lod_counted`), so
+#: the shaders never read its dropped slots; ``slot & mask`` is unchanged by it
+CPU_COUNTED = 0x80000000
 
 
 def ord_f(v: np.ndarray) -> np.ndarray:
@@ -93,6 +98,7 @@ class Culling:
     def __init__(self, cmode: int, chan: Optional[str], bounds: Optional[BatchBounds] = None):
         self.bounds = bounds if bounds is not None else BatchBounds(batches.BATCH_SLOTS)
         self.crange = BatchColourRange(cmode, chan)
+        self.culled = np.zeros(0, np.int64)  # the last :meth:`cut`'s culled batches
 
     def note(self, frame: FrameInput, everything: bool = False) -> None:
         """Mark the batches this frame's dirty ranges touch (all with ``everything``: the tier
@@ -107,6 +113,7 @@ class Culling:
         non-finite count; the culled points; the culled batches' automatic colour range as
         ``ord_f`` words, or None)."""
         none: tuple[list[chunks.Segment], int, int, Optional[tuple[int, int]]] = ([], 0, 0, None)
+        self.culled = np.zeros(0, np.int64)
         bb = self.bounds
         cap = int(frame.capacity)
         auto = bool(int(P["flags"]) & Flag.RANGE_AUTO)
@@ -126,4 +133,32 @@ class Culling:
         if auto:
             w = self.crange.words(frame, ks, B)
             zr = w if w[0] <= w[1] else None
+        self.culled = ks
         return runs, int(bb.bad[ks].sum()), int(n.sum()), zr
+
+    def lod_counted(self, frame: FrameInput, masks: np.ndarray, auto: bool,
+                    render_capacity: int) -> tuple[np.ndarray, int, int, tuple[int, int]]:
+        """(Call after :meth:`cut`.) The footprint LOD's mask words for the shaders, with
+        :data:`CPU_COUNTED` on every thinned batch whose slots are all occupied and drawn by
+        the tier and that was not culled; those batches' non-finite count and automatic colour
+        range (``ord_f`` words; ``(0xFFFFFFFF, 0)`` for none) are then the CPU's (from the
+        bounds, as for culled batches), and so is the occupancy of their dropped slots: the
+        passes never read a dropped slot (the compute method gives it no thread). Returns
+        (words, non-finite count, dropped slots, colour range words)."""
+        words = np.asarray(masks, np.uint32).copy()
+        bb, cap = self.bounds, int(frame.capacity)
+        if bb.batch != 1 << batches.BATCH_SHIFT or cap > render_capacity or cap > CPU_COUNTED or not words.size:
+            return words, 0, 0, _EMPTY
+        B = bb.batch
+        k = np.arange(words.size, dtype=np.int64)
+        n = np.minimum((k + 1) * B, cap) - k * B
+        flag = (words != 0) & (batches.occupied_per_batch(int(frame.head), int(frame.size), cap, B)[:words.size] == n)
+        flag[self.culled[self.culled < words.size]] = False
+        ks = np.flatnonzero(flag)
+        if not ks.size:
+            return words, 0, 0, _EMPTY
+        bb.refresh(frame.positions, ks)
+        stride = words[ks].astype(np.int64) + 1  # a batch starts at a multiple of its stride
+        dropped = int((n[ks] - -(-n[ks] // stride)).sum())
+        words[ks] |= np.uint32(CPU_COUNTED)
+        return words, int(bb.bad[ks].sum()), dropped, self.crange.words(frame, ks, B) if auto else _EMPTY

@@ -42,9 +42,9 @@ from ..batches import BatchBounds
 from ..camera import Camera
 from . import chunks, frame_params
 from .device import adapter_summary, request_device, select_adapter
-from .layout import PARAMS_DTYPE, ColourMode
+from .layout import PARAMS_DTYPE, ColourMode, Flag
 from .compact import CompactPositions, compact_choice
-from .culling import Culling
+from .culling import CPU_COUNTED, Culling
 from .pick import pick_block, resolve_pick
 from .upload import IncrementalUpload
 from .raster import METHODS, FramePlan, Gpu, RasterMethod, choose_raster
@@ -108,7 +108,7 @@ class WgpuRenderer(IncrementalUpload, Renderer):
         self.render_capacity = max(int(capacity), 1)
         self._chunk_table = self._chunk_plan(self.render_capacity)
         self._nseg = 1 if len(self._chunk_table) == 1 else len(self._chunk_table) + 1
-        self._cut = [(0, 0), (0, 0)]  # per buffer set: the frame's culled (non-finite, points)
+        self._cut = [(0, 0), (0, 0)]  # per buffer set: (non-finite, occupied) of slots the passes skip
         self._setup_colour(channels)
         self._bounds = BatchBounds(batches.BATCH_SLOTS)  # culling's and the compact positions'
         # the footprint LOD's: the shaders find a slot's batch by a shift of BATCH_SHIFT (tests
@@ -291,7 +291,7 @@ class WgpuRenderer(IncrementalUpload, Renderer):
         st = self._state_sum(np.frombuffer(f.read_mapped(), np.uint32))
         f.unmap()
         self._done[s] = False
-        bad, cut = self._cut[s]  # culled batches: counted here, never read by the GPU
+        bad, cut = self._cut[s]  # culled batches and LOD-dropped slots: counted here, never read by the GPU
         fs = self._stats[s]
         if fs is not None:
             fs.drawn = int(st[1])
@@ -345,12 +345,11 @@ class WgpuRenderer(IncrementalUpload, Renderer):
             self._culling.note(frame, full)
         elif self._compact is not None or self.cfg.lod_fill > 0:
             self._bounds.note(frame, full)
+        masks, counted, lcut = None, 0, 0
         if self.cfg.lod_fill > 0:  # the footprint LOD's masks (batches.lod_masks), from the same bounds
             if self._lod_bounds is not self._bounds:
                 self._lod_bounds.note(frame, full)
             masks = self._lod_bounds.lod_masks(frame, camera, self.cfg, self.width, self.height)
-            n = min(masks.size, self._blod.size // 4)
-            self.queue.write_buffer(self._blod, 0, np.ascontiguousarray(masks[:n], np.uint32))
         uploaded = self._upload(frame, s)
         n_slots = min(self.render_capacity, int(frame.capacity))
         segs = chunks.segments(int(frame.head), int(frame.size), int(frame.capacity), n_slots, self._chunk_table)
@@ -376,7 +375,19 @@ class WgpuRenderer(IncrementalUpload, Renderer):
                 g.groups, g.gx, g.gy, _ = self._method.plan(g.size, frame.budget)
                 g.group_base = groups_total
                 groups_total += g.groups
-        self._cut[s] = (bad, cut)
+        if masks is not None:
+            lbad, ldropped, lrange = 0, 0, None
+            if self._culling is not None:  # thinned batches the CPU counts: dropped slots never read
+                masks, lbad, ldropped, lrange = self._culling.lod_counted(frame, masks, bool(int(P["flags"]) & Flag.RANGE_AUTO),
+                                                                self.render_capacity)
+            n = min(masks.size, self._blod.size // 4)
+            self.queue.write_buffer(self._blod, 0, np.ascontiguousarray(masks[:n], np.uint32))
+            bad += lbad
+            counted = int(np.count_nonzero(masks[:n] & np.uint32(CPU_COUNTED)))
+            if lrange is not None and lrange[0] <= lrange[1]:
+                crange = lrange if crange is None else (min(crange[0], lrange[0]), max(crange[1], lrange[1]))
+            lcut = ldropped
+        self._cut[s] = (bad, cut + lcut)  # what the passes do not read, counted here
         walk = runs or segs
         q = self.queue
         q.write_buffer(self._params, 0, self._segment_params(P, segs + runs, n_slots, groups_total, len(segs)))
@@ -410,6 +421,7 @@ class WgpuRenderer(IncrementalUpload, Renderer):
         stats = FrameStats(drawn=None, timings_ms=timings, uploaded_bytes=uploaded,
                            extra={"buffer_set": s, "render_capacity": self.render_capacity, "raster": self.raster,
                                   "gpu_timings_lag_frames": 2 if self._ts else None, "culled_points": cut,
+                                  "lod_cpu_counted_batches": counted,
                                   "runs": len(walk), **(self._compact.stats if self._compact else {})})
         self._stats[s] = stats  # drawn/removed_nonfinite filled in once the GPU is done
         self._last_stats = stats

@@ -39,6 +39,7 @@ from typing import Any, Optional
 
 import numpy as np
 
+from ...batches import BATCH_SHIFT
 from .. import edl
 from ..layout import CPARAMS_DTYPE, Flag
 from .base import FramePlan, Gpu, RasterMethod, destroy_all
@@ -48,6 +49,9 @@ KEY64_FEATURES = ("shader-int64", "shader-int64-atomic-min-max")
 #: points per thread (a workgroup of 256 covers 256 * K consecutive logical indices; row j
 #: of a workgroup is 256 consecutive indices, so rows in order are logical order)
 K = 16
+# raster.wgsl splits a workgroup's range in three pieces at most for the footprint LOD's walk:
+# it spans two batches at most (and the segment's wrap)
+assert 256 * K <= 1 << BATCH_SHIFT
 _MODES = {"count": 0, "thin": 1, "scan": 1, "raster": 2, "index": 2, "debug": 3}
 
 

@@ -69,12 +69,19 @@ fn cull(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: v
   var keep = false;
   if (logical < P.size) {
     let slot = slot_of(logical);
-    if (slot < P.n_slots) {
+    var lod_mask = 0u;
+    var cpu = false;  // the batch's non-finite count and colour range are the CPU's (culling.py CPU_COUNTED)
+    if (slot < P.n_slots && (P.flags & F_BATCH_LOD) != 0u) {
+      lod_mask = blod[(slot + P.slot_base) >> 14u];
+      cpu = (lod_mask & 0x80000000u) != 0u;
+    }
+    // a dropped slot of a batch the CPU counts is never read (nor counted: the CPU counts it)
+    if (slot < P.n_slots && !(cpu && ((slot + P.slot_base) & lod_mask) != 0u)) {
+      atomicAdd(&wg_occ, 1u);
       let p = vec3<f32>(pos[3u * slot], pos[3u * slot + 1u], pos[3u * slot + 2u]);
       keep = is_finite(p.x) && is_finite(p.y) && is_finite(p.z);
-      atomicAdd(&wg_occ, 1u);
-      if (!keep) { atomicAdd(&wg_bad, 1u); }
-      if ((P.flags & F_RANGE_AUTO) != 0u) {
+      if (!keep && !cpu) { atomicAdd(&wg_bad, 1u); }
+      if ((P.flags & F_RANGE_AUTO) != 0u && !cpu) {
         let v = colour_value(slot, p);
         if (keep && is_finite(v)) {
           atomicMin(&wg_min, ord_f(v));
@@ -96,8 +103,7 @@ fn cull(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: v
         keep = ((logical + P.logical_base) % P.lod_stride) == 0u;
       }
       if (keep && (P.flags & F_BATCH_LOD) != 0u) {
-        let gs = slot + P.slot_base;
-        keep = (gs & blod[gs >> 14u]) == 0u;
+        keep = ((slot + P.slot_base) & lod_mask) == 0u;
       }
       if (keep && (P.flags & F_IMPORTANCE) != 0u) {
         var n = 1.0;

@@ -46,6 +46,7 @@ var<workgroup> wg_min: atomic<u32>;
 var<workgroup> wg_max: atomic<u32>;
 var<workgroup> wg_mode: u32;
 var<workgroup> wg_base: u32;
+var<workgroup> wg_tasks: u32;
 
 fn slot_of(logical: u32) -> u32 {
   // head < capacity and logical < size <= capacity: one conditional subtract, no modulo
@@ -93,6 +94,7 @@ fn colour_value(slot: u32, p: vec3<f32>) -> f32 {
 struct Pt {
   keep: bool,        // passed every test before the budget
   occupied: bool,    // an occupied slot the tier renders
+  cpu: bool,         // its batch's non-finite count and colour range are the CPU's (culling.py CPU_COUNTED)
   finite: bool,      // ... with a finite position
   slot: u32,
   cval: f32,         // colour value for the auto range (NaN-free only when finite)
@@ -109,6 +111,13 @@ fn test_point(logical: u32, count: bool) -> Pt {
   r.slot = slot;
   if (slot >= P.n_slots) { return r; }
   r.occupied = true;
+  var lod_mask = 0u;
+  if (HAS_BLOD) {
+    let gs = slot + P.slot_base;
+    lod_mask = blod[gs >> 14u];
+    r.cpu = (lod_mask & 0x80000000u) != 0u;
+    if (r.cpu && (gs & lod_mask) != 0u) { r.occupied = false; return r; }  // (main walks kept slots only)
+  }
   let p = load_pos(slot);
   var keep = is_finite(p.x) && is_finite(p.y) && is_finite(p.z);
   r.finite = keep;
@@ -127,8 +136,7 @@ fn test_point(logical: u32, count: bool) -> Pt {
     keep = ((logical + P.logical_base) % P.lod_stride) == 0u;
   }
   if (HAS_BLOD && keep) {
-    let gs = slot + P.slot_base;
-    keep = (gs & blod[gs >> 14u]) == 0u;
+    keep = ((slot + P.slot_base) & lod_mask) == 0u;
   }
   if (HAS_IMP && keep) {
     var n = 1.0;
@@ -229,14 +237,54 @@ fn main(@builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: v
   var n_bad = 0u;
   var vmin = 0xffffffffu;
   var vmax = 0u;
+  // Footprint LOD: the workgroup's logical range in at most three pieces (split where a batch
+  // ends and where the segment's slots wrap); a piece of a batch the CPU counts (CPU_COUNTED)
+  // is walked at its stride, kept slots only, so its dropped slots get no thread at all and
+  // the kept ones share SIMD lanes. Tasks stay in ascending logical order (budget ranks).
+  var pc = array<u32, 3>(0u, 0u, 0u);  // tasks per piece
+  var pl = array<u32, 3>(0u, 0u, 0u);  // the piece's first task's logical index
+  var ps = array<u32, 3>(1u, 1u, 1u);  // its step
+  if (HAS_BLOD) {
+    var lg = first;
+    let end = min(first + 256u * K, P.size);
+    for (var q = 0u; q < 3u; q = q + 1u) {
+      if (lg >= end) { break; }
+      let slot = slot_of(lg);
+      let gs = slot + P.slot_base;
+      let m = blod[gs >> 14u];
+      let len = min(min(((gs >> 14u) + 1u) * 16384u - gs, P.capacity - slot), end - lg);
+      var off = 0u;
+      if ((m & 0x80000000u) != 0u) {
+        ps[q] = (m & 0x7fffffffu) + 1u;
+        off = (ps[q] - (gs & (ps[q] - 1u))) & (ps[q] - 1u);  // to the first kept slot
+      }
+      pl[q] = lg + off;
+      if (off < len) { pc[q] = (len - off + ps[q] - 1u) / ps[q]; }
+      lg = lg + len;
+    }
+  }
+  var tasks = 256u * K;
+  if (HAS_BLOD) {  // rows past the tasks are skipped whole (the same count in every thread)
+    if (lid == 0u) { wg_tasks = pc[0] + pc[1] + pc[2]; }
+    tasks = workgroupUniformLoad(&wg_tasks);
+  }
   for (var j = 0u; j < K; j = j + 1u) {
-    let logical = first + j * 256u + lid;
+    if (j * 256u >= tasks) { break; }
+    var logical = first + j * 256u + lid;
+    if (HAS_BLOD) {
+      var t = j * 256u + lid;
+      logical = 0xffffffffu;  // no task: tested as unoccupied
+      for (var q = 0u; q < 3u; q = q + 1u) {
+        if (t < pc[q]) { logical = pl[q] + t * ps[q]; break; }
+        t = t - pc[q];
+      }
+    }
     var pt = test_point(logical, count);
     var keep = pt.keep;
     if (count) {
       if (pt.occupied) { n_occ = n_occ + 1u; }
-      if (pt.occupied && !pt.finite) { n_bad = n_bad + 1u; }
-      if (RANGE_AUTO && pt.finite && is_finite(pt.cval)) {
+      if (pt.occupied && !pt.finite && !pt.cpu) { n_bad = n_bad + 1u; }
+      if (RANGE_AUTO && pt.finite && !pt.cpu && is_finite(pt.cval)) {
         vmin = min(vmin, ord_f(pt.cval));
         vmax = max(vmax, ord_f(pt.cval));
       }
