@@ -345,7 +345,7 @@ class WgpuRenderer(IncrementalUpload, Renderer):
             self._culling.note(frame, full)
         elif self._compact is not None or self.cfg.lod_fill > 0:
             self._bounds.note(frame, full)
-        masks, counted, lcut = None, 0, 0
+        masks = None
         if self.cfg.lod_fill > 0:  # the footprint LOD's masks (batches.lod_masks), from the same bounds
             if self._lod_bounds is not self._bounds:
                 self._lod_bounds.note(frame, full)
@@ -375,18 +375,10 @@ class WgpuRenderer(IncrementalUpload, Renderer):
                 g.groups, g.gx, g.gy, _ = self._method.plan(g.size, frame.budget)
                 g.group_base = groups_total
                 groups_total += g.groups
-        if masks is not None:
-            lbad, ldropped, lrange = 0, 0, None
-            if self._culling is not None:  # thinned batches the CPU counts: dropped slots never read
-                masks, lbad, ldropped, lrange = self._culling.lod_counted(frame, masks, bool(int(P["flags"]) & Flag.RANGE_AUTO),
-                                                                self.render_capacity)
-            n = min(masks.size, self._blod.size // 4)
-            self.queue.write_buffer(self._blod, 0, np.ascontiguousarray(masks[:n], np.uint32))
-            bad += lbad
-            counted = int(np.count_nonzero(masks[:n] & np.uint32(CPU_COUNTED)))
-            if lrange is not None and lrange[0] <= lrange[1]:
-                crange = lrange if crange is None else (min(crange[0], lrange[0]), max(crange[1], lrange[1]))
-            lcut = ldropped
+        lbad, lcut, lrange, counted = self._lod_frame(frame, P, masks)
+        bad += lbad
+        if lrange is not None:  # the CPU-counted batches' share
+            crange = lrange if crange is None else (min(crange[0], lrange[0]), max(crange[1], lrange[1]))
         self._cut[s] = (bad, cut + lcut)  # what the passes do not read, counted here
         walk = runs or segs
         q = self.queue
@@ -426,6 +418,27 @@ class WgpuRenderer(IncrementalUpload, Renderer):
         self._stats[s] = stats  # drawn/removed_nonfinite filled in once the GPU is done
         self._last_stats = stats
         return stats
+
+    def _lod_frame(self, frame: FrameInput, P: np.ndarray,
+                   masks: Optional[np.ndarray]) -> tuple[int, int, Optional[tuple[int, int]], int]:
+        """The footprint LOD's part of a frame (``masks`` from ``batches.lod_masks``; None: off).
+        Writes the mask words the passes test, the batches the CPU counts flagged
+        (:meth:`Culling.lod_counted`), or, when no batch is thinned, clears the LOD flag so
+        the passes run without the test. Returns what the passes will not see: (non-finite
+        count, occupied slots, colour range words or None, batches the CPU counts)."""
+        if masks is None:
+            return 0, 0, None, 0
+        if not masks.any():
+            P["flags"] = int(P["flags"]) & ~int(Flag.BATCH_LOD)
+            return 0, 0, None, 0
+        bad, dropped, rng = 0, 0, None
+        if self._culling is not None:  # dropped slots of whole thinned batches are never read
+            auto = bool(int(P["flags"]) & Flag.RANGE_AUTO)
+            masks, bad, dropped, rng = self._culling.lod_counted(frame, masks, auto, self.render_capacity)
+        n = min(masks.size, self._blod.size // 4)
+        self.queue.write_buffer(self._blod, 0, np.ascontiguousarray(masks[:n], np.uint32))
+        counted = int(np.count_nonzero(masks[:n] & np.uint32(CPU_COUNTED)))
+        return bad, dropped, (rng if rng is not None and rng[0] <= rng[1] else None), counted
 
     def _segment_params(self, P: np.ndarray, segs: list[chunks.Segment], n_slots: int, groups_total: int,
                         n_segments: int) -> bytes:
