@@ -42,6 +42,10 @@ BATCH_SHIFT = 14
 assert BATCH_SLOTS == 1 << BATCH_SHIFT
 #: Footprint LOD: the most a batch is thinned (a power of two, so a stride divides a batch).
 LOD_MAX_STRIDE = 64
+#: A mask word's flag (bit 31, above every slot index a tier takes, so ``slot & mask`` is
+#: unchanged by it): the batch's dropped slots are counted by the tier from the batch's
+#: bounds (its non-finite count and colour range), so its loops never read them.
+LOD_CPU_COUNTED = 0x80000000
 #: Set to 0 to draw without batch culling (the images are the same).
 ENV_CULL = "POINTFLOW_CPU_RASTER_CULL"
 

@@ -33,7 +33,8 @@ import numpy as np
 from .config import RenderConfig
 from . import colormap, cpu_kernels
 from .base import FrameInput, FrameStats, Renderer, RenderError, merge_ranges
-from .batches import BATCH_SLOTS, boxes_outside, culling_enabled, frame_lod_masks
+from .batches import (BATCH_SLOTS, LOD_CPU_COUNTED, boxes_outside, culling_enabled, frame_lod_masks,
+                      occupied_per_batch)
 from .camera import Camera, planes_of
 from .rules import (EDL_SCALE, budget_fraction, budget_seed, check_frame, edl_offsets, in_pick_circle, pick_window,
                     resolve_pick, rgba_u8, seed_hash)
@@ -205,6 +206,27 @@ class CpuComputeRenderer(Renderer):
             self._bstale[stale] = False
         masks = frame_lod_masks(self._blo, self._bhi, frame, camera, self.cfg, self.width, self.height, BIN_CHUNK)
         return masks if masks.any() else _NO_LOD  # (nothing thinned: the loops skip the test)
+
+    def _lod_counted(self, blod: np.ndarray, head: int, size: int, cap: int, chunks,
+                     range_mode: int) -> tuple[np.ndarray, int, Optional[tuple[float, float]]]:
+        """Flag :data:`~pointflow.render.batches.LOD_CPU_COUNTED` on the thinned batches whose
+        slots are all occupied (and, split by bins, that are not culled): their non-finite
+        count and colour range are the batch bounds' (:meth:`_lod_masks` reduced every batch),
+        so the lean loops never read their dropped slots. Returns (the mask words, the
+        flagged batches' non-finite count, their colour range or None)."""
+        B = BIN_CHUNK
+        k = np.arange(blod.size, dtype=np.int64)
+        flag = (blod != 0) & (occupied_per_batch(head, size, cap, B) == np.minimum((k + 1) * B, cap) - k * B)
+        if chunks is not None:  # culled chunks count their batch themselves
+            ca, _, culled = chunks[0], chunks[1], chunks[2]
+            flag[((ca[culled == 1] + head) % cap) // B] = False
+        ks = np.flatnonzero(flag)
+        if not ks.size:
+            return blod, 0, None
+        words = blod.copy()
+        words[ks] |= np.uint32(LOD_CPU_COUNTED)
+        vr = (float(self._bvlo[ks].min()), float(self._bvhi[ks].max())) if range_mode else None
+        return words, int(self._bbad[ks].sum()), vr
 
     def _colour_mode(self, frame: FrameInput) -> tuple[int, Optional[str]]:
         cb = self.cfg.color_by
@@ -508,6 +530,10 @@ class CpuComputeRenderer(Renderer):
         round_ = cfg.point_shape == "round"
         use_mask = use_mask_of(frame, size)
         mask = np.zeros(size if use_mask else 1, np.uint8)
+        lod_bad, lod_vr = 0, None
+        if blod.size and not use_mask and not world and not round_ and not has_window and lod <= 1 and not has_imp:
+            # the lean loops (cpu_kernels._raster's ``lean``): whole thinned batches counted here
+            blod, lod_bad, lod_vr = self._lod_counted(blod, head, size, cap, chunks if bins else None, range_mode)
         counts = {"occupied": size}
         if use_mask:  # budget: tests -> thinning -> the first b in logical order
             b = max(int(frame.budget), 0)
@@ -542,9 +568,11 @@ class CpuComputeRenderer(Renderer):
         drawn = int(st[:, cpu_kernels.ST_DRAWN].sum())
         if use_mask:
             st, vr = pre, pre_vr
-        nonfinite = int(st[:, cpu_kernels.ST_BAD].sum())
+        nonfinite = int(st[:, cpu_kernels.ST_BAD].sum()) + lod_bad
         if range_mode:
             mn, mx = float(vr[:, 0].min()), float(vr[:, 1].max())
+            if lod_vr is not None:
+                mn, mx = min(mn, lod_vr[0]), max(mx, lod_vr[1])
             if mn > mx:
                 mn = mx = 0.0
             lo_c, hi_c = (mn + shift) - shift, (mx + shift) - shift

@@ -27,7 +27,7 @@ from typing import Any, Optional
 
 import numpy as np
 
-from .batches import BATCH_SHIFT
+from .batches import BATCH_SHIFT, LOD_CPU_COUNTED
 
 log = logging.getLogger("pointflow.render.cpu_kernels")
 
@@ -397,23 +397,28 @@ def _thinned(pos, tms, cval, base, n, m, range_mode, n_bad, vmin, vmax):
 def _sq_span(blod, base, left):
     """A lean block from slot ``base`` with ``left`` slots to go: (slots it spans, the
     footprint LOD's mask there, the first kept slot's offset, slots to project, their step,
-    the mask of the slots a small stride drops). A block stays in one batch of slots, so one mask
-    holds for it. A stride of :data:`LOD_GATHER_FROM` or more projects only the kept slots
-    (the dropped ones are counted by :func:`_thinned`); a smaller one projects the block
-    and drops the others' stores (measured cheaper than reading the block twice)."""
+    the mask of the slots a small stride drops, whether the dropped ones are counted by the
+    caller already). A block stays in one batch of slots, so one mask holds for it. A stride
+    of :data:`LOD_GATHER_FROM` or more projects only the kept slots (the dropped ones are
+    counted by :func:`_thinned`); a smaller one projects the block and drops the others'
+    stores (measured cheaper than reading the block twice). A batch flagged
+    :data:`~pointflow.render.batches.LOD_CPU_COUNTED` is counted from its bounds: every
+    stride projects only its kept slots and its dropped ones are not read at all."""
     if blod.shape[0] == 0:
         n = min(left, SQ_BLOCK)
-        return n, 0, 0, n, 1, 0
-    m = np.int64(blod[base >> BATCH_SHIFT])
+        return n, 0, 0, n, 1, 0, False
+    w = np.int64(blod[base >> BATCH_SHIFT])
+    counted = w >= LOD_CPU_COUNTED
+    m = w & (LOD_CPU_COUNTED - 1)
     step = m + 1
     rem = (np.int64(1) << BATCH_SHIFT) - (base & ((np.int64(1) << BATCH_SHIFT) - 1))
-    if step < LOD_GATHER_FROM:
+    if step < LOD_GATHER_FROM and not (counted and step > 1):
         n = min(left, rem, SQ_BLOCK)
-        return n, m, 0, n, 1, m
+        return n, m, 0, n, 1, m, counted
     span = min(left, rem, SQ_BLOCK * step)
     k0 = (step - (base & m)) & m
     n = 0 if k0 >= span else (span - k0 + m) // step
-    return span, m, k0, n, step, 0
+    return span, m, k0, n, step, 0, counted
 
 
 def _sq_next(blod, pos, tms, cval, s0, lb, off, range_mode, n_bad, vmin, vmax, sc, W, vs, eps_s, half, Wf, Hf):
@@ -425,14 +430,19 @@ def _sq_next(blod, pos, tms, cval, s0, lb, off, range_mode, n_bad, vmin, vmax, s
     the slots projected, n_bad, vmin, vmax)."""
     X, Y, Z, code, bx0, by0, bx1, by1, bkey, bi = sc
     base = s0 + off
-    span, m, k0, n, step, skip = _sq_span(blod, base, lb - s0)
-    if step > 1:  # the footprint LOD's dropped slots: counted, not projected
+    span, m, k0, n, step, skip, counted = _sq_span(blod, base, lb - s0)
+    if step > 1 and not counted:  # the footprint LOD's dropped slots: counted, not projected
         n_bad, vmin, vmax = _thinned(pos, tms, cval, base, span, m, range_mode, n_bad, vmin, vmax)
     if n > 0:
         _sq_block(pos, base + k0, s0 + k0, n, step, X, Y, Z, code, bx0, by0, bx1, by1, bkey, bi, W, vs[0], vs[1],
                   vs[2], vs[3], vs[4], vs[5], vs[6], vs[7], vs[8], vs[9], vs[10], vs[11], vs[12], vs[13], vs[14],
                   vs[15], eps_s, half, Wf, Hf)
-        vmin, vmax = _block_range(range_mode, code, Z, base + k0, n, step, tms, cval, vmin, vmax)
+        if counted:  # the whole batch's counts are the caller's (its bounds): none here
+            for k in range(n):
+                if code[k] == SQ_BAD:
+                    code[k] = SQ_OUT
+        else:
+            vmin, vmax = _block_range(range_mode, code, Z, base + k0, n, step, tms, cval, vmin, vmax)
         if skip != 0:  # a small stride's dropped slots: never drawn (a non-finite one still counts)
             for k in range(n):
                 if ((base + k) & skip) != 0 and code[k] != SQ_BAD:

@@ -37,10 +37,10 @@ CULL_REL = 1e-5
 
 _EMPTY = (0xFFFFFFFF, 0)
 
-#: the footprint LOD mask word's flag (bit 31, above every slot index the tier takes): this
-#: batch's non-finite count and colour range are the CPU's (:meth:`Culling.lod_counted`), so
-#: the shaders never read its dropped slots; ``slot & mask`` is unchanged by it
-CPU_COUNTED = 0x80000000
+#: the footprint LOD mask word's flag (batches.LOD_CPU_COUNTED): this batch's non-finite count
+#: and colour range are the CPU's (:meth:`Culling.lod_counted`), so the shaders never read its
+#: dropped slots
+CPU_COUNTED = batches.LOD_CPU_COUNTED
 
 
 def ord_f(v: np.ndarray) -> np.ndarray:
