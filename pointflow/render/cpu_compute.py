@@ -618,7 +618,8 @@ class CpuComputeRenderer(Renderer):
         return FrameStats(drawn=drawn, timings_ms=timings, uploaded_bytes=copied,
                           extra={"removed_nonfinite": nonfinite, "nonfinite_total": self.nonfinite_total,
                                  "occupied": size, "threads": T, "raster": "compute",
-                                 "split": self.split, "culled_points": self.culled_points if bins else 0})
+                                 "split": self.split, "culled_points": self.culled_points if bins else 0,
+                                 "lod_cpu_counted_batches": int(np.count_nonzero(blod & np.uint32(LOD_CPU_COUNTED)))})
 
     def resize(self, width: int, height: int) -> bool:
         """A target per size (image, EDL depth, key buffers), kept for switching back; the

@@ -256,12 +256,13 @@ def test_a_negative_fill_is_refused_naming_the_key():
         load_config({"source": {"transport": "synthetic"}, "render": {"lod_fill": -1}})
 
 
-@pytest.mark.parametrize("tier", ["wgpu-compute", "wgpu-quads"])
+@pytest.mark.parametrize("tier", ["wgpu-compute", "wgpu-quads", "cpu-compute"])
 @pytest.mark.parametrize("color_by", ["intensity", "ingest_time"])
 def test_thinned_batches_the_cpu_counts_are_not_read_yet_count(make, tier, color_by):
-    """wgpu: a thinned batch whose slots are all occupied takes its non-finite count and its
-    share of the automatic colour range from the CPU's bounds (culling.py ``CPU_COUNTED``), so
-    the passes skip its dropped slots without reading them. The counts and colours stay the
+    """A thinned batch whose slots are all occupied takes its non-finite count and its share
+    of the automatic colour range from its bounds (``batches.LOD_CPU_COUNTED``: the wgpu
+    tier's ``Culling.lod_counted``, the compiled tier's batch stats), so the passes and lean
+    loops skip its dropped slots without reading them. The counts and colours stay the
     reference's with the extremes and non-finite points in such slots, and follow a rewrite
     of that batch (dirty range)."""
     f = _scene(behind=20_001)  # odd: the workgroups' ranges start between kept slots
