@@ -212,7 +212,7 @@ class CpuComputeRenderer(Renderer):
         """Flag :data:`~pointflow.render.batches.LOD_CPU_COUNTED` on the thinned batches whose
         slots are all occupied (and, split by bins, that are not culled): their non-finite
         count and colour range are the batch bounds' (:meth:`_lod_masks` reduced every batch),
-        so the lean loops never read their dropped slots. Returns (the mask words, the
+        so the raster loops never read their dropped slots. Returns (the mask words, the
         flagged batches' non-finite count, their colour range or None)."""
         B = BIN_CHUNK
         k = np.arange(blod.size, dtype=np.int64)
@@ -531,8 +531,7 @@ class CpuComputeRenderer(Renderer):
         use_mask = use_mask_of(frame, size)
         mask = np.zeros(size if use_mask else 1, np.uint8)
         lod_bad, lod_vr = 0, None
-        if blod.size and not use_mask and not world and not round_ and not has_window and lod <= 1 and not has_imp:
-            # the lean loops (cpu_kernels._raster's ``lean``): whole thinned batches counted here
+        if blod.size and not use_mask:  # (the budget's passes count every slot themselves)
             blod, lod_bad, lod_vr = self._lod_counted(blod, head, size, cap, chunks if bins else None, range_mode)
         counts = {"occupied": size}
         if use_mask:  # budget: tests -> thinning -> the first b in logical order

@@ -581,10 +581,14 @@ def _raster(keys, marks, T, C, bands, st, vrange, mask, use_mask, pos, tms, imp,
                     continue
             else:
                 n_occ += 1
+                counted = blod.shape[0] != 0 and np.int64(blod[slot >> BATCH_SHIFT]) >= LOD_CPU_COUNTED
+                if counted and (slot & np.int64(blod[slot >> BATCH_SHIFT])) != 0:
+                    continue  # dropped by the footprint LOD, counted from its batch's bounds: never read
                 if not (np.isfinite(pos[slot, 0]) and np.isfinite(pos[slot, 1]) and np.isfinite(pos[slot, 2])):
-                    n_bad += 1
+                    if not counted:
+                        n_bad += 1
                     continue
-                if range_mode != 0:
+                if range_mode != 0 and not counted:
                     v = _colour_value(range_mode, slot, pos, tms, cval)
                     if np.isfinite(v):
                         vmin = min(vmin, v)
@@ -947,15 +951,21 @@ def _bin(rkey, rbox, rf, off, need, st, vrange, ca, cb, cull, cbad, cvr, mask, u
                 if use_mask:
                     if mask[logical] == 0:
                         continue
+                counted = not use_mask and blod.shape[0] != 0 and \
+                    np.int64(blod[slot >> BATCH_SHIFT]) >= LOD_CPU_COUNTED
+                if counted and (slot & np.int64(blod[slot >> BATCH_SHIFT])) != 0:
+                    n_occ += 1
+                    continue  # dropped by the footprint LOD, counted from its batch's bounds: never read
                 x = np.float64(pos[slot, 0])
                 y = np.float64(pos[slot, 1])
                 z = np.float64(pos[slot, 2])
                 if not use_mask:
                     n_occ += 1
                     if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
-                        n_bad += 1
+                        if not counted:
+                            n_bad += 1
                         continue
-                    if range_mode != 0:
+                    if range_mode != 0 and not counted:
                         v = _colour_value(range_mode, slot, pos, tms, cval)
                         if np.isfinite(v):
                             vmin = min(vmin, v)
