@@ -10,6 +10,8 @@ side), the points drawn, and the error against that tier's own image without LOD
 (RGB), the share of pixels that differ, the IoU of lit pixels.
 
     PYTHONPATH=$PWD .venv/bin/python bench/bench_lod_fill.py --points 1000000
+    PYTHONPATH=$PWD .venv/bin/python bench/bench_lod_fill.py --points 4000000 --shape round --point-size 3 \
+        --out bench/results/lod_fill_round_4m.json     # the compiled raster's general loops
 
 Writes ``bench/results/lod_fill.json`` and ``lod_fill.png`` (time ratio against share of
 pixels differing, a line per tier and view, each point labelled by its fill).
@@ -47,12 +49,13 @@ def cameras(world: np.ndarray) -> dict[str, Any]:
     return {"whole": whole, "far": far, "oblique": low}
 
 
-def run(n: int, rounds: int, tiers: tuple[str, ...]) -> dict[str, Any]:
+def run(n: int, rounds: int, tiers: tuple[str, ...], shape: str = "square", point_px: float = 2.0) -> dict[str, Any]:
     machine = _harness.machine()
     f, world, scene = tiled_frame(n)
     cams = cameras(world)
     del world
-    cfg = RenderConfig(size=[W, H], color_by="intensity", colormap="turbo", point_size=2.0, gpu_timestamps=False)
+    cfg = RenderConfig(size=[W, H], color_by="intensity", colormap="turbo", point_size=point_px, point_shape=shape,
+                       gpu_timestamps=False)
     out: dict[str, Any] = {}
     step = max(n // 100, 1)
     for tier in tiers:
@@ -99,7 +102,8 @@ def run(n: int, rounds: int, tiers: tuple[str, ...]) -> dict[str, Any]:
         finally:
             for r in rs.values():
                 r.close()
-    return {"points": n, "rounds": rounds, "scene": scene, "size": [W, H], "fills": list(FILLS), "tiers": out,
+    return {"points": n, "rounds": rounds, "scene": scene, "size": [W, H], "point_shape": shape, "point_size": point_px,
+            "fills": list(FILLS), "tiers": out,
             "cpu_split": os.environ.get("POINTFLOW_CPU_RASTER_SPLIT"),
             "machine": _harness.machine_done(machine), "command": _harness.command(),
             "measured_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
@@ -122,7 +126,8 @@ def chart(res: dict[str, Any], path: Path) -> None:
     ax.set_yscale("log")
     ax.set_xlabel("frame time / the same tier without LOD (median of per-round ratios)")
     ax.set_ylabel("share of pixels that differ from no LOD")
-    ax.set_title(f"footprint LOD (render.lod_fill, labels) at {res['points']:,} points, {res['size'][0]}x{res['size'][1]}",
+    ax.set_title(f"footprint LOD (render.lod_fill, labels) at {res['points']:,} points, {res['size'][0]}x{res['size'][1]}, "
+                 f"{res.get('point_size', 2.0):g} px {res.get('point_shape', 'square')}",
                  fontsize=10)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
@@ -139,10 +144,13 @@ def main(argv: Optional[list[str]] = None) -> int:
     ap.add_argument("--split", default="points",
                     help="the cpu raster's split (POINTFLOW_CPU_RASTER_SPLIT; default points, the rule at <= 2 "
                          "threads: the adaptive choice would time both per renderer and may differ between fills)")
+    ap.add_argument("--shape", default="square", choices=("square", "round"),
+                    help="render.point_shape (round: the compiled raster's general loops)")
+    ap.add_argument("--point-size", type=float, default=2.0, help="render.point_size in pixels")
     ap.add_argument("--out", default=None, help="default bench/results/lod_fill.json")
     a = ap.parse_args(argv)
     os.environ["POINTFLOW_CPU_RASTER_SPLIT"] = a.split
-    res = run(a.points, a.rounds, tuple(a.tiers.split(",")))
+    res = run(a.points, a.rounds, tuple(a.tiers.split(",")), a.shape, a.point_size)
     p = _harness.write_result(a.out or _harness.RESULTS / "lod_fill.json", res)
     chart(res, p.with_suffix(".png"))
     return 0
