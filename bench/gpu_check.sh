@@ -6,6 +6,8 @@
 #      quads, the cpu tier's compiled raster -- against the bare quad floor, interleaved,
 #   4. compact positions against float32 in the compute method (bench/bench_wgpu_compact.py,
 #      GPU_CHECK_COMPACT_POINTS, default 16M; 0 skips it),
+#   5. the footprint LOD against none, both wgpu methods (bench/bench_lod_fill.py,
+#      GPU_CHECK_LOD_POINTS, default 4M; 0 skips it),
 # and writes ONE JSON (bench/results/gpu_check.json) plus a short table on stdout: frame
 # times and G points/s per method and size (``gpoints_per_s`` in the JSON), and per size and
 # method the GPU passes by timestamp queries, the CPU side and G points/s of GPU time (``by_pass``).
@@ -14,7 +16,7 @@
 #   GPU_CHECK_SIZES="100000 1000000" GPU_CHECK_TESTS=tests/render_tiers/test_agreement.py \
 #       bench/gpu_check.sh                              # a dry run on a software adapter
 #
-# Env: PYTHON (default .venv/bin/python, else python3), GPU_CHECK_SIZES, GPU_CHECK_TESTS,
+# Env: PYTHON (default .venv/bin/python, else python3), GPU_CHECK_SIZES, GPU_CHECK_TESTS, GPU_CHECK_LOD_POINTS,
 # GPU_CHECK_OUT (the JSON), GPU_CHECK_REQUIRE_GPU (default 1: tests fail without an adapter).
 set -u
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -62,6 +64,13 @@ if [ "$COMPACT_N" != "0" ]; then
     >"$WORK/compact.txt" 2>&1 || echo "compact bench failed (rc $?)" >>"$WORK/compact.txt"
   tail -n 6 "$WORK/compact.txt" >&2
 fi
+LOD_N="${GPU_CHECK_LOD_POINTS:-4000000}"
+if [ "$LOD_N" != "0" ]; then
+  echo "== footprint LOD (render.lod_fill) against none: $LOD_N points" >&2
+  "$PY" bench/bench_lod_fill.py --points "$LOD_N" --rounds 5 --tiers wgpu-compute,wgpu-quads --out "$WORK/lod.json" \
+    >"$WORK/lod.txt" 2>&1 || echo "lod bench failed (rc $?)" >>"$WORK/lod.txt"
+  tail -n 4 "$WORK/lod.txt" >&2
+fi
 T3=$(date +%s)
 
 "$PY" - "$WORK" "$OUT" "$INFO_RC" "$TEST_RC" "$BENCH_RC" "$T0" "$T1" "$T2" "$T3" <<'EOF'
@@ -83,7 +92,9 @@ res = {"measured_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "host"
        "gpu": read("nvidia.txt").strip() or None, "info": read("info.txt"), "info_rc": info_rc,
        "tests": {"rc": test_rc, **tests, "tail": read("tests.txt")[-3000:]},
        "bench_rc": bench_rc, "bench": bench,
-       "compact": json.loads(read("compact.json")) if read("compact.json") else read("compact.txt")[-2000:] or None, "bench_tail": None if bench else read("bench.txt")[-3000:],
+       "compact": json.loads(read("compact.json")) if read("compact.json") else read("compact.txt")[-2000:] or None,
+       "lod": json.loads(read("lod.json")) if read("lod.json") else read("lod.txt")[-2000:] or None,
+       "bench_tail": None if bench else read("bench.txt")[-3000:],
        "seconds": {"info": t1 - t0, "tests": t2 - t1, "bench": t3 - t2, "total": t3 - t0},
        "load": subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()}
 # G points/s per method and size (issue 41): points over the median frame time
@@ -121,6 +132,12 @@ if bench:
         na = float("nan")
         print(f"{b['points']:>11,} {b['method']:>8} {b['gpu_passes_ms'] or na:>13.3f} {b['cpu_side_ms'] or na:>11.2f} "
               f"{b['frame_ms'] or na:>9.1f} {b['gpoints_per_s_gpu_time'] or na:>14.3f}")
+if isinstance(res["lod"], dict):  # frame time over the same method without LOD, per view and fill
+    print(f"footprint LOD at {res['lod']['points']:,} points: frame / without LOD (lod_fill 8, 2, 0.5)")
+    for tier, views in res["lod"]["tiers"].items():
+        for v, rows in views.items():
+            print(f"  {tier:13} {v:8} {rows['0.0']['median_ms']:8.2f} ms  " +
+                  "  ".join(f"{rows[k]['over_off']:.2f}" for k in ("8.0", "2.0", "0.5") if k in rows))
 print(f"wrote {out}")
 sys.exit(1 if (test_rc or bench_rc) else 0)
 EOF
