@@ -81,6 +81,18 @@ def occupied_per_batch(head: int, size: int, cap: int, batch: int = BATCH_SLOTS)
     return occ
 
 
+def lod_countable(masks: np.ndarray, head: int, size: int, cap: int, batch: int = BATCH_SLOTS) -> np.ndarray:
+    """Per batch whether a tier may flag it :data:`LOD_CPU_COUNTED`: thinned (mask above 0)
+    and every slot occupied, so its bounds' counts are those of occupied slots; none when a
+    slot index could reach the flag's bit. (Culled batches the caller leaves out itself.)"""
+    masks = np.asarray(masks)
+    if cap > LOD_CPU_COUNTED or not masks.size:
+        return np.zeros(masks.size, bool)
+    k = np.arange(masks.size, dtype=np.int64)
+    whole = occupied_per_batch(head, size, cap, batch)[:masks.size] == np.minimum((k + 1) * batch, cap) - k * batch
+    return (masks != 0) & whole
+
+
 #: which of a box's 8 corners take the high bound, per axis
 _CORNERS = np.array([[(c >> i) & 1 for i in range(3)] for c in range(8)], bool)[None]
 

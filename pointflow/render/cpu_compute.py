@@ -34,7 +34,7 @@ from .config import RenderConfig
 from . import colormap, cpu_kernels
 from .base import FrameInput, FrameStats, Renderer, RenderError, merge_ranges
 from .batches import (BATCH_SLOTS, LOD_CPU_COUNTED, boxes_outside, culling_enabled, frame_lod_masks,
-                      occupied_per_batch)
+                      lod_countable)
 from .camera import Camera, planes_of
 from .rules import (EDL_SCALE, budget_fraction, budget_seed, check_frame, edl_offsets, in_pick_circle, pick_window,
                     resolve_pick, rgba_u8, seed_hash)
@@ -215,8 +215,7 @@ class CpuComputeRenderer(Renderer):
         so the raster loops never read their dropped slots. Returns (the mask words, the
         flagged batches' non-finite count, their colour range or None)."""
         B = BIN_CHUNK
-        k = np.arange(blod.size, dtype=np.int64)
-        flag = (blod != 0) & (occupied_per_batch(head, size, cap, B) == np.minimum((k + 1) * B, cap) - k * B)
+        flag = lod_countable(blod, head, size, cap, B)
         if chunks is not None:  # culled chunks count their batch themselves
             ca, _, culled = chunks[0], chunks[1], chunks[2]
             flag[((ca[culled == 1] + head) % cap) // B] = False

@@ -329,3 +329,16 @@ def test_the_wgpu_passes_walk_kept_slots_only_in_chunks_and_under_a_budget(metho
         assert np.array_equal(r.debug_survivors(), np.sort(select_points(f, CAM, cfg, 320, 240).slots))
     finally:
         r.close()
+
+
+def test_only_whole_thinned_batches_are_countable_and_none_past_the_flags_bit():
+    """``batches.lod_countable``: a thinned batch qualifies only with every slot occupied (a
+    ring not yet full, the head's batch cut), and no batch does in a ring so large that a
+    slot index could reach ``LOD_CPU_COUNTED``'s bit."""
+    masks = np.array([3, 0, 7, 1], np.uint32)
+    cap = 3 * B + 100  # the last batch holds 100 slots
+    assert batches.lod_countable(masks, 0, cap, cap).tolist() == [True, False, True, True]
+    # 2.5 batches occupied from slot B // 2: batch 0 cut, 1 and 2 whole, 3 empty
+    assert batches.lod_countable(masks, B // 2, 2 * B + B // 2, cap).tolist() == [False, False, True, False]
+    big = batches.LOD_CPU_COUNTED + 1
+    assert not batches.lod_countable(masks, 0, big, big).any()

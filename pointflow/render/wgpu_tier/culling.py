@@ -147,12 +147,12 @@ class Culling:
         (words, non-finite count, dropped slots, colour range words)."""
         words = np.asarray(masks, np.uint32).copy()
         bb, cap = self.bounds, int(frame.capacity)
-        if bb.batch != 1 << batches.BATCH_SHIFT or cap > render_capacity or cap > CPU_COUNTED or not words.size:
+        if bb.batch != 1 << batches.BATCH_SHIFT or cap > render_capacity:
             return words, 0, 0, _EMPTY
         B = bb.batch
         k = np.arange(words.size, dtype=np.int64)
         n = np.minimum((k + 1) * B, cap) - k * B
-        flag = (words != 0) & (batches.occupied_per_batch(int(frame.head), int(frame.size), cap, B)[:words.size] == n)
+        flag = batches.lod_countable(words, int(frame.head), int(frame.size), cap, B)
         flag[self.culled[self.culled < words.size]] = False
         ks = np.flatnonzero(flag)
         if not ks.size:
