@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+from typing import Optional
 
 import numpy as np
 
@@ -50,26 +51,55 @@ def depth_scale(camera: Camera) -> float:
     return float(2.0 ** -(math.floor(math.log2(max(float(camera.far), 1e-30))) + 1))
 
 
-def build(cfg: RenderConfig, frame: FrameInput, camera: Camera, w: int, h: int, cmode: int, chan,
-          naive_float32: bool, n_slots: int, gx: int, groups: int) -> np.ndarray:
-    """The Params record (a 0-d structured array) for this frame."""
-    P = np.zeros((), PARAMS_DTYPE)
-    origin = np.asarray(frame.origin, np.float64)
+class ViewCache:
+    """The camera's part of the Params record (matrices, frustum planes, scales) and the fixed
+    colour, kept while they do not change: a still camera over a live ring, the common case,
+    builds no matrix per frame (on the GPU the frame's CPU side is most of a 1M-point frame)."""
+
+    __slots__ = ("key", "view", "colour_key", "colour")
+
+    def __init__(self) -> None:
+        self.key: Optional[tuple] = None
+        self.view: tuple = ()
+        self.colour_key: Optional[tuple] = None
+        self.colour: Optional[np.ndarray] = None
+
+
+def _view_block(camera: Camera, w: int, h: int, origin: np.ndarray, naive_float32: bool) -> tuple:
+    """(vp, model as WGSL columns, float32 planes (6, 4), size_scale, depth_scale)."""
     if naive_float32:
         vp = camera.view_proj(w, h, None).astype(np.float32).astype(np.float64)
         model = np.eye(4)
         model[:3, 3] = origin.astype(np.float32)
-        P["vp"], P["model"] = mat_cols(vp), mat_cols(model)
         planes = camera.frustum_planes(w, h, origin)
     else:
         vp = camera.view_proj(w, h, origin)
-        P["vp"], P["model"] = mat_cols(vp), mat_cols(np.eye(4))
+        model = np.eye(4)
         planes = planes_of(vp)  # frustum_planes of the same matrix, not built a second time
-    P["planes"] = planes.astype(np.float32).reshape(6, 4)
-    c = list(cfg.color) + [1.0] * (4 - len(cfg.color))
-    P["fixed_color"] = np.round(np.clip(np.asarray(c[:4], np.float64), 0, 1) * 255.0) / 255.0
+    return (mat_cols(vp), mat_cols(model), planes.astype(np.float32).reshape(6, 4),
+            camera.proj(w, h)[1, 1] * h / 2.0, depth_scale(camera))
+
+
+def build(cfg: RenderConfig, frame: FrameInput, camera: Camera, w: int, h: int, cmode: int, chan,
+          naive_float32: bool, n_slots: int, gx: int, groups: int,
+          cache: Optional[ViewCache] = None) -> np.ndarray:
+    """The Params record (a 0-d structured array) for this frame (``cache``: the view's part
+    from the last frame when camera, size and origin are the same)."""
+    P = np.zeros((), PARAMS_DTYPE)
+    origin = np.asarray(frame.origin, np.float64)
+    cache = cache if cache is not None else ViewCache()
+    key = (camera.eye.tobytes(), camera.target.tobytes(), camera.up.tobytes(), float(camera.fov_deg),
+           float(camera.near), float(camera.far), int(w), int(h), origin.tobytes(), bool(naive_float32))
+    if key != cache.key:
+        cache.view, cache.key = _view_block(camera, w, h, origin, naive_float32), key
+    P["vp"], P["model"], P["planes"], P["size_scale"], P["depth_scale"] = cache.view
+    ckey = tuple(float(v) for v in cfg.color)
+    if ckey != cache.colour_key:
+        c = list(ckey) + [1.0] * (4 - len(ckey))
+        cache.colour = np.round(np.clip(np.asarray(c[:4], np.float64), 0, 1) * 255.0) / 255.0
+        cache.colour_key = ckey
+    P["fixed_color"] = cache.colour
     P["vw"], P["vh"], P["point_size"] = w, h, cfg.point_size
-    P["size_scale"] = camera.proj(w, h)[1, 1] * h / 2.0
     now = float(frame.now_ms)
     P["now_hi"] = now
     P["now_lo"] = now - float(np.float32(now))
@@ -106,5 +136,4 @@ def build(cfg: RenderConfig, frame: FrameInput, camera: Camera, w: int, h: int, 
     P["budget"] = NO_BUDGET if frame.budget is None else max(0, min(int(frame.budget), NO_BUDGET - 1))
     P["color_mode"] = int(cmode)
     P["groups_x"], P["n_slots"], P["groups_total"] = gx, n_slots, groups
-    P["depth_scale"] = depth_scale(camera)
     return P

@@ -137,6 +137,7 @@ class WgpuRenderer(IncrementalUpload, Renderer):
         self._last: Optional[FramePlan] = None
         self._origin: Optional[np.ndarray] = None
         self._gpu_ms: dict[str, float] = {}
+        self._view_cache = frame_params.ViewCache()
         self._closed = False
         self._compact_force = -1  # tests: one level for every batch
         log.info("wgpu tier on %s (%s); capacity %d%s; timestamps %s", adapter.summary, why,
@@ -364,7 +365,7 @@ class WgpuRenderer(IncrementalUpload, Renderer):
             groups_total += g.groups
         budget_on = self._method.plan(n_threads, frame.budget)[3]  # (as without culling)
         P = frame_params.build(self.cfg, frame, camera, self.width, self.height, self._cmode, self._cchan,
-                               self.naive_float32, n_slots, segs[0].gx, segs[0].groups)
+                               self.naive_float32, n_slots, segs[0].gx, segs[0].groups, self._view_cache)
         if self._compact is not None:  # per batch, the words the raster pass reads for this view
             self._compact.frame(s, P, self._compact_force)
         runs, bad, cut, crange = ([], 0, 0, None) if self._culling is None else \

@@ -77,6 +77,7 @@ class ComputeRaster(RasterMethod):
         self.wgc = g.buffer((self.groups_for(g.capacity) + g.max_segments + 1) * 4, BU.STORAGE, "workgroup-counts")
         self.dbg = g.buffer(16, BU.STORAGE, "debug-flags")
         self.cparams = g.buffer(CPARAMS_DTYPE.itemsize, BU.UNIFORM | BU.COPY_DST, "compute-params")
+        self._cparams_key: Optional[tuple] = None  # what the buffer holds (write_cparams)
         self.img = g.buffer(g.row_bytes * g.height, BU.STORAGE | BU.COPY_SRC, "image")  # readback pitch
         self.pick_buf: Optional[Any] = None
         head = ["uniform", "uniform", "read", "read", "read", "read"]
@@ -162,6 +163,10 @@ class ComputeRaster(RasterMethod):
         return bufs + [self.gpu.blod]
 
     def write_cparams(self, gx: int, budget_on: bool, pick: tuple[int, int, int, int] = (0, 0, 0, 0)) -> None:
+        key = (gx, bool(budget_on), tuple(pick), tuple(self.gpu.cfg.background))
+        if key == self._cparams_key:  # the buffer holds them already (queue writes are ordered)
+            return
+        self._cparams_key = key
         b = self.gpu.cfg.background
         c = [float(x) for x in b] + [1.0] * (4 - len(b))
         rgba = np.clip(np.round(np.asarray(c[:4], np.float64) * 255.0), 0, 255).astype(np.uint32)
