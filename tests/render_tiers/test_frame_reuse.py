@@ -148,3 +148,33 @@ def test_the_plane_test_is_kept_until_planes_or_bounds_change():
     bb.note(f)
     culled_east = check(east)
     assert culled_east != culled_west and check(west) == culled_west - {last}
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_a_frame_in_flight_reads_its_own_points(method):
+    """One set of point buffers (``renderer.DATA_SETS``): the next frame's upload is queued
+    behind the frame in flight. A large frame is submitted and, without waiting, the next one
+    overwrites every position with NaN: the first frame's counters (read once the GPU is
+    done) still see only its own finite points, the second's only NaN."""
+    require_adapter()
+    from pointflow.render.wgpu_tier import renderer as wr
+    assert wr.DATA_SETS == 1
+    n = 1_000_000
+    rng = np.random.default_rng(3)
+    w = rng.uniform(-40, 40, (n, 3)) * [1, 1, 0.1]
+    f = make_frame(w, intensity=rng.uniform(0, 1, n).astype(np.float32))
+    cam = Camera(eye=[0.0, -90.0, 60.0], target=[0.0, 0.0, 0.0], near=1, far=400, fov_deg=50)
+    cfg = render_cfg(size=[320, 240], point_size=2, color_by="intensity", raster=method)
+    r = _renderer(cfg, n)
+    try:
+        first = r.render(f, cam)
+        nan = dataclasses.replace(f, positions=np.full_like(f.positions, np.nan), dirty=[(0, n)])
+        second = r.render(nan, cam)  # no wait between: the first frame may still be drawing
+        assert second.uploaded_bytes >= n * 12
+        for _ in range(2):  # each waits for the frame two before it: the counters of both
+            r.render(dataclasses.replace(nan, dirty=[]), cam)
+    finally:
+        r.close()
+    assert first.extra["removed_nonfinite"] == 0 and first.extra["occupied"] == n
+    assert first.drawn > n // 2
+    assert second.extra["removed_nonfinite"] == n and second.drawn == 0

@@ -139,7 +139,7 @@ def rewrite(f: FrameInput, slots: np.ndarray, world: np.ndarray, head: int, size
 
 def test_ring_rewritten_while_drawn_encodes_changed_batches_again(monkeypatch):
     """Frames that rewrite parts of the ring (dirty ranges, one wrapping the end) and move
-    points far out of their batch's box: each buffer set encodes the changed batches again,
+    points far out of their batch's box: the point buffers' encoding is redone for the changed batches,
     so the compact renderer fed frame after frame draws the bytes a fresh one draws, and
     stays within the bound of the full-precision path."""
     monkeypatch.setattr(batches, "BATCH_SLOTS", 512)
@@ -157,10 +157,11 @@ def test_ring_rewritten_while_drawn_encodes_changed_batches_again(monkeypatch):
                  (np.arange(2_500, 2_520), (2_500, 2_520))]
         for i, (slots, rg) in enumerate(steps):
             new = centre + rng.uniform(-55, 55, (len(slots), 3)) * [1, 1, 0.2] + [0, 0, 10 + 3 * i]
-            before = a._compact.lo[(a._frame_no) % 2].copy()
+            from pointflow.render.wgpu_tier.renderer import DATA_SETS
+            before = a._compact.lo[a._frame_no % DATA_SETS].copy()
             f = rewrite(f, slots, new, head=int(slots[-1] + 1) % 6_000, size=6_000, dirty=[rg])
             ia, _, _ = compare(a, b, f, cam)
-            s = (a._frame_no - 1) % 2
+            s = (a._frame_no - 1) % DATA_SETS
             assert not np.array_equal(a._compact.lo[s], before), "the rewritten batches' boxes changed"
             monkeypatch.setenv(compact.ENV_COMPACT, "1")
             fresh = WgpuRenderer(dataclasses.replace(cfg, raster="compute"), f.capacity, list(f.channels))
@@ -190,7 +191,7 @@ def test_new_origin_encodes_every_batch_again(monkeypatch):
         compare(a, b, f, cam)
         org = GEO + [1_000.0, 500.0, 0.0]
         g = dataclasses.replace(f, positions=(w - org).astype(np.float32), origin=org, dirty=[(0, 10)])
-        for _ in range(2):  # both buffer sets
+        for _ in range(2):  # a second frame: nothing left to encode
             img, _, _ = compare(a, b, g, cam)
         monkeypatch.setenv(compact.ENV_COMPACT, "1")
         fresh = WgpuRenderer(dataclasses.replace(cfg, raster="compute"), f.capacity, list(f.channels))

@@ -170,10 +170,8 @@ def test_two_views_independent_cameras_credit_and_close(tmp_path, tier):
 
             # the data is uploaded once: views draw from what main uploaded
             up = pipe.stats()["stages"]["render"]["view_uploaded_bytes"]
-            if tier == "cpu-compute":
+            if tier in ("cpu-compute", "wgpu"):  # (wgpu: one set of point buffers, DATA_SETS)
                 assert up == 0, up
-            elif tier == "wgpu":  # its second buffer set takes each range once
-                assert up <= 20000 * 12 * 2 + 20000 * 4 * 2, up
 
             # close b: gone (a command to it is refused), a goes on
             cl.send(view="b", cmd="close")

@@ -149,7 +149,8 @@ class CompactPositions:
     medium and fine arrays of the chunk's length, one after the other), per set a table of
     two vec4 per batch (lo.xyz, level; ext / 2^10 .xyz, 0) and the bounds it was encoded with."""
 
-    def __init__(self, device: Any, bounds: BatchBounds, capacity: int, chunk_table: list[tuple[int, int]]):
+    def __init__(self, device: Any, bounds: BatchBounds, capacity: int, chunk_table: list[tuple[int, int]],
+                 sets: int = 1):
         import wgpu
         BU = wgpu.BufferUsage
         self.device, self.queue, self.bounds = device, device.queue, bounds
@@ -159,10 +160,11 @@ class CompactPositions:
         self.nb = -(-self.capacity // self.batch)
         sto = BU.STORAGE | BU.COPY_DST
         self.qpos = [[device.create_buffer(size=max(n * 12, 16), usage=sto, label=f"qpos{s}.{c}")
-                      for c, (_, n) in enumerate(chunk_table)] for s in range(2)]
-        self.table = [device.create_buffer(size=max(self.nb * 32, 32), usage=sto, label=f"qtab{s}") for s in range(2)]
-        self.lo = [np.full((self.nb, 3), np.nan) for _ in range(2)]
-        self.hi = [np.full((self.nb, 3), np.nan) for _ in range(2)]
+                      for c, (_, n) in enumerate(chunk_table)] for s in range(sets)]
+        self.table = [device.create_buffer(size=max(self.nb * 32, 32), usage=sto, label=f"qtab{s}")
+                      for s in range(sets)]
+        self.lo = [np.full((self.nb, 3), np.nan) for _ in range(sets)]
+        self.hi = [np.full((self.nb, 3), np.nan) for _ in range(sets)]
         self.levels = np.zeros(self.nb, np.int64)
         self.stats: dict[str, Any] = {}
 

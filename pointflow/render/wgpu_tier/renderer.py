@@ -5,8 +5,9 @@ every method shares and hands it over as a :class:`.raster.Gpu`; the method reco
 passes for each frame's :class:`.raster.FramePlan`. Frame path (no Python loop over points,
 no readback on the frame path):
 
-1. upload the dirty slot ranges (:mod:`.upload`) into the GPU buffer set ``k % 2`` (the other set may still
-   be read by the previous frame; each set catches up on the ranges it missed);
+1. upload the dirty slot ranges (:mod:`.upload`) into the point buffers (one set, :data:`DATA_SETS`:
+   ``queue.write_buffer`` lands after every frame submitted before it, so a frame in flight
+   still reads its own points);
 2. write the frame's ``Params`` (:mod:`.frame_params`) and reset the counters;
 3. the method's passes (quads: cull + compaction + indirect draw; compute: fused tests +
    atomic depth keys + per-pixel resolve);
@@ -21,8 +22,8 @@ without culling.
 
 Compact positions (:mod:`.compact`): per batch 4, 8 or 12 B of position per point.
 
-At most two frames are in flight: before reusing buffer set ``s`` we wait for the frame
-that last read it, which also bounds latency when the GPU is slower than the cadence.
+At most two frames are in flight: before frame ``k`` we wait for frame ``k - 2`` (its
+fence ``k % 2``), which bounds latency when the GPU is slower than the cadence.
 The wait maps a 64-byte fence into which that frame copied its counters, so the
 ``FrameStats`` of a frame gets ``drawn`` / ``removed_nonfinite`` two frames later (or at
 ``read_image()``, which waits for the GPU anyway) without ever stalling for them.
@@ -52,6 +53,13 @@ from .raster import METHODS, FramePlan, Gpu, RasterMethod, choose_raster
 log = logging.getLogger("pointflow.render.wgpu")
 
 _MAX_GROUPS = 65535
+
+#: Sets of point buffers. One: WebGPU orders ``queue.write_buffer`` on the queue's timeline
+#: after every earlier submission, so the upload for frame k + 1 cannot reach a buffer frame k
+#: still reads (tested: tests/render_tiers/test_frame_reuse.py). Two sets, alternating, also
+#: drew correctly, but each set caught up on the ranges it had missed: every range was
+#: uploaded twice, and the points took twice the GPU memory.
+DATA_SETS = 1
 
 #: test-only switch: draw with an absolute float32 model matrix instead of the float64
 #: origin-relative view-projection (shows the large-coordinate error it avoids).
@@ -128,13 +136,14 @@ class WgpuRenderer(IncrementalUpload, Renderer):
             self._create_resources()
         except Exception as e:
             raise RenderError(f"wgpu tier setup failed: {type(e).__name__}: {e}") from e
-        self._pending: list[list[Range]] = [[(0, self.render_capacity)], [(0, self.render_capacity)]]
+        self._pending: list[list[Range]] = [[(0, self.render_capacity)] for _ in range(DATA_SETS)]
         self._done = [False, False]
         self._stats: list[Optional[FrameStats]] = [None, None]
         self.nonfinite_total = 0
         self._ts_used = [False, False]
         self._frame_no = 0
         self._last: Optional[FramePlan] = None
+        self._last_fence = 0  # the fence of the last frame
         self._origin: Optional[np.ndarray] = None
         self._gpu_ms: dict[str, float] = {}
         self._view_cache = frame_params.ViewCache()
@@ -200,7 +209,7 @@ class WgpuRenderer(IncrementalUpload, Renderer):
                         "tms": self._buf(n * 8 if self._need_t else 16, sto, f"tms{s}.{c}"),
                         "imp": self._buf(n * 4 if self._need_imp else 16, sto, f"imp{s}.{c}"),
                         "col": self._buf(n * 4 if colour_words else 16, sto, f"col{s}.{c}")}
-                       for c, (_, n) in enumerate(self._chunk_table)] for s in range(2)]
+                       for c, (_, n) in enumerate(self._chunk_table)] for s in range(DATA_SETS)]
         nseg = self._nseg
         self._state = self._buf(Gpu.STATE_STRIDE * nseg, BU.STORAGE | BU.INDIRECT | BU.COPY_DST | BU.COPY_SRC,
                                 "state")
@@ -226,7 +235,7 @@ class WgpuRenderer(IncrementalUpload, Renderer):
             self._ts_read = [self._buf(32, BU.MAP_READ | BU.COPY_DST, f"ts-read{s}") for s in range(2)]
         self._qs = qs
         if self._compact_on:
-            self._compact = CompactPositions(self.device, self._bounds, cap, self._chunk_table)
+            self._compact = CompactPositions(self.device, self._bounds, cap, self._chunk_table, DATA_SETS)
         self._method = self._make_method()
 
     def _make_method(self) -> RasterMethod:
@@ -338,7 +347,8 @@ class WgpuRenderer(IncrementalUpload, Renderer):
 
     def _render(self, frame: FrameInput, camera: Camera) -> FrameStats:
         t0 = time.perf_counter()
-        s = self._frame_no % 2
+        s = self._frame_no % 2  # the fence (two frames in flight)
+        d = self._frame_no % DATA_SETS  # the point buffers
         self._wait_set(s)
         t_wait = time.perf_counter()
         full = self._mark_dirty(frame)
@@ -351,7 +361,7 @@ class WgpuRenderer(IncrementalUpload, Renderer):
             if self._lod_bounds is not self._bounds:
                 self._lod_bounds.note(frame, full)
             masks = self._lod_bounds.lod_masks(frame, camera, self.cfg, self.width, self.height)
-        uploaded = self._upload(frame, s)
+        uploaded = self._upload(frame, d)
         n_slots = min(self.render_capacity, int(frame.capacity))
         segs = chunks.segments(int(frame.head), int(frame.size), int(frame.capacity), n_slots, self._chunk_table)
         if len(self._chunk_table) == 1:
@@ -367,7 +377,7 @@ class WgpuRenderer(IncrementalUpload, Renderer):
         P = frame_params.build(self.cfg, frame, camera, self.width, self.height, self._cmode, self._cchan,
                                self.naive_float32, n_slots, segs[0].gx, segs[0].groups, self._view_cache)
         if self._compact is not None:  # per batch, the words the raster pass reads for this view
-            self._compact.frame(s, P, self._compact_force)
+            self._compact.frame(d, P, self._compact_force)
         runs, bad, cut, crange = ([], 0, 0, None) if self._culling is None else \
             self._culling.cut(frame, P, segs, self._chunk_table, self._nseg, self.render_capacity)
         if runs:
@@ -391,7 +401,7 @@ class WgpuRenderer(IncrementalUpload, Renderer):
             rng[0], rng[1] = crange
         q.write_buffer(self._rng, 0, rng)
         t_up = time.perf_counter()
-        plan = FramePlan(set=s, n_threads=n_threads, groups=groups_total, gx=walk[0].gx, gy=walk[0].gy,
+        plan = FramePlan(set=d, n_threads=n_threads, groups=groups_total, gx=walk[0].gx, gy=walk[0].gy,
                          budget_on=budget_on, budget_n=frame.budget,
                          head=int(frame.head) % max(int(frame.capacity), 1),
                          capacity=int(frame.capacity), params=P, segments=segs, runs=runs)
@@ -406,13 +416,13 @@ class WgpuRenderer(IncrementalUpload, Renderer):
         q.submit([enc.finish()])
         self._done[s] = True
         t_sub = time.perf_counter()
-        self._last = plan
+        self._last, self._last_fence = plan, s
         self._frame_no += 1
         timings = {"wait": (t_wait - t0) * 1e3, "upload": (t_up - t_wait) * 1e3,
                    "encode_submit": (t_sub - t_up) * 1e3, "cpu_total": (t_sub - t0) * 1e3}
         timings.update(self._gpu_ms)
         stats = FrameStats(drawn=None, timings_ms=timings, uploaded_bytes=uploaded,
-                           extra={"buffer_set": s, "render_capacity": self.render_capacity, "raster": self.raster,
+                           extra={"fence": s, "render_capacity": self.render_capacity, "raster": self.raster,
                                   "gpu_timings_lag_frames": 2 if self._ts else None, "culled_points": cut,
                                   "lod_cpu_counted_batches": counted,
                                   "runs": len(walk), **(self._compact.stats if self._compact else {})})
@@ -469,8 +479,8 @@ class WgpuRenderer(IncrementalUpload, Renderer):
         self._method.copy_image(enc, self._readback)
         self.queue.submit([enc.finish()])
         self._readback.map_sync(self._wgpu.MapMode.READ)
-        if self._last is not None and self._done[self._last.set]:
-            self._collect(self._last.set)  # the GPU is done with the last frame: free counters
+        if self._last is not None and self._done[self._last_fence]:
+            self._collect(self._last_fence)  # the GPU is done with the last frame: free counters
         try:
             raw = np.frombuffer(self._readback.read_mapped(), np.uint8)
             img = raw.reshape(self.height, self._row_bytes)[:, :self.width * 4].reshape(self.height, self.width, 4).copy()
@@ -483,8 +493,8 @@ class WgpuRenderer(IncrementalUpload, Renderer):
         counters filled in (for a true ``frame_done`` time; not needed on the frame path)."""
         if self._last is None:
             return None
-        if self._done[self._last.set]:
-            self._collect(self._last.set)
+        if self._done[self._last_fence]:
+            self._collect(self._last_fence)
         return self._last_stats
 
     def debug_counts(self) -> dict[str, int]:

@@ -1,6 +1,7 @@
 """The wgpu tier's incremental upload: only the slot ranges a handoff changed go to the GPU,
-into two buffer sets (frame ``k`` draws from set ``k % 2`` while the other may still be read
-by the previous frame), each set catching up on the ranges it missed, chunk by chunk.
+chunk by chunk, into the point buffers (``renderer.DATA_SETS`` sets, one today: a frame in
+flight keeps reading its own points, since queue writes land after earlier submissions; with
+more, each set catches up on the ranges it missed).
 
 A part of :class:`~pointflow.render.wgpu_tier.renderer.WgpuRenderer`, which holds the state
 used here: ``queue``, ``_sets`` (per set, per chunk, the named buffers), ``_chunk_table``,
@@ -78,7 +79,7 @@ class IncrementalUpload:
         full = frame.dirty is None or self._origin is None or not np.array_equal(origin, self._origin) \
             or self._last is None or self._last.capacity != frame.capacity
         d = [(0, cap)] if full else list(frame.dirty or [])
-        for s in range(2):
+        for s in range(len(self._pending)):
             self._pending[s].extend(d)
             if len(self._pending[s]) > 64:  # keep the list short
                 self._pending[s] = merge_ranges(self._pending[s], cap)
