@@ -15,9 +15,11 @@ Decoding (raster.wgsl ``load_pos``): ``lo + (c + 0.5) * ext / 2^10`` for coarse 
 ``lo + c * ext / 2^10 + (m + 0.5) * ext / 2^20`` with medium, and so on; each term is exact
 in float32, so level 3 is as precise as the float32 positions.
 
-A batch is encoded with the bounds its buffer set holds; when the bounds change (a slot of
-the batch rewritten), the whole batch is encoded again into that set. Each buffer set keeps
-its own bounds and table (lo, level; step), written per frame.
+A batch is encoded with the bounds its buffer set holds (one set: ``renderer.DATA_SETS``);
+when the bounds change (a slot of the batch rewritten), the whole batch is encoded again.
+Each set keeps its own bounds and table (lo, level; step). The levels and the table are
+worked out again only for boxes that changed, or for all of them when the view changed: a
+still camera over a live ring chooses levels for the rewritten batches alone.
 
 ``POINTFLOW_WGPU_COMPACT`` (:data:`ENV_COMPACT`): ``0`` draws from the float32 positions
 only, ``1`` compact; unset, compact except on a CPU adapter (:func:`compact_choice`).
@@ -48,7 +50,10 @@ TOL_PX = 1.0 / 64.0
 #: level -> name, bytes of position read per point in the raster pass
 LEVEL_NAMES = {0: "float32", 1: "coarse", 2: "medium", 3: "fine"}
 LEVEL_BYTES = {0: 12, 1: 4, 2: 8, 3: 12}
+_LEVEL_BYTES = np.array([LEVEL_BYTES[v] for v in range(4)], np.int64)
 _Q = float(1 << 30)
+#: which of a box's 8 corners take the high bound, per axis
+_CORNERS = np.array([[(c >> i) & 1 for i in range(3)] for c in range(8)], bool)
 
 
 def compact_choice(adapter_type: str, raster: str = "compute", naive_float32: bool = False) -> tuple[bool, str]:
@@ -118,29 +123,33 @@ def choose_levels(lo: np.ndarray, hi: np.ndarray, vp: np.ndarray, vw: float, vh:
     if not ok.any():
         return lev
     L, H = lo[ok], hi[ok]
-    corners = np.stack([np.where(np.array([(c >> i) & 1 for i in range(3)], bool), H, L) for c in range(8)], 1)
-    clip = np.concatenate([corners, np.ones(corners.shape[:2] + (1,))], axis=2) @ vp.T
+    corners = np.where(_CORNERS[None], H[:, None, :], L[:, None, :])  # (m, 8, 3)
+    clip = corners @ vp[:, :3].T + vp[:, 3]
     w = clip[..., 3]
     wmin = w.min(axis=1)
     with np.errstate(divide="ignore", invalid="ignore"):
         rx = np.minimum(np.abs(clip[..., 0] / w).max(axis=1), 2.0)
         ry = np.minimum(np.abs(clip[..., 1] / w).max(axis=1), 2.0)
     ext = H - L
-    out = np.zeros(L.shape[0], np.int64)
     front = wmin > 1e-6 * np.maximum(np.abs(w).max(axis=1), 1.0)
-    if planes is not None:
-        for pl in planes[4:6]:
-            d = corners @ pl[:3] + pl[3]
-            m = 1e-5 * (np.abs(pl[3]) + np.abs(corners).max(axis=(1, 2)) * np.abs(pl[:3]).sum() + 1.0)
-            front &= ~((d.min(axis=1) <= m) & (d.max(axis=1) >= -m))
+    if planes is not None:  # the near and far planes, both at once
+        pl = planes[4:6]
+        d = corners @ pl[:, :3].T + pl[:, 3]  # (m, 8, 2)
+        m = 1e-5 * (np.abs(pl[:, 3]) + np.abs(corners).max(axis=(1, 2))[:, None] * np.abs(pl[:, :3]).sum(axis=1)
+                    + 1.0)
+        front &= ~((d.min(axis=1) <= m) & (d.max(axis=1) >= -m)).any(axis=1)
     A = np.abs(vp)
-    for level, bits in ((3, 30), (2, 20), (1, 10)):
-        e = 0.5 * ext / float(1 << bits)  # the largest move per axis
-        dx = 0.5 * vw / np.where(front, wmin, 1.0) * (e @ A[0, :3] + rx * (e @ A[3, :3]))
-        dy = 0.5 * vh / np.where(front, wmin, 1.0) * (e @ A[1, :3] + ry * (e @ A[3, :3]))
-        fits = front & (np.maximum(dx, dy) <= tol_px)
-        out = np.where(fits, level, out)
-    lev[ok] = out
+    # the largest move per axis at b bits is 0.5 * ext / 2^b: a power of two apart per level,
+    # so the pixel moves are those at 0 bits scaled exactly by 2^-b
+    e = 0.5 * ext
+    wsafe = np.where(front, wmin, 1.0)
+    dx = 0.5 * vw / wsafe * (e @ A[0, :3] + rx * (e @ A[3, :3]))
+    dy = 0.5 * vh / wsafe * (e @ A[1, :3] + ry * (e @ A[3, :3]))
+    most = np.maximum(dx, dy)
+    out = np.where(most * 2.0 ** -30 <= tol_px, 3, 0)
+    out = np.where(most * 2.0 ** -20 <= tol_px, 2, out)
+    out = np.where(most * 2.0 ** -10 <= tol_px, 1, out)
+    lev[ok] = np.where(front, out, 0)
     return lev
 
 
@@ -165,6 +174,13 @@ class CompactPositions:
                       for s in range(sets)]
         self.lo = [np.full((self.nb, 3), np.nan) for _ in range(sets)]
         self.hi = [np.full((self.nb, 3), np.nan) for _ in range(sets)]
+        # per set: the levels and table last written, the view they were chosen for, and the
+        # boxes encoded anew since (their levels and table rows are due)
+        self._lev = [np.zeros(self.nb, np.int64) for _ in range(sets)]
+        self._table = [np.zeros((self.nb, 8), np.float32) for _ in range(sets)]
+        self._view: list[Optional[tuple]] = [None] * sets
+        self._due = [np.ones(self.nb, bool) for _ in range(sets)]
+        self._n = np.minimum((np.arange(self.nb) + 1) * self.batch, self.capacity) - np.arange(self.nb) * self.batch
         self.levels = np.zeros(self.nb, np.int64)
         self.stats: dict[str, Any] = {}
 
@@ -182,6 +198,7 @@ class CompactPositions:
                ((hi == self.hi[s][ks]) | (np.isinf(hi) & np.isinf(self.hi[s][ks]))).all(axis=1)
         whole = [(int(k) * B, min((int(k) + 1) * B, cap)) for k in ks[~same]]
         self.lo[s][ks], self.hi[s][ks] = lo, hi
+        self._due[s][ks[~same]] = True
         writes = merge_ranges(list(ranges) + whole, cap)
         total = 0
         for a, b in writes:
@@ -208,21 +225,31 @@ class CompactPositions:
         """Choose the levels for the view of the frame's ``Params`` ``P`` (its float32
         view-projection, viewport and planes, as the shaders get them) from set ``s``'s boxes
         and write its table (``forced`` >= 0: that level for every box, tests)."""
+        view = (P["vp"].tobytes(), float(P["vw"]), float(P["vh"]), P["planes"].tobytes(), int(forced))
+        due = self._due[s]
+        if view != self._view[s]:
+            due[:] = True
+            self._view[s] = view
+        ks = np.flatnonzero(due)
+        if not ks.size:  # same view, same boxes: the table on the GPU holds these levels
+            return
         vp = np.asarray(P["vp"], np.float64).reshape(4, 4).T  # (stored column-major)
         vw, vh = float(P["vw"]), float(P["vh"])
         planes = np.asarray(P["planes"], np.float64).reshape(6, 4)
-        lo, hi = self.lo[s], self.hi[s]
-        lev = choose_levels(lo, hi, vp, vw, vh, planes) if forced < 0 else np.full(self.nb, forced, np.int64)
+        lo, hi = self.lo[s][ks], self.hi[s][ks]
+        lev = self._lev[s]
+        lev[ks] = choose_levels(lo, hi, vp, vw, vh, planes) if forced < 0 else forced
         fin = np.isfinite(lo).all(axis=1) & np.isfinite(hi).all(axis=1)
-        T = np.zeros((self.nb, 8), np.float32)
-        T[:, :3] = np.where(fin[:, None], lo, 0.0)
-        T[:, 3] = lev.astype(np.uint32).view(np.float32)
-        T[:, 4:7] = np.where(fin[:, None], (hi - lo) / 1024.0, 0.0)
-        self.queue.write_buffer(self.table[s], 0, T)
-        self.levels = lev
-        n = np.minimum((np.arange(self.nb) + 1) * self.batch, self.capacity) - np.arange(self.nb) * self.batch
-        counts = {LEVEL_NAMES[v]: int(np.count_nonzero(lev == v)) for v in LEVEL_NAMES}
-        bpp = float(sum(LEVEL_BYTES[int(v)] * int(m) for v, m in zip(lev, n)) / max(int(n.sum()), 1))
+        T = self._table[s]
+        T[ks, :3] = np.where(fin[:, None], lo, 0.0)
+        T[ks, 3] = lev[ks].astype(np.uint32).view(np.float32)
+        T[ks, 4:7] = np.where(fin[:, None], (hi - lo) / 1024.0, 0.0)
+        a, b = int(ks[0]), int(ks[-1]) + 1  # one write of the rows between the first and last due
+        self.queue.write_buffer(self.table[s], a * 32, T[a:b])
+        due[:] = False
+        self.levels = lev.copy()
+        counts = {LEVEL_NAMES[v]: int(c) for v, c in zip(LEVEL_NAMES, np.bincount(lev, minlength=4))}
+        bpp = float((_LEVEL_BYTES[lev] * self._n).sum() / max(int(self._n.sum()), 1))
         self.stats = {"compact_levels": counts, "compact_position_bytes_per_point": bpp}
 
     def close(self) -> None:
