@@ -7,7 +7,9 @@ own ``pointflow`` in a fresh process per round, the sides alternating (ABBA):
 
 The measuring code is this file's (``--child``), run against either side's package. Scene:
 ``bench_cpu_threads.py``'s (the autzen tile repeated to N points, 1280x720, 2 px, 1% of the
-ring rewritten per frame, output = read_image), coloured by intensity (the handoff's range)
+ring rewritten per frame, output = read_image; for wgpu also ``streamed``: the wall time per
+frame of 12 frames back to back without readback, as a live window draws), coloured by
+intensity (the handoff's range)
 and by height (the range reduced from the points); the wgpu tier with compact positions off
 and on (``POINTFLOW_WGPU_COMPACT``: ``auto`` turns them on on a real GPU, off on lavapipe).
 Per (tier, colour) 7 frames, the median of the last 5. Writes per size the medians over
@@ -34,7 +36,7 @@ def child(n: int, tiers: list[str]) -> dict[str, float]:
     """One side, one round: median frame ms per tier/colour (and the wgpu CPU side)."""
     from dataclasses import replace
 
-    from _harness.scenes import H as HH, W, rewritten_frames, tiled_scene
+    from _harness.scenes import H as HH, W, rewritten_frames, streamed_frames, tiled_scene
     from pointflow.config import RenderConfig
     f, cam = tiled_scene(n)
     out = {}
@@ -59,6 +61,7 @@ def child(n: int, tiers: list[str]) -> dict[str, float]:
             out[f"{tier}/{colour}"] = float(np.median(ts[2:]))
             if tier.startswith("wgpu"):
                 out[f"{tier}/{colour}/cpu_side"] = float(np.median(cpu_side[2:]))
+                out[f"{tier}/{colour}/streamed"], _ = streamed_frames(r, f, cam, 12)
             r.close()
     return out
 

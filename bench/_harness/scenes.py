@@ -164,6 +164,23 @@ def rewritten_frames(r, f: FrameInput, cam: Camera, frames: int, head: int = 0) 
     return ts, stats, head
 
 
+def streamed_frames(r, f: FrameInput, cam: Camera, frames: int, head: int = 0) -> tuple[float, int]:
+    """A live view's frames: ``frames`` frames of ``r`` back to back, each with the next 1% of
+    the ring rewritten, no readback between them (the tier's own wait bounds the frames in
+    flight), ``finish()`` after the last. Returns (wall ms per frame, the next head)."""
+    n = int(f.capacity)
+    step = max(n // 100, 1)
+    t0 = time.perf_counter()
+    for _ in range(frames):
+        f.dirty = [(head, min(head + step, n))]
+        head = (head + step) % n
+        r.render(f, cam)
+    fin = getattr(r, "finish", None)
+    if fin is not None:
+        fin()
+    return (time.perf_counter() - t0) * 1e3 / max(frames, 1), head
+
+
 def tiled_frame(n: int) -> tuple[FrameInput, np.ndarray, str]:
     """The base cloud tiled to n points as a full ring (:func:`tiled`, :func:`make_frame`), with
     its float64 world coordinates (to place cameras) and the scene's name."""
