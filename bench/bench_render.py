@@ -12,7 +12,9 @@ frame in one process, of:
   culling/sampling/colour), same output readback;
 * ``cpu``   — :class:`pointflow.render.cpu.CpuRenderer` (skipped above ``--cpu-max``).
 
-Also: each method's image error against the cpu tier (fraction of pixels that differ), bytes
+Also: each method's ``streamed`` wall time per frame (frames back to back, 1% rewritten each,
+no readback: what a live window costs; ``*_streamed_gpoints_per_s``), each method's image
+error against the cpu tier (fraction of pixels that differ), bytes
 and time of incremental vs full upload when 1% of the ring changes per tick, and the cost of
 a pick with each method. ``--cpu-raster`` measures the cpu tier's compiled raster method (numba) against the wgpu
 compute method on this adapter and a compiled bare floor, interleaved (with ``--install``:
@@ -39,7 +41,7 @@ import numpy as np
 
 import _harness
 from _harness import median_ms
-from _harness.scenes import H, W, base_cloud, camera_for, make_frame, tiled
+from _harness.scenes import H, W, base_cloud, camera_for, make_frame, streamed_frames, tiled
 from pointflow.config import RenderConfig
 from pointflow.render.base import FrameInput
 from pointflow.render.camera import Camera
@@ -206,6 +208,15 @@ def run(sizes: list[int], reps: dict[int, int], cpu_max: int, cpu_compute: bool 
             row[f"{m}_upload_bytes_1pct"] = st.uploaded_bytes
             row[f"{m}_gpu_ms"] = {kk: v for kk, v in st.timings_ms.items() if kk.startswith("gpu")}
             row[f"{m}_cpu_ms"] = st.timings_ms.get("cpu_total")
+        # a live view's frames: back to back without readback (what a window presents), each
+        # method's wall time per frame; the tier's wait keeps at most two frames in flight
+        for m in METHODS:
+            per: list[float] = []
+            for _ in range(3):
+                ms, state["head"] = streamed_frames(rs[m], f, cam, max(k, 10), state["head"])
+                per.append(ms)
+            row[f"{m}_streamed_ms"] = float(np.median(per))
+            row[f"{m}_streamed_gpoints_per_s"] = n / (row[f"{m}_streamed_ms"] * 1e-3) / 1e9
         row["quads_over_compute_per_frame_median"] = float(np.median(np.asarray(times["quads"]) /
                                                                      np.asarray(times["compute"])))
         row["compute_keys"] = rs["compute"].info()["compute_keys"]
