@@ -63,8 +63,11 @@ def test_a_camera_moved_in_place_is_seen(method):
         east, s_east = draw(r, f, cam)
         cam.fov_deg = 60.0  # a field of view changed on the same object
         wide, _ = draw(r, f, cam)
+        cam.eye, cam.target, cam.fov_deg = list(WEST["eye"]), list(WEST["target"]), 40.0  # lists, not arrays
+        back, _ = draw(r, f, cam)
     finally:
         r.close()
+    assert np.array_equal(back, west)
     ref_east, s_ref = _fresh(cfg, f, Camera(**EAST, near=1, far=200, fov_deg=40))
     ref_wide, _ = _fresh(cfg, f, Camera(**EAST, near=1, far=200, fov_deg=60))
     assert not np.array_equal(west, east), "the views must differ"

@@ -88,7 +88,9 @@ def build(cfg: RenderConfig, frame: FrameInput, camera: Camera, w: int, h: int, 
     P = np.zeros((), PARAMS_DTYPE)
     origin = np.asarray(frame.origin, np.float64)
     cache = cache if cache is not None else ViewCache()
-    key = (camera.eye.tobytes(), camera.target.tobytes(), camera.up.tobytes(), float(camera.fov_deg),
+    f64 = np.float64  # (a camera's arrays may have been replaced by lists since it was made)
+    key = (np.asarray(camera.eye, f64).tobytes(), np.asarray(camera.target, f64).tobytes(),
+           np.asarray(camera.up, f64).tobytes(), float(camera.fov_deg),
            float(camera.near), float(camera.far), int(w), int(h), origin.tobytes(), bool(naive_float32))
     if key != cache.key:
         cache.view, cache.key = _view_block(camera, w, h, origin, naive_float32), key
