@@ -25,6 +25,13 @@ from pointflow.render.wgpu_tier import compact
 BOUND = 0.01
 
 
+@pytest.fixture(autouse=True)
+def _encode_at_once(monkeypatch):
+    """These tests check the words and levels: every written batch encoded at once (settling
+    is tested on its own below)."""
+    monkeypatch.setenv(compact.ENV_SETTLE, "0")
+
+
 def pair(monkeypatch, cfg, capacity, channels, **kw):
     """(compact, full precision) compute-method renderers."""
     require_adapter()
@@ -304,3 +311,73 @@ def test_level_choice_bounds_the_move_in_pixels():
         assert move <= compact.TOL_PX * 1.001
         seen.append(lev)
     assert seen == sorted(seen, reverse=True) and len(set(seen)) >= 2, seen
+
+
+def test_a_live_ring_reads_float32_until_its_batches_settle(monkeypatch):
+    """Settling (compact.SETTLE_FRAMES): a batch is encoded only once no frame has written it
+    for ``settle`` frames, at most ENCODE_POINTS_PER_FRAME points a frame; until then, and
+    from the frame one of its slots is written again, it reads its float32 positions (level
+    0). A ring that keeps writing one batch: that batch stays float32, the others settle two
+    a frame; every frame within the bound of the full-precision path."""
+    monkeypatch.setattr(batches, "BATCH_SLOTS", 512)
+    monkeypatch.setenv(compact.ENV_SETTLE, "3")
+    monkeypatch.setattr(compact, "ENCODE_POINTS_PER_FRAME", 2 * 512)
+    w, centre = far_terrain(6_000, seed=4)
+    f = make_frame(w, origin=GEO, capacity=6_000, head=0, intensity=np.linspace(0, 1, 6_000, dtype=np.float32))
+    cam = Camera.fit([-60, -60, -4], [60, 60, 20], aspect=4 / 3).translated(centre)
+    cfg = render_cfg(size=[240, 180], point_size=3)
+    a, b = pair(monkeypatch, cfg, f.capacity, f.channels)
+    nb = -(-6_000 // 512)
+    rng = np.random.default_rng(8)
+    try:
+        ia, sa = draw(a, f, cam)
+        ib, _ = draw(b, f, cam)
+        assert sa.extra["compact_encoded_batches"] == 0 and sa.extra["compact_levels"]["float32"] == nb
+        assert np.array_equal(ia, ib), "level 0 is the float32 path, byte for byte"
+        encoded, seen = [], []
+        for i in range(12):  # slots 0..99 of batch 0 rewritten every frame
+            new = centre + rng.uniform(-55, 55, (100, 3)) * [1, 1, 0.2]
+            f = rewrite(f, np.arange(100), new, head=100, size=6_000, dirty=[(0, 100)])
+            ia, ib, st = compare(a, b, f, cam)
+            encoded.append(st.extra["compact_encoded_batches"])
+            seen.append(int(a._compact.levels[0]))
+            newly = encoded[-1] - (encoded[-2] if i else 0)  # encoded this frame: their words uploaded
+            assert 100 * 16 + max(newly - 1, 0) * 512 * 12 < st.uploaded_bytes <= 100 * 16 + newly * 512 * 12 \
+                or (newly == 0 and st.uploaded_bytes == 100 * 16), (i, st.uploaded_bytes, encoded)
+        # written in frame 0, encoded from frame 3 (loop index 2), two batches a frame, batch 0 never
+        assert encoded[:2] == [0, 0] and encoded[2:5] == [2, 4, 6], encoded
+        assert encoded[-1] == nb - 1 and set(seen) == {0}
+        assert not a._compact.encoded[0][0] and a._compact.encoded[0][1:].all()
+        assert (a._compact.levels[1:] > 0).any(), "settled batches read compact words"
+        # a slot of a settled batch written again: float32 from that frame, settled again later
+        k = 5
+        new = centre + rng.uniform(-55, 55, (10, 3)) * [1, 1, 0.2]
+        f = rewrite(f, np.arange(k * 512, k * 512 + 10), new, head=100, size=6_000, dirty=[(k * 512, k * 512 + 10)])
+        _, _, st = compare(a, b, f, cam)
+        assert a._compact.levels[k] == 0 and st.extra["compact_encoded_batches"] == nb - 2  # (not 0, not k)
+        for _ in range(4):
+            _, _, st = compare(a, b, dataclasses.replace(f, dirty=[]), cam)
+        assert st.extra["compact_encoded_batches"] == nb  # everything settled: batch 0 too
+        monkeypatch.setenv(compact.ENV_COMPACT, "1")
+        monkeypatch.setenv(compact.ENV_SETTLE, "0")
+        from pointflow.render.wgpu_tier import WgpuRenderer
+        fresh = WgpuRenderer(dataclasses.replace(cfg, raster="compute"), f.capacity, list(f.channels))
+        try:
+            img, _ = draw(fresh, dataclasses.replace(f, dirty=None), cam)
+            final, _ = draw(a, dataclasses.replace(f, dirty=[]), cam)
+            assert np.array_equal(final, img), "settled words are the words encoded at once"
+        finally:
+            fresh.close()
+    finally:
+        a.close()
+        b.close()
+
+
+def test_a_bad_settle_setting_names_the_variable(monkeypatch):
+    require_adapter()
+    from pointflow.render.base import RenderError
+    from pointflow.render.wgpu_tier import WgpuRenderer
+    monkeypatch.setenv(compact.ENV_COMPACT, "1")
+    monkeypatch.setenv(compact.ENV_SETTLE, "soon")
+    with pytest.raises(RenderError, match="POINTFLOW_WGPU_COMPACT_SETTLE must be a whole number"):
+        WgpuRenderer(render_cfg(size=[64, 48], raster="compute"), 1_000, ["intensity"])

@@ -4,8 +4,8 @@ The render stage binds a ROUTER on ``endpoints.views``; a view server (pointflow
 connects a DEALER and opens views for its clients. Each view has its own camera (a
 :class:`~pointflow.render.view.controller.ViewController`) and size; the ring is uploaded ONCE per
 handoff for the main view and every other view (a second draw passes ``dirty=[]``, so the
-tiers that keep their own copy upload nothing; wgpu's two buffer sets each take a dirty
-range once). A view is drawn only when its camera, size, the shared style or the data
+tiers that keep their own copy upload nothing; wgpu's one set of point buffers takes a
+dirty range once). A view is drawn only when its camera, size, the shared style or the data
 changed AND its client has credit (``credit {n}``: it can take n more frames, at most
 :data:`~pointflow.render.view.protocol.MAX_CREDIT`): a client that falls behind gets fewer frames and never slows the loop.
 

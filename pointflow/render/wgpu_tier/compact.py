@@ -15,8 +15,19 @@ Decoding (raster.wgsl ``load_pos``): ``lo + (c + 0.5) * ext / 2^10`` for coarse 
 ``lo + c * ext / 2^10 + (m + 0.5) * ext / 2^20`` with medium, and so on; each term is exact
 in float32, so level 3 is as precise as the float32 positions.
 
-A batch is encoded with the bounds its buffer set holds (one set: ``renderer.DATA_SETS``);
-when the bounds change (a slot of the batch rewritten), the whole batch is encoded again.
+Only *settled* batches are encoded: a batch whose slots no frame has written for
+:data:`SETTLE_FRAMES` frames (``POINTFLOW_WGPU_COMPACT_SETTLE``), whole, at most
+:data:`ENCODE_POINTS_PER_FRAME` points per frame; until then, and from the frame a slot of
+it is written again, it is read at level 0 (its float32 positions, uploaded every frame in
+any case). Why: encoding costs the CPU some 13 ns a point in numpy, while the bytes it saves
+can save at most the raster pass's time, which an H100 spent at 0.04 ns a point a frame
+(0.69 ms for 16M). A point of a live ring rewritten 1% per frame is drawn some 100 frames:
+at most 3-4 ns saved for 13 spent, and the CPU side is most of a frame on a GPU. Points that
+stay (a replayed survey, a map) are encoded once and read in 4-8 bytes for as long as they
+stay. ``SETTLE=0`` encodes every written batch at once, and then only the written ranges
+while its box holds (the first version's policy; the benchmark of the raster pass uses it).
+
+A batch is encoded with the bounds its buffer set holds (one set: ``renderer.DATA_SETS``).
 Each set keeps its own bounds and table (lo, level; step). The levels and the table are
 worked out again only for boxes that changed, or for all of them when the view changed: a
 still camera over a live ring chooses levels for the rewritten batches alone.
@@ -34,11 +45,17 @@ import numpy as np
 from ..base import FrameInput, merge_ranges
 from ..batches import BatchBounds
 
-__all__ = ["BITS", "ENV_COMPACT", "LEVEL_NAMES", "TOL_PX", "CompactPositions", "compact_choice", "encode",
-           "choose_levels"]
+__all__ = ["BITS", "ENCODE_POINTS_PER_FRAME", "ENV_COMPACT", "ENV_SETTLE", "LEVEL_NAMES", "SETTLE_FRAMES",
+           "TOL_PX", "CompactPositions", "compact_choice", "encode", "choose_levels", "settle_frames"]
 
 #: 0: the float32 positions only (the full-precision path); 1: compact; unset: auto
 ENV_COMPACT = "POINTFLOW_WGPU_COMPACT"
+#: frames a batch's slots stay unwritten before the batch is encoded (0: at once, always)
+SETTLE_FRAMES = 120
+ENV_SETTLE = "POINTFLOW_WGPU_COMPACT_SETTLE"
+#: the most points encoded per frame (whole batches, at least one; not with SETTLE 0): a ring
+#: that settles at once (a file loaded whole) is encoded over several frames, not in one
+ENCODE_POINTS_PER_FRAME = 65_536
 #: bits per axis read at level 1, 2, 3
 BITS = (10, 20, 30)
 #: the largest move of a point (pixels, first-order bound over the batch's box) a level may
@@ -71,6 +88,20 @@ def compact_choice(adapter_type: str, raster: str = "compute", naive_float32: bo
     if adapter_type == "CPU":
         return False, "auto: off on a CPU adapter (slower there; POINTFLOW_WGPU_COMPACT=1 forces it)"
     return True, f"auto: on ({adapter_type or 'unknown'} adapter)"
+
+
+def settle_frames() -> int:
+    """:data:`SETTLE_FRAMES`, or ``POINTFLOW_WGPU_COMPACT_SETTLE`` (a whole number >= 0)."""
+    v = os.environ.get(ENV_SETTLE, "").strip()
+    if not v:
+        return SETTLE_FRAMES
+    try:
+        n = int(v)
+    except ValueError:
+        n = -1
+    if n < 0:
+        raise ValueError(f"{ENV_SETTLE} must be a whole number of frames >= 0, got {v!r}")
+    return n
 
 
 def encode(p: np.ndarray, lo: np.ndarray, ext: np.ndarray) -> np.ndarray:
@@ -181,17 +212,32 @@ class CompactPositions:
         self._view: list[Optional[tuple]] = [None] * sets
         self._due = [np.ones(self.nb, bool) for _ in range(sets)]
         self._n = np.minimum((np.arange(self.nb) + 1) * self.batch, self.capacity) - np.arange(self.nb) * self.batch
+        self.settle = settle_frames()
+        # per set: which batches' words hold their slots (encoded against self.lo/hi[s]); per
+        # batch: frames since a frame last wrote one of its slots
+        self.encoded = [np.zeros(self.nb, bool) for _ in range(sets)]
+        self.age = np.zeros(self.nb, np.int64)
         self.levels = np.zeros(self.nb, np.int64)
         self.stats: dict[str, Any] = {}
 
     def upload(self, frame: FrameInput, s: int, ranges: list[tuple[int, int]]) -> int:
-        """Encode the slots of ``ranges`` (merged, within the tier's slots) into set ``s``;
-        a batch whose bounds changed since set ``s`` encoded it is encoded whole. Bytes written."""
+        """The slots of ``ranges`` (merged, within the tier's slots) were written. Settling
+        (``settle`` > 0): their batches are read at level 0 again from this frame and encoded
+        once settled (:meth:`frame`); nothing is written here. ``settle`` 0: the slots are
+        encoded into set ``s`` now, a batch whose bounds changed since set ``s`` encoded it
+        whole. Bytes written."""
         if not ranges:
             return 0
         B, cap = self.batch, min(self.capacity, int(frame.capacity))
         ks = np.unique(np.concatenate([np.arange(a // B, (b - 1) // B + 1) for a, b in ranges]))
         ks = ks[ks < min(self.nb, self.bounds.lo.shape[0])]
+        if self.settle > 0:
+            self.age[ks] = 0
+            enc = self.encoded[s]
+            self._due[s][ks[enc[ks]]] = True  # their table rows: level 0 from this frame
+            enc[ks] = False
+            return 0
+        self.encoded[s][ks] = True
         self.bounds.refresh(frame.positions, ks)
         lo, hi = self.bounds.lo[ks], self.bounds.hi[ks]
         same = ((lo == self.lo[s][ks]) | (np.isinf(lo) & np.isinf(self.lo[s][ks]))).all(axis=1) & \
@@ -221,10 +267,36 @@ class CompactPositions:
             self.queue.write_buffer(self.qpos[s][c], (i * n + at) * 4, words[i])
         return words.nbytes
 
+    def settle_step(self, frame: FrameInput, s: int) -> int:
+        """One frame of settling: every batch a frame older; the settled batches not yet
+        encoded (oldest slots first, at most :data:`ENCODE_POINTS_PER_FRAME` points) encoded
+        whole into set ``s`` against their bounds now. Bytes written."""
+        if self.settle <= 0:
+            return 0
+        np.minimum(self.age + 1, 1 << 40, out=self.age)
+        cap = min(self.capacity, int(frame.capacity))
+        ks = np.flatnonzero(~self.encoded[s] & (self.age > self.settle))  # written ``settle`` frames ago
+        ks = ks[ks * self.batch < cap]
+        if not ks.size:
+            return 0
+        ks = ks[:max(1, ENCODE_POINTS_PER_FRAME // self.batch)]
+        self.bounds.refresh(frame.positions, ks)
+        self.lo[s][ks], self.hi[s][ks] = self.bounds.lo[ks], self.bounds.hi[ks]
+        self.encoded[s][ks] = True
+        self._due[s][ks] = True
+        B, total = self.batch, 0
+        for a, b in merge_ranges([(int(k) * B, min((int(k) + 1) * B, cap)) for k in ks], cap):
+            for c, (c0, n) in enumerate(self.chunk_table):
+                x, y = max(a, c0), min(b, c0 + n)
+                if x < y:
+                    total += self._write(frame, s, c, n, x, y, x - c0)
+        return total
+
     def frame(self, s: int, P: np.ndarray, forced: int = -1) -> None:
         """Choose the levels for the view of the frame's ``Params`` ``P`` (its float32
         view-projection, viewport and planes, as the shaders get them) from set ``s``'s boxes
-        and write its table (``forced`` >= 0: that level for every box, tests)."""
+        and write its table (``forced`` >= 0: that level for every encoded box, tests); a
+        batch not encoded reads level 0."""
         view = (P["vp"].tobytes(), float(P["vw"]), float(P["vh"]), P["planes"].tobytes(), int(forced))
         due = self._due[s]
         if view != self._view[s]:
@@ -239,6 +311,7 @@ class CompactPositions:
         lo, hi = self.lo[s][ks], self.hi[s][ks]
         lev = self._lev[s]
         lev[ks] = choose_levels(lo, hi, vp, vw, vh, planes) if forced < 0 else forced
+        lev[ks[~self.encoded[s][ks]]] = 0  # (its words do not hold its slots)
         fin = np.isfinite(lo).all(axis=1) & np.isfinite(hi).all(axis=1)
         T = self._table[s]
         T[ks, :3] = np.where(fin[:, None], lo, 0.0)
@@ -250,7 +323,8 @@ class CompactPositions:
         self.levels = lev.copy()
         counts = {LEVEL_NAMES[v]: int(c) for v, c in zip(LEVEL_NAMES, np.bincount(lev, minlength=4))}
         bpp = float((_LEVEL_BYTES[lev] * self._n).sum() / max(int(self._n.sum()), 1))
-        self.stats = {"compact_levels": counts, "compact_position_bytes_per_point": bpp}
+        self.stats = {"compact_levels": counts, "compact_position_bytes_per_point": bpp,
+                      "compact_encoded_batches": int(np.count_nonzero(self.encoded[s]))}
 
     def close(self) -> None:
         for b in [*self.table, *(x for per in self.qpos for x in per)]:

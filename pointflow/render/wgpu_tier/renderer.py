@@ -30,6 +30,7 @@ The wait maps a 64-byte fence into which that frame copied its counters, so the
 """
 from __future__ import annotations
 
+import copy
 import logging
 import time
 from typing import Any, Optional
@@ -116,7 +117,7 @@ class WgpuRenderer(IncrementalUpload, Renderer):
         self.render_capacity = max(int(capacity), 1)
         self._chunk_table = self._chunk_plan(self.render_capacity)
         self._nseg = 1 if len(self._chunk_table) == 1 else len(self._chunk_table) + 1
-        self._cut = [(0, 0), (0, 0)]  # per buffer set: (non-finite, occupied) of slots the passes skip
+        self._cut = [(0, 0), (0, 0)]  # per fence: (non-finite, occupied) of slots the passes skip
         self._setup_colour(channels)
         self._bounds = BatchBounds(batches.BATCH_SLOTS)  # culling's and the compact positions'
         # the footprint LOD's: the shaders find a slot's batch by a shift of BATCH_SHIFT (tests
@@ -340,9 +341,12 @@ class WgpuRenderer(IncrementalUpload, Renderer):
         self.check_frame(frame)
         try:
             return self._render(frame, camera)
-        except RenderError:
-            raise
         except Exception as e:
+            # the one set of point buffers may hold part of this frame now: no pick or survivor
+            # query may read it as the last frame's
+            self._last = None
+            if isinstance(e, RenderError):
+                raise
             raise RenderError(f"wgpu tier frame failed: {type(e).__name__}: {e}") from e
 
     def _render(self, frame: FrameInput, camera: Camera) -> FrameStats:
@@ -374,7 +378,8 @@ class WgpuRenderer(IncrementalUpload, Renderer):
         budget_on = self._method.plan(n_threads, frame.budget)[3]  # (as without culling)
         P = frame_params.build(self.cfg, frame, camera, self.width, self.height, self._cmode, self._cchan,
                                self.naive_float32, n_slots, segs[0].gx, segs[0].groups, self._view_cache)
-        if self._compact is not None:  # per batch, the words the raster pass reads for this view
+        if self._compact is not None:  # settled batches encoded; per batch the words read for this view
+            uploaded += self._compact.settle_step(frame, d)
             self._compact.frame(d, P, self._compact_force)
         runs, bad, cut, crange = ([], 0, 0, None) if self._culling is None else \
             self._culling.cut(frame, P, segs, self._chunk_table, self._nseg, self.render_capacity)
@@ -428,7 +433,7 @@ class WgpuRenderer(IncrementalUpload, Renderer):
                            extra={"fence": s, "render_capacity": self.render_capacity, "raster": self.raster,
                                   "gpu_timings_lag_frames": 2 if self._ts else None, "culled_points": cut,
                                   "lod_cpu_counted_batches": counted,
-                                  "runs": len(walk), **(self._compact.stats if self._compact else {})})
+                                  "runs": len(walk), **(copy.deepcopy(self._compact.stats) if self._compact else {})})
         self._stats[s] = stats  # drawn/removed_nonfinite filled in once the GPU is done
         self._last_stats = stats
         return stats
@@ -542,6 +547,7 @@ class WgpuRenderer(IncrementalUpload, Renderer):
                 "size": [self.width, self.height], "raster": self.raster, "raster_choice": self._raster_why,
                 "compute_keys": None, "compact_positions": self._compact is not None,
                 "compact_choice": self._compact_why,
+                "compact_settle_frames": self._compact.settle if self._compact else None,
                 **(self._compact.stats if self._compact else {}), **self._method.info()}
 
     def close(self) -> None:

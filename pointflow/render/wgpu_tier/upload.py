@@ -72,7 +72,7 @@ class IncrementalUpload:
         return total
 
     def _mark_dirty(self, frame: FrameInput) -> bool:
-        """Queue the frame's dirty ranges for both sets; True when that is the whole ring (no
+        """Queue the frame's dirty ranges for every data set; True when that is the whole ring (no
         ranges, a new origin or capacity: every position may have changed)."""
         cap = min(self.render_capacity, frame.capacity)
         origin = np.asarray(frame.origin, np.float64)
