@@ -22,7 +22,7 @@ __all__ = ["IncrementalUpload"]
 
 
 class IncrementalUpload:
-    """Dirty ranges to the GPU buffer sets (mixed into the wgpu renderer)."""
+    """Dirty ranges to the GPU point buffers (mixed into the wgpu renderer)."""
 
     queue: Any
     render_capacity: int
