@@ -31,7 +31,7 @@ import numpy as np
 from ..arrays import column_max, column_min, finite_rows
 from .base import merge_ranges
 
-__all__ = ["BATCH_SLOTS", "BATCH_SHIFT", "ENV_CULL", "LOD_MAX_STRIDE", "BatchBounds", "boxes_outside",
+__all__ = ["BATCH_SLOTS", "BATCH_SHIFT", "ENV_CULL", "LOD_MAX_STRIDE", "BatchBounds", "box_corners", "boxes_outside",
            "culling_enabled", "lod_masks", "frame_lod_masks", "occupied_per_batch"]
 
 #: Slots per batch: small enough that a view of a tenth of a ring skips most of it, large
@@ -99,6 +99,12 @@ def lod_countable(masks: np.ndarray, head: int, size: int, cap: int, batch: int 
 _CORNERS = np.array([[(c >> i) & 1 for i in range(3)] for c in range(8)], bool)[None]
 
 
+def box_corners(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """(m, 8, 3) corners of the boxes with rows ``lo``/``hi`` (the footprint LOD's and the
+    wgpu tier's compact levels' projections)."""
+    return np.where(_CORNERS, hi[:, None, :], lo[:, None, :])
+
+
 def lod_masks(lo: np.ndarray, hi: np.ndarray, occupied: np.ndarray, vp: np.ndarray, width: int, height: int,
               point_px: float, size_scale: float, fill: float) -> np.ndarray:
     """Footprint LOD: per batch the mask ``s - 1`` (uint32) of its stride s, a power of two
@@ -116,7 +122,7 @@ def lod_masks(lo: np.ndarray, hi: np.ndarray, occupied: np.ndarray, vp: np.ndarr
         return out
     everything = ok.all()
     bl, bh, occ = (lo, hi, occupied) if everything else (lo[ok], hi[ok], occupied[ok])
-    corners = np.where(_CORNERS, bh[:, None, :], bl[:, None, :])  # (m, 8, 3)
+    corners = box_corners(bl, bh)
     vp = np.asarray(vp, np.float64)
     c = corners @ vp[(0, 1, 3), :3].T + vp[(0, 1, 3), 3]  # clip x, y, w of every corner
     w = c[..., 2]

@@ -43,7 +43,7 @@ from typing import Any, Optional
 import numpy as np
 
 from ..base import FrameInput, merge_ranges
-from ..batches import BatchBounds
+from ..batches import BatchBounds, box_corners
 
 __all__ = ["BITS", "ENCODE_POINTS_PER_FRAME", "ENV_COMPACT", "ENV_SETTLE", "LEVEL_NAMES", "SETTLE_FRAMES",
            "TOL_PX", "CompactPositions", "compact_choice", "encode", "choose_levels", "settle_frames"]
@@ -69,8 +69,6 @@ LEVEL_NAMES = {0: "float32", 1: "coarse", 2: "medium", 3: "fine"}
 LEVEL_BYTES = {0: 12, 1: 4, 2: 8, 3: 12}
 _LEVEL_BYTES = np.array([LEVEL_BYTES[v] for v in range(4)], np.int64)
 _Q = float(1 << 30)
-#: which of a box's 8 corners take the high bound, per axis
-_CORNERS = np.array([[(c >> i) & 1 for i in range(3)] for c in range(8)], bool)
 
 
 def compact_choice(adapter_type: str, raster: str = "compute", naive_float32: bool = False) -> tuple[bool, str]:
@@ -154,7 +152,7 @@ def choose_levels(lo: np.ndarray, hi: np.ndarray, vp: np.ndarray, vw: float, vh:
     if not ok.any():
         return lev
     L, H = lo[ok], hi[ok]
-    corners = np.where(_CORNERS[None], H[:, None, :], L[:, None, :])  # (m, 8, 3)
+    corners = box_corners(L, H)  # (m, 8, 3)
     clip = corners @ vp[:, :3].T + vp[:, 3]
     w = clip[..., 3]
     wmin = w.min(axis=1)
