@@ -40,6 +40,8 @@ BATCH_SLOTS = 16384
 #: ``slot >> BATCH_SHIFT`` is the slot's batch (the compiled and GPU tests shift, not divide).
 BATCH_SHIFT = 14
 assert BATCH_SLOTS == 1 << BATCH_SHIFT
+#: batches reduced together by :meth:`BatchBounds.refresh` (a scratch copy of 64 x 16384 points)
+RUN_BATCHES = 64
 #: Footprint LOD: the most a batch is thinned (a power of two, so a stride divides a batch).
 LOD_MAX_STRIDE = 64
 #: A mask word's flag (bit 31, above every slot index a tier takes, so ``slot & mask`` is
@@ -205,19 +207,12 @@ class BatchBounds:
         if not ks.size:
             return
         B = self.batch
-        for k in ks:
+        rest = ks
+        if positions.ndim == 2 and positions.shape[1] == 3:
+            rest = self._refresh_runs(positions, ks)
+        for k in rest:
             p = positions[k * B:min((k + 1) * B, self.cap)]
             n = p.shape[0]
-            if n and p.ndim == 2 and p.shape[1] == 3:
-                # one copy with the axes as rows, then min and max along them (numpy reduces
-                # an (n, 3) array's columns 2-3x slower); NaN and +-inf reach the extremes,
-                # so finite extremes mean every position is finite
-                q = np.ascontiguousarray(p.T)
-                lo, hi = q.min(axis=1), q.max(axis=1)
-                if np.isfinite(lo).all() and np.isfinite(hi).all():
-                    self.bad[k] = 0
-                    self.lo[k], self.hi[k] = lo, hi
-                    continue
             fin = finite_rows(p)
             self.bad[k] = int(n - np.count_nonzero(fin))
             if self.bad[k] == n:
@@ -228,6 +223,31 @@ class BatchBounds:
         self.stale[ks] = False
         if self._out_ok.shape == self.stale.shape:
             self._out_ok[ks] = False  # new bounds: the plane test again
+
+    def _refresh_runs(self, positions: np.ndarray, ks: np.ndarray) -> np.ndarray:
+        """The whole batches among ``ks`` whose points are all finite, a run of consecutive
+        batches at a time: one copy of the run with the axes as rows, then min and max per
+        batch along them (numpy reduces an (n, 3) array's columns 2-3x slower, and a call per
+        batch cost more than the reduction). NaN and +-inf reach the extremes, so finite
+        extremes mean every position is finite. Returns the batches left to reduce one by one
+        (the last, partial batch; those with a non-finite position)."""
+        B = self.batch
+        whole = ks[(ks + 1) * B <= min(self.cap, positions.shape[0])]
+        if not whole.size:
+            return ks
+        left = [ks[(ks + 1) * B > min(self.cap, positions.shape[0])]]
+        cuts = np.flatnonzero(np.diff(whole) != 1) + 1
+        for run in np.split(whole, cuts):
+            for i in range(0, run.size, RUN_BATCHES):  # bounded scratch (RUN_BATCHES * B points)
+                r = run[i:i + RUN_BATCHES]
+                k0, m = int(r[0]), int(r.size)
+                q = np.ascontiguousarray(positions[k0 * B:(k0 + m) * B].T).reshape(3, m, B)
+                lo, hi = q.min(axis=2).T, q.max(axis=2).T
+                ok = np.isfinite(lo).all(axis=1) & np.isfinite(hi).all(axis=1)
+                self.lo[r[ok]], self.hi[r[ok]] = lo[ok], hi[ok]
+                self.bad[r[ok]] = 0
+                left.append(r[~ok])
+        return np.concatenate(left)
 
     def lod_masks(self, frame, camera, cfg, width: int, height: int) -> Optional[np.ndarray]:
         """:func:`frame_lod_masks` from these bounds, every batch reduced (None when off)."""

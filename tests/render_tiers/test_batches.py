@@ -104,3 +104,40 @@ def test_a_box_touching_a_plane_is_kept():
     lo = np.array([[-2.0, 0, 0], [-2.0, 0, 0], [np.inf] * 3])
     hi = np.array([[0.0, 1, 1], [-1e-3, 1, 1], [-np.inf] * 3])
     assert boxes_outside(lo, hi, planes).tolist() == [False, True, False]
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64, np.dtype(">f4")])
+def test_bounds_reduced_in_runs_match_each_batch_alone(monkeypatch, dtype):
+    """``BatchBounds.refresh`` reduces runs of consecutive whole batches together (a scratch
+    of at most RUN_BATCHES batches): the bounds, non-finite counts and staleness are those of
+    each batch's finite points reduced alone, with NaN, +-inf and -0.0 among them, a last
+    partial batch, batches chosen out of order and with gaps, and runs longer than the
+    scratch."""
+    monkeypatch.setattr(batches, "RUN_BATCHES", 3)
+    rng = np.random.default_rng(7)
+    B, cap = 16, 16 * 11 + 5
+    pos = (rng.standard_normal((cap, 3)) * 1e3).astype(dtype)
+    pos[3, 1], pos[40, 0], pos[41, 2], pos[170, 1] = np.nan, np.inf, -np.inf, np.nan
+    pos[64:80] = np.nan  # batch 4: no finite point
+    pos[100, :] = -0.0  # batch 6: -0.0 an extreme
+    pos[96:112, 0] = np.abs(pos[96:112, 0])
+    f = FrameInput(positions=pos, importance=np.zeros(cap, np.float32), t_ingest_ms=np.zeros(cap),
+                   channels={}, head=0, size=cap, capacity=cap, origin=np.zeros(3), now_ms=0.0)
+    bb = BatchBounds(B)
+    bb.note(f)
+    ks = np.array([9, 0, 1, 2, 3, 4, 5, 6, 7, 11], np.int64)
+    bb.refresh(pos, ks)
+    for k in range(bb.lo.shape[0]):
+        p = np.asarray(pos[k * B:min((k + 1) * B, cap)], np.float64)
+        fin = np.isfinite(p).all(axis=1)
+        if k not in ks:
+            assert bb.stale[k] and np.isinf(bb.lo[k]).all(), k
+            continue
+        assert not bb.stale[k] and bb.bad[k] == int((~fin).sum()), k
+        lo, hi = (p[fin].min(axis=0), p[fin].max(axis=0)) if fin.any() else ([np.inf] * 3, [-np.inf] * 3)
+        assert np.array_equal(bb.lo[k], lo) and np.array_equal(bb.hi[k], hi), k
+    assert bb.bad[4] == B and np.signbit(bb.lo[6, 0]) == np.signbit(pos[96:112, 0].min())
+    pos[64:80] = 1.5  # rewritten finite: its count and bounds follow
+    bb.stale[4] = True
+    bb.refresh(pos, np.array([4], np.int64))
+    assert bb.bad[4] == 0 and bb.lo[4].tolist() == [1.5] * 3 and bb.hi[4].tolist() == [1.5] * 3
