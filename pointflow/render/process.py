@@ -317,6 +317,10 @@ class _Stage:
     def close(self) -> None:
         if self.window is not None:
             self.window.close()
+            # the window's control callback holds this stage: a cycle that would keep the
+            # sockets below open until a garbage collection, and the stage context's zmq
+            # term() waiting on them (a window's render stage was killed on every stop)
+            self.window = None
         self.commands.close(0)
         if self.maplayer is not None:
             self.maplayer.close()
@@ -331,6 +335,8 @@ class _Stage:
                 self.ctx.log.exception("writing the last frame")
         self.renderer.close()
         self.reader.release()
+        self.ready.close(0)
+        self.release.close()  # (its linger lets the release just sent go out)
         self.slabs.close()
         self.ring.close()
 
