@@ -50,10 +50,20 @@ class View:
     in_process: bool = False
 
 
-def _window_available() -> bool:
+def _window_missing() -> Optional[str]:
+    """Why no window can open here (None: one can)."""
     from .render.window import display_available
 
-    return display_available() and all(importlib.util.find_spec(m) is not None for m in ("rendercanvas", "glfw"))
+    if not display_available():
+        return "no display (DISPLAY and WAYLAND_DISPLAY unset)"
+    missing = [m for m in ("rendercanvas", "glfw") if importlib.util.find_spec(m) is None]
+    if missing:
+        return f"{', '.join(missing)} not installed (pip install 'pointflow[window]')"
+    return None
+
+
+def _window_available() -> bool:
+    return _window_missing() is None
 
 
 def _wait_drawn(p, total: int, timeout_s: float) -> None:
@@ -104,16 +114,42 @@ def _until_closed(p, say: str) -> None:
 
 
 def _png_path(path: Optional[str]) -> str:
+    """``path`` made absolute, its suffix checked (``.png``, ``.jpg``, ``.jpeg``: a ValueError
+    naming them) and its directory made, as ``Pipeline.save_frame`` does; a temporary
+    ``.png`` without one."""
+    from .render.imagefile import image_format
+
     if path is None:
         fd, path = tempfile.mkstemp(prefix="pointflow-show-", suffix=".png")
         os.close(fd)
-    return os.path.abspath(path)
+        return path
+    path = os.path.abspath(os.fspath(path))
+    try:
+        image_format(path)
+    except ValueError as exc:
+        raise ValueError(str(exc).replace("save_frame:", "show:", 1)) from None
+    try:
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+    except OSError as exc:
+        raise OSError(exc.errno, f"show: cannot make the directory of {path!r}: {exc.strerror}") from None
+    return path
+
+
+def _write(path: str, rgba: np.ndarray) -> None:
+    """Write the picture; an OSError that names ``path`` (not the temporary file beside it)."""
+    from .render.imagefile import write_image
+
+    try:
+        write_image(path, rgba)
+    except OSError as exc:
+        raise OSError(exc.errno, f"show: cannot write {path!r}: {exc.strerror or exc}") from None
 
 
 def _show_png(p, total: int, path: Optional[str], timeout_s: float) -> str:
     """The running pipeline's frame once every point is drawn (the window view's fallback)."""
+    out = _png_path(path)
     _wait_drawn(p, total, timeout_s)
-    out = p.save_frame(_png_path(path))
+    out = p.save_frame(out)
     print(out)
     return out
 
@@ -163,9 +199,9 @@ def _draw_png(clouds: list[tuple[np.ndarray, dict]], cfg, path: Optional[str]) -
     """One frame of every point, drawn here by the cpu tier's reference (bit-exact, no device,
     nothing to compile), framed by the render stage's auto camera; written to ``path``."""
     from .render.cpu import CpuRenderer
-    from .render.process import write_png
     from .render.view.controller import CameraController
 
+    out = _png_path(path)  # a bad path refused before drawing
     frame = _frame_of(clouds, cfg)
     w, h = cfg.render.size
     camera = CameraController(cfg, w, h).update(frame)
@@ -173,8 +209,7 @@ def _draw_png(clouds: list[tuple[np.ndarray, dict]], cfg, path: Optional[str]) -
     try:
         if camera is not None:  # None: not one finite point, the background alone
             renderer.render(frame, camera)
-        out = _png_path(path)
-        write_png(out, renderer.read_image())
+        _write(out, renderer.read_image())
     finally:
         renderer.close()
     print(out)
@@ -215,6 +250,10 @@ def register_view(view: View) -> None:
 def _clouds(positions: Any, channels: dict) -> list[tuple[np.ndarray, dict]]:
     """One cloud, or a sequence of clouds (a list/tuple of (n, 3) arrays, each channel then
     a list of the same length), checked; :class:`SendError` names the argument."""
+    if isinstance(positions, (str, bytes, os.PathLike)):
+        raise SendError("bad_positions", f"positions: expected an (n, 3) float array, got the path {os.fspath(positions)!r}; "
+                                         "show draws arrays: read the file first (e.g. laspy), or run "
+                                         "`pointflow run` on a config whose source reads it (transport: file)")
     seq = isinstance(positions, (list, tuple)) and len(positions) > 0 and \
         all(isinstance(x, np.ndarray) and x.ndim == 2 for x in positions)
     if not seq:
@@ -232,6 +271,19 @@ def _clouds(positions: Any, channels: dict) -> list[tuple[np.ndarray, dict]]:
         except SendError as exc:
             raise SendError(exc.reason, f"cloud {i}: {exc}") from None
     return out
+
+
+def _say_unseen(clouds: list[tuple[np.ndarray, dict]], total: int) -> None:
+    """Say on stderr when points will not be seen: none given, or some (or all) with a
+    NaN or infinite coordinate (every tier skips those)."""
+    if total == 0:
+        print("pointflow.show: no points given: the picture is the background alone", file=sys.stderr)
+        return
+    bad = total - sum(int(np.count_nonzero(finite_rows(c[0]))) for c in clouds)
+    if bad:
+        what = "all" if bad == total else f"{bad:,} of {total:,}"
+        print(f"pointflow.show: {what} points have a NaN or infinite coordinate and are not drawn",
+              file=sys.stderr)
 
 
 def show_config(total: int, names: list[str], color_by: str, size: Sequence[int], render: Optional[dict] = None):
@@ -255,6 +307,9 @@ def show(positions: Any, *, path: Optional[str] = None, color_by: Optional[str] 
     one, None after a window was closed. ``view`` forces one of :data:`VIEWS` by name."""
     clouds = _clouds(positions, channels)
     total = sum(len(c[0]) for c in clouds)
+    _say_unseen(clouds, total)
+    if path is not None:
+        path = _png_path(path)  # a bad suffix or directory refused before anything starts
     names = list(clouds[0][1])
     if color_by is None:
         color_by = names[0] if names else "z"
@@ -265,6 +320,10 @@ def show(positions: Any, *, path: Optional[str] = None, color_by: Optional[str] 
         chosen = next((v for v in VIEWS if v.name == view), None)
         if chosen is None:
             raise ValueError(f"view: expected one of {', '.join(v.name for v in VIEWS)}, got {view!r}")
+        why = _window_missing() if chosen.name == "window" else None
+        if why is not None:  # say so now: the render stage would go headless and show wait timeout_s
+            print(f"pointflow.show: no window here: {why}; writing a PNG instead", file=sys.stderr)
+            chosen = next(v for v in VIEWS if v.name == "png")
     else:
         chosen = next(v for v in VIEWS if v.available())
     cfg = show_config(total, names, color_by, size, chosen.render)

@@ -169,12 +169,19 @@ class ApiTransport(Transport):
 
 # --------------------------------------------------------------------------- input checks
 def _positions(positions: Any) -> np.ndarray:
+    """The positions as an (n, 3) float32/float64 array. A numpy array of another dtype is
+    refused (the caller chose it); nested lists or tuples of numbers are read as float64."""
     if not isinstance(positions, np.ndarray):
+        given = type(positions).__name__
         try:
             positions = np.asarray(positions)
         except Exception as exc:  # noqa: BLE001 - anything numpy cannot read
             raise SendError("bad_positions", f"positions: expected a float32 or float64 numpy array of shape (n, 3), "
-                                             f"got {type(positions).__name__} ({exc})") from None
+                                             f"got {given} ({exc})") from None
+        if positions.dtype.kind not in "iuf":
+            raise SendError("bad_dtype", f"positions: expected a float32 or float64 numpy array of shape (n, 3), "
+                                             f"got {given}" + (f" of {positions.dtype}" if given in ("list", "tuple") else ""))
+        positions = positions.astype(np.float64, copy=False)
     if positions.dtype not in (np.float32, np.float64):
         raise SendError("bad_dtype", f"positions: expected dtype float32 or float64, got {positions.dtype} "
                                      "(convert with positions.astype(np.float32))")
