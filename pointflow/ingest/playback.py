@@ -137,6 +137,10 @@ class PlaybackClock:
         self._seek: Optional[float] = None
         self._show_once = False  # a seek while paused: release the message it lands on
         self._anchor: Optional[tuple[float, float]] = None  # (media time, wall time) it maps to
+        #: The anchor's media time runs on across loops: a pass's time t is ``t + _base_s`` on it
+        #: (:meth:`restart` with the pass's length adds it up), so a loop keeps the schedule.
+        self._base_s = 0.0
+        self._released_s = 0.0  # the last message released, on that running media time
         self._start: Union[float, str] = 0.0
 
     # ----------------------------------------------------------------- set-up
@@ -189,9 +193,21 @@ class PlaybackClock:
         if self._seek is None:
             self.seeks_landed = self.seeks
 
-    def restart(self) -> None:
-        """A new pass (loop) or a seek: the next message goes at once."""
-        self._anchor = None
+    def restart(self, pass_s: Optional[float] = None) -> None:
+        """A new pass (loop). Without ``pass_s``: the next message goes at once. With it (the
+        length of the pass that ended, in seconds of recording: ``files / rate`` for scans)
+        the schedule goes on: the next pass's time 0 is due ``pass_s`` (over ``rate``) after the
+        last pass's, i.e. one period after its last scan, however many messages a pass has
+        (one included). A replay already behind that (held back by ingest) starts the pass at
+        once instead of rushing messages out to catch up."""
+        if pass_s is None or self._anchor is None or self.rate <= 0:
+            self._anchor = None
+            return
+        t0, w0 = self._anchor
+        due = w0 + (self._base_s + pass_s - t0) / self.rate
+        self._base_s += pass_s
+        if due < time.monotonic():
+            self._anchor = None
 
     def pace(self, t_s: float, *, counts: bool = True) -> Iterator[None]:
         """Yield None while the message at ``t_s`` must wait (paused, or not yet due); return
@@ -204,7 +220,7 @@ class PlaybackClock:
             if self.paused:
                 if self._show_once and counts:
                     self._show_once = False
-                    self._anchor = (t_s, time.monotonic())
+                    self._anchor = (t_s + self._base_s, time.monotonic())
                     return
                 if self.seeks_landed < self.seeks and self._steps == 0:
                     self._land()  # paused on the sought message (a transform): it waits to go (next_s)
@@ -212,7 +228,7 @@ class PlaybackClock:
                     if counts:
                         self._steps -= 1
                         self.steps_done += 1
-                    self._anchor = (t_s, time.monotonic())
+                    self._anchor = (t_s + self._base_s, time.monotonic())
                     return
                 time.sleep(_SLICE_S)
                 yield None
@@ -221,10 +237,10 @@ class PlaybackClock:
                 return
             now = time.monotonic()
             if self._anchor is None:
-                self._anchor = (t_s, now)
+                self._anchor = (t_s + self._base_s, now)
                 return
             t0, w0 = self._anchor
-            left = w0 + (t_s - t0) / self.rate - now
+            left = w0 + (t_s + self._base_s - t0) / self.rate - now
             if left <= 0:
                 return
             time.sleep(min(left, _SLICE_S))
@@ -244,6 +260,7 @@ class PlaybackClock:
 
     def released(self, t_s: float, index: int) -> None:
         self.position_s = float(t_s)
+        self._released_s = self.position_s + self._base_s
         self.index = int(index)
         self.next_s = None
         if self.seeks_landed < self.seeks:
@@ -285,7 +302,7 @@ class PlaybackClock:
         if rate is not None:
             if self._anchor is not None:  # keep the time already waited: re-anchor at the last message
                 t0, w0 = self._anchor
-                self._anchor = (self.position_s, w0 + (self.position_s - t0) / self.rate)
+                self._anchor = (self._released_s, w0 + (self._released_s - t0) / self.rate)
             self.rate = rate
             self.realtime = True
         if "loop" in msg:

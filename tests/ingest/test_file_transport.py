@@ -187,3 +187,78 @@ def test_a_short_kitti_file_is_reported_with_its_real_size(tmp_path, size):
     p.write_bytes(bytes(range(size)))
     with pytest.raises(FormatError, match=rf"size {size} bytes is not a multiple of 16"):
         read_kitti(str(p))
+
+
+# ---------------------------------------------------------------- pacing across loops
+class _FakeTime:
+    """Stands in for the ``time`` module of the playback clock: ``sleep`` moves the clock on,
+    nothing else does, so release times are the schedule itself (no wall clock involved)."""
+
+    def __init__(self):
+        self.now = 1000.0
+
+    def monotonic(self):
+        return self.now
+
+    def sleep(self, s):
+        assert s >= 0
+        self.now += s
+
+
+def _release_times(monkeypatch, path, count, stall=None, **opts):
+    """The fake-clock time each of the first ``count`` chunks went out (``stall``: {k: s},
+    the consumer holds the replay s seconds after the k-th chunk, as a busy ingest would)."""
+    from pointflow.ingest import playback
+
+    fake = _FakeTime()
+    monkeypatch.setattr(playback, "time", fake)
+    cls = resolve_transport("file")
+    o = cls.validate_options({"path": str(path), "loop": True, **opts}, "sources[0].options", os.getcwd())
+    t = cls(o, "f")
+    t.open()
+    times, firsts = [], []
+    try:
+        for c in t.chunks():
+            if c is None:
+                continue
+            times.append(fake.now)
+            firsts.append(float(c.positions[0, 0]))
+            if len(times) == count:
+                break
+            fake.now += (stall or {}).get(len(times), 0.0)
+    finally:
+        t.close()
+    return np.array(times) - times[0], firsts, t
+
+
+@pytest.mark.parametrize("n_files", [1, 3])
+def test_scans_mode_loop_keeps_rate_across_the_loop(tmp_path, monkeypatch, n_files):
+    """Every scan one period (1/rate) after the one before, also from the last file of a pass
+    to the first of the next, and with a single file (each pass one scan)."""
+    for i in range(n_files):
+        np.save(tmp_path / f"scan{i}.npy", np.full((5, 3), float(i)))
+    count = 3 * n_files + 4  # three loop boundaries at least
+    times, firsts, t = _release_times(monkeypatch, tmp_path, count, mode="scans", rate=10.0)
+    assert firsts == [float(i % n_files) for i in range(count)]  # the files in order, pass after pass
+    assert t.counters["loops"] >= 3
+    assert np.allclose(np.diff(times), 0.1, atol=1e-9), np.diff(times)
+    assert np.allclose(times, 0.1 * np.arange(count), atol=1e-9)  # a schedule: no drift either
+
+
+def test_stream_mode_loop_keeps_points_per_second_across_the_loop(tmp_path, monkeypatch):
+    """stream mode: the last chunk's points take their time before the next pass starts."""
+    np.save(tmp_path / "one.npy", np.arange(25 * 3, dtype=np.float64).reshape(25, 3))
+    times, firsts, t = _release_times(monkeypatch, tmp_path / "one.npy", 10, mode="stream",
+                                      points_per_second=100.0, chunk_points=10)
+    # chunks of 10, 10, 5 points at 100 points/s: 0.1 s, 0.1 s, then 0.05 s to the next pass
+    assert firsts == [0.0, 30.0, 60.0] * 3 + [0.0]
+    assert np.allclose(times, [0, .1, .2, .25, .35, .45, .5, .6, .7, .75], atol=1e-9), times
+
+
+def test_scans_mode_loop_after_a_stall_does_not_burst(tmp_path, monkeypatch):
+    """A replay held back past the end of a pass (a busy ingest) starts the next pass at once
+    and keeps the period from there, instead of rushing scans out to catch up."""
+    for i in range(3):
+        np.save(tmp_path / f"scan{i}.npy", np.full((5, 3), float(i)))
+    times, _, _ = _release_times(monkeypatch, tmp_path, 7, stall={3: 5.0}, mode="scans", rate=10.0)
+    assert np.allclose(times, [0, .1, .2, 5.2, 5.3, 5.4, 5.5], atol=1e-9), times

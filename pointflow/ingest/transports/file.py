@@ -239,15 +239,18 @@ class FileTransport(Transport):
             if not clock.loop:
                 break
             self.counters["loops"] += 1
-            clock.restart()
+            clock.restart(self._pass_s)  # the schedule goes on: one period from the last message to the next pass
             start = 0.0
         if self.mode == "stream" and not clock.seek_pending:  # the last chunk's time has to pass, as live
             yield from clock.pace(self.total / o.points_per_second if self.total else clock.position_s, counts=False)
         self._progress(self.counters["points"], self.total)
 
     def _pass(self, start_s: float):
-        """One pass from the first message at or after ``start_s``; False when a seek cut it short."""
+        """One pass from the first message at or after ``start_s``; False when a seek cut it short.
+        Sets :attr:`_pass_s`, the pass's length in seconds of recording (where the next pass of
+        a loop starts): ``files / rate`` for scans, ``points / points_per_second`` for a stream."""
         o, clock = self.o, self.playback
+        self._pass_s = len(self.files) / o.rate if self.mode == "scans" else 0.0
         index = 0
         sent_points = 0  # stream mode: points before this chunk in the file
         for i, f in enumerate(self.files):
@@ -284,4 +287,5 @@ class FileTransport(Transport):
             self.counters["files"] += 1
         if self.mode == "stream":
             clock.messages = index
+            self._pass_s = sent_points / o.points_per_second  # the last chunk's points take their time too
         return True
