@@ -76,7 +76,7 @@ def no_frame_reason(stats: dict) -> Optional[str]:
     raster = render.get("raster")
     if not render.get("ready") or ready is None:
         return "no frame drawn: the render stage was still starting when the run stopped (it had not reported in)"
-    if isinstance(raster, str) and "compil" in raster:
+    if raster == "compiling":  # (not "compiled": a raster ready to draw)
         return f"no frame drawn: the render stage was still compiling its raster ({raster})"
     written = stats.get("accounting", {}).get("ingest_written", 0)
     if not written:
@@ -458,12 +458,14 @@ def build_parser() -> argparse.ArgumentParser:
     sub.add_parser("warm", help="compile the numba loops (cpu raster, frames) for this machine, ahead of the first run")
     snd = sub.add_parser("send", help="run only the sources of a config and publish them on its send: endpoint")
     snd.add_argument("file", help="YAML with sources and a send: section")
-    snd.add_argument("--duration", type=float, default=None, help=DURATION_HELP + "; default: until the sources end or Ctrl-C")
+    snd.add_argument("--duration", type=float, default=None,
+                     help="seconds the sources run, counted from when every one has reported in; "
+                          "default: until the sources end or Ctrl-C")
     snd.add_argument("--out", default=None, help="write stats.json here")
     snd.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
     rt = sub.add_parser("router", help="run the Zenoh router of a config's router: section (docs/remote.md)")
     rt.add_argument("file", help="YAML with a router: section")
-    rt.add_argument("--duration", type=float, default=None, help=DURATION_HELP + "; default: until Ctrl-C")
+    rt.add_argument("--duration", type=float, default=None, help="seconds the router runs once it is up; default: until Ctrl-C")
     rt.add_argument("--out", default=None, help="write stats.json here")
     rt.add_argument("-q", "--quiet", action="store_true", help="no periodic session lines")
     ins = sub.add_parser("inspect", help="topics, messages, points and time range of an MCAP recording")
@@ -517,6 +519,23 @@ def _drop_closed_output() -> None:
     os.close(devnull)
 
 
+def parse_args(parser: argparse.ArgumentParser, argv: Optional[list[str]]) -> argparse.Namespace:
+    """``parser.parse_args``, except that an unknown flag after a command is refused by that
+    command's parser (its usage, not the top level's), with the closest flag it has."""
+    import difflib
+
+    argv = list(sys.argv[1:] if argv is None else argv)
+    args, extra = parser.parse_known_args(argv)
+    if extra:
+        sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+        before = argv.index(extra[0]) < argv.index(args.cmd) if extra[0] in argv and args.cmd in argv else False
+        cmd = parser if before else sub.choices[args.cmd]
+        flags = [o for a in cmd._actions for o in a.option_strings if o.startswith("--")]
+        near = difflib.get_close_matches(extra[0].split("=")[0], flags, n=1, cutoff=0.75)
+        cmd.error(f"unrecognized arguments: {' '.join(extra)}" + (f" (did you mean {near[0]}?)" if near else ""))
+    return args
+
+
 def _main(argv: Optional[list[str]] = None) -> int:
     global _T0
     _T0 = time.monotonic()
@@ -525,7 +544,7 @@ def _main(argv: Optional[list[str]] = None) -> int:
     from .runtime.rundir import ensure_runtime_dir
 
     ensure_runtime_dir()
-    args = build_parser().parse_args(argv)
+    args = parse_args(build_parser(), argv)
     from .stage.console import setup_logging
 
     setup_logging(logging.DEBUG if args.verbose and args.cmd != "validate" else logging.INFO,

@@ -68,5 +68,28 @@ def test_the_reason_names_the_stage_that_was_not_ready_or_compiling():
     assert "render stage was still starting" in no_frame_reason(starting)
     compiling = {"stages": {"render": {"ready": True, "startup_ms": {"ready": 800.0}, "raster": "compiling"}}}
     assert "still compiling its raster" in no_frame_reason(compiling)
+    compiled = {"stages": {"render": {"ready": True, "startup_ms": {"ready": 800.0}, "raster": "compiled"},
+                           "src": {"kind": "source", "points_out": 0}}}
+    assert no_frame_reason(compiled) == "no frame drawn: no point reached the ring (the sources sent 0)"
     assert no_frame_reason({"stages": {"render": {"frames": 2, "pngs": 0}}}) is None  # saved as last.png
     assert no_frame_reason({"stages": {"sender": {}}}) is None  # no render stage: nothing to say
+
+
+def test_an_unknown_flag_is_refused_by_its_command_with_the_closest_flag(capsys):
+    """A typo after ``run`` gets ``run``'s usage and the flag meant; one before any command
+    gets the top level's; nothing starts (argparse's exit 2)."""
+    for argv, usage, says in ((["run", "x.yaml", "--duraton", "5"], "usage: pointflow run ",
+                               "pointflow run: error: unrecognized arguments: --duraton 5 (did you mean --duration?)"),
+                              (["validate", "x.yaml", "--bogus"], "usage: pointflow validate ",
+                               "pointflow validate: error: unrecognized arguments: --bogus\n"),
+                              (["--bogus", "run", "x.yaml"], "usage: pointflow [-h]",
+                               "pointflow: error: unrecognized arguments: --bogus\n")):
+        with pytest.raises(SystemExit) as e:
+            main(argv)
+        err = capsys.readouterr().err
+        assert e.value.code == 2 and err.startswith(usage) and says in err, err
+
+
+def test_python_dash_m_pointflow_is_the_command():
+    r = subprocess.run([sys.executable, "-m", "pointflow", "--version"], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0 and r.stdout.startswith("pointflow "), r.stdout + r.stderr
