@@ -245,6 +245,8 @@ def convert(value: Any, tp: Any, path: str) -> Any:
 
 
 def load_dataclass(cls, data: Any, path: str):
+    if isinstance(data, bool) and _switchable(cls):  # ``edl: true`` for ``edl: {enabled: true}``
+        data = {"enabled": data}
     if not isinstance(data, dict):
         raise ConfigError(path, f"expected a mapping, got {type(data).__name__} {data!r}")
     hints = typing.get_type_hints(cls)
@@ -261,6 +263,11 @@ def load_dataclass(cls, data: Any, path: str):
         elif f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
             raise ConfigError(p, "required key is missing")
     return cls(**kwargs)
+
+
+def _switchable(cls) -> bool:
+    """A section with an ``enabled`` switch: ``true``/``false`` stand for ``{enabled: ...}``."""
+    return any(f.name == "enabled" for f in dataclasses.fields(cls))
 
 
 def check_keys(data: dict, valid: list[str], path: str) -> None:
@@ -290,6 +297,9 @@ def schema_of(tp: Any) -> dict:
     if tp is type(None):
         return {"type": "null"}
     if dataclasses.is_dataclass(tp):
+        if _switchable(tp):
+            return {"anyOf": [{"type": "boolean", "description": "shorthand for {enabled: true|false}"},
+                              dataclass_schema(tp)]}
         return dataclass_schema(tp)
     if origin is list:
         return {"type": "array", "items": schema_of(typing.get_args(tp)[0])}

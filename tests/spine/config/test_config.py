@@ -137,3 +137,21 @@ def test_checked_in_json_schema_is_current_and_validates_configs():
         jsonschema.validate(yaml.safe_load(path.read_text()), schema)
     with pytest.raises(jsonschema.ValidationError):
         jsonschema.validate({"source": {"transport": "synthetic"}, "ring": {"max_points": "many"}}, schema)
+
+
+def test_a_section_with_a_switch_takes_true_or_false():
+    """``render.edl: true`` (as the README says it) stands for ``{enabled: true}``, and so does
+    any section with an ``enabled`` switch (``tracing: false``); the schema says so; other
+    values still name the key."""
+    import jsonschema
+
+    from pointflow.config import json_schema
+
+    cfg = load_config({**BASE, "render": {"edl": True}, "tracing": False})
+    assert cfg.render.edl.enabled is True and cfg.render.edl.strength == 1.0 and cfg.tracing.enabled is False
+    assert load_config({**BASE, "render": {"edl": False}}).render.edl.enabled is False
+    e = _err({**BASE, "render": {"edl": "yes"}})
+    assert e.key == "render.edl" and "expected a mapping" in str(e)
+    jsonschema.validate({**BASE, "render": {"edl": True}, "tracing": False}, json_schema())
+    with pytest.raises(jsonschema.ValidationError):
+        jsonschema.validate({**BASE, "render": {"edl": "yes"}}, json_schema())
