@@ -26,7 +26,8 @@ def create_keypair(name: str, directory: str | os.PathLike = ".", overwrite: boo
     d.mkdir(parents=True, exist_ok=True)
     pub, sec = d / f"{name}.key", d / f"{name}.key_secret"
     if not overwrite and (pub.exists() or sec.exists()):
-        raise KeyFileError(f"{pub} or {sec} already exists; pick another name or remove them first")
+        raise KeyFileError(f"{pub} or {sec} already exists; pick another name, remove them, or overwrite "
+                           "them (pointflow keys --force; overwrite=True)")
     pub_s, sec_s = zmq.auth.create_certificates(str(d), name)
     os.chmod(sec_s, 0o600)
     return Path(pub_s), Path(sec_s)

@@ -423,8 +423,8 @@ def _serve_commands(sock, stage: _Stage, ring, ctx) -> None:
             else:  # the view control messages; an unknown one is refused there, naming them
                 rep = mainview.steer(req, stage, ctx)
         except ControlError as exc:
-            ctx.counters.drop("bad_control", 1)
-            ctx.log.warning("render control message refused: %s", exc)
+            ctx.counters.drop("bad_control", 1)  # (the caller gets the error and raises it: not logged twice)
+            ctx.log.debug("render control message refused: %s", exc)
             rep = {"error": str(exc), "key": exc.key, "message": exc.message}
         except Exception as exc:  # noqa: BLE001 - a bad request must not kill the stage
             ctx.log.warning("render command failed: %s", exc)
