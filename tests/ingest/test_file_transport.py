@@ -122,7 +122,7 @@ def test_scans_mode_directory_of_scans_in_order(tmp_path):
     assert [c.positions[0, 0] for c in chunks] == [0, 1, 2]
 
 
-def test_bad_files_give_clear_errors(tmp_path):
+def test_bad_files_give_clear_errors(tmp_path, caplog):
     from pointflow.config import ConfigError
 
     cls = resolve_transport("file")
@@ -139,8 +139,10 @@ def test_bad_files_give_clear_errors(tmp_path):
     # replay nothing and look like a success); looping over them too, instead of spinning
     for name, why, loop in (("x.bin", "multiple of 16", False), ("t.ply", "promises 100 vertices", False),
                             ("x.bin", "multiple of 16", True)):
+        caplog.clear()
         with pytest.raises(InputUnreadable, match=rf"none of its 1 file\(s\) can be read: .*{name}.*{why}"):
             _replay(tmp_path / name, loop=loop)
+        assert not [r for r in caplog.records if name in r.getMessage()]  # the error says it, once
     # one bad file among good ones is skipped (logged, counted), the others replayed
     d = tmp_path / "mixed"
     d.mkdir()
@@ -148,6 +150,16 @@ def test_bad_files_give_clear_errors(tmp_path):
     (d / "b_bad.npy").write_bytes(b"not numpy")
     chunks, t = _replay(d, rate=1000)
     assert [c.n for c in chunks] == [5] and t.counters["bad_files"] == 1 and t.counters["files"] == 1
+    # a bad file before any good one is said once a file was read (none read: the error says it)
+    import logging
+
+    (d / "0_bad.npy").write_bytes(b"not numpy either")
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="pointflow.transport.file"):
+        chunks, t = _replay(d, rate=1000)
+    said = [r.getMessage() for r in caplog.records if "skipped a file" in r.getMessage()]
+    assert [c.n for c in chunks] == [5] and t.counters["bad_files"] == 2 and len(said) == 2, said
+    assert "0_bad.npy" in said[0] and "b_bad.npy" in said[1], said
 
 
 def test_progress_goes_to_the_progress_line_and_an_overrun_is_said_once(tmp_path, capsys, caplog):

@@ -134,6 +134,7 @@ class FileTransport(Transport):
         self.counters = {"files": 0, "points": 0, "loops": 0, "bad_files": 0}
         #: "file: why" of each file that could not be read (for the error when none can).
         self.bad_reasons: list[str] = []
+        self._unsaid: list[str] = []  # skipped before any file was read (:meth:`_bad_file`)
         self._overrun_said = False
         #: Pacing, pause, seek, step, rate (a factor on ``rate``/``points_per_second``), loop.
         self.playback = PlaybackClock(rate=1.0, loop=self.o.loop, realtime=self.o.realtime)
@@ -186,7 +187,17 @@ class FileTransport(Transport):
             msg = f"{f}: {msg}"
         if len(self.bad_reasons) < 20:
             self.bad_reasons.append(msg)
-        log.warning("%s: skipped a file that cannot be read: %s", self.source_id, msg)
+        if self.counters["files"]:
+            log.warning("%s: skipped a file that cannot be read: %s", self.source_id, msg)
+        else:  # said once a file was read; if none can be, the stage's error says them (once)
+            self._unsaid.append(msg)
+
+    def _read_one(self) -> None:
+        """A file was read: count it, and say the files skipped before it."""
+        self.counters["files"] += 1
+        for msg in self._unsaid:
+            log.warning("%s: skipped a file that cannot be read: %s", self.source_id, msg)
+        self._unsaid.clear()
 
     def _progress(self, done: int, total: int | None) -> None:
         """Counters for the progress line; once, a line when the ring starts to overrun."""
@@ -284,7 +295,7 @@ class FileTransport(Transport):
                 self._bad_file(f, exc)
                 yield None  # the stage beats between files, however many are bad
                 continue
-            self.counters["files"] += 1
+            self._read_one()
         if self.mode == "stream":
             clock.messages = index
             self._pass_s = sent_points / o.points_per_second  # the last chunk's points take their time too

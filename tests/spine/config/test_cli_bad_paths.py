@@ -137,5 +137,7 @@ def test_run_whose_only_file_cannot_be_read_fails_naming_it(tmp_path):
     assert proc.returncode == 2, proc.stderr[-2000:]
     fail = [ln for ln in proc.stderr.splitlines() if "none of its 1 file(s) can be read" in ln]
     assert fail and str(bad) in fail[-1], proc.stderr[-2000:]
+    # said once (docs/bad-input.md): the source no longer warns of it before the stage's error
+    assert len([ln for ln in proc.stderr.splitlines() if str(bad) in ln]) == 1, proc.stderr[-2000:]
     assert "Traceback" not in proc.stderr
     assert "restarting" not in proc.stderr  # a restart cannot help: none was tried
