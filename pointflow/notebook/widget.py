@@ -133,7 +133,11 @@ class LiveView(anywidget.AnyWidget):
         sup = p.supervisor
         if sup is not None and p.running:
             return ""
-        failure = getattr(sup, "failure", None) or (p.stats() or {}).get("failure")
+        try:
+            final = p.stats()
+        except RuntimeError:  # it never ran
+            final = {}
+        failure = getattr(sup, "failure", None) or final.get("failure")
         return f"run failed: {str(failure)[:200]}" if failure else "run ended"
 
     # ------------------------------------------------------------------ the timeline

@@ -8,7 +8,7 @@ import os
 import sys
 import time
 from pathlib import Path
-from typing import Any, Optional, Union
+from typing import Any, Callable, Optional, Union
 
 from ..config import PipelineConfig, load_config
 from .supervisor import PipelineFailed, Supervisor, planned_stages
@@ -138,14 +138,17 @@ class Pipeline:
         """Why a stage asked to end the run (the window was closed), or None."""
         return self._sup.stop_requested if self._sup is not None else None
 
-    def wait(self, duration_s: Optional[float] = None, until=None) -> None:
+    def wait(self, duration_s: Optional[float] = None, until: Optional[Callable[[], bool]] = None) -> bool:
         """Run the supervisor loop for ``duration_s`` seconds (None = until ``until()`` is
-        true, or forever); returns early when a stage asks to stop the run."""
+        true, or forever); returns early when a stage asks to stop the run. True when
+        ``until()`` came true; False when the time ran out or the run was asked to stop (so
+        ``if not p.wait(10, until=...)`` tells a timeout)."""
         end = None if duration_s is None else time.monotonic() + duration_s
         while (end is None or time.monotonic() < end) and not self.stop_requested:
             self.poll(0.05 if end is None else max(0.0, min(0.05, end - time.monotonic())))
             if until is not None and until():
-                return
+                return True
+        return False
 
     def stop(self) -> "RunStats":
         """Stop every stage, unlink shared memory, write ``stats.json``; idempotent. Returns
@@ -376,10 +379,14 @@ class Pipeline:
         return rep
 
     def stats(self) -> dict[str, Any]:
-        """Live numbers while running, the final ones after :meth:`stop`."""
+        """Live numbers while running, the final ones after :meth:`stop`; before the first
+        :meth:`start` there are none (RuntimeError, as for :meth:`send`)."""
         if self._sup is not None:
             return self._sup.stats()
-        return self._final or {}
+        if self._final is None:
+            raise RuntimeError("pipeline has not run: call start() first (or use `with Pipeline... as p:`); "
+                               "stats() are live while it runs and final after stop()")
+        return self._final
 
     def show(self, width: int = 640, height: int = 400):
         """A live view of this (started) pipeline in a notebook: an anywidget with its own

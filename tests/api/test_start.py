@@ -16,10 +16,13 @@ def test_send_right_after_a_start_that_does_not_wait():
     xyz = np.random.default_rng(2).normal(size=(5000, 3)).astype(np.float32)
     p = Pipeline.from_dict(api_config())
     assert p.stages() == ["render", "cadence", "ingest", "api"]  # what it will start, before it does
+    with pytest.raises(RuntimeError, match=r"pipeline has not run: call start\(\) first"):
+        p.stats()  # (it returned {}, and stats()["frames"] a KeyError)
     p.start(wait=False)
     try:
         assert p.send(xyz, intensity=np.abs(xyz[:, 2]), rgb=np.zeros((5000, 3), np.uint8)) == 5000
-        p.wait(None, until=lambda: not p.starting)
+        assert p.wait(None, until=lambda: not p.starting) is True  # wait says whether until came true
+        assert p.wait(0.2, until=lambda: False) is False  # the time ran out
         st = p.stats()["stages"]
         assert all(v["ready"] for v in st.values()), {k: v["ready"] for k, v in st.items()}
         assert all(v["startup_ms"]["ready"] > 0 for k, v in st.items() if k != "api")

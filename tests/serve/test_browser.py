@@ -95,6 +95,9 @@ def test_click_on_the_known_point_shows_its_coordinates(browser, pipe):
     assert np.allclose(hit["point"]["position"], KNOWN, atol=1e-4)
     text = page.locator("#info").inner_text()
     assert "1.500" in text and "-2.250" in text and "3.000" in text, text
+    # georeferenced values in full, to the mm (they were shown as 6.366e+5: about 50 ft)
+    shown = page.evaluate("[636612.34567, -8.5e5, 1e-5, 1.5e13].map(window.pointflowView.fmtFull)")
+    assert shown == ["636612.346", "-850000.000", "1.000000e-5", "1.500000000e+13"], shown
     # two clicks measure: the same point twice is a distance of 0
     page.select_option("#mode", "measure")
     c = (box["x"] + box["width"] / 2 + dx, box["y"] + box["height"] / 2 + dy)

@@ -19,6 +19,12 @@ function el(tag, attrs = {}, parent = null) {
 function fmt(v) {
   return typeof v === "number" ? (Math.abs(v) >= 1e4 || (v !== 0 && Math.abs(v) < 1e-3) ? v.toExponential(3) : v.toFixed(3)) : String(v);
 }
+// a picked value in full: georeferenced coordinates (6.4e5 ft) to the mm, not 4 digits
+function fmtFull(v) {
+  if (typeof v !== "number" || !isFinite(v)) return String(v);
+  if (v !== 0 && Math.abs(v) < 1e-3) return v.toExponential(6);
+  return Math.abs(v) < 1e12 ? v.toFixed(3) : v.toExponential(9);
+}
 
 // a control with its name before it: <label>Name <control></label>
 function labelled(text, control, parent, title) {
@@ -238,14 +244,14 @@ function render({ model, el: root }) {
     if (!p) { info.textContent = "no point there"; info.hidden = false; return; }
     const pos = p.position || [];
     const at = pickAt;  // the canvas pixel clicked (picks are answered in order)
-    let text = `x ${fmt(pos[0])}\ny ${fmt(pos[1])}\nz ${fmt(pos[2])}`;
+    let text = `x ${fmtFull(pos[0])}\ny ${fmtFull(pos[1])}\nz ${fmtFull(pos[2])}`;
     if (m.source) text += `\nsource: ${m.source}`;
-    for (const [k, v] of Object.entries(p.channels || {})) text += `\n${k}: ${fmt(v)}`;
+    for (const [k, v] of Object.entries(p.channels || {})) text += `\n${k}: ${fmtFull(v)}`;
     if (mode.value === "measure" && measureA) {
       const a = measureA.pos;
       const d = Math.hypot(pos[0] - a[0], pos[1] - a[1], pos[2] - a[2]);
       wmarks = { pick: null, measure: [a, pos] }; marksPx = { pick: null, measure: [measureA.at, at] };
-      text = `distance ${fmt(d)}\nfrom ${a.map(fmt).join(", ")}\nto   ${pos.map(fmt).join(", ")}`;
+      text = `distance ${fmtFull(d)}\nfrom ${a.map(fmtFull).join(", ")}\nto   ${pos.map(fmtFull).join(", ")}`;
       measureA = null;
       canvas.dataset.distance = String(d);
     } else if (mode.value === "measure") {

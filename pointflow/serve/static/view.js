@@ -23,6 +23,7 @@
   function send(msg) { if (ws && ws.readyState === 1) ws.send(JSON.stringify(msg)); }
   function control(msg) { msg.req = req++; send(msg); return msg.req; }
   window.pointflowView.control = control;
+  window.pointflowView.fmtFull = fmtFull;  // (tests: how a picked value is shown)
 
   function viewSize() {
     const r = canvas.getBoundingClientRect(), dpr = window.devicePixelRatio || 1;
@@ -142,6 +143,12 @@
 
   // ---------------------------------------------------------------- pick and measure
   function fmt(v) { return typeof v === "number" ? (Math.abs(v) >= 1e4 || (v !== 0 && Math.abs(v) < 1e-3) ? v.toExponential(3) : v.toFixed(3)) : String(v); }
+  // a picked value in full: georeferenced coordinates (6.4e5 ft) to the mm, not 4 digits
+  function fmtFull(v) {
+    if (typeof v !== "number" || !isFinite(v)) return String(v);
+    if (v !== 0 && Math.abs(v) < 1e-3) return v.toExponential(6);
+    return Math.abs(v) < 1e12 ? v.toFixed(3) : v.toExponential(9);
+  }
 
   function clearMarks() {
     marks.pick = null; marks.measure = []; measureA = null;
@@ -153,15 +160,15 @@
   function showPick(p, source) {
     if (!p) { info.textContent = "no point there"; info.hidden = false; marks.pick = null; drawOverlay(); return; }
     const pos = p.position || [];
-    let text = `x ${fmt(pos[0])}\ny ${fmt(pos[1])}\nz ${fmt(pos[2])}`;
+    let text = `x ${fmtFull(pos[0])}\ny ${fmtFull(pos[1])}\nz ${fmtFull(pos[2])}`;
     if (source) text += `\nsource: ${source}`;
-    for (const [k, v] of Object.entries(p.channels || {})) if (k !== "source_index") text += `\n${k} ${fmt(v)}`;
+    for (const [k, v] of Object.entries(p.channels || {})) if (k !== "source_index") text += `\n${k} ${fmtFull(v)}`;
     if ($("mode").value === "measure") {
       marks.pick = null;
       if (!measureA) { measureA = pos; marks.measure = [pos]; text = "measure: first point\n" + text + "\n(click the second)"; }
       else {
         const d = Math.hypot(pos[0] - measureA[0], pos[1] - measureA[1], pos[2] - measureA[2]);
-        text = `distance ${fmt(d)}\nfrom ${measureA.map(fmt).join(", ")}\nto   ${pos.map(fmt).join(", ")}`;
+        text = `distance ${fmtFull(d)}\nfrom ${measureA.map(fmtFull).join(", ")}\nto   ${pos.map(fmtFull).join(", ")}`;
         marks.measure = [measureA, pos];
         measureA = null;
         canvas.dataset.distance = String(d);
