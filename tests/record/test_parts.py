@@ -77,6 +77,18 @@ def test_inspect_lists_topics_counts_and_time(tmp_path, capsys):
     assert cli.main(["inspect", str(tmp_path / "not.mcap")]) == 1
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "cannot read as MCAP" in err
+    # a recording cut short: the rosbag source refuses it and names the way to a copy that replays
+    from pointflow.ingest.transports.rosbag import _open_reader
+
+    cut, fixed = tmp_path / "cut.mcap", tmp_path / "fixed.mcap"
+    data = open(rc.path, "rb").read()
+    cut.write_bytes(data[:-30])  # its footer and end magic gone, every message still there
+    with pytest.raises(ValueError, match=rf"{cut}: cannot read.*`pointflow inspect {cut} --recover OUT\.mcap`"):
+        _open_reader(str(cut))
+    assert cli.main(["inspect", str(cut), "--recover", str(fixed)]) == 0
+    r = _open_reader(str(fixed))
+    assert r.message_count == 10
+    r.close()
 
 
 def test_topic_names_are_valid_ros_names():

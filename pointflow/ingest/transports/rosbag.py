@@ -89,7 +89,11 @@ def _open_reader(path: str):
     except FileNotFoundError as exc:
         raise ValueError(f"{path}: not a ROS recording ({exc})") from None
     except Exception as exc:  # noqa: BLE001 - rosbags raises its own error types (and struct/sqlite errors)
-        raise ValueError(f"{path}: cannot read as a ROS 1/ROS 2 bag or MCAP file: {type(exc).__name__}: {exc}") from None
+        hint = ""
+        if any(str(x).lower().endswith(".mcap") for x in p):  # cut short (a crash, a copy): its messages are there
+            hint = (f"; if the recording was cut short, `pointflow inspect {path} --recover OUT.mcap` "
+                    "writes a copy that replays")
+        raise ValueError(f"{path}: cannot read as a ROS 1/ROS 2 bag or MCAP file: {type(exc).__name__}: {exc}{hint}") from None
     return r
 
 
