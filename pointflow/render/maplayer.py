@@ -361,6 +361,12 @@ class MapLayer:
                 p["source"] = names[0]
         return {"point": p, "source": p.get("source") if p else None}
 
+    @property
+    def empty_slots(self) -> int:
+        """Slots of the last composed frame that hold no point (its ``size`` counts every slot:
+        the ring's empty ones and the map's padding)."""
+        return max(int(self._padding), 0)
+
     def stats(self) -> dict:
         return {"map_points": int(self.points), "map_nodes": int(self.nodes), "map_version": int(self.version),
                 "map_versions_taken": int(self.versions), "map_bad_messages": int(self.bad_messages),

@@ -276,5 +276,10 @@ def test_a_pick_in_a_served_view_names_map_and_live_points(tmp_path):
             p = cl.reply("m", 4)
             assert p["source"] == "scanner", p
             assert np.min(np.linalg.norm(live_pts - p["point"]["position"], axis=1)) < 1e-3
+            # the page's stats line counts points, not slots: the ring's 1,600 of its 4,000 and
+            # the map's 20,000 of its 50,000 budget (it said 54,000)
+            st = cl.wait(lambda: next((m for m in reversed(cl.msgs) if m.get("type") == "stats"), None),
+                         60, "a stats message")
+            assert st["points"] == len(live_pts) + N_MAP, st
         finally:
             cl.close()

@@ -533,7 +533,10 @@ class ViewHub:
         self._counters()
         self.ctx.counters.extra["view_targets_kept"] = len(getattr(stage.renderer, "_targets", None) or {}) or 1
         drops = {k: v for k, v in self.ctx.counters.drops.items() if v}
-        msg = {"type": "stats", "points": int(self.last_frame.size) if self.last_frame is not None else 0,
+        points = int(self.last_frame.size) if self.last_frame is not None else 0
+        if stage.maplayer is not None and self.last_frame is not None and self.last_frame.live_slots is not None:
+            points -= stage.maplayer.empty_slots  # a map's frame has a slot for every point it could hold
+        msg = {"type": "stats", "points": max(points, 0),
                "fps": round(fps, 2), "view_fps": round(vfps, 2), "sources": self.sources, "drops": drops,
                "tier": stage.renderer.tier, "views": self.ctx.counters.extra.get("views", {})}
         for peer, t in list(self.peers.items()):
