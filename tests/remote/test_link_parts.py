@@ -383,3 +383,32 @@ def test_stop_waits_for_a_link_mid_reconnect_to_hand_over_the_final_sync():
         pub.close(0)
     finally:
         nobody.destroy(linger=0)
+
+
+@pytest.mark.parametrize("socket", ["sub", "pull"])
+def test_a_sender_that_stopped_says_what_came_before_this_source_joined(socket, caplog):
+    """The viewer's line when a sender stops names the points sent before it joined (they are
+    in ``transport_joined_after``, not in the link totals); on a ``sub`` source, with the
+    remedy (a pub sender's first chunks go before a subscriber's connection is up). Without a
+    late join the line says nothing of it."""
+    import logging
+
+    from pointflow.ingest.transports.zmq_transport import ZmqTransport
+
+    def line(first_seq: int) -> str:
+        t = ZmqTransport(ZmqTransport.validate_options(
+            {"endpoint": "tcp://127.0.0.1:1", "socket": socket, "bind": False}, "t"), "t")
+        c = PointChunk(positions=np.zeros((100, 3), np.float32), source_id="lidar")
+        link = lambda seq, sent, **kw: {"epoch": "A", "seq": seq, "sent": sent, **kw}  # noqa: E731
+        caplog.clear()
+        with caplog.at_level(logging.INFO):
+            t.parse([bytes(f) for f in wire.encode(c, link=link(first_seq, 100 * (first_seq + 1)))])
+            end = PointChunk(positions=np.zeros((0, 3), np.float32), source_id="lidar")
+            t.parse([bytes(f) for f in wire.encode(end, link=link(first_seq + 1, 100 * (first_seq + 1),
+                                                                   sync=True, end=True))])
+        return next(r.getMessage() for r in caplog.records if "stopped: sent" in r.getMessage())
+
+    late = line(5)
+    assert "sent 100, received 100, lost in transit 0 point(s); 500 point(s) sent before this source joined" in late
+    assert ("send.wait_subscribers" in late) == (socket == "sub"), late
+    assert "joined" not in line(0)
