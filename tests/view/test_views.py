@@ -178,6 +178,10 @@ def test_two_views_independent_cameras_credit_and_close(tmp_path, tier):
             cl.send(view="b", cmd="orbit", azimuth_deg=5.0, req=6)
             err = cl.reply("b", 6)
             assert err["type"] == "error" and err["key"] == "view" and "unknown view" in err["error"]
+            cl.send(view="b", cmd="close", req=17)  # closed twice (a page gone, then its server stopping): no error
+            cl.send(view="a", cmd="orbit", azimuth_deg=0.0, req=18)
+            cl.reply("a", 18)  # (answered in order: the second close was taken before it)
+            assert not [m for m in cl.msgs if m.get("view") == "b" and m.get("req") == 17]
             pipe.wait(30, until=lambda: pipe.stats()["stages"]["render"]["views_open"] == 1)
             s = pipe.stats()["stages"]["render"]
             assert s["views_open"] == 1 and "b" not in s["views"]

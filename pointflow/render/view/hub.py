@@ -205,6 +205,8 @@ class ViewHub:
             self.ctx.log.info("view %s open (%dx%d)", vid, w, h)
             return
         v = self.views.get(vid)
+        if v is None and cmd == "close":  # closed already (the page went, then the server stopped): done
+            return
         if v is None:  # a restarted render stage, or a closed view: the client opens it again
             gone = protocol.gone_reply(vid, req)
             self._bad(peer, vid, req, ControlError("view", "unknown view"), "view", reply=gone)
