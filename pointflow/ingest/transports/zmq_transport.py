@@ -100,15 +100,19 @@ class ZmqTransport(Transport):
             if not delivered:  # a sync: totals only
                 if src in self.ledger.ended:
                     t = self.ledger.per_source()[src]
-                    late = t.get("joined_after", 0)
                     log.info("%s: sender of %r stopped: sent %d, received %d, lost in transit %d point(s)%s",
-                             self.source_id, src, t["sent"], t["received"], t["lost_points"],
-                             f"; {late} point(s) sent before this source joined (transport_joined_after"
-                             + ("; a pub sender's first chunks go before a subscriber is connected: "
-                                "send.wait_subscribers on the sender keeps them)" if self.o.socket == "sub" else ")")
-                             if late else "")
+                             self.source_id, src, t["sent"], t["received"], t["lost_points"], self._joined_after(t))
                 return None
         return chunk
+
+    def _joined_after(self, t: dict) -> str:
+        """The stopped-sender line's note of the points sent before this source joined."""
+        late = t.get("joined_after", 0)
+        if not late:
+            return ""
+        why = ("; a pub sender's first chunks go before a subscriber is connected: send.wait_subscribers "
+               "on the sender keeps them") if self.o.socket == "sub" else ""
+        return f"; {late} point(s) sent before this source joined (transport_joined_after{why})"
 
     def chunks(self) -> Iterator[Optional[PointChunk]]:
         while True:

@@ -19,12 +19,7 @@ function el(tag, attrs = {}, parent = null) {
 function fmt(v) {
   return typeof v === "number" ? (Math.abs(v) >= 1e4 || (v !== 0 && Math.abs(v) < 1e-3) ? v.toExponential(3) : v.toFixed(3)) : String(v);
 }
-// a picked value in full: georeferenced coordinates (6.4e5 ft) to the mm, not 4 digits
-function fmtFull(v) {
-  if (typeof v !== "number" || !isFinite(v)) return String(v);
-  if (v !== 0 && Math.abs(v) < 1e-3) return v.toExponential(6);
-  return Math.abs(v) < 1e12 ? v.toFixed(3) : v.toExponential(9);
-}
+function fmtFull(v) { return pointflowOverlay.fmtFull(v); }  // (overlay.js: both views show picks alike)
 
 // a control with its name before it: <label>Name <control></label>
 function labelled(text, control, parent, title) {

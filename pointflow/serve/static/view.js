@@ -143,12 +143,7 @@
 
   // ---------------------------------------------------------------- pick and measure
   function fmt(v) { return typeof v === "number" ? (Math.abs(v) >= 1e4 || (v !== 0 && Math.abs(v) < 1e-3) ? v.toExponential(3) : v.toFixed(3)) : String(v); }
-  // a picked value in full: georeferenced coordinates (6.4e5 ft) to the mm, not 4 digits
-  function fmtFull(v) {
-    if (typeof v !== "number" || !isFinite(v)) return String(v);
-    if (v !== 0 && Math.abs(v) < 1e-3) return v.toExponential(6);
-    return Math.abs(v) < 1e12 ? v.toFixed(3) : v.toExponential(9);
-  }
+  function fmtFull(v) { return pointflowOverlay.fmtFull(v); }  // (overlay.js: both views show picks alike)
 
   function clearMarks() {
     marks.pick = null; marks.measure = []; measureA = null;

@@ -7,6 +7,7 @@
 //     follow: {frame, origin}} (the followed frame's axes, at half length, named)
 //   pointflowOverlay.niceStep(x) -> 1, 2 or 5 x 10^k nearest at or above x
 //   pointflowOverlay.layout(cam) -> {spacing, axisLength} (what draw uses)
+//   pointflowOverlay.fmtFull(v) -> a picked value as shown (3 decimals up to 1e12)
 // Why an overlay and not pixels in the frame: crisp at any resolution and device pixel ratio,
 // switched on and off without a new frame, and the same on every render tier.
 "use strict";
@@ -47,6 +48,13 @@ var pointflowOverlay = (function () {
     const dist = Math.hypot(...sub(cam.eye, cam.target)) || 1;
     const spacing = niceStep(dist / 8);
     return { spacing, axisLength: 2 * spacing, dist };
+  }
+
+  // a picked value in full: georeferenced coordinates (6.4e5 ft) to the mm, not 4 digits
+  function fmtFull(v) {
+    if (typeof v !== "number" || !isFinite(v)) return String(v);
+    if (v !== 0 && Math.abs(v) < 1e-3) return v.toExponential(6);
+    return Math.abs(v) < 1e12 ? v.toFixed(3) : v.toExponential(9);
   }
 
   function fmtLen(x) {
@@ -184,6 +192,6 @@ var pointflowOverlay = (function () {
     return out;
   }
 
-  return { project, draw, niceStep, layout, fmtLen, decodeLut };
+  return { project, draw, niceStep, layout, fmtLen, fmtFull, decodeLut };
 })();
 if (typeof module !== "undefined") module.exports = pointflowOverlay;
