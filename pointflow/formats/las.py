@@ -190,3 +190,49 @@ def read_las(path: str, columns=None) -> tuple[np.ndarray, dict]:
         return pieces[0]
     return (np.concatenate([p for p, _ in pieces]),
             {k: np.concatenate([c[k] for _, c in pieces]) for k in pieces[0][1]})
+
+
+#: EPSG linear units as the views label them (GeoTIFF's ProjLinearUnitsGeoKey and friends).
+_EPSG_UNITS = {9001: "m", 9002: "ft", 9003: "US ft", 9036: "km", 9030: "nmi", 9005: "Clarke ft", 9014: "fathom"}
+_UNIT_NAMES = {"metre": "m", "meter": "m", "foot": "ft", "us survey foot": "US ft", "kilometre": "km",
+               "foot_us": "US ft", "us_survey_foot": "US ft"}
+
+
+def crs_units(header) -> "dict[str, str] | None":
+    """The length units of a LAS header's coordinates, ``{"xy": "ft", "z": "ft"}``, from its
+    CRS (the WKT VLR or the GeoTIFF keys, read by laspy and pyproj), so a view labels a map
+    in feet as feet; None when the file does not say, or says angles (a geographic CRS).
+    ``z`` is the vertical CRS's unit where there is one, else the horizontal one's."""
+    xy = z = None
+    try:
+        crs = header.parse_crs()
+    except Exception:  # noqa: BLE001 - no pyproj, or a CRS pyproj does not read: the keys below
+        crs = None
+    if crs is not None:
+        axes = crs.axis_info
+        if crs.is_projected or crs.is_compound:
+            horiz = [a for a in axes if a.direction.lower() in ("east", "north", "west", "south")]
+            up = [a for a in axes if a.direction.lower() in ("up", "down")]
+            xy = _unit_label(horiz[0]) if horiz and not _angular(horiz[0]) else None
+            z = _unit_label(up[0]) if up else None
+    if xy is None:  # no WKT pyproj reads: the GeoTIFF keys' own unit codes
+        keys = {}
+        for vlr in getattr(header, "vlrs", ()):
+            for k in getattr(vlr, "geo_keys", ()) or ():
+                keys[int(k.id)] = int(k.value_offset)
+        xy = _EPSG_UNITS.get(keys.get(3076, -1))  # ProjLinearUnitsGeoKey
+        z = z or _EPSG_UNITS.get(keys.get(4099, -1))  # VerticalUnitsGeoKey
+    if xy is None:
+        return None
+    return {"xy": xy, "z": z or xy}
+
+
+def _angular(axis) -> bool:
+    return "degree" in axis.unit_name.lower() or "radian" in axis.unit_name.lower() or "grad" in axis.unit_name.lower()
+
+
+def _unit_label(axis) -> str:
+    code = axis.unit_code
+    if code and str(code).isdigit() and int(code) in _EPSG_UNITS:
+        return _EPSG_UNITS[int(code)]
+    return _UNIT_NAMES.get(axis.unit_name.lower(), axis.unit_name)

@@ -20,10 +20,11 @@ from ..render import mapregion as mr
 class Preview:
     """Preview points, offered by the opener thread, placed and published by the stage loop."""
 
-    def __init__(self, ctx, budget: int, channels_for, bounds, files: list[str], push):
+    def __init__(self, ctx, budget: int, channels_for, bounds, files: list[str], push, units=None):
         self.ctx, self.budget, self.channels_for = ctx, int(budget), channels_for
         self.files, self.push = files, push
         self.bounds = bounds  # (lo, hi) from the headers, or None
+        self.units = units  # {"xy", "z"} from the headers' CRS, or None
         self.queue: deque = deque()
         self.lock = threading.Lock()
         self.offered = 0  # points taken into the queue (at most the budget)
@@ -93,6 +94,7 @@ class Preview:
                "points": self.used, "nodes": 0, "channel_ranges": self.ranges, "preview": True}
         if self.bounds is not None:
             msg["bounds"] = [np.asarray(self.bounds[0]).tolist(), np.asarray(self.bounds[1]).tolist()]
+            msg["units"] = self.units
         try:
             self.push.send(mr.encode(msg), zmq.NOBLOCK)
             self.full_next = False

@@ -142,12 +142,13 @@ class Server:
     """Selection, loading and slot bookkeeping of one open map."""
 
     def __init__(self, ctx, source, region: mr.MapRegion, files: list[str], first_version: int = 0,
-                 held: Optional[np.ndarray] = None):
+                 held: Optional[np.ndarray] = None, units: Optional[dict] = None):
         """``first_version``/``held``: a preview's last version and the slots it holds in
-        ``region`` (free again once this server's first, full, version is acknowledged)."""
+        ``region`` (free again once this server's first, full, version is acknowledged);
+        ``units``: the map's length units (source.py ``header_units``), sent with each version."""
         from . import NodeCache
 
-        self.ctx, self.src, self.region, self.files = ctx, source, region, files
+        self.ctx, self.src, self.region, self.files, self.units = ctx, source, region, files, units
         mc = ctx.cfg.map
         self.mc = mc
         self.budget = int(mc.point_budget)
@@ -384,7 +385,7 @@ class Server:
         msg = {"type": "version", "version": self.version, "full": full, "region": r.path, "slots": r.slots,
                "channels": [list(c) for c in r.channels], "files": self.files,
                "origin": [float(v) for v in origin], "bounds": [lo.tolist(), hi.tolist()], "set": set_r, "cleared": cleared, "points": points,
-               "nodes": len(self.published), "channel_ranges": ranges}
+               "nodes": len(self.published), "channel_ranges": ranges, "units": self.units}
         try:
             self.ctx_push.send(mr.encode(msg), zmq.NOBLOCK)
         except zmq.Again:  # render not there (yet): everything again once it says hello
@@ -444,15 +445,16 @@ def _sweep_regions(run_dir: str) -> None:
                 pass
 
 
-def _send_bounds(push, files: list[str], bounds=None):
-    """The map's bounds to the render stage, as soon as its headers say them (None: unknown)."""
+def _send_bounds(push, files: list[str], bounds=None, units=None):
+    """The map's bounds (and length units) to the render stage, as soon as its headers say
+    them (None: unknown)."""
     from .source import header_bounds
 
     bounds = header_bounds(files) if bounds is None else bounds
     if bounds is not None:
         try:
             push.send(mr.encode({"type": "bounds", "bounds": [bounds[0].tolist(), bounds[1].tolist()],
-                                 "files": files}), zmq.NOBLOCK)
+                                 "files": files, "units": units}), zmq.NOBLOCK)
         except zmq.Again:
             pass
     return bounds
@@ -473,10 +475,13 @@ def main(ctx) -> None:
     _sweep_regions(ctx.info.run_dir)
     c.extra.update(map_files=files, map_error=None, map_ready=False)
     t_start = time.monotonic()
-    bounds = _send_bounds(push, files)  # from the headers: the views frame the map before it is open
+    from .source import header_units
+
+    units = header_units(files, ctx.log)  # from the CRS: a map in feet is labelled in feet
+    bounds = _send_bounds(push, files, units=units)  # from the headers: the views frame the map before it is open
     from .preview import Preview
 
-    preview = Preview(ctx, mc.point_budget, lambda avail: kept_channels(cfg, mc, avail), bounds, files, push)
+    preview = Preview(ctx, mc.point_budget, lambda avail: kept_channels(cfg, mc, avail), bounds, files, push, units)
     opener = _Opener(mc, ctx.log, c, preview)
     opener.start()
     cams_msg = None  # the views' cameras while the map opens, for the server to start from
@@ -490,7 +495,7 @@ def main(ctx) -> None:
                     while pull.poll(0, zmq.POLLIN):  # a (new) render stage says hello: the bounds again
                         msg = mr.decode(pull.recv())
                         if msg is not None and msg.get("type") == "hello":
-                            bounds = _send_bounds(push, files, bounds)
+                            bounds = _send_bounds(push, files, bounds, units)
                             preview.full_next = True
                         elif msg is not None and msg.get("type") == "cameras":
                             cams_msg = msg
@@ -524,7 +529,7 @@ def main(ctx) -> None:
                         preview.region.close()
                         preview.region.unlink()
                     region = mr.MapRegion.create(ctx.info.run_dir, mc.point_budget, chans)
-                server = Server(ctx, src, region, list(src.paths), first_version=preview.version, held=held)
+                server = Server(ctx, src, region, list(src.paths), first_version=preview.version, held=held, units=units)
                 server.ctx_push = push
                 if cams_msg is not None:
                     server.on_message(cams_msg)

@@ -117,6 +117,37 @@ def header_bounds(paths: Sequence[str]) -> Optional[tuple[np.ndarray, np.ndarray
     return (np.min(los, axis=0), np.max(his, axis=0)) if los else None
 
 
+def header_units(paths: Sequence[str], log=None) -> Optional[dict]:
+    """The map's length units from its LAS/LAZ/COPC headers' CRS (formats/las.py
+    ``crs_units``): ``{"xy", "z"}`` for the views' grid, measures and legend; None when a
+    file does not say (PLY, PCD, no CRS: the views take metres); empty labels when the files
+    disagree (then ``log`` says so)."""
+    import laspy
+
+    from pointflow.formats.las import crs_units
+
+    found = []
+    for p in paths:
+        if os.path.splitext(p)[1].lower() not in (".las", ".laz"):
+            return None
+        try:
+            with laspy.open(p) as f:
+                u = crs_units(f.header)
+        except Exception:  # noqa: BLE001 - a broken file is the opener's error, with its name
+            return None
+        if u is None:
+            return None
+        found.append((p, u))
+    if not found:
+        return None
+    if any(u != found[0][1] for _, u in found[1:]):
+        if log is not None:
+            log.warning("the map's files are in different units (%s): its lengths are shown without a unit",
+                        ", ".join(f"{os.path.basename(p)} {u['xy']}" for p, u in found))
+        return {"xy": "", "z": ""}
+    return found[0][1]
+
+
 Progress = Union[None, bool, Callable[[int, int], None]]
 
 

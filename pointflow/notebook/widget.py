@@ -270,7 +270,7 @@ class _Link:
             self.in_flight[head["seq"]] = time.monotonic()
             w.send({"type": "frame", "seq": head["seq"], "mime": enc.mime, "version": head.get("version"),
                     "width": head["width"], "height": head["height"], "moving": head.get("moving"),
-                    **{k: head[k] for k in ("camera", "legend", "follow") if k in head}}, [enc.data])
+                    **{k: head[k] for k in ("camera", "legend", "follow", "units") if k in head}}, [enc.data])
         elif what == "gone":
             self.in_flight.clear()  # the render stage restarted: open the view again, as it was
             self.w.views_reopened += 1

@@ -56,6 +56,7 @@ class MapLayer:
         self.files: list[str] = []
         self.map_origin: Optional[np.ndarray] = None
         self.map_box: Optional[tuple] = None  # the map's (lo, hi), world float64, once the map stage knows it
+        self.units: Optional[dict] = None  # {"xy", "z"} from the map's CRS (map/source.py header_units), or None
         self.preview = False  # the version held is a preview (the map's index is still being built)
         self.warned_apart = False  # the render stage said once that map and live points lie apart
         self.previews = 0
@@ -113,8 +114,10 @@ class MapLayer:
 
     def _bounds(self, msg: dict) -> None:
         if msg.get("type") == "bounds" and msg.get("bounds") is None:  # the map could not be opened
-            self.map_box = None
+            self.map_box = self.units = None
             return
+        if "units" in msg:
+            self.units = _units(msg["units"])
         try:
             lo, hi = (np.asarray(b, np.float64).reshape(3) for b in msg["bounds"])
         except (KeyError, TypeError, ValueError):
@@ -377,6 +380,13 @@ class MapLayer:
         self.push.close(0)
         if self.region is not None:
             self.region.close()
+
+
+def _units(u) -> Optional[dict]:
+    """The map stage's ``{"xy", "z"}`` labels, or None for anything else (a view shows metres)."""
+    if isinstance(u, dict) and all(isinstance(u.get(k), str) and len(u[k]) <= 16 for k in ("xy", "z")):
+        return {"xy": u["xy"], "z": u["z"]}
+    return None
 
 
 def occupied_ranges(head: int, size: int, capacity: int) -> list[tuple[int, int]]:

@@ -362,10 +362,11 @@ def _warn_apart(ctx, auto: CameraController, maplayer) -> None:
     maplayer.warned_apart = True
     live = (np.asarray(auto._box[0]) + np.asarray(auto._box[1])) / 2
     mp = (np.asarray(auto.map_box[0]) + np.asarray(auto.map_box[1])) / 2
-    ctx.log.warning("the map and the live points lie %.0f apart, in their coordinates' units (live around %s, "
+    unit = (maplayer.units or {}).get("xy")
+    ctx.log.warning("the map and the live points lie %.0f %s apart (live around %s, "
                     "map around %s): the view frames the map; place the sensor in the map's frame with "
                     "frames.fixed and a static transform (docs/map.md#placing-the-live-sensor)", auto.apart_m,
-                    np.round(live, 1).tolist(), np.round(mp, 1).tolist())
+                    f"{unit} (the map's CRS)" if unit else "units", np.round(live, 1).tolist(), np.round(mp, 1).tolist())
     ctx.counters.extra["map_apart_m"] = round(float(auto.apart_m), 1)
 
 

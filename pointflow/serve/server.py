@@ -761,7 +761,7 @@ class ViewServer:
             self._dropped(c)
             return
         hdr = {k: head.get(k) for k in ("seq", "width", "height", "moving", "version", "points", "frame_ms", "t_ns",
-                                       "camera", "legend", "follow")}
+                                       "camera", "legend", "follow", "units")}
         hdr.update(type="frame", mime=enc.mime, bytes=len(enc.data), encode_ms=round(enc.encode_ms, 2),
                    reduce=how.reduce, quality=0 if how.lossless else how.quality or self.sc.jpeg_quality)
         hb = json.dumps(hdr).encode()

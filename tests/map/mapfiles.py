@@ -34,11 +34,17 @@ def las_record(pos: np.ndarray, point_format: int = 3, seed: int = 0):
     return las
 
 
-def write_las(path: str, n: int, seed: int = 0, point_format: int = 3, pos: np.ndarray | None = None) -> str:
-    """LAS or LAZ (by the extension; LAZ through lazrs)."""
+def write_las(path: str, n: int, seed: int = 0, point_format: int = 3, pos: np.ndarray | None = None,
+              crs: str | None = None) -> str:
+    """LAS or LAZ (by the extension; LAZ through lazrs); ``crs`` (e.g. "EPSG:2992") written by
+    laspy: a WKT VLR in LAS 1.4, GeoTIFF keys in 1.2."""
     import laspy
 
     las = las_record(terrain(n, seed) if pos is None else pos, point_format, seed)
+    if crs is not None:
+        import pyproj
+
+        las.header.add_crs(pyproj.CRS(crs))
     las.write(path, laz_backend=laspy.LazBackend.Lazrs if path.endswith(".laz") else None)
     return path
 

@@ -249,10 +249,11 @@ def test_a_restarted_render_stage_gets_the_whole_map_again(tmp_path):
 def test_a_pick_in_a_served_view_names_map_and_live_points(tmp_path):
     """A view of the view server (a DEALER on the render stage's views endpoint) picks a map
     point, named ``map: <file>`` at the file's exact position, and a live one, named by its
-    source: the same answers as the main view's pick."""
+    source: the same answers as the main view's pick. The map's CRS is in feet (Oregon
+    Lambert, EPSG:2992): the frames say so, for the grid, measures and height legend."""
     from view.test_views import ViewClient  # tests/ is on the path (rootdir)
 
-    las = write_las(str(tmp_path / "tile.las"), N_MAP, seed=3)
+    las = write_las(str(tmp_path / "tile.las"), N_MAP, seed=3, crs="EPSG:2992")
     live, live_pts = _live(str(tmp_path))
     truth = laspy_points(las)
     with Pipeline.from_dict(_config(live, las), out_dir=str(tmp_path)) as pipe:
@@ -264,7 +265,9 @@ def test_a_pick_in_a_served_view_names_map_and_live_points(tmp_path):
             cl.send(view="m", cmd="camera", req=2, eye=list(EYE), target=list(TARGET), up=UP, fov_deg=60.0)
             r = cl.reply("m", 2)
             cl.send(view="m", cmd="credit", n=2)
-            cl.frame("m", r["version"], timeout_s=120)
+            head = cl.frame("m", r["version"], timeout_s=120)[0]
+            assert head["units"] == {"xy": "ft", "z": "ft"}, head.get("units")
+            assert head["legend"]["color_by"] == "z" and head["legend"]["unit"] == "ft", head["legend"]
             mx, my = _px(ORIGIN + [60.0, 60.0, 0.0])
             cl.send(view="m", cmd="pick", x=float(mx), y=float(my), req=3)
             p = cl.reply("m", 3)

@@ -98,6 +98,16 @@ def test_click_on_the_known_point_shows_its_coordinates(browser, pipe):
     # georeferenced values in full, to the mm (they were shown as 6.366e+5: about 50 ft)
     shown = page.evaluate("[636612.34567, -8.5e5, 1e-5, 1.5e13].map(window.pointflowView.fmtFull)")
     assert shown == ["636612.346", "-850000.000", "1.000000e-5", "1.500000000e+13"], shown
+    # lengths and the legend in the frame's units (a map in feet is labelled in feet)
+    lens = page.evaluate("[[1500, 'm'], [200, 'm'], [0.25, undefined], [200, 'ft'], [1500, 'US ft'], [3, '']]"
+                         ".map(([x, u]) => pointflowOverlay.fmtLen(x, u))")
+    assert lens == ["1.5 km", "200 m", "25 cm", "200 ft", "1500 US ft", "3"], lens
+    titles = page.evaluate("[{color_by: 'z', colormap: 'turbo', auto: true, unit: 'ft'},"
+                           " {color_by: 'z', colormap: 'turbo', auto: false},"
+                           " {color_by: 'intensity', colormap: 'viridis', auto: true, unit: ''}]"
+                           ".map(pointflowOverlay.legendTitle)")
+    assert titles == ["z (ft) · turbo · auto range", "z (m) · turbo", "intensity · viridis · auto range"], titles
+    assert page.evaluate("window.pointflowView.units()") == {"xy": "m", "z": "m"}, "live points alone: metres"
     # two clicks measure: the same point twice is a distance of 0
     page.select_option("#mode", "measure")
     c = (box["x"] + box["width"] / 2 + dx, box["y"] + box["height"] / 2 + dy)

@@ -107,7 +107,7 @@ function render({ model, el: root }) {
   let measureA = null, playbackState = null, seeking = false, pbWaiting = 0, pickAt = [0, 0];
   // marks in world coordinates (overlay.js projects them with each frame's camera) and where
   // the clicks were (drawn as they are when the frames carry no camera)
-  let wmarks = { pick: null, measure: [] }, marksPx = { pick: null, measure: [] }, frameCam = null, frameFollow = null;
+  let wmarks = { pick: null, measure: [] }, marksPx = { pick: null, measure: [] }, frameCam = null, frameFollow = null, frameUnits = null;
   const overlay = typeof pointflowOverlay !== "undefined" ? pointflowOverlay : null;
 
   const fill = (sel, names, value) => {
@@ -137,7 +137,7 @@ function render({ model, el: root }) {
       canvas.dataset.frames = String(shown);
       canvas.dataset.mime = head.mime;
       canvas.dataset.version = String(head.version);
-      frameCam = head.camera || null; frameFollow = head.follow || null;
+      frameCam = head.camera || null; frameFollow = head.follow || null; frameUnits = head.units || null;
       showBox.hidden = !(overlay && frameCam);
       drawMarks();
       if ("legend" in head) drawLegend(head.legend);
@@ -174,7 +174,7 @@ function render({ model, el: root }) {
   function drawMarks() {
     if (overlay && frameCam) {
       overlay.draw(mg, frameCam, marks.width, marks.height, { axes: show.axes, grid: show.grid, compass: show.compass,
-                                                              marks: wmarks, follow: frameFollow });
+                                                              marks: wmarks, follow: frameFollow, units: frameUnits });
       canvas.dataset.overlay = "1";
       return;
     }
@@ -207,8 +207,7 @@ function render({ model, el: root }) {
     if (key === legendKey) return;
     legendKey = key;
     legend.dataset.lo = String(lo); legend.dataset.hi = String(hi); legend.dataset.colormap = lg.colormap;
-    const unit = lg.color_by === "z" || lg.color_by === "height" ? " (m)" : "";
-    legendTitle.textContent = `${lg.color_by}${unit} · ${lg.colormap}${lg.auto ? " · auto range" : ""}`;
+    legendTitle.textContent = overlay ? overlay.legendTitle(lg) : lg.color_by;
     legendBar.getContext("2d").putImageData(new ImageData(lut, 256, 1), 0, 0);
     legendTicks.innerHTML = "";
     const put = (cls, v, frac) => {
@@ -246,7 +245,8 @@ function render({ model, el: root }) {
       const a = measureA.pos;
       const d = Math.hypot(pos[0] - a[0], pos[1] - a[1], pos[2] - a[2]);
       wmarks = { pick: null, measure: [a, pos] }; marksPx = { pick: null, measure: [measureA.at, at] };
-      text = `distance ${fmtFull(d)}\nfrom ${a.map(fmtFull).join(", ")}\nto   ${pos.map(fmtFull).join(", ")}`;
+      const u = frameUnits && frameUnits.xy != null ? frameUnits.xy : "m";
+      text = `distance ${fmtFull(d)}${u ? " " + u : ""}\nfrom ${a.map(fmtFull).join(", ")}\nto   ${pos.map(fmtFull).join(", ")}`;
       measureA = null;
       canvas.dataset.distance = String(d);
     } else if (mode.value === "measure") {

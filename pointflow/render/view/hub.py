@@ -34,7 +34,7 @@ from . import protocol
 from .controller import ViewController
 from .mainview import steer
 from .protocol import MAX_CREDIT, MAX_MESSAGE_BYTES, MAX_VIEWS, ControlError, check_keys, check_size, point_to_dict
-from .legend import camera_dict, follow_dict, legend_dict
+from .legend import camera_dict, follow_dict, legend_dict, view_units
 
 __all__ = ["ViewHub", "View"]
 
@@ -399,12 +399,13 @@ class ViewHub:
         """The colour legend of the pictures drawn from the last handoff (render/view/legend.py):
         at once after a style change, at most every LEGEND_S while only the data changes."""
         style = stage.view.state.style
-        k = (style.color_by, style.colormap, str(style.color_range))
+        units = view_units(getattr(stage, "maplayer", None))
+        k = (style.color_by, style.colormap, str(style.color_range), units["z"])
         now = time.monotonic()
         # new data alone: at most every LEGEND_S (an automatic z range reads every position)
         if self._legend_key != k or (self._legend_gen != self.data_gen and now - self._legend_t >= LEGEND_S):
             self._legend_key, self._legend_gen, self._legend_t = k, self.data_gen, now
-            self._legend_val = legend_dict(self.last_frame, style)
+            self._legend_val = legend_dict(self.last_frame, style, units)
         return self._legend_val
 
     def _legend_catch_up(self, stage) -> None:
@@ -439,7 +440,7 @@ class ViewHub:
         hdr = {"type": "frame", "view": v.id, "seq": v.seq, "width": int(w), "height": int(h), "moving": moving,
                "version": v.ctl.state.version, "points": int(self.last_frame.size), "frame_ms": round(ms, 3),
                "t_ns": time.monotonic_ns(), "camera": camera_dict(cam), "legend": self._legend(stage),
-               "follow": follow_dict(v.ctl)}
+               "follow": follow_dict(v.ctl), "units": view_units(getattr(stage, "maplayer", None))}
         self.draw_ms_ema = ms if not self.draw_ms_ema else 0.9 * self.draw_ms_ema + 0.1 * ms
         data = np.ascontiguousarray(img)  # read_image's own copy: sent without another (zmq copy=False)
         if not self._send(v.peer, hdr, data):

@@ -17,7 +17,11 @@ from ..camera import Camera
 from ..rules import color_values
 from .protocol import BUILTIN_COLOR
 
-__all__ = ["camera_dict", "legend_dict", "lut_hex", "follow_dict"]
+__all__ = ["camera_dict", "legend_dict", "lut_hex", "follow_dict", "view_units", "METRES"]
+
+#: What a view labels lengths with when nothing says otherwise: pointflow's sources are in
+#: metres (ROS REP 103); a map whose CRS says feet is labelled in feet (``view_units``).
+METRES = {"xy": "m", "z": "m"}
 
 
 def camera_dict(cam: Camera) -> dict:
@@ -38,9 +42,17 @@ def follow_dict(ctl: Any) -> Optional[dict]:
     return None if o is None else {"frame": name, "origin": [float(x) for x in o]}
 
 
-def legend_dict(frame: Optional[FrameInput], style: Any) -> Optional[dict]:
-    """``{"color_by", "colormap", "range": [lo, hi], "auto"}`` for a colouring through a
-    colormap, in world units (``z`` in metres, not origin-relative), the range by the same
+def view_units(maplayer: Any) -> dict:
+    """The length units a view labels its grid, measures and height legend with: the map's,
+    from its CRS (render/maplayer.py ``units``), else metres. An empty label: unknown."""
+    u = getattr(maplayer, "units", None)
+    return dict(u) if u else dict(METRES)
+
+
+def legend_dict(frame: Optional[FrameInput], style: Any, units: Optional[dict] = None) -> Optional[dict]:
+    """``{"color_by", "colormap", "range": [lo, hi], "auto", "unit"}`` for a colouring through a
+    colormap, in world units (``z`` in ``units["z"]``, metres by default, not origin-relative;
+    ``unit`` is that label for ``z``/``height`` and "" for other channels), the range by the same
     rule every tier follows (render/rules.py ``color_values``: fixed, the handoff's
     ``channel_ranges``, else the finite min/max of the points held); None for a single
     colour or a channel the ring does not hold."""
@@ -57,7 +69,8 @@ def legend_dict(frame: Optional[FrameInput], style: Any) -> Optional[dict]:
         if cv is None:
             return None
         lo, hi = float(cv[1][0]) + shift, float(cv[1][1]) + shift
-    return {"color_by": cb, "colormap": style.colormap, "auto": style.color_range == "auto",
+    unit = (units or METRES)["z"] if cb in ("z", "height") else ""
+    return {"color_by": cb, "colormap": style.colormap, "auto": style.color_range == "auto", "unit": unit,
             "range": [lo if np.isfinite(lo) else None, hi if np.isfinite(hi) else None]}
 
 

@@ -17,7 +17,7 @@
   const show = { axes: true, grid: true, compass: true, legend: true };
   let overlayLayout = null;
   window.pointflowView = { frames: () => shown, state: () => lastState, lastPick: null, playback: () => playbackState,
-                           camera: () => frame.camera || null, legend: () => frame.legend || null,
+                           camera: () => frame.camera || null, legend: () => frame.legend || null, units: () => frame.units || null,
                            overlay: () => overlayLayout, marks: () => marks, ended: () => ended };
 
   function send(msg) { if (ws && ws.readyState === 1) ws.send(JSON.stringify(msg)); }
@@ -81,7 +81,7 @@
   function drawOverlay() {
     if (over.width !== canvas.width || over.height !== canvas.height) { over.width = canvas.width; over.height = canvas.height; }
     overlayLayout = pointflowOverlay.draw(og, frame.camera, over.width, over.height,
-      { axes: show.axes, grid: show.grid, compass: show.compass, marks, follow: frame.follow });
+      { axes: show.axes, grid: show.grid, compass: show.compass, marks, follow: frame.follow, units: frame.units });
     over.dataset.drawn = String(shown);
   }
 
@@ -99,7 +99,7 @@
     if (key === legendKey) return;
     legendKey = key;
     el.dataset.lo = String(lo); el.dataset.hi = String(hi); el.dataset.colormap = lg.colormap;
-    $("legend_title").textContent = `${lg.color_by}${lg.color_by === "z" || lg.color_by === "height" ? " (m)" : ""} · ${lg.colormap}${lg.auto ? " · auto range" : ""}`;
+    $("legend_title").textContent = pointflowOverlay.legendTitle(lg);
     const bar = $("legend_bar"), bg = bar.getContext("2d");
     bg.putImageData(new ImageData(lut, 256, 1), 0, 0);
     const ticks = $("legend_ticks");
@@ -163,7 +163,8 @@
       if (!measureA) { measureA = pos; marks.measure = [pos]; text = "measure: first point\n" + text + "\n(click the second)"; }
       else {
         const d = Math.hypot(pos[0] - measureA[0], pos[1] - measureA[1], pos[2] - measureA[2]);
-        text = `distance ${fmtFull(d)}\nfrom ${measureA.map(fmtFull).join(", ")}\nto   ${pos.map(fmtFull).join(", ")}`;
+        const u = frame.units && frame.units.xy != null ? frame.units.xy : "m";
+        text = `distance ${fmtFull(d)}${u ? " " + u : ""}\nfrom ${measureA.map(fmtFull).join(", ")}\nto   ${pos.map(fmtFull).join(", ")}`;
         marks.measure = [measureA, pos];
         measureA = null;
         canvas.dataset.distance = String(d);

@@ -4,10 +4,13 @@
 // dependencies; loaded by the page (view.js) and loadable by the notebook widget.
 //   pointflowOverlay.project(cam, w, h, p) -> [x, y, depth] in canvas pixels, or null behind the eye
 //   pointflowOverlay.draw(g, cam, w, h, opts) draws; opts: {axes, grid, compass, marks: {pick, measure},
-//     follow: {frame, origin}} (the followed frame's axes, at half length, named)
+//     follow: {frame, origin}, units: {xy, z}} (the followed frame's axes, at half length, named;
+//     units: the frame header's, the map's CRS or metres, for the grid and measure labels)
 //   pointflowOverlay.niceStep(x) -> 1, 2 or 5 x 10^k nearest at or above x
 //   pointflowOverlay.layout(cam) -> {spacing, axisLength} (what draw uses)
 //   pointflowOverlay.fmtFull(v) -> a picked value as shown (3 decimals up to 1e12)
+//   pointflowOverlay.fmtLen(x, unit) -> "200 m", "1.5 km", "200 ft" (unit "": none said)
+//   pointflowOverlay.legendTitle(legend) -> "z (ft) · turbo · auto range"
 // Why an overlay and not pixels in the frame: crisp at any resolution and device pixel ratio,
 // switched on and off without a new frame, and the same on every render tier.
 "use strict";
@@ -57,8 +60,11 @@ var pointflowOverlay = (function () {
     return Math.abs(v) < 1e12 ? v.toFixed(3) : v.toExponential(9);
   }
 
-  function fmtLen(x) {
+  // a length in the view's unit (the frame's ``units.xy``: the map's CRS, else metres);
+  // metres step to km / cm / mm, another unit is written as it is, "" means unknown
+  function fmtLen(x, unit) {
     const a = Math.abs(x);
+    if (unit != null && unit !== "m") return (+x.toPrecision(4)).toString() + (unit ? " " + unit : "");
     if (a >= 1000) return (x / 1000).toPrecision(3).replace(/\.?0+$/, "") + " km";
     if (a >= 1 || a === 0) return (+x.toPrecision(4)).toString() + " m";
     if (a >= 0.01) return (+(x * 100).toPrecision(3)).toString() + " cm";
@@ -136,7 +142,7 @@ var pointflowOverlay = (function () {
     g.restore();
   }
 
-  function drawMarks(g, P, marks, scale) {
+  function drawMarks(g, P, marks, scale, unit) {
     if (!marks) return;
     const ring = (p, color) => {
       const q = P.project(p);
@@ -157,7 +163,7 @@ var pointflowOverlay = (function () {
         g.strokeStyle = "#ffd23f"; g.lineWidth = 2.5 * scale;
         g.beginPath(); g.moveTo(s[0][0], s[0][1]); g.lineTo(s[1][0], s[1][1]); g.stroke();
         const d = Math.hypot(...sub(m[1], m[0]));
-        label(g, fmtLen(d), (s[0][0] + s[1][0]) / 2 + 8 * scale, (s[0][1] + s[1][1]) / 2 - 8 * scale, "#ffd23f", scale * 1.1);
+        label(g, fmtLen(d, unit), (s[0][0] + s[1][0]) / 2 + 8 * scale, (s[0][1] + s[1][1]) / 2 - 8 * scale, "#ffd23f", scale * 1.1);
       }
     }
     for (const p of m) ring(p, "#ffd23f");
@@ -167,15 +173,16 @@ var pointflowOverlay = (function () {
     g.clearRect(0, 0, w, h);
     if (!cam || !cam.eye || !cam.target) return null;
     const P = projector(cam, w, h), L = layout(cam), scale = Math.max(1, Math.min(w, h) / 500);
+    const unit = opts.units ? opts.units.xy : undefined;
     if (opts.grid) {
       drawGrid(g, P, cam, L, scale);
-      label(g, `grid ${fmtLen(L.spacing)}`, (opts.compass ? 90 : 10) * scale, h - 12 * scale, "#ccc", scale);
+      label(g, `grid ${fmtLen(L.spacing, unit)}`, (opts.compass ? 90 : 10) * scale, h - 12 * scale, "#ccc", scale);
     }
     if (opts.axes) {
       drawAxes(g, P, L, scale);
       if (opts.follow && opts.follow.origin) drawAxes(g, P, { axisLength: L.axisLength / 2 }, scale, opts.follow.origin, opts.follow.frame);
     }
-    drawMarks(g, P, opts.marks, scale);
+    drawMarks(g, P, opts.marks, scale, unit);
     if (opts.compass) drawCompass(g, P, w, h, scale);
     return L;
   }
@@ -192,6 +199,13 @@ var pointflowOverlay = (function () {
     return out;
   }
 
-  return { project, draw, niceStep, layout, fmtLen, fmtFull, decodeLut };
+  // the colour legend's title: the channel, its unit for heights (the frame's legend.unit)
+  function legendTitle(lg) {
+    const z = lg.color_by === "z" || lg.color_by === "height";
+    const unit = lg.unit != null ? lg.unit : (z ? "m" : "");
+    return `${lg.color_by}${unit ? ` (${unit})` : ""} · ${lg.colormap}${lg.auto ? " · auto range" : ""}`;
+  }
+
+  return { project, draw, niceStep, layout, fmtLen, fmtFull, decodeLut, legendTitle };
 })();
 if (typeof module !== "undefined") module.exports = pointflowOverlay;
