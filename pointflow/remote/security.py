@@ -63,8 +63,11 @@ class LinkSecurity:
     :meth:`close` at the end."""
 
     def __init__(self, ctx: zmq.Context, opts: LinkOptions, bind: bool, log: logging.Logger,
-                 reconnect_initial_s: float = 0.1, reconnect_max_s: float = 5.0):
+                 reconnect_initial_s: float = 0.1, reconnect_max_s: float = 5.0, fatal_refusal: bool = False):
+        """``fatal_refusal``: the caller raises :attr:`refusal` as its error (the zmq source),
+        so it is not also logged here (an error is said once)."""
         self.ctx = ctx
+        self.fatal_refusal = fatal_refusal
         self.o = opts
         self.bind = bind
         self.log = log
@@ -160,7 +163,8 @@ class LinkSecurity:
                                     "public key (the NAME.key of curve_secret_key %s); ZeroMQ does not retry a "
                                     "refused handshake: add the key there, then restart this end") % (
                         where, ev.get("value"), c["refused_handshakes"], self.o.curve_secret_key)
-                    self._warn_every("auth", "%s", self.refusal)
+                    if not self.fatal_refusal:
+                        self._warn_every("auth", "%s", self.refusal)
                 else:
                     self._warn_every(f"cli{e}", "CURVE handshake with the server at %s failed (code %s; %d so far): "
                                      "is curve_server_key (%s) the binding end's public key? ZeroMQ retries",

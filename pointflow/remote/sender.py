@@ -309,5 +309,10 @@ def send_summary(stats: dict) -> str:
     bpp = f"{b / pout:.2f} B/point" if pout else "-"
     peers = (f"zenoh publishers {st['link_publishers']}" if "link_publishers" in st else
              f"peers {st.get('link_peers', 0)}, refused {st.get('link_refused_handshakes', 0)}")
+    if "link_publishers" not in st and pout and not st.get("link_handshakes", 0):
+        # no receiver ever joined (none connected, or every one refused): ZeroMQ took the
+        # points and dropped them, so "sent" and "on the link" would say what did not happen
+        return (f"no receiver joined the link: {pout:,} of {pin:,} points ({b / 1e6:.1f} MB) were handed to "
+                f"ZeroMQ and reached nobody ({drops:,} dropped before), {peers}, {stats.get('elapsed_s', 0):.1f} s")
     return (f"sent {pout:,} of {pin:,} points ({drops:,} dropped), {b / 1e6:.1f} MB on the link ({bpp}), "
             f"{peers}, {stats.get('elapsed_s', 0):.1f} s")

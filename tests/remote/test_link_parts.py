@@ -412,3 +412,18 @@ def test_a_sender_that_stopped_says_what_came_before_this_source_joined(socket, 
     assert "sent 100, received 100, lost in transit 0 point(s); 500 point(s) sent before this source joined" in late
     assert ("send.wait_subscribers" in late) == (socket == "sub"), late
     assert "joined" not in line(0)
+
+
+def test_a_sender_nobody_joined_does_not_say_it_sent(tmp_path):
+    """`pointflow send` with no receiver: ZeroMQ took every point and delivered none, so the
+    summary says so (it said "sent N ... MB on the link")."""
+    port = _free_port()
+    cfg = tmp_path / "s.yaml"
+    cfg.write_text("source: {transport: synthetic, name: lidar, options: {scan_hz: 10, points_per_scan: 2000}}\n"
+                   f"send: {{endpoint: 'tcp://127.0.0.1:{port}', socket: pub, bind: true}}\n")
+    proc = subprocess.run([sys.executable, "-m", "pointflow.cli", "send", str(cfg), "--duration", "2", "-q"],
+                          cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    out = proc.stdout + proc.stderr
+    assert "no receiver joined the link: " in out and "reached nobody" in out, out[-2000:]
+    assert "MB on the link" not in out, out[-2000:]

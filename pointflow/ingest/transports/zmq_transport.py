@@ -10,7 +10,9 @@ The receiving end of a link from ``pointflow send`` (docs/remote.md): CURVE keys
 heartbeats (:class:`pointflow.remote.options.LinkOptions`), compressed or quantised
 chunks (decoded by :mod:`pointflow.wire`) and ``lost_in_transit`` per source from the
 ``link`` header (:mod:`pointflow.remote.transit`). A ``tcp://`` endpoint on a
-non-loopback address without CURVE is refused at load unless ``insecure: true``.
+non-loopback address without CURVE is refused at load unless ``insecure: true``. A
+connecting end whose key the sender refuses fails the run (exit 2) with the refusal's
+reason: ZeroMQ does not retry a refused handshake.
 """
 from __future__ import annotations
 
@@ -28,7 +30,7 @@ from ...remote.transit import TransitLedger
 from ...typed import ConfigError
 from ..jsonchunk import parse_json_chunk
 from ._backoff import NetworkOptions
-from .base import Transport
+from .base import InputUnreadable, Transport
 
 log = logging.getLogger("pointflow.transport.zmq")
 
@@ -74,17 +76,22 @@ class ZmqTransport(Transport):
         self._sock.setsockopt(zmq.LINGER, 0)
         if o.socket == "sub":
             self._sock.setsockopt(zmq.SUBSCRIBE, o.topic.encode())
-        self._link = LinkSecurity(self._ctx, o, o.bind, log, o.reconnect_initial_s, o.reconnect_max_s)
+        self._link = LinkSecurity(self._ctx, o, o.bind, log, o.reconnect_initial_s, o.reconnect_max_s,
+                                  fatal_refusal=True)
         self._link.apply(self._sock)
         try:
             (self._sock.bind if o.bind else self._sock.connect)(o.endpoint)
         except zmq.ZMQError as exc:
             raise RuntimeError(f"zmq transport: cannot {'bind' if o.bind else 'connect'} {o.endpoint}: {exc}") from None
 
-    def _poll_monitor(self) -> None:
+    def _poll_monitor(self, closing: bool = False) -> None:
         if self._link is not None:
             self._link.poll()
             self.counters.update(self._link.counters)
+            if self._link.refusal and not self.o.bind and not closing:
+                # the sender's ZAP said no to this end's key: ZeroMQ does not connect again, so
+                # nothing can arrive; the run fails, saying why (it used to run on, empty, and exit 0)
+                raise InputUnreadable(f"source {self.source_id!r}: {self._link.refusal}")
 
     def parse(self, frames: list) -> PointChunk:
         if self.o.topic_frame:
@@ -135,7 +142,7 @@ class ZmqTransport(Transport):
 
     def close(self) -> None:
         if self._link is not None:
-            self._poll_monitor()
+            self._poll_monitor(closing=True)
             self._link.close()
             self._link = None
         if self._sock is not None:
