@@ -33,7 +33,11 @@ def test_the_auto_range_is_the_tiers(cb, size):
     lg = legend_dict(f, SimpleNamespace(color_by=cb, color_range="auto", colormap="viridis"))
     _, (lo, hi) = color_values(f, SimpleNamespace(color_by=cb, color_range="auto"), np.empty(0, np.int64))
     shift = 300.0 if cb == "z" else 0.0
-    assert lg == {"color_by": cb, "colormap": "viridis", "auto": True, "range": [lo + shift, hi + shift]}
+    assert lg == {"color_by": cb, "colormap": "viridis", "auto": True, "range": [lo + shift, hi + shift],
+                  "unit": "m" if cb == "z" else ""}
+    if cb == "z":  # a map in feet (its CRS): the legend says so
+        ft = legend_dict(f, SimpleNamespace(color_by=cb, color_range="auto", colormap="viridis"), {"xy": "ft", "z": "ft"})
+        assert ft["unit"] == "ft" and ft["range"] == lg["range"]
 
 
 def test_fixed_range_handoff_range_and_no_legend():
