@@ -169,8 +169,9 @@ def _rerun_available() -> bool:
         return True
 
 
-def measure(trees: dict[str, Optional[Path]], rounds: int, with_rerun: bool, six: bool) -> dict[str, Any]:
-    cloud = _CLOUD.format(n=N_SHOW)
+def measure(trees: dict[str, Optional[Path]], rounds: int, with_rerun: bool, six: bool,
+            n_show: int = N_SHOW, only: Optional[set[str]] = None) -> dict[str, Any]:
+    cloud = _CLOUD.format(n=n_show)
     tmp = Path(tempfile.mkdtemp(prefix="pf-startup-png-"))
     runners: dict[str, Any] = {}
     for side, root in trees.items():
@@ -184,6 +185,8 @@ def measure(trees: dict[str, Optional[Path]], rounds: int, with_rerun: bool, six
     runners["matplotlib"] = lambda: _py(MATPLOTLIB.format(cloud=cloud), None, str(tmp / "mpl.png"))
     if with_rerun:
         runners["rerun"] = lambda: _py(RERUN.format(cloud=cloud), None, str(tmp / "rr.rrd"))
+    if only:
+        runners = {k: fn for k, fn in runners.items() if k.split(":")[0] in only}
     print("warm-up round (caches filled)", flush=True)
     warm = {k: fn() for k, fn in runners.items()}
 
@@ -258,6 +261,8 @@ def main() -> None:
     ap.add_argument("--base", default=None, help="also measure this git revision (before/after in one run)")
     ap.add_argument("--no-rerun", action="store_true", help="skip the rerun-sdk baseline")
     ap.add_argument("--no-six", action="store_true", help="skip the 6-stage start (demo + record + serve)")
+    ap.add_argument("--show-points", type=int, default=N_SHOW, help="points of the show / api / matplotlib cloud")
+    ap.add_argument("--only", default="", help="comma-separated: show, api, demo, start, start6, matplotlib, rerun")
     ap.add_argument("--out", default=str(H.RESULTS / "startup.json"))
     a = ap.parse_args()
     mach = H.machine()
@@ -266,10 +271,11 @@ def main() -> None:
         trees: dict[str, Optional[Path]] = {"head": None}
         if a.base:
             trees["base"] = stack.enter_context(H.revision_tree(a.base))
-        res = measure(trees, a.rounds, with_rerun, not a.no_six)
+        res = measure(trees, a.rounds, with_rerun, not a.no_six, a.show_points,
+                      {x.strip() for x in a.only.split(",") if x.strip()} or None)
     H.machine_done(mach)
     summary = summarise(res["samples"])
-    out = {"command": H.command(), "machine": mach, "base": a.base, "rounds": a.rounds, "n_show": N_SHOW,
+    out = {"command": H.command(), "machine": mach, "base": a.base, "rounds": a.rounds, "n_show": a.show_points,
            "rerun": with_rerun, "summary": summary, **res}
     H.write_result(a.out, out)
     chart(summary, mach, Path(a.out).with_suffix(".png"))

@@ -195,17 +195,39 @@ def _frame_of(clouds: list[tuple[np.ndarray, dict]], cfg):
                       channel_ranges=ranges, dirty=None)
 
 
-def _draw_png(clouds: list[tuple[np.ndarray, dict]], cfg, path: Optional[str]) -> str:
-    """One frame of every point, drawn here by the cpu tier's reference (bit-exact, no device,
-    nothing to compile), framed by the render stage's auto camera; written to ``path``."""
+#: From this many points a PNG is drawn by the compiled raster when its loops are cached
+#: (``pointflow warm``, or any run before): loading them costs about a second, the float64
+#: reference about 1 s per million points.
+COMPILED_FROM = 1_000_000
+
+
+def _renderer_for(cfg, frame):
+    """The cpu tier's compiled raster for a big cloud whose loops need no compiling, else its
+    float64 reference (bit-exact, nothing to compile)."""
     from .render.cpu import CpuRenderer
+
+    if frame.capacity >= COMPILED_FROM:
+        from . import jitcache
+        from .render import cpu_kernels
+
+        if cpu_kernels.disabled() is None and cpu_kernels.cache_state() == jitcache.READY:
+            from .render.cpu_compute import CpuComputeRenderer
+
+            return CpuComputeRenderer(cfg.render, frame.capacity, list(frame.channels))
+    return CpuRenderer(cfg.render, frame.capacity, list(frame.channels))
+
+
+def _draw_png(clouds: list[tuple[np.ndarray, dict]], cfg, path: Optional[str]) -> str:
+    """One frame of every point, drawn here by the cpu tier (``_renderer_for``: no device,
+    nothing compiled while you wait), framed by the render stage's auto camera; written to
+    ``path``."""
     from .render.view.controller import CameraController
 
     out = _png_path(path)  # a bad path refused before drawing
     frame = _frame_of(clouds, cfg)
     w, h = cfg.render.size
     camera = CameraController(cfg, w, h).update(frame)
-    renderer = CpuRenderer(cfg.render, frame.capacity, list(frame.channels))
+    renderer = _renderer_for(cfg, frame)
     try:
         if camera is not None:  # None: not one finite point, the background alone
             renderer.render(frame, camera)

@@ -218,3 +218,31 @@ def test_what_show_is_given_is_said_plainly(tmp_path, monkeypatch, capsys):
     got = qs.show(xyz, path=str(tmp_path / "w.png"), size=(64, 48), view="window", timeout_s=600)
     assert got == str(tmp_path / "w.png") and (tmp_path / "w.png").exists()
     assert "no window here: no display (DISPLAY and WAYLAND_DISPLAY unset); writing a PNG instead" in capsys.readouterr().err
+
+
+def test_a_big_cloud_is_drawn_by_the_compiled_raster_when_cached(tmp_path, monkeypatch):
+    """From COMPILED_FROM points (lowered here) a PNG show draws with the compiled raster
+    whose loops are cached (make warms them), and its picture agrees with the reference's;
+    with the loops not cached it keeps the reference (nothing is compiled while you wait)."""
+    from pointflow import jitcache
+    from pointflow.render import cpu_kernels
+    from pointflow.render.cpu import CpuRenderer
+    from pointflow.render.cpu_compute import CpuComputeRenderer
+
+    assert cpu_kernels.cache_state() == jitcache.READY, "make test warms the compiled loops first"
+    used = []
+    real = qs._renderer_for
+    monkeypatch.setattr(qs, "_renderer_for", lambda cfg, frame: used.append(real(cfg, frame)) or used[-1])
+    xyz = np.random.default_rng(7).normal(size=(20_000, 3)) * [3, 2, 1] + [6.4e5, 8.5e5, 120]
+    pics = {}
+    for name, threshold in (("reference", 10 ** 9), ("compiled", 10_000)):
+        monkeypatch.setattr(qs, "COMPILED_FROM", threshold)
+        qs.show(xyz, path=str(tmp_path / f"{name}.png"), size=(160, 120), view="png", intensity=np.abs(xyz[:, 2] - 120))
+        pics[name] = np.asarray(Image.open(tmp_path / f"{name}.png").convert("RGB"), dtype=int)
+    assert [type(r) for r in used] == [CpuRenderer, CpuComputeRenderer]
+    a, b = pics["reference"], pics["compiled"]
+    assert (np.abs(a - a[0, 0]).sum(axis=2) > 30).sum() > 500  # the cloud is drawn
+    assert (np.abs(a - b).max(axis=2) > 0).mean() < 0.01, "within the tiers' agreement bound (1% of pixels)"
+    monkeypatch.setattr(cpu_kernels, "cache_state", lambda: jitcache.MISSING)
+    qs.show(xyz, path=str(tmp_path / "cold.png"), size=(160, 120), view="png")
+    assert type(used[-1]) is CpuRenderer, "loops not cached: the reference, nothing compiled"
