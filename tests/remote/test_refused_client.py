@@ -19,6 +19,19 @@ from pointflow.remote.security import LinkSecurity
 from pointflow.testing import free_port as _free_port
 
 
+def _curve_pub(srv_sec, authorized):
+    """A PUB bound on loopback, the CURVE server side as `pointflow send` sets it up."""
+    port = _free_port()
+    ctx = zmq.Context()
+    pub = ctx.socket(zmq.PUB)
+    pub.setsockopt(zmq.LINGER, 0)
+    server = LinkSecurity(ctx, SendConfig(curve_secret_key=str(srv_sec), curve_authorized_keys=str(authorized)),
+                          True, logging.getLogger("test.sender"))
+    server.apply(pub)
+    pub.bind(f"tcp://127.0.0.1:{port}")
+    return port, ctx, pub, server
+
+
 @pytest.mark.parametrize("case", ["key-not-authorized", "wrong-server-key"])
 def test_a_refused_viewer_logs_the_refusal_and_counts_it(tmp_path, caplog, case):
     srv_pub, srv_sec = create_keypair("sender", tmp_path / "s")
@@ -27,14 +40,7 @@ def test_a_refused_viewer_logs_the_refusal_and_counts_it(tmp_path, caplog, case)
     (tmp_path / "viewers").mkdir()
     if case == "wrong-server-key":  # authorised, but holding another server's public key
         (tmp_path / "viewers" / "viewer.key").write_text(cli_pub.read_text())
-    port = _free_port()
-    ctx = zmq.Context()
-    pub = ctx.socket(zmq.PUB)
-    pub.setsockopt(zmq.LINGER, 0)
-    server = LinkSecurity(ctx, SendConfig(curve_secret_key=str(srv_sec), curve_authorized_keys=str(tmp_path / "viewers")),
-                          True, logging.getLogger("test.sender"))
-    server.apply(pub)
-    pub.bind(f"tcp://127.0.0.1:{port}")
+    port, ctx, pub, server = _curve_pub(srv_sec, tmp_path / "viewers")
     viewer = ZmqTransport(ZmqTransport.validate_options(
         {"endpoint": f"tcp://127.0.0.1:{port}", "socket": "sub", "curve_secret_key": str(cli_sec),
          "curve_server_key": str(other_pub if case == "wrong-server-key" else srv_pub)}, "sources[0].options"), "robot")
@@ -93,14 +99,7 @@ def test_a_refused_viewers_run_fails_naming_the_key(tmp_path):
     srv_pub, srv_sec = create_keypair("sender", tmp_path / "s")
     cli_pub, cli_sec = create_keypair("viewer", tmp_path / "v")
     (tmp_path / "viewers").mkdir()  # the viewer's key is not in it
-    port = _free_port()
-    ctx = zmq.Context()
-    pub = ctx.socket(zmq.PUB)
-    pub.setsockopt(zmq.LINGER, 0)
-    server = LinkSecurity(ctx, SendConfig(curve_secret_key=str(srv_sec), curve_authorized_keys=str(tmp_path / "viewers")),
-                          True, logging.getLogger("test.sender"))
-    server.apply(pub)
-    pub.bind(f"tcp://127.0.0.1:{port}")
+    port, ctx, pub, server = _curve_pub(srv_sec, tmp_path / "viewers")
     cfg = tmp_path / "viewer.yaml"
     cfg.write_text(f"source: {{name: robot, transport: zmq, options: {{endpoint: 'tcp://127.0.0.1:{port}', "
                    f"curve_secret_key: '{cli_sec}', curve_server_key: '{srv_pub}'}}}}\n"
