@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["column_max", "column_min", "finite_rows"]
+__all__ = ["column_max", "column_min", "finite_rows", "rgb_u8"]
 
 
 def finite_rows(p: np.ndarray) -> np.ndarray:
@@ -34,3 +34,12 @@ def column_max(p: np.ndarray) -> np.ndarray:
     """``p.max(axis=0)`` of an (n, k) array with n >= 1 (NaN in a column gives NaN)."""
     p = np.asarray(p)
     return np.array([p[:, i].max() for i in range(p.shape[1])], dtype=p.dtype.newbyteorder("="))
+
+
+def rgb_u8(arr: np.ndarray) -> np.ndarray:
+    """Integer colour as the ring stores it (8 bits): 16-bit colour (LAS) scaled down, unless
+    its values only use the 8-bit range (many LAS writers, the Autzen tile among them, store
+    0..255 in the 16-bit fields; shifting those would draw them black)."""
+    if arr.size and int(arr.max()) > 255:
+        return (np.clip(arr, 0, 65535).astype(np.uint32) >> 8).astype(np.uint8)
+    return np.clip(arr, 0, 255).astype(np.uint8)

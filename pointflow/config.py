@@ -188,9 +188,11 @@ def _check_color_by(cfg: PipelineConfig) -> None:
     """A ``color_by`` channel that no source has is refused when every source declares its
     channels (synthetic, file; ``Transport.declared_channels``); otherwise ingest names a
     source whose points lack it, once, and they are drawn in ``render.color``. The default,
-    ``intensity``, is never refused: an xyz-only file is drawn in ``render.color``."""
+    ``intensity``, is never refused: an xyz-only file is drawn in ``render.color``. With a
+    ``map:`` block the map's channels count too: they are known once it opens."""
     cb = cfg.render.color_by
-    if not cb or cb in COLOR_BY_BUILTIN or cb == RenderConfig.color_by or not cfg.sources:
+    if not cb or cb in COLOR_BY_BUILTIN or cb == RenderConfig.color_by or not cfg.sources \
+            or getattr(cfg, "map", None) is not None:
         return
     have: set[str] = set()
     for s in cfg.sources:

@@ -37,6 +37,7 @@ import numpy as np
 import zmq
 
 from .. import wire
+from ..arrays import rgb_u8
 from ..chunk import ChunkError, PointChunk
 from ..frames import message as transforms
 from ..frames.kernels import Placed
@@ -444,10 +445,7 @@ def _to_dtype(name: str, arr: np.ndarray, dt: np.dtype) -> np.ndarray:
                 a = a * 255.0
             return np.clip(np.rint(a), 0, 255).astype(np.uint8)
         if arr.dtype.itemsize > 1 or arr.dtype.kind == "i":
-            # 16-bit colour (LAS): scale down, unless the values only use the 8-bit range
-            if arr.size and int(arr.max()) > 255:
-                return (np.clip(arr, 0, 65535).astype(np.uint32) >> 8).astype(np.uint8)
-            return np.clip(arr, 0, 255).astype(np.uint8)
+            return rgb_u8(arr)  # 16-bit colour (LAS): scaled down, unless it uses the 8-bit range
     return arr.astype(dt)
 
 

@@ -14,6 +14,7 @@ from typing import Optional
 import numpy as np
 import zmq
 
+from ..arrays import rgb_u8
 from ..render import mapregion as mr
 
 
@@ -72,7 +73,7 @@ class Preview:
                     continue
                 v = np.asarray(v)
                 if name == "rgb" and v.dtype.itemsize > 1:  # 16-bit LAS colour, as the ring takes it
-                    v = np.right_shift(v.astype(np.uint16, copy=False), 8)
+                    v = rgb_u8(v)  # (0..255 kept: many LAS files use only that range)
                 arr[a:b] = v.reshape(arr[a:b].shape).astype(arr.dtype, copy=False)
                 if arr.ndim == 1 and b > a:
                     fv = np.asarray(arr[a:b], np.float64)

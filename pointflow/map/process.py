@@ -20,6 +20,7 @@ import numpy as np
 import zmq
 
 from ..stage.kinds import StageKind, register_stage_kind
+from ..arrays import rgb_u8
 from ..render import mapregion as mr
 from .config import MapConfig
 
@@ -353,7 +354,7 @@ class Server:
                 continue
             v = np.asarray(v) if take is None else np.asarray(v)[take]
             if name == "rgb" and v.dtype.itemsize > 1:  # 16-bit LAS colour, as the ring takes it
-                v = np.right_shift(v.astype(np.uint16, copy=False), 8)
+                v = rgb_u8(v)  # (0..255 kept: many LAS files use only that range)
             arr[slots] = v.reshape(arr[slots].shape).astype(arr.dtype, copy=False)
             if arr.ndim == 1 and n:
                 fv = np.asarray(arr[slots], np.float64)

@@ -286,3 +286,28 @@ def test_a_pick_in_a_served_view_names_map_and_live_points(tmp_path):
             assert st["points"] == len(live_pts) + N_MAP, st
         finally:
             cl.close()
+
+
+@pytest.mark.parametrize("scale", [1, 257])
+def test_map_colour_in_the_8_bit_range_of_16_bit_fields_is_drawn(tmp_path, scale):
+    """Many LAS writers (the Autzen tile among them) store 0..255 in the 16-bit colour fields:
+    the map draws them as they are, as the file source does (the map shifted them to black);
+    colour using the 16-bit range is scaled down."""
+    import laspy
+
+    las_path = str(tmp_path / "rgb.las")
+    las = laspy.read(write_las(las_path, N_MAP, seed=4))
+    las.red, las.green, las.blue = (np.full(N_MAP, v * scale) for v in (200, 100, 50))
+    las.write(las_path)
+    live, _ = _live(str(tmp_path))
+    cfg = _config(live, las_path)
+    cfg["render"]["color_by"] = "rgb"
+    with Pipeline.from_dict(cfg, out_dir=str(tmp_path)) as pipe:
+        render = lambda: pipe.stats()["stages"]["render"]  # noqa: E731
+        pipe.wait(120, until=lambda: render().get("map_points", 0) >= N_MAP and render()["points_in"] > 0)
+        pipe.camera(eye=list(EYE), target=list(TARGET), up=UP, fov_deg=60.0)
+        img = np.asarray(Image.open(pipe.save_frame(str(tmp_path / "rgb.png"))))[..., :3].astype(int)
+    mx, my = _px(ORIGIN + [60.0, 60.0, 0.0])
+    patch = img[my - 3:my + 4, mx - 3:mx + 4].reshape(-1, 3)
+    drawn = patch[(patch != BG).any(axis=1)]
+    assert len(drawn) and (np.abs(drawn - [200, 100, 50]) <= 1).all(), drawn[:5]
