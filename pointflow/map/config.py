@@ -96,4 +96,14 @@ def not_a_point_file(path: str) -> Optional[str]:
         kind = "LAS/LAZ" if ext != ".ply" else "PLY"
         return (f"not a {kind} file (it is empty): {path}" if not head else
                 f"not a {kind} file (it does not start with {_MAGIC[ext][0]!r}): {path}")
+    elif ext in (".las", ".laz"):  # the header's counts and sizes against the file, before laspy trusts them
+        from ..formats.base import FormatError
+        from ..formats.las import precheck_las
+
+        try:
+            precheck_las(path)
+        except FormatError as exc:
+            return f"{exc.message}: {path}"
+        except OSError as exc:
+            return f"cannot read {path}: {exc.strerror or exc}"
     return None

@@ -95,21 +95,34 @@ class MapSource:
         self.close()
 
 
+def _las_header(path: str):
+    """A LAS/LAZ/COPC file's header, checked against the file first (a garbage header makes
+    laspy loop for minutes: formats/las.py ``precheck_las``); None for another format or a
+    header that does not read (the map stage names that file when it opens it)."""
+    import laspy
+
+    from pointflow.formats.las import precheck_las
+
+    if os.path.splitext(path)[1].lower() not in (".las", ".laz"):
+        return None
+    try:
+        precheck_las(path)
+        with laspy.open(path) as f:
+            return f.header
+    except Exception:  # noqa: BLE001 - a broken file is the opener's error, with its name
+        return None
+
+
 def header_bounds(paths: Sequence[str]) -> Optional[tuple[np.ndarray, np.ndarray]]:
     """The files' bounds from their LAS/LAZ/COPC headers, read at once (before any index is
     built), so a view can frame the map from the start; None when a file's header has none
     (PLY, PCD) or does not read (the map stage names that file when it opens it)."""
-    import laspy
-
     los, his = [], []
     for p in paths:
-        if os.path.splitext(p)[1].lower() not in (".las", ".laz"):
+        h = _las_header(p)
+        if h is None:
             return None
-        try:
-            with laspy.open(p) as f:
-                lo, hi = np.asarray(f.header.mins, np.float64), np.asarray(f.header.maxs, np.float64)
-        except Exception:  # noqa: BLE001 - a broken file is the opener's error, with its name
-            return None
+        lo, hi = np.asarray(h.mins, np.float64), np.asarray(h.maxs, np.float64)
         if not (np.isfinite(lo).all() and np.isfinite(hi).all() and (hi >= lo).all()):
             return None
         los.append(lo)
@@ -122,19 +135,14 @@ def header_units(paths: Sequence[str], log=None) -> Optional[dict]:
     ``crs_units``): ``{"xy", "z"}`` for the views' grid, measures and legend; None when a
     file does not say (PLY, PCD, no CRS: the views take metres); empty labels when the files
     disagree (then ``log`` says so)."""
-    import laspy
-
     from pointflow.formats.las import crs_units
 
     found = []
     for p in paths:
-        if os.path.splitext(p)[1].lower() not in (".las", ".laz"):
+        h = _las_header(p)
+        if h is None:
             return None
-        try:
-            with laspy.open(p) as f:
-                u = crs_units(f.header)
-        except Exception:  # noqa: BLE001 - a broken file is the opener's error, with its name
-            return None
+        u = crs_units(h)
         if u is None:
             return None
         found.append((p, u))

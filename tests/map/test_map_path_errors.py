@@ -23,7 +23,13 @@ def _bad(tmp_path, kind: str) -> str:
     if kind == "readme":
         return os.path.abspath(README)
     p = tmp_path / {"missing": "nope.laz", "directory": "adir.las", "empty": "empty.laz", "text_as_laz": "fake.laz",
-                    "text_as_ply": "fake.ply", "text_as_pcd": "fake.pcd", "unreadable": "locked.las"}[kind]
+                    "text_as_ply": "fake.ply", "text_as_pcd": "fake.pcd", "unreadable": "locked.las",
+                    "garbage_header": "garbage.las"}[kind]
+    if kind == "garbage_header":  # the signature, then noise: its header promises ~3.5e9 VLRs (laspy
+        import numpy as np       # looped on them for minutes and the run hung, exiting 0)
+
+        p.write_bytes(b"LASF" + np.random.default_rng(3).integers(0, 256, 5000, dtype=np.uint8).tobytes())
+        return str(p)
     if kind == "directory":
         p.mkdir()
     elif kind == "empty":
@@ -38,7 +44,7 @@ def _bad(tmp_path, kind: str) -> str:
 
 @pytest.mark.parametrize("cmd", COMMANDS, ids=lambda c: c[0])
 @pytest.mark.parametrize("kind", ["readme", "missing", "directory", "empty", "text_as_laz", "text_as_ply",
-                                  "text_as_pcd", "unreadable"])
+                                  "text_as_pcd", "unreadable", "garbage_header"])
 def test_a_map_path_that_is_not_a_point_file_is_one_line_naming_it(tmp_path, capsys, cmd, kind):
     path = _bad(tmp_path, kind)
     if kind == "unreadable" and os.access(path, os.R_OK):
