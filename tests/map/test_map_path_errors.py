@@ -24,7 +24,11 @@ def _bad(tmp_path, kind: str) -> str:
         return os.path.abspath(README)
     p = tmp_path / {"missing": "nope.laz", "directory": "adir.las", "empty": "empty.laz", "text_as_laz": "fake.laz",
                     "text_as_ply": "fake.ply", "text_as_pcd": "fake.pcd", "unreadable": "locked.las",
-                    "garbage_header": "garbage.las"}[kind]
+                    "garbage_header": "garbage.las", "cut_laz": "cut.laz"}[kind]
+    if kind == "cut_laz":  # cut short after its header: the chunk table it points to is not there
+        whole = write_las(str(tmp_path / "whole.laz"), 20_000)
+        p.write_bytes(open(whole, "rb").read()[:2000])
+        return str(p)
     if kind == "garbage_header":  # the signature, then noise: its header promises ~3.5e9 VLRs (laspy
         import numpy as np       # looped on them for minutes and the run hung, exiting 0)
 
@@ -44,7 +48,7 @@ def _bad(tmp_path, kind: str) -> str:
 
 @pytest.mark.parametrize("cmd", COMMANDS, ids=lambda c: c[0])
 @pytest.mark.parametrize("kind", ["readme", "missing", "directory", "empty", "text_as_laz", "text_as_ply",
-                                  "text_as_pcd", "unreadable", "garbage_header"])
+                                  "text_as_pcd", "unreadable", "garbage_header", "cut_laz"])
 def test_a_map_path_that_is_not_a_point_file_is_one_line_naming_it(tmp_path, capsys, cmd, kind):
     path = _bad(tmp_path, kind)
     if kind == "unreadable" and os.access(path, os.R_OK):
@@ -62,11 +66,15 @@ def test_a_map_path_that_is_not_a_point_file_is_one_line_naming_it(tmp_path, cap
 
 
 def test_a_broken_map_file_fails_the_run_with_exit_2(tmp_path):
-    """A LAZ cut short after its header: it passes the load checks; the run draws the live part
-    and ends with the map stage's one line and exit status 2."""
+    """A LAZ whose compressed points are noise in the middle: its header and chunk table pass
+    the load checks; the run draws the live part and ends with the map stage's one line and
+    exit status 2. (A LAZ cut short is refused at load: its chunk table is past its end.)"""
     whole = write_las(str(tmp_path / "whole.laz"), 20_000)
     cut = tmp_path / "cut.laz"
-    cut.write_bytes(open(whole, "rb").read()[:2000])
+    raw = bytearray(open(whole, "rb").read())
+    mid = len(raw) // 3
+    raw[mid:mid + 4000] = bytes(range(256)) * 15 + bytes(160)
+    cut.write_bytes(bytes(raw))
     cfg = tmp_path / "c.yaml"
     cfg.write_text(f"source: {{transport: synthetic, options: {{points_per_scan: 2000}}}}\n"
                    f"map: {{path: {cut}, cache_dir: {tmp_path / 'cache'}}}\n"
