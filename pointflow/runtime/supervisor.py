@@ -214,7 +214,9 @@ class Supervisor:
             declared = next((s for s in self.cfg.sources if s.name == name), None)
             src = ApiSource(name, self.endpoints.ingest, options, channels=allowed,
                             max_chunk_points=self.cfg.ingest.max_chunk_points,
-                            frame_id=declared.frame_id if declared is not None else None)
+                            frame_id=declared.frame_id if declared is not None else None,
+                            failed=lambda: None if self.failure is None else PipelineFailed(self.failure,
+                                                                                           self.failure_cause))
             self.stages[name] = StageProc(name=name, kind=SOURCE, local=src, ready=True,
                                           started_ns=time.monotonic_ns(), pid=os.getpid())
             log.info("source %s: api source in this process (pid %d), fed by Pipeline.send; backpressure %s",

@@ -33,7 +33,7 @@ import collections
 import dataclasses
 import threading
 import time
-from typing import Any, Iterator, Literal, Mapping, Optional, Sequence
+from typing import Any, Callable, Iterator, Literal, Mapping, Optional, Sequence
 
 import numpy as np
 import zmq
@@ -255,8 +255,11 @@ class ApiSource:
 
     def __init__(self, name: str, endpoint: str, options: Optional[dict] = None, *,
                  channels: Optional[Sequence[str]] = None, max_chunk_points: int = 5_000_000,
-                 frame_id: Optional[str] = None):
+                 frame_id: Optional[str] = None, failed: Optional[Callable[[], Optional[BaseException]]] = None):
+        """``failed``: what the pipeline's failure is (an exception to raise), or None while it
+        runs; a send raises it rather than wait for an ingest that will not come back."""
         self.name = name
+        self._failed = failed or (lambda: None)
         #: The source's ``frame_id`` from the config: the frame of clouds sent without one.
         self.frame_id = frame_id or ""
         self.o = ApiOptions(**(options or {}))
@@ -292,6 +295,9 @@ class ApiSource:
              **channels: Any) -> int:
         """Send one cloud; returns its point count once it is handed over (``block``) or
         queued (``drop_oldest``). :class:`SendError` on bad input (counted in ``rejected``)."""
+        exc_failed = self._failed()
+        if exc_failed is not None:
+            raise exc_failed
         try:
             pos, chans = check_cloud(positions, channels, frame, stamp_ns, self.allowed)
         except SendError as exc:
@@ -371,9 +377,12 @@ class ApiSource:
                     self._put(frames, buf, copy)
                     return
                 except zmq.Again:
-                    if self._closed:
+                    failed = self._failed()
+                    if self._closed or failed is not None:
                         if buf is not None:
                             buf.busy = False
+                        if failed is not None:  # ingest will not come back: the pipeline stopped
+                            raise failed from None
                         raise RuntimeError(f"api source {self.name!r} closed while waiting for ingest") from None
         finally:
             self.blocked_ns += time.monotonic_ns() - t0

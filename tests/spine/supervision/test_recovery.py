@@ -111,3 +111,37 @@ def test_a_frozen_stage_is_detected_and_restarted(tmp_path):
     assert st["stages"]["ingest"]["points_in"] > n0, "ingest did not resume"
     assert_gone([old])
     assert_segments_gone(pipe.stats())
+
+
+def test_send_raises_once_the_pipeline_failed(tmp_path):
+    """A thread sending while ingest dies past its restart limit gets PipelineFailed from
+    send, and so does every later send: it waited for ingest forever (a black-box run)."""
+    import threading
+
+    import numpy as np
+
+    cfg = small_config(source={"transport": "api", "name": "cam"}, supervisor={"max_restarts": 0})
+    pipe = Pipeline.from_dict(cfg, out_dir=str(tmp_path))
+    pipe.start()
+    got: list = []
+    xyz = np.random.default_rng(0).normal(size=(200_000, 3)).astype(np.float32)
+
+    def sender() -> None:
+        try:
+            while True:
+                pipe.send(xyz, source="cam")
+        except BaseException as exc:  # noqa: BLE001 - what send raised is the test's answer
+            got.append(exc)
+
+    t = threading.Thread(target=sender, daemon=True)
+    try:
+        t.start()
+        pipe.wait(120, until=lambda: pipe.stats()["stages"]["ingest"]["points_in"] > 0)
+        os.kill(pipe.stats()["stages"]["ingest"]["pid"], signal.SIGKILL)
+        t.join(180)
+        assert not t.is_alive(), "send still waiting for an ingest that is gone"
+        assert len(got) == 1 and isinstance(got[0], PipelineFailed) and "ingest" in str(got[0]), got
+        with pytest.raises(PipelineFailed):
+            pipe.send(xyz[:10], source="cam")
+    finally:
+        pipe.stop()
