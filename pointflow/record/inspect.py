@@ -84,7 +84,23 @@ def format_scan(s: dict[str, Any]) -> str:
 
 
 def recover(path: str, out_path: str) -> dict[str, Any]:
-    """Copy every message of a (possibly cut-short) recording into a new, finished file."""
+    """Copy every message of a (possibly cut-short) recording into a new, finished file:
+    written beside ``out_path`` and renamed over it at the end, so ``out_path`` may even be
+    ``path`` itself (the recording is replaced only once its copy is whole)."""
+    import tempfile
+
+    fd, tmp = tempfile.mkstemp(prefix=".recover-", suffix=".mcap", dir=os.path.dirname(os.path.abspath(out_path)))
+    os.close(fd)
+    try:
+        r = _recover_into(path, tmp)
+        os.replace(tmp, out_path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return {**r, "path": out_path}
+
+
+def _recover_into(path: str, out_path: str) -> dict[str, Any]:
     from mcap.exceptions import McapError
     from mcap.reader import NonSeekingReader
     from mcap.writer import Writer
@@ -111,9 +127,19 @@ def recover(path: str, out_path: str) -> dict[str, Any]:
 
 
 def inspect_main(path: str, recover_to: str | None = None) -> int:
+    if os.path.isdir(path):
+        print(f"error: {path}: a folder; inspect reads one MCAP file (a ROS 2 bag folder: name its .mcap "
+              f"file, or replay the folder with a rosbag source)", file=sys.stderr)
+        return 1
     if not os.path.isfile(path):
         print(f"error: {path}: no such file", file=sys.stderr)
         return 1
+    if recover_to:
+        out_dir = os.path.dirname(os.path.abspath(recover_to))
+        if os.path.isdir(recover_to) or not os.path.isdir(out_dir):
+            print(f"error: --recover {recover_to}: " + ("a folder; name the file to write" if os.path.isdir(recover_to)
+                                                         else f"no folder {out_dir} to write it in"), file=sys.stderr)
+            return 1
     try:
         s = scan(path)
     except Exception as exc:  # noqa: BLE001 - one line, no traceback: not an MCAP file
@@ -121,7 +147,11 @@ def inspect_main(path: str, recover_to: str | None = None) -> int:
         return 1
     print(format_scan(s))
     if recover_to:
-        r = recover(path, recover_to)
+        try:
+            r = recover(path, recover_to)
+        except OSError as exc:
+            print(f"error: --recover {recover_to}: {exc.strerror or exc}", file=sys.stderr)
+            return 1
         print(f"recovered {r['messages']:,} messages into {recover_to} (with a summary)")
     return 0
 

@@ -2,6 +2,8 @@
 are dropped and counted instead), the progress line and ``pointflow inspect``."""
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 import zmq
@@ -89,6 +91,20 @@ def test_inspect_lists_topics_counts_and_time(tmp_path, capsys):
     r = _open_reader(str(fixed))
     assert r.message_count == 10
     r.close()
+    # recovered in place: the recording is replaced by its whole copy (it was emptied first)
+    capsys.readouterr()
+    assert cli.main(["inspect", str(cut), "--recover", str(cut)]) == 0
+    r = _open_reader(str(cut))
+    assert r.message_count == 10
+    r.close()
+    assert not [p for p in os.listdir(tmp_path) if p.startswith(".recover-")], "no temporary copy left"
+    # a folder, or an output with nowhere to go: one line each, no traceback
+    capsys.readouterr()
+    assert cli.main(["inspect", str(tmp_path)]) == 1
+    assert cli.main(["inspect", str(cut), "--recover", str(tmp_path / "nodir" / "x.mcap")]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 2 and "a folder; inspect reads one MCAP file" in err and "no folder" in err, err
+    assert "Traceback" not in err
 
 
 def test_topic_names_are_valid_ros_names():
