@@ -37,13 +37,9 @@ def config_error_line(exc: ConfigError, file: Optional[str] = None) -> str:
 
 def _out_dir(path: str) -> str:
     """Create the output directory up front, so a bad ``--out`` is a config error, not a traceback."""
-    if os.path.exists(path) and not os.path.isdir(path):
-        raise ConfigError("", f"output directory {path}: exists and is not a directory")
-    try:
-        os.makedirs(path, exist_ok=True)
-    except OSError as exc:
-        raise ConfigError("", f"cannot create output directory {path}: {exc.strerror or exc}") from None
-    return path
+    from .runtime.pipeline import prepare_out_dir
+
+    return prepare_out_dir(path)
 
 
 def summary_line(stats: dict) -> str:

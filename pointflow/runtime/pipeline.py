@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any, Callable, Optional, Union
 
 from ..config import PipelineConfig, load_config
+from ..typed import ConfigError
 from .supervisor import PipelineFailed, Supervisor, planned_stages
 
 log = logging.getLogger("pointflow")
@@ -60,6 +61,18 @@ class RunStats(dict):
         printer.text(repr(self))
 
 
+def prepare_out_dir(path: str) -> str:
+    """Create the output directory up front, so a bad one is a :class:`ConfigError` naming
+    it (``pointflow run --out`` and ``Pipeline.start``), not an OSError from a stage."""
+    if os.path.exists(path) and not os.path.isdir(path):
+        raise ConfigError("", f"output directory {path}: exists and is not a directory")
+    try:
+        os.makedirs(path, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError("", f"cannot create output directory {path}: {exc.strerror or exc}") from None
+    return path
+
+
 class Pipeline:
     """A running (or runnable) pointflow pipeline.
 
@@ -97,14 +110,18 @@ class Pipeline:
         its clouds wait in ingest's socket)."""
         if self._sup is not None and self._sup.started:
             raise RuntimeError("pipeline already running")
+        if self.out_dir:
+            prepare_out_dir(self.out_dir)  # a ConfigError naming it, before anything starts
         self._final = None
         self._sup = Supervisor(self.cfg, out_dir=self.out_dir, role=self.role)
         atexit.register(self.stop)
         try:
             self._sup.start(wait)
         except BaseException:
-            self._sup.stop()
-            self._sup._release()
+            sup, self._sup = self._sup, None  # nothing left for stop() or the exit hook to do
+            atexit.unregister(self.stop)
+            sup.stop()
+            sup._release()
             raise
         return self
 

@@ -178,3 +178,21 @@ def _send_remote(pipe, push, port) -> dict:
         pipe.wait(20, until=lambda: pipe.stats()["stages"]["synth"]["finished"]
                   and pipe.stats()["stages"]["ingest"]["points_in"] >= n_sent + synthetic_sent())
     return pipe.stats()["stages"]
+
+
+def test_an_out_dir_that_is_a_file_is_a_config_error_once(tmp_path):
+    """Pipeline(out_dir=<a file>).start(): one ConfigError naming it, nothing started, and
+    no traceback at exit (it raised FileExistsError from start and stop, then at exit)."""
+    import subprocess
+    import sys
+
+    (tmp_path / "afile").write_text("x")
+    p = subprocess.run([sys.executable, "-c", (
+        "from pointflow import Pipeline\n"
+        "from pointflow.typed import ConfigError\n"
+        "p = Pipeline.from_dict({}, out_dir='afile')\n"
+        "try:\n    p.start()\nexcept ConfigError as e:\n    print('REFUSED', e)\n"
+        "print('STOP', p.stop())\n")], cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr[-2000:]
+    assert f"REFUSED output directory {tmp_path / 'afile'}: exists and is not a directory" in p.stdout, p.stdout
+    assert "STOP" in p.stdout and "Traceback" not in p.stderr and "Exception ignored" not in p.stderr, p.stderr
