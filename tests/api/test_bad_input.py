@@ -42,6 +42,13 @@ BAD_SEND = [
      ["channel 'intensity'", "complex64", "float32"]),
     ("unknown_channel", lambda: (_good()[0], {"intensity": _good()[1], "intensty": _good()[1]}), "unknown_channel",
      ["channel 'intensty'", "intensity, rgb", "ring.extra_channels"]),
+    # rgb the ring cannot hold: refused at send (it was accepted, then dropped or clipped by ingest)
+    ("rgb_four_wide", lambda: (_good()[0], {"rgb": np.zeros((N, 4), np.uint8)}), "bad_channel_shape",
+     ["channel 'rgb'", f"({N}, 3)", f"({N}, 4)"]),
+    ("rgb_flat", lambda: (_good()[0], {"rgb": np.zeros(N, np.uint8)}), "bad_channel_shape",
+     ["channel 'rgb'", f"({N}, 3)", f"({N},)"]),
+    ("rgb_out_of_range", lambda: (_good()[0], {"rgb": np.tile(np.array([300, -5, 128], np.int32), (N, 1))}),
+     "bad_value", ["channel 'rgb'", "0..255", "0..65535", "from -5 to 300"]),
 ]
 
 

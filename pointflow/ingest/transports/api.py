@@ -190,6 +190,19 @@ def _positions(positions: Any) -> np.ndarray:
     return positions
 
 
+def _check_rgb(arr: np.ndarray, n: int) -> None:
+    """``rgb`` as the ring stores it can hold it: (n, 3), integers 0..255 or 0..65535 (16-bit,
+    scaled down) or floats (0..1 scaled up). Refused here, with nothing sent, rather than at
+    ingest (dropped) or clipped (int -5 and 300 became 0 and 1)."""
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise SendError("bad_channel_shape", f"channel 'rgb': expected shape ({n}, 3) (red, green, blue), got {arr.shape}")
+    if arr.dtype.kind in "iu" and arr.size:
+        lo, hi = int(arr.min()), int(arr.max())
+        if lo < 0 or hi > 65535:
+            raise SendError("bad_value", f"channel 'rgb': integer colour must be 0..255 (8-bit) or 0..65535 "
+                                         f"(16-bit), got values from {lo} to {hi}")
+
+
 def check_cloud(positions: Any, channels: Mapping[str, Any], frame: Any, stamp_ns: Any,
                 allowed: Optional[Sequence[str]] = None) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """The arrays of one ``send`` call, checked; :class:`SendError` naming the argument."""
@@ -212,6 +225,8 @@ def check_cloud(positions: Any, channels: Mapping[str, Any], frame: Any, stamp_n
         if arr.ndim not in (1, 2) or arr.shape[0] != n:
             raise SendError("length_mismatch", f"channel {name!r}: expected shape ({n},) or ({n}, k) to match "
                                                f"positions' {n} points, got {arr.shape}")
+        if name == "rgb":
+            _check_rgb(arr, n)
         chans[name] = arr
     if frame is not None and (not isinstance(frame, str) or not frame):
         raise SendError("bad_frame", f"frame: expected a frame name (a non-empty str) or None, got {frame!r}")
