@@ -360,7 +360,7 @@ def serve(sock, clock: PlaybackClock, log, counters) -> None:
             rep = {"state": clock.command(json.loads(sock.recv()))}
         except PlaybackError as exc:
             counters.extra["playback_refused"] = counters.extra.get("playback_refused", 0) + 1
-            log.warning("playback request refused: %s", exc)
+            log.debug("playback request refused: %s", exc)  # the caller raises it: said once, there
             rep = {"error": str(exc), "key": exc.key, "message": exc.message}
         except Exception as exc:  # noqa: BLE001 - a bad request must not end the replay
             rep = {"error": f"{type(exc).__name__}: {exc}", "key": "cmd"}
