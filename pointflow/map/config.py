@@ -33,7 +33,8 @@ class MapConfig:
     #: Channels of the map to keep besides x, y, z; null = those the render stage uses
     #: (``color_by``, the ring's channels) that the file has.
     channels: Optional[list[str]] = None
-    #: Where level-of-detail indexes are kept; null = the user cache directory.
+    #: Where level-of-detail indexes are kept (relative to the config file's folder; made at
+    #: load); null = the user cache directory.
     cache_dir: Optional[str] = None
     #: Milliseconds the map stage spends loading before it hands over what it has (a
     #: camera move is shown refined step by step, coarse first).
@@ -66,9 +67,29 @@ def check_map(mc: MapConfig, path: str, base_dir: str = ".") -> None:
     if len(set(out)) != len(out):
         raise ConfigError(f"{path}.path", "names the same file twice")
     mc.path = out[0] if isinstance(mc.path, str) else out
+    if mc.cache_dir is not None:
+        mc.cache_dir = _check_cache_dir(mc.cache_dir, f"{path}.cache_dir", base_dir)
     for i, c in enumerate(mc.channels or []):
         if c in ("x", "y", "z"):
             raise ConfigError(f"{path}.channels[{i}]", "x, y, z are always kept; list only channels")
+
+
+def _check_cache_dir(d: str, key: str, base_dir: str) -> str:
+    """The index folder, resolved against the config's folder as ``path`` is, and made now:
+    one that cannot be (a file in the way, no permission, /proc) is the key's error at load,
+    not an OSError when the map opens."""
+    if not isinstance(d, str) or not d.strip():
+        raise ConfigError(key, "must name a folder (or be left out: the user cache directory)")
+    full = d if os.path.isabs(d) else os.path.normpath(os.path.join(base_dir, os.path.expanduser(d)))
+    if os.path.exists(full) and not os.path.isdir(full):
+        raise ConfigError(key, f"{full} exists and is not a folder")
+    try:
+        os.makedirs(full, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError(key, f"cannot create {full}: {exc.strerror or exc}") from None
+    if not os.access(full, os.W_OK | os.X_OK):
+        raise ConfigError(key, f"{full} is not writable (the level-of-detail index is written there)")
+    return full
 
 
 #: What a map file's first bytes must be, by its extension (the index build reads the rest).

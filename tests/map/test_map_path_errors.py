@@ -87,3 +87,26 @@ def test_a_broken_map_file_fails_the_run_with_exit_2(tmp_path):
     assert "Traceback" not in r.stderr
     last = [ln for ln in r.stderr.splitlines() if ln.strip()][-1]
     assert last.startswith("error: map not shown: ") and str(cut) in last, r.stderr[-3000:]
+
+
+@pytest.mark.parametrize("kind", ["under_proc", "under_a_file", "a_file", "relative"])
+def test_map_cache_dir_is_checked_at_load_and_relative_to_the_config(tmp_path, capsys, kind):
+    """map.cache_dir is made at load, resolved against the config's folder as map.path is; one
+    that cannot be is one line naming the key (it was a raw OSError when the map opened)."""
+    las = write_las(str(tmp_path / "t.las"), 100)
+    (tmp_path / "afile").write_text("x")
+    d = {"under_proc": "/proc/pf_cache_test", "under_a_file": str(tmp_path / "afile" / "sub"),
+         "a_file": str(tmp_path / "afile"), "relative": "rel_cache"}[kind]
+    sub = tmp_path / "cfg"
+    sub.mkdir()
+    cfg = sub / "c.yaml"
+    cfg.write_text(f"source: {{transport: synthetic}}\nmap: {{path: {las}, cache_dir: {d}}}\n")
+    code = main(["validate", str(cfg)])
+    err = capsys.readouterr().err
+    if kind == "relative":
+        assert code == 0, err
+        assert (sub / "rel_cache").is_dir(), "relative to the config's folder, not the working directory"
+        return
+    assert code == EXIT_CONFIG and "Traceback" not in err, err
+    lines = err.splitlines()
+    assert len(lines) == 1 and "map.cache_dir: " in lines[0], err
