@@ -173,6 +173,9 @@ class Ingestor:
     #: ``render.color_by`` when it is a channel of the data: a source whose points lack it is
     #: named once (config.py refuses it at load where the sources' channels are known).
     color_by: str | None = None
+    #: ``color_by`` is the default (intensity), not the user's choice: an xyz-only source is
+    #: then said at info, not warned of (every Pipeline.send of bare xyz warned)
+    color_by_default: bool = False
 
     def _colour_missing(self, chunk: PointChunk) -> None:
         warned = self.__dict__.setdefault("_colour_warned", set())
@@ -180,8 +183,9 @@ class Ingestor:
             return
         warned.add(chunk.source_id)
         have = ", ".join(sorted(chunk.channels)) or "none"
-        self.log.warning("render.color_by: the points of source %r have no channel %r (channels that arrive: %s); "
-                         "they are drawn in the single colour render.color", chunk.source_id, self.color_by, have)
+        self.log.log(logging.INFO if self.color_by_default else logging.WARNING,
+                     "render.color_by: the points of source %r have no channel %r (channels that arrive: %s); "
+                     "they are drawn in the single colour render.color", chunk.source_id, self.color_by, have)
 
     def add_chunk(self, chunk: PointChunk, t0_ns: int | None = None, validated: bool = False) -> bool:
         """Validate and convert a decoded chunk, then queue it. False when rejected."""
@@ -482,6 +486,7 @@ def main(ctx) -> None:
                    spans=ctx.spans, log=ctx.log, frames=ctx.cfg.frames, record=tap)
     if ctx.cfg.render.color_by in ing.specs:
         ing.color_by = ctx.cfg.render.color_by
+        ing.color_by_default = ctx.cfg.render.color_by == type(ctx.cfg.render).color_by
     ctx.on_beat.append(lambda: ctx.counters.extra.update(ing.stats_extra()))
     poller = zmq.Poller()
     poller.register(sock, zmq.POLLIN)

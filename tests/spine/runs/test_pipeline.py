@@ -196,3 +196,20 @@ def test_an_out_dir_that_is_a_file_is_a_config_error_once(tmp_path):
     assert p.returncode == 0, p.stderr[-2000:]
     assert f"REFUSED output directory {tmp_path / 'afile'}: exists and is not a directory" in p.stdout, p.stdout
     assert "STOP" in p.stdout and "Traceback" not in p.stderr and "Exception ignored" not in p.stderr, p.stderr
+
+
+def test_bare_xyz_under_the_default_colouring_is_not_warned_of(tmp_path):
+    """Pipeline() and send(xyz): the default color_by (intensity) missing from the points is
+    said at info, not as a WARNING on every run (docs/api.md's first example warned)."""
+    import subprocess
+    import sys
+
+    p = subprocess.run([sys.executable, "-c", (
+        "import numpy as np\n"
+        "from pointflow import Pipeline\n"
+        "with Pipeline.from_dict({}, out_dir='') as p:\n"
+        "    p.send(np.zeros((100, 3), np.float32))\n"
+        "    p.wait(60, until=lambda: p.stats()['stages']['ingest']['points_out'] >= 100)\n")],
+        cwd=tmp_path, capture_output=True, text=True, timeout=180)
+    assert p.returncode == 0, p.stderr[-2000:]
+    assert "WARNING render.color_by" not in p.stderr, p.stderr[-2000:]
