@@ -18,7 +18,7 @@ import numpy as np
 import zmq
 
 from .. import wire
-from ..chunk import new_trace_id
+from ..chunk import ChunkError, PointChunk, new_trace_id
 from ..frames import message as tfmsg
 from ..frames.deskew import TIME_FIELDS
 from ..stage.kinds import StageKind, register_stage_kind
@@ -144,6 +144,16 @@ def main(ctx) -> None:
                         tf_sent += len(chunk.transforms)
                     else:  # a live source behind ingest: counted like dropped chunks
                         ctx.counters.extra["transforms_dropped"] = ctx.counters.extra.get("transforms_dropped", 0) + len(chunk.transforms)
+                continue
+            if not isinstance(chunk, PointChunk):  # a plugin's mistake: said here, naming the source
+                transport.reject("bad_chunk", f"chunks() yielded a {type(chunk).__name__}, expected a PointChunk, "
+                                              f"Transforms or None")
+                continue
+            try:  # cheap (no per-point work): a bad chunk is named at its source, not at ingest
+                chunk.validate(ctx.cfg.ingest.max_chunk_points)
+            except ChunkError as exc:
+                transport.reject(exc.reason, f"chunks() yielded a bad chunk: {exc}"
+                                 + (" (ingest.max_chunk_points; yield it in parts)" if exc.reason == "too_large" else ""))
                 continue
             if frame_id and not chunk.frame_id:
                 chunk.frame_id = frame_id

@@ -69,3 +69,59 @@ def test_plugin_import_failure_names_plugin_and_cause():
         load_config({"source": {"transport": "pointflow.ingest.transports.synthetic:Nope"}})
     with pytest.raises(ConfigError, match="not a pointflow Transport subclass"):
         load_config({"source": {"transport": "pointflow.chunk:PointChunk"}})
+
+
+BAD_PLUGIN = '''
+import numpy as np
+from pointflow.chunk import PointChunk
+from pointflow.ingest.transports.base import Transport
+
+
+class Bad(Transport):
+    name = "bad"
+
+    def chunks(self):
+        good = lambda n: PointChunk(positions=np.zeros((n, 3), np.float32), channels={})
+        yield {"x": [1.0]}                                                       # not a chunk
+        yield PointChunk(positions=np.zeros((10, 2), np.float32), channels={})   # (n, 2)
+        yield good(100)
+        yield good(2000)                                                         # over max_chunk_points
+        yield PointChunk(positions=np.zeros((5, 3), np.float32), channels={"intensity": np.zeros(4, np.float32)})
+        yield good(50)
+'''
+
+
+def test_bad_chunks_from_a_plugin_are_rejected_at_their_source(tmp_path):
+    """What a plugin's chunks() yields is checked in the source process: not a PointChunk, a
+    wrong shape, too many points, a channel of another length are each rejected there, counted
+    by reason and named with the source (they failed later at ingest, with messages that named
+    no source, or killed the source); the good chunks between them arrive."""
+    (tmp_path / "badplug.py").write_text(BAD_PLUGIN)
+    script = tmp_path / "run.py"
+    script.write_text(
+        "import json\n"
+        "from pointflow import Pipeline\n"
+        "cfg = {'source': {'transport': 'badplug:Bad', 'name': 'robot'}, 'ingest': {'max_chunk_points': 1000},\n"
+        "       'render': {'backend': 'cpu', 'size': [64, 48]}}\n"
+        "with Pipeline.from_dict(cfg, out_dir='') as p:\n"
+        "    p.wait(60, until=lambda: p.stats()['stages']['ingest']['points_out'] >= 150)\n"
+        "    p.wait(2)\n"
+        "    st = p.stats()\n"
+        "print(json.dumps({'src': st['stages']['robot'], 'ingest': st['stages']['ingest']['points_out'],\n"
+        "                  'events': [e['action'] for e in st['events']]}))\n")
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")]))
+    r = subprocess.run([sys.executable, str(script)], cwd=tmp_path, capture_output=True, text=True, timeout=180, env=env)
+    assert r.returncode == 0, r.stderr[-3000:]
+    import json
+
+    out = json.loads(r.stdout.strip().splitlines()[-1])
+    src = out["src"]
+    assert out["ingest"] == 150 and out["events"] == [], out
+    assert src["transport_rejected"] == 4, src
+    for reason in ("bad_chunk", "bad_positions", "too_large", "length_mismatch"):
+        assert src[f"transport_rejected_{reason}"] == 1, (reason, src)
+    lines = [ln for ln in r.stderr.splitlines() if "rejected message" in ln]
+    assert len(lines) == 4 and all("robot: rejected message [" in ln for ln in lines), r.stderr[-3000:]
+    assert any("yielded a dict, expected a PointChunk" in ln for ln in lines)
+    assert any("ingest.max_chunk_points" in ln for ln in lines)
+    assert "Traceback" not in r.stderr
