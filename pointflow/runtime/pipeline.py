@@ -61,6 +61,16 @@ class RunStats(dict):
         printer.text(repr(self))
 
 
+def _check_duration(d) -> None:
+    """``duration_s`` as ``pointflow run --duration`` takes it: None or a number >= 0."""
+    import math
+
+    if d is None:
+        return
+    if isinstance(d, bool) or not isinstance(d, (int, float)) or not math.isfinite(d) or d < 0:
+        raise ValueError(f"duration_s: expected a number of seconds >= 0 or None, got {d!r}")
+
+
 def prepare_out_dir(path: str) -> str:
     """Create the output directory up front, so a bad one is a :class:`ConfigError` naming
     it (``pointflow run --out`` and ``Pipeline.start``), not an OSError from a stage."""
@@ -159,7 +169,11 @@ class Pipeline:
         """Run the supervisor loop for ``duration_s`` seconds (None = until ``until()`` is
         true, or forever); returns early when a stage asks to stop the run. True when
         ``until()`` came true; False when the time ran out or the run was asked to stop (so
-        ``if not p.wait(10, until=...)`` tells a timeout)."""
+        ``if not p.wait(10, until=...)`` tells a timeout). A ValueError for a duration that
+        is not a number >= 0; a RuntimeError before the first :meth:`start`, as :meth:`stats`."""
+        _check_duration(duration_s)
+        if self._sup is None and self._final is None:  # never started (after a stop: False at once)
+            raise RuntimeError("pipeline is not running: call start() first (or use `with Pipeline... as p:`)")
         end = None if duration_s is None else time.monotonic() + duration_s
         while (end is None or time.monotonic() < end) and not self.stop_requested:
             self.poll(0.05 if end is None else max(0.0, min(0.05, end - time.monotonic())))
@@ -190,6 +204,7 @@ class Pipeline:
 
     def run(self, duration_s: Optional[float] = None) -> dict:
         """Start, run for ``duration_s`` (None = until interrupted), stop; returns stats."""
+        _check_duration(duration_s)
         self.start()
         try:
             self.wait(duration_s)

@@ -213,3 +213,19 @@ def test_bare_xyz_under_the_default_colouring_is_not_warned_of(tmp_path):
         cwd=tmp_path, capture_output=True, text=True, timeout=180)
     assert p.returncode == 0, p.stderr[-2000:]
     assert "WARNING render.color_by" not in p.stderr, p.stderr[-2000:]
+
+
+def test_durations_are_checked_and_wait_needs_a_start():
+    """run(-5) and run(nan) ran, wait(-1) returned False, and wait() before start() returned
+    False where stats() and send() raise: as `pointflow run --duration` refuses them."""
+    from pointflow import Pipeline
+
+    p = Pipeline.from_dict({}, out_dir="")
+    for bad in (-5, float("nan"), float("inf"), "10", True):
+        with pytest.raises(ValueError, match="duration_s: expected a number of seconds >= 0 or None"):
+            p.run(bad)
+        with pytest.raises(ValueError, match="duration_s"):
+            p.wait(bad)
+    with pytest.raises(RuntimeError, match=r"call start\(\) first"):
+        p.wait(1)
+    assert not p.running
