@@ -299,6 +299,22 @@ def index_dir(path: str, cache_dir: Optional[str] = None) -> str:
     return os.path.join(cache_dir or default_cache_dir(), f"{hashlib.sha1(real.encode()).hexdigest()[:16]}-{name}")
 
 
+#: This process's half-built index folders (a build in a thread of a stage that is stopping
+#: leaves its folder: the stage removes it on the way out, :func:`remove_unfinished`).
+_UNFINISHED: set[str] = set()
+
+
+def remove_unfinished() -> list[str]:
+    """Remove the folders of this process's builds still under way (the map stage, stopped
+    while its index is built: a 272 MB spill folder was left until the file was opened again).
+    Returns them."""
+    gone = sorted(_UNFINISHED)
+    for d in gone:
+        shutil.rmtree(d, ignore_errors=True)
+        _UNFINISHED.discard(d)
+    return gone
+
+
 def _remove_orphans(out_dir: str) -> None:
     """Half-built indexes (``<dir>.tmp-<pid>-...``, ``<dir>.old-<pid>-...``) of builds killed
     before they could clean up: removed when their process is gone."""
@@ -340,6 +356,7 @@ def build_index(path: str, out_dir: str, progress=None, preview=None, preview_po
         progress = lambda done, total: None  # noqa: E731
     tmp = f"{out_dir}.tmp-{os.getpid()}-{time.monotonic_ns()}"
     os.makedirs(tmp)
+    _UNFINISHED.add(tmp)
     try:
         ident = file_identity(path, inp.header_bytes)
         t0 = time.monotonic()
@@ -379,3 +396,5 @@ def build_index(path: str, out_dir: str, progress=None, preview=None, preview_po
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+    finally:
+        _UNFINISHED.discard(tmp)

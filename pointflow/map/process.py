@@ -556,3 +556,8 @@ def main(ctx) -> None:
         if region is not None:
             region.close()
             region.unlink()
+        if opener.is_alive():  # stopped while the index was being built: its half-built folder goes too
+            from .build import remove_unfinished
+
+            for d in remove_unfinished():
+                ctx.log.info("index build stopped; removed its unfinished folder %s", d)

@@ -137,3 +137,39 @@ def test_a_preview_is_drawn_then_dropped_when_the_map_fails(tmp_path):
         if pv.region is not None:
             pv.region.close()
             pv.region.unlink()
+
+
+def test_a_build_stopped_midway_leaves_no_folder(tmp_path):
+    """The map stage stopped while its index is built (Ctrl-C) removes the half-built folder
+    on its way out (build.remove_unfinished; a 272 MB spill folder was left behind until
+    the same file was opened again). The build is held inside its preview callback here."""
+    import glob
+    import threading
+
+    from pointflow.map import build
+
+    las = write_las(str(tmp_path / "big.laz"), FIRST_CHUNK * 2 + 100, seed=5)
+    cache = str(tmp_path / "cache")
+    inside, release, errors = threading.Event(), threading.Event(), []
+
+    def preview(file_index: int, data: dict) -> None:
+        inside.set()
+        release.wait(60)
+
+    def run() -> None:
+        try:
+            open_map(las, cache_dir=cache, progress=False, preview=preview, preview_points=1000)
+        except BaseException as exc:  # noqa: BLE001 - its folder was taken away mid-build
+            errors.append(exc)
+
+    t = threading.Thread(target=run, daemon=True)
+    t.start()
+    assert inside.wait(60)
+    half = glob.glob(os.path.join(cache, "**", "*.tmp-*"), recursive=True)
+    assert len(half) == 1 and os.path.isdir(half[0]), half
+    assert build.remove_unfinished() == half
+    assert not os.path.exists(half[0])
+    release.set()
+    t.join(60)
+    assert not glob.glob(os.path.join(cache, "**", "*.tmp-*"), recursive=True)
+    assert build.remove_unfinished() == []
