@@ -333,3 +333,26 @@ def test_seek_while_paused_shows_the_message_then_run_ended(browser, tmp_path):
     assert page.locator("#status").inner_text() == "run ended"  # no "reconnecting…"
     assert "run ended" in page.locator("#stats").inner_text()
     page.context.close()
+
+
+def test_following_a_frame_not_known_is_said(browser, tmp_path):
+    """With frames.fixed, following a frame no transform names (a typo) is accepted (its
+    transforms may come later), and the page says it waits for them (it said nothing)."""
+    from pointflow import Pipeline
+
+    from .helpers import file_source, scene
+
+    src = dict(file_source(scene(str(tmp_path))), frame_id="map")
+    cfg = config(src, frames={"fixed": "map"})
+    with Pipeline.from_dict(cfg, out_dir=str(tmp_path)) as p:
+        p.wait(90, until=lambda: p.stats()["stages"]["render"].get("drawn_count", 0) >= 6401)
+        page = _open(browser, p)
+        page.fill("#follow", "nosuchframe")
+        page.press("#follow", "Enter")
+        page.wait_for_function("document.getElementById('info').textContent.startsWith('follow nosuchframe: ')",
+                               timeout=30000)
+        text = page.locator("#info").inner_text()
+        assert "waiting for transforms linking 'nosuchframe' to 'map'" in text, text
+        assert page.locator("#follow").get_attribute("data-status").startswith("waiting"), "the box says so too"
+        assert not page.errors, page.errors
+        page.context.close()

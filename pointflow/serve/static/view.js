@@ -11,7 +11,7 @@
   const canvas = $("view"), g = canvas.getContext("2d"), statusEl = $("status"), info = $("info");
   const over = $("overlay"), og = over.getContext("2d");
   let ws = null, req = 1, frame = { width: 0, height: 0 }, hello = null, state0 = null, ended = false;
-  let lastState = null, drawing = Promise.resolve(), measureA = null, pendingPicks = new Map();
+  let lastState = null, drawing = Promise.resolve(), measureA = null, pendingPicks = new Map(), followSaid = "";
   let shown = 0, shownT = [], playbackState = null, seeking = false, seekHold = null;
   const marks = { pick: null, measure: [] };
   const show = { axes: true, grid: true, compass: true, legend: true };
@@ -194,6 +194,12 @@
     $("point_size").value = st.point_size; $("point_size_value").textContent = String(st.point_size);
     $("edl").checked = !!st.edl;
     $("follow").value = (s.camera && s.camera.follow) || "";
+    // a frame followed but not known (a typo, or its transforms not come yet): said, not silent
+    const fs = s.follow_status || "";
+    $("follow").title = fs ? `follow: ${fs}` : "a frame for the camera to follow (frames.fixed)";
+    $("follow").dataset.status = fs;
+    if (fs && fs !== "following" && fs !== followSaid) { info.textContent = `follow ${s.camera.follow}: ${fs}`; info.hidden = false; }
+    followSaid = fs;
     // a pick's channel values belong to the colouring shown: a new colouring clears the panel
     if (before && (before.color_by !== st.color_by) && (marks.pick || marks.measure.length)) clearMarks();
   }
