@@ -261,6 +261,10 @@ def load_config(data: dict | str | os.PathLike, *, base_dir: str | None = None) 
         data["sources"] = [data.pop("source")]
     if "sources" not in data and "router" in data:
         data["sources"] = []  # a router's file (`pointflow router`) needs no source
+    if "sources" not in data and "map" in data:
+        # a map on its own (docs/map.md): an idle api source, so the pipeline has its ring
+        # (Pipeline.send can still add live points to it)
+        data["sources"] = [{"transport": "api", "name": "api"}]
     if "sources" not in data:
         raise ConfigError("sources", "required key is missing (a 'source:' mapping or a 'sources:' list)")
     cfg = load_dataclass(PipelineConfig, data, "")

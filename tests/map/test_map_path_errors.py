@@ -110,3 +110,16 @@ def test_map_cache_dir_is_checked_at_load_and_relative_to_the_config(tmp_path, c
     assert code == EXIT_CONFIG and "Traceback" not in err, err
     lines = err.splitlines()
     assert len(lines) == 1 and "map.cache_dir: " in lines[0], err
+
+
+def test_a_map_on_its_own_is_a_config(tmp_path):
+    """A config with a map: block and no source (README: a big file goes in a map: block) was
+    refused ('sources: required key is missing'); it gets an idle api source."""
+    from pointflow.config import load_config
+
+    las = write_las(str(tmp_path / "t.las"), 100)
+    cfg = tmp_path / "m.yaml"
+    cfg.write_text(f"map: {{path: {las}}}\n")
+    c = load_config(str(cfg))
+    assert [(s.name, s.transport) for s in c.sources] == [("api", "api")]
+    assert main(["validate", str(cfg)]) == 0
