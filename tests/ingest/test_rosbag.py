@@ -228,3 +228,19 @@ def test_bad_topics_and_files_are_config_errors_listing_the_pointcloud2_topics(t
         w.write(c, 1, ts.serialize_cdr(ts.types["std_msgs/msg/String"](data="x"), "std_msgs/msg/String"))
     with pytest.raises(ConfigError, match=r"no PointCloud2 topics \(topics: /chatter \(std_msgs/msg/String\)\)"):
         cls.validate_options({"path": str(only_strings)}, "sources[0].options", os.getcwd())
+
+
+def test_a_rejected_message_names_its_topic(tmp_path, caplog):
+    """A bag of several topics: the rejection line names the topic of the broken message
+    (stats count by reason only, so which topic was broken could not be told)."""
+    import logging
+
+    msgs = [("/good", SEC, ru.cloud_padded(1, n=20), None),
+            ("/front/points", SEC + SEC // 4, ru.broken(ru.REJECT_KINDS[0], seed=3), ru.REJECT_KINDS[0]),
+            ("/good", SEC + SEC // 2, ru.cloud_padded(2, n=20), None)]
+    path = _write(tmp_path, "mcap", msgs)
+    caplog.set_level(logging.WARNING)
+    chunks, t = _replay(path, topics=["/good", "/front/points"])
+    assert len(chunks) == 2 and t.counters["rejected"] == 1
+    lines = [r.getMessage() for r in caplog.records if "rejected message" in r.getMessage()]
+    assert len(lines) == 1 and f"[{ru.REJECT_KINDS[0]}]" in lines[0] and "topic /front/points: " in lines[0], lines

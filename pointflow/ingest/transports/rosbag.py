@@ -25,7 +25,7 @@ import time
 from pathlib import Path
 from typing import Any, Iterator, Literal, Optional
 
-from ...chunk import PointChunk
+from ...chunk import ChunkError, PointChunk
 from ...frames.message import Transforms
 from ...typed import ConfigError
 from ..pointcloud2 import MSGTYPES, PointCloud2Decoder
@@ -209,6 +209,8 @@ class RosbagTransport(Transport):
         t1 = time.perf_counter()
         try:
             return self.decoder.decode(msg, f"{self.source_id}:{conn.topic}")
+        except ChunkError as exc:  # which of the bag's topics it was (stats count by reason only)
+            raise ChunkError(exc.reason, f"topic {conn.topic}: {exc.message}") from None
         finally:  # where a replay's time goes (bench/bench_ros.py): rosbags vs the decoder
             self.counters["deserialize_s"] += t1 - t0
             self.counters["decode_s"] += time.perf_counter() - t1
