@@ -125,3 +125,13 @@ def test_bad_chunks_from_a_plugin_are_rejected_at_their_source(tmp_path):
     assert any("yielded a dict, expected a PointChunk" in ln for ln in lines)
     assert any("ingest.max_chunk_points" in ln for ln in lines)
     assert "Traceback" not in r.stderr
+
+
+def test_a_plugin_class_without_chunks_is_refused_at_load(tmp_path, monkeypatch):
+    """A Transport subclass that does not define chunks() validated and then failed in every
+    start of its stage (three restarts); it is refused at load, naming what it lacks."""
+    (tmp_path / "nochunks_plug.py").write_text(
+        "from pointflow.ingest.transports.base import Transport\n\nclass NoChunks(Transport):\n    name = 'nochunks'\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    with pytest.raises(ConfigError, match=r"nochunks_plug:NoChunks does not define chunks\(\)"):
+        load_config({"source": {"transport": "nochunks_plug:NoChunks"}})

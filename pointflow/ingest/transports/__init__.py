@@ -39,6 +39,10 @@ def _load_target(target: str, what: str) -> type[Transport]:
         raise ConfigError("", f"transport plugin {what}: module {mod_name!r} has no attribute {attr!r}")
     if not (isinstance(cls, type) and issubclass(cls, Transport)):
         raise ConfigError("", f"transport plugin {what}: {target} is not a pointflow Transport subclass")
+    missing = sorted(getattr(cls, "__abstractmethods__", ()))
+    if missing:  # refused at load: it could only fail in every start of its stage
+        raise ConfigError("", f"transport plugin {what}: {target} does not define {', '.join(m + '()' for m in missing)} "
+                              f"(docs/plugins.md)")
     return cls
 
 
@@ -74,7 +78,11 @@ def available_transports() -> dict[str, str]:
     """name -> where it comes from, for ``pointflow info``."""
     out = {n: "built-in" for n in BUILTINS}
     for n, ep in entry_point_transports().items():
-        out[n] = f"plugin ({ep.value})"
+        try:
+            _load_target(ep.value, repr(n))
+            out[n] = f"plugin ({ep.value})"
+        except ConfigError as exc:  # listed, and why it cannot be used
+            out[n] = f"plugin ({ep.value}), does not load: {exc.message.split(': ', 1)[-1]}"
     return out
 
 
