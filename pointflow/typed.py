@@ -182,6 +182,21 @@ def type_name(tp) -> str:
     return getattr(tp, "__name__", str(tp))
 
 
+def _yaml_number_hint(value: Any) -> str:
+    """YAML (1.1, PyYAML) reads 1.5e6 and 1e-3 as strings (its floats need a dot and a signed
+    exponent): say how to write them as numbers."""
+    if not isinstance(value, str):
+        return ""
+    try:
+        x = float(value)
+    except ValueError:
+        return ""
+    if x != x or x in (float("inf"), float("-inf")):
+        return ""
+    plain = str(int(x)) if x.is_integer() and abs(x) < 1e16 else repr(x)
+    return f" (YAML reads {value} as text; write {plain})"
+
+
 def convert(value: Any, tp: Any, path: str) -> Any:
     origin = typing.get_origin(tp)
     if tp is Any:
@@ -228,12 +243,14 @@ def convert(value: Any, tp: Any, path: str) -> Any:
             raise ConfigError(path, f"expected true or false, got {value!r}")
         return value
     if tp is int:
+        if isinstance(value, float) and value.is_integer() and abs(value) < 2 ** 63:
+            return int(value)  # 1.5e+6 (YAML's float) is a whole number
         if isinstance(value, bool) or not isinstance(value, int):
-            raise ConfigError(path, f"expected an integer, got {type(value).__name__} {value!r}")
+            raise ConfigError(path, f"expected an integer, got {type(value).__name__} {value!r}{_yaml_number_hint(value)}")
         return value
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ConfigError(path, f"expected a number, got {type(value).__name__} {value!r}")
+            raise ConfigError(path, f"expected a number, got {type(value).__name__} {value!r}{_yaml_number_hint(value)}")
         if value != value or value in (float("inf"), float("-inf")):
             raise ConfigError(path, f"must be finite, got {value!r}")
         return float(value)

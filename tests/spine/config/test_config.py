@@ -37,6 +37,9 @@ def test_demo_config_loads():
     ("ring.max_points", -5, "must be >= 1"),
     ("ring.max_points", "lots", "expected an integer"),
     ("ring.max_points", 1.5, "expected an integer"),
+    # YAML reads 1.5e6 as text: the message says how to write it (1.5e+6, a float, is taken)
+    ("ring.max_points", "1.5e6", "(YAML reads 1.5e6 as text; write 1500000)"),
+    ("cadence.target_hz", "1e1", "(YAML reads 1e1 as text; write 10)"),
     ("ring.eviction", "random", "must be one of drop_oldest, drop_newest, importance"),
     ("cadence.target_hz", -60, "must be > 0"),
     ("cadence.target_hz", 0, "must be > 0"),
@@ -155,3 +158,8 @@ def test_a_section_with_a_switch_takes_true_or_false():
     jsonschema.validate({**BASE, "render": {"edl": True}, "tracing": False}, json_schema())
     with pytest.raises(jsonschema.ValidationError):
         jsonschema.validate({**BASE, "render": {"edl": "yes"}}, json_schema())
+
+
+def test_a_whole_float_is_an_integer():
+    """YAML's 1.5e+6 is a float: a whole one is taken where an integer is expected."""
+    assert load_config(with_("ring.max_points", 1.5e6)).ring.max_points == 1_500_000
