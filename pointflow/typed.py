@@ -293,6 +293,8 @@ def check_keys(data: dict, valid: list[str], path: str) -> None:
     if unknown:
         key = str(unknown[0])
         near = difflib.get_close_matches(key, valid, n=1, cutoff=0.75)
+        if not near and len(key) >= 4:  # a part of the name: map.budget -> point_budget
+            near = [v for v in valid if key.lower() in v.lower().split("_") or v.lower().endswith("_" + key.lower())][:1]
         hint = f" (did you mean {near[0]!r}?)" if near else ""
         raise ConfigError(join_path(path, key), f"unknown key {key!r}{hint}; expected one of {', '.join(valid)}")
 

@@ -36,6 +36,7 @@ def test_send_errors_name_the_key_and_the_valid_values(send, path, must_say):
 
 @pytest.mark.parametrize("extra,path,must_say", [
     ({"rnder": {}}, "rnder", ["unknown key 'rnder'", "did you mean 'render'", "send", "ring"]),
+    ({"ring": {"points": 5}}, "ring.points", ["did you mean 'max_points'"]),   # a part of the name
     ({"render": {"camra": {}}}, "render.camra", ["did you mean 'camera'", "size", "backend"]),
     ({"render": {"camera": {"position": [1, "a", 2]}}}, "render.camera.position[1]", ["expected a number", "'a'"]),
     ({"render": {"camera": {"position": [1, 2]}}}, "render.camera.position", ["[x, y, z]"]),
