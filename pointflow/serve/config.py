@@ -89,6 +89,20 @@ _TOKEN = re.compile(r"^[A-Za-z0-9_-]{16,128}$")
 _HOST = re.compile(r"^(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9]([A-Za-z0-9.-]{0,252}))(:[0-9]{1,5})?$")
 
 
+#: A DNS name: labels of letters, digits and '-', joined by dots.
+_NAME_RE = re.compile(r"[A-Za-z0-9]([A-Za-z0-9-]*[A-Za-z0-9])?(\.[A-Za-z0-9]([A-Za-z0-9-]*[A-Za-z0-9])?)*\.?")
+
+
+def _is_host(h: str) -> bool:
+    """An IP address or a DNS name: what a socket can bind; a space or a scheme is a typo,
+    not a host "reachable from other hosts"."""
+    try:
+        ipaddress.ip_address(h.split("%", 1)[0])
+        return True
+    except ValueError:
+        return bool(_NAME_RE.fullmatch(h)) and len(h) <= 253
+
+
 def is_loopback_host(host: str) -> bool:
     h = host.strip("[]")
     if h == "localhost":
@@ -103,6 +117,9 @@ def check_serve(sc: ServeConfig, path: str, base_dir: str = ".") -> None:
     """Load-time checks; resolves the TLS paths against ``base_dir`` (in place)."""
     if not sc.host or not sc.host.strip():
         raise ConfigError(f"{path}.host", "must be an address to listen on, e.g. 127.0.0.1")
+    if not _is_host(sc.host.strip("[]")):
+        raise ConfigError(f"{path}.host", f"expected an IP address or a host name to listen on (e.g. 127.0.0.1, "
+                                          f"0.0.0.0, ::1, robot.local), got {sc.host!r}")
     if sc.token is not None and not _TOKEN.match(sc.token):
         raise ConfigError(f"{path}.token", "must be 16-128 letters, digits, '-' or '_' (or null for a random one)")
     if sc.tls is not None:

@@ -51,7 +51,10 @@ def test_tls_files_are_checked_and_resolved(tmp_path):
 @pytest.mark.parametrize("block,key", [({"token": "short"}, "serve.token"), ({"port": 70000}, "serve.port"),
                                        ({"limits": {"queue_frames": 0}}, "serve.limits.queue_frames"),
                                        ({"allowed_origins": ["evil.example"]}, "serve.allowed_origins[0]"),
-                                       ({"jpeg_quality": 0}, "serve.jpeg_quality"), ({"bogus": 1}, "serve.bogus")])
+                                       ({"jpeg_quality": 0}, "serve.jpeg_quality"), ({"bogus": 1}, "serve.bogus"),
+                                       # not a host at all (it was "reachable from other hosts")
+                                       ({"host": "my host", "insecure": True}, "serve.host"),
+                                       ({"host": "http://robot", "insecure": True}, "serve.host")])
 def test_bad_values_name_their_key(block, key):
     with pytest.raises(ConfigError) as exc:
         _load(block)
