@@ -208,8 +208,12 @@ class ViewHub:
         if v is None and cmd == "close":  # closed already (the page went, then the server stopped): done
             return
         if v is None:  # a restarted render stage, or a closed view: the client opens it again
-            gone = protocol.gone_reply(vid, req)
-            self._bad(peer, vid, req, ControlError("view", "unknown view"), "view", reply=gone)
+            # not bad input: a message in flight when its page went (killed), or from before a
+            # restart; counted and answered "gone", logged at debug (it warned at every stop)
+            ex = self.ctx.counters.extra
+            ex["view_gone_messages"] = ex.get("view_gone_messages", 0) + 1
+            self.ctx.log.debug("view message for a view not open here (%s %s): answered gone", vid, cmd)
+            self._send(peer, protocol.gone_reply(vid, req))
             return
         v.peer = peer
         args = {k: val for k, val in msg.items() if k not in ("view", "req")}
