@@ -208,7 +208,9 @@ class Supervisor:
             st = self.stages.get(name)
             if st is not None:
                 if st.local is None:
-                    raise ValueError(f"source {name!r} is a {st.kind} stage, not an api source")
+                    what = "a source stage" if st.kind == SOURCE else f"the {st.kind} stage"
+                    raise ValueError(f"source {name!r}: {name!r} is {what}, not an api source (Pipeline.send feeds "
+                                     f"api sources; name one that is not a stage)")
                 return st.local
             allowed = None if not self.uses_ring else self.cfg.ring_channels() + time_fields(self.cfg.frames)
             declared = next((s for s in self.cfg.sources if s.name == name), None)

@@ -85,8 +85,10 @@ def test_bad_frame_or_stamp(pipe, kw, words):
 def test_bad_source_name(pipe):
     with pytest.raises(ValueError, match=r"source: expected a source name \(a non-empty str\), got ''"):
         pipe.send(_good()[0], source="")
-    with pytest.raises(ValueError, match="source 'lidar' is a source stage, not an api source"):
+    with pytest.raises(ValueError, match="source 'lidar': 'lidar' is a source stage, not an api source"):
         pipe.send(_good()[0], source="lidar")
+    with pytest.raises(ValueError, match="source 'ingest': 'ingest' is the ingest stage, not an api source"):
+        pipe.send(_good()[0], source="ingest")  # it said "is a ingest stage"
 
 
 @pytest.mark.parametrize("transforms,words", [
