@@ -135,3 +135,12 @@ def test_a_plugin_class_without_chunks_is_refused_at_load(tmp_path, monkeypatch)
     monkeypatch.syspath_prepend(str(tmp_path))
     with pytest.raises(ConfigError, match=r"nochunks_plug:NoChunks does not define chunks\(\)"):
         load_config({"source": {"transport": "nochunks_plug:NoChunks"}})
+
+
+def test_a_plugin_in_the_working_directory_gets_a_hint(tmp_path, monkeypatch):
+    """`pointflow run` does not import from the working directory: a dotted-path plugin there
+    is not found, and the error says why and what to do."""
+    (tmp_path / "cwdplug.py").write_text("from pointflow.ingest.transports.base import Transport\n")
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(ConfigError, match=r"No module named 'cwdplug' \(it is in the working directory.*PYTHONPATH=\."):
+        load_config({"source": {"transport": "cwdplug:T"}})

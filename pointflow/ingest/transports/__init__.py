@@ -30,7 +30,16 @@ def _load_target(target: str, what: str) -> type[Transport]:
     try:
         mod = importlib.import_module(mod_name)
     except Exception as exc:  # noqa: BLE001 - a plugin can fail in any way
-        raise ConfigError("", f"transport plugin {what} failed to import module {mod_name!r}: {type(exc).__name__}: {exc}") from None
+        hint = ""
+        if isinstance(exc, ModuleNotFoundError) and exc.name == mod_name.split(".")[0]:
+            import os
+
+            here = os.path.exists(mod_name.split(".")[0] + ".py") or os.path.isdir(mod_name.split(".")[0])
+            hint = (" (it is in the working directory, which the pointflow command does not import from: "
+                    "run with PYTHONPATH=. or pip install it)" if here else
+                    " (install it, or put its folder on PYTHONPATH)")
+        raise ConfigError("", f"transport plugin {what} failed to import module {mod_name!r}: "
+                              f"{type(exc).__name__}: {exc}{hint}") from None
     try:
         cls = getattr(mod, attr) if attr else None
     except AttributeError:
