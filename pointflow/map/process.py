@@ -68,9 +68,11 @@ class _Opener(threading.Thread):
 def index_progress(log, counters=None):
     """The index build's ``progress(done, total)`` in the map stage: ``map_index_pct`` for the
     run's live line (``map: indexing 35%``) and a log line per tenth,
-    ``map index: 90% (627949 of 697721 points)``: the percentage of the points counted, rounded
-    down, 100 % only once the index is in place."""
+    ``map index: 90% (627949 of 697721 points, about 3 s left)``: the percentage of the points
+    counted, rounded down, 100 % only once the index is in place; the time left from the rate
+    so far (as the command line's progress line gives it)."""
     last = [-1]
+    t0 = time.monotonic()
 
     def progress(done: int, total: int) -> None:
         pct = min(100, int(100 * done / max(total, 1)))
@@ -78,7 +80,9 @@ def index_progress(log, counters=None):
             counters.extra["map_index_pct"] = pct
         if pct // 10 != last[0]:
             last[0] = pct // 10
-            log.info("map index: %d%% (%d of %d points)", pct, done, total)
+            el = time.monotonic() - t0
+            left = f", about {el * (total - done) / done:.0f} s left" if 0 < done < total and el > 0.5 else ""
+            log.info("map index: %d%% (%d of %d points%s)", pct, done, total, left)
 
     return progress
 

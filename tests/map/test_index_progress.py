@@ -50,3 +50,22 @@ def test_live_line_says_indexing_then_the_points_drawn():
     assert "map=697.7k" in line and "indexing" not in line
     stats["stages"]["map"]["map_error"] = "tile.laz: not a valid LAS/LAZ file"
     assert "map=error" in live_summary(stats)
+
+
+def test_index_progress_lines_say_the_time_left(caplog, monkeypatch):
+    """Past half a second, a tenth's line says about how long is left from the rate so far
+    (the pipeline's lines had no ETA, the command line's progress line had one)."""
+    import pointflow.map.process as mp
+
+    now = [100.0]
+    monkeypatch.setattr(mp.time, "monotonic", lambda: now[0])
+    progress = index_progress(logging.getLogger("test.eta"))
+    with caplog.at_level(logging.INFO, logger="test.eta"):
+        progress(0, 1000)
+        now[0] += 10.0
+        progress(250, 1000)   # 250 points in 10 s: 750 left, 30 s
+        now[0] += 20.0
+        progress(1000, 1000)
+    lines = [r.getMessage() for r in caplog.records]
+    assert lines == ["map index: 0% (0 of 1000 points)", "map index: 25% (250 of 1000 points, about 30 s left)",
+                     "map index: 100% (1000 of 1000 points)"], lines
