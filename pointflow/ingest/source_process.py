@@ -70,6 +70,49 @@ def _send(ctx, sock, frames, lossless: bool) -> bool:
         ctx.beat()
 
 
+#: A plugin's open() or chunks() inside one call this long is said (once per call): the
+#: stage looks alive (its pulse thread beats) but no chunk can come and a stop waits for it.
+STALL_S = 10.0
+
+
+class _StallWatch:
+    """Says, from a thread of its own, when a plugin transport's ``open()`` has not returned
+    or its ``chunks()`` has not yielded for :data:`STALL_S` (docs/plugins.md: chunks() yields
+    None while idle, never blocking more than ~100 ms). Built-in transports are not watched."""
+
+    def __init__(self, log, source_id: str, transport: str):
+        import threading
+
+        self.log, self.source_id, self.transport = log, source_id, transport
+        self.what: str | None = None
+        self.t0 = 0.0
+        self.said = False
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="pointflow-stall-watch", daemon=True)
+        self._thread.start()
+
+    def enter(self, what: str) -> None:
+        self.t0, self.said, self.what = time.monotonic(), False, what
+
+    def leave(self) -> None:
+        self.what = None
+
+    def _run(self) -> None:
+        while not self._stop.wait(1.0):
+            what, t0 = self.what, self.t0
+            if what is not None and not self.said and time.monotonic() - t0 >= STALL_S:
+                self.said = True
+                hint = ("open() should connect or fail with a clear error" if what == "open()" else
+                        "chunks() should yield None while idle and never block more than ~100 ms, or the stage "
+                        "cannot stop on time (docs/plugins.md)")
+                self.log.warning("source %r: transport %s: %s has not %s for %.0f s; %s", self.source_id,
+                                 self.transport, what, "returned" if what == "open()" else "yielded",
+                                 time.monotonic() - t0, hint)
+
+    def close(self) -> None:
+        self._stop.set()
+
+
 def main(ctx) -> None:
     """Stage loop (:data:`KIND`)."""
     idx = ctx.info.source_index if ctx.info.source_index >= 0 else 0
@@ -109,8 +152,15 @@ def main(ctx) -> None:
     seq = 0
     control = None  # the replay's control path (pause, seek, step, rate, loop): ingest/playback.py
     clock = transport.playback if getattr(transport, "seekable", False) else None
+    from .transports import BUILTINS
+
+    watch = _StallWatch(ctx.log, source_id, scfg.transport) if scfg.transport not in BUILTINS else None
     try:
+        if watch is not None:
+            watch.enter("open()")
         transport.open()
+        if watch is not None:
+            watch.leave()
         if clock is not None:
             clock.configure(ctx.cfg.playback)
             transport.counters.update(clock.counters())
@@ -125,10 +175,15 @@ def main(ctx) -> None:
                 transport.counters.update(clock.counters())
             t0 = time.monotonic_ns()
             try:
+                if watch is not None:
+                    watch.enter("chunks()")
                 chunk = next(it)
             except StopIteration:
                 _stay_connected(ctx)
                 break
+            finally:
+                if watch is not None:
+                    watch.leave()
             ctx.beat()
             if chunk is None:
                 continue
@@ -185,6 +240,8 @@ def main(ctx) -> None:
     except InputUnreadable as exc:  # restarting cannot help: the run fails, naming the inputs
         ctx.fail_run(str(exc))
     finally:
+        if watch is not None:
+            watch.close()
         try:
             transport.close()
         finally:

@@ -144,3 +144,33 @@ def test_a_plugin_in_the_working_directory_gets_a_hint(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     with pytest.raises(ConfigError, match=r"No module named 'cwdplug' \(it is in the working directory.*PYTHONPATH=\."):
         load_config({"source": {"transport": "cwdplug:T"}})
+
+
+def test_a_plugin_stuck_in_chunks_is_said(monkeypatch, caplog):
+    """A plugin's chunks() that blocks (or open() that does not return) kept the stage alive
+    and silent until --duration ended; the source process's watch says it once per call."""
+    import logging
+    import time
+
+    from pointflow.ingest import source_process as sp
+
+    monkeypatch.setattr(sp, "STALL_S", 1.0)
+    log = logging.getLogger("test.stall")
+    w = sp._StallWatch(log, "robot", "myplug:Slow")
+    try:
+        with caplog.at_level(logging.WARNING, logger="test.stall"):
+            w.enter("chunks()")
+            time.sleep(0.3)
+            w.leave()                       # a quick call: nothing said
+            w.enter("chunks()")
+            end = time.monotonic() + 10
+            while not caplog.records and time.monotonic() < end:
+                time.sleep(0.1)
+            time.sleep(1.5)                 # still the same call: said once
+            w.leave()
+        msgs = [r.getMessage() for r in caplog.records]
+        assert len(msgs) == 1, msgs
+        assert msgs[0].startswith("source 'robot': transport myplug:Slow: chunks() has not yielded for ")
+        assert "yield None while idle" in msgs[0]
+    finally:
+        w.close()
