@@ -36,6 +36,9 @@ class MapConfig:
     #: Where level-of-detail indexes are kept (relative to the config file's folder; made at
     #: load); null = the user cache directory.
     cache_dir: Optional[str] = None
+    #: The length unit the views label the map with (grid, measures, height legend), e.g.
+    #: ``m``, ``ft``, ``US ft``; null = from the files' CRS, else metres (docs/views.md "Units").
+    units: Optional[str] = None
     #: Milliseconds the map stage spends loading before it hands over what it has (a
     #: camera move is shown refined step by step, coarse first).
     load_slice_ms: float = field(default=100.0, metadata=check(positive))
@@ -69,6 +72,8 @@ def check_map(mc: MapConfig, path: str, base_dir: str = ".") -> None:
     mc.path = out[0] if isinstance(mc.path, str) else out
     if mc.cache_dir is not None:
         mc.cache_dir = _check_cache_dir(mc.cache_dir, f"{path}.cache_dir", base_dir)
+    if mc.units is not None and (len(mc.units) > 16 or not mc.units.isprintable()):
+        raise ConfigError(f"{path}.units", f"expected a short unit label such as m, ft or US ft, got {mc.units!r}")
     for i, c in enumerate(mc.channels or []):
         if c in ("x", "y", "z"):
             raise ConfigError(f"{path}.channels[{i}]", "x, y, z are always kept; list only channels")

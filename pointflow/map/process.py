@@ -482,7 +482,8 @@ def main(ctx) -> None:
     t_start = time.monotonic()
     from .source import header_units
 
-    units = header_units(files, ctx.log)  # from the CRS: a map in feet is labelled in feet
+    # the user's word, else the CRS: a map in feet is labelled in feet
+    units = {"xy": mc.units, "z": mc.units} if mc.units is not None else header_units(files, ctx.log)
     bounds = _send_bounds(push, files, units=units)  # from the headers: the views frame the map before it is open
     from .preview import Preview
 

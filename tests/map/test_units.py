@@ -64,3 +64,27 @@ def test_a_map_whose_files_disagree_is_said_and_unlabelled(tmp_path, caplog):
     assert "a.las ft, b.las m" in caplog.text
     assert header_units([a, c], log) is None, "a file without a CRS: the views take metres"
     assert header_units([str(tmp_path / "d.ply")], log) is None, "PLY says no units"
+
+
+def test_map_units_in_the_config_win(tmp_path):
+    """map.units labels a map whose file says nothing (or says wrong): a view's frames carry it."""
+    from pointflow import Pipeline
+    from pointflow.config import ConfigError, load_config
+    from view.test_views import ViewClient  # tests/ is on the path (rootdir)
+
+    las = write_las(str(tmp_path / "t.las"), 2000)
+    with pytest.raises(ConfigError, match="map.units: expected a short unit label"):
+        load_config({"map": {"path": las, "units": "x" * 40}})
+    cfg = {"map": {"path": las, "units": "US ft", "cache_dir": str(tmp_path / "c")},
+           "render": {"backend": "cpu", "size": [64, 48], "output": {"every_n_frames": 100000}}}
+    with Pipeline.from_dict(cfg, out_dir=str(tmp_path)) as pipe:
+        pipe.wait(120, until=lambda: pipe.stats()["stages"]["render"].get("map_points", 0) >= 2000)
+        cl = ViewClient(pipe._sup.endpoints.views)
+        try:
+            cl.send(view="u", cmd="open", width=64, height=48, req=1)
+            cl.reply("u", 1)
+            cl.send(view="u", cmd="credit", n=2)
+            head = cl.frame("u", 0, timeout_s=120)[0]
+            assert head["units"] == {"xy": "US ft", "z": "US ft"}, head.get("units")
+        finally:
+            cl.close()
