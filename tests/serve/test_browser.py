@@ -108,6 +108,12 @@ def test_click_on_the_known_point_shows_its_coordinates(browser, pipe):
                            ".map(pointflowOverlay.legendTitle)")
     assert titles == ["z (ft) · turbo · auto range", "z (m) · turbo", "intensity · viridis · auto range"], titles
     assert page.evaluate("window.pointflowView.units()") == {"xy": "m", "z": "m"}, "live points alone: metres"
+    # legend ticks with the decimals their range needs (3 always: "406.260 450.000" ran together)
+    ticks = page.evaluate("[[406.26, 114.25], [450, 114.25], [0.5, 1], [12.5, 0.01], [6400, 6400], [2e7, 1e7]]"
+                          ".map(([v, r]) => pointflowOverlay.fmtTick(v, r))")
+    assert ticks == ["406.3", "450.0", "0.500", "12.500", "6400", "2.000e+7"], ticks
+    lo = page.locator("#legend_ticks span.lo").inner_text()
+    assert "." not in lo, f"intensity 0..6400: whole numbers ({lo!r})"
     # two clicks measure: the same point twice is a distance of 0
     page.select_option("#mode", "measure")
     c = (box["x"] + box["width"] / 2 + dx, box["y"] + box["height"] / 2 + dy)

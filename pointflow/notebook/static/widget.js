@@ -211,7 +211,7 @@ function render({ model, el: root }) {
     legendBar.getContext("2d").putImageData(new ImageData(lut, 256, 1), 0, 0);
     legendTicks.innerHTML = "";
     const put = (cls, v, frac) => {
-      const t = el("span", { class: cls, text: fmt(v) }, legendTicks);
+      const t = el("span", { class: cls, text: overlay ? overlay.fmtTick(v, hi - lo) : fmt(v) }, legendTicks);
       if (cls === "mid") t.style.left = `${100 * frac}%`;
       el("i", {}, legendTicks).style.left = `${Math.min(99.5, 100 * frac)}%`;
     };

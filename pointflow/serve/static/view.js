@@ -106,7 +106,7 @@
     ticks.innerHTML = "";
     const put = (cls, v, frac) => {
       const s = document.createElement("span");
-      s.className = cls; s.textContent = fmt(v);
+      s.className = cls; s.textContent = pointflowOverlay.fmtTick(v, hi - lo);
       if (cls === "mid") s.style.left = `${100 * frac}%`;
       ticks.appendChild(s);
       const t = document.createElement("i"); t.style.left = `${Math.min(99.5, 100 * frac)}%`; ticks.appendChild(t);

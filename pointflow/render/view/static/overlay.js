@@ -11,6 +11,7 @@
 //   pointflowOverlay.fmtFull(v) -> a picked value as shown (3 decimals up to 1e12)
 //   pointflowOverlay.fmtLen(x, unit) -> "200 m", "1.5 km", "200 ft" (unit "": none said)
 //   pointflowOverlay.legendTitle(legend) -> "z (ft) · turbo · auto range"
+//   pointflowOverlay.fmtTick(v, range) -> a legend tick with the decimals the range needs
 // Why an overlay and not pixels in the frame: crisp at any resolution and device pixel ratio,
 // switched on and off without a new frame, and the same on every render tier.
 "use strict";
@@ -199,6 +200,15 @@ var pointflowOverlay = (function () {
     return out;
   }
 
+  // a legend tick: as many decimals as the range needs (a range of 114 gives 1: "406.3",
+  // "450.0"), so the end and middle labels do not run into each other (3 decimals did)
+  function fmtTick(v, range) {
+    if (typeof v !== "number" || !isFinite(v)) return String(v);
+    if (Math.abs(v) >= 1e6 || (v !== 0 && Math.abs(v) < 1e-3)) return v.toExponential(3);
+    const d = range > 0 && isFinite(range) ? Math.min(3, Math.max(0, 3 - Math.floor(Math.log10(range)))) : 3;
+    return v.toFixed(d);
+  }
+
   // the colour legend's title: the channel, its unit for heights (the frame's legend.unit)
   function legendTitle(lg) {
     const z = lg.color_by === "z" || lg.color_by === "height";
@@ -206,6 +216,6 @@ var pointflowOverlay = (function () {
     return `${lg.color_by}${unit ? ` (${unit})` : ""} · ${lg.colormap}${lg.auto ? " · auto range" : ""}`;
   }
 
-  return { project, draw, niceStep, layout, fmtLen, fmtFull, decodeLut, legendTitle };
+  return { project, draw, niceStep, layout, fmtLen, fmtFull, fmtTick, decodeLut, legendTitle };
 })();
 if (typeof module !== "undefined") module.exports = pointflowOverlay;
