@@ -296,7 +296,8 @@ def check_keys(data: dict, valid: list[str], path: str) -> None:
         if not near and len(key) >= 4:  # a part of the name: map.budget -> point_budget
             near = [v for v in valid if key.lower() in v.lower().split("_") or v.lower().endswith("_" + key.lower())][:1]
         hint = f" (did you mean {near[0]!r}?)" if near else ""
-        raise ConfigError(join_path(path, key), f"unknown key {key!r}{hint}; expected one of {', '.join(valid)}")
+        raise ConfigError(join_path(path, key), f"unknown key {key!r}{hint}; " +
+                          (f"expected one of {', '.join(valid)}" if valid else f"{path or 'this block'} takes no keys"))
 
 
 def join_path(path: str, key: str) -> str:

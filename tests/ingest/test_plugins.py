@@ -174,3 +174,13 @@ def test_a_plugin_stuck_in_chunks_is_said(monkeypatch, caplog):
         assert "yield None while idle" in msgs[0]
     finally:
         w.close()
+
+
+def test_options_to_a_plugin_that_takes_none_say_so(tmp_path, monkeypatch):
+    """An option given to a plugin without options_schema said 'expected one of ' and nothing."""
+    (tmp_path / "noopt_plug.py").write_text(
+        "from pointflow.ingest.transports.base import Transport\n\nclass T(Transport):\n"
+        "    def chunks(self):\n        yield None\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    with pytest.raises(ConfigError, match=r"sources\[0\]\.options\.a: unknown key 'a'; sources\[0\]\.options takes no keys"):
+        load_config({"source": {"transport": "noopt_plug:T", "options": {"a": 1}}})
