@@ -225,6 +225,11 @@ class Pipeline:
         from ..render.imagefile import image_format
 
         image_format(path)  # refused here, before the render stage is asked
+        d = os.path.dirname(os.path.abspath(path))
+        while d and not os.path.exists(d) and os.path.dirname(d) != d:
+            d = os.path.dirname(d)  # the nearest folder that exists (the render stage makes the rest)
+        if d and os.path.exists(d) and not os.path.isdir(d):
+            raise ValueError(f"path: {d} is a file, not a folder: cannot write {path}")
         rep = self._request({"cmd": "save", "path": os.path.abspath(path)}, timeout_s)
         return rep["path"]
 

@@ -181,6 +181,11 @@ def test_save_frame_writes_the_format_its_suffix_names(pipe, tmp_path):
         assert "save_frame" in msg and name in msg and ".png, .jpg, .jpeg" in msg and "\n" not in msg, msg
         assert not (tmp_path / name).exists()
     assert open(pipe.save_frame(str(tmp_path / "after.png")), "rb").read(4) == b"\x89PNG"
+    # under a plain file: refused here, naming it (the render stage raised FileExistsError)
+    (tmp_path / "afile").write_text("x")
+    with pytest.raises(ValueError, match=f"path: {tmp_path / 'afile'} is a file, not a folder"):
+        pipe.save_frame(str(tmp_path / "afile" / "sub" / "f.png"))
+    assert open(pipe.save_frame(str(tmp_path / "new" / "dir" / "f.png")), "rb").read(4) == b"\x89PNG"
 
 
 def test_show_outside_a_notebook_says_so(pipe, capsys):
