@@ -65,9 +65,12 @@ class LinkSecurity:
     def __init__(self, ctx: zmq.Context, opts: LinkOptions, bind: bool, log: logging.Logger,
                  reconnect_initial_s: float = 0.1, reconnect_max_s: float = 5.0, fatal_refusal: bool = False):
         """``fatal_refusal``: the caller raises :attr:`refusal` as its error (the zmq source),
-        so it is not also logged here (an error is said once)."""
+        so it is not also logged here (an error is said once). :attr:`expected_leave`: a
+        callable, true when a peer's disconnect follows its sender's own stop (its final sync
+        came): said at info, not warned of."""
         self.ctx = ctx
         self.fatal_refusal = fatal_refusal
+        self.expected_leave = None
         self.o = opts
         self.bind = bind
         self.log = log
@@ -145,7 +148,11 @@ class LinkSecurity:
                     self._failed[where] -= 1
                     continue
                 c["peers"] = max(0, c["peers"] - 1)
-                self.log.warning("link peer went away on %s; ZeroMQ reconnects", where)
+                if self.expected_leave is not None and self.expected_leave():
+                    self.log.info("link peer left on %s after its sender stopped; ZeroMQ reconnects if it "
+                                  "comes back", where)
+                else:
+                    self.log.warning("link peer went away on %s; ZeroMQ reconnects", where)
             elif e in (zmq.EVENT_HANDSHAKE_FAILED_AUTH, zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL,
                        zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL):
                 c["refused_handshakes"] += 1

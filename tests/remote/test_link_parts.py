@@ -3,9 +3,11 @@ wire format, and the lost-in-transit ledger."""
 from __future__ import annotations
 
 import os
+import signal
 import stat
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -427,3 +429,27 @@ def test_a_sender_nobody_joined_does_not_say_it_sent(tmp_path):
     out = proc.stdout + proc.stderr
     assert "no receiver joined the link: " in out and "reached nobody" in out, out[-2000:]
     assert "MB on the link" not in out, out[-2000:]
+
+
+def test_a_sender_that_stops_is_not_a_peer_that_went_away(tmp_path):
+    """A viewer whose sender stopped normally: its final sync is said at info ('stopped:
+    sent ...'), and the disconnect after it too, not warned of as a peer that went away."""
+    port = _free_port()
+    (tmp_path / "s.yaml").write_text(
+        "source: {transport: synthetic, name: lidar, options: {scan_hz: 10, points_per_scan: 2000}}\n"
+        f"send: {{endpoint: 'tcp://127.0.0.1:{port}', socket: pub, bind: true, wait_subscribers: 1}}\n")
+    (tmp_path / "v.yaml").write_text(
+        f"source: {{transport: zmq, name: robot, options: {{endpoint: 'tcp://127.0.0.1:{port}'}}}}\n"
+        "render: {backend: cpu, size: [64, 48]}\n")
+    viewer = subprocess.Popen([sys.executable, "-m", "pointflow.cli", "run", "v.yaml", "--duration", "120", "-q",
+                               "--out", "out"], cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        snd = subprocess.run([sys.executable, "-m", "pointflow.cli", "send", "s.yaml", "--duration", "3", "-q"],
+                             cwd=tmp_path, capture_output=True, text=True, timeout=120)
+        assert snd.returncode == 0, snd.stderr[-2000:]
+        time.sleep(5)  # the viewer reads the final sync, then sees the disconnect
+        viewer.send_signal(signal.SIGINT)
+    finally:
+        _, err = viewer.communicate(timeout=120)
+    assert "sender of 'lidar' stopped: sent " in err, err[-3000:]
+    assert "went away" not in err and "left on tcp://" in err, err[-3000:]

@@ -78,6 +78,8 @@ class ZmqTransport(Transport):
             self._sock.setsockopt(zmq.SUBSCRIBE, o.topic.encode())
         self._link = LinkSecurity(self._ctx, o, o.bind, log, o.reconnect_initial_s, o.reconnect_max_s,
                                   fatal_refusal=True)
+        # a sender that said it stopped (its final sync) then closes its end: not a peer lost
+        self._link.expected_leave = lambda: bool(self.ledger.ended)
         self._link.apply(self._sock)
         try:
             (self._sock.bind if o.bind else self._sock.connect)(o.endpoint)
