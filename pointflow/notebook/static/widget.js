@@ -245,8 +245,7 @@ function render({ model, el: root }) {
       const a = measureA.pos;
       const d = Math.hypot(pos[0] - a[0], pos[1] - a[1], pos[2] - a[2]);
       wmarks = { pick: null, measure: [a, pos] }; marksPx = { pick: null, measure: [measureA.at, at] };
-      const u = frameUnits && frameUnits.xy != null ? frameUnits.xy : "m";
-      text = `distance ${fmtFull(d)}${u ? " " + u : ""}\nfrom ${a.map(fmtFull).join(", ")}\nto   ${pos.map(fmtFull).join(", ")}`;
+      text = `distance ${pointflowOverlay.fmtDistance(d, frameUnits)}\nfrom ${a.map(fmtFull).join(", ")}\nto   ${pos.map(fmtFull).join(", ")}`;
       measureA = null;
       canvas.dataset.distance = String(d);
     } else if (mode.value === "measure") {

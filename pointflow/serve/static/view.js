@@ -163,8 +163,7 @@
       if (!measureA) { measureA = pos; marks.measure = [pos]; text = "measure: first point\n" + text + "\n(click the second)"; }
       else {
         const d = Math.hypot(pos[0] - measureA[0], pos[1] - measureA[1], pos[2] - measureA[2]);
-        const u = frame.units && frame.units.xy != null ? frame.units.xy : "m";
-        text = `distance ${fmtFull(d)}${u ? " " + u : ""}\nfrom ${measureA.map(fmtFull).join(", ")}\nto   ${pos.map(fmtFull).join(", ")}`;
+        text = `distance ${pointflowOverlay.fmtDistance(d, frame.units)}\nfrom ${measureA.map(fmtFull).join(", ")}\nto   ${pos.map(fmtFull).join(", ")}`;
         marks.measure = [measureA, pos];
         measureA = null;
         canvas.dataset.distance = String(d);

@@ -10,6 +10,7 @@
 //   pointflowOverlay.layout(cam) -> {spacing, axisLength} (what draw uses)
 //   pointflowOverlay.fmtFull(v) -> a picked value as shown (3 decimals up to 1e12)
 //   pointflowOverlay.fmtLen(x, unit) -> "200 m", "1.5 km", "200 ft" (unit "": none said)
+//   pointflowOverlay.fmtDistance(d, units) -> a measure in full with its unit ("329.560 ft")
 //   pointflowOverlay.legendTitle(legend) -> "z (ft) · turbo · auto range"
 //   pointflowOverlay.fmtTick(v, range) -> a legend tick with the decimals the range needs
 // Why an overlay and not pixels in the frame: crisp at any resolution and device pixel ratio,
@@ -200,6 +201,12 @@ var pointflowOverlay = (function () {
     return out;
   }
 
+  // a measured distance in full, with the frame's unit (units.xy; metres when the frame says none)
+  function fmtDistance(d, units) {
+    const u = units && units.xy != null ? units.xy : "m";
+    return fmtFull(d) + (u ? " " + u : "");
+  }
+
   // a legend tick: as many decimals as the range needs (a range of 114 gives 1: "406.3",
   // "450.0"), so the end and middle labels do not run into each other (3 decimals did)
   function fmtTick(v, range) {
@@ -216,6 +223,6 @@ var pointflowOverlay = (function () {
     return `${lg.color_by}${unit ? ` (${unit})` : ""} · ${lg.colormap}${lg.auto ? " · auto range" : ""}`;
   }
 
-  return { project, draw, niceStep, layout, fmtLen, fmtFull, fmtTick, decodeLut, legendTitle };
+  return { project, draw, niceStep, layout, fmtLen, fmtFull, fmtDistance, fmtTick, decodeLut, legendTitle };
 })();
 if (typeof module !== "undefined") module.exports = pointflowOverlay;
